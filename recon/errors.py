@@ -1,0 +1,33 @@
+"""Named failures of the numerical core.
+
+Bad arguments (wrong shape, NaN, a negative radius) raise :class:`ValueError`. Work that cannot be
+done with valid arguments raises a :class:`ReconError` subclass whose message says what to change.
+``service/errors.py`` maps each class to one HTTP status and a stable code, so the classes here are
+part of the public contract: add new ones rather than re-purposing old ones.
+"""
+
+from __future__ import annotations
+
+
+class ReconError(Exception):
+    """Base class of every failure of work the core was asked to do with valid arguments."""
+
+
+class DegenerateInputError(ReconError):
+    """The input is well formed but carries too little information (too few points, zero length)."""
+
+
+class NoOverlapError(ReconError):
+    """The path does not come near the scan, so the scan cannot inform the reconstruction."""
+
+
+class UnitsMismatchError(ReconError):
+    """Sizes that look off by a factor of about 1000: metres read as millimetres or the reverse."""
+
+
+class RegistrationError(ReconError):
+    """Registration (ICP) of the path to the scan did not produce a trustworthy transform."""
+
+
+class InfeasibleTrajectoryError(ReconError):
+    """The robot cannot follow the path within its limits (reach, joint limits, singularities)."""

@@ -1,0 +1,260 @@
+"""Batched local fits: PCA of many neighbourhoods and polynomial least squares over all of them.
+
+Every function here works on a batch of B neighbourhoods at once, each padded to K points with a
+weight (0 for padding), so the reconstruction runs without a Python loop per path point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from recon.types import FloatArray
+
+
+def window_indices(n_points: int, half_width: int) -> NDArray[np.int64]:
+    """Index windows of ``2 * half_width + 1`` consecutive points, shifted inwards at the ends.
+
+    Near an end the window keeps its size and slides inwards (as Savitzky-Golay filters do at
+    their edges) rather than shrinking, so every fit has the same support.
+
+    Parameters
+    ----------
+    n_points : int
+    half_width : int
+
+    Returns
+    -------
+    ndarray of shape (n_points, w), int
+        ``w = min(2 * half_width + 1, n_points)``; row i holds the window of point i.
+    """
+    w = min(2 * half_width + 1, n_points)
+    start = np.clip(np.arange(n_points) - half_width, 0, n_points - w)
+    return start[:, None] + np.arange(w)[None, :]
+
+
+@dataclass(frozen=True)
+class PCA:
+    """Principal components of a batch of neighbourhoods.
+
+    Attributes
+    ----------
+    mean : ndarray of shape (B, 3)
+        Centre of mass mu.
+    axes : ndarray of shape (B, 3, 3)
+        Columns are the principal directions, largest variance first (C = (C^x C^y C^z)).
+    variances : ndarray of shape (B, 3)
+        Eigenvalues of the covariance, descending.
+    weight : ndarray of shape (B,)
+        Sum of the weights (the point count for 0/1 weights).
+    """
+
+    mean: FloatArray
+    axes: FloatArray
+    variances: FloatArray
+    weight: FloatArray
+
+    def to_local(self, points: FloatArray) -> FloatArray:
+        """Coordinates in the principal frame, ``C^T (p - mu)`` (Eq. 2).
+
+        Parameters
+        ----------
+        points : ndarray of shape (B, 3) or (B, K, 3)
+        """
+        centred = points - (self.mean if points.ndim == 2 else self.mean[:, None, :])
+        if points.ndim == 2:
+            return np.einsum("bij,bi->bj", self.axes, centred)
+        return np.einsum("bij,bki->bkj", self.axes, centred)
+
+    def to_world(self, local: FloatArray) -> FloatArray:
+        """Inverse of :meth:`to_local` for one point per neighbourhood, shape (B, 3)."""
+        return self.mean + np.einsum("bij,bj->bi", self.axes, local)
+
+
+def weighted_pca(points: FloatArray, weights: FloatArray | None = None) -> PCA:
+    """PCA (Eq. 1) of each neighbourhood in a batch.
+
+    Parameters
+    ----------
+    points : ndarray of shape (B, K, 3)
+    weights : ndarray of shape (B, K), optional
+        Non-negative weights; 0 marks padding. Default: all ones.
+
+    Returns
+    -------
+    PCA
+        Neighbourhoods with zero total weight get mean 0 and identity axes; callers check
+        ``weight`` before trusting them.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if weights is None:
+        weights = np.ones(points.shape[:2])
+    total = weights.sum(axis=1)
+    safe = np.where(total > 0, total, 1.0)
+    mean = np.einsum("bk,bki->bi", weights, points) / safe[:, None]
+    centred = points - mean[:, None, :]
+    cov = np.einsum("bk,bki,bkj->bij", weights, centred, centred) / safe[:, None, None]
+    variances, vectors = np.linalg.eigh(cov)  # ascending
+    return PCA(
+        mean=mean,
+        axes=vectors[:, :, ::-1].copy(),
+        variances=np.maximum(variances[:, ::-1], 0.0),
+        weight=total,
+    )
+
+
+@dataclass(frozen=True)
+class LinearFit:
+    """Weighted linear least squares ``y = A c`` solved in every neighbourhood of a batch.
+
+    Attributes
+    ----------
+    coef : ndarray of shape (B, p, m)
+        Coefficients for p basis functions and m outputs.
+    rms : ndarray of shape (B,)
+        Residual standard deviation over all outputs (dof-corrected), in the units of y.
+    normal_inverse : ndarray of shape (B, p, p)
+        Inverse of the weighted normal matrix ``A^T W A``, for leverages and standard errors.
+    dof : ndarray of shape (B,)
+        Residual degrees of freedom per output (points with weight > 0 minus p).
+    """
+
+    coef: FloatArray
+    rms: FloatArray
+    normal_inverse: FloatArray
+    dof: FloatArray
+
+    def predict(self, design_row: FloatArray) -> FloatArray:
+        """Fitted value at one design row per neighbourhood: (B, p) -> (B, m)."""
+        return np.einsum("bp,bpm->bm", design_row, self.coef)
+
+    def predict_all(self, design: FloatArray) -> FloatArray:
+        """Fitted values at every point: design (B, K, p) -> (B, K, m)."""
+        return np.einsum("bkp,bpm->bkm", design, self.coef)
+
+    def leverage(self, design_row: FloatArray) -> FloatArray:
+        """``a^T (A^T W A)^-1 a`` (B,): variance of the fitted value per unit noise variance."""
+        return np.einsum("bp,bpq,bq->b", design_row, self.normal_inverse, design_row)
+
+    @property
+    def fitted(self) -> NDArray[np.bool_]:
+        """Neighbourhoods with more points than coefficients."""
+        return self.dof > 0
+
+
+def fit_linear(design: FloatArray, y: FloatArray, weights: FloatArray | None) -> LinearFit:
+    """Solve weighted least squares in every neighbourhood at once.
+
+    Parameters
+    ----------
+    design : ndarray of shape (B, K, p)
+        Basis functions evaluated at each point (well scaled: values of order one).
+    y : ndarray of shape (B, K) or (B, K, m)
+        Ordinates; a 2-D ``y`` is one output.
+    weights : ndarray of shape (B, K), optional
+        Non-negative; 0 marks padding.
+
+    Returns
+    -------
+    LinearFit
+        A neighbourhood with fewer points than coefficients gets a tiny ridge term so the batch
+        solves; its ``dof`` is <= 0 and callers treat it as unfit.
+    """
+    if y.ndim == 2:
+        y = y[..., None]
+    if weights is None:
+        weights = np.ones(design.shape[:2])
+    p = design.shape[2]
+    normal = np.einsum("bk,bkp,bkq->bpq", weights, design, design)
+    rhs = np.einsum("bk,bkp,bkm->bpm", weights, design, y)
+    # A ridge of 1e-10 of the matrix's scale keeps an underdetermined neighbourhood (which the
+    # caller rejects by its dof) from making the whole batched solve fail.
+    ridge = 1e-10 * (np.trace(normal, axis1=1, axis2=2) / p + 1e-300)
+    normal_inverse = np.linalg.inv(normal + ridge[:, None, None] * np.eye(p))
+    coef = normal_inverse @ rhs
+    residual = y - np.einsum("bkp,bpm->bkm", design, coef)
+    count = np.count_nonzero(weights > 0, axis=1).astype(np.float64)
+    dof = count - p
+    wsum = weights.sum(axis=1)
+    # Weighted residual variance, normalised so 0/1 weights give the usual dof-corrected value.
+    mean_w = np.where(count > 0, wsum / np.maximum(count, 1.0), 1.0)
+    sq = np.einsum("bk,bkm->b", weights, residual**2) / mean_w
+    rms = np.sqrt(sq / np.maximum(dof * y.shape[2], 1.0))
+    return LinearFit(coef=coef, rms=rms, normal_inverse=normal_inverse, dof=dof)
+
+
+def fit_linear_robust(
+    design: FloatArray,
+    y: FloatArray,
+    weights: FloatArray | None,
+    *,
+    rejection: float = 3.0,
+    floor: float = 0.0,
+    iterations: int = 2,
+) -> tuple[LinearFit, FloatArray]:
+    """:func:`fit_linear`, then refits without points more than ``rejection`` RMS off the fit.
+
+    Scan-derived points come with a few gross errors (a face fit that straddled three faces, a
+    stray reflection); a least-squares fit would follow them.
+
+    Parameters
+    ----------
+    design, y, weights :
+        As for :func:`fit_linear`.
+    rejection : float
+        Points whose residual exceeds ``rejection * max(rms, floor)`` get weight 0.
+    floor : float
+        Lower bound on the residual scale (in y's units), so an almost exact fit does not reject
+        points for residuals at rounding level.
+    iterations : int
+
+    Returns
+    -------
+    fit : LinearFit
+    weights : ndarray of shape (B, K)
+        The weights of the final fit.
+    """
+    if y.ndim == 2:
+        y = y[..., None]
+    base = np.ones(design.shape[:2]) if weights is None else weights
+    fit = fit_linear(design, y, base)
+    current = base
+    for _ in range(iterations):
+        residual = np.linalg.norm(y - fit.predict_all(design), axis=2)
+        scale = rejection * np.maximum(fit.rms, floor)[:, None]
+        current = np.where(residual <= scale, base, 0.0)
+        fit = fit_linear(design, y, current)
+    return fit, current
+
+
+def poly_design(x: FloatArray, *, degree: int, scale: float) -> FloatArray:
+    """Powers ``(x / scale)^0 .. (x / scale)^degree`` along a new last axis.
+
+    Dividing by the neighbourhood's size keeps the normal equations well conditioned (millimetre
+    neighbourhoods in metres would square to 1e-6 and below).
+    """
+    return (np.asarray(x)[..., None] / scale) ** np.arange(degree + 1)
+
+
+def quadric_design(u: FloatArray, v: FloatArray, *, scale: float) -> FloatArray:
+    """Basis ``1, u, v, u^2, u v, v^2`` (scaled) of a height field over a local plane."""
+    a, b = np.asarray(u) / scale, np.asarray(v) / scale
+    return np.stack([np.ones_like(a), a, b, a * a, a * b, b * b], axis=-1)
+
+
+def gather(values: FloatArray, index: NDArray[np.int64], fill_index: int | None = None) -> FloatArray:
+    """``values[index]`` where entries equal to ``fill_index`` (padding) read as zeros.
+
+    Parameters
+    ----------
+    values : ndarray of shape (M, ...)
+    index : ndarray of shape (B, K), int
+        Indices into ``values``; ``fill_index`` (typically ``M``, as scipy's KD-tree reports
+        missing neighbours) marks padding.
+    """
+    if fill_index is None:
+        return values[index]
+    padded = np.concatenate([values, np.zeros((1, *values.shape[1:]))], axis=0)
+    return padded[np.where(index == fill_index, len(values), index)]

@@ -1,0 +1,367 @@
+"""Frozen dataclasses shared by every layer: inputs, parameters and results of the core.
+
+Conventions (see DESIGN.md): SI units (m, rad, s); a transform ``T_a_b`` is a 4x4 homogeneous
+matrix mapping points of frame ``b`` into frame ``a``; quaternions are scalar-last ``(x, y, z, w)``
+where a field says ``xyzw``. Arrays held by these classes are made read-only so a result cannot be
+changed behind the back of whoever stored it.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def frozen_array(values, *, dtype=np.float64, shape_tail: tuple[int, ...] = (), name: str) -> NDArray:
+    """Copy ``values`` into a read-only array, checking its trailing shape and finiteness.
+
+    Parameters
+    ----------
+    values : array_like
+        The data.
+    dtype : numpy dtype
+        Target dtype.
+    shape_tail : tuple of int
+        Required trailing dimensions, e.g. ``(3,)`` for an ``(N, 3)`` array.
+    name : str
+        Field name used in error messages.
+
+    Raises
+    ------
+    ValueError
+        Wrong shape or non-finite floating-point values.
+    """
+    arr = np.array(values, dtype=dtype, copy=True)
+    if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
+        want = "(N, " + ", ".join(map(str, shape_tail)) + ")" if shape_tail else "(N,)"
+        raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
+    if np.issubdtype(arr.dtype, np.floating) and not np.all(np.isfinite(arr)):
+        bad = int(np.count_nonzero(~np.isfinite(arr).reshape(len(arr), -1).all(axis=1)))
+        raise ValueError(f"{name} has {bad} rows with NaN or infinite values; remove or fill them")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A traced path as the tracker delivered it, in the tracker frame.
+
+    Attributes
+    ----------
+    points_m : ndarray of shape (N, 3), metres
+        Pen-tip positions in traversal order.
+    t_s : ndarray of shape (N,), seconds, or None
+        Sample times, strictly increasing when given.
+    orientations_xyzw : ndarray of shape (N, 4), or None
+        Pen orientations as unit quaternions, scalar last.
+    """
+
+    points_m: FloatArray
+    t_s: FloatArray | None = None
+    orientations_xyzw: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        pts = frozen_array(self.points_m, shape_tail=(3,), name="points_m")
+        object.__setattr__(self, "points_m", pts)
+        if self.t_s is not None:
+            t = frozen_array(self.t_s, name="t_s")
+            if len(t) != len(pts):
+                raise ValueError(f"t_s has {len(t)} values for {len(pts)} points")
+            if len(t) > 1 and np.any(np.diff(t) <= 0):
+                raise ValueError("t_s must be strictly increasing; sort the samples by time")
+            object.__setattr__(self, "t_s", t)
+        if self.orientations_xyzw is not None:
+            q = frozen_array(self.orientations_xyzw, shape_tail=(4,), name="orientations_xyzw")
+            if len(q) != len(pts):
+                raise ValueError(f"orientations_xyzw has {len(q)} rows for {len(pts)} points")
+            norms = np.linalg.norm(q, axis=1)
+            if np.any(np.abs(norms - 1.0) > 1e-3):
+                raise ValueError("orientations_xyzw must be unit quaternions (x, y, z, w)")
+            object.__setattr__(self, "orientations_xyzw", q)
+
+    def __len__(self) -> int:
+        return len(self.points_m)
+
+
+@dataclass(frozen=True)
+class Scan:
+    """A point cloud of the workpiece, in the scan frame.
+
+    Attributes
+    ----------
+    points_m : ndarray of shape (M, 3), metres
+    normals : ndarray of shape (M, 3), or None
+        Unit normals if the scanner or reader supplied them (orientation not relied upon).
+    """
+
+    points_m: FloatArray
+    normals: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        pts = frozen_array(self.points_m, shape_tail=(3,), name="scan points_m")
+        object.__setattr__(self, "points_m", pts)
+        if self.normals is not None:
+            n = frozen_array(self.normals, shape_tail=(3,), name="scan normals")
+            if len(n) != len(pts):
+                raise ValueError(f"scan has {len(n)} normals for {len(pts)} points")
+            object.__setattr__(self, "normals", n)
+
+    def __len__(self) -> int:
+        return len(self.points_m)
+
+
+Method = Literal["paper", "anchored"]
+METHODS: tuple[str, ...] = ("paper", "anchored")
+
+
+@dataclass(frozen=True)
+class ReconParams:
+    """Parameters of one reconstruction; stored with every result so it can be replayed.
+
+    Attributes
+    ----------
+    spacing_m : float
+        Distance between resampled path points.
+    radius_m : float
+        Reconstruction radius r: path points within r of a point (along the path) form N_P.
+    degree : int
+        Degree d of the fitted polynomials.
+    alpha : float in [0, 1] or "auto"
+        Weight of the path against the scan (1: path only, 0: scan only). ``"auto"`` picks it per
+        point from the estimated noise of both (see ``recon.reconstruct``).
+    beta : float in [0, 1]
+        Total amount of reconstruction (0 leaves the path as it is for ``anchored``; see paper).
+    method : {"paper", "anchored"}
+        ``paper``: Eq. (4) of the paper, using only the shape of the scan near the path.
+        ``anchored``: uses the registered scan's absolute position and keeps all three components.
+    corner_angle_deg : float
+        Turning angle above which the path is split into separately reconstructed segments.
+    corner_scale_m : float
+        Chord length over which the turning angle is measured (larger than hand tremor).
+    register : bool
+        Register the path to the scan's features with ICP before reconstructing.
+    icp_max_distance_m : float
+        Largest path-to-scan distance ICP pairs points over (a bound on the misalignment).
+    crop_margin_m : float
+        Only scan points within this distance of the path are processed.
+    voxel_m : float
+        Voxel size the cropped scan is averaged down to (0: keep every point). Curvature needs a
+        scale: on a dense cloud, small neighbourhoods see only noise.
+    curvature_radius_m : float
+        Neighbourhood radius for normals and curvature (surface variation).
+    edge_curvature : float or None
+        Surface variation above which a scan point is an edge point; None derives it from the
+        cloud (see ``recon.features.edge_threshold``).
+    edge_fraction : float
+        A segment follows an edge when at least this fraction of the scan points nearest to it are
+        edge points.
+    surface_k : int
+        k nearest scan points of every point of N_P that form N_S on a surface.
+    """
+
+    spacing_m: float = 0.001
+    radius_m: float = 0.008
+    degree: int = 2
+    alpha: float | Literal["auto"] = "auto"
+    beta: float = 1.0
+    method: Method = "anchored"
+    corner_angle_deg: float = 50.0
+    corner_scale_m: float = 0.004
+    register: bool = True
+    icp_max_distance_m: float = 0.010
+    crop_margin_m: float = 0.020
+    voxel_m: float = 0.002
+    curvature_radius_m: float = 0.008
+    edge_curvature: float | None = None
+    edge_fraction: float = 0.5
+    surface_k: int = 10
+
+    def __post_init__(self) -> None:
+        positive = (
+            "spacing_m", "radius_m", "corner_scale_m", "icp_max_distance_m", "crop_margin_m",
+            "curvature_radius_m",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number of metres, got {value!r}")
+        if not (isinstance(self.voxel_m, (int, float)) and self.voxel_m >= 0):
+            raise ValueError(f"voxel_m must be >= 0 (0 disables downsampling), got {self.voxel_m!r}")
+        if self.radius_m < 2 * self.spacing_m:
+            raise ValueError(
+                f"radius_m ({self.radius_m}) must be at least twice spacing_m ({self.spacing_m}) "
+                "so that N_P holds enough points for a fit"
+            )
+        if not (isinstance(self.degree, int) and 1 <= self.degree <= 5):
+            raise ValueError(f"degree must be an integer from 1 to 5, got {self.degree!r}")
+        if self.alpha != "auto":
+            if not (isinstance(self.alpha, (int, float)) and 0.0 <= self.alpha <= 1.0):
+                raise ValueError(f"alpha must be a number in [0, 1] or 'auto', got {self.alpha!r}")
+        if not (isinstance(self.beta, (int, float)) and 0.0 <= self.beta <= 1.0):
+            raise ValueError(f"beta must be a number in [0, 1], got {self.beta!r}")
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if not (0.0 < self.corner_angle_deg <= 180.0):
+            raise ValueError(f"corner_angle_deg must be in (0, 180], got {self.corner_angle_deg!r}")
+        if self.edge_curvature is not None and not (0.0 < self.edge_curvature < 1.0 / 3.0):
+            raise ValueError(
+                f"edge_curvature is a surface variation in (0, 1/3), got {self.edge_curvature!r}"
+            )
+        if not (0.0 < self.edge_fraction <= 1.0):
+            raise ValueError(f"edge_fraction must be in (0, 1], got {self.edge_fraction!r}")
+        if not (isinstance(self.surface_k, int) and self.surface_k >= 3):
+            raise ValueError(f"surface_k must be an integer >= 3, got {self.surface_k!r}")
+
+    @property
+    def uses_scan(self) -> bool:
+        """Whether the scan can influence the result at all (alpha = 1 means path only)."""
+        return self.alpha == "auto" or self.alpha < 1.0
+
+
+class PointMode(enum.IntEnum):
+    """What a reconstructed point followed."""
+
+    PATH = 0  #: the path alone (no scan, alpha = 1, or no scan support near this point)
+    SURFACE = 1  #: a surface of the scan
+    EDGE = 2  #: an edge of the scan
+    UNCHANGED = 3  #: too few points around it for a fit; passed through as resampled
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A run of path points between corners, reconstructed on its own.
+
+    ``start`` and ``stop`` index the resampled path (``stop`` exclusive); neighbouring segments
+    share their corner point, which belongs to the later one in ``Reconstruction.segment``.
+    """
+
+    start: int
+    stop: int
+    kind: Literal["edge", "surface", "path"]
+    edge_fraction: float
+
+
+@dataclass(frozen=True)
+class Registration:
+    """Result of registering the path to the scan.
+
+    Attributes
+    ----------
+    T_scan_tracker : ndarray of shape (4, 4)
+        Maps path (tracker-frame) points into the scan frame.
+    rmse_m : float
+        Root mean square distance of the paired points after registration.
+    fitness : float
+        Fraction of path points that found a partner within the final pairing distance.
+    n_pairs : int
+        Number of paired points.
+    target : str
+        What the path was registered to: "edge" or "surface".
+    constrained_dof : int
+        How many of the six rigid degrees of freedom the scan's feature fixed (6 for a corner,
+        5 for a circle, 4 for a straight edge, 3 for a plane); the others kept the initial guess.
+    """
+
+    T_scan_tracker: FloatArray
+    rmse_m: float
+    fitness: float
+    n_pairs: int
+    target: str
+    constrained_dof: int = 6
+
+    def __post_init__(self) -> None:
+        T = np.array(self.T_scan_tracker, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError(f"T_scan_tracker must be 4x4, got {T.shape}")
+        T.setflags(write=False)
+        object.__setattr__(self, "T_scan_tracker", T)
+
+    @property
+    def translation_m(self) -> FloatArray:
+        return self.T_scan_tracker[:3, 3]
+
+    @property
+    def rotation_deg(self) -> float:
+        """Angle of the rotation part, degrees."""
+        c = (np.trace(self.T_scan_tracker[:3, :3]) - 1.0) / 2.0
+        return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """A reconstructed path with per-point diagnostics, in the tracker frame.
+
+    Attributes
+    ----------
+    points_m : ndarray of shape (N, 3), metres
+        The reconstructed path.
+    input_points_m : ndarray of shape (N, 3), metres
+        The equidistantly resampled input that ``points_m`` corresponds to point by point.
+    t_s : ndarray of shape (N,), seconds, or None
+        Sample times interpolated at the resampled points, when the input had times.
+    displacement_m : ndarray of shape (N,), metres
+        How far each point moved: ``|points_m - input_points_m|``.
+    mode : ndarray of shape (N,), int8
+        :class:`PointMode` of each point.
+    segment : ndarray of shape (N,), int
+        Index into ``segments``.
+    n_path, n_surface : ndarray of shape (N,), int
+        Sizes of N_P and N_S (0 where no scan was used).
+    residual_path_m, residual_surface_m : ndarray of shape (N,), metres
+        RMS residual of the path and scan fits (NaN where there was no such fit).
+    alpha : ndarray of shape (N,)
+        The path weight used at each point (1 where only the path was used).
+    segments : tuple of Segment
+    registration : Registration or None
+        None when no scan was used or registration was switched off.
+    params : ReconParams
+    """
+
+    points_m: FloatArray
+    input_points_m: FloatArray
+    t_s: FloatArray | None
+    displacement_m: FloatArray
+    mode: NDArray[np.int8]
+    segment: NDArray[np.int64]
+    n_path: NDArray[np.int64]
+    n_surface: NDArray[np.int64]
+    residual_path_m: FloatArray
+    residual_surface_m: FloatArray
+    alpha: FloatArray
+    segments: tuple[Segment, ...]
+    registration: Registration | None
+    params: ReconParams
+    notes: tuple[str, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        n = len(self.points_m)
+        for name in (
+            "points_m", "input_points_m", "t_s", "displacement_m", "mode", "segment", "n_path",
+            "n_surface", "residual_path_m", "residual_surface_m", "alpha",
+        ):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            arr = np.array(value, copy=True)
+            if len(arr) != n:
+                raise ValueError(f"{name} has {len(arr)} rows for {n} points")
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    def __len__(self) -> int:
+        return len(self.points_m)
+
+    def count(self, mode: PointMode) -> int:
+        """Number of points reconstructed in ``mode``."""
+        return int(np.count_nonzero(self.mode == int(mode)))

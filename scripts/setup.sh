@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# One-time set-up of a fresh machine for teachpath; safe to re-run (it only does what is missing).
+#   1. Debian's libusb-1.0-0, which the Open3D wheel links against, installed with apt-get if absent;
+#   2. a virtual environment in .venv with the project installed editable, with its dev extra.
+# The stamp file .venv/.installed records the pyproject.toml it was installed from, so a changed
+# dependency list triggers a re-install and an unchanged one costs nothing.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PYTHON=${PYTHON:-python3}
+VENV=.venv
+STAMP=$VENV/.installed
+
+have_libusb() { ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; }
+
+if ! have_libusb; then
+    echo "setup: installing Debian package libusb-1.0-0 (needed by Open3D)"
+    SUDO=""
+    if [ "$(id -u)" != 0 ]; then
+        if command -v sudo >/dev/null; then SUDO=sudo; else
+            echo "setup: libusb-1.0-0 is missing and this user is not root; run 'apt-get install libusb-1.0-0' as root" >&2
+            exit 1
+        fi
+    fi
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
+    have_libusb || { echo "setup: libusb-1.0-0 still not found after apt-get" >&2; exit 1; }
+fi
+
+want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ]; then
+    exit 0
+fi
+
+if [ ! -x "$VENV/bin/python" ]; then
+    echo "setup: creating $VENV"
+    "$PYTHON" -m venv "$VENV"
+fi
+echo "setup: installing teachpath and its dependencies into $VENV"
+# pip warns about every package-index folder this machine lists but lacks; show its output only
+# when it fails, without those lines.
+quiet_pip() {
+    local log
+    log=$(mktemp)
+    if ! "$VENV/bin/python" -m pip "$@" >"$log" 2>&1; then
+        grep -v -e 'is ignored: it is neither' "$log" >&2
+        rm -f "$log"
+        return 1
+    fi
+    rm -f "$log"
+}
+quiet_pip install -q --upgrade pip
+quiet_pip install -q -e '.[dev]'
+echo "$want" > "$STAMP"
