@@ -97,8 +97,8 @@ def register_icp(
     Each iteration pairs every source point with its nearest target point within the pairing
     distance and takes one Gauss-Newton step on the distances that the feature defines:
     point-to-plane with ``target_normals`` (a surface), point-to-line with
-    ``target_directions`` (an edge), point-to-point otherwise. Tukey's robust weights (scale
-    :data:`ROBUST_SCALE_M`) take out pairs where the pen lifted off or left the feature.
+    ``target_directions`` (an edge), point-to-point otherwise. Tukey's robust weights take out
+    pairs where the pen lifted off or left the feature.
 
     Open3D's ICP is not used here because its solver has no notion of a degenerate problem: on
     a flat plate (sliding and turning in the plane are free) its point-to-plane steps wander off
@@ -108,9 +108,10 @@ def register_icp(
     the initial guess in whatever the feature cannot tell. (Open3D's point-to-point ICP is the
     independent check of this one in the tests.)
 
-    Two stages: the first pairs points up to ``max_distance_m`` apart (the largest misalignment
-    expected); the second re-pairs within three times the first's RMS error (at least a
-    millimetre), so the parts of the path that wander off the feature no longer pull.
+    Two stages: the first pairs and weighs points up to ``max_distance_m`` apart (the largest
+    misalignment expected); the second re-pairs within three robust standard deviations of the
+    first's residuals (at least a millimetre) and weighs with a Tukey scale of the same (at least
+    :data:`ROBUST_SCALE_M`), so the parts of the path that wander off the feature no longer pull.
 
     Parameters
     ----------
@@ -136,7 +137,8 @@ def register_icp(
     Raises
     ------
     RegistrationError
-        Too few pairs, or too little of the path near the features.
+        Too few pairs, too little of the path near the features, or a feature that constrains
+        no motion at all.
     """
     if len(target_m) < MIN_PAIRS:
         raise RegistrationError(
@@ -148,19 +150,24 @@ def register_icp(
     target_m = np.asarray(target_m, dtype=np.float64)
     T = check_rigid(init_T_target_source, name="initial T_scan_tracker")
     problem = _Problem(source_m, target_m, cKDTree(target_m), target_normals, target_directions)
-    distance = max_distance_m
-    step = problem.step(T, distance)
+    # Stage 1 weighs pairs up to the pairing distance (the misalignment may be that large);
+    # stage 2 tightens both to what stage 1 achieved.
+    distance, scale = max_distance_m, max_distance_m
     for stage in range(2):
         for _ in range(max_iterations):
-            step = problem.step(T, distance)
+            step = problem.step(T, distance, scale)
             T = step.T_next
             if step.motion_m < 1e-9:
                 break
         if stage == 0:
-            distance = max(3.0 * problem.step(T, distance).rmse_m, 1e-3)
-    final = problem.step(T, distance)
-    fitness = final.n_pairs / len(source_m)
-    if final.n_pairs < MIN_PAIRS or fitness < MIN_FITNESS:
+            # A robust spread (median absolute residual), so that a lifted stretch of the
+            # path, a minority, does not widen stage 2 enough to be let back in.
+            sigma = problem.step(T, distance, scale).sigma_m
+            distance = max(3.0 * sigma, 1e-3)
+            scale = max(ROBUST_SCALE_M, 3.0 * sigma)
+    final = problem.step(T, distance, scale)
+    fitness = final.n_inliers / len(source_m)
+    if final.n_inliers < MIN_PAIRS or fitness < MIN_FITNESS or final.constrained_dof == 0:
         raise RegistrationError(
             f"only {fitness * 100:.0f} % of the path lies within {distance * 1000:.1f} mm of the "
             f"scan's {target_label} points after registration: check that the scan covers the "
@@ -171,7 +178,7 @@ def register_icp(
         T_scan_tracker=T,
         rmse_m=final.rmse_m,
         fitness=float(fitness),
-        n_pairs=final.n_pairs,
+        n_pairs=final.n_inliers,
         target=target_label,
         constrained_dof=final.constrained_dof,
     )
@@ -180,8 +187,9 @@ def register_icp(
 @dataclass(frozen=True)
 class _Step:
     T_next: FloatArray
-    rmse_m: float
-    n_pairs: int
+    rmse_m: float  # of the pairs with non-zero weight
+    n_inliers: int  # pairs with non-zero weight
+    sigma_m: float  # robust spread of the paired residuals: 1.4826 x their median
     constrained_dof: int
     motion_m: float
 
@@ -194,14 +202,14 @@ class _Problem:
     normals: FloatArray | None
     directions: FloatArray | None
 
-    def step(self, T: FloatArray, distance_m: float) -> _Step:
-        """Pair, weigh and take one Gauss-Newton step from ``T`` (see :func:`register_icp`)."""
+    def step(self, T: FloatArray, distance_m: float, scale_m: float) -> _Step:
+        """Pair, weigh and take one Gauss-Newton step from ``T`` (see :func:`register_icp`).
+
+        ``scale_m`` is the Tukey scale: pairs farther than it from the feature get weight 0.
+        """
         moved = apply_transform(T, self.source)
         dist, idx = self.tree.query(moved, distance_upper_bound=distance_m, workers=-1)
         paired = np.isfinite(dist)
-        n_pairs = int(np.count_nonzero(paired))
-        if n_pairs < MIN_PAIRS:
-            return _Step(T, float("inf"), n_pairs, 0, 0.0)
         points = moved[paired]
         partner_idx = idx[paired]
         if self.normals is not None:
@@ -209,22 +217,25 @@ class _Problem:
         elif self.directions is not None:
             axes = _across(self.directions[partner_idx])
         else:
-            axes = np.broadcast_to(np.eye(3), (n_pairs, 3, 3))
+            axes = np.broadcast_to(np.eye(3), (len(points), 3, 3))
         residual = np.einsum("pai,pi->pa", axes, points - self.target[partner_idx])
         size = np.linalg.norm(residual, axis=1)
-        weight = np.where(size < ROBUST_SCALE_M, (1.0 - (size / ROBUST_SCALE_M) ** 2) ** 2, 0.0)
-        rmse = float(np.sqrt(np.mean(size**2)))
+        weight = np.where(size < scale_m, (1.0 - (size / scale_m) ** 2) ** 2, 0.0)
+        inlier = weight > 0
+        n_inliers = int(np.count_nonzero(inlier))
+        if n_inliers < MIN_PAIRS:
+            return _Step(T, float("inf"), n_inliers, float("inf"), 0, 0.0)
+        rmse = float(np.sqrt(np.mean(size[inlier] ** 2)))
+        sigma = 1.4826 * float(np.median(size))
         # The motion x -> x + (omega x (x - c)) + t, with omega scaled by the pairs' extent so
         # that all six unknowns are in metres and the eigenvalues compare.
-        centre = points.mean(axis=0)
-        length = max(float(np.linalg.norm(np.ptp(points, axis=0))), 1e-3)
+        centre = points[inlier].mean(axis=0)
+        length = max(float(np.linalg.norm(np.ptp(points[inlier], axis=0))), 1e-3)
         arm = (points - centre) / length
         jacobian = np.concatenate([np.cross(arm[:, None, :], axes), axes], axis=2)  # (P, A, 6)
         info = np.einsum("p,pai,paj->ij", weight, jacobian, jacobian)
         values, vectors = np.linalg.eigh(info)
-        keep = values > DEGENERACY_RATIO * max(values.max(), 1e-300)
-        if np.count_nonzero(weight) < MIN_PAIRS:
-            return _Step(T, rmse, n_pairs, int(np.count_nonzero(keep)), 0.0)
+        keep = values > DEGENERACY_RATIO * values.max()
         gradient = np.einsum("p,pai,pa->i", weight, jacobian, residual)
         basis = vectors[:, keep]
         twist = -basis @ ((basis.T @ gradient) / values[keep])
@@ -232,7 +243,7 @@ class _Problem:
         R = Rotation.from_rotvec(twist[:3] / length).as_matrix()
         delta[:3, :3] = R
         delta[:3, 3] = centre + twist[3:] - R @ centre
-        return _Step(delta @ T, rmse, n_pairs, int(np.count_nonzero(keep)),
+        return _Step(delta @ T, rmse, n_inliers, sigma, int(np.count_nonzero(keep)),
                      float(np.linalg.norm(twist)))
 
 

@@ -79,6 +79,16 @@ def savitzky_golay(points_m: FloatArray, *, window_points: int, order: int = 2) 
     return savgol_filter(points_m, window_length=window, polyorder=order, axis=0, mode="interp")
 
 
+@dataclass(frozen=True)
+class SavgolResult:
+    """The best Savitzky-Golay filter found: its error, window, order and output."""
+
+    stats: ErrorStats
+    window_m: float
+    order: int
+    points_m: FloatArray
+
+
 def best_savitzky_golay(
     points_m: FloatArray,
     truth_m: FloatArray,
@@ -86,15 +96,14 @@ def best_savitzky_golay(
     spacing_m: float,
     windows_m: tuple[float, ...] = (0.004, 0.008, 0.016, 0.032, 0.064, 0.128),
     orders: tuple[int, ...] = (2, 3),
-) -> tuple[ErrorStats, float, int]:
+) -> SavgolResult:
     """The best per-axis Savitzky-Golay filter in hindsight (window and order chosen with the
     ground truth), on the path resampled at ``spacing_m``: a baseline no real user could beat.
 
-    Returns
-    -------
-    stats : ErrorStats
-    window_m : float
-    order : int
+    Raises
+    ------
+    ValueError
+        The path is shorter than every window.
     """
     resampled = resample_equidistant(points_m, spacing_m=spacing_m).points_m
     best = None
@@ -103,10 +112,10 @@ def best_savitzky_golay(
         for order in orders:
             if window <= order or window > len(resampled):
                 continue
-            stats = error_stats(savitzky_golay(resampled, window_points=window, order=order),
-                                truth_m)
-            if best is None or stats.mean_m < best[0].mean_m:
-                best = (stats, window_m, order)
+            smoothed = savitzky_golay(resampled, window_points=window, order=order)
+            stats = error_stats(smoothed, truth_m)
+            if best is None or stats.mean_m < best.stats.mean_m:
+                best = SavgolResult(stats, window_m, order, smoothed)
     if best is None:
         raise ValueError("the path is too short for any of the Savitzky-Golay windows")
     return best

@@ -31,6 +31,7 @@ Two methods, both vectorised over all path points (no Python loop per point):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -70,9 +71,9 @@ CHUNK = 2048
 EDGE_FIT_RADIUS_FACTOR = 2.0
 #: Edge lines are fitted every this fraction of the fit radius along the path (4 mm for a 16 mm
 #: ball): neighbouring fits share most of their points, so denser fits add cost, not information.
-EDGE_QUERY_SPACING_FRACTION = 0.25
+EDGE_QUERY_SPACING_FRACTION = 0.375
 #: Spacing of the points sampled along each fitted edge line.
-EDGE_SAMPLE_SPACING_M = 0.0005
+EDGE_SAMPLE_SPACING_M = 0.001
 #: Edge points whose direction differs from the path's by more than this are another edge
 #: (the other leg of a corner) and are left out of N_S.
 EDGE_DIRECTION_TOLERANCE_DEG = 30.0
@@ -84,17 +85,31 @@ EDGE_SCAN_RADII = 1.5
 SURFACE_SCAN_RADII = 1.5
 
 
-@dataclass(frozen=True)
 class ScanContext:
-    """The scan's structure near the path, in the tracker frame, with search trees."""
+    """The scan's structure near the path (scan frame), with search trees built on first use.
 
-    features: ScanFeatures
-    edges: EdgePoints
-    coarse_tree: cKDTree
-    dense_tree: cKDTree
-    edge_tree: cKDTree | None
-    edge_spacing_m: float  # distance between independent-ish edge-line fits
-    edge_fit_radius_m: float
+    ``edges`` is set once the edge band has been thinned (which needs the trees).
+    """
+
+    def __init__(
+        self, features: ScanFeatures, *, edge_spacing_m: float, edge_fit_radius_m: float
+    ) -> None:
+        self.features = features
+        self.edges = EdgePoints(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+        self.edge_spacing_m = edge_spacing_m  # distance between edge-line fits
+        self.edge_fit_radius_m = edge_fit_radius_m
+
+    @cached_property
+    def coarse_tree(self) -> cKDTree:
+        return cKDTree(self.features.points_m)
+
+    @cached_property
+    def dense_tree(self) -> cKDTree:
+        return cKDTree(self.features.dense_points_m)
+
+    @cached_property
+    def edge_tree(self) -> cKDTree | None:
+        return cKDTree(self.edges.points_m) if len(self.edges) else None
 
 
 @dataclass
@@ -207,25 +222,36 @@ def reconstruct(
     notes: list[str] = []
     registration: Registration | None = None
     context: ScanContext | None = None
+    # With a scan, the work is done in the scan frame (every fit here is rigid-equivariant) and
+    # only the result is mapped back: cheaper than moving the scan and rebuilding its trees.
+    T_scan_tracker = np.eye(4)
     if scan is not None and params.uses_scan:
-        context, registration = _prepare_context(points, scan, bounds, params, T_scan_tracker_init)
-        kinds = _classify(points, bounds, context, params)
+        context, T_scan_tracker, registration = _prepare_context(
+            points, scan, bounds, params, T_scan_tracker_init
+        )
+        work_points = apply_transform(T_scan_tracker, points)
+        kinds = _classify(work_points, bounds, context, params)
     else:
+        work_points = points
         kinds = [("path", 0.0)] * len(bounds)
 
     results = []
     segments = []
+    method = _anchored_segment if params.method == "anchored" else _paper_segment
     for (start, stop), (kind, fraction) in zip(bounds, kinds, strict=True):
-        seg_points = points[start:stop]
+        seg_points = work_points[start:stop]
         segments.append(Segment(start=start, stop=stop, kind=kind, edge_fraction=fraction))
         if len(seg_points) < 3:
             results.append(_SegmentResult.unchanged(seg_points))
             notes.append(f"segment {len(segments) - 1} has {len(seg_points)} points: left as is")
             continue
-        method = _anchored_segment if params.method == "anchored" else _paper_segment
         results.append(method(seg_points, kind, context, params, half_width))
         if kind == "path" and context is not None:
             notes.append(f"segment {len(segments) - 1} has no scan near it: path only")
+    if context is not None:
+        T_tracker_scan = invert_transform(T_scan_tracker)
+        for result in results:
+            result.points = apply_transform(T_tracker_scan, result.points)
 
     return _assemble(resampled, bounds, segments, results, registration, params, notes)
 
@@ -236,8 +262,8 @@ def _prepare_context(
     bounds: list[tuple[int, int]],
     params: ReconParams,
     T_init: FloatArray | None,
-) -> tuple[ScanContext, Registration | None]:
-    """Features of the scan near the path, registered, in the tracker frame."""
+) -> tuple[ScanContext, FloatArray, Registration | None]:
+    """Features of the scan near the path (scan frame), and T_scan_tracker after registration."""
     T_scan_tracker = np.eye(4) if T_init is None else np.asarray(T_init, dtype=np.float64)
     path_in_scan = apply_transform(T_scan_tracker, points)
     features = prepare_scan(
@@ -250,14 +276,16 @@ def _prepare_context(
     )
     fit_radius = EDGE_FIT_RADIUS_FACTOR * params.curvature_radius_m
     query_spacing = EDGE_QUERY_SPACING_FRACTION * fit_radius
+    context = ScanContext(features, edge_spacing_m=query_spacing, edge_fit_radius_m=fit_radius)
     edges = thin_edges(
         features,
         path_in_scan,
         radius_m=fit_radius,
         query_spacing_m=query_spacing,
         sample_spacing_m=EDGE_SAMPLE_SPACING_M,
+        trees=(context.coarse_tree, context.dense_tree),
     )
-    context = _make_context(features, edges, query_spacing, fit_radius)
+    context.edges = edges
 
     registration = None
     if params.register:
@@ -284,28 +312,7 @@ def _prepare_context(
                 target_label="surface",
             )
         T_scan_tracker = registration.T_scan_tracker
-    T_tracker_scan = invert_transform(T_scan_tracker)
-    return (
-        _make_context(
-            features.transformed(T_tracker_scan), edges.transformed(T_tracker_scan),
-            query_spacing, fit_radius,
-        ),
-        registration,
-    )
-
-
-def _make_context(
-    features: ScanFeatures, edges: EdgePoints, spacing_m: float, fit_radius_m: float
-) -> ScanContext:
-    return ScanContext(
-        features=features,
-        edges=edges,
-        coarse_tree=cKDTree(features.points_m),
-        dense_tree=cKDTree(features.dense_points_m),
-        edge_tree=cKDTree(edges.points_m) if len(edges) else None,
-        edge_spacing_m=spacing_m,
-        edge_fit_radius_m=fit_radius_m,
-    )
+    return context, T_scan_tracker, registration
 
 
 def _classify(
@@ -392,7 +399,7 @@ def _edge_neighbourhoods(
     weights : ndarray of shape (B, K)
     """
     edges = context.edges
-    k = min(96, len(edges))
+    k = min(64, len(edges))
     dist, idx = context.edge_tree.query(centres, k=k, distance_upper_bound=radius_m, workers=-1)
     if k == 1:
         dist, idx = dist[:, None], idx[:, None]

@@ -263,9 +263,9 @@ class Registration:
     rmse_m : float
         Root mean square distance of the paired points after registration.
     fitness : float
-        Fraction of path points that found a partner within the final pairing distance.
+        Fraction of path points that were paired (with non-zero robust weight) at the end.
     n_pairs : int
-        Number of paired points.
+        Number of such pairs.
     target : str
         What the path was registered to: "edge" or "surface".
     constrained_dof : int
