@@ -110,8 +110,10 @@ def register_icp(
 
     Two stages: the first pairs and weighs points up to ``max_distance_m`` apart (the largest
     misalignment expected); the second re-pairs within three robust standard deviations of the
-    first's residuals (at least a millimetre) and weighs with a Tukey scale of the same (at least
-    :data:`ROBUST_SCALE_M`), so the parts of the path that wander off the feature no longer pull.
+    first's residuals (or twice the median pair distance, which includes the gaps between scan
+    points; at least a millimetre) and weighs with a Tukey scale of three robust standard
+    deviations (at least :data:`ROBUST_SCALE_M`), so the parts of the path that wander off the
+    feature no longer pull.
 
     Parameters
     ----------
@@ -150,21 +152,27 @@ def register_icp(
     target_m = np.asarray(target_m, dtype=np.float64)
     T = check_rigid(init_T_target_source, name="initial T_scan_tracker")
     problem = _Problem(source_m, target_m, cKDTree(target_m), target_normals, target_directions)
-    # Stage 1 weighs pairs up to the pairing distance (the misalignment may be that large);
-    # stage 2 tightens both to what stage 1 achieved.
+    # Stage 1 weighs pairs up to the pairing distance (the misalignment may be that large).
+    # Stage 2 re-derives pairing distance and Tukey scale from robust spreads (medians) at every
+    # iteration, so a lifted stretch of the path, a minority, drops out as the rest settles.
+    # Pairing is by Euclidean distance to the nearest target point, which also includes the
+    # gaps between scan points, hence the median pair distance in the pairing bound.
     distance, scale = max_distance_m, max_distance_m
-    for stage in range(2):
-        for _ in range(max_iterations):
-            step = problem.step(T, distance, scale)
-            T = step.T_next
-            if step.motion_m < 1e-9:
-                break
-        if stage == 0:
-            # A robust spread (median absolute residual), so that a lifted stretch of the
-            # path, a minority, does not widen stage 2 enough to be let back in.
-            sigma = problem.step(T, distance, scale).sigma_m
-            distance = max(3.0 * sigma, 1e-3)
-            scale = max(ROBUST_SCALE_M, 3.0 * sigma)
+    for _ in range(max_iterations):
+        step = problem.step(T, distance, scale)
+        T = step.T_next
+        if step.motion_m < 1e-9:
+            break
+    for _ in range(max_iterations):
+        current = problem.step(T, distance, scale)
+        if current.n_inliers < MIN_PAIRS:
+            break  # nothing to refine; reported below
+        distance = max(3.0 * current.sigma_m, 2.0 * current.median_pair_m, 1e-3)
+        scale = max(ROBUST_SCALE_M, 3.0 * current.sigma_m)
+        step = problem.step(T, distance, scale)
+        T = step.T_next
+        if step.motion_m < 1e-9:
+            break
     final = problem.step(T, distance, scale)
     fitness = final.n_inliers / len(source_m)
     if final.n_inliers < MIN_PAIRS or fitness < MIN_FITNESS or final.constrained_dof == 0:
@@ -190,6 +198,7 @@ class _Step:
     rmse_m: float  # of the pairs with non-zero weight
     n_inliers: int  # pairs with non-zero weight
     sigma_m: float  # robust spread of the paired residuals: 1.4826 x their median
+    median_pair_m: float  # median Euclidean distance of the pairs
     constrained_dof: int
     motion_m: float
 
@@ -224,9 +233,10 @@ class _Problem:
         inlier = weight > 0
         n_inliers = int(np.count_nonzero(inlier))
         if n_inliers < MIN_PAIRS:
-            return _Step(T, float("inf"), n_inliers, float("inf"), 0, 0.0)
+            return _Step(T, float("inf"), n_inliers, float("inf"), float("inf"), 0, 0.0)
         rmse = float(np.sqrt(np.mean(size[inlier] ** 2)))
         sigma = 1.4826 * float(np.median(size))
+        median_pair = float(np.median(dist[paired]))
         # The motion x -> x + (omega x (x - c)) + t, with omega scaled by the pairs' extent so
         # that all six unknowns are in metres and the eigenvalues compare.
         centre = points[inlier].mean(axis=0)
@@ -243,8 +253,8 @@ class _Problem:
         R = Rotation.from_rotvec(twist[:3] / length).as_matrix()
         delta[:3, :3] = R
         delta[:3, 3] = centre + twist[3:] - R @ centre
-        return _Step(delta @ T, rmse, n_inliers, sigma, int(np.count_nonzero(keep)),
-                     float(np.linalg.norm(twist)))
+        return _Step(delta @ T, rmse, n_inliers, sigma, median_pair,
+                     int(np.count_nonzero(keep)), float(np.linalg.norm(twist)))
 
 
 def _across(directions: FloatArray) -> FloatArray:

@@ -77,6 +77,9 @@ EDGE_SAMPLE_SPACING_M = 0.001
 #: Edge points whose direction differs from the path's by more than this are another edge
 #: (the other leg of a corner) and are left out of N_S.
 EDGE_DIRECTION_TOLERANCE_DEG = 30.0
+#: A segment whose points lie this close (median) to the thinned edge follows it: 2.5 times
+#: the operator's typical error (paper, Sec. VI: std 0.5-1 mm).
+EDGE_FOLLOW_DISTANCE_M = 0.0025
 #: The anchored method's drift estimate averages the path-to-scan discrepancy over this many radii.
 DRIFT_WINDOW_RADII = 10.0
 #: Nearest scan neighbours per point for the surface fits of the anchored method.
@@ -95,7 +98,8 @@ class ScanContext:
         self, features: ScanFeatures, *, edge_spacing_m: float, edge_fit_radius_m: float
     ) -> None:
         self.features = features
-        self.edges = EdgePoints(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+        self.edges = EdgePoints(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0),
+                                np.zeros(0, np.int64))
         self.edge_spacing_m = edge_spacing_m  # distance between edge-line fits
         self.edge_fit_radius_m = edge_fit_radius_m
 
@@ -321,8 +325,12 @@ def _classify(
     """Per segment: follows an "edge", a "surface", or nothing of the scan ("path").
 
     The paper's rule: a segment follows an edge when a large fraction (``edge_fraction``) of the
-    scan points nearest to it are edge points. It must also have thinned edge points along it.
-    A segment with scan points near less than half of its points has nothing to follow.
+    scan points nearest to it are edge points. Curvature flags thin out as scan noise grows
+    (at 1.5 mm the fraction on a traced right-angle ridge fell to 0.48), so a segment also
+    follows an edge when the thinned edge (the fitted intersection of two faces) runs within
+    :data:`EDGE_FOLLOW_DISTANCE_M` of it on median. Either way it must have thinned edge points
+    along at least half of it. A segment with scan points near less than half of its points has
+    nothing to follow.
     """
     reach = params.icp_max_distance_m
     dist, idx = context.coarse_tree.query(points, k=5, distance_upper_bound=reach, workers=-1)
@@ -333,9 +341,9 @@ def _classify(
     point_fraction = (is_edge & near).sum(axis=1) / np.maximum(near.sum(axis=1), 1)
     if context.edge_tree is not None:
         edge_dist, _ = context.edge_tree.query(points, distance_upper_bound=params.radius_m)
-        edge_near = np.isfinite(edge_dist)
     else:
-        edge_near = np.zeros(len(points), dtype=bool)
+        edge_dist = np.full(len(points), np.inf)
+    edge_near = np.isfinite(edge_dist)
     kinds = []
     for start, stop in bounds:
         seg = slice(start, stop)
@@ -343,7 +351,8 @@ def _classify(
             kinds.append(("path", 0.0))
             continue
         fraction = float(point_fraction[seg][supported[seg]].mean())
-        if fraction >= params.edge_fraction and edge_near[seg].mean() >= 0.5:
+        on_thinned_edge = np.median(edge_dist[seg]) <= EDGE_FOLLOW_DISTANCE_M
+        if (fraction >= params.edge_fraction or on_thinned_edge) and edge_near[seg].mean() >= 0.5:
             kinds.append(("edge", fraction))
         else:
             kinds.append(("surface", fraction))
@@ -397,6 +406,8 @@ def _edge_neighbourhoods(
     -------
     points : ndarray of shape (B, K, 3)
     weights : ndarray of shape (B, K)
+    index : ndarray of shape (B, K), int
+        Into ``context.edges``; ``len(context.edges)`` marks padding.
     """
     edges = context.edges
     k = min(64, len(edges))
@@ -407,7 +418,7 @@ def _edge_neighbourhoods(
     dirs = gather(edges.directions, idx, fill_index=len(edges))
     along = np.abs(np.einsum("bki,bi->bk", dirs, path_direction))
     weights = (np.isfinite(dist) & (along >= np.cos(np.radians(EDGE_DIRECTION_TOLERANCE_DEG))))
-    return pts, weights.astype(np.float64)
+    return pts, weights.astype(np.float64), idx
 
 
 def _paper_segment(
@@ -442,8 +453,8 @@ def _paper_segment(
         residual_s = np.full(len(x_i), np.nan)
         if use_scan:
             if kind == "edge":
-                ns, ws = _edge_neighbourhoods(points[rows], frame.axes[:, :, 0], context,
-                                              params.radius_m)
+                ns, ws, _ = _edge_neighbourhoods(points[rows], frame.axes[:, :, 0], context,
+                                                 params.radius_m)
             else:
                 ns = context.features.dense_points_m[knn[windows[rows]].reshape(len(x_i), -1)]
                 ws = np.ones(ns.shape[:2])
@@ -562,7 +573,8 @@ def _edge_targets(centres, direction, context, params, degree):
     if context.edge_tree is None:
         b = len(centres)
         return centres, np.full(b, np.inf), np.zeros(b, np.int64), np.full(b, np.nan)
-    ns, ws = _edge_neighbourhoods(centres, direction, context, EDGE_SCAN_RADII * params.radius_m)
+    ns, ws, idx_s = _edge_neighbourhoods(centres, direction, context,
+                                         EDGE_SCAN_RADII * params.radius_m)
     frame = weighted_pca(ns, ws)
     axes = frame.axes.copy()
     flip = np.einsum("bi,bi->b", axes[:, :, 0], direction) < 0
@@ -577,16 +589,27 @@ def _edge_targets(centres, direction, context, params, degree):
     target = frame.mean + np.einsum(
         "bij,bj->bi", axes, np.column_stack([x_at, fit.predict(design_at)])
     )
-    # Edge points are sampled from line fits spaced edge_spacing_m apart in overlapping balls:
-    # count one independent point per ball diameter, not one per sample.
-    samples_per_fit = context.edge_spacing_m / EDGE_SAMPLE_SPACING_M
-    dependence = samples_per_fit * 2.0 * context.edge_fit_radius_m / context.edge_spacing_m
-    var = fit.rms**2 * np.minimum(fit.leverage(design_at) * dependence, 1.0)
+    var_from_scatter = fit.rms**2 * np.minimum(fit.leverage(design_at) * edge_dependence(context),
+                                               1.0)
+    # The scatter about the local curve hides what the line fits share over a ball's diameter,
+    # so the fits' own precision bounds the target's variance from below.
+    line_variance = gather(context.edges.variance_m2, idx_s, fill_index=len(context.edges))
+    var_from_fits = (ws * line_variance).sum(axis=1) / np.maximum(ws.sum(axis=1), 1e-300)
+    var = np.maximum(var_from_scatter, var_from_fits)
     # Require support on both sides of short extrapolation: the point must lie within the span.
     span_ok = _within_span(local[..., 0], ws, x_at, margin=0.5 * params.radius_m)
     ok = (fit.dof >= 2) & span_ok
     count = np.count_nonzero(ws, axis=1)
     return target, np.where(ok, var, np.inf), count, fit.rms
+
+
+def edge_dependence(context: ScanContext) -> float:
+    """How many edge samples carry one sample's worth of independent information.
+
+    Edge samples come from line fits in overlapping balls of the scan, so their errors are shared
+    over a ball's diameter: count one independent sample per diameter, not one per sample.
+    """
+    return 2.0 * context.edge_fit_radius_m / EDGE_SAMPLE_SPACING_M
 
 
 def _surface_targets(centres, context, params):
