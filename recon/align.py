@@ -32,6 +32,10 @@ MIN_FITNESS = 0.3
 #: directions come out at 1e-5..5e-3 (noise in normals and edge directions), constrained ones at
 #: 0.02 and above.
 DEGENERACY_RATIO = 1e-2
+#: Largest number of path points used for registration (taken evenly along the path).
+MAX_SOURCE_POINTS = 5000
+#: ICP stops when a step moves the path by less than this (as a twist: metres at the path's ends).
+CONVERGED_M = 1e-7
 #: Scale of Tukey's robust weights: pairs farther than this from the feature (a pen lifted off
 #: the surface, a stretch off the edge) have no influence. Twice a typical trace's error.
 ROBUST_SCALE_M = 0.002
@@ -149,6 +153,8 @@ def register_icp(
             "a calibration"
         )
     source_m = np.asarray(source_m, dtype=np.float64)
+    # Six unknowns need nowhere near 100k pairs; an even subset keeps every step cheap.
+    source_m = source_m[:: max(1, -(-len(source_m) // MAX_SOURCE_POINTS))]
     target_m = np.asarray(target_m, dtype=np.float64)
     T = check_rigid(init_T_target_source, name="initial T_scan_tracker")
     problem = _Problem(source_m, target_m, cKDTree(target_m), target_normals, target_directions)
@@ -161,7 +167,7 @@ def register_icp(
     for _ in range(max_iterations):
         step = problem.step(T, distance, scale)
         T = step.T_next
-        if step.motion_m < 1e-9:
+        if step.motion_m < CONVERGED_M:
             break
     for _ in range(max_iterations):
         current = problem.step(T, distance, scale)
@@ -171,7 +177,7 @@ def register_icp(
         scale = max(ROBUST_SCALE_M, 3.0 * current.sigma_m)
         step = problem.step(T, distance, scale)
         T = step.T_next
-        if step.motion_m < 1e-9:
+        if step.motion_m < CONVERGED_M:
             break
     final = problem.step(T, distance, scale)
     fitness = final.n_inliers / len(source_m)

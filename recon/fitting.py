@@ -174,7 +174,8 @@ def fit_linear(design: FloatArray, y: FloatArray, weights: FloatArray | None) ->
     # A ridge of 1e-12 of the matrix's scale keeps an underdetermined neighbourhood (which the
     # caller rejects by its dof) from making the whole batched solve fail; on a well-posed one
     # it changes the result by about 1e-12 relative.
-    ridge = 1e-12 * (np.trace(normal, axis1=1, axis2=2) / p + 1e-300)
+    trace = np.trace(normal, axis1=1, axis2=2) / p
+    ridge = 1e-12 * np.where(trace > 0, trace, 1e12)  # an empty neighbourhood solves to zero
     normal_inverse = np.linalg.inv(normal + ridge[:, None, None] * np.eye(p))
     coef = normal_inverse @ rhs
     residual = y - np.matmul(design, coef)

@@ -461,38 +461,44 @@ def long_edge(
     spacing_m: float = 1 * MM,
     scan_noise_m: float = 0.5 * MM,
 ) -> Scene:
-    """A long, gently winding step edge, for timing: ``n_path_points`` at ``spacing_m`` along it
-    and ``n_scan_points`` on a 30 mm wide top face and a 30 mm high wall beside it."""
+    """A long step edge wound into a spiral, for timing.
+
+    The edge is ``n_path_points * spacing_m`` long on an Archimedean spiral with 80 mm between
+    turns (so 100 m of edge fit in about 3 m), with a 30 mm wide top face outside it and a 30 mm
+    high wall below it; ``n_scan_points`` are spread over both.
+    """
     rng = np.random.default_rng(seed)
     length = n_path_points * spacing_m
-    wavelength = 200 * MM
-    amplitude = 20 * MM
-    xs = np.linspace(0, length, max(20001, 4 * n_path_points))
-    y = amplitude * np.sin(2 * np.pi * xs / wavelength)
-    line = np.column_stack([xs, y, np.zeros_like(xs)])
+    pitch, r0 = 80 * MM, 0.3
+    # Arc length of r = r0 + b theta is about the integral of r dtheta for a tight pitch.
+    b = pitch / (2 * np.pi)
+    theta_end = (np.sqrt(r0**2 + 2 * b * length) - r0) / b
+    theta = np.linspace(0.0, theta_end * 1.02, max(200_001, 8 * n_path_points))
+    radius = r0 + b * theta
+    line = np.column_stack([radius * np.cos(theta), radius * np.sin(theta), np.zeros_like(theta)])
     arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))))
-    total = float(arc[-1])
 
     def curve(s):
         return np.column_stack([np.interp(s, arc, line[:, k]) for k in range(3)])
 
     recording, truth = hand_trace(
-        curve, total, rng, noise=HandNoise(), sample_spacing_m=spacing_m / 2
+        curve, length, rng, noise=HandNoise(), sample_spacing_m=spacing_m / 2
     )
     half = n_scan_points // 2
-    s_top = rng.uniform(0, total, half)
-    s_wall = rng.uniform(0, total, n_scan_points - half)
-    ys = amplitude * np.sin(2 * np.pi * np.interp(s_top, arc, xs) / wavelength)
-    top = np.column_stack([np.interp(s_top, arc, xs), ys + rng.uniform(0, 30 * MM, half), np.zeros(half)])
-    yw = amplitude * np.sin(2 * np.pi * np.interp(s_wall, arc, xs) / wavelength)
-    wall = np.column_stack(
-        [np.interp(s_wall, arc, xs), yw, rng.uniform(-30 * MM, 0, len(s_wall))]
-    )
+    top_s = rng.uniform(0, length, half)
+    wall_s = rng.uniform(0, length, n_scan_points - half)
+    top_theta, wall_theta = np.interp(top_s, arc, theta), np.interp(wall_s, arc, theta)
+    outward = rng.uniform(0, 30 * MM, half)
+    top_r = r0 + b * top_theta + outward
+    top = np.column_stack([top_r * np.cos(top_theta), top_r * np.sin(top_theta), np.zeros(half)])
+    wall_r = r0 + b * wall_theta
+    wall = np.column_stack([wall_r * np.cos(wall_theta), wall_r * np.sin(wall_theta),
+                            rng.uniform(-30 * MM, 0, len(wall_s))])
     pts = np.concatenate([top, wall])
     pts += scan_noise_m * rng.standard_normal(pts.shape)
     return Scene(
         name=f"long_edge_{n_path_points}",
-        description=f"{length:.0f} m winding step edge, {n_scan_points} scan points",
+        description=f"{length:.0f} m spiral step edge, {n_scan_points} scan points",
         truth_m=truth,
         recording=recording,
         scan=Scan(points_m=pts),

@@ -1,0 +1,146 @@
+"""Benchmarks: accuracy and speed tables (``make bench``). They print; they never fail on time.
+
+Accuracy figures are asserted in ``tests/recon/test_reconstruct.py``; here they are tabulated for
+every scene and variant, with medians over seeds where a single noise draw would mislead.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from recon import reconstruct as R
+from recon import scenes
+from recon.align import apply_transform
+from recon.evaluation import default_variants, evaluate, format_table, registered_truth
+from recon.metrics import error_stats
+from recon.resample import resample_equidistant
+from recon.segment import find_corners, split_at
+from recon.types import ReconParams
+from tests.reference_loop import anchored_segment_loop
+
+pytestmark = pytest.mark.bench
+
+MM = 1e-3
+
+
+def test_accuracy_tables():
+    print("\n## Accuracy (errors in mm; distances to the true feature)\n")
+    for name, make in scenes.SCENES.items():
+        scene = make(0)
+        print(format_table(evaluate(scene, default_variants()), title=scene.description))
+        print()
+
+
+def test_accuracy_over_seeds():
+    """Median over ten noise draws of the default method's mean error, both frames."""
+    print("\n## Default method over ten seeds (median; mm and ratio to the raw trace)\n")
+    print("| scene | raw, tracker | default, tracker | ratio | raw, registered "
+          "| default, registered | ratio |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for name in ("cylinder_edge", "polynomial_ridge", "box_corner"):
+        cells = []
+        for seed in range(10):
+            scene = scenes.SCENES[name](seed)
+            recon = R.reconstruct(scene.recording, scene.scan)
+            truth = registered_truth(scene, recon)
+            raw_t = error_stats(scene.recording.points_m, scene.truth_m).mean_m
+            raw_r = error_stats(scene.recording.points_m, truth).mean_m
+            ours_t = error_stats(recon.points_m, scene.truth_m).mean_m
+            ours_r = error_stats(recon.points_m, truth).mean_m
+            cells.append((raw_t, ours_t, ours_t / raw_t, raw_r, ours_r, ours_r / raw_r))
+        med = [statistics.median(c[i] for c in cells) for i in range(6)]
+        print(f"| {name} | {med[0] / MM:.3f} | {med[1] / MM:.3f} | {med[2]:.2f} | "
+              f"{med[3] / MM:.3f} | {med[4] / MM:.3f} | {med[5]:.2f} |")
+
+
+def test_alpha_sweep_fig6():
+    """The paper's Fig. 6: path and scan of varying quality, fixed alphas and auto."""
+    print("\n## Fig. 6: alpha against path and scan quality (registered-frame mean error, mm)\n")
+    alphas = (1.0, 0.75, 0.5, 0.25, 0.0, "auto")
+    print("| path noise | scan noise | " + " | ".join(f"alpha={a}" for a in alphas)
+          + " | auto's median alpha |")
+    print("|---|---|" + "---:|" * (len(alphas) + 1))
+    for path_scale in (0.5, 2.0):
+        for scan_noise in (0.2 * MM, 1.5 * MM):
+            scene = scenes.polynomial_ridge(0, path_noise_scale=path_scale,
+                                            scan_noise_m=scan_noise)
+            cells = []
+            for alpha in alphas:
+                recon = R.reconstruct(scene.recording, scene.scan,
+                                      params=ReconParams(alpha=alpha))
+                cells.append(error_stats(recon.points_m, registered_truth(scene, recon)).mean_m)
+            print(f"| x{path_scale} | {scan_noise / MM:.1f} mm | "
+                  + " | ".join(f"{c / MM:.3f}" for c in cells)
+                  + f" | {np.median(recon.alpha):.2f} |")
+
+
+def _median_time(fn, repeats):
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+#: The per-point loop is timed on at most this many points and scaled linearly.
+LOOP_POINTS = 3000
+
+
+def test_speed_table():
+    print("\n## Speed (seconds, median of repeats on this machine)\n")
+    print("| path points | scan points | whole reconstruction | per-point stage, vectorised "
+          "| per-point stage, loop | loop / vectorised |")
+    print("|---:|---:|---:|---:|---:|---:|")
+    for n_path in (1_000, 10_000, 100_000):
+        for n_scan in (100_000, 1_000_000):
+            scene = scenes.long_edge(n_path, n_scan)
+            params = ReconParams()
+            repeats = 3 if n_path * n_scan <= 10_000 * 1_000_000 else 1
+            total = _median_time(lambda: R.reconstruct(scene.recording, scene.scan,
+                                                       params=params), repeats)
+            # The per-point stage on its own, vectorised and looped, on the same context.
+            resampled = resample_equidistant(scene.recording.points_m, spacing_m=params.spacing_m)
+            points = resampled.points_m
+            half = max(1, round(params.radius_m / resampled.spacing_m))
+            bounds = split_at(len(points), find_corners(points, spacing_m=resampled.spacing_m,
+                                                        angle_deg=params.corner_angle_deg,
+                                                        scale_m=params.corner_scale_m))
+            context, T, _ = R._prepare_context(points, scene.scan, bounds, params, None)
+            work = apply_transform(T, points)
+            kinds = R._classify(work, bounds, context, params)
+            start, stop = bounds[0]
+            kind = kinds[0][0]
+            seg = work[start:stop]
+            vector = _median_time(lambda: R._anchored_segment(seg, kind, context, params, half),
+                                  repeats)
+            sub = seg[:LOOP_POINTS]
+            loop = _median_time(
+                lambda: anchored_segment_loop(sub, kind, context, params, half), 1
+            ) * len(seg) / len(sub)
+            scaled = "*" if len(seg) > LOOP_POINTS else ""
+            print(f"| {n_path:,} | {n_scan:,} | {total:.2f} | {vector:.3f} | {loop:.1f}{scaled} "
+                  f"| {loop / vector:.0f}x |")
+    print(f"\n\\* loop timed on {LOOP_POINTS} points and scaled to the path's length.")
+
+
+def test_registration_error_split():
+    """How much of the tracker-frame error is registration (the rigid part of the drift)."""
+    print("\n## Calibrated scanner vs registration from the trace (tracker frame, mean mm)\n")
+    print("| scene | raw | registered by ICP | calibrated scanner (true T, no ICP) |")
+    print("|---|---:|---:|---:|")
+    for name in ("cylinder_edge", "polynomial_ridge", "box_corner", "flat_liftoff"):
+        scene = scenes.SCENES[name](0)
+        raw = error_stats(scene.recording.points_m, scene.truth_m).mean_m
+        icp = R.reconstruct(scene.recording, scene.scan)
+        calibrated = R.reconstruct(scene.recording, scene.scan,
+                                   params=replace(ReconParams(), register=False),
+                                   T_scan_tracker_init=scene.T_scan_tracker)
+        print(f"| {name} | {raw / MM:.3f} | "
+              f"{error_stats(icp.points_m, scene.truth_m).mean_m / MM:.3f} | "
+              f"{error_stats(calibrated.points_m, scene.truth_m).mean_m / MM:.3f} |")

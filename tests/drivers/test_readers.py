@@ -1,0 +1,134 @@
+"""Trace and scan readers: round trips, units, and every kind of bad file."""
+
+import numpy as np
+import pytest
+
+from drivers.errors import InputFileError, UnknownFormatError
+from drivers.files import atomic_path
+from drivers.scanning.pointcloud import read_scan, write_scan
+from drivers.tracking.canonical_csv import read_trace_csv, write_trace_csv
+from recon.types import Recording, Scan
+
+
+def test_trace_round_trip_with_times_and_orientations(tmp_path):
+    rng = np.random.default_rng(0)
+    q = rng.standard_normal((20, 4))
+    rec = Recording(points_m=rng.uniform(-1, 1, (20, 3)), t_s=np.arange(20) * 0.004,
+                    orientations_xyzw=q / np.linalg.norm(q, axis=1)[:, None])
+    write_trace_csv(tmp_path / "t.csv", rec)
+    back = read_trace_csv(tmp_path / "t.csv")
+    np.testing.assert_allclose(back.points_m, rec.points_m, atol=1e-8)
+    np.testing.assert_allclose(back.t_s, rec.t_s, atol=1e-9)
+    np.testing.assert_allclose(back.orientations_xyzw, rec.orientations_xyzw, atol=1e-8)
+
+
+def test_trace_in_millimetres_any_column_order_and_bytes():
+    data = b"z,y,x\n1,2,3\n4,5,6\n"
+    rec = read_trace_csv(data, units="mm")
+    np.testing.assert_allclose(rec.points_m, [[0.003, 0.002, 0.001], [0.006, 0.005, 0.004]])
+    assert rec.t_s is None and rec.orientations_xyzw is None
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"", "empty"),
+        (b"a,b,c\n1,2,3\n4,5,6\n", "no column x, y, z"),
+        (b"x,y,z\n1,2,3\n", "at least two"),
+        (b"x,y,z\n1,2,3\n4,5\n", "line 3 has 2 cells"),
+        (b"x,y,z\n1,2,3\n4,five,6\n", "not a number"),
+        (b"x,y,z\n1,2,3\nnan,5,6\n", "NaN or infinite"),
+        (b"x,y,z\n1,2,3\ninf,5,6\n", "NaN or infinite"),
+        (b"t,x,y,z\n0,1,2,3\n0,4,5,6\n", "do not increase"),
+        (b"x,y,z,qx,qy,qz,qw\n1,2,3,0,0,0,0\n4,5,6,0,0,0,1\n", "zero quaternion"),
+        (b"\xff\xfe\x00x", "not a text"),
+    ],
+)
+def test_bad_trace_files_are_refused_with_a_reason(content, message):
+    with pytest.raises(InputFileError, match=message):
+        read_trace_csv(content)
+
+
+def test_missing_trace_file(tmp_path):
+    with pytest.raises(InputFileError, match="does not exist"):
+        read_trace_csv(tmp_path / "nope.csv")
+    with pytest.raises(InputFileError, match="directory"):
+        read_trace_csv(tmp_path)
+
+
+def test_unknown_unit():
+    with pytest.raises(ValueError, match="unknown length unit"):
+        read_trace_csv(b"x,y,z\n1,2,3\n4,5,6\n", units="inch")
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".pcd", ".xyz"])
+def test_scan_round_trip(tmp_path, suffix):
+    rng = np.random.default_rng(1)
+    scan = Scan(points_m=rng.uniform(-1, 1, (500, 3)))
+    write_scan(tmp_path / f"s{suffix}", scan)
+    back = read_scan(tmp_path / f"s{suffix}")
+    np.testing.assert_allclose(back.scan.points_m, scan.points_m, atol=1e-6)
+    assert back.n_dropped == 0
+
+
+def test_scan_upload_bytes_in_millimetres(tmp_path):
+    write_scan(tmp_path / "s.ply", Scan(points_m=np.eye(3)))
+    back = read_scan((tmp_path / "s.ply").read_bytes(), name="upload.ply", units="mm")
+    np.testing.assert_allclose(back.scan.points_m, np.eye(3) * 1e-3)
+
+
+def test_non_finite_scan_points_are_dropped_and_counted(tmp_path):
+    (tmp_path / "s.xyz").write_text("0 0 0\nnan nan nan\n1 1 1\n")
+    back = read_scan(tmp_path / "s.xyz")
+    assert len(back.scan) == 2 and back.n_dropped == 1
+
+
+PLY_HEADER = b"ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+
+
+@pytest.mark.parametrize(
+    "name, content, error, message",
+    [
+        ("s.ply", b"garbage", InputFileError, "not a PLY"),
+        ("s.ply", PLY_HEADER + b"1 2 3\n", InputFileError, "could not be read|truncated"),
+        ("s.pcd", b"garbage", InputFileError, "not a PCD"),
+        ("s.pcd", b"VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 5\n"
+                  b"HEIGHT 1\nPOINTS 5\nDATA ascii\n1 2 3\n", InputFileError, "truncated"),
+        ("s.xyz", b"", InputFileError, "empty"),
+        ("s.xyz", bytes(range(256)), InputFileError, "binary"),
+        ("s.xyz", b"nan nan nan\n", InputFileError, "no point with finite"),
+        ("s.obj", b"v 1 2 3\n", UnknownFormatError, "cannot tell the scan format"),
+    ],
+)
+def test_bad_scan_files_are_refused_with_a_reason(tmp_path, capfd, name, content, error, message):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(error, match=message):
+        read_scan(tmp_path / name)
+    # Nothing of Open3D's own complaints reaches the terminal.
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+
+
+def test_missing_scan_file(tmp_path):
+    with pytest.raises(InputFileError, match="does not exist"):
+        read_scan(tmp_path / "nope.ply")
+
+
+def test_explicit_format_overrides_the_suffix(tmp_path):
+    (tmp_path / "scan.txt").write_text("0 0 0\n1 1 1\n")
+    assert len(read_scan(tmp_path / "scan.txt", fmt="xyz").scan) == 2
+    with pytest.raises(UnknownFormatError):
+        read_scan(tmp_path / "scan.txt", fmt="stl")
+
+
+def test_atomic_path_leaves_the_old_file_when_writing_fails(tmp_path):
+    target = tmp_path / "out.csv"
+    target.write_text("old")
+    with pytest.raises(RuntimeError), atomic_path(target) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("writer failed")
+    assert target.read_text() == "old"
+    assert list(tmp_path.iterdir()) == [target]
+    with atomic_path(target) as tmp:
+        tmp.write_text("new")
+    assert target.read_text() == "new"
