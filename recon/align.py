@@ -259,8 +259,15 @@ class _Problem:
         R = Rotation.from_rotvec(twist[:3] / length).as_matrix()
         delta[:3, :3] = R
         delta[:3, 3] = centre + twist[3:] - R @ centre
-        return _Step(delta @ T, rmse, n_inliers, sigma, median_pair,
-                     int(np.count_nonzero(keep)), float(np.linalg.norm(twist)))
+        return _Step(
+            delta @ T,
+            rmse,
+            n_inliers,
+            sigma,
+            median_pair,
+            int(np.count_nonzero(keep)),
+            float(np.linalg.norm(twist)),
+        )
 
 
 def _across(directions: FloatArray) -> FloatArray:

@@ -102,9 +102,18 @@ def evaluate(
     first variant that registered (they do not register themselves).
     """
     raw_tracker = error_stats(scene.recording.points_m, scene.truth_m)
-    results = [(v.label, reconstruct(scene.recording, scene.scan, params=v.params,
-                                      T_scan_tracker_init=T_scan_tracker_init))
-               for v in variants]
+    results = [
+        (
+            v.label,
+            reconstruct(
+                scene.recording,
+                scene.scan,
+                params=v.params,
+                T_scan_tracker_init=T_scan_tracker_init,
+            ),
+        )
+        for v in variants
+    ]
     reference = next((r for _, r in results if r.registration is not None), None)
     savgol = best_savitzky_golay(scene.recording.points_m, scene.truth_m, spacing_m=spacing_m)
 
@@ -119,14 +128,21 @@ def evaluate(
         if scene.surface_height is not None:
             height = float(
                 np.max(height_above_registered(scene, frame, points))
-                if frame is not None else np.max(scene.surface_height(points))
+                if frame is not None
+                else np.max(scene.surface_height(points))
             )
-        return Row(label, tracker, tracker.ratio_to(raw_tracker), registered, registered_ratio,
-                   height)
+        return Row(
+            label, tracker, tracker.ratio_to(raw_tracker), registered, registered_ratio, height
+        )
 
     rows = [row("raw trace", scene.recording.points_m, None)]
-    rows.append(row(f"best Savitzky-Golay ({savgol.window_m * 1e3:.0f} mm, order {savgol.order})",
-                    savgol.points_m, None))
+    rows.append(
+        row(
+            f"best Savitzky-Golay ({savgol.window_m * 1e3:.0f} mm, order {savgol.order})",
+            savgol.points_m,
+            None,
+        )
+    )
     rows += [row(label, recon.points_m, recon) for label, recon in results]
     return rows
 
@@ -141,8 +157,14 @@ def format_table(rows: list[Row], *, title: str = "") -> str:
         "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
-        reg = (f"{r.registered.mean_m * mm:.3f} | {r.registered.max_m * mm:.3f} | "
-               f"{r.registered_ratio:.2f}") if r.registered is not None else "- | - | -"
+        reg = (
+            (
+                f"{r.registered.mean_m * mm:.3f} | {r.registered.max_m * mm:.3f} | "
+                f"{r.registered_ratio:.2f}"
+            )
+            if r.registered is not None
+            else "- | - | -"
+        )
         height = f"{r.height_max_m * mm:.2f}" if r.height_max_m is not None else "-"
         lines.append(
             f"| {r.label} | {r.tracker.mean_m * mm:.3f} | {r.tracker.max_m * mm:.3f} | "

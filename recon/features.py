@@ -267,8 +267,9 @@ def prepare_scan(
     points = np.asarray(cloud.points).copy()
     normals, curvature = covariance_features(points, radius_m=curvature_radius_m)
     threshold = edge_curvature if edge_curvature is not None else edge_threshold(curvature)
-    dense = _thin_randomly(cropped, n_voxels=n_before, voxel_m=voxel_m,
-                           spacing_m=dense_spacing_m, seed=seed)
+    dense = _thin_randomly(
+        cropped, n_voxels=n_before, voxel_m=voxel_m, spacing_m=dense_spacing_m, seed=seed
+    )
     return ScanFeatures(
         points_m=points,
         dense_points_m=dense,
@@ -440,19 +441,31 @@ def fit_edge_lines(
     starts = range(0, len(query_m), chunk)
     # numpy's matmul and eigh release the GIL, so chunks run in parallel on threads.
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        parts = list(pool.map(
-            lambda i: _fit_edge_lines_chunk(
-                query_m[i:i + chunk], features, trees, radius_m, min_points
-            ),
-            starts,
-        ))
+        parts = list(
+            pool.map(
+                lambda i: _fit_edge_lines_chunk(
+                    query_m[i : i + chunk], features, trees, radius_m, min_points
+                ),
+                starts,
+            )
+        )
     if not parts:
         empty = np.zeros((0, 3))
-        return EdgeLineFit(empty, empty, np.zeros(0), np.zeros(0, np.int64), np.zeros(0),
-                           np.zeros(0, bool))
-    return EdgeLineFit(*(np.concatenate(arrays) for arrays in zip(*(
-        (p.points_m, p.directions, p.residual_m, p.n_points, p.dihedral_deg, p.ok) for p in parts
-    ), strict=True)))
+        return EdgeLineFit(
+            empty, empty, np.zeros(0), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, bool)
+        )
+    return EdgeLineFit(
+        *(
+            np.concatenate(arrays)
+            for arrays in zip(
+                *(
+                    (p.points_m, p.directions, p.residual_m, p.n_points, p.dihedral_deg, p.ok)
+                    for p in parts
+                ),
+                strict=True,
+            )
+        )
+    )
 
 
 def _neighbours(tree: cKDTree, values: FloatArray, query_m: FloatArray, k: int, radius_m: float):
@@ -495,7 +508,9 @@ def _fit_edge_lines_chunk(query_m, features, trees, radius_m, min_points) -> Edg
     pa = weighted_pca(coarse, (flat & ~second).astype(np.float64))
     pb = weighted_pca(coarse, (flat & second).astype(np.float64))
 
-    dense, present, _ = _neighbours(dense_tree, features.dense_points_m, query_m, EDGE_FIT_NEIGHBOURS, radius_m)
+    dense, present, _ = _neighbours(
+        dense_tree, features.dense_points_m, query_m, EDGE_FIT_NEIGHBOURS, radius_m
+    )
     sigma = np.full((len(query_m), 1), np.inf)
     for _ in range(3):
         na, nb_normal = pa.axes[:, :, 2], pb.axes[:, :, 2]

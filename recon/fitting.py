@@ -96,7 +96,9 @@ def weighted_pca(points: FloatArray, weights: FloatArray | None = None) -> PCA:
     # Batched matmul rather than a three-operand einsum: several times faster on (B, K, 3).
     mean = np.matmul(weights[:, None, :], points)[:, 0] / safe[:, None]
     centred = points - mean[:, None, :]
-    cov = np.matmul((centred * weights[..., None]).transpose(0, 2, 1), centred) / safe[:, None, None]
+    cov = (
+        np.matmul((centred * weights[..., None]).transpose(0, 2, 1), centred) / safe[:, None, None]
+    )
     variances, vectors = np.linalg.eigh(cov)  # ascending
     return PCA(
         mean=mean,
@@ -297,12 +299,15 @@ def symmetric_eig3(cov: FloatArray) -> tuple[FloatArray, FloatArray]:
     vector = crosses[rows, best]
     length = norms[rows, best]
     fallback = np.tile([0.0, 0.0, 1.0], (len(a), 1))
-    vector = np.where(length[:, None] > 1e-300, vector / np.where(length > 0, length, 1.0)[:, None],
-                      fallback)
+    vector = np.where(
+        length[:, None] > 1e-300, vector / np.where(length > 0, length, 1.0)[:, None], fallback
+    )
     return values, vector
 
 
-def gather(values: FloatArray, index: NDArray[np.int64], fill_index: int | None = None) -> FloatArray:
+def gather(
+    values: FloatArray, index: NDArray[np.int64], fill_index: int | None = None
+) -> FloatArray:
     """``values[index]`` where entries equal to ``fill_index`` (padding) read as zeros.
 
     Parameters

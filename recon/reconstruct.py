@@ -56,9 +56,9 @@ from recon.segment import find_corners, split_at
 from recon.types import (
     FloatArray,
     PointMode,
-    Recording,
     ReconParams,
     Reconstruction,
+    Recording,
     Registration,
     Scan,
     Segment,
@@ -83,7 +83,7 @@ EDGE_FOLLOW_DISTANCE_M = 0.0025
 #: The anchored method's drift estimate averages the path-to-scan discrepancy over this many radii.
 DRIFT_WINDOW_RADII = 10.0
 #: Nearest scan neighbours per point for the surface fits of the anchored method.
-SURFACE_NEIGHBOURS = 256
+SURFACE_NEIGHBOURS = 128
 EDGE_SCAN_RADII = 1.5
 SURFACE_SCAN_RADII = 1.5
 
@@ -98,8 +98,9 @@ class ScanContext:
         self, features: ScanFeatures, *, edge_spacing_m: float, edge_fit_radius_m: float
     ) -> None:
         self.features = features
-        self.edges = EdgePoints(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0),
-                                np.zeros(0, np.int64))
+        self.edges = EdgePoints(
+            np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64)
+        )
         self.edge_spacing_m = edge_spacing_m  # distance between edge-line fits
         self.edge_fit_radius_m = edge_fit_radius_m
 
@@ -386,9 +387,10 @@ def align_scan_axes(scan_axes: FloatArray, path_axes: FloatArray) -> FloatArray:
     -------
     ndarray of shape (B, 3, 3)
     """
-    x = scan_axes[:, :, 0] * np.sign(
-        np.einsum("bi,bi->b", scan_axes[:, :, 0], path_axes[:, :, 0]) + 1e-300
-    )[:, None]
+    x = (
+        scan_axes[:, :, 0]
+        * np.sign(np.einsum("bi,bi->b", scan_axes[:, :, 0], path_axes[:, :, 0]) + 1e-300)[:, None]
+    )
     dot2 = np.einsum("bi,bi->b", scan_axes[:, :, 1], path_axes[:, :, 1])
     dot3 = np.einsum("bi,bi->b", scan_axes[:, :, 2], path_axes[:, :, 1])
     use_third = np.abs(dot3) > np.abs(dot2)
@@ -417,7 +419,7 @@ def _edge_neighbourhoods(
     pts = gather(edges.points_m, idx, fill_index=len(edges))
     dirs = gather(edges.directions, idx, fill_index=len(edges))
     along = np.abs(np.einsum("bki,bi->bk", dirs, path_direction))
-    weights = (np.isfinite(dist) & (along >= np.cos(np.radians(EDGE_DIRECTION_TOLERANCE_DEG))))
+    weights = np.isfinite(dist) & (along >= np.cos(np.radians(EDGE_DIRECTION_TOLERANCE_DEG)))
     return pts, weights.astype(np.float64), idx
 
 
@@ -444,8 +446,9 @@ def _paper_segment(
         local = frame.to_local(neighbourhood)
         x_i = frame.to_local(points[rows])[:, 0]
         design_at = poly_design(x_i, degree=degree, scale=scale)
-        fit_p = fit_linear(poly_design(local[..., 0], degree=degree, scale=scale),
-                           local[..., 1], None)
+        fit_p = fit_linear(
+            poly_design(local[..., 0], degree=degree, scale=scale), local[..., 1], None
+        )
         f_p = fit_p.predict(design_at)[:, 0]
         alpha = np.ones(len(x_i))
         f_s = np.zeros(len(x_i))
@@ -453,8 +456,9 @@ def _paper_segment(
         residual_s = np.full(len(x_i), np.nan)
         if use_scan:
             if kind == "edge":
-                ns, ws, _ = _edge_neighbourhoods(points[rows], frame.axes[:, :, 0], context,
-                                                 params.radius_m)
+                ns, ws, _ = _edge_neighbourhoods(
+                    points[rows], frame.axes[:, :, 0], context, params.radius_m
+                )
             else:
                 ns = context.features.dense_points_m[knn[windows[rows]].reshape(len(x_i), -1)]
                 ws = np.ones(ns.shape[:2])
@@ -462,7 +466,9 @@ def _paper_segment(
             axes_s = align_scan_axes(scan_frame.axes, frame.axes)
             local_s = np.einsum("bij,bki->bkj", axes_s, ns - scan_frame.mean[:, None])
             fit_s, ws = fit_linear_robust(
-                poly_design(local_s[..., 0], degree=degree, scale=scale), local_s[..., 1], ws,
+                poly_design(local_s[..., 0], degree=degree, scale=scale),
+                local_s[..., 1],
+                ws,
                 floor=1e-5,
             )
             ok = fit_s.dof >= 1
@@ -520,8 +526,9 @@ def _anchored_segment(
         local = frame.to_local(neighbourhood)
         x_i = frame.to_local(points[rows])[:, 0]
         design_at = poly_design(x_i, degree=degree, scale=scale)
-        fit_p = fit_linear(poly_design(local[..., 0], degree=degree, scale=scale),
-                           local[..., 1:], None)
+        fit_p = fit_linear(
+            poly_design(local[..., 0], degree=degree, scale=scale), local[..., 1:], None
+        )
         on_curve = np.column_stack([x_i, fit_p.predict(design_at)])
         smoothed[rows] = frame.to_world(on_curve)
         var_path_fit[rows] = fit_p.rms**2 * fit_p.leverage(design_at)
@@ -573,8 +580,9 @@ def _edge_targets(centres, direction, context, params, degree):
     if context.edge_tree is None:
         b = len(centres)
         return centres, np.full(b, np.inf), np.zeros(b, np.int64), np.full(b, np.nan)
-    ns, ws, idx_s = _edge_neighbourhoods(centres, direction, context,
-                                         EDGE_SCAN_RADII * params.radius_m)
+    ns, ws, idx_s = _edge_neighbourhoods(
+        centres, direction, context, EDGE_SCAN_RADII * params.radius_m
+    )
     frame = weighted_pca(ns, ws)
     axes = frame.axes.copy()
     flip = np.einsum("bi,bi->b", axes[:, :, 0], direction) < 0
@@ -589,8 +597,9 @@ def _edge_targets(centres, direction, context, params, degree):
     target = frame.mean + np.einsum(
         "bij,bj->bi", axes, np.column_stack([x_at, fit.predict(design_at)])
     )
-    var_from_scatter = fit.rms**2 * np.minimum(fit.leverage(design_at) * edge_dependence(context),
-                                               1.0)
+    var_from_scatter = fit.rms**2 * np.minimum(
+        fit.leverage(design_at) * edge_dependence(context), 1.0
+    )
     # The scatter about the local curve hides what the line fits share over a ball's diameter,
     # so the fits' own precision bounds the target's variance from below.
     line_variance = gather(context.edges.variance_m2, idx_s, fill_index=len(context.edges))
@@ -716,4 +725,3 @@ def _assemble(
         params=params,
         notes=tuple(notes),
     )
-

@@ -172,7 +172,9 @@ def misalignment(rng: np.random.Generator, *, shift_m: float, angle_deg: float) 
     axis = rng.standard_normal(3)
     direction = rng.standard_normal(3)
     T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(np.radians(angle_deg) * axis / np.linalg.norm(axis)).as_matrix()
+    T[:3, :3] = Rotation.from_rotvec(
+        np.radians(angle_deg) * axis / np.linalg.norm(axis)
+    ).as_matrix()
     T[:3, 3] = shift_m * direction / np.linalg.norm(direction)
     return T
 
@@ -251,7 +253,8 @@ def cylinder_edge(
     return Scene(
         name="cylinder_edge",
         description=f"Fig. 4: circular edge of a cylinder (R {R / MM:.0f} mm), scan noise "
-        f"{scan_noise_fraction * 100:.0f} % of R, scan off by {shift_m / MM:.1f} mm / {angle_deg:g} deg",
+        f"{scan_noise_fraction * 100:.0f} % of R, "
+        f"scan off by {shift_m / MM:.1f} mm / {angle_deg:g} deg",
         truth_m=truth,
         recording=recording,
         scan=scan,
@@ -403,7 +406,11 @@ def free_curve(seed: int = 0) -> Scene:
 
 
 def box_corner(
-    seed: int = 0, *, scan_noise_m: float = 0.5 * MM, shift_m: float = 2 * MM, angle_deg: float = 0.5
+    seed: int = 0,
+    *,
+    scan_noise_m: float = 0.5 * MM,
+    shift_m: float = 2 * MM,
+    angle_deg: float = 0.5,
 ) -> Scene:
     """A path along two top edges of a box, around a 90-degree corner.
 
@@ -439,8 +446,12 @@ def box_corner(
     )
     T = misalignment(rng, shift_m=shift_m, angle_deg=angle_deg)
     scan = _scan_from_surface(
-        np.concatenate([top, front, right]), normals, rng, sigma_m=scan_noise_m,
-        outlier_fraction=0.003, T_scan_tracker=T,
+        np.concatenate([top, front, right]),
+        normals,
+        rng,
+        sigma_m=scan_noise_m,
+        outlier_fraction=0.003,
+        T_scan_tracker=T,
     )
     return Scene(
         name="box_corner",
@@ -492,8 +503,13 @@ def long_edge(
     top_r = r0 + b * top_theta + outward
     top = np.column_stack([top_r * np.cos(top_theta), top_r * np.sin(top_theta), np.zeros(half)])
     wall_r = r0 + b * wall_theta
-    wall = np.column_stack([wall_r * np.cos(wall_theta), wall_r * np.sin(wall_theta),
-                            rng.uniform(-30 * MM, 0, len(wall_s))])
+    wall = np.column_stack(
+        [
+            wall_r * np.cos(wall_theta),
+            wall_r * np.sin(wall_theta),
+            rng.uniform(-30 * MM, 0, len(wall_s)),
+        ]
+    )
     pts = np.concatenate([top, wall])
     pts += scan_noise_m * rng.standard_normal(pts.shape)
     return Scene(

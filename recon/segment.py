@@ -37,8 +37,8 @@ def turning_angle_deg(points_m: FloatArray, *, half_window: int) -> FloatArray:
     angle = np.zeros(n)
     if n <= 2 * k:
         return angle
-    incoming = points[k:-k] - points[:-2 * k]
-    outgoing = points[2 * k:] - points[k:-k]
+    incoming = points[k:-k] - points[: -2 * k]
+    outgoing = points[2 * k :] - points[k:-k]
     cos = np.einsum("ij,ij->i", incoming, outgoing) / np.maximum(
         np.linalg.norm(incoming, axis=1) * np.linalg.norm(outgoing, axis=1), 1e-300
     )

@@ -19,7 +19,9 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 
 
-def frozen_array(values, *, dtype=np.float64, shape_tail: tuple[int, ...] = (), name: str) -> NDArray:
+def frozen_array(
+    values, *, dtype=np.float64, shape_tail: tuple[int, ...] = (), name: str
+) -> NDArray:
     """Copy ``values`` into a read-only array, checking its trailing shape and finiteness.
 
     Parameters
@@ -185,7 +187,11 @@ class ReconParams:
 
     def __post_init__(self) -> None:
         positive = (
-            "spacing_m", "radius_m", "corner_scale_m", "icp_max_distance_m", "crop_margin_m",
+            "spacing_m",
+            "radius_m",
+            "corner_scale_m",
+            "icp_max_distance_m",
+            "crop_margin_m",
             "curvature_radius_m",
         )
         for name in positive:
@@ -193,7 +199,9 @@ class ReconParams:
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number of metres, got {value!r}")
         if not (isinstance(self.voxel_m, (int, float)) and self.voxel_m >= 0):
-            raise ValueError(f"voxel_m must be >= 0 (0 disables downsampling), got {self.voxel_m!r}")
+            raise ValueError(
+                f"voxel_m must be >= 0 (0 disables downsampling), got {self.voxel_m!r}"
+            )
         if self.radius_m < 2 * self.spacing_m:
             raise ValueError(
                 f"radius_m ({self.radius_m}) must be at least twice spacing_m ({self.spacing_m}) "
@@ -347,8 +355,17 @@ class Reconstruction:
     def __post_init__(self) -> None:
         n = len(self.points_m)
         for name in (
-            "points_m", "input_points_m", "t_s", "displacement_m", "mode", "segment", "n_path",
-            "n_surface", "residual_path_m", "residual_surface_m", "alpha",
+            "points_m",
+            "input_points_m",
+            "t_s",
+            "displacement_m",
+            "mode",
+            "segment",
+            "n_path",
+            "n_surface",
+            "residual_path_m",
+            "residual_surface_m",
+            "alpha",
         ):
             value = getattr(self, name)
             if value is None:

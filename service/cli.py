@@ -34,7 +34,9 @@ def _alpha(value: str) -> float | str:
     try:
         alpha = float(value)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"alpha must be a number in [0, 1] or 'auto', not {value!r}")
+        raise argparse.ArgumentTypeError(
+            f"alpha must be a number in [0, 1] or 'auto', not {value!r}"
+        ) from None
     if not (0.0 <= alpha <= 1.0) or math.isnan(alpha):
         raise argparse.ArgumentTypeError(f"alpha must be in [0, 1], got {value}")
     return alpha
@@ -44,7 +46,7 @@ def _positive(value: str) -> float:
     try:
         number = float(value)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, not {value!r}")
+        raise argparse.ArgumentTypeError(f"expected a positive number, not {value!r}") from None
     if not (number > 0 and math.isfinite(number)):
         raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
     return number
@@ -63,20 +65,33 @@ def build_parser() -> argparse.ArgumentParser:
         description="Reconstruct a traced path, using the scan's structure where there is one. "
         "Writes the path (x,y,z, metres) with per-point diagnostics as CSV.",
     )
-    rec.add_argument("path_file", metavar="PATH_FILE",
-                     help="trace CSV with a header naming x,y,z (optionally t, qx,qy,qz,qw)")
+    rec.add_argument(
+        "path_file",
+        metavar="PATH_FILE",
+        help="trace CSV with a header naming x,y,z (optionally t, qx,qy,qz,qw)",
+    )
     rec.add_argument("--scan", metavar="SCAN_FILE", help="scan of the workpiece: PLY, PCD or XYZ")
-    rec.add_argument("--units", choices=("m", "mm"), default="m",
-                     help="length unit of both input files (default: m)")
+    rec.add_argument(
+        "--units",
+        choices=("m", "mm"),
+        default="m",
+        help="length unit of both input files (default: m)",
+    )
     rec.add_argument("--radius-m", type=_positive, help="reconstruction radius r (default 0.008)")
     rec.add_argument("--alpha", type=_alpha, help="path weight in [0, 1] or 'auto' (default auto)")
     rec.add_argument("--beta", type=float, help="amount of reconstruction in [0, 1] (default 1)")
     rec.add_argument("--degree", type=int, help="polynomial degree (default 2)")
-    rec.add_argument("--method", choices=("paper", "anchored"),
-                     help="paper: Eq. (4) of the paper; anchored: ours (default)")
+    rec.add_argument(
+        "--method",
+        choices=("paper", "anchored"),
+        help="paper: Eq. (4) of the paper; anchored: ours (default)",
+    )
     rec.add_argument("--spacing-m", type=_positive, help="resampling step (default 0.001)")
-    rec.add_argument("--no-register", action="store_true",
-                     help="trust the frames as given: do not register the path to the scan")
+    rec.add_argument(
+        "--no-register",
+        action="store_true",
+        help="trust the frames as given: do not register the path to the scan",
+    )
     rec.add_argument("--out", required=True, metavar="OUT.csv", help="reconstructed path (CSV)")
     rec.add_argument("--plot", metavar="OUT.png", help="also write a picture")
     rec.set_defaults(handler=_cmd_reconstruct)
@@ -155,8 +170,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         scan_file = read_scan(args.scan, units=args.units)
         scan = scan_file.scan
         if scan_file.n_dropped:
-            print(f"note: {scan_file.n_dropped} scan points without finite coordinates were "
-                  "left out", file=sys.stderr)
+            print(
+                f"note: {scan_file.n_dropped} scan points without finite coordinates were left out",
+                file=sys.stderr,
+            )
     recon = reconstruct(recording, scan, params=params)
     if plot is not None:
         # Written first: if the plot fails, no CSV claims the run succeeded.
@@ -192,8 +209,9 @@ def summary(recon) -> str:
     reg = recon.registration
     if reg is not None:
         lines.append(
-            f"registered to the scan's {reg.target}: moved {np.linalg.norm(reg.translation_m) * mm:.2f} mm "
-            f"and {reg.rotation_deg:.2f} deg, residual {reg.rmse_m * mm:.2f} mm RMS, "
+            f"registered to the scan's {reg.target}: moved "
+            f"{np.linalg.norm(reg.translation_m) * mm:.2f} mm and {reg.rotation_deg:.2f} deg, "
+            f"residual {reg.rmse_m * mm:.2f} mm RMS, "
             f"{reg.fitness * 100:.0f} % of the path paired, {reg.constrained_dof}/6 motions fixed"
         )
     lines += [f"note: {note}" for note in recon.notes]
@@ -216,12 +234,22 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     write_trace_csv(trace_file, scene.recording)
     write_scan(scan_file, scene.scan)
     print(f"scene: {scene.description}")
-    print(f"inputs: {trace_file} ({len(scene.recording)} samples), "
-          f"{scan_file} ({len(scene.scan)} points)")
-    code = main([
-        "reconstruct", str(trace_file), "--scan", str(scan_file),
-        "--out", str(out_dir / "reconstruction.csv"), "--plot", str(out_dir / "reconstruction.png"),
-    ])
+    print(
+        f"inputs: {trace_file} ({len(scene.recording)} samples), "
+        f"{scan_file} ({len(scene.scan)} points)"
+    )
+    code = main(
+        [
+            "reconstruct",
+            str(trace_file),
+            "--scan",
+            str(scan_file),
+            "--out",
+            str(out_dir / "reconstruction.csv"),
+            "--plot",
+            str(out_dir / "reconstruction.png"),
+        ]
+    )
     if code:
         return code
     table = format_table(evaluate(scene, default_variants()), title=scene.description)
@@ -237,8 +265,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     )
     print()
     print(table)
-    print(f"\nwrote {out_dir / 'reconstruction.csv'}, {out_dir / 'reconstruction.png'}, "
-          f"{out_dir / 'accuracy.md'}, {out_dir / 'accuracy.png'}")
+    print(
+        f"\nwrote {out_dir / 'reconstruction.csv'}, {out_dir / 'reconstruction.png'}, "
+        f"{out_dir / 'accuracy.md'}, {out_dir / 'accuracy.png'}"
+    )
     return 0
 
 

@@ -64,13 +64,27 @@ def plot_reconstruction(
     _equal_axes(ax3d, recon.points_m * mm)
 
     ax = fig.add_subplot(1, 2, 2)
-    arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(recon.input_points_m, axis=0),
-                                                          axis=1)))) * mm
+    arc = (
+        np.concatenate(
+            ([0.0], np.cumsum(np.linalg.norm(np.diff(recon.input_points_m, axis=0), axis=1)))
+        )
+        * mm
+    )
     if truth_m is not None:
-        ax.plot(arc, distance_to_curve(recon.input_points_m, truth_m) * mm, c="tab:blue",
-                lw=0.8, label="input")
-        ax.plot(arc, distance_to_curve(recon.points_m, truth_m) * mm, c="tab:green", lw=1.2,
-                label="reconstruction")
+        ax.plot(
+            arc,
+            distance_to_curve(recon.input_points_m, truth_m) * mm,
+            c="tab:blue",
+            lw=0.8,
+            label="input",
+        )
+        ax.plot(
+            arc,
+            distance_to_curve(recon.points_m, truth_m) * mm,
+            c="tab:green",
+            lw=1.2,
+            label="reconstruction",
+        )
         ax.set_ylabel("distance to ground truth [mm]")
     else:
         ax.plot(arc, recon.displacement_m * mm, c="tab:green", lw=1.2, label="displacement")

@@ -77,8 +77,13 @@ def _edge_nbrs(centre, direction, context, radius):
     idx = context.edge_tree.query_ball_point(centre, radius)
     idx = sorted(idx, key=lambda j: np.linalg.norm(edges.points_m[j] - centre))[:64]
     idx = np.array(
-        [j for j in idx if abs(edges.directions[j] @ direction)
-         >= np.cos(np.radians(R.EDGE_DIRECTION_TOLERANCE_DEG))], dtype=int
+        [
+            j
+            for j in idx
+            if abs(edges.directions[j] @ direction)
+            >= np.cos(np.radians(R.EDGE_DIRECTION_TOLERANCE_DEG))
+        ],
+        dtype=int,
     )
     if not len(idx):
         return np.zeros((0, 3)), np.zeros(0)
@@ -106,12 +111,14 @@ def paper_segment_loop(points, kind, context, params: ReconParams, half_width: i
             if kind == "edge":
                 ns, _ = _edge_nbrs(points[i], axes[:, 0], context, params.radius_m)
             else:
-                ns = np.concatenate([
-                    context.features.dense_points_m[
-                        context.dense_tree.query(points[j], k=params.surface_k)[1]
+                ns = np.concatenate(
+                    [
+                        context.features.dense_points_m[
+                            context.dense_tree.query(points[j], k=params.surface_k)[1]
+                        ]
+                        for j in _window(i, n, half_width)
                     ]
-                    for j in _window(i, n, half_width)
-                ])
+                )
             if len(ns) >= degree + 2:
                 mean_s, axes_s = _pca(ns)
                 axes_s = R.align_scan_axes(axes_s[None], axes[None])[0]
@@ -155,8 +162,9 @@ def anchored_segment_loop(points, kind, context, params: ReconParams, half_width
         if not use_scan:
             continue
         if kind == "edge":
-            ns, line_var = _edge_nbrs(smoothed[i], axes[:, 0], context,
-                                      R.EDGE_SCAN_RADII * params.radius_m)
+            ns, line_var = _edge_nbrs(
+                smoothed[i], axes[:, 0], context, R.EDGE_SCAN_RADII * params.radius_m
+            )
             if len(ns) < degree + 3:
                 continue
             mean_s, axes_s = _pca(ns)
@@ -177,8 +185,9 @@ def anchored_segment_loop(points, kind, context, params: ReconParams, half_width
                 var_t[i] = max(scatter, float(np.mean(line_var[keep])))
         else:
             dense = context.features.dense_points_m
-            idx = context.dense_tree.query_ball_point(smoothed[i],
-                                                      R.SURFACE_SCAN_RADII * params.radius_m)
+            idx = context.dense_tree.query_ball_point(
+                smoothed[i], R.SURFACE_SCAN_RADII * params.radius_m
+            )
             idx = sorted(idx, key=lambda j: np.linalg.norm(dense[j] - smoothed[i]))
             ns = dense[np.array(idx[: R.SURFACE_NEIGHBOURS], dtype=int)]
             if len(ns) < 7:
@@ -229,13 +238,20 @@ def reconstruct_loop(recording, scan, params: ReconParams, T_scan_tracker_init=N
     from recon.resample import resample_equidistant
     from recon.segment import find_corners, split_at
 
-    resampled = resample_equidistant(recording.points_m, spacing_m=params.spacing_m,
-                                     t_s=recording.t_s)
+    resampled = resample_equidistant(
+        recording.points_m, spacing_m=params.spacing_m, t_s=recording.t_s
+    )
     points = resampled.points_m
     half = max(1, int(round(params.radius_m / resampled.spacing_m)))
-    bounds = split_at(len(points), find_corners(points, spacing_m=resampled.spacing_m,
-                                                angle_deg=params.corner_angle_deg,
-                                                scale_m=params.corner_scale_m))
+    bounds = split_at(
+        len(points),
+        find_corners(
+            points,
+            spacing_m=resampled.spacing_m,
+            angle_deg=params.corner_angle_deg,
+            scale_m=params.corner_scale_m,
+        ),
+    )
     T = np.eye(4)
     context = None
     if scan is not None and params.uses_scan:
@@ -251,6 +267,3 @@ def reconstruct_loop(recording, scan, params: ReconParams, T_scan_tracker_init=N
         result, _ = loop(work[start:stop], kind, context, params, half)
         out[start:stop] = result
     return apply_transform(invert_transform(T), out)
-
-
-

@@ -253,8 +253,9 @@ def _read(path: Path, fmt: str, label: str) -> o3d.geometry.PointCloud:
         raise InputFileError(f"{label} has a malformed {fmt.upper()} header") from None
     # Open3D reports failures as console messages only; capture them for the error message and
     # judge the result instead.
-    with _captured_native_stderr() as native, o3d.utility.VerbosityContextManager(
-        o3d.utility.VerbosityLevel.Error
+    with (
+        _captured_native_stderr() as native,
+        o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error),
     ):
         try:
             cloud = o3d.io.read_point_cloud(

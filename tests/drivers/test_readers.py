@@ -13,8 +13,11 @@ from recon.types import Recording, Scan
 def test_trace_round_trip_with_times_and_orientations(tmp_path):
     rng = np.random.default_rng(0)
     q = rng.standard_normal((20, 4))
-    rec = Recording(points_m=rng.uniform(-1, 1, (20, 3)), t_s=np.arange(20) * 0.004,
-                    orientations_xyzw=q / np.linalg.norm(q, axis=1)[:, None])
+    rec = Recording(
+        points_m=rng.uniform(-1, 1, (20, 3)),
+        t_s=np.arange(20) * 0.004,
+        orientations_xyzw=q / np.linalg.norm(q, axis=1)[:, None],
+    )
     write_trace_csv(tmp_path / "t.csv", rec)
     back = read_trace_csv(tmp_path / "t.csv")
     np.testing.assert_allclose(back.points_m, rec.points_m, atol=1e-8)
@@ -83,7 +86,10 @@ def test_non_finite_scan_points_are_dropped_and_counted(tmp_path):
     assert len(back.scan) == 2 and back.n_dropped == 1
 
 
-PLY_HEADER = b"ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+PLY_HEADER = (
+    b"ply\nformat ascii 1.0\nelement vertex 10\n"
+    b"property float x\nproperty float y\nproperty float z\nend_header\n"
+)
 
 
 @pytest.mark.parametrize(
@@ -92,8 +98,13 @@ PLY_HEADER = b"ply\nformat ascii 1.0\nelement vertex 10\nproperty float x\nprope
         ("s.ply", b"garbage", InputFileError, "not a PLY"),
         ("s.ply", PLY_HEADER + b"1 2 3\n", InputFileError, "could not be read|truncated"),
         ("s.pcd", b"garbage", InputFileError, "not a PCD"),
-        ("s.pcd", b"VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 5\n"
-                  b"HEIGHT 1\nPOINTS 5\nDATA ascii\n1 2 3\n", InputFileError, "truncated"),
+        (
+            "s.pcd",
+            b"VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 5\n"
+            b"HEIGHT 1\nPOINTS 5\nDATA ascii\n1 2 3\n",
+            InputFileError,
+            "truncated",
+        ),
         ("s.xyz", b"", InputFileError, "empty"),
         ("s.xyz", bytes(range(256)), InputFileError, "binary"),
         ("s.xyz", b"nan nan nan\n", InputFileError, "no point with finite"),

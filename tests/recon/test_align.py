@@ -21,8 +21,9 @@ def l_shaped_edge(spacing=0.0005):
     leg = np.arange(0, 0.08, spacing)
     a = np.column_stack([leg, np.zeros_like(leg), np.zeros_like(leg)])
     b = np.column_stack([np.zeros_like(leg), leg, np.zeros_like(leg)])
-    directions = np.concatenate([np.tile([1.0, 0, 0], (len(leg), 1)),
-                                 np.tile([0, 1.0, 0], (len(leg), 1))])
+    directions = np.concatenate(
+        [np.tile([1.0, 0, 0], (len(leg), 1)), np.tile([0, 1.0, 0], (len(leg), 1))]
+    )
     return np.concatenate([a, b]), directions
 
 
@@ -30,8 +31,14 @@ def test_recovers_a_known_transform_on_a_corner():
     target, directions = l_shaped_edge()
     T_true = transform([0.4, -0.3, 0.6], [0.002, -0.0015, 0.001])
     source = apply_transform(invert_transform(T_true), target[::3])
-    reg = register_icp(source, target, init_T_target_source=np.eye(4), max_distance_m=0.01,
-                       target_directions=directions, target_label="edge")
+    reg = register_icp(
+        source,
+        target,
+        init_T_target_source=np.eye(4),
+        max_distance_m=0.01,
+        target_directions=directions,
+        target_label="edge",
+    )
     moved = apply_transform(reg.T_scan_tracker, source)
     assert np.abs(moved - target[::3]).max() < 2e-5
     assert reg.constrained_dof == 6
@@ -41,20 +48,31 @@ def test_agrees_with_open3d_point_to_point_where_the_problem_is_well_posed():
     rng = np.random.default_rng(0)
     target, directions = l_shaped_edge()
     T_true = transform([0.3, 0.2, -0.5], [0.0015, 0.001, -0.002])
-    source = apply_transform(invert_transform(T_true), target[::4]) + rng.normal(0, 1e-4, (len(target[::4]), 3))
-    ours = register_icp(source, target, init_T_target_source=np.eye(4), max_distance_m=0.01,
-                        target_directions=directions, target_label="edge")
+    source = apply_transform(invert_transform(T_true), target[::4]) + rng.normal(
+        0, 1e-4, (len(target[::4]), 3)
+    )
+    ours = register_icp(
+        source,
+        target,
+        init_T_target_source=np.eye(4),
+        max_distance_m=0.01,
+        target_directions=directions,
+        target_label="edge",
+    )
     result = o3d.pipelines.registration.registration_icp(
         o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source)),
         o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target)),
-        0.01, np.eye(4),
+        0.01,
+        np.eye(4),
         o3d.pipelines.registration.TransformationEstimationPointToPoint(),
         o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=200),
     )
     theirs = np.asarray(result.transformation)
     probe = np.array([[0.0, 0, 0], [0.08, 0, 0], [0, 0.08, 0]])
-    assert np.abs(apply_transform(ours.T_scan_tracker, probe)
-                  - apply_transform(theirs, probe)).max() < 2e-4
+    assert (
+        np.abs(apply_transform(ours.T_scan_tracker, probe) - apply_transform(theirs, probe)).max()
+        < 2e-4
+    )
 
 
 def test_a_plane_fixes_only_height_and_tilt():
@@ -65,8 +83,14 @@ def test_a_plane_fixes_only_height_and_tilt():
     a = np.linspace(0, 2 * np.pi, 200, endpoint=False)  # a circle spans the plane in 2-D
     source = np.column_stack([0.03 * np.cos(a), 0.03 * np.sin(a), np.full_like(a, 0.0015)])
     init = transform([0, 0, 5.0], [0.003, -0.002, 0.0])  # in-plane offset the plane cannot see
-    reg = register_icp(source, target, init_T_target_source=init, max_distance_m=0.01,
-                       target_normals=normals, target_label="surface")
+    reg = register_icp(
+        source,
+        target,
+        init_T_target_source=init,
+        max_distance_m=0.01,
+        target_normals=normals,
+        target_label="surface",
+    )
     moved = apply_transform(reg.T_scan_tracker, source)
     assert np.abs(moved[:, 2]).max() < 1e-6  # brought down onto the plane
     # The in-plane part of the initial guess is kept, not wandered away from.
@@ -82,8 +106,14 @@ def test_ignores_a_lifted_stretch_of_the_path():
     s = np.linspace(-0.05, 0.05, 300)
     lift = 0.006 * np.exp(-0.5 * (s / 0.008) ** 2)
     source = np.column_stack([s, 0.01 * np.sin(s * 40), lift])
-    reg = register_icp(source, target, init_T_target_source=np.eye(4), max_distance_m=0.01,
-                       target_normals=np.tile([0.0, 0, 1], (6000, 1)), target_label="surface")
+    reg = register_icp(
+        source,
+        target,
+        init_T_target_source=np.eye(4),
+        max_distance_m=0.01,
+        target_normals=np.tile([0.0, 0, 1], (6000, 1)),
+        target_label="surface",
+    )
     # The lift's flanks below the 2 mm Tukey scale still count a little.
     assert abs(reg.T_scan_tracker[2, 3]) < 2e-4
 
@@ -95,23 +125,37 @@ def test_a_nearly_straight_path_leaves_the_roll_about_itself_alone():
     s = np.linspace(-0.05, 0.05, 200)
     source = np.column_stack([s, 0.0005 * np.sin(s * 200), np.full_like(s, 0.001)])
     init = transform([2.0, 0, 0], [0, 0, 0])  # a roll about the path's own axis
-    reg = register_icp(source, target, init_T_target_source=init, max_distance_m=0.01,
-                       target_normals=np.tile([0.0, 0, 1], (6000, 1)), target_label="surface")
+    reg = register_icp(
+        source,
+        target,
+        init_T_target_source=init,
+        max_distance_m=0.01,
+        target_normals=np.tile([0.0, 0, 1], (6000, 1)),
+        target_label="surface",
+    )
     assert reg.constrained_dof == 2  # height and pitch; roll about the path is not observable
-    np.testing.assert_allclose(Rotation.from_matrix(reg.T_scan_tracker[:3, :3]).as_rotvec()[0],
-                               np.radians(2.0), atol=1e-6)
+    np.testing.assert_allclose(
+        Rotation.from_matrix(reg.T_scan_tracker[:3, :3]).as_rotvec()[0], np.radians(2.0), atol=1e-6
+    )
 
 
 def test_no_overlap_is_an_error():
     target, directions = l_shaped_edge()
     source = target[::3] + [0.0, 0.0, 0.05]
     with pytest.raises(RegistrationError, match="lies within"):
-        register_icp(source, target, init_T_target_source=np.eye(4), max_distance_m=0.01,
-                     target_directions=directions, target_label="edge")
+        register_icp(
+            source,
+            target,
+            init_T_target_source=np.eye(4),
+            max_distance_m=0.01,
+            target_directions=directions,
+            target_label="edge",
+        )
 
 
-@pytest.mark.parametrize("bad", [np.eye(3), np.full((4, 4), np.nan), np.diag([1.0, 1, -1, 1]),
-                                 np.diag([2.0, 1, 1, 1])])
+@pytest.mark.parametrize(
+    "bad", [np.eye(3), np.full((4, 4), np.nan), np.diag([1.0, 1, -1, 1]), np.diag([2.0, 1, 1, 1])]
+)
 def test_check_rigid_refuses_non_rigid_matrices(bad):
     with pytest.raises(ValueError):
         check_rigid(bad)

@@ -14,8 +14,9 @@ from recon.features import (
 )
 
 
-def dihedral(rng, *, angle_deg, sigma_m, concave=False, length_m=0.06, width_m=0.03,
-             density_per_mm2=2.0):
+def dihedral(
+    rng, *, angle_deg, sigma_m, concave=False, length_m=0.06, width_m=0.03, density_per_mm2=2.0
+):
     """Two faces meeting along the x axis at ``angle_deg`` (180 = flat), with normal noise.
 
     Face A lies in the xy half-plane y >= 0; face B leaves the x axis at ``angle_deg`` to it,
@@ -36,8 +37,7 @@ def dihedral(rng, *, angle_deg, sigma_m, concave=False, length_m=0.06, width_m=0
 
 
 def features_of(points, path):
-    return prepare_scan(points, path, crop_margin_m=0.025, voxel_m=0.002,
-                        curvature_radius_m=0.008)
+    return prepare_scan(points, path, crop_margin_m=0.025, voxel_m=0.002, curvature_radius_m=0.008)
 
 
 def test_crop_keeps_everything_within_the_radius_and_nothing_far_beyond():
@@ -73,8 +73,10 @@ def test_a_flat_surface_has_no_edge_lines_and_few_edge_points():
     path = np.column_stack([np.linspace(-0.02, 0.02, 41), np.full(41, 0.01), np.zeros(41)])
     feats = features_of(scan, path)
     assert feats.is_edge.mean() < 0.1
-    assert len(thin_edges(feats, path, radius_m=0.016, query_spacing_m=0.004,
-                          sample_spacing_m=0.001)) == 0
+    assert (
+        len(thin_edges(feats, path, radius_m=0.016, query_spacing_m=0.004, sample_spacing_m=0.001))
+        == 0
+    )
 
 
 def test_edge_threshold_separates_faces_from_crests():

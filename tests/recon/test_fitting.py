@@ -90,8 +90,9 @@ def test_closed_form_eigen_matches_eigh():
     values, vector = symmetric_eig3(cov)
     ref_values, ref_vectors = np.linalg.eigh(cov)
     np.testing.assert_allclose(values, ref_values, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(np.abs(np.einsum("mi,mi->m", vector, ref_vectors[:, :, 0])), 1.0,
-                               atol=1e-8)
+    np.testing.assert_allclose(
+        np.abs(np.einsum("mi,mi->m", vector, ref_vectors[:, :, 0])), 1.0, atol=1e-8
+    )
     # Degenerate cases: a multiple of the identity and a zero matrix.
     values, vector = symmetric_eig3(np.stack([np.eye(3) * 2.0, np.zeros((3, 3))]))
     np.testing.assert_allclose(values, [[2, 2, 2], [0, 0, 0]], atol=1e-12)

@@ -12,7 +12,7 @@ from recon.errors import DegenerateInputError, NoOverlapError, UnitsMismatchErro
 from recon.evaluation import height_above_registered, registered_truth
 from recon.metrics import best_savitzky_golay, error_stats
 from recon.reconstruct import reconstruct
-from recon.types import PointMode, Recording, ReconParams, Scan
+from recon.types import PointMode, ReconParams, Recording, Scan
 from tests.reference_loop import reconstruct_loop
 
 MM = 1e-3
@@ -59,8 +59,9 @@ def test_beta_zero_leaves_the_anchored_path_alone_and_one_applies_it_fully(box):
     np.testing.assert_allclose(unchanged.points_m, unchanged.input_points_m, atol=1e-12)
     full = reconstruct(box.recording, box.scan, params=ReconParams(beta=1.0))
     half = reconstruct(box.recording, box.scan, params=ReconParams(beta=0.5))
-    np.testing.assert_allclose(half.points_m, 0.5 * (full.points_m + full.input_points_m),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        half.points_m, 0.5 * (full.points_m + full.input_points_m), atol=1e-9
+    )
 
 
 # --- symmetries ----------------------------------------------------------------------------
@@ -139,15 +140,23 @@ def test_fig4_cylinder_edge_meets_the_papers_ratio_and_beats_the_baselines(cylin
     # Tracker frame: still better than both baselines.
     tracker = error_stats(default.points_m, cylinder.truth_m)
     assert tracker.mean_m < error_stats(path_only.points_m, cylinder.truth_m).mean_m
-    assert tracker.mean_m < best_savitzky_golay(cylinder.recording.points_m, cylinder.truth_m,
-                                                spacing_m=1 * MM).stats.mean_m
+    assert (
+        tracker.mean_m
+        < best_savitzky_golay(
+            cylinder.recording.points_m, cylinder.truth_m, spacing_m=1 * MM
+        ).stats.mean_m
+    )
     assert default.registration.constrained_dof == 5  # the turn about the axis is free
 
 
 def test_fig4_with_a_calibrated_scanner_the_drift_is_removed_in_the_tracker_frame(cylinder):
     """With the scanner's pose known, nothing is left to registration: the drift goes too."""
-    recon = reconstruct(cylinder.recording, cylinder.scan, params=ReconParams(register=False),
-                        T_scan_tracker_init=cylinder.T_scan_tracker)
+    recon = reconstruct(
+        cylinder.recording,
+        cylinder.scan,
+        params=ReconParams(register=False),
+        T_scan_tracker_init=cylinder.T_scan_tracker,
+    )
     raw = error_stats(cylinder.recording.points_m, cylinder.truth_m)
     ours = error_stats(recon.points_m, cylinder.truth_m)
     assert ours.ratio_to(raw) <= 0.45
@@ -213,9 +222,11 @@ def test_box_corner_is_split_and_both_edges_are_followed(box):
 def test_edge_scenes_follow_the_registered_edge_on_other_seeds(seed):
     """Within the mission's 0.5 mm where the scan is good (0.5 mm noise); with the cylinder's
     Kinect-class 1 mm scan, 0.6 mm."""
-    for scene, bound in ((scenes.cylinder_edge(seed), 0.6 * MM),
-                         (scenes.box_corner(seed), 0.3 * MM),
-                         (scenes.polynomial_ridge(seed), 0.3 * MM)):
+    for scene, bound in (
+        (scenes.cylinder_edge(seed), 0.6 * MM),
+        (scenes.box_corner(seed), 0.3 * MM),
+        (scenes.polynomial_ridge(seed), 0.3 * MM),
+    ):
         recon = reconstruct(scene.recording, scene.scan)
         assert all(s.kind == "edge" for s in recon.segments), scene.name
         truth = registered_truth(scene, recon)
@@ -229,8 +240,9 @@ def test_the_result_says_what_happened_to_each_point(box):
     recon = reconstruct(box.recording, box.scan)
     n = len(recon)
     assert recon.input_points_m.shape == recon.points_m.shape == (n, 3)
-    np.testing.assert_allclose(recon.displacement_m,
-                               np.linalg.norm(recon.points_m - recon.input_points_m, axis=1))
+    np.testing.assert_allclose(
+        recon.displacement_m, np.linalg.norm(recon.points_m - recon.input_points_m, axis=1)
+    )
     edge = recon.mode == PointMode.EDGE
     assert edge.mean() > 0.9
     assert np.all(recon.n_surface[edge] > 0) and np.all(recon.n_path > 0)
@@ -259,8 +271,16 @@ def test_a_scan_elsewhere_is_refused(box):
 
 @pytest.mark.parametrize(
     "change",
-    [{"alpha": 1.5}, {"alpha": "sometimes"}, {"beta": -0.1}, {"degree": 0}, {"radius_m": -1.0},
-     {"radius_m": 0.001}, {"method": "magic"}, {"spacing_m": float("nan")}],
+    [
+        {"alpha": 1.5},
+        {"alpha": "sometimes"},
+        {"beta": -0.1},
+        {"degree": 0},
+        {"radius_m": -1.0},
+        {"radius_m": 0.001},
+        {"method": "magic"},
+        {"spacing_m": float("nan")},
+    ],
 )
 def test_bad_parameters_are_value_errors(change):
     with pytest.raises(ValueError):

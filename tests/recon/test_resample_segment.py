@@ -51,10 +51,12 @@ def test_bad_arguments_raise_value_error():
 
 def test_turning_angle_of_a_right_angle_is_ninety_degrees():
     leg = np.linspace(0, 0.05, 51)
-    points = np.concatenate([
-        np.column_stack([leg, np.zeros(51), np.zeros(51)]),
-        np.column_stack([np.full(50, 0.05), leg[1:], np.zeros(50)]),
-    ])
+    points = np.concatenate(
+        [
+            np.column_stack([leg, np.zeros(51), np.zeros(51)]),
+            np.column_stack([np.full(50, 0.05), leg[1:], np.zeros(50)]),
+        ]
+    )
     angle = turning_angle_deg(points, half_window=4)
     assert angle.max() == pytest.approx(90.0, abs=1e-9)
     assert np.argmax(angle) == 50

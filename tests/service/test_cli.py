@@ -27,14 +27,26 @@ def inputs(tmp_path_factory):
 
 def run(*args):
     """Run the real console script, as a user would."""
-    return subprocess.run([sys.executable, "-m", "service.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "service.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 def test_reconstruct_writes_the_contracted_csv_and_a_plot(inputs, tmp_path):
     out, plot = tmp_path / "out.csv", tmp_path / "out.png"
-    result = run("reconstruct", inputs / "trace.csv", "--scan", inputs / "scan.ply",
-                 "--out", out, "--plot", plot)
+    result = run(
+        "reconstruct",
+        inputs / "trace.csv",
+        "--scan",
+        inputs / "scan.ply",
+        "--out",
+        out,
+        "--plot",
+        plot,
+    )
     assert result.returncode == 0, result.stderr
     assert "edge" in result.stdout and "registered" in result.stdout
     rows = list(csv.reader(out.open()))
@@ -46,9 +58,27 @@ def test_reconstruct_writes_the_contracted_csv_and_a_plot(inputs, tmp_path):
 
 def test_options_reach_the_reconstruction(inputs, tmp_path):
     out = tmp_path / "out.csv"
-    assert main(["reconstruct", str(inputs / "trace.csv"), "--scan", str(inputs / "scan.ply"),
-                 "--alpha", "1", "--radius-m", "0.01", "--degree", "3", "--method", "paper",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(inputs / "trace.csv"),
+                "--scan",
+                str(inputs / "scan.ply"),
+                "--alpha",
+                "1",
+                "--radius-m",
+                "0.01",
+                "--degree",
+                "3",
+                "--method",
+                "paper",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = list(csv.DictReader(out.open()))
     assert {r["mode"] for r in rows} == {"path"}  # alpha = 1: the path alone
     assert {r["n_path"] for r in rows} == {"21"}  # r = 10 mm at 1 mm spacing
@@ -56,10 +86,34 @@ def test_options_reach_the_reconstruction(inputs, tmp_path):
 
 def test_millimetre_files_with_units_mm_give_the_same_result(inputs, tmp_path):
     a, b = tmp_path / "a.csv", tmp_path / "b.csv"
-    assert main(["reconstruct", str(inputs / "trace.csv"), "--scan", str(inputs / "scan.ply"),
-                 "--out", str(a)]) == 0
-    assert main(["reconstruct", str(inputs / "trace_mm.csv"), "--scan",
-                 str(inputs / "scan_mm.ply"), "--units", "mm", "--out", str(b)]) == 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(inputs / "trace.csv"),
+                "--scan",
+                str(inputs / "scan.ply"),
+                "--out",
+                str(a),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(inputs / "trace_mm.csv"),
+                "--scan",
+                str(inputs / "scan_mm.ply"),
+                "--units",
+                "mm",
+                "--out",
+                str(b),
+            ]
+        )
+        == 0
+    )
     xa = np.loadtxt(a, delimiter=",", skiprows=1, usecols=(0, 1, 2))
     xb = np.loadtxt(b, delimiter=",", skiprows=1, usecols=(0, 1, 2))
     np.testing.assert_allclose(xa, xb, atol=1e-6)
@@ -75,30 +129,78 @@ def test_path_only_without_a_scan(inputs, tmp_path):
     "make_args, message",
     [
         (lambda d, i: ["reconstruct", d / "missing.csv", "--out", d / "o.csv"], "does not exist"),
-        (lambda d, i: ["reconstruct", i / "scan.ply", "--out", d / "o.csv"], "not a text|no column"),
-        (lambda d, i: ["reconstruct", i / "trace.csv", "--scan", i / "trace.csv",
-                       "--out", d / "o.csv"], "scan format"),
+        (
+            lambda d, i: ["reconstruct", i / "scan.ply", "--out", d / "o.csv"],
+            "not a text|no column",
+        ),
+        (
+            lambda d, i: [
+                "reconstruct",
+                i / "trace.csv",
+                "--scan",
+                i / "trace.csv",
+                "--out",
+                d / "o.csv",
+            ],
+            "scan format",
+        ),
         (lambda d, i: ["reconstruct", i / "trace_mm.csv", "--out", d / "o.csv"], "--units mm"),
-        (lambda d, i: ["reconstruct", i / "trace.csv", "--scan", i / "scan_mm.ply",
-                       "--out", d / "o.csv"], "millimetres"),
+        (
+            lambda d, i: [
+                "reconstruct",
+                i / "trace.csv",
+                "--scan",
+                i / "scan_mm.ply",
+                "--out",
+                d / "o.csv",
+            ],
+            "millimetres",
+        ),
         (lambda d, i: ["reconstruct", d / "nan.csv", "--out", d / "o.csv"], "NaN"),
         (lambda d, i: ["reconstruct", d / "short.csv", "--out", d / "o.csv"], "at least"),
-        (lambda d, i: ["reconstruct", i / "trace.csv", "--scan", d / "far.ply",
-                       "--out", d / "o.csv"], "same frame and units"),
-        (lambda d, i: ["reconstruct", i / "trace.csv", "--alpha", "2", "--out", d / "o.csv"],
-         "alpha"),
+        (
+            lambda d, i: [
+                "reconstruct",
+                i / "trace.csv",
+                "--scan",
+                d / "far.ply",
+                "--out",
+                d / "o.csv",
+            ],
+            "same frame and units",
+        ),
+        (
+            lambda d, i: ["reconstruct", i / "trace.csv", "--alpha", "2", "--out", d / "o.csv"],
+            "alpha",
+        ),
         (lambda d, i: ["reconstruct", i / "trace.csv", "--out", d / "o.txt"], "should end in .csv"),
-        (lambda d, i: ["reconstruct", i / "trace.csv", "--out", d / "no" / "o.csv"],
-         "does not exist"),
+        (
+            lambda d, i: ["reconstruct", i / "trace.csv", "--out", d / "no" / "o.csv"],
+            "does not exist",
+        ),
         (lambda d, i: ["reconstruct", i / "trace.csv"], "--out"),
     ],
-    ids=["missing", "not-csv", "scan-not-a-scan", "mm-as-m", "mixed-units", "nan", "too-short",
-         "far-scan", "bad-alpha", "bad-suffix", "no-folder", "no-out"],
+    ids=[
+        "missing",
+        "not-csv",
+        "scan-not-a-scan",
+        "mm-as-m",
+        "mixed-units",
+        "nan",
+        "too-short",
+        "far-scan",
+        "bad-alpha",
+        "bad-suffix",
+        "no-folder",
+        "no-out",
+    ],
 )
 def test_bad_input_is_one_line_non_zero_and_no_output(inputs, tmp_path, make_args, message):
     (tmp_path / "nan.csv").write_text("x,y,z\n0,0,0\nnan,1,1\n0.01,0,0\n")
     (tmp_path / "short.csv").write_text("x,y,z\n0,0,0\n0.001,0,0\n0.0015,0,0\n")
-    write_scan(tmp_path / "far.ply", Scan(points_m=np.random.default_rng(0).uniform(5, 6, (500, 3))))
+    write_scan(
+        tmp_path / "far.ply", Scan(points_m=np.random.default_rng(0).uniform(5, 6, (500, 3)))
+    )
     result = run(*make_args(tmp_path, inputs))
     assert result.returncode != 0
     lines = result.stderr.strip().splitlines()
@@ -114,6 +216,12 @@ def test_demo_writes_its_table_and_pictures(tmp_path):
     result = run("demo", "--out-dir", tmp_path / "demo")
     assert result.returncode == 0, result.stderr
     assert "| anchored alpha=auto |" in result.stdout
-    for name in ("trace.csv", "scan.ply", "reconstruction.csv", "reconstruction.png",
-                 "accuracy.md", "accuracy.png"):
+    for name in (
+        "trace.csv",
+        "scan.ply",
+        "reconstruction.csv",
+        "reconstruction.png",
+        "accuracy.md",
+        "accuracy.png",
+    ):
         assert (tmp_path / "demo" / name).stat().st_size > 0
