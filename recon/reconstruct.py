@@ -169,6 +169,47 @@ def check_scales(path_m: FloatArray, scan_m: FloatArray | None) -> None:
             )
 
 
+@dataclass(frozen=True)
+class SegmentPlan:
+    """The resampled path, its segments (``[start, stop)``, sharing corners) and N_P's half-width
+    in points."""
+
+    resampled: ResampledPath
+    bounds: list[tuple[int, int]]
+    half_width: int
+
+
+def plan_segments(recording: Recording, params: ReconParams) -> SegmentPlan:
+    """Algorithm 1's path part: resample equidistantly and split at corners.
+
+    Raises
+    ------
+    DegenerateInputError
+        Too few points after resampling for a fit of ``params.degree``.
+    """
+    resampled = resample_equidistant(
+        recording.points_m, spacing_m=params.spacing_m, t_s=recording.t_s
+    )
+    points = resampled.points_m
+    if len(points) < params.degree + 2:
+        raise DegenerateInputError(
+            f"the path has only {len(points)} points after resampling at "
+            f"{params.spacing_m * 1000:.2f} mm; a degree-{params.degree} fit needs at least "
+            f"{params.degree + 2}: record a longer trace or lower the spacing"
+        )
+    corners = find_corners(
+        points,
+        spacing_m=resampled.spacing_m,
+        angle_deg=params.corner_angle_deg,
+        scale_m=params.corner_scale_m,
+    )
+    return SegmentPlan(
+        resampled=resampled,
+        bounds=split_at(len(points), corners),
+        half_width=max(1, int(round(params.radius_m / resampled.spacing_m))),
+    )
+
+
 def reconstruct(
     path: Recording | FloatArray,
     scan: Scan | None = None,
@@ -205,24 +246,9 @@ def reconstruct(
     params = params or ReconParams()
     recording = path if isinstance(path, Recording) else Recording(points_m=path)
     check_scales(recording.points_m, None if scan is None else scan.points_m)
-    resampled = resample_equidistant(
-        recording.points_m, spacing_m=params.spacing_m, t_s=recording.t_s
-    )
+    plan = plan_segments(recording, params)
+    resampled, bounds, half_width = plan.resampled, plan.bounds, plan.half_width
     points = resampled.points_m
-    half_width = max(1, int(round(params.radius_m / resampled.spacing_m)))
-    if len(points) < params.degree + 2:
-        raise DegenerateInputError(
-            f"the path has only {len(points)} points after resampling at "
-            f"{params.spacing_m * 1000:.2f} mm; a degree-{params.degree} fit needs at least "
-            f"{params.degree + 2}: record a longer trace or lower the spacing"
-        )
-    corners = find_corners(
-        points,
-        spacing_m=resampled.spacing_m,
-        angle_deg=params.corner_angle_deg,
-        scale_m=params.corner_scale_m,
-    )
-    bounds = split_at(len(points), corners)
 
     notes: list[str] = []
     registration: Registration | None = None
@@ -423,6 +449,40 @@ def _edge_neighbourhoods(
     return pts, weights.astype(np.float64), idx
 
 
+def _path_fit(points, windows, rows, degree, scale, outputs):
+    """N_P's principal frame and a polynomial fit of its transverse components.
+
+    Parameters
+    ----------
+    points : ndarray of shape (n, 3)
+        The segment.
+    windows : ndarray of shape (B, w), int
+        N_P of the chunk's points.
+    rows : slice
+        The chunk's points.
+    outputs : {1, 2}
+        Fit the second principal component only (Eq. 3), or the second and third.
+
+    Returns
+    -------
+    frame : PCA
+    x_i : ndarray of shape (B,)
+        The points' first principal coordinates.
+    design_at : ndarray of shape (B, degree + 1)
+        The polynomial basis at x_i.
+    fit : LinearFit
+    """
+    neighbourhood = points[windows]
+    frame = _path_frame(neighbourhood)
+    local = frame.to_local(neighbourhood)
+    x_i = frame.to_local(points[rows])[:, 0]
+    design_at = poly_design(x_i, degree=degree, scale=scale)
+    fit = fit_linear(
+        poly_design(local[..., 0], degree=degree, scale=scale), local[..., 1 : 1 + outputs], None
+    )
+    return frame, x_i, design_at, fit
+
+
 def _paper_segment(
     points: FloatArray,
     kind: str,
@@ -441,14 +501,8 @@ def _paper_segment(
         _, knn = context.dense_tree.query(points, k=params.surface_k, workers=-1)
     out = _SegmentResult.unchanged(points)
     for rows in _chunks(n):
-        neighbourhood = points[windows[rows]]
-        frame = _path_frame(neighbourhood)
-        local = frame.to_local(neighbourhood)
-        x_i = frame.to_local(points[rows])[:, 0]
-        design_at = poly_design(x_i, degree=degree, scale=scale)
-        fit_p = fit_linear(
-            poly_design(local[..., 0], degree=degree, scale=scale), local[..., 1], None
-        )
+        # Eq. (3)'s path polynomial lives in the principal plane: only the second component.
+        frame, x_i, design_at, fit_p = _path_fit(points, windows[rows], rows, degree, scale, 1)
         f_p = fit_p.predict(design_at)[:, 0]
         alpha = np.ones(len(x_i))
         f_s = np.zeros(len(x_i))
@@ -521,14 +575,8 @@ def _anchored_segment(
     var_target = np.full(n, np.inf)
     supported = np.zeros(n, dtype=bool)
     for rows in _chunks(n):
-        neighbourhood = points[windows[rows]]
-        frame = _path_frame(neighbourhood)
-        local = frame.to_local(neighbourhood)
-        x_i = frame.to_local(points[rows])[:, 0]
-        design_at = poly_design(x_i, degree=degree, scale=scale)
-        fit_p = fit_linear(
-            poly_design(local[..., 0], degree=degree, scale=scale), local[..., 1:], None
-        )
+        # A 3-D curve: both transverse components as polynomials of the first.
+        frame, x_i, design_at, fit_p = _path_fit(points, windows[rows], rows, degree, scale, 2)
         on_curve = np.column_stack([x_i, fit_p.predict(design_at)])
         smoothed[rows] = frame.to_world(on_curve)
         var_path_fit[rows] = fit_p.rms**2 * fit_p.leverage(design_at)

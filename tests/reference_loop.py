@@ -235,23 +235,9 @@ def reconstruct_loop(recording, scan, params: ReconParams, T_scan_tracker_init=N
         one, as in ``recon.reconstruct``).
     """
     from recon.align import apply_transform, invert_transform
-    from recon.resample import resample_equidistant
-    from recon.segment import find_corners, split_at
 
-    resampled = resample_equidistant(
-        recording.points_m, spacing_m=params.spacing_m, t_s=recording.t_s
-    )
-    points = resampled.points_m
-    half = max(1, int(round(params.radius_m / resampled.spacing_m)))
-    bounds = split_at(
-        len(points),
-        find_corners(
-            points,
-            spacing_m=resampled.spacing_m,
-            angle_deg=params.corner_angle_deg,
-            scale_m=params.corner_scale_m,
-        ),
-    )
+    plan = R.plan_segments(recording, params)
+    points, bounds, half = plan.resampled.points_m, plan.bounds, plan.half_width
     T = np.eye(4)
     context = None
     if scan is not None and params.uses_scan:

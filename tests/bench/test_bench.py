@@ -19,8 +19,6 @@ from recon import scenes
 from recon.align import apply_transform
 from recon.evaluation import default_variants, evaluate, format_table, registered_truth
 from recon.metrics import error_stats
-from recon.resample import resample_equidistant
-from recon.segment import find_corners, split_at
 from recon.types import ReconParams
 from tests.reference_loop import anchored_segment_loop
 
@@ -120,18 +118,8 @@ def test_speed_table():
                 partial(R.reconstruct, scene.recording, scene.scan, params=params), repeats
             )
             # The per-point stage on its own, vectorised and looped, on the same context.
-            resampled = resample_equidistant(scene.recording.points_m, spacing_m=params.spacing_m)
-            points = resampled.points_m
-            half = max(1, round(params.radius_m / resampled.spacing_m))
-            bounds = split_at(
-                len(points),
-                find_corners(
-                    points,
-                    spacing_m=resampled.spacing_m,
-                    angle_deg=params.corner_angle_deg,
-                    scale_m=params.corner_scale_m,
-                ),
-            )
+            plan = R.plan_segments(scene.recording, params)
+            points, bounds, half = plan.resampled.points_m, plan.bounds, plan.half_width
             context, T, _ = R._prepare_context(points, scene.scan, bounds, params, None)
             work = apply_transform(T, points)
             kinds = R._classify(work, bounds, context, params)
