@@ -301,6 +301,10 @@ class EdgeLineFit:
         Angle between the two face normals (0: coplanar, 90: a right-angle edge).
     ok : ndarray of shape (Q,), bool
         Both faces well populated and far enough from coplanar for the line to be defined.
+    bisector : ndarray of shape (Q, 3)
+        Unit bisector of the faces' normals, each turned away from the other face: the outward
+        direction of a convex edge, the inward one of a concave edge (a caller that knows where
+        the tool comes from picks the sign).
     """
 
     points_m: FloatArray
@@ -309,6 +313,7 @@ class EdgeLineFit:
     n_points: NDArray[np.int64]
     dihedral_deg: FloatArray
     ok: NDArray[np.bool_]
+    bisector: FloatArray
 
 
 def _axial_two_means(normals: FloatArray, weights: FloatArray, iterations: int = 5):
@@ -452,14 +457,14 @@ def fit_edge_lines(
     if not parts:
         empty = np.zeros((0, 3))
         return EdgeLineFit(
-            empty, empty, np.zeros(0), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, bool)
+            empty, empty, np.zeros(0), np.zeros(0, np.int64), np.zeros(0), np.zeros(0, bool), empty
         )
     return EdgeLineFit(
         *(
             np.concatenate(arrays)
             for arrays in zip(
                 *(
-                    (p.points_m, p.directions, p.residual_m, p.n_points, p.dihedral_deg, p.ok)
+                    (p.points_m, p.directions, p.residual_m, p.n_points, p.dihedral_deg, p.ok, p.bisector)
                     for p in parts
                 ),
                 strict=True,
@@ -552,6 +557,11 @@ def _fit_edge_lines_chunk(query_m, features, trees, radius_m, min_points) -> Edg
     direction = np.where(ok[:, None], direction / np.where(norm > 1e-9, norm, 1.0)[:, None], 0.0)
     direction[~ok] = (1.0, 0.0, 0.0)  # keeps the solves below regular; these rows are not used
     line_point = _cross_section_corner(query_m, dense, on_a, on_b, na, nb_normal, direction, ok)
+    # Each face's normal turned away from the other face's points, then summed.
+    away_a = -np.sign(np.einsum("qi,qi->q", na, pb.mean - line_point) + 1e-300)[:, None] * na
+    away_b = -np.sign(np.einsum("qi,qi->q", nb_normal, pa.mean - line_point) + 1e-300)[:, None]
+    bisector = away_a + away_b * nb_normal
+    bisector /= np.maximum(np.linalg.norm(bisector, axis=1), 1e-12)[:, None]
     return EdgeLineFit(
         points_m=line_point,
         directions=direction,
@@ -559,6 +569,7 @@ def _fit_edge_lines_chunk(query_m, features, trees, radius_m, min_points) -> Edg
         n_points=np.minimum(count_a, count_b),
         dihedral_deg=dihedral,
         ok=ok,
+        bisector=bisector,
     )
 
 

@@ -188,7 +188,10 @@ def plan_segments(recording: Recording, params: ReconParams) -> SegmentPlan:
         Too few points after resampling for a fit of ``params.degree``.
     """
     resampled = resample_equidistant(
-        recording.points_m, spacing_m=params.spacing_m, t_s=recording.t_s
+        recording.points_m,
+        spacing_m=params.spacing_m,
+        t_s=recording.t_s,
+        orientations_xyzw=recording.orientations_xyzw,
     )
     points = resampled.points_m
     if len(points) < params.degree + 2:
@@ -760,6 +763,7 @@ def _assemble(
         points_m=points,
         input_points_m=resampled.points_m,
         t_s=resampled.t_s,
+        orientations_xyzw=resampled.orientations_xyzw,
         displacement_m=np.linalg.norm(points - resampled.points_m, axis=1),
         mode=mode,
         segment=segment,

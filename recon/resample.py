@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from recon.errors import DegenerateInputError
 from recon.types import FloatArray
@@ -23,6 +24,9 @@ class ResampledPath:
         The actual step (at most the requested one; chosen so the last point is the path's end).
     t_s : ndarray of shape (N,), seconds, or None
         Sample times interpolated along the arc length.
+    orientations_xyzw : ndarray of shape (N, 4), or None
+        Pen orientations interpolated along the arc length (spherical linear interpolation),
+        scalar-last quaternions.
     n_duplicates : int
         Input samples dropped because they repeated the previous position.
     """
@@ -32,10 +36,15 @@ class ResampledPath:
     spacing_m: float
     t_s: FloatArray | None
     n_duplicates: int
+    orientations_xyzw: FloatArray | None = None
 
 
 def resample_equidistant(
-    points_m: FloatArray, *, spacing_m: float, t_s: FloatArray | None = None
+    points_m: FloatArray,
+    *,
+    spacing_m: float,
+    t_s: FloatArray | None = None,
+    orientations_xyzw: FloatArray | None = None,
 ) -> ResampledPath:
     """Resample a polyline at equal arc-length steps, dropping repeated samples first.
 
@@ -50,6 +59,8 @@ def resample_equidistant(
     spacing_m : float
         Requested distance between points.
     t_s : ndarray of shape (N,), seconds, optional
+    orientations_xyzw : ndarray of shape (N, 4), optional
+        Unit quaternions, scalar last.
 
     Returns
     -------
@@ -70,6 +81,9 @@ def resample_equidistant(
     times = None if t_s is None else np.asarray(t_s, dtype=np.float64)
     if times is not None and times.shape != (len(points),):
         raise ValueError(f"t_s must have shape ({len(points)},), got {times.shape}")
+    quats = None if orientations_xyzw is None else np.asarray(orientations_xyzw, np.float64)
+    if quats is not None and quats.shape != (len(points), 4):
+        raise ValueError(f"orientations_xyzw must have shape ({len(points)}, 4), got {quats.shape}")
 
     step = np.linalg.norm(np.diff(points, axis=0), axis=1)
     # A sample that does not move (the pen resting, or a repeated tracker frame) adds no geometry;
@@ -78,6 +92,7 @@ def resample_equidistant(
     n_duplicates = int(np.count_nonzero(~moved))
     points = points[moved]
     times = None if times is None else times[moved]
+    quats = None if quats is None else quats[moved]
     if len(points) < 2:
         raise DegenerateInputError(
             "the path has fewer than two distinct positions; record a longer trace"
@@ -94,10 +109,14 @@ def resample_equidistant(
     s_new = np.linspace(0.0, length, n_steps + 1)
     resampled = np.column_stack([np.interp(s_new, arc, points[:, k]) for k in range(3)])
     t_new = None if times is None else np.interp(s_new, arc, times)
+    q_new = None
+    if quats is not None:
+        q_new = Slerp(arc, Rotation.from_quat(quats))(np.clip(s_new, arc[0], arc[-1])).as_quat()
     return ResampledPath(
         points_m=resampled,
         arc_length_m=s_new,
         spacing_m=length / n_steps,
         t_s=t_new,
         n_duplicates=n_duplicates,
+        orientations_xyzw=q_new,
     )

@@ -318,6 +318,8 @@ class Reconstruction:
         The equidistantly resampled input that ``points_m`` corresponds to point by point.
     t_s : ndarray of shape (N,), seconds, or None
         Sample times interpolated at the resampled points, when the input had times.
+    orientations_xyzw : ndarray of shape (N, 4), or None
+        The pen's orientations interpolated at the resampled points, when the input had them.
     displacement_m : ndarray of shape (N,), metres
         How far each point moved: ``|points_m - input_points_m|``.
     mode : ndarray of shape (N,), int8
@@ -351,10 +353,12 @@ class Reconstruction:
     registration: Registration | None
     params: ReconParams
     notes: tuple[str, ...] = field(default=())
+    orientations_xyzw: FloatArray | None = None
 
     def __post_init__(self) -> None:
         n = len(self.points_m)
         for name in (
+            "orientations_xyzw",
             "points_m",
             "input_points_m",
             "t_s",
@@ -382,3 +386,137 @@ class Reconstruction:
     def count(self, mode: PointMode) -> int:
         """Number of points reconstructed in ``mode``."""
         return int(np.count_nonzero(self.mode == int(mode)))
+
+
+@dataclass(frozen=True)
+class ToolPath:
+    """TCP poses along a path.
+
+    Attributes
+    ----------
+    points_m : ndarray of shape (N, 3), metres
+        TCP positions.
+    orientations_xyzw : ndarray of shape (N, 4)
+        TCP orientations as unit quaternions, scalar last; the tool's z-axis points from the
+        flange towards the workpiece, its x-axis along the direction of travel.
+    arc_length_m : ndarray of shape (N,), metres
+    source : {"scan", "pen", "fixed"}
+        Where the tool axis came from.
+    """
+
+    points_m: FloatArray
+    orientations_xyzw: FloatArray
+    arc_length_m: FloatArray
+    source: str
+
+    def __post_init__(self) -> None:
+        pts = frozen_array(self.points_m, shape_tail=(3,), name="points_m")
+        q = frozen_array(self.orientations_xyzw, shape_tail=(4,), name="orientations_xyzw")
+        arc = frozen_array(self.arc_length_m, name="arc_length_m")
+        if not len(pts) == len(q) == len(arc):
+            raise ValueError("points, orientations and arc lengths differ in length")
+        for name, value in (("points_m", pts), ("orientations_xyzw", q), ("arc_length_m", arc)):
+            object.__setattr__(self, name, value)
+
+    def __len__(self) -> int:
+        return len(self.points_m)
+
+    def poses(self) -> FloatArray:
+        """The poses as 4x4 transforms, shape (N, 4, 4)."""
+        from scipy.spatial.transform import Rotation
+
+        T = np.tile(np.eye(4), (len(self), 1, 1))
+        T[:, :3, :3] = Rotation.from_quat(self.orientations_xyzw).as_matrix()
+        T[:, :3, 3] = self.points_m
+        return T
+
+
+@dataclass(frozen=True)
+class JointPath:
+    """Inverse kinematics along a tool path, one branch kept throughout.
+
+    Attributes
+    ----------
+    q_rad : ndarray of shape (N, 6)
+        Joint angles, unwrapped along the path and shifted into the joint limits.
+    branch : int
+        Which of the eight analytic solutions (see ``recon.kinematics.IKSolutions``).
+    limit_margin_rad : ndarray of shape (N,)
+        Smallest distance of any joint to its position limit.
+    wrist_singularity, elbow_singularity : ndarray of shape (N,)
+        |sin q5| and |sin q3| (0 at the singularity).
+    shoulder_margin_m : ndarray of shape (N,)
+        Distance of the wrist centre outside the shoulder-singular cylinder.
+    """
+
+    q_rad: FloatArray
+    branch: int
+    limit_margin_rad: FloatArray
+    wrist_singularity: FloatArray
+    elbow_singularity: FloatArray
+    shoulder_margin_m: FloatArray
+
+
+@dataclass(frozen=True)
+class SpeedDrop:
+    """A stretch of the path where the TCP moves slower than requested, and why."""
+
+    start_m: float
+    end_m: float
+    min_speed_m_s: float
+    cause: str
+
+
+@dataclass(frozen=True)
+class JointTrajectory:
+    """A timed joint trajectory, sampled at the controller rate.
+
+    Attributes
+    ----------
+    robot : str
+        The UR model it was planned for.
+    t_s : ndarray of shape (M,), seconds
+    q_rad, qd_rad_s, qdd_rad_s2 : ndarray of shape (M, 6)
+    tcp_m : ndarray of shape (M, 3)
+        Planned TCP position at each sample (base frame).
+    tcp_rotvec : ndarray of shape (M, 3)
+        Planned TCP orientation as a rotation vector (UR's pose convention).
+    arc_length_m : ndarray of shape (M,)
+        Path parameter at each sample.
+    requested_speed_m_s : float
+    speed_drops : tuple of SpeedDrop
+    """
+
+    robot: str
+    t_s: FloatArray
+    q_rad: FloatArray
+    qd_rad_s: FloatArray
+    qdd_rad_s2: FloatArray
+    tcp_m: FloatArray
+    tcp_rotvec: FloatArray
+    arc_length_m: FloatArray
+    requested_speed_m_s: float
+    speed_drops: tuple[SpeedDrop, ...] = ()
+
+    def __post_init__(self) -> None:
+        n = len(self.t_s)
+        for name in ("t_s", "q_rad", "qd_rad_s", "qdd_rad_s2", "tcp_m", "tcp_rotvec",
+                     "arc_length_m"):
+            arr = np.array(getattr(self, name), dtype=np.float64)
+            if len(arr) != n:
+                raise ValueError(f"{name} has {len(arr)} rows for {n} samples")
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"{name} has NaN or infinite values")
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t_s[-1]) if len(self.t_s) else 0.0
+
+    @property
+    def period_s(self) -> float:
+        return float(self.t_s[1] - self.t_s[0]) if len(self.t_s) > 1 else 0.0

@@ -1,0 +1,387 @@
+"""The robot backend interface: one lifecycle, one way to run a trajectory, for every arm.
+
+Modelled on python-can's bus interfaces and ros2_control's hardware interfaces: the public methods
+live here, check the lifecycle and the arguments, and call a backend's private hooks. Lifecycle
+(DESIGN.md): ``connect()`` reads state and moves nothing, ``enable()`` readies the arm, then
+motion, ``disable()``, ``close()`` (idempotent). Motion while not enabled raises.
+
+Backends are registered by name and imported lazily (:func:`create_backend`), so a missing
+optional dependency is an error that names it, not an import failure of the whole package.
+"""
+
+from __future__ import annotations
+
+import enum
+import importlib
+import threading
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from drivers.errors import (
+    ConnectionLostError,
+    EmergencyStopError,
+    NotConnectedError,
+    NotEnabledError,
+    ProtectiveStopError,
+    TrajectoryMismatchError,
+    UnknownBackendError,
+)
+from drivers.robot.clock import Clock, RealClock
+from recon import kinematics
+from recon.types import FloatArray, JointTrajectory
+
+#: How far (largest joint difference) the arm may be from a trajectory's first sample.
+START_TOLERANCE_RAD = 0.01
+
+
+class RobotState(enum.Enum):
+    DISCONNECTED = "disconnected"
+    CONNECTED = "connected"  # state readable, no motion allowed
+    ENABLED = "enabled"  # ready to move
+    MOVING = "moving"
+    PROTECTIVE_STOP = "protective_stop"
+    EMERGENCY_STOP = "emergency_stop"
+
+
+class BackendConfig(BaseModel):
+    """Settings shared by every backend; each adds its own and a literal ``kind``."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    robot: str = Field("ur5e", description="UR model, e.g. ur5e")
+    lookahead_s: float = Field(0.1, ge=0.03, le=0.2, description="servoJ lookahead time")
+    gain: float = Field(300.0, ge=100.0, le=2000.0, description="servoJ proportional gain")
+
+
+@dataclass(frozen=True)
+class RobotStatus:
+    """What the arm reports.
+
+    Attributes
+    ----------
+    state : RobotState
+    q_rad : ndarray of shape (6,)
+    tcp_pose : ndarray of shape (6,)
+        Flange pose x, y, z (m), rx, ry, rz (rotation vector), base frame.
+    """
+
+    state: RobotState
+    q_rad: FloatArray
+    tcp_pose: FloatArray
+
+
+@dataclass(frozen=True)
+class ExecutionRecord:
+    """What happened while a trajectory ran.
+
+    Attributes
+    ----------
+    t_s : ndarray of shape (K,)
+        Time of each sample since the start (the controller's clock).
+    q_planned_rad, q_actual_rad : ndarray of shape (K, 6)
+    completed : bool
+        All samples were sent and the arm came to rest.
+    fault : str or None
+        Why it ended early (a stop request, a protective stop, a lost connection).
+    """
+
+    t_s: FloatArray
+    q_planned_rad: FloatArray
+    q_actual_rad: FloatArray
+    completed: bool
+    fault: str | None = None
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
+ProgressCallback = Callable[[float], None]
+
+
+class RobotBackend(ABC):
+    """One robot arm, behind the common lifecycle.
+
+    Parameters
+    ----------
+    config : BackendConfig
+    clock : Clock, optional
+        What the backend waits on; a :class:`~drivers.robot.clock.FakeClock` makes simulated
+        motion cost no real time.
+    """
+
+    kind: ClassVar[str]
+
+    def __init__(self, config: BackendConfig, *, clock: Clock | None = None) -> None:
+        self.config = config
+        self.arm = kinematics.model(config.robot)
+        self.clock: Clock = clock or RealClock()
+        self._state = RobotState.DISCONNECTED
+        self._lock = threading.RLock()
+        self._stop_requested = threading.Event()
+
+    # -- lifecycle -----------------------------------------------------------------------------
+
+    @property
+    def state(self) -> RobotState:
+        return self._state
+
+    def connect(self) -> None:
+        """Open the connection and read the arm's state; nothing moves. Idempotent."""
+        with self._lock:
+            if self._state is not RobotState.DISCONNECTED:
+                return
+            self._connect()
+            self._state = RobotState.CONNECTED
+
+    def enable(self) -> None:
+        """Make the arm ready to move (power, brakes, control program)."""
+        with self._lock:
+            self._require_connected()
+            if self._state is RobotState.PROTECTIVE_STOP:
+                raise ProtectiveStopError(
+                    "the arm is in a protective stop: clear its cause and unlock it first"
+                )
+            if self._state is RobotState.EMERGENCY_STOP:
+                raise EmergencyStopError("the emergency stop is engaged: release it first")
+            if self._state is RobotState.CONNECTED:
+                self._enable()
+                self._state = RobotState.ENABLED
+
+    def disable(self) -> None:
+        """Stop accepting motion (stopping first if moving); the connection stays open."""
+        with self._lock:
+            self._require_connected()
+            if self._state in (RobotState.ENABLED, RobotState.MOVING):
+                self._disable()
+                self._state = RobotState.CONNECTED
+
+    def close(self) -> None:
+        """Disable and disconnect. Idempotent, and safe after a lost connection."""
+        with self._lock:
+            if self._state is RobotState.DISCONNECTED:
+                return
+            try:
+                self._close()
+            finally:
+                self._state = RobotState.DISCONNECTED
+
+    def __enter__(self) -> RobotBackend:
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- reading ---------------------------------------------------------------------------------
+
+    def status(self) -> RobotStatus:
+        """The arm's current joints and flange pose."""
+        with self._lock:
+            self._require_connected()
+            q = self._read_q()
+            return RobotStatus(state=self._state, q_rad=q, tcp_pose=self._flange_pose(q))
+
+    # -- motion ----------------------------------------------------------------------------------
+
+    def move_joints(self, q_rad: FloatArray, *, speed_rad_s: float = 0.5,
+                    acceleration_rad_s2: float = 1.0) -> None:
+        """Move to a joint configuration (UR's moveJ); returns when the arm is there.
+
+        Raises
+        ------
+        NotEnabledError, ValueError
+            Not enabled; joints outside the limits, or a speed or acceleration out of range.
+        """
+        q = np.asarray(q_rad, dtype=np.float64)
+        if q.shape != (6,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"q_rad must be 6 finite joint angles, got {q_rad!r}")
+        if np.any(q < self.arm.q_min_rad) or np.any(q > self.arm.q_max_rad):
+            raise ValueError("q_rad is outside the arm's joint limits")
+        if not (0 < speed_rad_s <= float(self.arm.qd_max_rad_s.min())):
+            raise ValueError(f"speed_rad_s must be in (0, {self.arm.qd_max_rad_s.min():.2f}]")
+        if not (0 < acceleration_rad_s2 <= 10.0):
+            raise ValueError("acceleration_rad_s2 must be in (0, 10]")
+        with self._lock:
+            self._require_enabled()
+            self._stop_requested.clear()
+            self._state = RobotState.MOVING
+        try:
+            self._move_joints(q, speed_rad_s, acceleration_rad_s2)
+        finally:
+            self._settle_state()
+
+    def execute(self, trajectory: JointTrajectory, *,
+                on_progress: ProgressCallback | None = None) -> ExecutionRecord:
+        """Stream a trajectory to the arm at the controller rate (servoJ) and record it.
+
+        The arm must be enabled and at the trajectory's first sample (within
+        :data:`START_TOLERANCE_RAD`); move it there with :meth:`move_joints` first. A
+        :meth:`stop` from another thread ends the run early with a controlled deceleration; the
+        record says so.
+
+        Raises
+        ------
+        NotEnabledError, TrajectoryMismatchError
+        ProtectiveStopError, EmergencyStopError, ConnectionLostError
+            Raised after the record of what ran up to that point has been kept
+            (:attr:`last_record`).
+        """
+        self._check_trajectory(trajectory)
+        with self._lock:
+            self._require_enabled()
+            q_now = self._read_q()
+            gap = float(np.abs(q_now - trajectory.q_rad[0]).max())
+            if gap > START_TOLERANCE_RAD:
+                raise TrajectoryMismatchError(
+                    f"the arm is {np.degrees(gap):.1f} deg (largest joint) from the "
+                    "trajectory's start: move it there first (move_joints)"
+                )
+            self._stop_requested.clear()
+            self._state = RobotState.MOVING
+        self.last_record: ExecutionRecord | None = None
+        try:
+            record = self._execute(trajectory, on_progress)
+            self.last_record = record
+            return record
+        finally:
+            self._settle_state()
+
+    def stop(self) -> None:
+        """Decelerate to a stop. Safe to call from another thread, and when not moving."""
+        self._stop_requested.set()
+        if self._state is RobotState.MOVING:
+            self._stop()
+
+    def unlock_protective_stop(self) -> None:
+        """Clear a protective stop (after its cause is gone); the arm is then enabled again."""
+        with self._lock:
+            self._require_connected()
+            if self._state is RobotState.PROTECTIVE_STOP:
+                self._unlock_protective_stop()
+                self._state = RobotState.ENABLED
+
+    # -- helpers for subclasses ------------------------------------------------------------------
+
+    def _fault(self, error: Exception) -> None:
+        """Record the state a fault leaves the arm in."""
+        if isinstance(error, ProtectiveStopError):
+            self._state = RobotState.PROTECTIVE_STOP
+        elif isinstance(error, EmergencyStopError):
+            self._state = RobotState.EMERGENCY_STOP
+        elif isinstance(error, ConnectionLostError):
+            self._state = RobotState.DISCONNECTED
+
+    def _settle_state(self) -> None:
+        with self._lock:
+            if self._state is RobotState.MOVING:
+                self._state = RobotState.ENABLED
+
+    def _flange_pose(self, q: FloatArray) -> FloatArray:
+        from scipy.spatial.transform import Rotation
+
+        T = kinematics.forward(self.arm, q)
+        return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
+
+    def _require_connected(self) -> None:
+        if self._state is RobotState.DISCONNECTED:
+            raise NotConnectedError(f"the {self.kind} robot is not connected: call connect()")
+
+    def _require_enabled(self) -> None:
+        self._require_connected()
+        if self._state is RobotState.PROTECTIVE_STOP:
+            raise ProtectiveStopError("the arm is in a protective stop: unlock it first")
+        if self._state is RobotState.EMERGENCY_STOP:
+            raise EmergencyStopError("the emergency stop is engaged: release it first")
+        if self._state is RobotState.MOVING:
+            raise NotEnabledError("the arm is already moving: wait for it or stop it")
+        if self._state is not RobotState.ENABLED:
+            raise NotEnabledError("the arm is not enabled: call enable() before moving it")
+
+    def _check_trajectory(self, trajectory: JointTrajectory) -> None:
+        if trajectory.robot != self.arm.name:
+            raise TrajectoryMismatchError(
+                f"the trajectory was planned for a {trajectory.robot}, this arm is a "
+                f"{self.arm.name}: plan it again for this arm"
+            )
+        if len(trajectory) < 2:
+            raise TrajectoryMismatchError("the trajectory has fewer than two samples")
+        expected = 1.0 / self.arm.control_rate_hz
+        if abs(trajectory.period_s - expected) > 1e-6:
+            raise TrajectoryMismatchError(
+                f"the trajectory is sampled every {trajectory.period_s * 1e3:.3f} ms; this "
+                f"controller runs at {self.arm.control_rate_hz:.0f} Hz ({expected * 1e3:.1f} ms)"
+            )
+        if np.any(trajectory.q_rad < self.arm.q_min_rad) or np.any(
+            trajectory.q_rad > self.arm.q_max_rad
+        ):
+            raise TrajectoryMismatchError("the trajectory leaves the arm's joint limits")
+
+    # -- hooks -----------------------------------------------------------------------------------
+
+    @abstractmethod
+    def _connect(self) -> None: ...
+
+    @abstractmethod
+    def _enable(self) -> None: ...
+
+    @abstractmethod
+    def _disable(self) -> None: ...
+
+    @abstractmethod
+    def _close(self) -> None: ...
+
+    @abstractmethod
+    def _read_q(self) -> FloatArray: ...
+
+    @abstractmethod
+    def _move_joints(self, q: FloatArray, speed: float, acceleration: float) -> None: ...
+
+    @abstractmethod
+    def _execute(self, trajectory: JointTrajectory,
+                 on_progress: ProgressCallback | None) -> ExecutionRecord: ...
+
+    @abstractmethod
+    def _stop(self) -> None: ...
+
+    @abstractmethod
+    def _unlock_protective_stop(self) -> None: ...
+
+
+#: Backend name -> "module:Class", imported on first use.
+BACKENDS: dict[str, str] = {
+    "sim": "drivers.robot.sim:SimBackend",
+    "ur_rtde": "drivers.robot.ur_rtde:URRtdeBackend",
+}
+
+
+def backend_class(kind: str) -> type[RobotBackend]:
+    """The backend class registered as ``kind``, imported now.
+
+    Raises
+    ------
+    UnknownBackendError
+        An unknown name, or a backend whose optional dependency is not installed.
+    """
+    if kind not in BACKENDS:
+        raise UnknownBackendError(
+            f"unknown robot backend {kind!r}; available: {', '.join(sorted(BACKENDS))}"
+        )
+    module_name, class_name = BACKENDS[kind].split(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise UnknownBackendError(
+            f"the {kind} backend needs a package that is not installed ({exc.name}); "
+            "install teachpath with its dependencies (pip install -e .)"
+        ) from None
+    return getattr(module, class_name)
+
+
+def create_backend(config: BackendConfig, *, clock: Clock | None = None) -> RobotBackend:
+    """A backend for ``config``, chosen by its ``kind`` field."""
+    return backend_class(config.kind)(config, clock=clock)  # type: ignore[attr-defined]

@@ -1,0 +1,152 @@
+"""Dry runs: a trajectory executed on the simulated arm, and what that showed."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.errors import RobotError
+from drivers.robot.clock import FakeClock
+from drivers.robot.sim import SimBackend, SimConfig
+from recon import kinematics
+from recon.metrics import distance_to_curve
+from recon.types import JointTrajectory, SpeedDrop
+
+
+@dataclass(frozen=True)
+class DryRunReport:
+    """What a simulated execution showed.
+
+    Attributes
+    ----------
+    robot : str
+    completed : bool
+    duration_s, planned_duration_s : float
+        Simulated and planned execution time (the simulation includes settling at the end).
+    max_path_deviation_m : float
+        Largest distance of the simulated TCP from the planned TCP path (across the path).
+    max_lag_m : float
+        Largest distance between simulated and planned TCP at the same instant (along it too).
+    max_joint_error_rad : float
+        Largest joint difference from the plan delayed by servoJ's lookahead.
+    min_limit_margin_rad : float
+        Closest approach of any joint to its position limit (planned).
+    min_wrist_singularity, min_elbow_singularity : float
+        Smallest |sin q5| and |sin q3| along the plan (0 at the singularity).
+    requested_speed_m_s, mean_speed_m_s : float
+    speed_drops : tuple of SpeedDrop
+        Where the plan is slower than requested, and why.
+    faults : tuple of str
+    """
+
+    robot: str
+    completed: bool
+    duration_s: float
+    planned_duration_s: float
+    max_path_deviation_m: float
+    max_lag_m: float
+    max_joint_error_rad: float
+    min_limit_margin_rad: float
+    min_wrist_singularity: float
+    min_elbow_singularity: float
+    requested_speed_m_s: float
+    mean_speed_m_s: float
+    speed_drops: tuple[SpeedDrop, ...] = ()
+    faults: tuple[str, ...] = field(default=())
+
+    def lines(self) -> list[str]:
+        """The report as short lines for a terminal."""
+        mm = 1e3
+        out = [
+            f"dry run on a simulated {self.robot}: "
+            + ("completed" if self.completed else "DID NOT COMPLETE"),
+            f"duration {self.duration_s:.2f} s (planned {self.planned_duration_s:.2f} s); "
+            f"mean TCP speed {self.mean_speed_m_s * mm:.1f} mm/s of "
+            f"{self.requested_speed_m_s * mm:.1f} requested",
+            f"tracking: {self.max_path_deviation_m * mm:.3f} mm off the path at most, "
+            f"{self.max_lag_m * mm:.2f} mm behind at most (servoJ's lookahead), joints within "
+            f"{np.degrees(self.max_joint_error_rad):.3f} deg of the delayed plan",
+            f"margins: joint limits {np.degrees(self.min_limit_margin_rad):.1f} deg, wrist "
+            f"|sin q5| {self.min_wrist_singularity:.2f}, elbow |sin q3| "
+            f"{self.min_elbow_singularity:.2f}",
+        ]
+        for drop in self.speed_drops:
+            out.append(
+                f"slower than requested from {drop.start_m * mm:.0f} to {drop.end_m * mm:.0f} mm "
+                f"of path (down to {drop.min_speed_m_s * mm:.1f} mm/s): {drop.cause}"
+            )
+        out += [f"fault: {fault}" for fault in self.faults]
+        return out
+
+
+def dry_run(trajectory: JointTrajectory, *, config: SimConfig | None = None,
+            backend: SimBackend | None = None) -> DryRunReport:
+    """Execute ``trajectory`` on a simulated arm (fake clock: faster than real time).
+
+    Parameters
+    ----------
+    trajectory : JointTrajectory
+    config : SimConfig, optional
+        Servo settings; the arm model and start pose are taken from the trajectory.
+    backend : SimBackend, optional
+        A prepared simulator (for injecting faults); otherwise one is made.
+    """
+    arm = kinematics.model(trajectory.robot)
+    if backend is None:
+        base = config or SimConfig()
+        settings = base.model_copy(update={"robot": trajectory.robot,
+                                           "q_start_rad": tuple(trajectory.q_rad[0])})
+        backend = SimBackend(settings, clock=FakeClock())
+    faults: list[str] = []
+    record = None
+    t0 = backend.clock.now()
+    try:
+        backend.connect()
+        backend.enable()
+        record = backend.execute(trajectory)
+        if record.fault:
+            faults.append(record.fault)
+    except RobotError as error:
+        faults.append(str(error))
+        record = getattr(backend, "last_record", None)
+    finally:
+        backend.close()
+    duration = backend.clock.now() - t0
+    planned_tcp = trajectory.tcp_m
+    if record is not None and len(record):
+        actual_flange = kinematics.forward(arm, record.q_actual_rad)
+        planned_flange = kinematics.forward(arm, record.q_planned_rad)
+        # The planned TCP may sit off the flange; the tracking error is the same rigid offset
+        # either way, so it is measured on the flange.
+        deviation = float(distance_to_curve(actual_flange[:, :3, 3],
+                                            kinematics.forward(arm, trajectory.q_rad)[:, :3, 3]).max())
+        lag = float(np.linalg.norm(actual_flange[:, :3, 3] - planned_flange[:, :3, 3],
+                                   axis=1).max())
+        # servoJ follows the stream a lookahead behind: compare joints with the plan delayed so.
+        delay = max(1, int(round(backend.config.lookahead_s * arm.control_rate_hz)))
+        joint_error = float(np.abs(record.q_actual_rad[delay:]
+                                   - record.q_planned_rad[:-delay]).max(initial=0.0))
+        completed = record.completed
+    else:
+        deviation = lag = joint_error = float("nan")
+        completed = False
+    q = trajectory.q_rad
+    margin = float(np.min(np.minimum(q - arm.q_min_rad, arm.q_max_rad - q)))
+    path_length = float(np.sum(np.linalg.norm(np.diff(planned_tcp, axis=0), axis=1)))
+    return DryRunReport(
+        robot=trajectory.robot,
+        completed=completed,
+        duration_s=duration,
+        planned_duration_s=trajectory.duration_s,
+        max_path_deviation_m=deviation,
+        max_lag_m=lag,
+        max_joint_error_rad=joint_error,
+        min_limit_margin_rad=margin,
+        min_wrist_singularity=float(kinematics.wrist_singularity(q).min()),
+        min_elbow_singularity=float(kinematics.elbow_singularity(q).min()),
+        requested_speed_m_s=trajectory.requested_speed_m_s,
+        mean_speed_m_s=path_length / max(trajectory.duration_s, 1e-12),
+        speed_drops=trajectory.speed_drops,
+        faults=tuple(faults),
+    )

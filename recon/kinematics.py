@@ -1,0 +1,411 @@
+"""Universal Robots arms: models, forward kinematics and closed-form inverse kinematics.
+
+UR arms follow the standard Denavit-Hartenberg convention with ``alpha = (pi/2, 0, 0, pi/2,
+-pi/2, 0)``, ``a = (0, a2, a3, 0, 0, 0)`` and ``d = (d1, 0, 0, d4, d5, d6)``; the parameters below
+are Universal Robots' published nominal values (a calibrated arm differs by a fraction of a
+millimetre). Joint angles are radians, lengths metres; poses are 4x4 transforms of the flange
+(tool0) in the base frame, ``T_base_flange``.
+
+The inverse kinematics is the analytic solution for this geometry (Hawkins, "Analytic Inverse
+Kinematics for the Universal Robots UR-5/UR-10 Arms", 2013): two shoulder, two wrist and two
+elbow branches, eight solutions in all, vectorised over many poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from recon.errors import InfeasibleTrajectoryError
+from recon.types import FloatArray, JointPath
+
+ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
+DEG = np.pi / 180.0
+
+
+@dataclass(frozen=True)
+class URModel:
+    """One UR arm type.
+
+    Attributes
+    ----------
+    name : str
+    d1, a2, a3, d4, d5, d6 : float
+        DH parameters, metres (a2, a3 negative as UR publishes them).
+    q_min_rad, q_max_rad : ndarray of shape (6,)
+        Joint position limits.
+    qd_max_rad_s : ndarray of shape (6,)
+        Joint speed limits.
+    qdd_max_rad_s2 : ndarray of shape (6,)
+        Joint accelerations used for planning. UR publishes no joint acceleration limit (its ROS
+        descriptions say so); these are conservative planning values, overridable per plan.
+    tcp_speed_max_m_s : float
+        Largest TCP speed planning accepts: a planning cap of ours, not a published limit.
+    control_rate_hz : float
+        Controller (RTDE) rate: 500 Hz on e-series, 125 Hz on CB3.
+    payload_kg : float
+    """
+
+    name: str
+    d1: float
+    a2: float
+    a3: float
+    d4: float
+    d5: float
+    d6: float
+    qd_max_rad_s: FloatArray
+    qdd_max_rad_s2: FloatArray
+    control_rate_hz: float
+    payload_kg: float
+    tcp_speed_max_m_s: float = 1.0
+    q_min_rad: FloatArray = None  # type: ignore[assignment]
+    q_max_rad: FloatArray = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        for name in ("qd_max_rad_s", "qdd_max_rad_s2", "q_min_rad", "q_max_rad"):
+            value = getattr(self, name)
+            if value is None:
+                value = np.full(6, -2 * np.pi if name == "q_min_rad" else 2 * np.pi)
+            arr = np.array(value, dtype=np.float64)
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    @property
+    def d(self) -> FloatArray:
+        return np.array([self.d1, 0.0, 0.0, self.d4, self.d5, self.d6])
+
+    @property
+    def a(self) -> FloatArray:
+        return np.array([0.0, self.a2, self.a3, 0.0, 0.0, 0.0])
+
+    @property
+    def reach_m(self) -> float:
+        """Distance from the shoulder to the wrist centre with the arm stretched."""
+        return abs(self.a2) + abs(self.a3)
+
+
+def _e_series_rates(*values_deg_s: float) -> FloatArray:
+    return np.array(values_deg_s, dtype=np.float64) * DEG
+
+
+#: The supported arms, by lower-case name. DH parameters from UR's "DH parameters for
+#: calculations of kinematics and dynamics" (the same values as ur-analytic-ik's table); joint
+#: speeds (deg/s) from UR's ROS 2 description (config/<model>/joint_limits.yaml). Joint positions
+#: are +-360 deg, except wrist 3 of the UR3 and UR3e, which turns without limit.
+UR_MODELS: dict[str, URModel] = {
+    m.name: m
+    for m in (
+        URModel("ur3e", 0.15185, -0.24355, -0.2132, 0.13105, 0.08535, 0.0921,
+                _e_series_rates(180, 180, 180, 360, 360, 360), np.full(6, 6.0), 500.0, 3.0,
+                q_min_rad=[-2 * np.pi] * 5 + [-np.inf], q_max_rad=[2 * np.pi] * 5 + [np.inf]),
+        URModel("ur5e", 0.1625, -0.425, -0.3922, 0.1333, 0.0997, 0.0996,
+                _e_series_rates(180, 180, 180, 180, 180, 180), np.full(6, 4.0), 500.0, 5.0),
+        URModel("ur10e", 0.1807, -0.6127, -0.57155, 0.17415, 0.11985, 0.11655,
+                _e_series_rates(120, 120, 180, 180, 180, 180), np.full(6, 3.0), 500.0, 12.5),
+        URModel("ur16e", 0.1807, -0.4784, -0.36, 0.17415, 0.11985, 0.11655,
+                _e_series_rates(120, 120, 180, 180, 180, 180), np.full(6, 3.0), 500.0, 16.0),
+        URModel("ur20", 0.2363, -0.862, -0.7287, 0.201, 0.1593, 0.1543,
+                _e_series_rates(120, 120, 150, 210, 210, 210), np.full(6, 2.0), 500.0, 20.0),
+        URModel("ur30", 0.2363, -0.637, -0.5037, 0.201, 0.1593, 0.1543,
+                _e_series_rates(120, 120, 150, 210, 210, 210), np.full(6, 2.0), 500.0, 30.0),
+        URModel("ur3", 0.1519, -0.24365, -0.21325, 0.11235, 0.08535, 0.0819,
+                _e_series_rates(180, 180, 180, 360, 360, 360), np.full(6, 6.0), 125.0, 3.0,
+                q_min_rad=[-2 * np.pi] * 5 + [-np.inf], q_max_rad=[2 * np.pi] * 5 + [np.inf]),
+        URModel("ur5", 0.089159, -0.425, -0.39225, 0.10915, 0.09465, 0.0823,
+                _e_series_rates(180, 180, 180, 180, 180, 180), np.full(6, 4.0), 125.0, 5.0),
+        URModel("ur10", 0.1273, -0.612, -0.5723, 0.163941, 0.1157, 0.0922,
+                _e_series_rates(120, 120, 180, 180, 180, 180), np.full(6, 3.0), 125.0, 10.0),
+    )
+}
+
+
+def model(name: str) -> URModel:
+    """The arm called ``name`` (case-insensitive).
+
+    Raises
+    ------
+    ValueError
+        An unknown name; the message lists the known ones.
+    """
+    try:
+        return UR_MODELS[name.lower()]
+    except KeyError:
+        raise ValueError(
+            f"unknown robot {name!r}; known UR arms: {', '.join(sorted(UR_MODELS))}"
+        ) from None
+
+
+def _dh(theta: FloatArray, d: float, a: float, alpha: float) -> FloatArray:
+    """Standard DH link transforms for many angles: (...,) -> (..., 4, 4)."""
+    ct, st = np.cos(theta), np.sin(theta)
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    T = np.zeros((*np.shape(theta), 4, 4))
+    T[..., 0, 0], T[..., 0, 1], T[..., 0, 2], T[..., 0, 3] = ct, -st * ca, st * sa, a * ct
+    T[..., 1, 0], T[..., 1, 1], T[..., 1, 2], T[..., 1, 3] = st, ct * ca, -ct * sa, a * st
+    T[..., 2, 1], T[..., 2, 2], T[..., 2, 3] = sa, ca, d
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def forward(arm: URModel, q_rad: FloatArray) -> FloatArray:
+    """Flange poses for joint vectors.
+
+    Parameters
+    ----------
+    arm : URModel
+    q_rad : ndarray of shape (..., 6)
+
+    Returns
+    -------
+    ndarray of shape (..., 4, 4)
+        ``T_base_flange``.
+    """
+    q = np.asarray(q_rad, dtype=np.float64)
+    d, a = arm.d, arm.a
+    T = _dh(q[..., 0], d[0], a[0], ALPHA[0])
+    for i in range(1, 6):
+        T = T @ _dh(q[..., i], d[i], a[i], ALPHA[i])
+    return T
+
+
+@dataclass(frozen=True)
+class IKSolutions:
+    """All eight analytic solutions for a batch of poses.
+
+    Attributes
+    ----------
+    q_rad : ndarray of shape (N, 8, 6)
+        Angles wrapped to (-pi, pi]. Branch ``b`` has shoulder sign ``(b >> 2) & 1``, wrist sign
+        ``(b >> 1) & 1`` and elbow sign ``b & 1`` (0: plus, 1: minus).
+    valid : ndarray of shape (N, 8), bool
+        The branch exists at this pose (reachable; not through a singularity that removes it).
+    shoulder_margin_m : ndarray of shape (N,)
+        How far the wrist centre is outside the cylinder of radius d4 around the base axis; at 0
+        the shoulder branches meet (shoulder singularity), below it the pose is unreachable.
+    """
+
+    q_rad: FloatArray
+    valid: NDArray[np.bool_]
+    shoulder_margin_m: FloatArray
+
+
+def inverse(arm: URModel, T_base_flange: FloatArray) -> IKSolutions:
+    """The eight closed-form inverse-kinematics solutions of many flange poses.
+
+    Where the wrist is singular (sin q5 = 0) q6 is undetermined; it is set to 0 there, and the
+    pose is still reported valid (the joint values reach the pose).
+
+    Parameters
+    ----------
+    arm : URModel
+    T_base_flange : ndarray of shape (N, 4, 4)
+
+    Returns
+    -------
+    IKSolutions
+    """
+    T = np.asarray(T_base_flange, dtype=np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise ValueError(f"T_base_flange must have shape (N, 4, 4), got {T.shape}")
+    n = len(T)
+    d1, a2, a3, d4, d6 = arm.d1, arm.a2, arm.a3, arm.d4, arm.d6
+    p06 = T[:, :3, 3]
+    z6 = T[:, :3, 2]
+    p05 = p06 - d6 * z6
+    radius = np.hypot(p05[:, 0], p05[:, 1])
+    shoulder_margin = radius - abs(d4)
+
+    q = np.zeros((n, 8, 6))
+    valid = np.ones((n, 8), dtype=bool)
+    psi = np.arctan2(p05[:, 1], p05[:, 0])
+    cos_phi = d4 / np.maximum(radius, 1e-12)
+    reachable_shoulder = np.abs(cos_phi) <= 1.0
+    phi = np.arccos(np.clip(cos_phi, -1.0, 1.0))
+    T60 = np.linalg.inv(T)
+    for shoulder in (0, 1):
+        q1 = psi + (phi if shoulder == 0 else -phi) + np.pi / 2
+        s1, c1 = np.sin(q1), np.cos(q1)
+        cos5 = (p06[:, 0] * s1 - p06[:, 1] * c1 - d4) / d6
+        wrist_ok = np.abs(cos5) <= 1.0 + 1e-9
+        for wrist in (0, 1):
+            q5 = np.arccos(np.clip(cos5, -1.0, 1.0)) * (1.0 if wrist == 0 else -1.0)
+            s5 = np.sin(q5)
+            singular = np.abs(s5) < 1e-9
+            safe_s5 = np.where(singular, 1.0, s5)
+            q6 = np.arctan2(
+                (-T60[:, 1, 0] * s1 + T60[:, 1, 1] * c1) / safe_s5,
+                (T60[:, 0, 0] * s1 - T60[:, 0, 1] * c1) / safe_s5,
+            )
+            q6 = np.where(singular, 0.0, q6)
+            # Position of the wrist's joint-4 frame seen from joint 1: a planar 2-link problem.
+            T01 = _dh(q1, d1, 0.0, ALPHA[0])
+            T45 = _dh(q5, arm.d5, 0.0, ALPHA[4])
+            T56 = _dh(q6, d6, 0.0, ALPHA[5])
+            T14 = np.linalg.inv(T01) @ T @ np.linalg.inv(T45 @ T56)
+            p13 = T14[:, :3, :3] @ np.array([0.0, -d4, 0.0]) + T14[:, :3, 3]
+            length_sq = np.einsum("ni,ni->n", p13, p13)
+            cos3 = (length_sq - a2**2 - a3**2) / (2 * a2 * a3)
+            elbow_ok = np.abs(cos3) <= 1.0 + 1e-9
+            for elbow in (0, 1):
+                q3 = np.arccos(np.clip(cos3, -1.0, 1.0)) * (1.0 if elbow == 0 else -1.0)
+                length = np.sqrt(np.maximum(length_sq, 1e-300))
+                q2 = -np.arctan2(p13[:, 1], -p13[:, 0]) + np.arcsin(
+                    np.clip(a3 * np.sin(q3) / length, -1.0, 1.0)
+                )
+                T12 = _dh(q2, 0.0, a2, ALPHA[1])
+                T23 = _dh(q3, 0.0, a3, ALPHA[2])
+                T34 = np.linalg.inv(T12 @ T23) @ T14
+                q4 = np.arctan2(T34[:, 1, 0], T34[:, 0, 0])
+                branch = (shoulder << 2) | (wrist << 1) | elbow
+                q[:, branch] = np.column_stack([q1, q2, q3, q4, q5, q6])
+                valid[:, branch] = reachable_shoulder & wrist_ok & elbow_ok
+    q = (q + np.pi) % (2 * np.pi) - np.pi
+    return IKSolutions(q_rad=q, valid=valid, shoulder_margin_m=shoulder_margin)
+
+
+def wrist_singularity(q_rad: FloatArray) -> FloatArray:
+    """|sin q5|: 0 when the axes of joints 4 and 6 align (wrist singularity)."""
+    return np.abs(np.sin(np.asarray(q_rad)[..., 4]))
+
+
+def elbow_singularity(q_rad: FloatArray) -> FloatArray:
+    """|sin q3|: 0 with the arm fully stretched or folded (elbow singularity)."""
+    return np.abs(np.sin(np.asarray(q_rad)[..., 2]))
+
+
+#: Below these the path is refused as passing (too near) a singularity: |sin q5| and |sin q3| of
+#: 0.02 are about 1.1 degrees from it, where joint speeds grow without bound.
+MIN_WRIST_SINGULARITY = 0.02
+MIN_ELBOW_SINGULARITY = 0.02
+#: Smallest distance of the wrist centre from the shoulder-singular cylinder, metres.
+MIN_SHOULDER_MARGIN_M = 0.005
+#: Largest change of any joint between neighbouring waypoints (they are a few mm apart): more
+#: means the branch flipped through a singularity.
+MAX_JOINT_STEP_RAD = 0.35
+
+
+def follow_path(
+    arm: URModel,
+    T_base_flange: FloatArray,
+    *,
+    q_near_rad: FloatArray | None = None,
+) -> JointPath:
+    """Joint angles along a sequence of flange poses, keeping one IK branch throughout.
+
+    Every branch that reaches every waypoint is unwrapped along the path and shifted by whole
+    turns into the joint limits; among those without a singularity or a jump, the one with the
+    largest smallest margin (to limits and singularities) is kept, or, given ``q_near_rad``
+    (the arm's current joints), the one whose first waypoint is nearest to it.
+
+    Parameters
+    ----------
+    arm : URModel
+    T_base_flange : ndarray of shape (N, 4, 4)
+    q_near_rad : ndarray of shape (6,), optional
+
+    Returns
+    -------
+    JointPath
+
+    Raises
+    ------
+    InfeasibleTrajectoryError
+        No branch follows the whole path; the message names the first waypoint that defeats the
+        best branch and why (out of reach, wrist orientation, singularity, joint limit, jump).
+    """
+    poses = np.asarray(T_base_flange, dtype=np.float64)
+    sol = inverse(arm, poses)
+    n = len(poses)
+    candidates = []
+    failures = []  # (first bad waypoint, reason) per branch
+    for branch in range(8):
+        valid = sol.valid[:, branch]
+        if not valid.all():
+            first = int(np.argmin(valid))
+            failures.append((first, _unreachable_reason(arm, poses[first], sol, first)))
+            continue
+        q = np.unwrap(sol.q_rad[:, branch], axis=0)
+        q, limit_problem = _into_limits(arm, q, q_near_rad)
+        if limit_problem is not None:
+            failures.append(limit_problem)
+            continue
+        steps = np.abs(np.diff(q, axis=0))
+        if n > 1 and steps.max() > MAX_JOINT_STEP_RAD:
+            i, j = np.unravel_index(np.argmax(steps), steps.shape)
+            failures.append((int(i) + 1, f"joint {j + 1} would jump by "
+                             f"{np.degrees(steps[i, j]):.0f} deg to the next waypoint (the path "
+                             "crosses a singularity)"))
+            continue
+        wrist, elbow = wrist_singularity(q), elbow_singularity(q)
+        shoulder = sol.shoulder_margin_m
+        bad = (wrist < MIN_WRIST_SINGULARITY) | (elbow < MIN_ELBOW_SINGULARITY) | (
+            shoulder < MIN_SHOULDER_MARGIN_M)
+        if bad.any():
+            first = int(np.argmax(bad))
+            which = ("wrist (joints 4 and 6 aligned)" if wrist[first] < MIN_WRIST_SINGULARITY
+                     else "elbow (arm stretched out or folded)"
+                     if elbow[first] < MIN_ELBOW_SINGULARITY
+                     else "shoulder (wrist centre above the base axis)")
+            failures.append((first, f"it passes the {which} singularity"))
+            continue
+        margin = np.min(np.minimum(q - arm.q_min_rad, arm.q_max_rad - q), axis=1)
+        score = min(float(wrist.min()), float(elbow.min()), float(margin.min()) / np.pi)
+        distance = 0.0 if q_near_rad is None else float(np.abs(q[0] - q_near_rad).max())
+        candidates.append((branch, q, margin, wrist, elbow, score, distance))
+    if not candidates:
+        first, reason = max(failures, key=lambda f: f[0])
+        x, y, z = poses[first, :3, 3]
+        raise InfeasibleTrajectoryError(
+            f"waypoint {first} at ({x:.3f}, {y:.3f}, {z:.3f}) m cannot be followed by the "
+            f"{arm.name}: {reason}. Move the workpiece (or the base-from-tracker calibration), "
+            "change the tool orientation, or choose another arm"
+        )
+    if q_near_rad is not None:
+        branch, q, margin, wrist, elbow, _, _ = min(candidates, key=lambda c: c[6])
+    else:
+        branch, q, margin, wrist, elbow, _, _ = max(candidates, key=lambda c: c[5])
+    return JointPath(
+        q_rad=q,
+        branch=branch,
+        limit_margin_rad=margin,
+        wrist_singularity=wrist,
+        elbow_singularity=elbow,
+        shoulder_margin_m=sol.shoulder_margin_m,
+    )
+
+
+def _into_limits(arm: URModel, q: FloatArray, q_near: FloatArray | None):
+    """Shift each unwrapped joint by whole turns into its limits (nearest ``q_near`` or most
+    central). Returns (q, None) or (q, (waypoint, reason))."""
+    q = q.copy()
+    for j in range(6):
+        if not (np.isfinite(arm.q_min_rad[j]) and np.isfinite(arm.q_max_rad[j])):
+            continue  # a joint that turns without limit needs no shifting
+        lo, hi = q[:, j].min(), q[:, j].max()
+        k_min = np.ceil((arm.q_min_rad[j] - lo) / (2 * np.pi))
+        k_max = np.floor((arm.q_max_rad[j] - hi) / (2 * np.pi))
+        if k_min > k_max:
+            span = np.degrees(hi - lo)
+            return q, (0, f"joint {j + 1} would have to turn {span:.0f} deg along the path, more "
+                          "than its limits allow")
+        options = np.arange(k_min, k_max + 1) * 2 * np.pi
+        if q_near is not None:
+            shift = options[np.argmin(np.abs(q[0, j] + options - q_near[j]))]
+        else:
+            centre = 0.5 * (arm.q_min_rad[j] + arm.q_max_rad[j])
+            shift = options[np.argmin(np.abs(0.5 * (lo + hi) + options - centre))]
+        q[:, j] += shift
+    return q, None
+
+
+def _unreachable_reason(arm: URModel, pose: FloatArray, sol: IKSolutions, i: int) -> str:
+    if sol.shoulder_margin_m[i] < 0:
+        return "it is too close to the base's axis for the shoulder"
+    wrist_centre = pose[:3, 3] - arm.d6 * pose[:3, 2]
+    distance = float(np.linalg.norm(wrist_centre - [0.0, 0.0, arm.d1]))
+    if distance > arm.reach_m + abs(arm.d4):
+        return (f"it is out of reach (the wrist centre would be {distance:.3f} m from the "
+                f"shoulder; the arm reaches about {arm.reach_m:.3f} m)")
+    return "the tool orientation there cannot be reached at that position"
