@@ -290,6 +290,30 @@ def reconstruct(
     return _assemble(resampled, bounds, segments, results, registration, params, notes)
 
 
+def scan_context(
+    points_m: FloatArray,
+    scan: Scan,
+    *,
+    params: ReconParams | None = None,
+    T_scan_tracker_init: FloatArray | None = None,
+) -> tuple[ScanContext, FloatArray, Registration | None]:
+    """The scan's structure near a path (scan frame) and the path's registration to it.
+
+    What :func:`reconstruct` does before its per-point stage, for callers that need the scan at
+    points of their own (tool orientations at a reconstructed path).
+
+    Returns
+    -------
+    context : ScanContext
+    T_scan_tracker : ndarray of shape (4, 4)
+    registration : Registration or None
+    """
+    params = params or ReconParams()
+    plan = plan_segments(Recording(points_m=points_m), params)
+    return _prepare_context(plan.resampled.points_m, scan, plan.bounds, params,
+                            T_scan_tracker_init)
+
+
 def _prepare_context(
     points: FloatArray,
     scan: Scan,

@@ -191,11 +191,15 @@ def smooth_joint_path(
 
 
 def _sample(trajectory, rate_hz: float) -> dict[str, FloatArray]:
+    """Samples on the controller's grid (servoJ streams at a fixed period); the last one, at or
+    just after the end, holds the final pose at rest."""
     duration = float(trajectory.duration)
-    t = np.arange(0.0, duration, 1.0 / rate_hz)
-    if duration - t[-1] > 1e-9:
-        t = np.append(t, duration)
-    return {"t": t, "x": trajectory(t), "xd": trajectory(t, 1), "xdd": trajectory(t, 2)}
+    dt = 1.0 / rate_hz
+    t = np.arange(int(np.ceil(duration / dt - 1e-9)) + 1) * dt
+    at = np.minimum(t, duration)
+    xd, xdd = trajectory(at, 1), trajectory(at, 2)
+    xd[t > duration], xdd[t > duration] = 0.0, 0.0
+    return {"t": t, "x": trajectory(at), "xd": xd, "xdd": xdd}
 
 
 def _check(samples: dict[str, FloatArray], limits: Limits) -> str | None:

@@ -52,6 +52,16 @@ def _positive(value: str) -> float:
     return number
 
 
+def _vector3(value: str) -> tuple[float, float, float]:
+    try:
+        parts = tuple(float(v) for v in value.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z numbers, not {value!r}") from None
+    if len(parts) != 3 or not all(math.isfinite(v) for v in parts):
+        raise argparse.ArgumentTypeError(f"expected three finite numbers X,Y,Z, not {value!r}")
+    return parts  # type: ignore[return-value]
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _OneLineParser(
         prog="teachpath",
@@ -95,6 +105,42 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--out", required=True, metavar="OUT.csv", help="reconstructed path (CSV)")
     rec.add_argument("--plot", metavar="OUT.png", help="also write a picture")
     rec.set_defaults(handler=_cmd_reconstruct)
+
+    plan = commands.add_parser(
+        "plan",
+        help="plan a timed UR joint trajectory along a reconstructed path",
+        description="Tool poses along a reconstructed path (axis from the scan, the pen or "
+        "fixed), inverse kinematics for a UR arm and time-optimal timing within its limits. "
+        "Writes t,q0..q5 (s, rad) and the planned TCP x,y,z,rx,ry,rz (base frame) as CSV and "
+        "prints the feasibility report.",
+    )
+    plan.add_argument("recon_file", metavar="RECON.csv", help="output of teachpath reconstruct")
+    plan.add_argument("--scan", metavar="SCAN_FILE", help="the scan the path follows (tool axis "
+                      "from its normals)")
+    plan.add_argument("--units", choices=("m", "mm"), default="m", help="unit of the scan file")
+    plan.add_argument("--robot", default="ur5e", help="UR model (default ur5e)")
+    plan.add_argument("--speed-m-s", type=_positive, required=True, help="TCP speed")
+    plan.add_argument("--base-from-tracker", metavar="T.json",
+                      help="calibration T_base_tracker (default: the path is in the base frame)")
+    plan.add_argument("--orientation", choices=("auto", "scan", "pen", "fixed"), default="auto")
+    plan.add_argument("--lead-deg", type=float, default=0.0)
+    plan.add_argument("--tilt-deg", type=float, default=0.0)
+    plan.add_argument("--smooth-m", type=float, default=0.01,
+                      help="smoothing of the tool axis along the path (default 0.01)")
+    plan.add_argument("--tcp-offset-m", type=_vector3, default=(0.0, 0.0, 0.0), metavar="X,Y,Z",
+                      help="TCP in the flange frame (default 0,0,0)")
+    plan.add_argument("--out", required=True, metavar="TRAJ.csv")
+    plan.set_defaults(handler=_cmd_plan)
+
+    dry = commands.add_parser(
+        "dry-run",
+        help="execute a planned trajectory on the simulated arm and report",
+        description="Runs TRAJ.csv on a simulated UR arm (faster than real time) and prints "
+        "duration, tracking deviation, margins, speed drops and faults.",
+    )
+    dry.add_argument("traj_file", metavar="TRAJ.csv")
+    dry.add_argument("--robot", default="ur5e", help="UR model the trajectory was planned for")
+    dry.set_defaults(handler=_cmd_dry_run)
 
     demo = commands.add_parser(
         "demo",
@@ -216,6 +262,45 @@ def summary(recon) -> str:
         )
     lines += [f"note: {note}" for note in recon.notes]
     return "\n".join(lines)
+
+
+def _cmd_plan(args: argparse.Namespace) -> int:
+    from drivers.calibration import read_calibration
+    from drivers.export import read_reconstruction_csv, write_trajectory_csv
+    from drivers.scanning.pointcloud import read_scan
+    from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path
+
+    out = _check_output(args.out, ".csv")
+    params = PlanParams(robot=args.robot, speed_m_s=args.speed_m_s, orientation=args.orientation,
+                        lead_deg=args.lead_deg, tilt_deg=args.tilt_deg, smooth_m=args.smooth_m,
+                        tcp_offset_m=args.tcp_offset_m)
+    recon = read_reconstruction_csv(args.recon_file)
+    T_base_tracker = None
+    if args.base_from_tracker:
+        T_base_tracker = read_calibration(args.base_from_tracker, expect="T_base_tracker").matrix
+    normals = None
+    if args.scan and params.orientation in ("auto", "scan"):
+        scan = read_scan(args.scan, units=args.units).scan
+        normals, _ = normals_from_scan(recon.points_m, recon.mode, scan,
+                                       approach_tracker=approach_in(T_base_tracker,
+                                                                    params.approach))
+    plan = plan_path(recon.points_m, params=params, T_base_tracker=T_base_tracker,
+                     normals=normals, pen_xyzw=recon.orientations_xyzw)
+    write_trajectory_csv(out, plan.trajectory)
+    print("\n".join(plan.report_lines()))
+    return 0
+
+
+def _cmd_dry_run(args: argparse.Namespace) -> int:
+    from drivers.export import read_trajectory_csv
+    from drivers.robot.dryrun import dry_run
+    from recon.kinematics import model
+
+    model(args.robot)  # an unknown arm is a one-line error before reading anything
+    trajectory = read_trajectory_csv(args.traj_file, robot=args.robot.lower())
+    report = dry_run(trajectory)
+    print("\n".join(report.lines()))
+    return 0 if report.completed and not report.faults else EXIT_FAILURE
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:

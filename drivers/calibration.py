@@ -1,0 +1,86 @@
+"""Stored calibrations: rigid transforms between frames, as JSON.
+
+A file holds one transform ``T_a_b`` (4x4, mapping points of frame b into frame a) with its
+frames, units and, when measured, residuals::
+
+    {"name": "T_base_tracker", "matrix": [[...], [...], [...], [0, 0, 0, 1]],
+     "units": "m", "created": "2026-11-22T10:00:00+00:00", "residual_rms_m": 0.0003}
+
+The translation is in ``units`` and converted to metres on reading.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+from drivers.errors import InputFileError
+from drivers.files import atomic_path
+from drivers.units import metres_per
+from recon.align import check_rigid
+from recon.types import FloatArray
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A stored transform. ``matrix`` is in metres."""
+
+    name: str
+    matrix: FloatArray
+    created: str | None = None
+    residual_rms_m: float | None = None
+
+
+def read_calibration(source: str | Path | bytes, *, expect: str | None = None,
+                     label: str | None = None) -> Calibration:
+    """Read a calibration file.
+
+    Parameters
+    ----------
+    expect : str, optional
+        The transform's name the caller needs (e.g. "T_base_tracker"); a file naming another
+        one is refused, so a scanner calibration is not used as a robot one by mistake.
+
+    Raises
+    ------
+    InputFileError
+        Unreadable JSON, a missing or non-rigid matrix, unknown units, the wrong name.
+    """
+    label = label or ("upload" if isinstance(source, bytes) else str(source))
+    try:
+        raw = source if isinstance(source, bytes) else Path(source).read_bytes()
+        data = json.loads(raw)
+    except FileNotFoundError:
+        raise InputFileError(f"{label} does not exist") from None
+    except (OSError, ValueError) as exc:
+        raise InputFileError(f"{label} is not a readable JSON calibration: {exc}") from None
+    if not isinstance(data, dict) or "matrix" not in data:
+        raise InputFileError(f"{label} has no \"matrix\" (a 4x4 list of rows)")
+    name = str(data.get("name", expect or "transform"))
+    if expect is not None and name != expect:
+        raise InputFileError(f"{label} holds {name}, but {expect} is needed here")
+    try:
+        scale = metres_per(str(data.get("units", "m")))
+        matrix = np.array(data["matrix"], dtype=np.float64)
+        matrix = check_rigid(matrix, name=f"the matrix in {label}").copy()
+    except (ValueError, TypeError) as exc:
+        raise InputFileError(f"{label}: {exc}") from None
+    matrix[:3, 3] *= scale
+    residual = data.get("residual_rms_m")
+    return Calibration(name=name, matrix=matrix, created=data.get("created"),
+                       residual_rms_m=None if residual is None else float(residual))
+
+
+def write_calibration(path: str | Path, name: str, matrix: FloatArray, *,
+                      residual_rms_m: float | None = None) -> None:
+    """Write a calibration (metres, with the current time)."""
+    content = {"name": name, "matrix": np.asarray(check_rigid(matrix)).tolist(), "units": "m",
+               "created": datetime.now(UTC).isoformat(timespec="seconds")}
+    if residual_rms_m is not None:
+        content["residual_rms_m"] = residual_rms_m
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(content, indent=2) + "\n")

@@ -1,0 +1,208 @@
+"""From a reconstructed path to a timed joint trajectory: orientation, IK, timing, report."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from recon import kinematics
+from recon.align import apply_transform, check_rigid, invert_transform
+from recon.orient import ScanNormals, fill_along_path, scan_normals, tool_path
+from recon.timing import limits_for, time_parameterize
+from recon.types import (
+    FloatArray,
+    JointPath,
+    JointTrajectory,
+    ReconParams,
+    Registration,
+    Scan,
+    ToolPath,
+)
+
+Orientation = Literal["auto", "scan", "pen", "fixed"]
+
+
+@dataclass(frozen=True)
+class PlanParams:
+    """How to turn a path into a trajectory.
+
+    Attributes
+    ----------
+    robot : str
+        UR model.
+    speed_m_s : float
+        Requested TCP speed.
+    orientation : {"auto", "scan", "pen", "fixed"}
+        Source of the tool axis; "auto" takes the scan if given, else the pen, else fixed.
+    lead_deg, tilt_deg : float
+        Lean of the tool (see ``recon.orient``).
+    smooth_m : float
+        Smoothing of the tool axis along the path (0 turns it off).
+    approach : tuple of 3 floats
+        Where the tool comes from, base frame (default from above).
+    tcp_offset_m : tuple of 3 floats
+        The TCP in the flange frame (a tool of length L along the flange's z: (0, 0, L)).
+    velocity_scale, acceleration_scale : float
+        Fractions of the arm's joint limits to plan within.
+    """
+
+    robot: str = "ur5e"
+    speed_m_s: float = 0.05
+    orientation: Orientation = "auto"
+    lead_deg: float = 0.0
+    tilt_deg: float = 0.0
+    smooth_m: float = 0.01
+    approach: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    tcp_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    velocity_scale: float = 1.0
+    acceleration_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        kinematics.model(self.robot)  # raises on an unknown arm
+        if self.orientation not in ("auto", "scan", "pen", "fixed"):
+            raise ValueError(f"orientation must be auto, scan, pen or fixed, got "
+                             f"{self.orientation!r}")
+        if not (-60.0 <= self.lead_deg <= 60.0 and -60.0 <= self.tilt_deg <= 60.0):
+            raise ValueError("lead_deg and tilt_deg must be within +-60 degrees")
+        if not (self.smooth_m >= 0 and np.isfinite(self.smooth_m)):
+            raise ValueError("smooth_m must be >= 0")
+        if np.linalg.norm(self.approach) < 1e-9:
+            raise ValueError("approach must be a non-zero direction")
+
+    @property
+    def T_flange_tcp(self) -> FloatArray:
+        T = np.eye(4)
+        T[:3, 3] = self.tcp_offset_m
+        return T
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A planned trajectory with everything that led to it."""
+
+    tool: ToolPath
+    joints: JointPath
+    trajectory: JointTrajectory
+    params: PlanParams
+
+    def report_lines(self) -> list[str]:
+        """The feasibility report for a terminal."""
+        traj, joints, mm = self.trajectory, self.joints, 1e3
+        length = float(self.tool.arc_length_m[-1])
+        lines = [
+            f"{self.params.robot}: {length * mm:.0f} mm of path in {traj.duration_s:.2f} s "
+            f"({len(traj)} samples at {1 / traj.period_s:.0f} Hz), requested "
+            f"{traj.requested_speed_m_s * mm:.0f} mm/s, mean {length / traj.duration_s * mm:.1f}",
+            f"tool axis from the {self.tool.source}; IK branch {joints.branch}",
+            f"margins: joint limits {np.degrees(joints.limit_margin_rad.min()):.1f} deg, wrist "
+            f"|sin q5| {joints.wrist_singularity.min():.2f}, elbow |sin q3| "
+            f"{joints.elbow_singularity.min():.2f}, shoulder "
+            f"{joints.shoulder_margin_m.min() * mm:.0f} mm",
+        ]
+        for drop in traj.speed_drops:
+            lines.append(f"slower than requested from {drop.start_m * mm:.0f} to "
+                         f"{drop.end_m * mm:.0f} mm (down to {drop.min_speed_m_s * mm:.1f} "
+                         f"mm/s): {drop.cause}")
+        return lines
+
+
+def plan_path(
+    points_tracker_m: FloatArray,
+    *,
+    params: PlanParams,
+    T_base_tracker: FloatArray | None = None,
+    normals: ScanNormals | None = None,
+    pen_xyzw: FloatArray | None = None,
+    q_near_rad: FloatArray | None = None,
+) -> Plan:
+    """Plan a trajectory along a path given in the tracker frame.
+
+    Parameters
+    ----------
+    points_tracker_m : ndarray of shape (N, 3)
+    params : PlanParams
+    T_base_tracker : ndarray of shape (4, 4), optional
+        Where the tracker frame is in the robot base frame (identity: the same frame).
+    normals : ScanNormals, optional
+        Outward surface directions at the points, tracker frame.
+    pen_xyzw : ndarray of shape (N, 4), optional
+        Pen orientations at the points, tracker frame.
+    q_near_rad : ndarray of shape (6,), optional
+        The arm's current joints, to pick the nearest IK branch.
+
+    Raises
+    ------
+    ValueError
+        Inconsistent inputs (the requested orientation source is missing, bad shapes).
+    InfeasibleTrajectoryError
+        The arm cannot follow the path (the message names the waypoint and why).
+    """
+    arm = kinematics.model(params.robot)
+    T = np.eye(4) if T_base_tracker is None else check_rigid(T_base_tracker,
+                                                             name="T_base_tracker")
+    R = T[:3, :3]
+    points = apply_transform(T, np.asarray(points_tracker_m, dtype=np.float64))
+    source = params.orientation
+    if source == "auto":
+        source = ("scan" if normals is not None and normals.known.any()
+                  else "pen" if pen_xyzw is not None else "fixed")
+    kwargs = {}
+    if source == "scan":
+        if normals is None or not normals.known.any():
+            raise ValueError("orientation 'scan' needs a scan with surfaces or edges along the path")
+        kwargs["normals"] = fill_along_path(normals.normals, normals.known) @ R.T
+    elif source == "pen":
+        if pen_xyzw is None:
+            raise ValueError("orientation 'pen' needs a trace with pen orientations (qx..qw)")
+        from scipy.spatial.transform import Rotation
+
+        kwargs["pen_xyzw"] = (Rotation.from_matrix(R) * Rotation.from_quat(pen_xyzw)).as_quat()
+    tool = tool_path(points, approach=params.approach, lead_deg=params.lead_deg,
+                     tilt_deg=params.tilt_deg, smooth_m=params.smooth_m, **kwargs)
+    flange = tool.poses() @ invert_transform(params.T_flange_tcp)
+    joints = kinematics.follow_path(arm, flange, q_near_rad=q_near_rad)
+    limits = limits_for(arm, params.speed_m_s, velocity_scale=params.velocity_scale,
+                        acceleration_scale=params.acceleration_scale)
+    trajectory = time_parameterize(arm, joints, tool, limits, T_flange_tcp=params.T_flange_tcp)
+    return Plan(tool=tool, joints=joints, trajectory=trajectory, params=params)
+
+
+def approach_in(T_base_tracker: FloatArray | None, approach_base) -> FloatArray:
+    """The approach direction expressed in the tracker frame."""
+    R = np.eye(3) if T_base_tracker is None else np.asarray(T_base_tracker)[:3, :3]
+    return R.T @ np.asarray(approach_base, dtype=np.float64)
+
+
+def normals_from_scan(
+    points_tracker_m: FloatArray,
+    mode: np.ndarray,
+    scan: Scan,
+    *,
+    approach_tracker: FloatArray,
+    recon_params: ReconParams | None = None,
+    T_scan_tracker_init: FloatArray | None = None,
+) -> tuple[ScanNormals, Registration | None]:
+    """Outward surface directions of the scan at a reconstructed path's points (tracker frame).
+
+    The path is registered to the scan as the reconstruction was (it lies on the scan's
+    features, so this finds the same transform); edge points get the bisector of the two faces,
+    surface points the local normal, turned towards ``approach_tracker``.
+    """
+    params = recon_params or ReconParams()
+    from recon.reconstruct import EDGE_FIT_RADIUS_FACTOR, scan_context
+
+    context, T_scan_tracker, registration = scan_context(
+        points_tracker_m, scan, params=params, T_scan_tracker_init=T_scan_tracker_init
+    )
+    R = T_scan_tracker[:3, :3]
+    found = scan_normals(
+        apply_transform(T_scan_tracker, np.asarray(points_tracker_m, dtype=np.float64)),
+        context.features,
+        mode=mode,
+        approach=R @ np.asarray(approach_tracker, dtype=np.float64),
+        radius_m=params.radius_m,
+        edge_fit_radius_m=EDGE_FIT_RADIUS_FACTOR * params.curvature_radius_m,
+    )
+    return ScanNormals(normals=found.normals @ R, known=found.known), registration
