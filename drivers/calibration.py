@@ -35,8 +35,9 @@ class Calibration:
     residual_rms_m: float | None = None
 
 
-def read_calibration(source: str | Path | bytes, *, expect: str | None = None,
-                     label: str | None = None) -> Calibration:
+def read_calibration(
+    source: str | Path | bytes, *, expect: str | None = None, label: str | None = None
+) -> Calibration:
     """Read a calibration file.
 
     Parameters
@@ -59,7 +60,7 @@ def read_calibration(source: str | Path | bytes, *, expect: str | None = None,
     except (OSError, ValueError) as exc:
         raise InputFileError(f"{label} is not a readable JSON calibration: {exc}") from None
     if not isinstance(data, dict) or "matrix" not in data:
-        raise InputFileError(f"{label} has no \"matrix\" (a 4x4 list of rows)")
+        raise InputFileError(f'{label} has no "matrix" (a 4x4 list of rows)')
     name = str(data.get("name", expect or "transform"))
     if expect is not None and name != expect:
         raise InputFileError(f"{label} holds {name}, but {expect} is needed here")
@@ -71,15 +72,24 @@ def read_calibration(source: str | Path | bytes, *, expect: str | None = None,
         raise InputFileError(f"{label}: {exc}") from None
     matrix[:3, 3] *= scale
     residual = data.get("residual_rms_m")
-    return Calibration(name=name, matrix=matrix, created=data.get("created"),
-                       residual_rms_m=None if residual is None else float(residual))
+    return Calibration(
+        name=name,
+        matrix=matrix,
+        created=data.get("created"),
+        residual_rms_m=None if residual is None else float(residual),
+    )
 
 
-def write_calibration(path: str | Path, name: str, matrix: FloatArray, *,
-                      residual_rms_m: float | None = None) -> None:
+def write_calibration(
+    path: str | Path, name: str, matrix: FloatArray, *, residual_rms_m: float | None = None
+) -> None:
     """Write a calibration (metres, with the current time)."""
-    content = {"name": name, "matrix": np.asarray(check_rigid(matrix)).tolist(), "units": "m",
-               "created": datetime.now(UTC).isoformat(timespec="seconds")}
+    content = {
+        "name": name,
+        "matrix": np.asarray(check_rigid(matrix)).tolist(),
+        "units": "m",
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
     if residual_rms_m is not None:
         content["residual_rms_m"] = residual_rms_m
     with atomic_path(path) as tmp:

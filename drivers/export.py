@@ -38,8 +38,12 @@ def write_reconstruction_csv(path: str | Path, recon: Reconstruction) -> None:
     """
     labels = {int(m): m.label for m in PointMode}
     has_q = recon.orientations_xyzw is not None
-    header = (["x", "y", "z"] + (["t"] if recon.t_s is not None else [])
-              + (list(QUATERNION_COLUMNS) if has_q else []) + list(DIAGNOSTIC_COLUMNS))
+    header = (
+        ["x", "y", "z"]
+        + (["t"] if recon.t_s is not None else [])
+        + (list(QUATERNION_COLUMNS) if has_q else [])
+        + list(DIAGNOSTIC_COLUMNS)
+    )
 
     def number(value: float) -> str:
         return "" if not np.isfinite(value) else f"{value:.9g}"
@@ -97,8 +101,10 @@ def read_reconstruction_csv(source: str | Path | bytes, *, name: str | None = No
     header = [c.strip().lower() for c in rows[0]]
     missing = [c for c in ("x", "y", "z") if c not in header]
     if missing:
-        raise InputFileError(f"{label} has no column {', '.join(missing)}; expected the CSV "
-                             "`teachpath reconstruct` writes (x,y,z,...)")
+        raise InputFileError(
+            f"{label} has no column {', '.join(missing)}; expected the CSV "
+            "`teachpath reconstruct` writes (x,y,z,...)"
+        )
     body = rows[1:]
     if len(body) < 2:
         raise InputFileError(f"{label} has {len(body)} rows; a path needs at least two")
@@ -110,8 +116,9 @@ def read_reconstruction_csv(source: str | Path | bytes, *, name: str | None = No
         try:
             modes = np.array([by_label[r[column].strip()] for r in body], dtype=np.int8)
         except (KeyError, IndexError) as exc:
-            raise InputFileError(f"{label} has an unknown mode {exc}; expected one of "
-                                 f"{', '.join(by_label)}") from None
+            raise InputFileError(
+                f"{label} has an unknown mode {exc}; expected one of {', '.join(by_label)}"
+            ) from None
     orientations = None
     if all(c in header for c in QUATERNION_COLUMNS):
         q = _numbers(body, [header.index(c) for c in QUATERNION_COLUMNS], label)
@@ -122,11 +129,13 @@ def read_reconstruction_csv(source: str | Path | bytes, *, name: str | None = No
 def write_trajectory_csv(path: str | Path, trajectory: JointTrajectory) -> None:
     """``t,q0..q5`` (s, rad) then the planned TCP ``x,y,z,rx,ry,rz`` (m, rotation vector), base
     frame, one row per controller period. The file appears only when complete."""
-    data = np.column_stack([trajectory.t_s, trajectory.q_rad, trajectory.tcp_m,
-                            trajectory.tcp_rotvec])
+    data = np.column_stack(
+        [trajectory.t_s, trajectory.q_rad, trajectory.tcp_m, trajectory.tcp_rotvec]
+    )
     with atomic_path(path) as tmp:
-        np.savetxt(tmp, data, delimiter=",", header=",".join(TRAJECTORY_COLUMNS), comments="",
-                   fmt="%.10g")
+        np.savetxt(
+            tmp, data, delimiter=",", header=",".join(TRAJECTORY_COLUMNS), comments="", fmt="%.10g"
+        )
 
 
 def read_trajectory_csv(source: str | Path | bytes, *, robot: str, name: str | None = None):
@@ -143,23 +152,33 @@ def read_trajectory_csv(source: str | Path | bytes, *, robot: str, name: str | N
     rows, label = _read_rows(source, name)
     header = [c.strip().lower() for c in rows[0]]
     if tuple(header[: len(TRAJECTORY_COLUMNS)]) != TRAJECTORY_COLUMNS:
-        raise InputFileError(f"{label} does not start with the columns "
-                             f"{','.join(TRAJECTORY_COLUMNS)}; expected a `teachpath plan` file")
+        raise InputFileError(
+            f"{label} does not start with the columns "
+            f"{','.join(TRAJECTORY_COLUMNS)}; expected a `teachpath plan` file"
+        )
     data = _numbers(rows[1:], list(range(len(TRAJECTORY_COLUMNS))), label)
     if len(data) < 2:
         raise InputFileError(f"{label} has fewer than two samples")
     t = data[:, 0]
     dt = np.diff(t)
     if np.any(dt <= 0) or np.ptp(dt) > 1e-6:
-        raise InputFileError(f"{label}: the times must increase in equal steps (one controller "
-                             "period); plan the trajectory again")
+        raise InputFileError(
+            f"{label}: the times must increase in equal steps (one controller "
+            "period); plan the trajectory again"
+        )
     q = data[:, 1:7]
     qd = np.gradient(q, t, axis=0)
     return JointTrajectory(
-        robot=robot, t_s=t, q_rad=q, qd_rad_s=qd, qdd_rad_s2=np.gradient(qd, t, axis=0),
-        tcp_m=data[:, 7:10], tcp_rotvec=data[:, 10:13],
-        arc_length_m=np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(data[:, 7:10],
-                                                                             axis=0), axis=1)))),
+        robot=robot,
+        t_s=t,
+        q_rad=q,
+        qd_rad_s=qd,
+        qdd_rad_s2=np.gradient(qd, t, axis=0),
+        tcp_m=data[:, 7:10],
+        tcp_rotvec=data[:, 10:13],
+        arc_length_m=np.concatenate(
+            ([0.0], np.cumsum(np.linalg.norm(np.diff(data[:, 7:10], axis=0), axis=1)))
+        ),
         # The file does not say what was requested; its mean speed stands in for it.
         requested_speed_m_s=_mean_speed(data[:, 7:10], t),
     )

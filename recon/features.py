@@ -464,7 +464,15 @@ def fit_edge_lines(
             np.concatenate(arrays)
             for arrays in zip(
                 *(
-                    (p.points_m, p.directions, p.residual_m, p.n_points, p.dihedral_deg, p.ok, p.bisector)
+                    (
+                        p.points_m,
+                        p.directions,
+                        p.residual_m,
+                        p.n_points,
+                        p.dihedral_deg,
+                        p.ok,
+                        p.bisector,
+                    )
                     for p in parts
                 ),
                 strict=True,

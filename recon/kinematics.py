@@ -97,26 +97,127 @@ def _e_series_rates(*values_deg_s: float) -> FloatArray:
 UR_MODELS: dict[str, URModel] = {
     m.name: m
     for m in (
-        URModel("ur3e", 0.15185, -0.24355, -0.2132, 0.13105, 0.08535, 0.0921,
-                _e_series_rates(180, 180, 180, 360, 360, 360), np.full(6, 6.0), 500.0, 3.0,
-                q_min_rad=[-2 * np.pi] * 5 + [-np.inf], q_max_rad=[2 * np.pi] * 5 + [np.inf]),
-        URModel("ur5e", 0.1625, -0.425, -0.3922, 0.1333, 0.0997, 0.0996,
-                _e_series_rates(180, 180, 180, 180, 180, 180), np.full(6, 4.0), 500.0, 5.0),
-        URModel("ur10e", 0.1807, -0.6127, -0.57155, 0.17415, 0.11985, 0.11655,
-                _e_series_rates(120, 120, 180, 180, 180, 180), np.full(6, 3.0), 500.0, 12.5),
-        URModel("ur16e", 0.1807, -0.4784, -0.36, 0.17415, 0.11985, 0.11655,
-                _e_series_rates(120, 120, 180, 180, 180, 180), np.full(6, 3.0), 500.0, 16.0),
-        URModel("ur20", 0.2363, -0.862, -0.7287, 0.201, 0.1593, 0.1543,
-                _e_series_rates(120, 120, 150, 210, 210, 210), np.full(6, 2.0), 500.0, 20.0),
-        URModel("ur30", 0.2363, -0.637, -0.5037, 0.201, 0.1593, 0.1543,
-                _e_series_rates(120, 120, 150, 210, 210, 210), np.full(6, 2.0), 500.0, 30.0),
-        URModel("ur3", 0.1519, -0.24365, -0.21325, 0.11235, 0.08535, 0.0819,
-                _e_series_rates(180, 180, 180, 360, 360, 360), np.full(6, 6.0), 125.0, 3.0,
-                q_min_rad=[-2 * np.pi] * 5 + [-np.inf], q_max_rad=[2 * np.pi] * 5 + [np.inf]),
-        URModel("ur5", 0.089159, -0.425, -0.39225, 0.10915, 0.09465, 0.0823,
-                _e_series_rates(180, 180, 180, 180, 180, 180), np.full(6, 4.0), 125.0, 5.0),
-        URModel("ur10", 0.1273, -0.612, -0.5723, 0.163941, 0.1157, 0.0922,
-                _e_series_rates(120, 120, 180, 180, 180, 180), np.full(6, 3.0), 125.0, 10.0),
+        URModel(
+            "ur3e",
+            0.15185,
+            -0.24355,
+            -0.2132,
+            0.13105,
+            0.08535,
+            0.0921,
+            _e_series_rates(180, 180, 180, 360, 360, 360),
+            np.full(6, 6.0),
+            500.0,
+            3.0,
+            q_min_rad=[-2 * np.pi] * 5 + [-np.inf],
+            q_max_rad=[2 * np.pi] * 5 + [np.inf],
+        ),
+        URModel(
+            "ur5e",
+            0.1625,
+            -0.425,
+            -0.3922,
+            0.1333,
+            0.0997,
+            0.0996,
+            _e_series_rates(180, 180, 180, 180, 180, 180),
+            np.full(6, 4.0),
+            500.0,
+            5.0,
+        ),
+        URModel(
+            "ur10e",
+            0.1807,
+            -0.6127,
+            -0.57155,
+            0.17415,
+            0.11985,
+            0.11655,
+            _e_series_rates(120, 120, 180, 180, 180, 180),
+            np.full(6, 3.0),
+            500.0,
+            12.5,
+        ),
+        URModel(
+            "ur16e",
+            0.1807,
+            -0.4784,
+            -0.36,
+            0.17415,
+            0.11985,
+            0.11655,
+            _e_series_rates(120, 120, 180, 180, 180, 180),
+            np.full(6, 3.0),
+            500.0,
+            16.0,
+        ),
+        URModel(
+            "ur20",
+            0.2363,
+            -0.862,
+            -0.7287,
+            0.201,
+            0.1593,
+            0.1543,
+            _e_series_rates(120, 120, 150, 210, 210, 210),
+            np.full(6, 2.0),
+            500.0,
+            20.0,
+        ),
+        URModel(
+            "ur30",
+            0.2363,
+            -0.637,
+            -0.5037,
+            0.201,
+            0.1593,
+            0.1543,
+            _e_series_rates(120, 120, 150, 210, 210, 210),
+            np.full(6, 2.0),
+            500.0,
+            30.0,
+        ),
+        URModel(
+            "ur3",
+            0.1519,
+            -0.24365,
+            -0.21325,
+            0.11235,
+            0.08535,
+            0.0819,
+            _e_series_rates(180, 180, 180, 360, 360, 360),
+            np.full(6, 6.0),
+            125.0,
+            3.0,
+            q_min_rad=[-2 * np.pi] * 5 + [-np.inf],
+            q_max_rad=[2 * np.pi] * 5 + [np.inf],
+        ),
+        URModel(
+            "ur5",
+            0.089159,
+            -0.425,
+            -0.39225,
+            0.10915,
+            0.09465,
+            0.0823,
+            _e_series_rates(180, 180, 180, 180, 180, 180),
+            np.full(6, 4.0),
+            125.0,
+            5.0,
+        ),
+        URModel(
+            "ur10",
+            0.1273,
+            -0.612,
+            -0.5723,
+            0.163941,
+            0.1157,
+            0.0922,
+            _e_series_rates(120, 120, 180, 180, 180, 180),
+            np.full(6, 3.0),
+            125.0,
+            10.0,
+        ),
     )
 }
 
@@ -181,6 +282,10 @@ class IKSolutions:
         ``(b >> 1) & 1`` and elbow sign ``b & 1`` (0: plus, 1: minus).
     valid : ndarray of shape (N, 8), bool
         The branch exists at this pose (reachable; not through a singularity that removes it).
+    failure : ndarray of shape (N, 8), int8
+        Why a branch does not exist: 0 it does, 1 the wrist centre is inside the shoulder's
+        cylinder (too close to the base axis), 2 the wrist cannot take the orientation there,
+        3 the elbow cannot span the distance (too far, or too close to the shoulder).
     shoulder_margin_m : ndarray of shape (N,)
         How far the wrist centre is outside the cylinder of radius d4 around the base axis; at 0
         the shoulder branches meet (shoulder singularity), below it the pose is unreachable.
@@ -189,6 +294,7 @@ class IKSolutions:
     q_rad: FloatArray
     valid: NDArray[np.bool_]
     shoulder_margin_m: FloatArray
+    failure: NDArray[np.int8]
 
 
 def inverse(arm: URModel, T_base_flange: FloatArray) -> IKSolutions:
@@ -219,6 +325,7 @@ def inverse(arm: URModel, T_base_flange: FloatArray) -> IKSolutions:
 
     q = np.zeros((n, 8, 6))
     valid = np.ones((n, 8), dtype=bool)
+    failure = np.zeros((n, 8), dtype=np.int8)
     psi = np.arctan2(p05[:, 1], p05[:, 0])
     cos_phi = d4 / np.maximum(radius, 1e-12)
     reachable_shoulder = np.abs(cos_phi) <= 1.0
@@ -261,8 +368,11 @@ def inverse(arm: URModel, T_base_flange: FloatArray) -> IKSolutions:
                 branch = (shoulder << 2) | (wrist << 1) | elbow
                 q[:, branch] = np.column_stack([q1, q2, q3, q4, q5, q6])
                 valid[:, branch] = reachable_shoulder & wrist_ok & elbow_ok
+                failure[:, branch] = np.where(
+                    ~reachable_shoulder, 1, np.where(~wrist_ok, 2, np.where(~elbow_ok, 3, 0))
+                )
     q = (q + np.pi) % (2 * np.pi) - np.pi
-    return IKSolutions(q_rad=q, valid=valid, shoulder_margin_m=shoulder_margin)
+    return IKSolutions(q_rad=q, valid=valid, shoulder_margin_m=shoulder_margin, failure=failure)
 
 
 def wrist_singularity(q_rad: FloatArray) -> FloatArray:
@@ -291,6 +401,7 @@ def follow_path(
     T_base_flange: FloatArray,
     *,
     q_near_rad: FloatArray | None = None,
+    allowed_branches: tuple[int, ...] | None = None,
 ) -> JointPath:
     """Joint angles along a sequence of flange poses, keeping one IK branch throughout.
 
@@ -304,6 +415,8 @@ def follow_path(
     arm : URModel
     T_base_flange : ndarray of shape (N, 4, 4)
     q_near_rad : ndarray of shape (6,), optional
+    allowed_branches : tuple of int, optional
+        Only these branches (0-7, see :class:`IKSolutions`), e.g. to keep the elbow up.
 
     Returns
     -------
@@ -320,11 +433,11 @@ def follow_path(
     n = len(poses)
     candidates = []
     failures = []  # (first bad waypoint, reason) per branch
-    for branch in range(8):
+    for branch in range(8) if allowed_branches is None else allowed_branches:
         valid = sol.valid[:, branch]
         if not valid.all():
             first = int(np.argmin(valid))
-            failures.append((first, _unreachable_reason(arm, poses[first], sol, first)))
+            failures.append((first, _unreachable_reason(arm, poses[first], sol, first, branch)))
             continue
         q = np.unwrap(sol.q_rad[:, branch], axis=0)
         q, limit_problem = _into_limits(arm, q, q_near_rad)
@@ -334,20 +447,31 @@ def follow_path(
         steps = np.abs(np.diff(q, axis=0))
         if n > 1 and steps.max() > MAX_JOINT_STEP_RAD:
             i, j = np.unravel_index(np.argmax(steps), steps.shape)
-            failures.append((int(i) + 1, f"joint {j + 1} would jump by "
-                             f"{np.degrees(steps[i, j]):.0f} deg to the next waypoint (the path "
-                             "crosses a singularity)"))
+            failures.append(
+                (
+                    int(i) + 1,
+                    f"joint {j + 1} would jump by "
+                    f"{np.degrees(steps[i, j]):.0f} deg to the next waypoint (the path "
+                    "crosses a singularity)",
+                )
+            )
             continue
         wrist, elbow = wrist_singularity(q), elbow_singularity(q)
         shoulder = sol.shoulder_margin_m
-        bad = (wrist < MIN_WRIST_SINGULARITY) | (elbow < MIN_ELBOW_SINGULARITY) | (
-            shoulder < MIN_SHOULDER_MARGIN_M)
+        bad = (
+            (wrist < MIN_WRIST_SINGULARITY)
+            | (elbow < MIN_ELBOW_SINGULARITY)
+            | (shoulder < MIN_SHOULDER_MARGIN_M)
+        )
         if bad.any():
             first = int(np.argmax(bad))
-            which = ("wrist (joints 4 and 6 aligned)" if wrist[first] < MIN_WRIST_SINGULARITY
-                     else "elbow (arm stretched out or folded)"
-                     if elbow[first] < MIN_ELBOW_SINGULARITY
-                     else "shoulder (wrist centre above the base axis)")
+            which = (
+                "wrist (joints 4 and 6 aligned)"
+                if wrist[first] < MIN_WRIST_SINGULARITY
+                else "elbow (arm stretched out or folded)"
+                if elbow[first] < MIN_ELBOW_SINGULARITY
+                else "shoulder (wrist centre above the base axis)"
+            )
             failures.append((first, f"it passes the {which} singularity"))
             continue
         margin = np.min(np.minimum(q - arm.q_min_rad, arm.q_max_rad - q), axis=1)
@@ -388,8 +512,11 @@ def _into_limits(arm: URModel, q: FloatArray, q_near: FloatArray | None):
         k_max = np.floor((arm.q_max_rad[j] - hi) / (2 * np.pi))
         if k_min > k_max:
             span = np.degrees(hi - lo)
-            return q, (0, f"joint {j + 1} would have to turn {span:.0f} deg along the path, more "
-                          "than its limits allow")
+            return q, (
+                0,
+                f"joint {j + 1} would have to turn {span:.0f} deg along the path, more "
+                "than its limits allow",
+            )
         options = np.arange(k_min, k_max + 1) * 2 * np.pi
         if q_near is not None:
             shift = options[np.argmin(np.abs(q[0, j] + options - q_near[j]))]
@@ -400,12 +527,19 @@ def _into_limits(arm: URModel, q: FloatArray, q_near: FloatArray | None):
     return q, None
 
 
-def _unreachable_reason(arm: URModel, pose: FloatArray, sol: IKSolutions, i: int) -> str:
-    if sol.shoulder_margin_m[i] < 0:
+def _unreachable_reason(
+    arm: URModel, pose: FloatArray, sol: IKSolutions, i: int, branch: int
+) -> str:
+    code = int(sol.failure[i, branch])
+    if code == 1:
         return "it is too close to the base's axis for the shoulder"
+    if code == 2:
+        return "the tool orientation there cannot be reached at that position"
     wrist_centre = pose[:3, 3] - arm.d6 * pose[:3, 2]
     distance = float(np.linalg.norm(wrist_centre - [0.0, 0.0, arm.d1]))
-    if distance > arm.reach_m + abs(arm.d4):
-        return (f"it is out of reach (the wrist centre would be {distance:.3f} m from the "
-                f"shoulder; the arm reaches about {arm.reach_m:.3f} m)")
-    return "the tool orientation there cannot be reached at that position"
+    if distance > 0.5 * arm.reach_m:
+        return (
+            f"it is out of reach (the wrist centre would be {distance:.3f} m from the "
+            f"shoulder; the arm reaches about {arm.reach_m:.3f} m)"
+        )
+    return f"it is too close to the shoulder ({distance:.3f} m) for the elbow to fold"

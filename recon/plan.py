@@ -62,8 +62,9 @@ class PlanParams:
     def __post_init__(self) -> None:
         kinematics.model(self.robot)  # raises on an unknown arm
         if self.orientation not in ("auto", "scan", "pen", "fixed"):
-            raise ValueError(f"orientation must be auto, scan, pen or fixed, got "
-                             f"{self.orientation!r}")
+            raise ValueError(
+                f"orientation must be auto, scan, pen or fixed, got {self.orientation!r}"
+            )
         if not (-60.0 <= self.lead_deg <= 60.0 and -60.0 <= self.tilt_deg <= 60.0):
             raise ValueError("lead_deg and tilt_deg must be within +-60 degrees")
         if not (self.smooth_m >= 0 and np.isfinite(self.smooth_m)):
@@ -102,9 +103,11 @@ class Plan:
             f"{joints.shoulder_margin_m.min() * mm:.0f} mm",
         ]
         for drop in traj.speed_drops:
-            lines.append(f"slower than requested from {drop.start_m * mm:.0f} to "
-                         f"{drop.end_m * mm:.0f} mm (down to {drop.min_speed_m_s * mm:.1f} "
-                         f"mm/s): {drop.cause}")
+            lines.append(
+                f"slower than requested from {drop.start_m * mm:.0f} to "
+                f"{drop.end_m * mm:.0f} mm (down to {drop.min_speed_m_s * mm:.1f} "
+                f"mm/s): {drop.cause}"
+            )
         return lines
 
 
@@ -140,18 +143,24 @@ def plan_path(
         The arm cannot follow the path (the message names the waypoint and why).
     """
     arm = kinematics.model(params.robot)
-    T = np.eye(4) if T_base_tracker is None else check_rigid(T_base_tracker,
-                                                             name="T_base_tracker")
+    T = np.eye(4) if T_base_tracker is None else check_rigid(T_base_tracker, name="T_base_tracker")
     R = T[:3, :3]
     points = apply_transform(T, np.asarray(points_tracker_m, dtype=np.float64))
     source = params.orientation
     if source == "auto":
-        source = ("scan" if normals is not None and normals.known.any()
-                  else "pen" if pen_xyzw is not None else "fixed")
+        source = (
+            "scan"
+            if normals is not None and normals.known.any()
+            else "pen"
+            if pen_xyzw is not None
+            else "fixed"
+        )
     kwargs = {}
     if source == "scan":
         if normals is None or not normals.known.any():
-            raise ValueError("orientation 'scan' needs a scan with surfaces or edges along the path")
+            raise ValueError(
+                "orientation 'scan' needs a scan with surfaces or edges along the path"
+            )
         kwargs["normals"] = fill_along_path(normals.normals, normals.known) @ R.T
     elif source == "pen":
         if pen_xyzw is None:
@@ -159,12 +168,22 @@ def plan_path(
         from scipy.spatial.transform import Rotation
 
         kwargs["pen_xyzw"] = (Rotation.from_matrix(R) * Rotation.from_quat(pen_xyzw)).as_quat()
-    tool = tool_path(points, approach=params.approach, lead_deg=params.lead_deg,
-                     tilt_deg=params.tilt_deg, smooth_m=params.smooth_m, **kwargs)
+    tool = tool_path(
+        points,
+        approach=params.approach,
+        lead_deg=params.lead_deg,
+        tilt_deg=params.tilt_deg,
+        smooth_m=params.smooth_m,
+        **kwargs,
+    )
     flange = tool.poses() @ invert_transform(params.T_flange_tcp)
     joints = kinematics.follow_path(arm, flange, q_near_rad=q_near_rad)
-    limits = limits_for(arm, params.speed_m_s, velocity_scale=params.velocity_scale,
-                        acceleration_scale=params.acceleration_scale)
+    limits = limits_for(
+        arm,
+        params.speed_m_s,
+        velocity_scale=params.velocity_scale,
+        acceleration_scale=params.acceleration_scale,
+    )
     trajectory = time_parameterize(arm, joints, tool, limits, T_flange_tcp=params.T_flange_tcp)
     return Plan(tool=tool, joints=joints, trajectory=trajectory, params=params)
 

@@ -310,8 +310,7 @@ def scan_context(
     """
     params = params or ReconParams()
     plan = plan_segments(Recording(points_m=points_m), params)
-    return _prepare_context(plan.resampled.points_m, scan, plan.bounds, params,
-                            T_scan_tracker_init)
+    return _prepare_context(plan.resampled.points_m, scan, plan.bounds, params, T_scan_tracker_init)
 
 
 def _prepare_context(

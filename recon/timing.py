@@ -72,8 +72,10 @@ def limits_for(
             f"speed_m_s must be in (0, {arm.tcp_speed_max_m_s}] m/s for the {arm.name}, "
             f"got {speed_m_s}"
         )
-    for name, scale in (("velocity_scale", velocity_scale),
-                        ("acceleration_scale", acceleration_scale)):
+    for name, scale in (
+        ("velocity_scale", velocity_scale),
+        ("acceleration_scale", acceleration_scale),
+    ):
         if not (0 < scale <= 1):
             raise ValueError(f"{name} must be in (0, 1], got {scale}")
     return Limits(
@@ -131,13 +133,19 @@ def time_parameterize(
         raise InfeasibleTrajectoryError("the path has no length to move along")
     knots_s, knots_q = smooth_joint_path(s, q, knot_spacing_m=KNOT_SPACING_M)
     path = toppra.SplineInterpolator(knots_s, np.column_stack([knots_q, knots_s]))
-    vlim = np.vstack([np.column_stack([-limits.qd_max_rad_s, limits.qd_max_rad_s]),
-                      [[-limits.speed_m_s, limits.speed_m_s]]])
+    vlim = np.vstack(
+        [
+            np.column_stack([-limits.qd_max_rad_s, limits.qd_max_rad_s]),
+            [[-limits.speed_m_s, limits.speed_m_s]],
+        ]
+    )
     big = 1e6  # the arc-length coordinate has no acceleration limit
     planned_acc = ACCELERATION_HEADROOM * limits.qdd_max_rad_s2
     alim = np.vstack([np.column_stack([-planned_acc, planned_acc]), [[-big, big]]])
-    constraints = [toppra.constraint.JointVelocityConstraint(vlim),
-                   toppra.constraint.JointAccelerationConstraint(alim)]
+    constraints = [
+        toppra.constraint.JointVelocityConstraint(vlim),
+        toppra.constraint.JointAccelerationConstraint(alim),
+    ]
     n_grid = int(max(50, GRID_PER_M * s[-1]))
     failure = "toppra found no feasible parametrisation"
     for _ in range(3):
@@ -209,12 +217,17 @@ def _check(samples: dict[str, FloatArray], limits: Limits) -> str | None:
     over = np.abs(qd) / limits.qd_max_rad_s
     if over.max() > tol:
         i, j = np.unravel_index(np.argmax(over), over.shape)
-        return f"joint {j + 1} speed reaches {over[i, j] * 100:.1f} % of its limit at t={samples['t'][i]:.3f} s"
+        return (
+            f"joint {j + 1} speed reaches {over[i, j] * 100:.1f} % of its limit at "
+            f"t={samples['t'][i]:.3f} s"
+        )
     over = np.abs(qdd) / limits.qdd_max_rad_s2
     if over.max() > tol:
         i, j = np.unravel_index(np.argmax(over), over.shape)
-        return (f"joint {j + 1} acceleration reaches {over[i, j] * 100:.1f} % of its limit at "
-                f"t={samples['t'][i]:.3f} s")
+        return (
+            f"joint {j + 1} acceleration reaches {over[i, j] * 100:.1f} % of its limit at "
+            f"t={samples['t'][i]:.3f} s"
+        )
     if np.abs(sd).max() > limits.speed_m_s * tol:
         return f"the TCP speed reaches {np.abs(sd).max():.4f} m/s"
     return None
@@ -258,7 +271,7 @@ def _speed_drops(arc, speed, joints: JointPath, tool: ToolPath, limits: Limits) 
     slow[: first_peak + 1] = False
     slow[last_peak:] = False
     if speed.max() < target and first_peak < last_peak:
-        slow[first_peak:last_peak + 1] = True  # never reaches the request: all of it
+        slow[first_peak : last_peak + 1] = True  # never reaches the request: all of it
     if not np.any(slow):
         return []
     drops = []
@@ -278,6 +291,12 @@ def _speed_drops(arc, speed, joints: JointPath, tool: ToolPath, limits: Limits) 
             cause = f"joint {joint + 1} speed limit"
         else:
             cause = "joint acceleration limits (a tight curve or a fast turn of the tool)"
-        drops.append(SpeedDrop(start_m=float(arc[start]), end_m=float(arc[stop - 1]),
-                               min_speed_m_s=float(speed[i]), cause=cause))
+        drops.append(
+            SpeedDrop(
+                start_m=float(arc[start]),
+                end_m=float(arc[stop - 1]),
+                min_speed_m_s=float(speed[i]),
+                cause=cause,
+            )
+        )
     return drops

@@ -500,8 +500,15 @@ class JointTrajectory:
 
     def __post_init__(self) -> None:
         n = len(self.t_s)
-        for name in ("t_s", "q_rad", "qd_rad_s", "qdd_rad_s2", "tcp_m", "tcp_rotvec",
-                     "arc_length_m"):
+        for name in (
+            "t_s",
+            "q_rad",
+            "qd_rad_s",
+            "qdd_rad_s2",
+            "tcp_m",
+            "tcp_rotvec",
+            "arc_length_m",
+        ):
             arr = np.array(getattr(self, name), dtype=np.float64)
             if len(arr) != n:
                 raise ValueError(f"{name} has {len(arr)} rows for {n} samples")

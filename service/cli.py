@@ -115,20 +115,33 @@ def build_parser() -> argparse.ArgumentParser:
         "prints the feasibility report.",
     )
     plan.add_argument("recon_file", metavar="RECON.csv", help="output of teachpath reconstruct")
-    plan.add_argument("--scan", metavar="SCAN_FILE", help="the scan the path follows (tool axis "
-                      "from its normals)")
+    plan.add_argument(
+        "--scan", metavar="SCAN_FILE", help="the scan the path follows (tool axis from its normals)"
+    )
     plan.add_argument("--units", choices=("m", "mm"), default="m", help="unit of the scan file")
     plan.add_argument("--robot", default="ur5e", help="UR model (default ur5e)")
     plan.add_argument("--speed-m-s", type=_positive, required=True, help="TCP speed")
-    plan.add_argument("--base-from-tracker", metavar="T.json",
-                      help="calibration T_base_tracker (default: the path is in the base frame)")
+    plan.add_argument(
+        "--base-from-tracker",
+        metavar="T.json",
+        help="calibration T_base_tracker (default: the path is in the base frame)",
+    )
     plan.add_argument("--orientation", choices=("auto", "scan", "pen", "fixed"), default="auto")
     plan.add_argument("--lead-deg", type=float, default=0.0)
     plan.add_argument("--tilt-deg", type=float, default=0.0)
-    plan.add_argument("--smooth-m", type=float, default=0.01,
-                      help="smoothing of the tool axis along the path (default 0.01)")
-    plan.add_argument("--tcp-offset-m", type=_vector3, default=(0.0, 0.0, 0.0), metavar="X,Y,Z",
-                      help="TCP in the flange frame (default 0,0,0)")
+    plan.add_argument(
+        "--smooth-m",
+        type=float,
+        default=0.01,
+        help="smoothing of the tool axis along the path (default 0.01)",
+    )
+    plan.add_argument(
+        "--tcp-offset-m",
+        type=_vector3,
+        default=(0.0, 0.0, 0.0),
+        metavar="X,Y,Z",
+        help="TCP in the flange frame (default 0,0,0)",
+    )
     plan.add_argument("--out", required=True, metavar="TRAJ.csv")
     plan.set_defaults(handler=_cmd_plan)
 
@@ -271,9 +284,15 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path
 
     out = _check_output(args.out, ".csv")
-    params = PlanParams(robot=args.robot, speed_m_s=args.speed_m_s, orientation=args.orientation,
-                        lead_deg=args.lead_deg, tilt_deg=args.tilt_deg, smooth_m=args.smooth_m,
-                        tcp_offset_m=args.tcp_offset_m)
+    params = PlanParams(
+        robot=args.robot,
+        speed_m_s=args.speed_m_s,
+        orientation=args.orientation,
+        lead_deg=args.lead_deg,
+        tilt_deg=args.tilt_deg,
+        smooth_m=args.smooth_m,
+        tcp_offset_m=args.tcp_offset_m,
+    )
     recon = read_reconstruction_csv(args.recon_file)
     T_base_tracker = None
     if args.base_from_tracker:
@@ -281,11 +300,19 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     normals = None
     if args.scan and params.orientation in ("auto", "scan"):
         scan = read_scan(args.scan, units=args.units).scan
-        normals, _ = normals_from_scan(recon.points_m, recon.mode, scan,
-                                       approach_tracker=approach_in(T_base_tracker,
-                                                                    params.approach))
-    plan = plan_path(recon.points_m, params=params, T_base_tracker=T_base_tracker,
-                     normals=normals, pen_xyzw=recon.orientations_xyzw)
+        normals, _ = normals_from_scan(
+            recon.points_m,
+            recon.mode,
+            scan,
+            approach_tracker=approach_in(T_base_tracker, params.approach),
+        )
+    plan = plan_path(
+        recon.points_m,
+        params=params,
+        T_base_tracker=T_base_tracker,
+        normals=normals,
+        pen_xyzw=recon.orientations_xyzw,
+    )
     write_trajectory_csv(out, plan.trajectory)
     print("\n".join(plan.report_lines()))
     return 0

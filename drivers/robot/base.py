@@ -188,8 +188,9 @@ class RobotBackend(ABC):
 
     # -- motion ----------------------------------------------------------------------------------
 
-    def move_joints(self, q_rad: FloatArray, *, speed_rad_s: float = 0.5,
-                    acceleration_rad_s2: float = 1.0) -> None:
+    def move_joints(
+        self, q_rad: FloatArray, *, speed_rad_s: float = 0.5, acceleration_rad_s2: float = 1.0
+    ) -> None:
         """Move to a joint configuration (UR's moveJ); returns when the arm is there.
 
         Raises
@@ -215,8 +216,9 @@ class RobotBackend(ABC):
         finally:
             self._settle_state()
 
-    def execute(self, trajectory: JointTrajectory, *,
-                on_progress: ProgressCallback | None = None) -> ExecutionRecord:
+    def execute(
+        self, trajectory: JointTrajectory, *, on_progress: ProgressCallback | None = None
+    ) -> ExecutionRecord:
         """Stream a trajectory to the arm at the controller rate (servoJ) and record it.
 
         The arm must be enabled and at the trajectory's first sample (within
@@ -342,8 +344,9 @@ class RobotBackend(ABC):
     def _move_joints(self, q: FloatArray, speed: float, acceleration: float) -> None: ...
 
     @abstractmethod
-    def _execute(self, trajectory: JointTrajectory,
-                 on_progress: ProgressCallback | None) -> ExecutionRecord: ...
+    def _execute(
+        self, trajectory: JointTrajectory, on_progress: ProgressCallback | None
+    ) -> ExecutionRecord: ...
 
     @abstractmethod
     def _stop(self) -> None: ...

@@ -80,8 +80,12 @@ class DryRunReport:
         return out
 
 
-def dry_run(trajectory: JointTrajectory, *, config: SimConfig | None = None,
-            backend: SimBackend | None = None) -> DryRunReport:
+def dry_run(
+    trajectory: JointTrajectory,
+    *,
+    config: SimConfig | None = None,
+    backend: SimBackend | None = None,
+) -> DryRunReport:
     """Execute ``trajectory`` on a simulated arm (fake clock: faster than real time).
 
     Parameters
@@ -95,8 +99,9 @@ def dry_run(trajectory: JointTrajectory, *, config: SimConfig | None = None,
     arm = kinematics.model(trajectory.robot)
     if backend is None:
         base = config or SimConfig()
-        settings = base.model_copy(update={"robot": trajectory.robot,
-                                           "q_start_rad": tuple(trajectory.q_rad[0])})
+        settings = base.model_copy(
+            update={"robot": trajectory.robot, "q_start_rad": tuple(trajectory.q_rad[0])}
+        )
         backend = SimBackend(settings, clock=FakeClock())
     faults: list[str] = []
     record = None
@@ -119,14 +124,19 @@ def dry_run(trajectory: JointTrajectory, *, config: SimConfig | None = None,
         planned_flange = kinematics.forward(arm, record.q_planned_rad)
         # The planned TCP may sit off the flange; the tracking error is the same rigid offset
         # either way, so it is measured on the flange.
-        deviation = float(distance_to_curve(actual_flange[:, :3, 3],
-                                            kinematics.forward(arm, trajectory.q_rad)[:, :3, 3]).max())
-        lag = float(np.linalg.norm(actual_flange[:, :3, 3] - planned_flange[:, :3, 3],
-                                   axis=1).max())
+        deviation = float(
+            distance_to_curve(
+                actual_flange[:, :3, 3], kinematics.forward(arm, trajectory.q_rad)[:, :3, 3]
+            ).max()
+        )
+        lag = float(
+            np.linalg.norm(actual_flange[:, :3, 3] - planned_flange[:, :3, 3], axis=1).max()
+        )
         # servoJ follows the stream a lookahead behind: compare joints with the plan delayed so.
         delay = max(1, int(round(backend.config.lookahead_s * arm.control_rate_hz)))
-        joint_error = float(np.abs(record.q_actual_rad[delay:]
-                                   - record.q_planned_rad[:-delay]).max(initial=0.0))
+        joint_error = float(
+            np.abs(record.q_actual_rad[delay:] - record.q_planned_rad[:-delay]).max(initial=0.0)
+        )
         completed = record.completed
     else:
         deviation = lag = joint_error = float("nan")

@@ -95,11 +95,17 @@ class SimBackend(RobotBackend):
         (every later call fails until reconnecting), :class:`RobotTimeoutError` (the controller
         stops answering).
         """
-        supported = (ProtectiveStopError, EmergencyStopError, ConnectionLostError,
-                     RobotTimeoutError)
+        supported = (
+            ProtectiveStopError,
+            EmergencyStopError,
+            ConnectionLostError,
+            RobotTimeoutError,
+        )
         if error not in supported:
-            raise ValueError(f"cannot inject {error.__name__}; supported: "
-                             f"{', '.join(e.__name__ for e in supported)}")
+            raise ValueError(
+                f"cannot inject {error.__name__}; supported: "
+                f"{', '.join(e.__name__ for e in supported)}"
+            )
         if after_s < 0:
             raise ValueError("after_s must be >= 0")
         default = {
@@ -132,9 +138,9 @@ class SimBackend(RobotBackend):
         return self._q.copy()
 
     def _unlock_protective_stop(self) -> None:
-        self._advance(self.clock.now(), target=None)
         if isinstance(self._active, ProtectiveStopError):
             self._active = None
+        self._advance(self.clock.now(), target=None)
 
     def _stop(self) -> None:
         self._stopping = True
@@ -149,14 +155,15 @@ class SimBackend(RobotBackend):
             self.clock.sleep_until(t0 + i * self._dt)
             self._advance(self.clock.now(), target=target)
         # Let the servo settle on the goal.
-        for i in range(int(0.5 / self._dt)):
+        for _ in range(int(0.5 / self._dt)):
             if self._stop_requested.is_set() or np.abs(self._qd).max() < 1e-4:
                 break
             self.clock.sleep_until(self.clock.now() + self._dt)
             self._advance(self.clock.now(), target=q if not self._stopping else self._q)
 
-    def _execute(self, trajectory: JointTrajectory,
-                 on_progress: ProgressCallback | None) -> ExecutionRecord:
+    def _execute(
+        self, trajectory: JointTrajectory, on_progress: ProgressCallback | None
+    ) -> ExecutionRecord:
         n = len(trajectory)
         t0 = self.clock.now()
         self._stopping = False
@@ -188,8 +195,11 @@ class SimBackend(RobotBackend):
 
     def _record(self, times, planned, actual, completed, fault) -> ExecutionRecord:
         record = ExecutionRecord(
-            t_s=np.array(times), q_planned_rad=np.array(planned).reshape(-1, 6),
-            q_actual_rad=np.array(actual).reshape(-1, 6), completed=completed, fault=fault,
+            t_s=np.array(times),
+            q_planned_rad=np.array(planned).reshape(-1, 6),
+            q_actual_rad=np.array(actual).reshape(-1, 6),
+            completed=completed,
+            fault=fault,
         )
         self.last_record = record
         return record
@@ -231,7 +241,7 @@ class SimBackend(RobotBackend):
             del self._buffer[: -(self._delay + 3)]
         # The followed stream: the target from `delay` periods ago, with feed-forward velocity
         # and acceleration from its neighbours (padded with the oldest while the buffer fills).
-        recent = self._buffer[-(self._delay + 3):]
+        recent = self._buffer[-(self._delay + 3) :]
         recent = [recent[0]] * (self._delay + 3 - len(recent)) + recent if recent else []
         for _ in range(steps):
             if braking or not recent:

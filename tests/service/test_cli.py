@@ -225,3 +225,126 @@ def test_demo_writes_its_table_and_pictures(tmp_path):
         "accuracy.png",
     ):
         assert (tmp_path / "demo" / name).stat().st_size > 0
+
+
+@pytest.fixture(scope="module")
+def reconstructed(inputs, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("plan")
+    out = folder / "recon.csv"
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(inputs / "trace.csv"),
+                "--scan",
+                str(inputs / "scan.ply"),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    (folder / "T.json").write_text(
+        '{"name": "T_base_tracker", "units": "mm", '
+        '"matrix": [[1,0,0,350],[0,1,0,-50],[0,0,1,100],[0,0,0,1]]}'
+    )
+    return folder
+
+
+def test_plan_then_dry_run(inputs, reconstructed, tmp_path):
+    traj = tmp_path / "traj.csv"
+    result = run(
+        "plan",
+        reconstructed / "recon.csv",
+        "--scan",
+        inputs / "scan.ply",
+        "--robot",
+        "ur5e",
+        "--speed-m-s",
+        "0.05",
+        "--base-from-tracker",
+        reconstructed / "T.json",
+        "--out",
+        traj,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "tool axis from the scan" in result.stdout and "margins" in result.stdout
+    header = traj.read_text().splitlines()[0]
+    assert header == "t,q0,q1,q2,q3,q4,q5,x,y,z,rx,ry,rz"
+    result = run("dry-run", traj, "--robot", "ur5e")
+    assert result.returncode == 0, result.stderr
+    assert "completed" in result.stdout and "off the path" in result.stdout
+
+
+@pytest.mark.parametrize(
+    "make_args, message",
+    [
+        (
+            lambda d, r: ["plan", r / "recon.csv", "--speed-m-s", "0.05", "--out", d / "o.csv"],
+            r"waypoint \d+ .* cannot be followed",
+        ),  # at the base's origin without a calibration
+        (
+            lambda d, r: [
+                "plan",
+                r / "recon.csv",
+                "--speed-m-s",
+                "9",
+                "--base-from-tracker",
+                r / "T.json",
+                "--out",
+                d / "o.csv",
+            ],
+            "speed_m_s must be",
+        ),
+        (
+            lambda d, r: [
+                "plan",
+                r / "recon.csv",
+                "--robot",
+                "kuka",
+                "--speed-m-s",
+                "0.05",
+                "--out",
+                d / "o.csv",
+            ],
+            "unknown robot",
+        ),
+        (
+            lambda d, r: [
+                "plan",
+                r / "recon.csv",
+                "--speed-m-s",
+                "0.05",
+                "--base-from-tracker",
+                r / "recon.csv",
+                "--out",
+                d / "o.csv",
+            ],
+            "JSON",
+        ),
+        (
+            lambda d, r: ["plan", r / "T.json", "--speed-m-s", "0.05", "--out", d / "o.csv"],
+            "no column x",
+        ),
+        (lambda d, r: ["dry-run", r / "recon.csv", "--robot", "ur5e"], "does not start with"),
+        (lambda d, r: ["dry-run", d / "missing.csv"], "does not exist"),
+    ],
+    ids=[
+        "unreachable",
+        "too-fast",
+        "unknown-robot",
+        "bad-calibration",
+        "not-a-recon",
+        "not-a-trajectory",
+        "missing",
+    ],
+)
+def test_plan_and_dry_run_bad_input(reconstructed, tmp_path, make_args, message):
+    result = run(*make_args(tmp_path, reconstructed))
+    assert result.returncode != 0
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    import re
+
+    assert re.search(message, lines[0]), lines[0]
+    assert not (tmp_path / "o.csv").exists()

@@ -1,0 +1,401 @@
+"""A real UR arm (or UR's simulator) through ur_rtde, from a dedicated worker process.
+
+ur_rtde's constructors and blocking calls hold the Python GIL while they wait on the network: a
+controller that does not answer would freeze every thread of the calling process. So the
+client lives in a child process started for this backend; the parent sends it commands over a
+pipe and waits for each answer with a timeout (:class:`~drivers.errors.RobotTimeoutError`, and
+the child is killed). A stop request is a shared event the child checks every control period,
+so it works while the child is busy streaming.
+
+Execution streams the trajectory with servoJ at the controller rate (initPeriod/waitPeriod) and
+records the actual joints every period; stopping decelerates with servoStop / stopJ.
+
+Enabling does not power the arm on or release its brakes unless ``power_on`` is set: on a shop
+floor that is the operator's decision, at the teach pendant.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import time
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from drivers.errors import (
+    ConnectionLostError,
+    EmergencyStopError,
+    NotEnabledError,
+    ProtectiveStopError,
+    RobotError,
+    RobotTimeoutError,
+    UnknownBackendError,
+)
+from drivers.robot.base import BackendConfig, ExecutionRecord, ProgressCallback, RobotBackend
+from recon.types import FloatArray, JointTrajectory
+
+#: UR robot modes (RTDE robot_mode) and safety modes used here.
+ROBOT_MODE_RUNNING = 7
+SAFETY_MODE_NORMAL = 1
+#: Progress is reported every this many samples.
+PROGRESS_EVERY = 50
+#: Without new data from the controller for this long, the link counts as lost (ur_rtde itself
+#: gives up on a socket after 2.5 s of silence).
+STALE_AFTER_S = 0.5
+
+
+class URRtdeConfig(BackendConfig):
+    """Settings of the ur_rtde backend."""
+
+    kind: Literal["ur_rtde"] = "ur_rtde"
+    host: str = Field(..., description="controller address")
+    connect_timeout_s: float = Field(10.0, gt=0, description="bound on connecting")
+    command_timeout_s: float = Field(5.0, gt=0, description="bound on a non-motion command")
+    motion_margin_s: float = Field(
+        10.0,
+        gt=0,
+        description="motion may take this much longer than planned before it counts as hung",
+    )
+    power_on: bool = Field(False, description="enable() powers on and releases the brakes")
+    upper_range_registers: bool = Field(False, description="use RTDE registers 24-47")
+    stop_deceleration_rad_s2: float = Field(4.0, gt=0, le=40.0)
+
+
+class URRtdeBackend(RobotBackend):
+    """A UR controller through ur_rtde (see the module docstring)."""
+
+    kind = "ur_rtde"
+
+    def __init__(self, config: URRtdeConfig, *, clock=None) -> None:
+        super().__init__(config, clock=clock)
+        self._ctx = multiprocessing.get_context("spawn")
+        self._process = None
+        self._pipe = None
+        self._stop_event = self._ctx.Event()
+
+    # -- the worker ------------------------------------------------------------------------------
+
+    def _start_worker(self) -> None:
+        parent, child = self._ctx.Pipe()
+        self._stop_event.clear()
+        self._process = self._ctx.Process(
+            target=_worker_main,
+            args=(child, self._stop_event, self.config.model_dump()),
+            name=f"ur_rtde {self.config.host}",
+            daemon=True,
+        )
+        self._process.start()
+        child.close()
+        self._pipe = parent
+
+    def _kill_worker(self) -> None:
+        if self._process is not None:
+            if self._process.is_alive():
+                self._process.kill()
+            self._process.join(timeout=5)
+        if self._pipe is not None:
+            self._pipe.close()
+        self._process = self._pipe = None
+
+    def _call(
+        self,
+        command: str,
+        *args,
+        timeout_s: float | None = None,
+        on_progress: ProgressCallback | None = None,
+    ):
+        if self._pipe is None:
+            raise ConnectionLostError("no connection to the controller: connect() first")
+        timeout = self.config.command_timeout_s if timeout_s is None else timeout_s
+        try:
+            self._pipe.send((command, args))
+        except (BrokenPipeError, OSError):
+            self._kill_worker()
+            raise ConnectionLostError("the ur_rtde worker is gone; reconnect") from None
+        deadline = time.monotonic() + timeout
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not self._pipe.poll(remaining):
+                self._kill_worker()
+                raise RobotTimeoutError(
+                    f"the controller at {self.config.host} did not answer {command} within "
+                    f"{timeout:.1f} s; check the network and the arm, then reconnect"
+                )
+            try:
+                kind, payload = self._pipe.recv()
+            except (EOFError, OSError):
+                self._kill_worker()
+                raise ConnectionLostError("the ur_rtde worker stopped unexpectedly") from None
+            if kind == "progress":
+                if on_progress is not None:
+                    on_progress(payload)
+                continue
+            if kind == "error":
+                error_name, message = payload
+                error = _ERRORS.get(error_name, RobotError)(message)
+                self._fault(error)
+                raise error
+            return payload
+
+    # -- hooks -----------------------------------------------------------------------------------
+
+    def _connect(self) -> None:
+        self._start_worker()
+        try:
+            self._call("connect", timeout_s=self.config.connect_timeout_s)
+        except RobotError:
+            self._kill_worker()
+            raise
+
+    def _enable(self) -> None:
+        self._call("enable", timeout_s=max(self.config.command_timeout_s, 30.0))
+
+    def _disable(self) -> None:
+        self._call("disable")
+
+    def _close(self) -> None:
+        if self._pipe is not None:
+            try:
+                self._call("close")
+            except RobotError:
+                pass  # closing anyway
+        self._kill_worker()
+
+    def _read_q(self) -> FloatArray:
+        return np.array(self._call("read_q"), dtype=np.float64)
+
+    def _move_joints(self, q: FloatArray, speed: float, acceleration: float) -> None:
+        distance = float(np.abs(q - self._read_q()).max())
+        expected = distance / speed + speed / acceleration
+        self._call(
+            "move_j",
+            list(map(float, q)),
+            speed,
+            acceleration,
+            timeout_s=expected + self.config.motion_margin_s,
+        )
+
+    def _execute(
+        self, trajectory: JointTrajectory, on_progress: ProgressCallback | None
+    ) -> ExecutionRecord:
+        n = len(trajectory)
+        try:
+            times, actual, completed, fault = self._call(
+                "execute",
+                trajectory.q_rad.tolist(),
+                trajectory.period_s,
+                timeout_s=trajectory.duration_s + self.config.motion_margin_s,
+                on_progress=(None if on_progress is None else (lambda i: on_progress(i / n))),
+            )
+        except RobotError:
+            self.last_record = ExecutionRecord(
+                np.zeros(0), np.zeros((0, 6)), np.zeros((0, 6)), False, "interrupted"
+            )
+            raise
+        k = len(times)
+        return ExecutionRecord(
+            t_s=np.array(times),
+            q_planned_rad=trajectory.q_rad[:k],
+            q_actual_rad=np.array(actual).reshape(-1, 6),
+            completed=completed,
+            fault=fault,
+        )
+
+    def _stop(self) -> None:
+        self._stop_event.set()
+
+    def _unlock_protective_stop(self) -> None:
+        self._call("unlock", timeout_s=max(self.config.command_timeout_s, 10.0))
+
+
+_ERRORS: dict[str, type[RobotError]] = {
+    "protective_stop": ProtectiveStopError,
+    "emergency_stop": EmergencyStopError,
+    "connection": ConnectionLostError,
+    "not_enabled": NotEnabledError,
+    "missing_dependency": UnknownBackendError,  # type: ignore[dict-item]
+    "robot": RobotError,
+}
+
+
+# -- the child process ---------------------------------------------------------------------------
+
+
+class _Failure(Exception):
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+def _worker_main(pipe, stop_event, config: dict) -> None:  # pragma: no cover - other process
+    """Serve commands from the parent until ``close`` or the pipe breaks."""
+    worker = _Worker(config, stop_event, pipe)
+    while True:
+        try:
+            command, args = pipe.recv()
+        except (EOFError, OSError):
+            break
+        try:
+            result = getattr(worker, command)(*args)
+            pipe.send(("ok", result))
+        except _Failure as failure:
+            pipe.send(("error", (failure.kind, str(failure))))
+        except RuntimeError as exc:  # ur_rtde reports lost connections as RuntimeError
+            pipe.send(("error", ("connection", f"ur_rtde: {exc}")))
+        if command == "close":
+            break
+    worker.shutdown()
+
+
+class _Worker:  # pragma: no cover - runs in the child process
+    def __init__(self, config: dict, stop_event, pipe) -> None:
+        self.config = config
+        self.stop_event = stop_event
+        self.pipe = pipe
+        self.control = self.receive = self.dashboard = None
+
+    def connect(self) -> None:
+        try:
+            import dashboard_client
+            import rtde_control
+            import rtde_receive
+        except ImportError as exc:
+            raise _Failure(
+                "missing_dependency",
+                f"ur_rtde is not installed ({exc.name}); "
+                "install teachpath's dependencies (pip install -e .)",
+            ) from None
+        host = self.config["host"]
+        flags = rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+        if host != "127.0.0.1":
+            # ur_rtde only skips its remote-control query for 127.0.0.1; local mode is the
+            # operator's choice, checked by the dashboard below instead.
+            flags |= rtde_control.RTDEControlInterface.FLAG_DISABLE_REMOTE_CONTROL_CHECK
+        if self.config["upper_range_registers"]:
+            flags |= rtde_control.RTDEControlInterface.FLAG_UPPER_RANGE_REGISTERS
+        try:
+            self.receive = rtde_receive.RTDEReceiveInterface(
+                host, use_upper_range_registers=self.config["upper_range_registers"]
+            )
+            self.dashboard = dashboard_client.DashboardClient(host)
+            self.dashboard.connect()
+            self.control = rtde_control.RTDEControlInterface(host, -1.0, flags)
+        except RuntimeError as exc:
+            raise _Failure(
+                "connection", f"cannot connect to the controller at {host}: {exc}"
+            ) from None
+
+    def _check_fresh(self) -> None:
+        """The receive thread can die while isConnected() still says yes and the getters return
+        the last values: watch the controller's timestamp instead."""
+        stamp = self.receive.getTimestamp()
+        now = time.monotonic()
+        if stamp != getattr(self, "_last_stamp", None):
+            self._last_stamp, self._last_fresh = stamp, now
+        elif now - getattr(self, "_last_fresh", now) > STALE_AFTER_S:
+            self.control.servoStop(self.config["stop_deceleration_rad_s2"])
+            raise _Failure(
+                "connection", f"no new data from the controller for {STALE_AFTER_S} s; reconnect"
+            )
+
+    def _safety(self) -> None:
+        if self.receive.isEmergencyStopped():
+            raise _Failure("emergency_stop", "the emergency stop is engaged")
+        if self.receive.isProtectiveStopped():
+            raise _Failure("protective_stop", "the arm is in a protective stop")
+
+    def read_q(self) -> list[float]:
+        self._safety()
+        return list(self.receive.getActualQ())
+
+    def enable(self) -> None:
+        self._safety()
+        if self.receive.getRobotMode() != ROBOT_MODE_RUNNING:
+            if not self.config["power_on"]:
+                raise _Failure(
+                    "not_enabled",
+                    "the arm is not running: power it on and release "
+                    "the brakes at the teach pendant (or set power_on)",
+                )
+            self.dashboard.powerOn()
+            self.dashboard.brakeRelease()
+            deadline = time.monotonic() + 25.0
+            while self.receive.getRobotMode() != ROBOT_MODE_RUNNING:
+                if time.monotonic() > deadline:
+                    raise _Failure("not_enabled", "the arm did not reach RUNNING within 25 s")
+                time.sleep(0.1)
+        if not self.control.isProgramRunning():
+            self.control.reuploadScript()
+
+    def disable(self) -> None:
+        self.control.stopScript()
+
+    def unlock(self) -> None:
+        self.dashboard.closeSafetyPopup()
+        self.dashboard.unlockProtectiveStop()
+
+    def move_j(self, q, speed, acceleration) -> None:
+        self._safety()
+        if not self.control.moveJ(q, speed, acceleration, True):
+            raise _Failure(
+                "connection",
+                "the controller refused moveJ (is the control script running?); reconnect",
+            )
+        while self.control.getAsyncOperationProgressEx().isAsyncOperationRunning():
+            if self.stop_event.is_set():
+                self.control.stopJ(self.config["stop_deceleration_rad_s2"])
+                return
+            self._safety()
+            time.sleep(0.01)
+
+    def execute(self, q_rows, period_s):
+        lookahead, gain = self.config["lookahead_s"], self.config["gain"]
+        times, actual, fault, completed = [], [], None, False
+        start = time.monotonic()
+        for i, q in enumerate(q_rows):
+            if self.stop_event.is_set():
+                fault = "stopped on request"
+                break
+            t_cycle = self.control.initPeriod()
+            # Positional only: ur_rtde's binding names these arguments arg0..arg5.
+            if not self.control.servoJ(q, 0.0, 0.0, period_s, lookahead, gain):
+                self.control.servoStop(self.config["stop_deceleration_rad_s2"])
+                raise _Failure(
+                    "connection",
+                    "the controller refused servoJ (the control script stopped); reconnect",
+                )
+            times.append(time.monotonic() - start)
+            actual.append(list(self.receive.getActualQ()))
+            self._check_fresh()
+            if self.receive.isProtectiveStopped():
+                fault = "protective stop"
+                break
+            if i % PROGRESS_EVERY == 0:
+                self.pipe.send(("progress", i + 1))
+            self.control.waitPeriod(t_cycle)
+        else:
+            completed = True
+        self.control.servoStop(self.config["stop_deceleration_rad_s2"])
+        self.pipe.send(("progress", len(times)))
+        if fault == "protective stop":
+            raise _Failure("protective_stop", "protective stop during execution")
+        return times, actual, completed, fault
+
+    def close(self) -> None:
+        if self.control is not None:
+            self.control.servoStop(self.config["stop_deceleration_rad_s2"])
+            self.control.stopScript()
+
+    def shutdown(self) -> None:
+        for client in (self.control, self.receive):
+            if client is not None:
+                try:
+                    client.disconnect()
+                except RuntimeError:
+                    pass
+        if self.dashboard is not None:
+            try:
+                self.dashboard.disconnect()
+            except RuntimeError:
+                pass

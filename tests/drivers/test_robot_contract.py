@@ -1,0 +1,146 @@
+"""One contract for every robot backend: lifecycle, motion, execution, stop.
+
+Runs against ``sim`` always, and against ``ur_rtde`` when a controller is configured
+(TEACHPATH_UR_HOST, optionally TEACHPATH_UR_ROBOT) -- a real arm or UR's simulator.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+
+import numpy as np
+import pytest
+
+from drivers.errors import (
+    NotConnectedError,
+    NotEnabledError,
+    TrajectoryMismatchError,
+    UnknownBackendError,
+)
+from drivers.robot.base import RobotState, backend_class, create_backend
+from drivers.robot.clock import FakeClock
+from drivers.robot.sim import SimBackend, SimConfig
+from tests.motion_fixtures import line_plan
+
+
+def _backends():
+    yield pytest.param("sim", id="sim")
+    host = os.environ.get("TEACHPATH_UR_HOST")
+    yield pytest.param(
+        "ur_rtde",
+        id="ur_rtde",
+        marks=pytest.mark.skipif(not host, reason="no controller: set TEACHPATH_UR_HOST"),
+    )
+
+
+def make(kind: str):
+    if kind == "sim":
+        return SimBackend(SimConfig(), clock=FakeClock())
+    from drivers.robot.ur_rtde import URRtdeConfig
+
+    return create_backend(
+        URRtdeConfig(
+            host=os.environ["TEACHPATH_UR_HOST"], robot=os.environ.get("TEACHPATH_UR_ROBOT", "ur5e")
+        )
+    )
+
+
+@pytest.fixture(params=list(_backends()))
+def robot(request):
+    backend = make(request.param)
+    yield backend
+    backend.close()
+
+
+def _trajectory(robot):
+    return line_plan(robot.arm.name, 0.1).trajectory
+
+
+def test_nothing_moves_before_connect_and_enable(robot):
+    with pytest.raises(NotConnectedError):
+        robot.status()
+    robot.connect()
+    robot.connect()  # idempotent
+    assert robot.state is RobotState.CONNECTED
+    status = robot.status()
+    assert status.q_rad.shape == (6,) and status.tcp_pose.shape == (6,)
+    with pytest.raises(NotEnabledError):
+        robot.move_joints(status.q_rad)
+    with pytest.raises(NotEnabledError):
+        robot.execute(_trajectory(robot))
+
+
+def test_move_joints_arrives_and_returns_when_there(robot):
+    robot.connect()
+    robot.enable()
+    goal = _trajectory(robot).q_rad[0]
+    robot.move_joints(goal, speed_rad_s=1.0, acceleration_rad_s2=2.0)
+    assert np.abs(robot.status().q_rad - goal).max() < 2e-3
+    assert robot.state is RobotState.ENABLED
+
+
+def test_execute_follows_the_trajectory_and_records_it(robot):
+    trajectory = _trajectory(robot)
+    robot.connect()
+    robot.enable()
+    robot.move_joints(trajectory.q_rad[0], speed_rad_s=1.0, acceleration_rad_s2=2.0)
+    progress = []
+    record = robot.execute(trajectory, on_progress=progress.append)
+    assert record.completed and record.fault is None
+    assert len(record) == len(trajectory)
+    assert progress[-1] == pytest.approx(1.0) and progress == sorted(progress)
+    assert np.abs(robot.status().q_rad - trajectory.q_rad[-1]).max() < 2e-3
+    # The arm follows a lookahead behind, but close to the plan at all times.
+    assert np.abs(record.q_actual_rad - record.q_planned_rad).max() < 0.1
+
+
+def test_a_trajectory_that_does_not_fit_is_refused(robot):
+    trajectory = _trajectory(robot)
+    robot.connect()
+    robot.enable()
+    with pytest.raises(TrajectoryMismatchError, match="move it there first"):
+        robot.execute(trajectory)  # the arm is not at the start
+    other = line_plan("ur10e" if robot.arm.name != "ur10e" else "ur5e", 0.1).trajectory
+    with pytest.raises(TrajectoryMismatchError, match="planned for"):
+        robot.execute(other)
+
+
+def test_stop_from_another_thread_ends_early(robot):
+    trajectory = _trajectory(robot)
+    robot.connect()
+    robot.enable()
+    robot.move_joints(trajectory.q_rad[0], speed_rad_s=1.0, acceleration_rad_s2=2.0)
+
+    def stop_soon(fraction):
+        if fraction > 0.3:
+            threading.Thread(target=robot.stop).start()
+
+    record = robot.execute(trajectory, on_progress=stop_soon)
+    assert not record.completed and "stop" in record.fault
+    assert len(record) < len(trajectory)
+    assert robot.state is RobotState.ENABLED
+
+
+def test_bad_motion_arguments(robot):
+    robot.connect()
+    robot.enable()
+    with pytest.raises(ValueError):
+        robot.move_joints(np.full(6, 10.0))
+    with pytest.raises(ValueError):
+        robot.move_joints(np.zeros(5))
+    with pytest.raises(ValueError):
+        robot.move_joints(np.zeros(6), speed_rad_s=0.0)
+
+
+def test_close_is_idempotent(robot):
+    robot.close()
+    robot.connect()
+    robot.close()
+    robot.close()
+    assert robot.state is RobotState.DISCONNECTED
+
+
+def test_unknown_backend_names_the_known_ones():
+    with pytest.raises(UnknownBackendError, match="sim"):
+        backend_class("kuka")

@@ -1,0 +1,128 @@
+"""Tool orientation, timing and the planning pipeline, against analytic cases and limits."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from recon import scenes
+from recon.errors import InfeasibleTrajectoryError
+from recon.kinematics import forward, model
+from recon.metrics import distance_to_curve
+from recon.orient import smooth_directions, tool_path
+from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path
+from recon.reconstruct import reconstruct
+from recon.timing import limits_for
+from tests.motion_fixtures import base_from_tracker, line_plan
+
+
+def test_fixed_tool_points_down_and_heads_along_the_path():
+    s = np.linspace(0, 0.1, 101)
+    tool = tool_path(np.column_stack([s, 0 * s, 0 * s]))
+    R = Rotation.from_quat(tool.orientations_xyzw).as_matrix()
+    np.testing.assert_allclose(R[:, :, 2], np.tile([0, 0, -1.0], (101, 1)), atol=1e-12)
+    np.testing.assert_allclose(R[:, :, 0], np.tile([1.0, 0, 0], (101, 1)), atol=1e-12)
+    assert tool.source == "fixed"
+
+
+def test_lead_leans_the_tool_axis_towards_the_direction_of_travel():
+    s = np.linspace(0, 0.1, 101)
+    tool = tool_path(np.column_stack([s, 0 * s, 0 * s]), lead_deg=10.0)
+    axis = Rotation.from_quat(tool.orientations_xyzw).apply([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(
+        axis[50], [np.sin(np.radians(10)), 0, -np.cos(np.radians(10))], atol=1e-12
+    )
+
+
+def test_tool_axis_is_minus_the_scan_normal():
+    s = np.linspace(0, 0.1, 101)
+    normal = np.tile([0.0, -np.sin(0.3), np.cos(0.3)], (101, 1))
+    tool = tool_path(np.column_stack([s, 0 * s, 0 * s]), normals=normal)
+    axis = Rotation.from_quat(tool.orientations_xyzw).apply([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(axis, -normal, atol=1e-9)
+
+
+def test_orientation_smoothing_removes_noise_on_the_sphere():
+    rng = np.random.default_rng(0)
+    truth = np.tile([0.0, 0.0, 1.0], (500, 1))
+    noisy = truth + rng.normal(0, np.radians(0.4), (500, 3))
+    noisy /= np.linalg.norm(noisy, axis=1)[:, None]
+    smooth = smooth_directions(noisy, sigma_points=10)
+    angle = lambda v: np.degrees(np.arccos(np.clip(v @ [0, 0, 1.0], -1, 1)))  # noqa: E731
+    assert angle(smooth).max() < 0.25 * angle(noisy).max()
+    np.testing.assert_allclose(np.linalg.norm(smooth, axis=1), 1.0)
+
+
+def test_every_sample_respects_the_limits_and_straight_speed_is_exact():
+    plan = line_plan("ur5e", 0.1)
+    traj = plan.trajectory
+    arm = model("ur5e")
+    assert np.all(np.abs(traj.qd_rad_s) <= arm.qd_max_rad_s * 1.001)
+    assert np.all(np.abs(traj.qdd_rad_s2) <= arm.qdd_max_rad_s2 * 1.001)
+    assert np.all(np.diff(traj.t_s) == pytest.approx(0.002))
+    # TCP speed from the planned joints (forward kinematics, not the planner's own numbers).
+    tcp = forward(arm, traj.q_rad)[:, :3, 3]
+    speed = np.linalg.norm(np.diff(tcp, axis=0), axis=1) / np.diff(traj.t_s)
+    cruise = speed[len(speed) // 3 : 2 * len(speed) // 3]
+    assert np.abs(cruise / 0.1 - 1).max() < 0.01
+    assert speed.max() <= 0.1 * 1.01
+    # Starts and ends at rest, on the path.
+    assert np.abs(traj.qd_rad_s[[0, -1]]).max() < 1e-9
+    assert distance_to_curve(tcp, plan.tool.points_m).max() < 1e-4
+
+
+@pytest.mark.parametrize("robot", ["ur3e", "ur10e", "ur16e", "ur20", "ur30", "ur3", "ur5", "ur10"])
+def test_other_arms_plan_at_their_own_rate(robot):
+    plan = line_plan(robot, 0.05)
+    rate = 125.0 if robot in ("ur3", "ur5", "ur10") else 500.0
+    assert plan.trajectory.period_s == pytest.approx(1 / rate)
+    assert np.all(np.abs(plan.trajectory.qd_rad_s) <= model(robot).qd_max_rad_s * 1.001)
+
+
+def test_a_speed_the_joints_cannot_give_is_reported_with_its_cause():
+    # Orbit a small circle with the tool heading along it: joint 6 has to turn fast.
+    a = np.linspace(0, 2 * np.pi, 400)
+    points = np.column_stack([0.45 + 0.03 * np.cos(a), 0.1 + 0.03 * np.sin(a), 0.1 + 0 * a])
+    plan = plan_path(points, params=PlanParams(speed_m_s=0.5))
+    drops = plan.trajectory.speed_drops
+    assert drops, "a 30 mm circle at 0.5 m/s must be slower than requested somewhere"
+    assert all(d.min_speed_m_s < 0.5 * 0.95 for d in drops)
+    assert all("joint" in d.cause or "singularity" in d.cause for d in drops)
+
+
+def test_out_of_reach_path_names_the_waypoint():
+    s = np.linspace(0, 0.1, 101)
+    with pytest.raises(InfeasibleTrajectoryError, match="waypoint 0 .*ur5e"):
+        plan_path(np.column_stack([1.2 + s, 0 * s, 0 * s]), params=PlanParams())
+
+
+def test_bad_plan_parameters():
+    with pytest.raises(ValueError, match="speed_m_s"):
+        limits_for(model("ur5e"), 5.0)
+    with pytest.raises(ValueError):
+        PlanParams(robot="abb")
+    with pytest.raises(ValueError):
+        PlanParams(lead_deg=80)
+    with pytest.raises(ValueError, match="orientation 'pen'"):
+        plan_path(
+            np.column_stack([np.linspace(0.4, 0.5, 50), np.zeros(50), np.full(50, 0.1)]),
+            params=PlanParams(orientation="pen"),
+        )
+
+
+def test_the_reconstructed_demo_path_plans_with_scan_normals():
+    scene = scenes.cylinder_edge(0)
+    recon = reconstruct(scene.recording, scene.scan)
+    T = base_from_tracker()
+    params = PlanParams(speed_m_s=0.05)
+    normals, registration = normals_from_scan(
+        recon.points_m, recon.mode, scene.scan, approach_tracker=approach_in(T, params.approach)
+    )
+    assert normals.known.all() and registration is not None
+    # At the rim the tool axis bisects the top face and the wall: (cos a, sin a, 1)/sqrt 2 out.
+    a = np.arctan2(recon.points_m[:, 1], recon.points_m[:, 0])
+    expected = np.column_stack([np.cos(a), np.sin(a), np.ones_like(a)]) / np.sqrt(2)
+    angle = np.degrees(np.arccos(np.clip(np.einsum("ni,ni->n", normals.normals, expected), -1, 1)))
+    assert np.median(angle) < 2.0
+    plan = plan_path(recon.points_m, params=params, T_base_tracker=T, normals=normals)
+    assert plan.tool.source == "scan"
+    assert plan.trajectory.duration_s == pytest.approx(0.3 / 0.05, rel=0.1)
