@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,43 +32,67 @@ DIAGNOSTIC_COLUMNS = (
 
 def write_reconstruction_csv(path: str | Path, recon: Reconstruction) -> None:
     """Write a reconstruction: ``x,y,z`` (metres), ``t`` and the pen's ``qx,qy,qz,qw`` if known,
-    then per-point diagnostics.
+    then per-point diagnostics. The file appears only when complete."""
+    arrays = {
+        name: getattr(recon, name)
+        for name in (
+            "points_m",
+            "t_s",
+            "orientations_xyzw",
+            "displacement_m",
+            "mode",
+            "segment",
+            "n_path",
+            "n_surface",
+            "residual_path_m",
+            "residual_surface_m",
+            "alpha",
+        )
+    }
+    with atomic_path(path) as tmp:
+        tmp.write_text(reconstruction_csv_text(arrays))
+
+
+def reconstruction_csv_text(arrays: dict) -> str:
+    """The CSV of a reconstruction from its arrays (the fields of :class:`Reconstruction`).
 
     ``mode`` is written as a word (path, surface, edge, unchanged); NaN residuals (no such fit)
-    as empty cells. The file appears only when complete.
+    as empty cells.
     """
     labels = {int(m): m.label for m in PointMode}
-    has_q = recon.orientations_xyzw is not None
+    t, q = arrays.get("t_s"), arrays.get("orientations_xyzw")
     header = (
         ["x", "y", "z"]
-        + (["t"] if recon.t_s is not None else [])
-        + (list(QUATERNION_COLUMNS) if has_q else [])
+        + (["t"] if t is not None else [])
+        + (list(QUATERNION_COLUMNS) if q is not None else [])
         + list(DIAGNOSTIC_COLUMNS)
     )
 
     def number(value: float) -> str:
         return "" if not np.isfinite(value) else f"{value:.9g}"
 
-    with atomic_path(path) as tmp, tmp.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(header)
-        for i in range(len(recon)):
-            row = [number(v) for v in recon.points_m[i]]
-            if recon.t_s is not None:
-                row.append(number(recon.t_s[i]))
-            if has_q:
-                row += [number(v) for v in recon.orientations_xyzw[i]]
-            row += [
-                number(recon.displacement_m[i]),
-                labels[int(recon.mode[i])],
-                str(int(recon.segment[i])),
-                str(int(recon.n_path[i])),
-                str(int(recon.n_surface[i])),
-                number(recon.residual_path_m[i]),
-                number(recon.residual_surface_m[i]),
-                number(recon.alpha[i]),
-            ]
-            writer.writerow(row)
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(header)
+    points = arrays["points_m"]
+    for i in range(len(points)):
+        row = [number(v) for v in points[i]]
+        if t is not None:
+            row.append(number(t[i]))
+        if q is not None:
+            row += [number(v) for v in q[i]]
+        row += [
+            number(arrays["displacement_m"][i]),
+            labels[int(arrays["mode"][i])],
+            str(int(arrays["segment"][i])),
+            str(int(arrays["n_path"][i])),
+            str(int(arrays["n_surface"][i])),
+            number(arrays["residual_path_m"][i]),
+            number(arrays["residual_surface_m"][i]),
+            number(arrays["alpha"][i]),
+        ]
+        writer.writerow(row)
+    return buffer.getvalue()
 
 
 @dataclass(frozen=True)

@@ -155,6 +155,24 @@ def build_parser() -> argparse.ArgumentParser:
     dry.add_argument("--robot", default="ur5e", help="UR model the trajectory was planned for")
     dry.set_defaults(handler=_cmd_dry_run)
 
+    serve = commands.add_parser(
+        "serve",
+        help="start the HTTP service (REST API, teach-pendant page)",
+        description="Starts the service. Settings also come from TEACHPATH_* environment "
+        "variables (TEACHPATH_TOKEN, TEACHPATH_UR_HOST, TEACHPATH_DATABASE_URL, ...).",
+    )
+    serve.add_argument("--host", help="address to listen on (default 127.0.0.1)")
+    serve.add_argument("--port", type=int, help="port (default 8000; 0 picks a free one)")
+    serve.add_argument(
+        "--data-dir", help="folder for the database and arrays (default ./teachpath_data)"
+    )
+    serve.add_argument(
+        "--demo",
+        action="store_true",
+        help="create the demo session (a synthetic cylinder trace and scan)",
+    )
+    serve.set_defaults(handler=_cmd_serve)
+
     demo = commands.add_parser(
         "demo",
         help="run the bundled demo: a synthetic cylinder-edge trace and scan, reconstructed",
@@ -328,6 +346,38 @@ def _cmd_dry_run(args: argparse.Namespace) -> int:
     report = dry_run(trajectory)
     print("\n".join(report.lines()))
     return 0 if report.completed and not report.faults else EXIT_FAILURE
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import socket
+
+    import uvicorn
+
+    from service.app import create_app
+    from service.settings import Settings
+
+    overrides = {
+        k: v
+        for k, v in {"host": args.host, "port": args.port, "data_dir": args.data_dir}.items()
+        if v is not None
+    }
+    if args.demo:
+        overrides["demo"] = True
+    settings = Settings(**overrides)
+    token = settings.access_token()
+    app = create_app(settings)
+    # Bind first, so the printed URL has the real port (also with --port 0).
+    sock = socket.socket(socket.AF_INET6 if ":" in settings.host else socket.AF_INET)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind((settings.host, settings.port))
+    host, port = sock.getsockname()[:2]
+    shown = f"[{host}]" if ":" in host else host
+    print(f"teachpath is serving {settings.data_dir}")
+    print(f"open http://{shown}:{port}/?token={token}")
+    print(f"API: http://{shown}:{port}/docs (send 'Authorization: Bearer {token}')", flush=True)
+    config = uvicorn.Config(app, log_level="warning")
+    uvicorn.Server(config).run(sockets=[sock])
+    return 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:

@@ -17,7 +17,9 @@ POSITION_COLUMNS = ("x", "y", "z")
 QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw")
 
 
-def read_trace_csv(source: str | Path | bytes, *, units: str = "m") -> Recording:
+def read_trace_csv(
+    source: str | Path | bytes, *, units: str = "m", name: str | None = None
+) -> Recording:
     """Read a canonical trace CSV.
 
     Parameters
@@ -26,6 +28,8 @@ def read_trace_csv(source: str | Path | bytes, *, units: str = "m") -> Recording
         The file, or its content (an upload).
     units : {"m", "mm"}
         Length unit of the positions.
+    name : str, optional
+        The file's name, for messages (uploads).
 
     Returns
     -------
@@ -43,7 +47,7 @@ def read_trace_csv(source: str | Path | bytes, *, units: str = "m") -> Recording
         An unknown unit.
     """
     scale = metres_per(units)
-    name = "upload" if isinstance(source, bytes) else str(source)
+    name = name or ("upload" if isinstance(source, bytes) else str(source))
     text = _read_text(source, name)
     rows = list(csv.reader(io.StringIO(text)))
     rows = [row for row in rows if any(cell.strip() for cell in row)]

@@ -1,0 +1,159 @@
+"""Sessions, their calibration, and the uploaded inputs (recordings and scans)."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Literal
+
+from fastapi import APIRouter, Depends, File, Form, Response, UploadFile
+
+from service.api.deps import context
+from service.context import artifact_json, session_json
+from service.errors import ApiError
+from service.schemas import ArtifactOut, CalibrationIn, SessionCreate, SessionOut
+from service.store import now
+
+router = APIRouter(tags=["sessions"])
+
+
+@router.post("/sessions", status_code=201, response_model=SessionOut)
+def create_session(body: SessionCreate, ctx=Depends(context)) -> dict:
+    """A new, empty session."""
+    return session_json(ctx.store.create_session(body.name))
+
+
+@router.get("/sessions", response_model=list[SessionOut])
+def list_sessions(ctx=Depends(context)) -> list[dict]:
+    return [session_json(s) for s in ctx.store.sessions()]
+
+
+@router.get("/sessions/{session_id}", response_model=SessionOut)
+def get_session(session_id: str, ctx=Depends(context)) -> dict:
+    return session_json(ctx.session(session_id))
+
+
+@router.delete("/sessions/{session_id}", status_code=204)
+def delete_session(session_id: str, ctx=Depends(context)) -> Response:
+    """Soft delete: the session disappears from the API, its data stays on disk."""
+    ctx.session(session_id)
+    ctx.store.update_session(session_id, deleted_at=now())
+    return Response(status_code=204)
+
+
+@router.put("/sessions/{session_id}/calibration", response_model=SessionOut)
+def set_calibration(session_id: str, body: CalibrationIn, ctx=Depends(context)) -> dict:
+    """Where the tracker frame sits in the robot's base frame (T_base_tracker)."""
+    ctx.session(session_id)
+    return session_json(ctx.store.update_session(session_id, T_base_tracker=body.T_base_tracker))
+
+
+async def _read_upload(file: UploadFile, ctx) -> bytes:
+    limit = int(ctx.settings.max_upload_mb * 1024 * 1024)
+    content = await file.read(limit + 1)
+    if len(content) > limit:
+        raise ApiError(
+            413, "upload_too_large", f"the upload exceeds {ctx.settings.max_upload_mb:g} MB"
+        )
+    if not content:
+        raise ApiError(422, "invalid_file", "the uploaded file is empty")
+    return content
+
+
+@router.put("/sessions/{session_id}/recording", status_code=201, response_model=ArtifactOut)
+async def upload_recording(
+    session_id: str,
+    file: UploadFile = File(..., description="the trace; format from the name or `format`"),
+    format: str | None = Form(None, description="csv"),
+    units: Literal["m", "mm"] = Form("m"),
+    ctx=Depends(context),
+) -> dict:
+    """Upload a trace; it becomes the session's recording. A bad file is a 422 and changes
+    nothing."""
+    content = await _read_upload(file, ctx)
+    return artifact_json(
+        await ctx.add_recording(session_id, content, file.filename or "upload", format, units)
+    )
+
+
+@router.put("/sessions/{session_id}/scan", status_code=201, response_model=ArtifactOut)
+async def upload_scan(
+    session_id: str,
+    file: UploadFile = File(..., description="PLY, PCD or XYZ point cloud"),
+    format: str | None = Form(None, description="ply, pcd, xyz, xyzn, xyzrgb or pts"),
+    units: Literal["m", "mm"] = Form("m"),
+    ctx=Depends(context),
+) -> dict:
+    """Upload a scan; it becomes the session's scan. A bad file is a 422 and changes nothing."""
+    content = await _read_upload(file, ctx)
+    return artifact_json(
+        await ctx.add_scan(session_id, content, file.filename or "upload", format, units)
+    )
+
+
+@router.get("/sessions/{session_id}/recordings", response_model=list[ArtifactOut])
+def list_recordings(session_id: str, ctx=Depends(context)) -> list[dict]:
+    """Every recording of the session (uploads and captures), oldest first."""
+    ctx.session(session_id)
+    return [artifact_json(a) for a in ctx.store.artifacts(session_id, "recording")]
+
+
+@router.get("/sessions/{session_id}/scans", response_model=list[ArtifactOut])
+def list_scans(session_id: str, ctx=Depends(context)) -> list[dict]:
+    ctx.session(session_id)
+    return [artifact_json(a) for a in ctx.store.artifacts(session_id, "scan")]
+
+
+@router.get("/sessions/{session_id}/recordings/{artifact_id}", response_model=ArtifactOut)
+def get_recording(session_id: str, artifact_id: str, ctx=Depends(context)) -> dict:
+    return artifact_json(ctx.artifact(session_id, "recording", artifact_id))
+
+
+@router.get("/sessions/{session_id}/scans/{artifact_id}", response_model=ArtifactOut)
+def get_scan(session_id: str, artifact_id: str, ctx=Depends(context)) -> dict:
+    return artifact_json(ctx.artifact(session_id, "scan", artifact_id))
+
+
+@router.get(
+    "/sessions/{session_id}/recordings/{artifact_id}/csv",
+    response_class=Response,
+    responses={200: {"content": {"text/csv": {}}}},
+)
+def recording_csv(session_id: str, artifact_id: str, ctx=Depends(context)) -> Response:
+    """The recording as the canonical trace CSV (metres, seconds)."""
+    from drivers.tracking.canonical_csv import write_trace_csv
+    from service.tasks import recording_from
+
+    row = ctx.artifact(session_id, "recording", artifact_id)
+    recording = recording_from(ctx.store.read_arrays(row))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "trace.csv"
+        write_trace_csv(path, recording)
+        content = path.read_bytes()
+    return Response(
+        content,
+        media_type="text/csv",
+        headers={"Content-Disposition": f'attachment; filename="{artifact_id}.csv"'},
+    )
+
+
+@router.get(
+    "/sessions/{session_id}/scans/{artifact_id}/ply",
+    response_class=Response,
+    responses={200: {"content": {"application/octet-stream": {}}}},
+)
+def scan_ply(session_id: str, artifact_id: str, ctx=Depends(context)) -> Response:
+    """The scan as a binary PLY (metres)."""
+    from drivers.scanning.pointcloud import write_scan
+    from service.tasks import scan_from
+
+    row = ctx.artifact(session_id, "scan", artifact_id)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "scan.ply"
+        write_scan(path, scan_from(ctx.store.read_arrays(row)))
+        content = path.read_bytes()
+    return Response(
+        content,
+        media_type="application/octet-stream",
+        headers={"Content-Disposition": f'attachment; filename="{artifact_id}.ply"'},
+    )

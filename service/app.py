@@ -1,0 +1,144 @@
+"""The FastAPI application: ``create_app(settings)`` and its lifespan."""
+
+from __future__ import annotations
+
+import json
+import logging
+from contextlib import asynccontextmanager
+from importlib import metadata
+from pathlib import Path
+
+from fastapi import Depends, FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import HTMLResponse
+
+from service import errors
+from service.api import captures, health, jobs, products, sessions
+from service.api.deps import require_token
+from service.context import AppContext
+from service.jobs import JobManager
+from service.schemas import ErrorBody
+from service.settings import Settings
+from service.store import Store
+
+log = logging.getLogger("teachpath.service")
+UI_PAGE = Path(__file__).parent / "ui" / "index.html"
+
+
+class BodyLimit:
+    """Refuses request bodies above a size with 413, before they are read into memory.
+
+    A declared Content-Length above the limit is refused at once; a chunked body is counted as
+    it arrives.
+    """
+
+    def __init__(self, app, max_bytes: int) -> None:
+        self.app, self.max_bytes = app, max_bytes
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        declared = dict(scope.get("headers") or []).get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
+            return await self._refuse(send)
+        received = 0
+
+        async def counted():
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    raise _TooLarge()
+            return message
+
+        try:
+            await self.app(scope, counted, send)
+        except _TooLarge:
+            await self._refuse(send)
+
+    async def _refuse(self, send):
+        body = json.dumps(
+            {
+                "code": "upload_too_large",
+                "message": f"the request body exceeds {self.max_bytes // (1024 * 1024)} MB",
+                "detail": None,
+            }
+        ).encode()
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 413,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                ],
+            }
+        )
+        await send({"type": "http.response.body", "body": body})
+
+
+class _TooLarge(Exception):
+    pass
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The service for ``settings`` (default: from the environment, TEACHPATH_*)."""
+    settings = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        store = Store(settings.data_dir, settings.db_url)
+        manager = JobManager(store, settings.cpu_workers)
+        ctx = AppContext(
+            settings=settings, store=store, jobs=manager, token=settings.access_token()
+        )
+        ctx.recover()
+        if settings.demo:
+            ctx.create_demo_session()
+        app.state.ctx = ctx
+        try:
+            yield
+        finally:
+            for runner in list(ctx.executions.values()):
+                runner.stop()
+            for capture in list(ctx.captures.values()):
+                capture.stop()
+            manager.shutdown()
+            store.engine.dispose()
+
+    try:
+        version = metadata.version("teachpath")
+    except metadata.PackageNotFoundError:
+        version = "0"
+    app = FastAPI(
+        title="teachpath",
+        version=version,
+        description="Robot programming by demonstration: reconstruct a hand-traced path with a "
+        "scan of the workpiece, plan it for a Universal Robots arm, dry-run and execute it. "
+        "Every route but /health needs `Authorization: Bearer TOKEN`.",
+        lifespan=lifespan,
+    )
+    errors.install(app)
+    if settings.cors_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origins,
+            allow_methods=["*"],
+            allow_headers=["Authorization", "Content-Type"],
+        )
+    # Multipart framing adds a little to the file itself.
+    app.add_middleware(BodyLimit, max_bytes=int(settings.max_upload_mb * 1024 * 1024) + 65536)
+
+    app.include_router(health.router)
+    protected = [Depends(require_token)]
+    documented = {status: {"model": ErrorBody} for status in (401, 404, 409, 413, 422)}
+    for module in (sessions, products, jobs, captures):
+        app.include_router(module.router, dependencies=protected, responses=documented)
+
+    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
+    def ui() -> HTMLResponse:
+        """The teach-pendant page (static; it calls the API with the token from the URL)."""
+        return HTMLResponse(UI_PAGE.read_text())
+
+    return app

@@ -1,0 +1,139 @@
+"""Error responses: one JSON shape, one status and stable code per error class.
+
+Every 4xx/5xx body is ``{"code": ..., "message": ..., "detail": ...}``. Routers raise domain
+errors (``recon.errors``, ``drivers.errors``) or :class:`ApiError` and never catch them; this
+module turns them into responses. Unexpected exceptions become a 500 with no traceback (it is
+logged on the server).
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from drivers import errors as driver_errors
+from recon import errors as recon_errors
+from service.store import StorageError
+
+log = logging.getLogger("teachpath.service")
+
+
+class ApiError(Exception):
+    """An error of the API itself (not found, conflict, refused), with its status and code."""
+
+    def __init__(self, status: int, code: str, message: str, detail=None) -> None:
+        super().__init__(message)
+        self.status, self.code, self.message, self.detail = status, code, message, detail
+
+
+def not_found(what: str, ident: str) -> ApiError:
+    return ApiError(404, "not_found", f"no {what} {ident!r}")
+
+
+#: Domain error class -> (HTTP status, code). Subclasses before their bases.
+ERROR_MAP: list[tuple[type[Exception], int, str]] = [
+    (recon_errors.UnitsMismatchError, 422, "units_mismatch"),
+    (recon_errors.NoOverlapError, 422, "no_overlap"),
+    (recon_errors.DegenerateInputError, 422, "degenerate_input"),
+    (recon_errors.RegistrationError, 422, "registration_failed"),
+    (recon_errors.InfeasibleTrajectoryError, 422, "infeasible_trajectory"),
+    (recon_errors.ReconError, 422, "reconstruction_failed"),
+    (driver_errors.InputFileError, 422, "invalid_file"),
+    (driver_errors.UnknownFormatError, 422, "unknown_format"),
+    (driver_errors.TrajectoryMismatchError, 409, "trajectory_mismatch"),
+    (driver_errors.NotEnabledError, 409, "robot_not_enabled"),
+    (driver_errors.NotConnectedError, 409, "robot_not_connected"),
+    (driver_errors.ProtectiveStopError, 409, "protective_stop"),
+    (driver_errors.EmergencyStopError, 409, "emergency_stop"),
+    (driver_errors.ConnectionLostError, 502, "robot_connection_lost"),
+    (driver_errors.RobotTimeoutError, 504, "robot_timeout"),
+    (driver_errors.UnknownBackendError, 422, "unknown_backend"),
+    (driver_errors.RobotError, 502, "robot_error"),
+    (driver_errors.DriverError, 422, "driver_error"),
+    (StorageError, 500, "storage_corrupt"),
+    (ValueError, 422, "invalid_value"),
+]
+
+
+def classify(error: Exception) -> tuple[int, str]:
+    """Status and code of an error (500 internal_error for anything unknown)."""
+    if isinstance(error, ApiError):
+        return error.status, error.code
+    for cls, status, code in ERROR_MAP:
+        if isinstance(error, cls):
+            return status, code
+    return 500, "internal_error"
+
+
+def error_body(error: Exception) -> dict:
+    """The JSON body for ``error`` (used by job results too)."""
+    status, code = classify(error)
+    if status == 500 and code == "internal_error":
+        return {
+            "code": code,
+            "message": "internal error; the server log has the details",
+            "detail": None,
+        }
+    detail = getattr(error, "detail", None)
+    return {"code": code, "message": str(error), "detail": detail}
+
+
+def install(app: FastAPI) -> None:
+    """Register the handlers on ``app``."""
+
+    def respond(status: int, body: dict, headers: dict | None = None) -> JSONResponse:
+        return JSONResponse(status_code=status, content=body, headers=headers)
+
+    @app.exception_handler(ApiError)
+    async def _api(request: Request, error: ApiError):
+        headers = {"WWW-Authenticate": "Bearer"} if error.status == 401 else None
+        return respond(
+            error.status,
+            {"code": error.code, "message": error.message, "detail": error.detail},
+            headers,
+        )
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, error: RequestValidationError):
+        problems = [
+            {"where": ".".join(str(p) for p in e.get("loc", ())), "problem": e.get("msg")}
+            for e in error.errors()
+        ]
+        first = problems[0] if problems else {"where": "request", "problem": "invalid"}
+        return respond(
+            422,
+            {
+                "code": "invalid_request",
+                "message": f"{first['where']}: {first['problem']}",
+                "detail": problems,
+            },
+        )
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, error: StarletteHTTPException):
+        code = {404: "not_found", 405: "method_not_allowed"}.get(error.status_code, "http_error")
+        return respond(
+            error.status_code, {"code": code, "message": str(error.detail), "detail": None}
+        )
+
+    async def _domain(request: Request, error: Exception):
+        status, _ = classify(error)
+        if status >= 500:
+            log.error("error while serving %s %s: %s", request.method, request.url.path, error)
+        return respond(status, error_body(error))
+
+    # Each mapped class gets its own handler: Starlette re-raises whatever reaches the
+    # catch-all handler below after answering (it is for server errors).
+    for cls, _status, _code in ERROR_MAP:
+        app.add_exception_handler(cls, _domain)
+
+    @app.exception_handler(Exception)
+    async def _any(request: Request, error: Exception):
+        status, _ = classify(error)
+        if status >= 500:
+            log.exception("error while serving %s %s", request.method, request.url.path)
+        return respond(status, error_body(error))

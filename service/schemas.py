@@ -1,0 +1,157 @@
+"""Request and response bodies of the REST API."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+Matrix4 = list[list[float]]
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+def _check_matrix(value: Matrix4 | None) -> Matrix4 | None:
+    if value is None:
+        return None
+    if len(value) != 4 or any(len(row) != 4 for row in value):
+        raise ValueError("must be a 4x4 matrix (a list of 4 rows of 4 numbers)")
+    if not all(math.isfinite(v) for row in value for v in row):
+        raise ValueError("must hold finite numbers")
+    from recon.align import check_rigid
+
+    check_rigid(value, name="the matrix")
+    return value
+
+
+class ErrorBody(BaseModel):
+    code: str
+    message: str
+    detail: Any = None
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+    version: str
+    versions: dict[str, str]
+    robot_backends: dict[str, str]
+    jobs_running: int
+
+
+class SessionCreate(Strict):
+    name: str = Field("session", min_length=1, max_length=200)
+
+
+class CalibrationIn(Strict):
+    T_base_tracker: Matrix4 = Field(..., description="4x4, metres: tracker -> robot base")
+
+    _matrix = field_validator("T_base_tracker")(_check_matrix)
+
+
+class SessionOut(BaseModel):
+    id: str
+    name: str
+    created_at: str
+    recording_id: str | None
+    scan_id: str | None
+    T_base_tracker: Matrix4 | None
+
+
+class ArtifactOut(BaseModel):
+    id: str
+    session_id: str
+    kind: str
+    created_at: str
+    inputs: dict[str, Any]
+    params: dict[str, Any]
+    summary: dict[str, Any]
+    sha256: str
+    size: int
+    source_name: str | None
+
+
+class JobOut(BaseModel):
+    id: str
+    session_id: str
+    kind: str
+    state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
+    progress: float
+    created_at: str | None
+    started_at: str | None
+    finished_at: str | None
+    params: dict[str, Any]
+    result: dict[str, Any] | None
+    error: dict[str, Any] | None
+
+
+class ReconstructionCreate(Strict):
+    recording_id: str | None = Field(None, description="default: the session's recording")
+    scan_id: str | None = Field(None, description="default: the session's scan")
+    use_scan: bool = Field(True, description="false: path-only reconstruction")
+    radius_m: float = Field(0.008, gt=0, le=0.2)
+    alpha: float | Literal["auto"] = "auto"
+    beta: float = Field(1.0, ge=0, le=1)
+    degree: int = Field(2, ge=1, le=5)
+    method: Literal["paper", "anchored"] = "anchored"
+    spacing_m: float = Field(0.001, gt=0, le=0.01)
+    registration: bool = Field(
+        True, description="register the path to the scan (ICP); false trusts the frames as given"
+    )
+
+    @field_validator("alpha")
+    @classmethod
+    def _alpha(cls, value):
+        if value != "auto" and not (0.0 <= value <= 1.0):
+            raise ValueError("alpha must be in [0, 1] or 'auto'")
+        return value
+
+
+class TrajectoryCreate(Strict):
+    reconstruction_id: str
+    robot: str = Field("ur5e", description="UR model")
+    speed_m_s: float = Field(..., gt=0, le=2.0)
+    orientation: Literal["auto", "scan", "pen", "fixed"] = "auto"
+    lead_deg: float = Field(0.0, ge=-60, le=60)
+    tilt_deg: float = Field(0.0, ge=-60, le=60)
+    smooth_m: float = Field(0.01, ge=0, le=0.1)
+    tcp_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    T_base_tracker: Matrix4 | None = Field(None, description="default: the session's")
+
+    _matrix = field_validator("T_base_tracker")(_check_matrix)
+
+    @field_validator("tcp_offset_m")
+    @classmethod
+    def _offset(cls, value):
+        if not all(math.isfinite(v) and abs(v) <= 1.0 for v in value):
+            raise ValueError("tcp_offset_m must be finite and within 1 m")
+        return value
+
+
+class ExecutionCreate(Strict):
+    trajectory_id: str
+    backend: Literal["sim", "ur_rtde"] = "sim"
+    confirm: bool = Field(False, description="must be true to move a real arm")
+
+
+class ReplaySource(Strict):
+    kind: Literal["replay"] = "replay"
+    recording_id: str
+    speed: float = Field(1.0, gt=0, le=100.0, description="times real time")
+
+
+class CaptureCreate(Strict):
+    source: ReplaySource
+
+
+class CaptureOut(BaseModel):
+    id: str
+    session_id: str
+    source: dict[str, Any]
+    state: str
+    created_at: str
+    n_samples: int
+    recording_id: str | None
+    error: str | None

@@ -1,0 +1,65 @@
+"""The service's settings: one pydantic-settings class, environment prefix ``TEACHPATH_``."""
+
+from __future__ import annotations
+
+import os
+import secrets
+from pathlib import Path
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Everything the service can be told. Built in the app factory; tests pass their own."""
+
+    model_config = SettingsConfigDict(env_prefix="TEACHPATH_", extra="forbid")
+
+    host: str = Field("127.0.0.1", description="address to listen on (loopback unless told)")
+    port: int = Field(8000, ge=0, le=65535)
+    data_dir: Path = Field(Path("teachpath_data"), description="database, arrays, token")
+    database_url: str | None = Field(
+        None,
+        description="SQLAlchemy URL; default SQLite in data_dir (a postgresql:// URL works too)",
+    )
+    token: str | None = Field(
+        None,
+        description="access token; default generated on first "
+        "start and kept in data_dir/token (mode 0600)",
+    )
+    max_upload_mb: float = Field(200.0, gt=0, description="largest accepted upload")
+    max_speed_m_s: float = Field(0.25, gt=0, description="TCP speed cap for real-arm execution")
+    cpu_workers: int = Field(
+        1,
+        ge=1,
+        le=8,
+        description="processes for reconstruction and "
+        "planning (the event loop keeps a core on a 2-core machine)",
+    )
+    cors_origins: list[str] = Field(default_factory=list, description="closed by default")
+    ur_host: str | None = Field(None, description="controller address for backend ur_rtde")
+    ur_robot: str = Field("ur5e", description="the model of the arm at ur_host")
+    demo: bool = Field(False, description="create the demo session on start if missing")
+
+    @field_validator("data_dir")
+    @classmethod
+    def _absolute(cls, value: Path) -> Path:
+        return value.expanduser().resolve()
+
+    @property
+    def db_url(self) -> str:
+        return self.database_url or f"sqlite:///{self.data_dir / 'teachpath.db'}"
+
+    def access_token(self) -> str:
+        """The configured token, or the one stored in data_dir (created on first use)."""
+        if self.token:
+            return self.token
+        path = self.data_dir / "token"
+        if path.exists():
+            return path.read_text().strip()
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        token = secrets.token_urlsafe(24)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as handle:
+            handle.write(token + "\n")
+        return token

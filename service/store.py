@@ -1,0 +1,396 @@
+"""Persistence: sessions, artifacts, jobs and captures in a database, arrays in files.
+
+SQLite through SQLAlchemy is the embedded default; a ``postgresql://`` URL works too. Arrays
+are ``.npz`` files next to the database, written atomically (write, fsync, rename) with their
+SHA-256 in the database and checked when read. Artifacts are immutable: a recording is never
+changed, and every later stage (scan, reconstruction, trajectory, execution) is a new artifact
+that names its inputs and parameters, so any session can be replayed and compared.
+
+Only the service's main process writes the database; the worker processes read and write
+files only.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import secrets
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy import (
+    JSON,
+    DateTime,
+    Float,
+    ForeignKey,
+    Integer,
+    String,
+    create_engine,
+    event,
+    select,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+
+from drivers.files import atomic_path
+
+#: Artifact kinds and the prefix of their ids.
+KINDS = {
+    "recording": "rec",
+    "scan": "scn",
+    "reconstruction": "rcn",
+    "trajectory": "trj",
+    "execution": "exe",
+}
+JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
+FINISHED = ("succeeded", "failed", "cancelled")
+
+
+def new_id(prefix: str) -> str:
+    """A short random id with a prefix that says what it names (``ses_3f9a...``)."""
+    return f"{prefix}_{secrets.token_hex(6)}"
+
+
+def now() -> datetime:
+    return datetime.now(UTC)
+
+
+def iso(moment: datetime | None) -> str | None:
+    """ISO 8601 in UTC (SQLite returns naive datetimes: they were stored as UTC)."""
+    if moment is None:
+        return None
+    if moment.tzinfo is None:
+        moment = moment.replace(tzinfo=UTC)
+    return moment.isoformat()
+
+
+class Base(DeclarativeBase):
+    type_annotation_map = {dict[str, Any]: JSON, list[Any]: JSON}
+
+
+class SessionRow(Base):
+    __tablename__ = "sessions"
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    name: Mapped[str] = mapped_column(String(200))
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+    deleted_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+    recording_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    scan_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    T_base_tracker: Mapped[list[Any] | None] = mapped_column(JSON, nullable=True)
+
+
+class ArtifactRow(Base):
+    __tablename__ = "artifacts"
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    session_id: Mapped[str] = mapped_column(ForeignKey("sessions.id"), index=True)
+    kind: Mapped[str] = mapped_column(String(20), index=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+    inputs: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    summary: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    path: Mapped[str] = mapped_column(String(300))
+    sha256: Mapped[str] = mapped_column(String(64))
+    size: Mapped[int] = mapped_column(Integer)
+    source_name: Mapped[str | None] = mapped_column(String(300), nullable=True)
+
+
+class JobRow(Base):
+    __tablename__ = "jobs"
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    session_id: Mapped[str] = mapped_column(ForeignKey("sessions.id"), index=True)
+    kind: Mapped[str] = mapped_column(String(20))
+    state: Mapped[str] = mapped_column(String(12), index=True)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+    started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
+    params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    result: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    error: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+
+
+class CaptureRow(Base):
+    __tablename__ = "captures"
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    session_id: Mapped[str] = mapped_column(ForeignKey("sessions.id"), index=True)
+    source: Mapped[dict[str, Any]] = mapped_column(JSON)
+    state: Mapped[str] = mapped_column(String(12))
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+    n_samples: Mapped[int] = mapped_column(Integer, default=0)
+    path: Mapped[str] = mapped_column(String(300))
+    recording_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    error: Mapped[str | None] = mapped_column(String(500), nullable=True)
+
+
+class StorageError(Exception):
+    """A stored file is missing or does not match its checksum."""
+
+
+class Store:
+    """The database and the array files of one data folder.
+
+    Parameters
+    ----------
+    data_dir : Path
+    url : str
+        SQLAlchemy database URL.
+    """
+
+    def __init__(self, data_dir: Path, url: str) -> None:
+        self.data_dir = Path(data_dir)
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        (self.data_dir / "arrays").mkdir(exist_ok=True)
+        (self.data_dir / "uploads").mkdir(exist_ok=True)
+        (self.data_dir / "captures").mkdir(exist_ok=True)
+        sqlite = url.startswith("sqlite")
+        self.engine = create_engine(
+            url, connect_args={"check_same_thread": False, "timeout": 30} if sqlite else {}
+        )
+        if sqlite:
+
+            @event.listens_for(self.engine, "connect")
+            def _pragmas(conn, _record):  # WAL: readers do not wait for the writer
+                cursor = conn.cursor()
+                cursor.execute("PRAGMA journal_mode=WAL")
+                cursor.execute("PRAGMA synchronous=NORMAL")
+                cursor.execute("PRAGMA foreign_keys=ON")
+                cursor.close()
+
+        Base.metadata.create_all(self.engine)
+        self.db = sessionmaker(self.engine, expire_on_commit=False)
+
+    # -- files -----------------------------------------------------------------------------------
+
+    def write_arrays(self, artifact_id: str, arrays: dict[str, np.ndarray]) -> tuple[str, str, int]:
+        """Store arrays as ``arrays/<id>.npz``. Returns (relative path, sha256, size)."""
+        relative = f"arrays/{artifact_id}.npz"
+        target = self.data_dir / relative
+        with atomic_path(target) as tmp:
+            with tmp.open("wb") as handle:
+                np.savez(handle, **{k: v for k, v in arrays.items() if v is not None})
+        return relative, *self._digest(target)
+
+    def write_bytes(self, relative: str, content: bytes) -> tuple[str, int]:
+        target = self.data_dir / relative
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(content)
+        return self._digest(target)
+
+    def read_arrays(self, artifact: ArtifactRow) -> dict[str, np.ndarray]:
+        """The arrays of an artifact, after checking the file against its checksum."""
+        path = self.path_of(artifact)
+        with np.load(path, allow_pickle=False) as data:
+            return {key: data[key] for key in data.files}
+
+    def path_of(self, artifact: ArtifactRow) -> Path:
+        path = self.data_dir / artifact.path
+        if not path.is_file():
+            raise StorageError(f"the file of {artifact.id} is missing")
+        if self._digest(path)[0] != artifact.sha256:
+            raise StorageError(f"the file of {artifact.id} does not match its checksum")
+        return path
+
+    @staticmethod
+    def _digest(path: Path) -> tuple[str, int]:
+        digest = hashlib.sha256()
+        with path.open("rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
+        return digest.hexdigest(), path.stat().st_size
+
+    # -- sessions --------------------------------------------------------------------------------
+
+    def create_session(self, name: str) -> SessionRow:
+        row = SessionRow(id=new_id("ses"), name=name, created_at=now())
+        with self.db.begin() as db:
+            db.add(row)
+        return row
+
+    def sessions(self, *, include_deleted: bool = False) -> list[SessionRow]:
+        with self.db() as db:
+            query = select(SessionRow).order_by(SessionRow.created_at)
+            if not include_deleted:
+                query = query.where(SessionRow.deleted_at.is_(None))
+            return list(db.scalars(query))
+
+    def session(self, session_id: str) -> SessionRow | None:
+        with self.db() as db:
+            row = db.get(SessionRow, session_id)
+            return None if row is None or row.deleted_at is not None else row
+
+    def update_session(self, session_id: str, **fields) -> SessionRow:
+        with self.db.begin() as db:
+            row = db.get(SessionRow, session_id)
+            for key, value in fields.items():
+                setattr(row, key, value)
+            return row
+
+    # -- artifacts -------------------------------------------------------------------------------
+
+    def add_artifact(
+        self,
+        *,
+        artifact_id: str,
+        session_id: str,
+        kind: str,
+        path: str,
+        sha256: str,
+        size: int,
+        inputs: dict | None = None,
+        params: dict | None = None,
+        summary: dict | None = None,
+        source_name: str | None = None,
+    ) -> ArtifactRow:
+        row = ArtifactRow(
+            id=artifact_id,
+            session_id=session_id,
+            kind=kind,
+            created_at=now(),
+            inputs=inputs or {},
+            params=_jsonable(params or {}),
+            summary=_jsonable(summary or {}),
+            path=path,
+            sha256=sha256,
+            size=size,
+            source_name=source_name,
+        )
+        with self.db.begin() as db:
+            db.add(row)
+        return row
+
+    def add_file_artifact(
+        self, *, artifact_id: str, session_id: str, kind: str, path: str, **fields
+    ) -> ArtifactRow:
+        """Record an artifact whose file a worker already wrote at ``path`` (relative)."""
+        sha, size = self._digest(self.data_dir / path)
+        return self.add_artifact(
+            artifact_id=artifact_id,
+            session_id=session_id,
+            kind=kind,
+            path=path,
+            sha256=sha,
+            size=size,
+            **fields,
+        )
+
+    def artifact(
+        self, artifact_id: str, *, kind: str | None = None, session_id: str | None = None
+    ) -> ArtifactRow | None:
+        with self.db() as db:
+            row = db.get(ArtifactRow, artifact_id)
+        if (
+            row is None
+            or (kind and row.kind != kind)
+            or (session_id and row.session_id != session_id)
+        ):
+            return None
+        return row
+
+    def artifacts(self, session_id: str, kind: str) -> list[ArtifactRow]:
+        with self.db() as db:
+            return list(
+                db.scalars(
+                    select(ArtifactRow)
+                    .where(ArtifactRow.session_id == session_id, ArtifactRow.kind == kind)
+                    .order_by(ArtifactRow.created_at)
+                )
+            )
+
+    # -- jobs ------------------------------------------------------------------------------------
+
+    def create_job(self, session_id: str, kind: str, params: dict) -> JobRow:
+        row = JobRow(
+            id=new_id("job"),
+            session_id=session_id,
+            kind=kind,
+            state="queued",
+            progress=0.0,
+            created_at=now(),
+            params=_jsonable(params),
+        )
+        with self.db.begin() as db:
+            db.add(row)
+        return row
+
+    def job(self, job_id: str) -> JobRow | None:
+        with self.db() as db:
+            return db.get(JobRow, job_id)
+
+    def jobs(self, session_id: str | None = None) -> list[JobRow]:
+        with self.db() as db:
+            query = select(JobRow).order_by(JobRow.created_at)
+            if session_id:
+                query = query.where(JobRow.session_id == session_id)
+            return list(db.scalars(query))
+
+    def update_job(self, job_id: str, **fields) -> JobRow:
+        with self.db.begin() as db:
+            row = db.get(JobRow, job_id)
+            for key, value in fields.items():
+                setattr(row, key, _jsonable(value) if isinstance(value, dict) else value)
+            return row
+
+    def fail_interrupted_jobs(self) -> int:
+        """Mark jobs a previous process left queued or running as failed (called on start)."""
+        with self.db.begin() as db:
+            rows = list(db.scalars(select(JobRow).where(JobRow.state.in_(("queued", "running")))))
+            for row in rows:
+                row.state = "failed"
+                row.finished_at = now()
+                row.error = {
+                    "code": "interrupted",
+                    "message": "the service stopped while this "
+                    "job was pending or running; submit it again",
+                    "detail": None,
+                }
+            return len(rows)
+
+    # -- captures --------------------------------------------------------------------------------
+
+    def create_capture(self, session_id: str, source: dict) -> CaptureRow:
+        capture_id = new_id("cap")
+        row = CaptureRow(
+            id=capture_id,
+            session_id=session_id,
+            source=_jsonable(source),
+            state="running",
+            created_at=now(),
+            n_samples=0,
+            path=f"captures/{capture_id}.csv",
+        )
+        with self.db.begin() as db:
+            db.add(row)
+        return row
+
+    def capture(self, capture_id: str) -> CaptureRow | None:
+        with self.db() as db:
+            return db.get(CaptureRow, capture_id)
+
+    def update_capture(self, capture_id: str, **fields) -> CaptureRow:
+        with self.db.begin() as db:
+            row = db.get(CaptureRow, capture_id)
+            for key, value in fields.items():
+                setattr(row, key, value)
+            return row
+
+    def stop_interrupted_captures(self) -> list[CaptureRow]:
+        """Captures a previous process left running: their samples are on disk."""
+        with self.db() as db:
+            return list(db.scalars(select(CaptureRow).where(CaptureRow.state == "running")))
+
+
+def _jsonable(value):
+    """Plain JSON types (numpy scalars and arrays become floats and lists)."""
+    return json.loads(json.dumps(value, default=_default))
+
+
+def _default(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

@@ -1,0 +1,77 @@
+"""Service fixtures: an app on a temporary data folder, driven in-process with httpx."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+
+from drivers.scanning.pointcloud import write_scan
+from drivers.tracking.canonical_csv import write_trace_csv
+from recon import scenes
+from service.app import create_app
+from service.settings import Settings
+
+TOKEN = "test-token-0123456789"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+#: Where the box-corner scene sits in front of a UR5e (base frame).
+T_BASE_TRACKER = [[1, 0, 0, 0.35], [0, 1, 0, -0.05], [0, 0, 1, 0.1], [0, 0, 0, 1]]
+
+
+def make_settings(data_dir, **overrides) -> Settings:
+    return Settings(data_dir=data_dir, token=TOKEN, cpu_workers=1, max_upload_mb=5, **overrides)
+
+
+@pytest.fixture(scope="session")
+def scene_files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("scene")
+    scene = scenes.box_corner(0)
+    write_trace_csv(folder / "trace.csv", scene.recording)
+    write_scan(folder / "scan.ply", scene.scan)
+    return {
+        "trace": (folder / "trace.csv").read_bytes(),
+        "scan": (folder / "scan.ply").read_bytes(),
+    }
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    app = create_app(make_settings(tmp_path_factory.mktemp("data")))
+    with TestClient(app, headers=AUTH) as test_client:
+        yield test_client
+
+
+def wait(client, job: dict, timeout_s: float = 120.0) -> dict:
+    """Poll a job until it has finished."""
+    deadline = time.monotonic() + timeout_s
+    while job["state"] not in ("succeeded", "failed", "cancelled"):
+        assert time.monotonic() < deadline, f"job {job['id']} did not finish"
+        time.sleep(0.1)
+        job = client.get(f"/jobs/{job['id']}").json()
+    return job
+
+
+@pytest.fixture(scope="module")
+def session(client, scene_files):
+    """A session with the box-corner trace and scan uploaded and its calibration set."""
+    sid = client.post("/sessions", json={"name": "box"}).json()["id"]
+    assert (
+        client.put(
+            f"/sessions/{sid}/recording", files={"file": ("trace.csv", scene_files["trace"])}
+        ).status_code
+        == 201
+    )
+    assert (
+        client.put(
+            f"/sessions/{sid}/scan", files={"file": ("scan.ply", scene_files["scan"])}
+        ).status_code
+        == 201
+    )
+    assert (
+        client.put(
+            f"/sessions/{sid}/calibration", json={"T_base_tracker": T_BASE_TRACKER}
+        ).status_code
+        == 200
+    )
+    return sid

@@ -1,0 +1,71 @@
+"""Executions on a real arm are refused unless confirmed, dry-run first, and within the cap."""
+
+from __future__ import annotations
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from tests.service.conftest import AUTH, T_BASE_TRACKER, make_settings, wait
+
+
+@pytest.fixture(scope="module")
+def arm_client(tmp_path_factory, scene_files):
+    # 127.0.0.9: nothing listens there, so an attempt to move fails fast and harmlessly.
+    settings = make_settings(
+        tmp_path_factory.mktemp("arm"), ur_host="127.0.0.9", ur_robot="ur5e", max_speed_m_s=0.06
+    )
+    with TestClient(create_app(settings), headers=AUTH) as client:
+        sid = client.post("/sessions", json={"name": "arm"}).json()["id"]
+        client.put(f"/sessions/{sid}/recording", files={"file": ("t.csv", scene_files["trace"])})
+        client.put(f"/sessions/{sid}/scan", files={"file": ("s.ply", scene_files["scan"])})
+        client.put(f"/sessions/{sid}/calibration", json={"T_base_tracker": T_BASE_TRACKER})
+        recon = wait(client, client.post(f"/sessions/{sid}/reconstructions", json={}).json())
+        trajectories = {}
+        for speed in (0.05, 0.1):
+            job = wait(
+                client,
+                client.post(
+                    f"/sessions/{sid}/trajectories",
+                    json={
+                        "reconstruction_id": recon["result"]["reconstruction_id"],
+                        "speed_m_s": speed,
+                    },
+                ).json(),
+            )
+            trajectories[speed] = job["result"]["trajectory_id"]
+        yield client, sid, trajectories
+
+
+def post(client, sid, **body):
+    return client.post(f"/sessions/{sid}/executions", json=body)
+
+
+def test_confirmation_is_required(arm_client):
+    client, sid, trajectories = arm_client
+    response = post(client, sid, trajectory_id=trajectories[0.05], backend="ur_rtde")
+    assert response.status_code == 409 and response.json()["code"] == "confirmation_required"
+
+
+def test_a_dry_run_must_pass_first(arm_client):
+    client, sid, trajectories = arm_client
+    response = post(client, sid, trajectory_id=trajectories[0.05], backend="ur_rtde", confirm=True)
+    assert response.status_code == 409 and response.json()["code"] == "dry_run_required"
+
+
+def test_the_server_caps_the_speed(arm_client):
+    client, sid, trajectories = arm_client
+    response = post(client, sid, trajectory_id=trajectories[0.1], backend="ur_rtde", confirm=True)
+    assert response.status_code == 409 and response.json()["code"] == "speed_cap"
+
+
+def test_after_a_dry_run_it_runs_and_reports_an_unreachable_arm(arm_client):
+    client, sid, trajectories = arm_client
+    dry = wait(client, post(client, sid, trajectory_id=trajectories[0.05]).json())
+    assert dry["state"] == "succeeded" and dry["result"]["completed"]
+    job = post(client, sid, trajectory_id=trajectories[0.05], backend="ur_rtde", confirm=True)
+    assert job.status_code == 202
+    job = wait(client, job.json())
+    assert job["state"] == "failed"
+    assert job["error"]["code"] == "robot_connection_lost"
+    assert "127.0.0.9" in job["error"]["message"]
