@@ -13,17 +13,27 @@ STAMP=$VENV/.installed
 
 have_libusb() { ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; }
 
-if ! have_libusb; then
-    echo "setup: installing Debian package libusb-1.0-0 (needed by Open3D)"
+apt_install() {
     SUDO=""
     if [ "$(id -u)" != 0 ]; then
         if command -v sudo >/dev/null; then SUDO=sudo; else
-            echo "setup: libusb-1.0-0 is missing and this user is not root; run 'apt-get install libusb-1.0-0' as root" >&2
+            echo "setup: $* is missing and this user is not root; run 'apt-get install $*' as root" >&2
             exit 1
         fi
     fi
     $SUDO apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "$@" >/dev/null
+}
+
+if [ "${1:-}" = "--bench-tools" ]; then
+    # The API latency benchmark drives the server with wrk (a C load generator).
+    command -v wrk >/dev/null || { echo "setup: installing wrk"; apt_install wrk; }
+    exit 0
+fi
+
+if ! have_libusb; then
+    echo "setup: installing Debian package libusb-1.0-0 (needed by Open3D)"
+    apt_install libusb-1.0-0
     have_libusb || { echo "setup: libusb-1.0-0 still not found after apt-get" >&2; exit 1; }
 fi
 

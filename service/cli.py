@@ -369,6 +369,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     # Bind first, so the printed URL has the real port (also with --port 0).
     sock = socket.socket(socket.AF_INET6 if ":" in settings.host else socket.AF_INET)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    # Accepted connections inherit it: without it, Nagle's algorithm meets the client's delayed
+    # ACK and small responses wait 40 ms (measured: p50 50 ms for a 4 ms request).
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     sock.bind((settings.host, settings.port))
     host, port = sock.getsockname()[:2]
     shown = f"[{host}]" if ":" in host else host

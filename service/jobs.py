@@ -43,7 +43,9 @@ class JobManager:
         self.store = store
         self.workers = workers
         self._pool = ProcessPoolExecutor(
-            max_workers=workers, mp_context=multiprocessing.get_context("spawn")
+            max_workers=workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_worker_init,
         )
         self._lock = threading.Lock()
         self._futures: dict[str, Future] = {}
@@ -135,6 +137,21 @@ class JobManager:
                 if job_id in self._order:
                     self._order.remove(job_id)
                 self._promote()
+
+
+#: Niceness of the worker processes: CPU work yields to the API (measured with 50 pollers during
+#: a 1M-point reconstruction on 2 cores: without it, p99 status latency was over a second).
+WORKER_NICENESS = 10
+
+
+def _worker_init() -> None:
+    """Runs first in each worker process: lower its priority below the server's."""
+    import os
+
+    try:
+        os.nice(WORKER_NICENESS)
+    except OSError:  # not permitted here: run at normal priority
+        pass
 
 
 def job_json(job: JobRow) -> dict:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import secrets
+import threading
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -159,6 +160,10 @@ class Store:
 
         Base.metadata.create_all(self.engine)
         self.db = sessionmaker(self.engine, expire_on_commit=False)
+        # The latest state of each job, kept with every write: status polls are the hottest
+        # path of the API and need no database round trip. The database is the record.
+        self._jobs: dict[str, JobRow] = {}
+        self._jobs_lock = threading.Lock()
 
     # -- files -----------------------------------------------------------------------------------
 
@@ -325,18 +330,27 @@ class Store:
                 query = query.where(JobRow.session_id == session_id)
             return list(db.scalars(query))
 
+    def count_jobs(self, state: str) -> int:
+        from sqlalchemy import func
+
+        with self.db() as db:
+            return db.scalar(select(func.count()).select_from(JobRow).where(JobRow.state == state))
+
     def update_job(self, job_id: str, **fields) -> JobRow:
         with self.db.begin() as db:
             row = db.get(JobRow, job_id)
             for key, value in fields.items():
                 setattr(row, key, _jsonable(value) if isinstance(value, dict) else value)
-            return row
+        with self._jobs_lock:
+            self._jobs[job_id] = row
+        return row
 
     def fail_interrupted_jobs(self) -> int:
         """Mark jobs a previous process left queued or running as failed (called on start)."""
         with self.db.begin() as db:
             rows = list(db.scalars(select(JobRow).where(JobRow.state.in_(("queued", "running")))))
             for row in rows:
+                self._jobs.pop(row.id, None)
                 row.state = "failed"
                 row.finished_at = now()
                 row.error = {

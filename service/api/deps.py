@@ -13,15 +13,19 @@ from service.errors import ApiError
 _bearer = HTTPBearer(auto_error=False, description="the access token printed at start-up")
 
 
-def context(request: Request) -> AppContext:
+async def context(request: Request) -> AppContext:
     return request.app.state.ctx
 
 
-def require_token(
+async def require_token(
     request: Request,
     credentials: HTTPAuthorizationCredentials | None = Depends(_bearer),
 ) -> None:
-    """Every route but /health needs ``Authorization: Bearer TOKEN``."""
+    """Every route but /health needs ``Authorization: Bearer TOKEN``.
+
+    Async, like :func:`context`: a sync dependency would send every request through the
+    thread pool just to compare a string.
+    """
     if credentials is None:
         raise ApiError(
             401,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from importlib import metadata
 
 from fastapi import APIRouter, Depends
@@ -12,6 +13,7 @@ from service.schemas import Health
 router = APIRouter(tags=["health"])
 
 
+@functools.cache
 def _version(name: str) -> str:
     try:
         return metadata.version(name)
@@ -22,7 +24,7 @@ def _version(name: str) -> str:
 @router.get("/health", response_model=Health)
 def health(ctx=Depends(context)) -> dict:
     """Liveness, versions and the robot backends' state."""
-    running = sum(1 for j in ctx.store.jobs() if j.state == "running")
+    running = ctx.store.count_jobs("running")
     return {
         "status": "ok",
         "version": _version("teachpath"),

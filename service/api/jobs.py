@@ -29,7 +29,7 @@ def _job(ctx, job_id: str):
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut)
-def get_job(job_id: str, ctx=Depends(context)) -> dict:
+async def get_job(job_id: str, ctx=Depends(context)) -> dict:
     """State (queued, running, succeeded, failed, cancelled), progress 0..1, result or error."""
     return job_json(_job(ctx, job_id))
 
@@ -67,7 +67,7 @@ async def job_events(job_id: str, ctx=Depends(context)) -> StreamingResponse:
             if job.state in FINISHED:
                 return
             await asyncio.sleep(POLL_S)
-            job = await run_in_threadpool(ctx.store.job, job_id)
+            job = ctx.store.job(job_id)  # the store keeps jobs in memory: no I/O here
 
     return StreamingResponse(
         stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
