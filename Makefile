@@ -8,9 +8,13 @@ OUT ?= demo_out
 setup:
 	@scripts/setup.sh
 
-# The main job. For now: the bundled demo reconstruction (synthetic cylinder-edge scene),
-# which writes its accuracy table, the reconstructed path and a plot to $(OUT)/.
+# The main job: the service on 127.0.0.1 with the embedded defaults (SQLite in ./teachpath_data,
+# the simulated arm, a demo session); it prints the URL to open, with the access token.
 run: setup
+	$(BIN)/teachpath serve --demo
+
+# The offline demo: reconstruct the synthetic cylinder scene, write table and plots to $(OUT)/.
+demo: setup
 	$(BIN)/teachpath demo --out-dir $(OUT)
 
 test: setup

@@ -1,0 +1,47 @@
+"""No Docker engine runs here: the container files are kept correct by lint and review."""
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parent.parent
+BIN = Path(sys.executable).parent
+
+
+def _tool(name):
+    path = shutil.which(name, path=str(BIN)) or shutil.which(name)
+    if path is None:
+        pytest.fail(f"{name} is missing: it comes with the dev extra (pip install -e .[dev])")
+    return path
+
+
+def test_dockerfile_passes_hadolint():
+    result = subprocess.run([_tool("hadolint"), str(ROOT / "docker" / "Dockerfile")],
+                            capture_output=True, text=True)
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_compose_file_passes_yamllint_and_is_sane():
+    result = subprocess.run([_tool("yamllint"), "-c", str(ROOT / ".yamllint.yaml"),
+                             str(ROOT / "docker" / "compose.yaml")], capture_output=True,
+                            text=True)
+    assert result.returncode == 0, result.stdout + result.stderr
+    compose = yaml.safe_load((ROOT / "docker" / "compose.yaml").read_text())
+    service = compose["services"]["teachpath"]
+    assert service["build"]["dockerfile"] == "docker/Dockerfile"
+    assert service["environment"]["TEACHPATH_UR_HOST"] == "ursim"
+    # Everything published is published on the host's loopback only.
+    for name, spec in compose["services"].items():
+        for port in spec.get("ports", []):
+            assert port.startswith("127.0.0.1:"), (name, port)
+
+
+def test_the_dockerfile_copies_what_the_package_needs():
+    text = (ROOT / "docker" / "Dockerfile").read_text()
+    for folder in ("recon", "drivers", "service"):
+        assert f"COPY {folder} ./{folder}" in text
+    assert "libusb-1.0-0" in text
