@@ -27,6 +27,9 @@ bench: setup
 
 lint: setup
 	$(BIN)/ruff check recon drivers service tests
+	$(BIN)/hadolint docker/Dockerfile
+	$(BIN)/yamllint -c .yamllint.yaml docker/compose.yaml
 
 clean:
 	rm -rf $(VENV) $(OUT) *.egg-info
+# teachpath_data/ (sessions, token) is left alone: delete it yourself to start afresh.

@@ -153,6 +153,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     dry.add_argument("traj_file", metavar="TRAJ.csv")
     dry.add_argument("--robot", default="ur5e", help="UR model the trajectory was planned for")
+    dry.add_argument(
+        "--mode",
+        choices=("servoj", "movepath"),
+        default="servoj",
+        help="stream every sample (default), or coarse blended waypoints run by the controller",
+    )
+    dry.add_argument(
+        "--tolerance-m",
+        type=float,
+        default=5e-4,
+        help="movepath: largest TCP deviation of the waypoints from the plan (default 0.0005)",
+    )
     dry.set_defaults(handler=_cmd_dry_run)
 
     serve = commands.add_parser(
@@ -342,8 +354,10 @@ def _cmd_dry_run(args: argparse.Namespace) -> int:
     from recon.kinematics import model
 
     model(args.robot)  # an unknown arm is a one-line error before reading anything
+    if not args.tolerance_m > 0:
+        raise ValueError(f"--tolerance-m must be positive, got {args.tolerance_m}")
     trajectory = read_trajectory_csv(args.traj_file, robot=args.robot.lower())
-    report = dry_run(trajectory)
+    report = dry_run(trajectory, mode=args.mode, tolerance_m=args.tolerance_m)
     print("\n".join(report.lines()))
     return 0 if report.completed and not report.faults else EXIT_FAILURE
 

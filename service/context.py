@@ -8,6 +8,7 @@ inputs and parameters.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -236,7 +237,12 @@ class AppContext:
         summary = trajectory.summary
         out_id = new_id(KINDS["execution"])
         inputs = {"trajectory_id": trajectory.id}
-        params = {"backend": request.backend, "execution_id": out_id}
+        params = {
+            "backend": request.backend,
+            "mode": request.mode,
+            "tolerance_m": request.tolerance_m,
+            "execution_id": out_id,
+        }
         if request.backend == "sim":
 
             def done(report: dict) -> dict:
@@ -246,7 +252,12 @@ class AppContext:
                     kind="execution",
                     path=f"arrays/{out_id}.npz",
                     inputs=inputs,
-                    params={"backend": "sim", "dry_run": True},
+                    params={
+                        "backend": "sim",
+                        "dry_run": True,
+                        "mode": request.mode,
+                        "tolerance_m": request.tolerance_m,
+                    },
                     summary=report,
                 )
                 return {"execution_id": out_id, "completed": report["completed"]}
@@ -262,6 +273,8 @@ class AppContext:
                     summary["requested_speed_m_s"],
                     summary["speed_drops"],
                     str(self.store.data_dir / f"arrays/{out_id}.npz"),
+                    request.mode,
+                    request.tolerance_m,
                 ),
                 done,
             )
@@ -298,11 +311,13 @@ class AppContext:
                 f"the trajectory runs at {speed} m/s; this "
                 f"server allows at most {settings.max_speed_m_s} m/s on a real arm",
             )
-        if not self._passed_dry_run(session_id, trajectory.id):
+        if not self._passed_dry_run(session_id, trajectory.id, request):
             raise ApiError(
                 409,
                 "dry_run_required",
-                "this trajectory has not passed a dry run: execute it with backend 'sim' first",
+                f"this trajectory has not passed a dry run in mode {request.mode!r}"
+                + (" with the same tolerance_m" if request.mode == "movepath" else "")
+                + ": execute it with backend 'sim' first",
             )
         from drivers.robot.ur_rtde import URRtdeBackend, URRtdeConfig
 
@@ -333,22 +348,41 @@ class AppContext:
                 out_id,
                 arrays,
                 inputs=inputs,
-                params={"backend": "ur_rtde", "host": settings.ur_host},
+                params={
+                    "backend": "ur_rtde",
+                    "host": settings.ur_host,
+                    "mode": request.mode,
+                    "tolerance_m": request.tolerance_m,
+                },
                 summary=summary,
             )
             return {"execution_id": out_id, **summary}
 
-        runner = ExecutionRunner(self.store, job.id, backend, loaded, record)
+        runner = ExecutionRunner(
+            self.store,
+            job.id,
+            backend,
+            loaded,
+            record,
+            mode=request.mode,
+            tolerance_m=request.tolerance_m,
+        )
         with self.lock:
             self.executions[out_id] = runner
             self.execution_jobs[out_id] = job.id
         runner.start()
         return self.store.job(job.id)
 
-    def _passed_dry_run(self, session_id: str, trajectory_id: str) -> bool:
+    def _passed_dry_run(self, session_id: str, trajectory_id: str, request) -> bool:
+        """A completed, fault-free dry run of this trajectory, run the way it is to run now."""
         return any(
             row.inputs.get("trajectory_id") == trajectory_id
             and row.params.get("dry_run")
+            and row.params.get("mode", "servoj") == request.mode
+            and (
+                request.mode == "servoj"
+                or math.isclose(row.params.get("tolerance_m", 5e-4), request.tolerance_m)
+            )
             and row.summary.get("completed")
             and not row.summary.get("faults")
             for row in self.store.artifacts(session_id, "execution")

@@ -41,8 +41,12 @@ class ExecutionRunner:
         backend: RobotBackend,
         trajectory: JointTrajectory,
         record: Callable,
+        *,
+        mode: str = "servoj",
+        tolerance_m: float = 5e-4,
     ) -> None:
         self.store, self.job_id = store, job_id
+        self.mode, self.tolerance_m = mode, tolerance_m
         self.backend, self.trajectory, self.record = backend, trajectory, record
         self.thread = threading.Thread(target=self._run, name=f"execution {job_id}", daemon=True)
         self._last_progress = 0.0
@@ -70,7 +74,12 @@ class ExecutionRunner:
                 acceleration_rad_s2=APPROACH_ACCELERATION_RAD_S2,
             )
             self.store.update_job(self.job_id, progress=0.1)
-            record = self.backend.execute(self.trajectory, on_progress=self._progress)
+            if self.mode == "movepath":
+                record = self.backend.execute_path(
+                    self.trajectory, tolerance_m=self.tolerance_m, on_progress=self._progress
+                )
+            else:
+                record = self.backend.execute(self.trajectory, on_progress=self._progress)
             result = self.record(record, None)
             state = "succeeded" if record.completed else "cancelled"
             self.store.update_job(

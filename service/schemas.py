@@ -133,6 +133,14 @@ class TrajectoryCreate(Strict):
 class ExecutionCreate(Strict):
     trajectory_id: str
     backend: Literal["sim", "ur_rtde"] = "sim"
+    mode: Literal["servoj", "movepath"] = Field(
+        "servoj",
+        description="servoj streams every controller sample; movepath sends coarse blended "
+        "waypoints the controller runs itself (a real arm needs a dry run in the same mode)",
+    )
+    tolerance_m: float = Field(
+        5e-4, gt=0, le=0.01, description="movepath: largest TCP deviation from the plan"
+    )
     confirm: bool = Field(False, description="must be true to move a real arm")
 
 

@@ -215,7 +215,13 @@ def load_trajectory(path: str, robot: str, requested_speed_m_s: float):
 
 
 def dry_run_task(
-    trajectory_path: str, robot: str, requested_speed_m_s: float, speed_drops: list, out_path: str
+    trajectory_path: str,
+    robot: str,
+    requested_speed_m_s: float,
+    speed_drops: list,
+    out_path: str,
+    mode: str = "servoj",
+    tolerance_m: float = 5e-4,
 ) -> dict:
     """Execute a stored trajectory on the simulated arm; write the record; return the report."""
     from dataclasses import replace
@@ -230,7 +236,7 @@ def dry_run_task(
     sim = SimBackend(
         SimConfig(robot=robot, q_start_rad=tuple(trajectory.q_rad[0])), clock=FakeClock()
     )
-    report = dry_run(trajectory, backend=sim)
+    report = dry_run(trajectory, backend=sim, mode=mode, tolerance_m=tolerance_m)
     record = sim.last_record
     _save(
         Path(out_path),

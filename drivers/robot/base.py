@@ -34,6 +34,7 @@ from drivers.errors import (
 from drivers.robot.clock import Clock, RealClock
 from recon import kinematics
 from recon.types import FloatArray, JointTrajectory
+from recon.waypoints import CoarsePath, coarse_waypoints
 
 #: How far (largest joint difference) the arm may be from a trajectory's first sample.
 START_TOLERANCE_RAD = 0.01
@@ -233,6 +234,52 @@ class RobotBackend(ABC):
             Raised after the record of what ran up to that point has been kept
             (:attr:`last_record`).
         """
+        self._begin(trajectory)
+        self.last_record: ExecutionRecord | None = None
+        try:
+            record = self._execute(trajectory, on_progress)
+            self.last_record = record
+            return record
+        finally:
+            self._settle_state()
+
+    def execute_path(
+        self,
+        trajectory: JointTrajectory,
+        *,
+        tolerance_m: float = 5e-4,
+        blend_m: float = 1e-3,
+        on_progress: ProgressCallback | None = None,
+    ) -> ExecutionRecord:
+        """Run a trajectory as a path the controller executes itself (UR's movePath).
+
+        For coarse paths, or links where streaming at the controller rate is not reliable: the
+        trajectory is reduced to joint waypoints (:func:`recon.waypoints.coarse_waypoints`,
+        every planned TCP sample within ``tolerance_m`` of the joint-space line between them),
+        sent as blended moveJ targets, and run by the controller with its own timing. The record
+        pairs each actual sample with the planned sample at the same time since the start.
+        Preconditions, stop and faults as :meth:`execute`.
+        """
+        self._begin(trajectory)
+        path = coarse_waypoints(self.arm, trajectory, tolerance_m=tolerance_m, blend_m=blend_m)
+        self.last_record = None
+        try:
+            t_s, q_actual, completed, fault = self._execute_path(path, on_progress)
+            planned_index = np.searchsorted(trajectory.t_s - trajectory.t_s[0], t_s)
+            record = ExecutionRecord(
+                t_s=np.asarray(t_s, dtype=np.float64),
+                q_planned_rad=trajectory.q_rad[np.minimum(planned_index, len(trajectory) - 1)],
+                q_actual_rad=np.asarray(q_actual, dtype=np.float64).reshape(-1, 6),
+                completed=completed,
+                fault=fault,
+            )
+            self.last_record = record
+            return record
+        finally:
+            self._settle_state()
+
+    def _begin(self, trajectory: JointTrajectory) -> None:
+        """Check a trajectory against the arm and its state, and mark the arm moving."""
         self._check_trajectory(trajectory)
         with self._lock:
             self._require_enabled()
@@ -245,13 +292,6 @@ class RobotBackend(ABC):
                 )
             self._stop_requested.clear()
             self._state = RobotState.MOVING
-        self.last_record: ExecutionRecord | None = None
-        try:
-            record = self._execute(trajectory, on_progress)
-            self.last_record = record
-            return record
-        finally:
-            self._settle_state()
 
     def stop(self) -> None:
         """Decelerate to a stop. Safe to call from another thread, and when not moving."""
@@ -347,6 +387,13 @@ class RobotBackend(ABC):
     def _execute(
         self, trajectory: JointTrajectory, on_progress: ProgressCallback | None
     ) -> ExecutionRecord: ...
+
+    @abstractmethod
+    def _execute_path(
+        self, path: CoarsePath, on_progress: ProgressCallback | None
+    ) -> tuple[FloatArray, FloatArray, bool, str | None]:
+        """Run ``path``; return the sample times (s), actual joints (K, 6), whether it
+        completed, and why not."""
 
     @abstractmethod
     def _stop(self) -> None: ...

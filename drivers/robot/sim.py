@@ -38,6 +38,7 @@ from drivers.robot.base import (
     RobotState,
 )
 from recon.types import FloatArray, JointTrajectory
+from recon.waypoints import CoarsePath
 
 #: A home pose: elbow up, tool pointing down, well away from singularities.
 HOME_RAD = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
@@ -164,10 +165,23 @@ class SimBackend(RobotBackend):
     def _execute(
         self, trajectory: JointTrajectory, on_progress: ProgressCallback | None
     ) -> ExecutionRecord:
-        n = len(trajectory)
+        times, actual, completed, fault = self._stream(trajectory.q_rad, on_progress)
+        return self._record(times, trajectory.q_rad[: len(times)], actual, completed, fault)
+
+    def _execute_path(self, path: CoarsePath, on_progress: ProgressCallback | None):
+        # The controller runs the path itself: joint-space lines between the waypoints at each
+        # move's speed, without stopping where a blend is asked for. Fed to the same servo law,
+        # which rounds the corners the way blending does.
+        targets = _path_targets(path, self._dt)
+        times, actual, completed, fault = self._stream(targets, on_progress)
+        return np.array(times), np.array(actual).reshape(-1, 6), completed, fault
+
+    def _stream(self, targets: FloatArray, on_progress: ProgressCallback | None):
+        """Follow ``targets`` (K, 6), one per controller period, as servoJ does."""
+        n = len(targets)
         t0 = self.clock.now()
         self._stopping = False
-        times, planned, actual = [], [], []
+        times, actual = [], []
         fault = None
         completed = False
         try:
@@ -176,20 +190,19 @@ class SimBackend(RobotBackend):
                     fault = "stopped on request"
                     break
                 self.clock.sleep_until(t0 + (i + 1) * self._dt)
-                self._advance(self.clock.now(), target=trajectory.q_rad[i])
+                self._advance(self.clock.now(), target=targets[i])
                 times.append(self.clock.now() - t0)
-                planned.append(trajectory.q_rad[i])
                 actual.append(self._q.copy())
                 if on_progress is not None and (i % PROGRESS_EVERY == 0 or i == n - 1):
                     on_progress((i + 1) / n)
             else:
                 completed = True
             # Decelerate (after a stop) or settle on the last sample.
-            self._settle(trajectory.q_rad[-1] if completed else None)
+            self._settle(targets[-1] if completed else None)
         except RobotError as error:
-            self._record(times, planned, actual, False, str(error))
+            self._record(times, targets[: len(times)], actual, False, str(error))
             raise
-        return self._record(times, planned, actual, completed, fault)
+        return times, actual, completed, fault
 
     # -- physics ---------------------------------------------------------------------------------
 
@@ -290,3 +303,42 @@ def _synchronised_trapezoid(start, goal, speed, acceleration, dt):
 
     times = np.arange(dt, t_total + dt, dt)
     return [start + (goal - start) * fraction(t) for t in times]
+
+
+def _path_targets(path: CoarsePath, dt: float) -> FloatArray:
+    """Joint targets every ``dt`` along the waypoints' joint-space polyline, shape (K, 6).
+
+    The path parameter is the leading joint's travel (what moveJ's speed and acceleration
+    apply to). Speed is capped per move, ramps at the path's acceleration, and falls to zero at
+    waypoints without a blend and at both ends.
+    """
+    q = path.q_rad
+    length = np.abs(np.diff(q, axis=0)).max(axis=1)  # leading-joint travel per move
+    knots = np.concatenate([[0.0], np.cumsum(length)])
+    total = float(knots[-1])
+    if total < 1e-12:
+        return q[-1:].copy()
+    a = path.acceleration_rad_s2
+    s = np.linspace(0.0, total, int(np.clip(total / 1e-4, 2, 20000)) + 1)
+    move = np.clip(np.searchsorted(knots, s, side="right") - 1, 0, len(length) - 1)
+    cap = path.speed_rad_s[1:][move]
+    # Speed limits at the waypoints: 0 unless blended, then the slower of the two moves; made
+    # consistent with the acceleration by a forward and a backward pass.
+    at_knot = np.zeros(len(knots))
+    blended = path.blend_m[1:-1] > 0
+    at_knot[1:-1] = np.where(blended, np.minimum(path.speed_rad_s[1:-1], path.speed_rad_s[2:]), 0)
+    for k in range(1, len(knots)):
+        at_knot[k] = min(at_knot[k], np.sqrt(at_knot[k - 1] ** 2 + 2 * a * length[k - 1]))
+    for k in range(len(knots) - 2, -1, -1):
+        at_knot[k] = min(at_knot[k], np.sqrt(at_knot[k + 1] ** 2 + 2 * a * length[k]))
+    # Within a move only its two waypoints' limits bind.
+    from_start = np.sqrt(at_knot[move] ** 2 + 2 * a * (s - knots[move]))
+    to_end = np.sqrt(at_knot[move + 1] ** 2 + 2 * a * np.maximum(knots[move + 1] - s, 0.0))
+    speed = np.minimum(cap, np.minimum(from_start, to_end))
+    # Time at each s: integrate ds / v with the trapezoid rule on the mean speed.
+    mean = np.maximum(0.5 * (speed[1:] + speed[:-1]), 1e-9)
+    t = np.concatenate([[0.0], np.cumsum(np.diff(s) / mean)])
+    s_at = np.interp(np.arange(dt, t[-1] + dt, dt), t, s)
+    move_at = np.clip(np.searchsorted(knots, s_at, side="right") - 1, 0, len(length) - 1)
+    fraction = np.clip((s_at - knots[move_at]) / np.maximum(length[move_at], 1e-12), 0.0, 1.0)
+    return q[move_at] + fraction[:, None] * (q[move_at + 1] - q[move_at])

@@ -8,7 +8,9 @@ the child is killed). A stop request is a shared event the child checks every co
 so it works while the child is busy streaming.
 
 Execution streams the trajectory with servoJ at the controller rate (initPeriod/waitPeriod) and
-records the actual joints every period; stopping decelerates with servoStop / stopJ.
+records the actual joints every period; :meth:`~drivers.robot.base.RobotBackend.execute_path`
+sends coarse blended moveJ waypoints as one movePath instead. Stopping decelerates with
+servoStop / stopJ.
 
 Enabling does not power the arm on or release its brakes unless ``power_on`` is set: on a shop
 floor that is the operator's decision, at the teach pendant.
@@ -34,6 +36,7 @@ from drivers.errors import (
 )
 from drivers.robot.base import BackendConfig, ExecutionRecord, ProgressCallback, RobotBackend
 from recon.types import FloatArray, JointTrajectory
+from recon.waypoints import CoarsePath
 
 #: UR robot modes (RTDE robot_mode) and safety modes used here.
 ROBOT_MODE_RUNNING = 7
@@ -201,6 +204,32 @@ class URRtdeBackend(RobotBackend):
             completed=completed,
             fault=fault,
         )
+
+    def _execute_path(self, path: CoarsePath, on_progress: ProgressCallback | None):
+        # The controller's own timing may run longer than the plan (it stops where it cannot
+        # blend): allow the slowest move profile on top of the margin.
+        lead = np.abs(np.diff(path.q_rad, axis=0)).max(axis=1)
+        expected_s = float(
+            np.sum(lead / path.speed_rad_s[1:] + path.speed_rad_s[1:] / path.acceleration_rad_s2)
+        )
+        try:
+            times, actual, completed, fault = self._call(
+                "move_path",
+                path.q_rad.tolist(),
+                path.speed_rad_s.tolist(),
+                path.acceleration_rad_s2,
+                path.blend_m.tolist(),
+                timeout_s=expected_s + self.config.motion_margin_s,
+                on_progress=(
+                    None if on_progress is None else (lambda i: on_progress(i / len(path)))
+                ),
+            )
+        except RobotError:
+            self.last_record = ExecutionRecord(
+                np.zeros(0), np.zeros((0, 6)), np.zeros((0, 6)), False, "interrupted"
+            )
+            raise
+        return np.array(times), np.array(actual).reshape(-1, 6), completed, fault
 
     def _stop(self) -> None:
         self._stop_event.set()
@@ -380,6 +409,50 @@ class _Worker:  # pragma: no cover - runs in the child process
         self.pipe.send(("progress", len(times)))
         if fault == "protective stop":
             raise _Failure("protective_stop", "protective stop during execution")
+        return times, actual, completed, fault
+
+    def move_path(self, q_rows, speeds, acceleration, blends):
+        """Run blended moveJ waypoints as one controller-side path (ur_rtde movePath)."""
+        import rtde_control
+
+        self._safety()
+        path = rtde_control.Path()
+        for q, speed, blend in zip(q_rows, speeds, blends, strict=True):
+            path.addEntry(
+                rtde_control.PathEntry(
+                    rtde_control.PathEntry.MoveJ,
+                    rtde_control.PathEntry.PositionJoints,
+                    [*q, speed, acceleration, blend],
+                )
+            )
+        if not self.control.movePath(path, True):
+            raise _Failure(
+                "connection",
+                "the controller refused movePath (the control script stopped); reconnect",
+            )
+        times, actual, fault, completed = [], [], None, False
+        start = time.monotonic()
+        period_s = 1.0 / 125.0  # sampling the actual joints; the controller runs the path
+        reported = -1
+        while True:
+            status = self.control.getAsyncOperationProgressEx()
+            times.append(time.monotonic() - start)
+            actual.append(list(self.receive.getActualQ()))
+            self._check_fresh()
+            if not status.isAsyncOperationRunning():
+                completed = True
+                break
+            if self.stop_event.is_set():
+                self.control.stopJ(self.config["stop_deceleration_rad_s2"])
+                fault = "stopped on request"
+                break
+            if self.receive.isProtectiveStopped():
+                raise _Failure("protective_stop", "protective stop during the path")
+            if status.progress() != reported:
+                reported = status.progress()
+                self.pipe.send(("progress", max(reported, 0)))
+            time.sleep(period_s)
+        self.pipe.send(("progress", len(q_rows) if completed else max(reported, 0)))
         return times, actual, completed, fault
 
     def close(self) -> None:

@@ -14,6 +14,7 @@ from recon.kinematics import follow_path, model
 from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path
 from recon.reconstruct import reconstruct
 from recon.timing import limits_for, time_parameterize
+from recon.waypoints import coarse_waypoints
 from tests.motion_fixtures import base_from_tracker
 
 pytestmark = pytest.mark.bench
@@ -80,9 +81,15 @@ def test_achieved_speed_with_and_without_orientation_smoothing():
 
 
 def test_dry_run_tracking():
-    print("\n## Dry-run tracking on the simulated UR5e (servoJ lookahead 0.1 s, gain 300)\n")
-    print("| scene | speed mm/s | off the path, max mm | behind, max mm | duration s (planned) |")
-    print("|---|---:|---:|---:|---:|")
+    print(
+        "\n## Dry-run tracking on the simulated UR5e (servoJ lookahead 0.1 s, gain 300; "
+        "movePath: blended moveJ waypoints)\n"
+    )
+    print(
+        "| scene | speed mm/s | mode | waypoints | off the path, max mm | behind, max mm "
+        "| duration s (planned) |"
+    )
+    print("|---|---:|---|---:|---:|---:|---:|")
     T = base_from_tracker()
     for name in ("cylinder_edge", "box_corner"):
         scene = scenes.SCENES[name](0)
@@ -97,9 +104,16 @@ def test_dry_run_tracking():
                 normals=normals,
                 params=PlanParams(speed_m_s=speed),
             )
-            report = dry_run(plan.trajectory)
-            print(
-                f"| {name} | {speed * 1e3:.0f} | {report.max_path_deviation_m * 1e3:.3f} | "
-                f"{report.max_lag_m * 1e3:.1f} | {report.duration_s:.2f} "
-                f"({report.planned_duration_s:.2f}) |"
-            )
+            arm = model(plan.trajectory.robot)
+            for mode, tolerance_m in (("servoj", None), ("movepath", 5e-4), ("movepath", 2e-3)):
+                if mode == "servoj":
+                    report, label, count = dry_run(plan.trajectory), "servoJ", len(plan.trajectory)
+                else:
+                    report = dry_run(plan.trajectory, mode=mode, tolerance_m=tolerance_m)
+                    label = f"movePath, tolerance {tolerance_m * 1e3:.1f} mm"
+                    count = len(coarse_waypoints(arm, plan.trajectory, tolerance_m=tolerance_m))
+                print(
+                    f"| {name} | {speed * 1e3:.0f} | {label} | {count} | "
+                    f"{report.max_path_deviation_m * 1e3:.3f} | {report.max_lag_m * 1e3:.1f} | "
+                    f"{report.duration_s:.2f} ({report.planned_duration_s:.2f}) |"
+                )

@@ -11,6 +11,7 @@ import threading
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from drivers.errors import (
     NotConnectedError,
@@ -21,6 +22,7 @@ from drivers.errors import (
 from drivers.robot.base import RobotState, backend_class, create_backend
 from drivers.robot.clock import FakeClock
 from drivers.robot.sim import SimBackend, SimConfig
+from recon import kinematics
 from tests.motion_fixtures import line_plan
 
 
@@ -93,6 +95,42 @@ def test_execute_follows_the_trajectory_and_records_it(robot):
     assert np.abs(robot.status().q_rad - trajectory.q_rad[-1]).max() < 2e-3
     # The arm follows a lookahead behind, but close to the plan at all times.
     assert np.abs(record.q_actual_rad - record.q_planned_rad).max() < 0.1
+
+
+def test_execute_path_runs_coarse_waypoints_on_the_plan(robot):
+    """movePath: the controller runs blended moveJ waypoints; the TCP stays on the plan."""
+    trajectory = _trajectory(robot)
+    robot.connect()
+    robot.enable()
+    robot.move_joints(trajectory.q_rad[0], speed_rad_s=1.0, acceleration_rad_s2=2.0)
+    progress = []
+    record = robot.execute_path(trajectory, tolerance_m=5e-4, on_progress=progress.append)
+    assert record.completed and record.fault is None
+    assert progress[-1] == pytest.approx(1.0) and progress == sorted(progress)
+    assert np.abs(robot.status().q_rad - trajectory.q_rad[-1]).max() < 2e-3
+    # Off the planned path (nearest planned flange point) by little more than the tolerance;
+    # the controller's own timing may differ from the plan's, so this is not compared in time.
+    flange = lambda q: kinematics.forward(robot.arm, q)[:, :3, 3]  # noqa: E731
+    distance, _ = cKDTree(flange(trajectory.q_rad)).query(flange(record.q_actual_rad))
+    assert distance.max() < 1e-3
+    assert record.t_s[-1] < 2 * trajectory.duration_s + 1.0
+    with pytest.raises(TrajectoryMismatchError, match="move it there first"):
+        robot.execute_path(trajectory)  # now at the end, not the start
+
+
+def test_stop_ends_a_path_early(robot):
+    trajectory = _trajectory(robot)
+    robot.connect()
+    robot.enable()
+    robot.move_joints(trajectory.q_rad[0], speed_rad_s=1.0, acceleration_rad_s2=2.0)
+
+    def on_progress(fraction):
+        if fraction > 0.3:
+            threading.Thread(target=robot.stop).start()
+
+    record = robot.execute_path(trajectory, on_progress=on_progress)
+    assert not record.completed and "stop" in record.fault
+    assert robot.state is RobotState.ENABLED
 
 
 def test_a_trajectory_that_does_not_fit_is_refused(robot):

@@ -316,7 +316,12 @@ def dry_run(client, session, trajectory):
 
 def test_dry_run_report(client, session, dry_run):
     body = client.get(f"/sessions/{session}/executions/{dry_run}").json()
-    assert body["params"] == {"backend": "sim", "dry_run": True}
+    assert body["params"] == {
+        "backend": "sim",
+        "dry_run": True,
+        "mode": "servoj",
+        "tolerance_m": 5e-4,
+    }
     assert body["summary"]["completed"] and not body["summary"]["faults"]
     assert body["summary"]["max_path_deviation_m"] < 1e-3
     csv_text = client.get(f"/sessions/{session}/executions/{dry_run}/csv").text
@@ -332,6 +337,21 @@ def test_real_arm_execution_is_refused_without_a_configured_arm(client, session,
         409,
         "no_robot",
     )
+
+
+def test_bad_execution_modes(client, session, trajectory):
+    for body in (
+        {"mode": "teleport"},
+        {"mode": "movepath", "tolerance_m": 0},
+        {"mode": "movepath", "tolerance_m": 0.5},
+    ):
+        assert_error(
+            client.post(
+                f"/sessions/{session}/executions", json={"trajectory_id": trajectory, **body}
+            ),
+            422,
+            "invalid_request",
+        )
 
 
 def test_unknown_backend(client, session, trajectory):

@@ -1,6 +1,7 @@
 """The command line: the reconstruct contract, its bad inputs, and the demo."""
 
 import csv
+import re
 import subprocess
 import sys
 
@@ -274,6 +275,12 @@ def test_plan_then_dry_run(inputs, reconstructed, tmp_path):
     result = run("dry-run", traj, "--robot", "ur5e")
     assert result.returncode == 0, result.stderr
     assert "completed" in result.stdout and "off the path" in result.stdout
+    result = run("dry-run", traj, "--robot", "ur5e", "--mode", "movepath", "--tolerance-m", "0.001")
+    assert result.returncode == 0, result.stderr
+    assert "(movepath): completed" in result.stdout
+    # Off the path by no more than the waypoints' tolerance plus the servo's corner rounding.
+    off_path_mm = float(re.search(r"([0-9.]+) mm off the path", result.stdout).group(1))
+    assert off_path_mm < 1.5
 
 
 @pytest.mark.parametrize(
@@ -328,6 +335,10 @@ def test_plan_then_dry_run(inputs, reconstructed, tmp_path):
         ),
         (lambda d, r: ["dry-run", r / "recon.csv", "--robot", "ur5e"], "does not start with"),
         (lambda d, r: ["dry-run", d / "missing.csv"], "does not exist"),
+        (
+            lambda d, r: ["dry-run", r / "recon.csv", "--mode", "movepath", "--tolerance-m", "0"],
+            "tolerance-m must be positive",
+        ),
     ],
     ids=[
         "unreachable",
@@ -337,6 +348,7 @@ def test_plan_then_dry_run(inputs, reconstructed, tmp_path):
         "not-a-recon",
         "not-a-trajectory",
         "missing",
+        "zero-tolerance",
     ],
 )
 def test_plan_and_dry_run_bad_input(reconstructed, tmp_path, make_args, message):
@@ -344,7 +356,5 @@ def test_plan_and_dry_run_bad_input(reconstructed, tmp_path, make_args, message)
     assert result.returncode != 0
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1, result.stderr
-    import re
-
     assert re.search(message, lines[0]), lines[0]
     assert not (tmp_path / "o.csv").exists()

@@ -69,3 +69,26 @@ def test_after_a_dry_run_it_runs_and_reports_an_unreachable_arm(arm_client):
     assert job["state"] == "failed"
     assert job["error"]["code"] == "robot_connection_lost"
     assert "127.0.0.9" in job["error"]["message"]
+
+
+def test_a_dry_run_counts_only_for_the_mode_and_tolerance_it_ran_in(arm_client):
+    client, sid, trajectories = arm_client
+    trajectory_id = trajectories[0.05]
+    dry = wait(client, post(client, sid, trajectory_id=trajectory_id, mode="movepath").json())
+    assert dry["state"] == "succeeded" and dry["result"]["completed"]
+    execution = client.get(f"/sessions/{sid}/executions/{dry['result']['execution_id']}").json()
+    assert execution["params"]["mode"] == "movepath"
+    assert "movepath" in execution["summary"]["report"][0]
+    for body, code in (
+        ({"mode": "movepath", "tolerance_m": 0.002}, "dry_run_required"),
+        ({"mode": "movepath"}, None),
+    ):
+        response = post(
+            client, sid, trajectory_id=trajectory_id, backend="ur_rtde", confirm=True, **body
+        )
+        if code is None:
+            assert response.status_code == 202
+            assert wait(client, response.json())["error"]["code"] == "robot_connection_lost"
+        else:
+            assert response.status_code == 409 and response.json()["code"] == code
+            assert "tolerance_m" in response.json()["message"]
