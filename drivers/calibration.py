@@ -4,9 +4,14 @@ A file holds one transform ``T_a_b`` (4x4, mapping points of frame b into frame 
 frames, units and, when measured, residuals::
 
     {"name": "T_base_tracker", "matrix": [[...], [...], [...], [0, 0, 0, 1]],
-     "units": "m", "created": "2026-11-22T10:00:00+00:00", "residual_rms_m": 0.0003}
+     "units": "m", "created": "2026-11-22T10:00:00+00:00", "residual_rms_m": 0.0003,
+     "residuals_m": [0.0002, ...]}
 
-The translation is in ``units`` and converted to metres on reading.
+The translation is in ``units`` and converted to metres on reading. A pen's tip calibration
+(from a pivot calibration) is a file of its own::
+
+    {"name": "tip_offset", "offset": [0.004, -0.007, 0.142], "units": "m",
+     "rigid_body": "pen", "created": "...", "residual_rms_m": 0.0004}
 """
 
 from __future__ import annotations
@@ -52,14 +57,8 @@ def read_calibration(
         Unreadable JSON, a missing or non-rigid matrix, unknown units, the wrong name.
     """
     label = label or ("upload" if isinstance(source, bytes) else str(source))
-    try:
-        raw = source if isinstance(source, bytes) else Path(source).read_bytes()
-        data = json.loads(raw)
-    except FileNotFoundError:
-        raise InputFileError(f"{label} does not exist") from None
-    except (OSError, ValueError) as exc:
-        raise InputFileError(f"{label} is not a readable JSON calibration: {exc}") from None
-    if not isinstance(data, dict) or "matrix" not in data:
+    data = _load_json(source, label)
+    if "matrix" not in data:
         raise InputFileError(f'{label} has no "matrix" (a 4x4 list of rows)')
     name = str(data.get("name", expect or "transform"))
     if expect is not None and name != expect:
@@ -81,9 +80,15 @@ def read_calibration(
 
 
 def write_calibration(
-    path: str | Path, name: str, matrix: FloatArray, *, residual_rms_m: float | None = None
+    path: str | Path,
+    name: str,
+    matrix: FloatArray,
+    *,
+    residual_rms_m: float | None = None,
+    extra: dict | None = None,
 ) -> None:
-    """Write a calibration (metres, with the current time)."""
+    """Write a calibration (metres, with the current time); ``extra`` holds JSON-able details
+    such as per-pair residuals."""
     content = {
         "name": name,
         "matrix": np.asarray(check_rigid(matrix)).tolist(),
@@ -92,5 +97,95 @@ def write_calibration(
     }
     if residual_rms_m is not None:
         content["residual_rms_m"] = residual_rms_m
+    content.update(extra or {})
+    _write_json(path, content)
+
+
+@dataclass(frozen=True)
+class TipCalibration:
+    """A pen's tip in its rigid body's frame (metres)."""
+
+    offset_m: FloatArray
+    rigid_body: str | None = None
+    created: str | None = None
+    residual_rms_m: float | None = None
+
+
+def write_tip_calibration(
+    path: str | Path,
+    offset_m: FloatArray,
+    *,
+    rigid_body: str | None = None,
+    residual_rms_m: float | None = None,
+    extra: dict | None = None,
+) -> None:
+    """Write a tip calibration (metres, with the current time)."""
+    offset = np.asarray(offset_m, dtype=np.float64)
+    if offset.shape != (3,) or not np.all(np.isfinite(offset)):
+        raise ValueError(f"offset_m must be 3 finite numbers, got {offset_m!r}")
+    content = {
+        "name": "tip_offset",
+        "offset": offset.tolist(),
+        "units": "m",
+        "rigid_body": rigid_body,
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
+    if residual_rms_m is not None:
+        content["residual_rms_m"] = residual_rms_m
+    content.update(extra or {})
+    _write_json(path, content)
+
+
+def read_tip_calibration(source: str | Path | bytes, *, label: str | None = None) -> TipCalibration:
+    """Read a tip calibration written by :func:`write_tip_calibration`.
+
+    Raises
+    ------
+    InputFileError
+        Unreadable JSON, another kind of calibration, a missing or non-finite offset, unknown
+        units, or an offset longer than 1 m (units wrong).
+    """
+    label = label or ("upload" if isinstance(source, bytes) else str(source))
+    data = _load_json(source, label)
+    if data.get("name") != "tip_offset" or "offset" not in data:
+        raise InputFileError(
+            f'{label} is not a tip calibration (expected "name": "tip_offset" and an "offset"); '
+            "make one with: teachpath calibrate pivot RECORDING"
+        )
+    try:
+        scale = metres_per(str(data.get("units", "m")))
+        offset = np.array(data["offset"], dtype=np.float64) * scale
+    except (ValueError, TypeError) as exc:
+        raise InputFileError(f"{label}: {exc}") from None
+    if offset.shape != (3,) or not np.all(np.isfinite(offset)):
+        raise InputFileError(f'{label}: "offset" must be 3 finite numbers')
+    if np.linalg.norm(offset) > 1.0:
+        raise InputFileError(
+            f"{label}: a tip {np.linalg.norm(offset):.1f} m from the rigid body; are the units "
+            'right (metres unless the file says "units": "mm")?'
+        )
+    residual = data.get("residual_rms_m")
+    return TipCalibration(
+        offset_m=offset,
+        rigid_body=data.get("rigid_body"),
+        created=data.get("created"),
+        residual_rms_m=None if residual is None else float(residual),
+    )
+
+
+def _load_json(source: str | Path | bytes, label: str) -> dict:
+    try:
+        raw = source if isinstance(source, bytes) else Path(source).read_bytes()
+        data = json.loads(raw)
+    except FileNotFoundError:
+        raise InputFileError(f"{label} does not exist") from None
+    except (OSError, ValueError) as exc:
+        raise InputFileError(f"{label} is not a readable JSON calibration: {exc}") from None
+    if not isinstance(data, dict):
+        raise InputFileError(f"{label} is not a JSON object")
+    return data
+
+
+def _write_json(path: str | Path, content: dict) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(content, indent=2) + "\n")
