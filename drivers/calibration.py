@@ -58,11 +58,11 @@ def read_calibration(
     """
     label = label or ("upload" if isinstance(source, bytes) else str(source))
     data = _load_json(source, label)
-    if "matrix" not in data:
-        raise InputFileError(f'{label} has no "matrix" (a 4x4 list of rows)')
     name = str(data.get("name", expect or "transform"))
     if expect is not None and name != expect:
         raise InputFileError(f"{label} holds {name}, but {expect} is needed here")
+    if "matrix" not in data:
+        raise InputFileError(f'{label} has no "matrix" (a 4x4 list of rows)')
     try:
         scale = metres_per(str(data.get("units", "m")))
         matrix = np.array(data["matrix"], dtype=np.float64)

@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.tracking.base import TrackerSource
+from drivers.tracking.base import SampleBatch, TrackerSource
 from service.store import Store
 
 log = logging.getLogger("teachpath.captures")
@@ -87,20 +87,19 @@ class CaptureRunner:
             self.finalize(self.capture_id, state, error)
 
 
-def read_capture_file(path) -> dict:
-    """The samples of a capture file as arrays (valid samples only), for a recording."""
+def read_capture_file(path) -> SampleBatch:
+    """Every sample of a capture file (lost ones flagged), for cleaning into a recording."""
     data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     if data.size == 0:
-        return {"t_s": np.zeros(0), "points_m": np.zeros((0, 3))}
-    valid = data[:, 8] > 0.5
-    data = data[valid & np.isfinite(data[:, 1:4]).all(axis=1)]
+        data = np.zeros((0, 9))
+    # Times must increase: keep the first of repeated stamps.
+    keep = np.concatenate(([True], np.diff(data[:, 0]) > 0)) if len(data) else np.zeros(0, bool)
+    data = data[keep]
     quats = data[:, 4:8]
-    has_q = np.isfinite(quats).all()
-    # Times must increase for a recording: keep the first of repeated stamps.
-    keep = np.concatenate(([True], np.diff(data[:, 0]) > 0))
-    data, quats = data[keep], quats[keep]
-    return {
-        "t_s": data[:, 0],
-        "points_m": data[:, 1:4],
-        "orientations_xyzw": quats if has_q and len(quats) else None,
-    }
+    has_q = len(quats) > 0 and bool(np.isfinite(quats[data[:, 8] > 0.5]).all())
+    return SampleBatch(
+        t_s=data[:, 0],
+        position_m=data[:, 1:4],
+        orientation_xyzw=quats if has_q else None,
+        valid=data[:, 8] > 0.5,
+    )

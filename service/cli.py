@@ -62,6 +62,31 @@ def _vector3(value: str) -> tuple[float, float, float]:
     return parts  # type: ignore[return-value]
 
 
+def _trace_options(parser: argparse.ArgumentParser, *, tip: bool = True) -> None:
+    parser.add_argument(
+        "--path-format",
+        choices=("csv", "motive", "c3d"),
+        help="format of the trace (default from the suffix; Motive exports are recognised)",
+    )
+    parser.add_argument("--rigid-body", metavar="NAME", help="Motive: the pen's rigid body")
+    parser.add_argument("--marker", metavar="NAME", help="Motive or C3D: a single marker")
+    if tip:
+        parser.add_argument(
+            "--tip-calibration",
+            metavar="TIP.json",
+            help="pen-tip offset (teachpath calibrate pivot); default: the tracked point itself",
+        )
+        parser.add_argument(
+            "--piece",
+            type=int,
+            help="when long dropouts split the trace: which piece (0-based; default the longest)",
+        )
+
+
+def _scan_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scan-format", help="format of the scan (default from the suffix)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _OneLineParser(
         prog="teachpath",
@@ -71,21 +96,33 @@ def build_parser() -> argparse.ArgumentParser:
 
     rec = commands.add_parser(
         "reconstruct",
-        help="reconstruct a traced path (CSV) with a scan (PLY/PCD/XYZ)",
+        help="reconstruct a traced path with a scan of the workpiece",
         description="Reconstruct a traced path, using the scan's structure where there is one. "
         "Writes the path (x,y,z, metres) with per-point diagnostics as CSV.",
     )
     rec.add_argument(
         "path_file",
         metavar="PATH_FILE",
-        help="trace CSV with a header naming x,y,z (optionally t, qx,qy,qz,qw)",
+        help="the trace: canonical CSV (x,y,z, optionally t, qx,qy,qz,qw), Motive CSV export "
+        "or C3D",
     )
-    rec.add_argument("--scan", metavar="SCAN_FILE", help="scan of the workpiece: PLY, PCD or XYZ")
+    _trace_options(rec)
+    rec.add_argument(
+        "--scan",
+        metavar="SCAN_FILE",
+        help="scan of the workpiece (PLY, PCD, XYZ, E57, RGB-D, ...; see the README)",
+    )
+    _scan_options(rec)
     rec.add_argument(
         "--units",
         choices=("m", "mm"),
-        default="m",
-        help="length unit of both input files (default: m)",
+        help="length unit of input files that do not state theirs (default: m)",
+    )
+    rec.add_argument(
+        "--scan-from-tracker",
+        metavar="T.json",
+        help="stored calibration T_scan_tracker: the initial guess for registration (or the "
+        "transform itself with --no-register)",
     )
     rec.add_argument("--radius-m", type=_positive, help="reconstruction radius r (default 0.008)")
     rec.add_argument("--alpha", type=_alpha, help="path weight in [0, 1] or 'auto' (default auto)")
@@ -118,7 +155,15 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument(
         "--scan", metavar="SCAN_FILE", help="the scan the path follows (tool axis from its normals)"
     )
-    plan.add_argument("--units", choices=("m", "mm"), default="m", help="unit of the scan file")
+    _scan_options(plan)
+    plan.add_argument(
+        "--units", choices=("m", "mm"), help="unit of the scan file if it does not state one"
+    )
+    plan.add_argument(
+        "--scan-from-tracker",
+        metavar="T.json",
+        help="stored calibration T_scan_tracker (initial guess for finding the scan's normals)",
+    )
     plan.add_argument("--robot", default="ur5e", help="UR model (default ur5e)")
     plan.add_argument("--speed-m-s", type=_positive, required=True, help="TCP speed")
     plan.add_argument(
@@ -166,6 +211,40 @@ def build_parser() -> argparse.ArgumentParser:
         help="movepath: largest TCP deviation of the waypoints from the plan (default 0.0005)",
     )
     dry.set_defaults(handler=_cmd_dry_run)
+
+    calibrate = commands.add_parser(
+        "calibrate",
+        help="pen-tip (pivot) and tracker-to-robot (point pairs) calibrations",
+        description="Compute a calibration, print its residuals and save it as JSON.",
+    )
+    kinds = calibrate.add_subparsers(dest="kind", required=True, parser_class=_OneLineParser)
+    pivot = kinds.add_parser(
+        "pivot",
+        help="the pen's tip offset from a pivoting recording",
+        description="The tip stays on one point while the pen is tilted in every direction; "
+        "the least-squares pivot gives the tip in the rigid body's frame. Pass the result to "
+        "reconstruct with --tip-calibration.",
+    )
+    pivot.add_argument("recording", metavar="REC", help="recording with orientations")
+    _trace_options(pivot, tip=False)
+    pivot.add_argument("--units", choices=("m", "mm"), help="unit if the file states none")
+    pivot.add_argument("--out", required=True, metavar="TIP.json")
+    pivot.set_defaults(handler=_cmd_calibrate_pivot)
+    base = kinds.add_parser(
+        "base",
+        help="T_base_tracker from point pairs",
+        description="PAIRS.csv has a header naming base_x,base_y,base_z,tracker_x,tracker_y,"
+        "tracker_z: the same physical points (touched by the robot's TCP and by the tracked "
+        "tip) in both frames, at least 3 not on a line. Pairs that disagree with the others "
+        "by more than the tolerance are reported and left out.",
+    )
+    base.add_argument("pairs", metavar="PAIRS.csv")
+    base.add_argument("--units", choices=("m", "mm"), default="m", help="unit of the pairs")
+    base.add_argument(
+        "--tolerance-m", type=_positive, default=1e-3, help="largest acceptable pair error"
+    )
+    base.add_argument("--out", required=True, metavar="T_base_tracker.json")
+    base.set_defaults(handler=_cmd_calibrate_base)
 
     serve = commands.add_parser(
         "serve",
@@ -245,25 +324,28 @@ def _check_output(path: str, suffix: str) -> Path:
 
 
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
+    from drivers.calibration import read_calibration
     from drivers.export import write_reconstruction_csv
     from drivers.scanning.pointcloud import read_scan
-    from drivers.tracking.canonical_csv import read_trace_csv
     from recon.reconstruct import reconstruct
 
     out = _check_output(args.out, ".csv")
     plot = _check_output(args.plot, ".png") if args.plot else None
     params = _params_from(args)
-    recording = read_trace_csv(args.path_file, units=args.units)
+    T_scan_tracker = None
+    if args.scan_from_tracker:
+        T_scan_tracker = read_calibration(args.scan_from_tracker, expect="T_scan_tracker").matrix
+    recording = _read_trace_for(args)
     scan = None
     if args.scan:
-        scan_file = read_scan(args.scan, units=args.units)
+        scan_file = read_scan(args.scan, units=args.units or "m", fmt=args.scan_format)
         scan = scan_file.scan
         if scan_file.n_dropped:
             print(
                 f"note: {scan_file.n_dropped} scan points without finite coordinates were left out",
                 file=sys.stderr,
             )
-    recon = reconstruct(recording, scan, params=params)
+    recon = reconstruct(recording, scan, params=params, T_scan_tracker_init=T_scan_tracker)
     if plot is not None:
         # Written first: if the plot fails, no CSV claims the run succeeded.
         from recon.align import apply_transform, invert_transform
@@ -279,6 +361,110 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
         plot_reconstruction(plot, recon, scan_m=scan_tracker, title=Path(args.path_file).name)
     write_reconstruction_csv(out, recon)
     print(summary(recon))
+    return 0
+
+
+def _read_trace_for(args: argparse.Namespace):
+    """The trace of a command, with its tip calibration applied and its gaps cleaned; what the
+    cleaning did goes to stderr."""
+    from drivers.calibration import read_tip_calibration
+    from drivers.tracking.readers import read_trace
+
+    tip = None
+    if getattr(args, "tip_calibration", None):
+        tip = read_tip_calibration(args.tip_calibration).offset_m
+    trace = read_trace(
+        args.path_file,
+        fmt=args.path_format,
+        units=args.units,
+        rigid_body=args.rigid_body,
+        marker=args.marker,
+        tip_offset_m=tip,
+        piece=args.piece,
+    )
+    report = trace.clean.report
+    if report.events or len(trace.clean.pieces) > 1:
+        for line in report.lines():
+            print(f"note: {line}", file=sys.stderr)
+        if len(trace.clean.pieces) > 1:
+            start, end = report.pieces[trace.piece]
+            print(
+                f"note: using piece {trace.piece} ({start:.2f}-{end:.2f} s) of "
+                f"{len(trace.clean.pieces)}; choose another with --piece",
+                file=sys.stderr,
+            )
+    return trace.recording
+
+
+def _cmd_calibrate_pivot(args: argparse.Namespace) -> int:
+    from drivers.calibration import write_tip_calibration
+    from drivers.tracking.readers import read_raw_trace, require_orientations
+    from recon.calibrate import pivot_calibration
+
+    out = _check_output(args.out, ".json")
+    raw = read_raw_trace(
+        args.recording,
+        fmt=args.path_format,
+        units=args.units,
+        rigid_body=args.rigid_body,
+        marker=args.marker,
+    )
+    require_orientations(raw, "a pivot calibration")
+    batch = raw.batch
+    good = (
+        np.asarray(batch.valid, dtype=bool)
+        & np.isfinite(batch.position_m).all(axis=1)
+        & np.isfinite(batch.orientation_xyzw).all(axis=1)
+    )
+    q = batch.orientation_xyzw[good]
+    result = pivot_calibration(batch.position_m[good], q / np.linalg.norm(q, axis=1)[:, None])
+    mm = 1e3
+    x, y, z = result.tip_offset_m * mm
+    print(
+        f"tip offset ({x:.2f}, {y:.2f}, {z:.2f}) mm in the rigid body's frame; residual "
+        f"{result.residual_rms_m * mm:.3f} mm RMS, {result.residual_max_m * mm:.3f} mm max; pen "
+        f"turned {result.rotation_spread_deg:.0f} deg; {result.n_used} samples used, "
+        f"{result.n_rejected} rejected, {int(np.count_nonzero(~good))} lost"
+    )
+    write_tip_calibration(
+        out,
+        result.tip_offset_m,
+        rigid_body=raw.meta.get("rigid_body"),
+        residual_rms_m=result.residual_rms_m,
+        extra={
+            "residual_max_m": result.residual_max_m,
+            "pivot_point_m": result.pivot_point_m.tolist(),
+            "rotation_spread_deg": result.rotation_spread_deg,
+            "n_used": result.n_used,
+            "n_rejected": result.n_rejected,
+            "source": Path(args.recording).name,
+        },
+    )
+    return 0
+
+
+def _cmd_calibrate_base(args: argparse.Namespace) -> int:
+    from drivers.calibration import write_calibration
+    from drivers.tracking.point_pairs import read_point_pairs
+    from recon.calibrate import fit_point_pairs
+
+    out = _check_output(args.out, ".json")
+    base_m, tracker_m = read_point_pairs(args.pairs, units=args.units)
+    fit = fit_point_pairs(base_m, tracker_m, tolerance_m=args.tolerance_m)
+    print("\n".join(fit.lines()))
+    write_calibration(
+        out,
+        "T_base_tracker",
+        fit.T_a_b,
+        residual_rms_m=fit.residual_rms_m,
+        extra={
+            "residuals_m": fit.residuals_m.tolist(),
+            "leave_one_out_m": [None if np.isnan(v) else v for v in fit.leave_one_out_m],
+            "used": fit.used.tolist(),
+            "tolerance_m": fit.tolerance_m,
+            "source": Path(args.pairs).name,
+        },
+    )
     return 0
 
 
@@ -328,13 +514,17 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     if args.base_from_tracker:
         T_base_tracker = read_calibration(args.base_from_tracker, expect="T_base_tracker").matrix
     normals = None
+    T_scan_tracker = None
+    if args.scan_from_tracker:
+        T_scan_tracker = read_calibration(args.scan_from_tracker, expect="T_scan_tracker").matrix
     if args.scan and params.orientation in ("auto", "scan"):
-        scan = read_scan(args.scan, units=args.units).scan
+        scan = read_scan(args.scan, units=args.units or "m", fmt=args.scan_format).scan
         normals, _ = normals_from_scan(
             recon.points_m,
             recon.mode,
             scan,
             approach_tracker=approach_in(T_base_tracker, params.approach),
+            T_scan_tracker_init=T_scan_tracker,
         )
     plan = plan_path(
         recon.points_m,

@@ -13,14 +13,17 @@ import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from drivers.errors import InputFileError
+from drivers.tracking.gaps import apply_tip_offset, clean_trace
 from service import tasks
 from service.captures import CaptureRunner, read_capture_file
 from service.errors import ApiError, not_found
 from service.executions import ExecutionRunner
 from service.jobs import JobManager
 from service.settings import Settings
-from service.store import KINDS, ArtifactRow, SessionRow, Store, iso, new_id
+from service.store import KINDS, ArtifactRow, SessionRow, Store, iso, new_id, now
 
 log = logging.getLogger("teachpath.service")
 
@@ -57,11 +60,28 @@ class AppContext:
     # -- uploads -----------------------------------------------------------------------------
 
     async def add_recording(
-        self, session_id: str, content: bytes, filename: str, fmt: str | None, units: str
+        self,
+        session_id: str,
+        content: bytes,
+        filename: str,
+        fmt: str | None,
+        units: str | None,
+        *,
+        rigid_body: str | None = None,
+        marker: str | None = None,
+        piece: int | None = None,
     ) -> ArtifactRow:
-        self.session(session_id)
+        session = self.session(session_id)
         arrays, summary = await self.jobs.run(
-            tasks.parse_recording_task, content, filename, fmt, units
+            tasks.parse_recording_task,
+            content,
+            filename,
+            fmt,
+            units,
+            rigid_body,
+            marker,
+            self._tip_for(session, marker),
+            piece,
         )
         artifact_id = new_id(KINDS["recording"])
         row = self._store_arrays(
@@ -69,13 +89,28 @@ class AppContext:
             "recording",
             artifact_id,
             arrays,
-            params={"format": summary["format"], "units": units},
+            params={
+                "format": summary["format"],
+                "units": summary.get("units") or units,
+                "rigid_body": rigid_body,
+                "marker": marker,
+                "piece": summary.get("piece"),
+                "tip_offset_m": session.tip_offset_m if summary["tip_offset_applied"] else None,
+            },
             summary=summary,
             source_name=filename,
         )
         self._keep_upload(artifact_id, filename, content)
         self.store.update_session(session_id, recording_id=artifact_id)
         return row
+
+    @staticmethod
+    def _tip_for(session: SessionRow, marker: str | None):
+        """The session's tip offset, for recordings of a rigid body (a single marker has no
+        orientation to carry an offset)."""
+        if session.tip_offset_m is None or marker is not None:
+            return None
+        return session.tip_offset_m
 
     async def add_scan(
         self, session_id: str, content: bytes, filename: str, fmt: str | None, units: str
@@ -95,6 +130,61 @@ class AppContext:
         self._keep_upload(artifact_id, filename, content)
         self.store.update_session(session_id, scan_id=artifact_id)
         return row
+
+    # -- calibrations ------------------------------------------------------------------------
+
+    def set_calibration(self, session_id: str, request) -> SessionRow:
+        """Set the calibrations named in the request (an explicit null clears one)."""
+        self.session(session_id)
+        fields = {name: getattr(request, name) for name in request.model_fields_set}
+        return self.store.update_session(session_id, **fields)
+
+    async def pivot_calibration(
+        self,
+        session_id: str,
+        content: bytes,
+        filename: str,
+        fmt: str | None,
+        units: str | None,
+        rigid_body: str | None,
+    ) -> tuple[SessionRow, dict]:
+        session = self.session(session_id)
+        result = await self.jobs.run(
+            tasks.pivot_task, content, filename, fmt, units, rigid_body, None
+        )
+        report = dict(session.calibration_report or {})
+        report["pivot"] = {**result, "source_name": filename, "at": now().isoformat()}
+        row = self.store.update_session(
+            session_id, tip_offset_m=result["tip_offset_m"], calibration_report=report
+        )
+        return row, result
+
+    def base_calibration(self, session_id: str, request) -> tuple[SessionRow, dict]:
+        session = self.session(session_id)
+        from recon.calibrate import fit_point_pairs
+
+        scale = 1e-3 if request.units == "mm" else 1.0
+        base = [pair.base for pair in request.pairs]
+        tracker = [pair.tracker for pair in request.pairs]
+        fit = fit_point_pairs(
+            np.array(base) * scale, np.array(tracker) * scale, tolerance_m=request.tolerance_m
+        )
+        result = {
+            "T_base_tracker": fit.T_a_b.tolist(),
+            "residuals_m": fit.residuals_m.tolist(),
+            "leave_one_out_m": [None if np.isnan(v) else float(v) for v in fit.leave_one_out_m],
+            "residual_rms_m": fit.residual_rms_m,
+            "suspect": fit.suspect.tolist(),
+            "used": fit.used.tolist(),
+            "tolerance_m": fit.tolerance_m,
+            "report": fit.lines(),
+        }
+        report = dict(session.calibration_report or {})
+        report["base"] = {**result, "at": now().isoformat()}
+        row = self.store.update_session(
+            session_id, T_base_tracker=result["T_base_tracker"], calibration_report=report
+        )
+        return row, result
 
     def _keep_upload(self, artifact_id: str, filename: str, content: bytes) -> None:
         """The original bytes too: raw inputs are kept as they came."""
@@ -145,13 +235,17 @@ class AppContext:
             scan_id = request.scan_id or session.scan_id
             if scan_id is not None:
                 scan = self.artifact(session_id, "scan", scan_id)
-        params = request.model_dump(exclude={"recording_id", "scan_id", "use_scan", "registration"})
+        params = request.model_dump(
+            exclude={"recording_id", "scan_id", "use_scan", "registration", "T_scan_tracker"}
+        )
         params["register"] = request.registration
+        T_init = request.T_scan_tracker or session.T_scan_tracker
         from recon.types import ReconParams
 
         ReconParams(**params)  # refuse bad combinations now, not in the worker
         out_id = new_id(KINDS["reconstruction"])
         inputs = {"recording_id": recording.id, "scan_id": scan.id if scan else None}
+        stored_params = {**params, "T_scan_tracker_init": T_init if scan else None}
 
         def done(summary: dict) -> dict:
             self.store.add_file_artifact(
@@ -160,7 +254,7 @@ class AppContext:
                 kind="reconstruction",
                 path=f"arrays/{out_id}.npz",
                 inputs=inputs,
-                params=params,
+                params=stored_params,
                 summary=summary,
             )
             return {"reconstruction_id": out_id}
@@ -168,7 +262,7 @@ class AppContext:
         job = self.jobs.submit(
             session_id,
             "reconstruction",
-            {**params, **inputs},
+            {**stored_params, **inputs},
             tasks.reconstruct_task,
             (
                 str(self.store.path_of(recording)),
@@ -176,6 +270,7 @@ class AppContext:
                 params,
                 str(self.store.data_dir / f"arrays/{out_id}.npz"),
                 str(self.preview_path(out_id)),
+                T_init if scan else None,
             ),
             done,
         )
@@ -199,6 +294,7 @@ class AppContext:
         if scan_id:
             scan = self.store.artifact(scan_id, kind="scan")
         registration = recon.summary.get("registration") or {}
+        T_scan_tracker = recon.summary.get("T_scan_tracker") or registration.get("T_scan_tracker")
         out_id = new_id(KINDS["trajectory"])
         inputs = {"reconstruction_id": recon.id, "scan_id": scan_id}
         stored_params = {**params, "T_base_tracker": T}
@@ -225,7 +321,7 @@ class AppContext:
                 str(self.store.path_of(scan)) if scan else None,
                 params,
                 T,
-                registration.get("T_scan_tracker"),
+                T_scan_tracker,
                 str(self.store.data_dir / f"arrays/{out_id}.npz"),
             ),
             done,
@@ -443,24 +539,41 @@ class AppContext:
     def finish_capture(self, capture_id: str, state: str, error: str | None) -> None:
         """Turn a capture's file into a recording (also for one interrupted by a restart)."""
         row = self.store.capture(capture_id)
+        session = self.store.session(row.session_id)
         recording_id = None
         try:
-            arrays = read_capture_file(self.store.data_dir / row.path)
-            if len(arrays["points_m"]) >= 2:
-                recording_id = new_id(KINDS["recording"])
-                self._store_arrays(
-                    row.session_id,
-                    "recording",
-                    recording_id,
-                    arrays,
-                    inputs={"capture_id": capture_id},
-                    params={"format": "capture"},
-                    summary=tasks.recording_summary(arrays, "capture"),
-                )
-                self.store.update_session(row.session_id, recording_id=recording_id)
-            elif error is None:
-                error = "fewer than two valid samples were received"
-        except (OSError, ValueError, InputFileError) as exc:
+            raw = read_capture_file(self.store.data_dir / row.path)
+            tip = session.tip_offset_m if raw.orientation_xyzw is not None else None
+            if tip is not None:
+                raw = apply_tip_offset(raw, np.array(tip))
+            clean = clean_trace(raw)
+            index = clean.longest()
+            arrays = tasks.recording_arrays(clean.pieces[index])
+            recording_id = new_id(KINDS["recording"])
+            summary = tasks.recording_summary(arrays, "capture")
+            summary.update(
+                piece=index,
+                n_pieces=len(clean.pieces),
+                gaps=clean.report.as_dict(),
+                gap_report=clean.report.lines(),
+                tip_offset_applied=tip is not None,
+            )
+            self._store_arrays(
+                row.session_id,
+                "recording",
+                recording_id,
+                arrays,
+                inputs={"capture_id": capture_id},
+                params={"format": "capture", "tip_offset_m": tip, "piece": index},
+                summary=summary,
+            )
+            self.store.update_session(row.session_id, recording_id=recording_id)
+        except InputFileError as exc:
+            recording_id = None
+            if error is None:
+                error = f"nothing usable was received: {exc}"
+        except (OSError, ValueError) as exc:
+            recording_id = None
             state, error = "failed", f"the capture file could not be read: {exc}"
         self.store.update_capture(capture_id, state=state, recording_id=recording_id, error=error)
         self.captures.pop(capture_id, None)
@@ -537,6 +650,9 @@ def session_json(row: SessionRow) -> dict:
         "recording_id": row.recording_id,
         "scan_id": row.scan_id,
         "T_base_tracker": row.T_base_tracker,
+        "T_scan_tracker": row.T_scan_tracker,
+        "tip_offset_m": row.tip_offset_m,
+        "calibration_report": row.calibration_report,
     }
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 Matrix4 = list[list[float]]
 
@@ -46,9 +46,48 @@ class SessionCreate(Strict):
 
 
 class CalibrationIn(Strict):
-    T_base_tracker: Matrix4 = Field(..., description="4x4, metres: tracker -> robot base")
+    """Calibrations to set; fields left out keep their value, an explicit null clears one."""
 
-    _matrix = field_validator("T_base_tracker")(_check_matrix)
+    T_base_tracker: Matrix4 | None = Field(None, description="4x4, metres: tracker -> robot base")
+    T_scan_tracker: Matrix4 | None = Field(
+        None, description="4x4, metres: tracker -> scan (initial guess for registration)"
+    )
+    tip_offset_m: tuple[float, float, float] | None = Field(
+        None, description="the pen's tip in its rigid body's frame, metres"
+    )
+
+    _matrix = field_validator("T_base_tracker", "T_scan_tracker")(_check_matrix)
+
+    @field_validator("tip_offset_m")
+    @classmethod
+    def _tip(cls, value):
+        if value is not None and not all(math.isfinite(v) and abs(v) <= 1.0 for v in value):
+            raise ValueError("tip_offset_m must be finite and within 1 m of the rigid body")
+        return value
+
+    @model_validator(mode="after")
+    def _something(self):
+        if not self.model_fields_set:
+            raise ValueError("name at least one of T_base_tracker, T_scan_tracker, tip_offset_m")
+        return self
+
+
+class PointPair(Strict):
+    base: tuple[float, float, float] = Field(..., description="the point in the base frame")
+    tracker: tuple[float, float, float] = Field(..., description="the point in the tracker frame")
+
+    @field_validator("base", "tracker")
+    @classmethod
+    def _finite(cls, value):
+        if not all(math.isfinite(v) for v in value):
+            raise ValueError("coordinates must be finite numbers")
+        return value
+
+
+class BaseCalibrationIn(Strict):
+    pairs: list[PointPair] = Field(..., min_length=3, max_length=1000)
+    units: Literal["m", "mm"] = "m"
+    tolerance_m: float = Field(1e-3, gt=0, le=0.1)
 
 
 class SessionOut(BaseModel):
@@ -58,6 +97,14 @@ class SessionOut(BaseModel):
     recording_id: str | None
     scan_id: str | None
     T_base_tracker: Matrix4 | None
+    T_scan_tracker: Matrix4 | None = None
+    tip_offset_m: list[float] | None = None
+    calibration_report: dict[str, Any] | None = None
+
+
+class CalibrationResult(BaseModel):
+    session: SessionOut
+    result: dict[str, Any]
 
 
 class ArtifactOut(BaseModel):
@@ -100,6 +147,13 @@ class ReconstructionCreate(Strict):
     registration: bool = Field(
         True, description="register the path to the scan (ICP); false trusts the frames as given"
     )
+    T_scan_tracker: Matrix4 | None = Field(
+        None,
+        description="initial guess for registration (or the transform used without it); "
+        "default: the session's",
+    )
+
+    _matrix = field_validator("T_scan_tracker")(_check_matrix)
 
     @field_validator("alpha")
     @classmethod

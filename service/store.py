@@ -79,6 +79,10 @@ class SessionRow(Base):
     recording_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
     scan_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
     T_base_tracker: Mapped[list[Any] | None] = mapped_column(JSON, nullable=True)
+    T_scan_tracker: Mapped[list[Any] | None] = mapped_column(JSON, nullable=True)
+    tip_offset_m: Mapped[list[float] | None] = mapped_column(JSON, nullable=True)
+    #: How the calibrations were obtained (residuals of the fits, dates).
+    calibration_report: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
 
 
 class ArtifactRow(Base):
@@ -159,6 +163,7 @@ class Store:
                 cursor.close()
 
         Base.metadata.create_all(self.engine)
+        _add_missing_columns(self.engine)
         self.db = sessionmaker(self.engine, expire_on_commit=False)
         # The latest state of each job, kept with every write: status polls are the hottest
         # path of the API and need no database round trip. The database is the record.
@@ -408,3 +413,28 @@ def _default(value):
     if isinstance(value, Path):
         return str(value)
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _add_missing_columns(engine) -> None:
+    """Bring a database made by an earlier version up to date.
+
+    Only additive changes have happened so far: new nullable columns, added here with
+    ALTER TABLE so an existing data folder keeps working after an upgrade. A change that is
+    not additive needs a real migration tool (Alembic) and a note in the README.
+    """
+    from sqlalchemy import inspect, text
+
+    inspector = inspect(engine)
+    with engine.begin() as conn:
+        for table in Base.metadata.sorted_tables:
+            present = {c["name"] for c in inspector.get_columns(table.name)}
+            for column in table.columns:
+                if column.name in present:
+                    continue
+                if not column.nullable:
+                    raise RuntimeError(
+                        f"the database lacks the non-nullable column {table.name}.{column.name}; "
+                        "it was made by an incompatible version of teachpath"
+                    )
+                kind = column.type.compile(dialect=engine.dialect)
+                conn.execute(text(f'ALTER TABLE {table.name} ADD COLUMN "{column.name}" {kind}'))

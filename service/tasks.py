@@ -53,21 +53,84 @@ def recording_summary(arrays: dict, fmt: str) -> dict:
 
 
 def parse_recording_task(
-    content: bytes, filename: str, fmt: str | None, units: str
+    content: bytes,
+    filename: str,
+    fmt: str | None,
+    units: str | None,
+    rigid_body: str | None = None,
+    marker: str | None = None,
+    tip_offset_m: list | None = None,
+    piece: int | None = None,
 ) -> tuple[dict, dict]:
-    """Parse an uploaded trace (in a worker process). Returns (arrays, summary)."""
+    """Parse an uploaded trace (in a worker process): read, move to the tip, clean, pick a
+    piece. Returns (arrays, summary)."""
     from drivers.tracking.readers import read_trace
-
-    recording, fmt_used = read_trace(content, name=filename, fmt=fmt, units=units)
     from recon.reconstruct import check_scales
 
+    trace = read_trace(
+        content,
+        name=filename,
+        fmt=fmt,
+        units=units,
+        rigid_body=rigid_body,
+        marker=marker,
+        tip_offset_m=None if tip_offset_m is None else np.array(tip_offset_m),
+        piece=piece,
+    )
+    recording = trace.recording
     check_scales(recording.points_m, None)
-    arrays = {
+    arrays = recording_arrays(recording)
+    summary = recording_summary(arrays, trace.format)
+    summary.update(trace.summary())
+    summary["tip_offset_applied"] = tip_offset_m is not None
+    return arrays, summary
+
+
+def recording_arrays(recording: Recording) -> dict:
+    return {
         "points_m": np.array(recording.points_m),
         "t_s": recording.t_s,
         "orientations_xyzw": recording.orientations_xyzw,
     }
-    return arrays, recording_summary(arrays, fmt_used)
+
+
+def pivot_task(
+    content: bytes,
+    filename: str,
+    fmt: str | None,
+    units: str | None,
+    rigid_body: str | None,
+    marker: str | None,
+) -> dict:
+    """A pivot calibration from an uploaded recording (in a worker process)."""
+    from drivers.tracking.readers import read_raw_trace, require_orientations
+    from recon.calibrate import pivot_calibration
+
+    raw = read_raw_trace(
+        content, name=filename, fmt=fmt, units=units, rigid_body=rigid_body, marker=marker
+    )
+    require_orientations(raw, "a pivot calibration")
+    batch = raw.batch
+    q = np.asarray(batch.orientation_xyzw, dtype=np.float64)
+    good = (
+        np.asarray(batch.valid, dtype=bool)
+        & np.isfinite(batch.position_m).all(axis=1)
+        & np.isfinite(q).all(axis=1)
+    )
+    q = q[good] / np.linalg.norm(q[good], axis=1)[:, None]
+    result = pivot_calibration(np.asarray(batch.position_m)[good], q)
+    return {
+        "tip_offset_m": result.tip_offset_m.tolist(),
+        "pivot_point_m": result.pivot_point_m.tolist(),
+        "residual_rms_m": result.residual_rms_m,
+        "residual_max_m": result.residual_max_m,
+        "rotation_spread_deg": result.rotation_spread_deg,
+        "n_used": result.n_used,
+        "n_rejected": result.n_rejected,
+        "n_lost": int(np.count_nonzero(~good)),
+        "rigid_body": raw.meta.get("rigid_body"),
+        "format": raw.format,
+    }
 
 
 def parse_scan_task(
@@ -91,7 +154,12 @@ def parse_scan_task(
 
 
 def reconstruct_task(
-    recording_path: str, scan_path: str | None, params: dict, out_path: str, preview_path: str
+    recording_path: str,
+    scan_path: str | None,
+    params: dict,
+    out_path: str,
+    preview_path: str,
+    T_scan_tracker_init: list | None = None,
 ) -> dict:
     """Reconstruct; write the result's arrays and a PNG preview; return a summary."""
     from recon.align import apply_transform, invert_transform
@@ -100,8 +168,11 @@ def reconstruct_task(
 
     recording = recording_from(_load(recording_path))
     scan = scan_from(_load(scan_path)) if scan_path else None
-    recon = reconstruct(recording, scan, params=ReconParams(**params))
+    init = None if T_scan_tracker_init is None else np.array(T_scan_tracker_init)
+    recon = reconstruct(recording, scan, params=ReconParams(**params), T_scan_tracker_init=init)
     reg = recon.registration
+    # The scan's frame as used: registered, else the stored calibration, else the tracker's.
+    T_used = reg.T_scan_tracker if reg is not None else init
     _save(
         Path(out_path),
         {
@@ -117,12 +188,12 @@ def reconstruct_task(
             "residual_path_m": recon.residual_path_m,
             "residual_surface_m": recon.residual_surface_m,
             "alpha": recon.alpha,
-            "T_scan_tracker": None if reg is None else reg.T_scan_tracker,
+            "T_scan_tracker": T_used,
         },
     )
     scan_tracker = None
     if scan is not None:
-        T = np.eye(4) if reg is None else invert_transform(reg.T_scan_tracker)
+        T = np.eye(4) if T_used is None else invert_transform(T_used)
         scan_tracker = apply_transform(T, scan.points_m)
     plot_reconstruction(preview_path, recon, scan_m=scan_tracker, title="reconstruction")
     return {
@@ -131,6 +202,7 @@ def reconstruct_task(
         "mean_displacement_m": float(recon.displacement_m.mean()),
         "max_displacement_m": float(recon.displacement_m.max()),
         "segments": [asdict(s) for s in recon.segments],
+        "T_scan_tracker": None if T_used is None else T_used.tolist(),
         "registration": None
         if reg is None
         else {

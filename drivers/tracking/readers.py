@@ -1,28 +1,122 @@
-"""Trace files, read by format (from the suffix or given): the readers of drivers/tracking."""
+"""Trace files in any supported format, turned into clean pieces of pen-tip path.
+
+A reader turns a file into a raw :class:`~drivers.tracking.base.SampleBatch` (every sample,
+lost ones flagged); :func:`read_trace` then moves the samples to the pen's tip (with a tip
+calibration), cleans dropouts and outliers (:mod:`drivers.tracking.gaps`) and picks a piece.
+
+Formats are registered by name and imported lazily: ``csv`` (the canonical
+``t,x,y,z,qx,qy,qz,qw``), ``motive`` (OptiTrack Motive CSV exports, which share the ``.csv``
+suffix and are told apart by their first line) and ``c3d`` (marker files).
+"""
 
 from __future__ import annotations
 
+import importlib
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from drivers.errors import UnknownFormatError
-from drivers.tracking.canonical_csv import read_trace_csv
-from recon.types import Recording
+import numpy as np
 
-#: Format name -> reader(source, units=..., **options) -> Recording.
-TRACE_READERS = {"csv": read_trace_csv}
-#: File suffix -> format name.
-TRACE_SUFFIXES = {".csv": "csv"}
+from drivers.errors import InputFileError, UnknownFormatError
+from drivers.tracking.base import SampleBatch
+from drivers.tracking.gaps import CleanTrace, GapParams, apply_tip_offset, clean_trace
+from recon.types import FloatArray, Recording
 
 
-def read_trace(
+@dataclass(frozen=True)
+class RawTrace:
+    """What a reader found in a file.
+
+    Attributes
+    ----------
+    batch : SampleBatch
+        Every sample (rigid-body origin or marker, tracker frame, metres), lost ones flagged.
+    format : str
+    rate_hz : float or None
+        The tracker's frame rate, when the file states it.
+    meta : dict
+        Format-specific facts worth reporting (rigid body, marker, units, take name, ...).
+    """
+
+    batch: SampleBatch
+    format: str
+    rate_hz: float | None = None
+    meta: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class TraceFile:
+    """A trace file read, cleaned and ready to reconstruct.
+
+    Attributes
+    ----------
+    recording : Recording
+        The chosen piece (pen tip, tracker frame).
+    raw : RawTrace
+    clean : CleanTrace
+        Every piece and the gap report.
+    piece : int
+        Index of ``recording`` in ``clean.pieces``.
+    """
+
+    recording: Recording
+    raw: RawTrace
+    clean: CleanTrace
+    piece: int
+
+    @property
+    def format(self) -> str:
+        return self.raw.format
+
+    def summary(self) -> dict:
+        """JSON-able facts: format, gaps, pieces."""
+        return {
+            "format": self.raw.format,
+            "rate_hz": self.raw.rate_hz,
+            **{k: v for k, v in self.raw.meta.items() if _jsonable(v)},
+            "piece": self.piece,
+            "n_pieces": len(self.clean.pieces),
+            "gaps": self.clean.report.as_dict(),
+            "gap_report": self.clean.report.lines(),
+        }
+
+
+#: Format name -> "module:function"; each reads (source, *, name, units, rigid_body, marker)
+#: into a RawTrace.
+TRACE_READERS: dict[str, str] = {
+    "csv": "drivers.tracking.readers:read_canonical_raw",
+    "motive": "drivers.tracking.motive_csv:read_motive_raw",
+    "c3d": "drivers.tracking.c3d:read_c3d_raw",
+}
+#: File suffix -> format name (".csv" is sniffed: canonical or Motive).
+TRACE_SUFFIXES: dict[str, str] = {".csv": "csv", ".c3d": "c3d"}
+#: The first cells of a Motive export's first line (with or without its metadata header).
+_MOTIVE_FIRST_CELLS = {"format version", "type", "frame"}
+
+
+def read_raw_trace(
     source: str | Path | bytes,
     *,
     name: str | None = None,
     fmt: str | None = None,
-    units: str = "m",
-    **options,
-) -> tuple[Recording, str]:
-    """Read a trace in any supported format. Returns (recording, format used).
+    units: str | None = None,
+    rigid_body: str | None = None,
+    marker: str | None = None,
+) -> RawTrace:
+    """Read a trace file into raw samples (no cleaning), in any supported format.
+
+    Parameters
+    ----------
+    source : path or bytes
+        The file, or its content (an upload; ``name`` then gives the suffix).
+    name : str, optional
+        File name for the suffix and for messages.
+    fmt : str, optional
+        Format name (see :data:`TRACE_READERS`); default from the suffix (and the content).
+    units : {"m", "mm"}, optional
+        Length unit where the file does not state one (canonical CSV; default metres).
+    rigid_body, marker : str, optional
+        Which rigid body (Motive) or marker (Motive, C3D) is the pen.
 
     Raises
     ------
@@ -30,20 +124,166 @@ def read_trace(
         No reader for the format or suffix.
     InputFileError
         The file is wrong for its format.
+    ValueError
+        An option that the format does not take.
     """
     label = name or ("upload" if isinstance(source, bytes) else str(source))
-    if fmt is None:
-        suffix = Path(label).suffix.lower()
-        fmt = TRACE_SUFFIXES.get(suffix)
-        if fmt is None:
-            raise UnknownFormatError(
-                f"cannot tell the trace format of {label!r} from its suffix; use one of "
-                f"{', '.join(sorted(TRACE_SUFFIXES))} or give the format "
-                f"({', '.join(sorted(TRACE_READERS))})"
-            )
-    reader = TRACE_READERS.get(fmt.lower())
-    if reader is None:
+    fmt = _format_for(source, label, fmt)
+    if rigid_body is not None and fmt != "motive":
+        raise ValueError("a rigid body name applies to Motive CSV exports only")
+    if marker is not None and fmt not in ("motive", "c3d"):
+        raise ValueError("a marker name applies to Motive CSV exports and C3D files only")
+    module_name, function_name = TRACE_READERS[fmt].split(":")
+    try:
+        reader = getattr(importlib.import_module(module_name), function_name)
+    except ImportError as exc:
         raise UnknownFormatError(
-            f"unknown trace format {fmt!r}; use one of {', '.join(sorted(TRACE_READERS))}"
+            f"the {fmt} reader needs {exc.name}, which is not installed; install teachpath "
+            "with its dependencies (pip install -e .)"
+        ) from None
+    options = {"rigid_body": rigid_body, "marker": marker}
+    options = {k: v for k, v in options.items() if v is not None}
+    return reader(source, name=label, units=units, **options)
+
+
+def read_trace(
+    source: str | Path | bytes,
+    *,
+    name: str | None = None,
+    fmt: str | None = None,
+    units: str | None = None,
+    rigid_body: str | None = None,
+    marker: str | None = None,
+    tip_offset_m: FloatArray | None = None,
+    gaps: GapParams | None = None,
+    piece: int | None = None,
+) -> TraceFile:
+    """Read a trace file, move it to the pen's tip, clean it and pick a piece.
+
+    Parameters
+    ----------
+    source, name, fmt, units, rigid_body, marker
+        See :func:`read_raw_trace`.
+    tip_offset_m : ndarray of shape (3,), optional
+        The pen's tip in its rigid body's frame (a pivot calibration); without it the tracked
+        point is used as it is (the rigid body's pivot as set in the tracker's software).
+    gaps : GapParams, optional
+        How dropouts and outliers are handled.
+    piece : int, optional
+        Which piece to return when long dropouts split the recording (0-based, time order);
+        default the longest.
+
+    Raises
+    ------
+    UnknownFormatError, InputFileError, ValueError
+        See :func:`read_raw_trace`; also a piece index out of range.
+    """
+    raw = read_raw_trace(
+        source, name=name, fmt=fmt, units=units, rigid_body=rigid_body, marker=marker
+    )
+    batch = raw.batch
+    if tip_offset_m is not None:
+        batch = apply_tip_offset(batch, tip_offset_m)
+    clean = _clean(batch, gaps)
+    if piece is None:
+        index = clean.longest()
+    elif 0 <= piece < len(clean.pieces):
+        index = piece
+    else:
+        raise ValueError(
+            f"piece {piece} does not exist: the recording has {len(clean.pieces)} piece(s) "
+            f"(0 to {len(clean.pieces) - 1})"
         )
-    return reader(source, units=units, name=label, **options), fmt.lower()
+    return TraceFile(recording=clean.pieces[index], raw=raw, clean=clean, piece=index)
+
+
+def _clean(batch: SampleBatch, gaps: GapParams | None) -> CleanTrace:
+    if batch.t_s is not None:
+        return clean_trace(batch, params=gaps)
+    # Without times there is nothing to tell a dropout by: one piece, as given.
+    from drivers.tracking.gaps import GapReport
+
+    recording = Recording(points_m=batch.position_m, orientations_xyzw=batch.orientation_xyzw)
+    report = GapReport(n_samples=len(recording), n_invalid=0, n_outliers=0, n_bridged=0)
+    return CleanTrace((recording,), (np.zeros(len(recording), dtype=bool),), report)
+
+
+def read_canonical_raw(
+    source: str | Path | bytes, *, name: str | None = None, units: str | None = None
+) -> RawTrace:
+    """The canonical CSV as raw samples (every row valid; ``t_s`` None if it has no t)."""
+    from drivers.tracking.canonical_csv import read_trace_csv
+
+    recording = read_trace_csv(source, units=units or "m", name=name)
+    batch = SampleBatch(
+        t_s=recording.t_s,
+        position_m=recording.points_m,
+        orientation_xyzw=recording.orientations_xyzw,
+        valid=np.ones(len(recording), dtype=bool),
+    )
+    rate = None
+    if recording.t_s is not None and len(recording) > 1:
+        rate = float(1.0 / np.median(np.diff(recording.t_s)))
+    return RawTrace(batch=batch, format="csv", rate_hz=rate, meta={"units": units or "m"})
+
+
+def _format_for(source: str | Path | bytes, label: str, fmt: str | None) -> str:
+    if fmt is not None:
+        fmt = fmt.lower()
+        if fmt not in TRACE_READERS:
+            raise UnknownFormatError(
+                f"unknown trace format {fmt!r}; use one of {', '.join(sorted(TRACE_READERS))}"
+            )
+        return fmt
+    suffix = Path(label).suffix.lower()
+    fmt = TRACE_SUFFIXES.get(suffix)
+    if fmt is None:
+        raise UnknownFormatError(
+            f"cannot tell the trace format of {label!r} from its suffix; use one of "
+            f"{', '.join(sorted(TRACE_SUFFIXES))} or give the format "
+            f"({', '.join(sorted(TRACE_READERS))})"
+        )
+    if fmt == "csv" and _looks_like_motive(source):
+        return "motive"
+    return fmt
+
+
+def _looks_like_motive(source: str | Path | bytes) -> bool:
+    """Motive exports start with their metadata line (``Format Version,...``) or, exported
+    without it, with the ``Type``/``Frame`` rows; canonical files with column names."""
+    try:
+        if isinstance(source, bytes):
+            head = source[:4096]
+        else:
+            with open(source, "rb") as handle:
+                head = handle.read(4096)
+    except OSError:
+        return False  # the reader reports the missing file
+    for line in head.decode("utf-8-sig", errors="replace").splitlines():
+        if line.strip(" ,\t"):
+            first = line.split(",")[0].strip().strip('"').lower()
+            return first in _MOTIVE_FIRST_CELLS
+    return False
+
+
+def _jsonable(value) -> bool:
+    return isinstance(value, (str, int, float, bool, type(None), list, tuple))
+
+
+def recording_to_batch(recording: Recording) -> SampleBatch:
+    """A recording as raw samples (all valid), e.g. to clean a capture."""
+    return SampleBatch(
+        t_s=recording.t_s,
+        position_m=recording.points_m,
+        orientation_xyzw=recording.orientations_xyzw,
+        valid=np.ones(len(recording), dtype=bool),
+    )
+
+
+def require_orientations(raw: RawTrace, what: str) -> None:
+    """Refuse a raw trace without orientations where ``what`` needs them."""
+    if raw.batch.orientation_xyzw is None:
+        raise InputFileError(
+            f"{what} needs the pen's orientation, and this {raw.format} recording has positions "
+            "only: record the pen as a rigid body (Motive) or export its quaternions"
+        )

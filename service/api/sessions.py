@@ -11,7 +11,14 @@ from fastapi import APIRouter, Depends, File, Form, Response, UploadFile
 from service.api.deps import context
 from service.context import artifact_json, session_json
 from service.errors import ApiError
-from service.schemas import ArtifactOut, CalibrationIn, SessionCreate, SessionOut
+from service.schemas import (
+    ArtifactOut,
+    BaseCalibrationIn,
+    CalibrationIn,
+    CalibrationResult,
+    SessionCreate,
+    SessionOut,
+)
 from service.store import now
 
 router = APIRouter(tags=["sessions"])
@@ -43,9 +50,38 @@ def delete_session(session_id: str, ctx=Depends(context)) -> Response:
 
 @router.put("/sessions/{session_id}/calibration", response_model=SessionOut)
 def set_calibration(session_id: str, body: CalibrationIn, ctx=Depends(context)) -> dict:
-    """Where the tracker frame sits in the robot's base frame (T_base_tracker)."""
-    ctx.session(session_id)
-    return session_json(ctx.store.update_session(session_id, T_base_tracker=body.T_base_tracker))
+    """Set calibrations: T_base_tracker (tracker -> robot base), T_scan_tracker (tracker ->
+    scan, the initial guess for registration), tip_offset_m (the pen's tip in its rigid body's
+    frame, applied to recordings uploaded or captured afterwards). Fields left out keep their
+    value; an explicit null clears one."""
+    return session_json(ctx.set_calibration(session_id, body))
+
+
+@router.post("/sessions/{session_id}/calibration/pivot", response_model=CalibrationResult)
+async def pivot_calibration(
+    session_id: str,
+    file: UploadFile = File(..., description="a recording of the pen pivoting about its tip"),
+    format: str | None = Form(None, description="csv, motive or c3d; default from the name"),
+    units: Literal["m", "mm"] | None = Form(None, description="if the file states none"),
+    rigid_body: str | None = Form(None, description="Motive: the pen's rigid body"),
+    ctx=Depends(context),
+) -> dict:
+    """Pivot calibration: the tip offset from a recording where the tip stays on one point
+    while the pen tilts in every direction. Sets the session's tip_offset_m."""
+    content = await _read_upload(file, ctx)
+    row, result = await ctx.pivot_calibration(
+        session_id, content, file.filename or "upload", format, units, rigid_body
+    )
+    return {"session": session_json(row), "result": result}
+
+
+@router.post("/sessions/{session_id}/calibration/base", response_model=CalibrationResult)
+def base_calibration(session_id: str, body: BaseCalibrationIn, ctx=Depends(context)) -> dict:
+    """T_base_tracker from point pairs (the same points in the base and tracker frames, at
+    least 3 not on a line); pairs off by more than the tolerance are reported and left out.
+    Sets the session's T_base_tracker."""
+    row, result = ctx.base_calibration(session_id, body)
+    return {"session": session_json(row), "result": result}
 
 
 async def _read_upload(file: UploadFile, ctx) -> bytes:
@@ -64,15 +100,30 @@ async def _read_upload(file: UploadFile, ctx) -> bytes:
 async def upload_recording(
     session_id: str,
     file: UploadFile = File(..., description="the trace; format from the name or `format`"),
-    format: str | None = Form(None, description="csv"),
-    units: Literal["m", "mm"] = Form("m"),
+    format: str | None = Form(None, description="csv, motive or c3d"),
+    units: Literal["m", "mm"] | None = Form(None, description="if the file states none (m)"),
+    rigid_body: str | None = Form(None, description="Motive: the pen's rigid body"),
+    marker: str | None = Form(None, description="Motive or C3D: a single marker as the pen"),
+    piece: int | None = Form(
+        None, ge=0, description="after long dropouts: which piece (default the longest)"
+    ),
     ctx=Depends(context),
 ) -> dict:
-    """Upload a trace; it becomes the session's recording. A bad file is a 422 and changes
-    nothing."""
+    """Upload a trace; it becomes the session's recording. The session's tip offset is applied,
+    short dropouts are bridged and long ones split it (the summary says what was done). A bad
+    file is a 422 and changes nothing."""
     content = await _read_upload(file, ctx)
     return artifact_json(
-        await ctx.add_recording(session_id, content, file.filename or "upload", format, units)
+        await ctx.add_recording(
+            session_id,
+            content,
+            file.filename or "upload",
+            format,
+            units,
+            rigid_body=rigid_body,
+            marker=marker,
+            piece=piece,
+        )
     )
 
 

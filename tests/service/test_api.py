@@ -106,15 +106,16 @@ BAD_TRACES = [
     ("trace.csv", b"a,b\n1,2\n", "invalid_file"),
     ("trace.csv", b"x,y,z\n0,0,0\nnan,0,0\n0.01,0,0\n", "invalid_file"),
     ("trace.csv", b"x,y,z\n0,0,0\n100,0,0\n", "units_mismatch"),
-    ("trace.c3d", b"whatever", "unknown_format"),
+    ("trace.trc", b"whatever", "unknown_format"),
     ("trace.csv", b"\xff\xfe\x00", "invalid_file"),
+    ("trace.c3d", b"whatever", "invalid_file"),
 ]
 
 
 @pytest.mark.parametrize(
     "name, content, code",
     BAD_TRACES,
-    ids=["no-columns", "nan", "mm-as-m", "unknown-format", "binary"],
+    ids=["no-columns", "nan", "mm-as-m", "unknown-format", "binary", "not-c3d"],
 )
 def test_bad_recordings_are_refused_and_change_nothing(client, session, name, content, code):
     before = client.get(f"/sessions/{session}").json()

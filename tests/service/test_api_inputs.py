@@ -1,0 +1,239 @@
+"""The inputs over REST: calibrations (set, pivot, point pairs), cleaned uploads, stored
+registration guesses, and a database from an earlier version."""
+
+from __future__ import annotations
+
+import io
+import sqlite3
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from scipy.spatial.transform import Rotation
+
+from recon.types import Recording
+from service.app import create_app
+from tests.recon.test_calibrate import PIVOT_M, TIP_M, pivot_recording
+from tests.service.conftest import AUTH, make_settings, wait
+
+
+def _csv(recording: Recording) -> bytes:
+    buffer = io.StringIO()
+    columns = ["t", "x", "y", "z"] + (
+        ["qx", "qy", "qz", "qw"] if recording.orientations_xyzw is not None else []
+    )
+    parts = [recording.t_s[:, None], recording.points_m]
+    if recording.orientations_xyzw is not None:
+        parts.append(recording.orientations_xyzw)
+    np.savetxt(buffer, np.hstack(parts), delimiter=",", header=",".join(columns), comments="")
+    return buffer.getvalue().encode()
+
+
+@pytest.fixture()
+def sid(client):
+    return client.post("/sessions", json={"name": "inputs"}).json()["id"]
+
+
+def test_calibrations_are_set_partially_and_cleared_explicitly(client, sid):
+    T = np.eye(4)
+    T[:3, 3] = [0.1, 0.2, 0.3]
+    body = client.put(f"/sessions/{sid}/calibration", json={"T_scan_tracker": T.tolist()}).json()
+    assert body["T_scan_tracker"] == T.tolist() and body["T_base_tracker"] is None
+    body = client.put(f"/sessions/{sid}/calibration", json={"tip_offset_m": [0, 0, 0.12]}).json()
+    assert body["T_scan_tracker"] == T.tolist() and body["tip_offset_m"] == [0, 0, 0.12]
+    body = client.put(f"/sessions/{sid}/calibration", json={"T_scan_tracker": None}).json()
+    assert body["T_scan_tracker"] is None and body["tip_offset_m"] == [0, 0, 0.12]
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        {},
+        {"tip_offset_m": [0, 0, 5]},
+        {"tip_offset_m": [0, 0]},
+        {"T_scan_tracker": [[1, 0]]},
+        {"T_scan_tracker": (2 * np.eye(4)).tolist()},
+        {"tip": [0, 0, 0.1]},
+    ],
+    ids=["empty", "tip-too-long", "tip-short", "not-4x4", "not-rigid", "unknown-field"],
+)
+def test_bad_calibrations_change_nothing(client, sid, body):
+    before = client.get(f"/sessions/{sid}").json()
+    response = client.put(f"/sessions/{sid}/calibration", json=body)
+    assert response.status_code == 422 and response.json()["code"] == "invalid_request"
+    assert client.get(f"/sessions/{sid}").json() == before
+
+
+def test_pivot_calibration_sets_the_tip_and_later_uploads_use_it(client, sid):
+    position, quat = pivot_recording(0)
+    t = np.arange(len(position)) / 240.0
+    pivot = Recording(points_m=position, t_s=t, orientations_xyzw=quat)
+    response = client.post(
+        f"/sessions/{sid}/calibration/pivot", files={"file": ("pivot.csv", _csv(pivot))}
+    )
+    assert response.status_code == 200, response.text
+    body = response.json()
+    assert np.linalg.norm(np.array(body["result"]["tip_offset_m"]) - TIP_M) < 2e-4
+    assert np.linalg.norm(np.array(body["result"]["pivot_point_m"]) - PIVOT_M) < 2e-4
+    assert body["session"]["tip_offset_m"] == body["result"]["tip_offset_m"]
+    assert body["session"]["calibration_report"]["pivot"]["source_name"] == "pivot.csv"
+    # A trace of the rigid body uploaded now lands on the tip: the pen held upright and moved.
+    upright = Rotation.from_euler("x", 180, degrees=True)
+    s = np.linspace(0, 0.1, 400)
+    tip_path = np.column_stack([0.3 + s, 0.2 + 0 * s, 0.05 + 0 * s])
+    body_path = tip_path - upright.apply(np.array(body["result"]["tip_offset_m"]))
+    trace = Recording(
+        points_m=body_path,
+        t_s=np.arange(len(s)) / 240.0,
+        orientations_xyzw=np.tile(upright.as_quat(), (len(s), 1)),
+    )
+    artifact = client.put(f"/sessions/{sid}/recording", files={"file": ("t.csv", _csv(trace))})
+    assert artifact.status_code == 201, artifact.text
+    assert artifact.json()["summary"]["tip_offset_applied"]
+    stored = client.get(f"/sessions/{sid}/recordings/{artifact.json()['id']}/csv").text
+    xyz = np.loadtxt(io.StringIO(stored), delimiter=",", skiprows=1)[:, 1:4]
+    np.testing.assert_allclose(xyz, tip_path, atol=1e-9)
+
+
+def test_pivot_calibration_bad_input_changes_nothing(client, sid):
+    before = client.get(f"/sessions/{sid}").json()
+    position, quat = pivot_recording(0)
+    t = np.arange(len(position)) / 240.0
+    for name, content, code in (
+        ("p.csv", _csv(Recording(points_m=position, t_s=t)), "invalid_file"),  # no quaternions
+        ("p.csv", b"x,y,z\n", "invalid_file"),
+        ("p.trc", b"...", "unknown_format"),
+    ):
+        response = client.post(
+            f"/sessions/{sid}/calibration/pivot", files={"file": (name, content)}
+        )
+        assert response.status_code == 422 and response.json()["code"] == code, response.text
+    # The pen turned about one axis only: degenerate.
+    angle = np.linspace(-0.5, 0.5, 300)
+    pen = Rotation.from_rotvec(np.column_stack([angle, 0 * angle, 0 * angle]))
+    one_axis = Recording(
+        points_m=PIVOT_M - pen.apply(TIP_M),
+        t_s=np.arange(300) / 240.0,
+        orientations_xyzw=pen.as_quat(),
+    )
+    response = client.post(
+        f"/sessions/{sid}/calibration/pivot", files={"file": ("p.csv", _csv(one_axis))}
+    )
+    assert response.status_code == 422 and "several directions" in response.json()["message"]
+    assert client.get(f"/sessions/{sid}").json() == before
+
+
+def _pairs(outlier_at=None):
+    rng = np.random.default_rng(3)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    T[:3, 3] = [0.5, -0.1, 0.02]
+    tracker = rng.uniform(-0.2, 0.2, (6, 3))
+    base = tracker @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 5e-5, (6, 3))
+    if outlier_at is not None:
+        base[outlier_at] += [0.004, 0, 0]
+    return T, [
+        {"base": b.tolist(), "tracker": t.tolist()} for b, t in zip(base, tracker, strict=True)
+    ]
+
+
+def test_base_calibration_from_point_pairs_flags_an_outlier(client, sid):
+    T, pairs = _pairs(outlier_at=2)
+    response = client.post(f"/sessions/{sid}/calibration/base", json={"pairs": pairs})
+    assert response.status_code == 200, response.text
+    result = response.json()["result"]
+    assert result["suspect"] == [False, False, True, False, False, False]
+    assert not result["used"][2] and "re-measure" in result["report"][1]
+    np.testing.assert_allclose(response.json()["session"]["T_base_tracker"], T, atol=3e-4)
+    # In millimetres, the same.
+    mm = [
+        {"base": [v * 1e3 for v in p["base"]], "tracker": [v * 1e3 for v in p["tracker"]]}
+        for p in _pairs()[1]
+    ]
+    response = client.post(f"/sessions/{sid}/calibration/base", json={"pairs": mm, "units": "mm"})
+    np.testing.assert_allclose(response.json()["result"]["T_base_tracker"], T, atol=3e-4)
+
+
+@pytest.mark.parametrize(
+    "body, code",
+    [
+        ({"pairs": _pairs()[1][:2]}, "invalid_request"),
+        ({"pairs": [{"base": [0, 0, 0], "tracker": [0, 0, float("nan")]}] * 3}, "invalid_request"),
+        (
+            {"pairs": [{"base": [i, 2 * i, 0], "tracker": [i, 2 * i, 0]} for i in range(4)]},
+            "degenerate_input",
+        ),
+        ({"pairs": _pairs()[1], "tolerance_m": 0}, "invalid_request"),
+    ],
+    ids=["two-pairs", "nan", "collinear", "zero-tolerance"],
+)
+def test_bad_point_pairs_change_nothing(client, sid, body, code):
+    import json
+
+    before = client.get(f"/sessions/{sid}").json()
+    response = client.post(
+        f"/sessions/{sid}/calibration/base",
+        content=json.dumps(body, allow_nan=True),
+        headers={**AUTH, "Content-Type": "application/json"},
+    )
+    assert response.status_code == 422 and response.json()["code"] == code, response.text
+    assert client.get(f"/sessions/{sid}").json() == before
+
+
+def test_a_trace_with_a_long_dropout_is_split_and_a_piece_can_be_chosen(client, sid):
+    t = np.concatenate([np.arange(240), np.arange(360, 840)]) / 240.0  # 0.5 s lost after 1 s
+    points = np.column_stack([0.05 * t, 0.0 * t, 0.0 * t])
+    content = _csv(Recording(points_m=points, t_s=t))
+    first = client.put(f"/sessions/{sid}/recording", files={"file": ("t.csv", content)}).json()
+    assert first["summary"]["n_pieces"] == 2 and first["summary"]["piece"] == 1
+    assert first["summary"]["n_samples"] == 480
+    assert any("split" in line for line in first["summary"]["gap_report"])
+    chosen = client.put(
+        f"/sessions/{sid}/recording", files={"file": ("t.csv", content)}, data={"piece": "0"}
+    ).json()
+    assert chosen["summary"]["piece"] == 0 and chosen["summary"]["n_samples"] == 240
+    response = client.put(
+        f"/sessions/{sid}/recording", files={"file": ("t.csv", content)}, data={"piece": "5"}
+    )
+    assert response.status_code == 422 and "piece 5 does not exist" in response.json()["message"]
+    assert client.get(f"/sessions/{sid}").json()["recording_id"] == chosen["id"]
+
+
+def test_reconstruction_starts_from_the_sessions_scan_calibration(client, scene_files):
+    sid = client.post("/sessions", json={"name": "calibrated"}).json()["id"]
+    client.put(f"/sessions/{sid}/recording", files={"file": ("trace.csv", scene_files["trace"])})
+    client.put(f"/sessions/{sid}/scan", files={"file": ("scan.ply", scene_files["scan"])})
+    from recon import scenes
+
+    T_true = scenes.box_corner(0).T_scan_tracker
+    client.put(f"/sessions/{sid}/calibration", json={"T_scan_tracker": np.asarray(T_true).tolist()})
+    job = wait(
+        client, client.post(f"/sessions/{sid}/reconstructions", json={"registration": False}).json()
+    )
+    assert job["state"] == "succeeded", job
+    recon = client.get(
+        f"/sessions/{sid}/reconstructions/{job['result']['reconstruction_id']}"
+    ).json()
+    np.testing.assert_allclose(recon["params"]["T_scan_tracker_init"], T_true)
+    np.testing.assert_allclose(recon["summary"]["T_scan_tracker"], T_true)
+
+
+def test_a_database_from_an_earlier_version_is_upgraded(tmp_path):
+    """Sessions made before the calibration columns existed keep working."""
+    data = tmp_path / "data"
+    data.mkdir()
+    with sqlite3.connect(data / "teachpath.db") as db:
+        db.execute(
+            "CREATE TABLE sessions (id VARCHAR(32) PRIMARY KEY, name VARCHAR(200), "
+            "created_at DATETIME, deleted_at DATETIME, recording_id VARCHAR(32), "
+            "scan_id VARCHAR(32), T_base_tracker JSON)"
+        )
+        db.execute(
+            "INSERT INTO sessions VALUES ('ses_old', 'old', '2026-11-01 10:00:00.000000', "
+            "NULL, NULL, NULL, NULL)"
+        )
+    with TestClient(create_app(make_settings(data)), headers=AUTH) as client:
+        body = client.get("/sessions/ses_old").json()
+        assert body["name"] == "old" and body["tip_offset_m"] is None
+        body = client.put("/sessions/ses_old/calibration", json={"tip_offset_m": [0, 0, 0.1]})
+        assert body.status_code == 200 and body.json()["tip_offset_m"] == [0, 0, 0.1]
