@@ -51,5 +51,17 @@ class TrajectoryMismatchError(RobotError):
     """The trajectory does not fit this arm (another model, rate, or start far from the arm)."""
 
 
+class TrackerError(DriverError):
+    """A tracker failed or broke off (a receiver that died, a malformed stream)."""
+
+
+class TrackerTimeoutError(TrackerError):
+    """The tracker did not answer, or stopped streaming, within the time allowed."""
+
+
+class UnknownRigidBodyError(TrackerError):
+    """The requested rigid body is not among those the tracker streams."""
+
+
 class UnknownBackendError(DriverError):
     """No robot backend is registered under that name, or its optional dependency is missing."""

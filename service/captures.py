@@ -12,6 +12,7 @@ import logging
 import os
 import threading
 import time
+import warnings
 from collections.abc import Callable
 
 import numpy as np
@@ -89,7 +90,10 @@ class CaptureRunner:
 
 def read_capture_file(path) -> SampleBatch:
     """Every sample of a capture file (lost ones flagged), for cleaning into a recording."""
-    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    with warnings.catch_warnings():
+        # A capture that received nothing has only its header: that is an answer, not a fault.
+        warnings.filterwarnings("ignore", message="loadtxt: input contained no data")
+        data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
     if data.size == 0:
         data = np.zeros((0, 9))
     # Times must increase: keep the first of repeated stamps.

@@ -512,14 +512,22 @@ class AppContext:
     def start_capture(self, session_id: str, request) -> object:
         self.session(session_id)
         source_request = request.source
-        recording = self.artifact(session_id, "recording", source_request.recording_id)
-        from drivers.tracking.base import Pacer
-        from drivers.tracking.replay import ReplaySource
+        if source_request.kind == "replay":
+            recording = self.artifact(session_id, "recording", source_request.recording_id)
+            from drivers.tracking.base import Pacer
+            from drivers.tracking.replay import ReplaySource
 
-        source = ReplaySource(
-            tasks.recording_from(self.store.read_arrays(recording)),
-            pacer=Pacer(source_request.speed),
-        )
+            source = ReplaySource(
+                tasks.recording_from(self.store.read_arrays(recording)),
+                pacer=Pacer(source_request.speed),
+            )
+        else:
+            from drivers.tracking.natnet_source import NatNetConfig, NatNetSource
+
+            # The receiver runs in a child process of its own (no frame lost to the GIL held
+            # elsewhere here); it connects when the runner asks for the first batch, and a
+            # server that does not answer fails the capture with a clear error.
+            source = NatNetSource(NatNetConfig(**source_request.model_dump(), stall_timeout_s=None))
         row = self.store.create_capture(session_id, source_request.model_dump())
         runner = CaptureRunner(self.store, row.id, source, self.finish_capture)
         self.captures[row.id] = runner

@@ -204,8 +204,28 @@ class ReplaySource(Strict):
     speed: float = Field(1.0, gt=0, le=100.0, description="times real time")
 
 
+class NatNetSourceIn(Strict):
+    kind: Literal["natnet"]
+    server: str = Field(..., min_length=1, max_length=255, description="Motive's address")
+    rigid_body: str = Field(..., min_length=1, max_length=200, description="the pen in Motive")
+    local: str = Field("127.0.0.1", description="this machine's address on Motive's network")
+    multicast: bool = False
+    command_port: int = Field(1510, ge=1, le=65535)
+    data_port: int = Field(1511, ge=1, le=65535)
+    units: Literal["m", "mm"] = "m"
+    timeout_s: float = Field(5.0, gt=0, le=60)
+
+
 class CaptureCreate(Strict):
-    source: ReplaySource
+    source: ReplaySource | NatNetSourceIn = Field(..., discriminator="kind")
+
+    @field_validator("source", mode="before")
+    @classmethod
+    def _replay_by_default(cls, value):
+        # Before live sources existed, a source was always a replay and named no kind.
+        if isinstance(value, dict) and "kind" not in value:
+            return {**value, "kind": "replay"}
+        return value
 
 
 class CaptureOut(BaseModel):

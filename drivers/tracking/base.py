@@ -78,7 +78,10 @@ class TrackerSource(ABC):
 
 
 #: Source name -> "module:Class".
-SOURCES: dict[str, str] = {"replay": "drivers.tracking.replay:ReplaySource"}
+SOURCES: dict[str, str] = {
+    "replay": "drivers.tracking.replay:ReplaySource",
+    "natnet": "drivers.tracking.natnet_source:NatNetSource",
+}
 
 
 def source_class(kind: str) -> type[TrackerSource]:

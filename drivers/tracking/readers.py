@@ -85,8 +85,8 @@ class TraceFile:
 #: into a RawTrace.
 TRACE_READERS: dict[str, str] = {
     "csv": "drivers.tracking.readers:read_canonical_raw",
-    "motive": "drivers.tracking.motive_csv:read_motive_raw",
-    "c3d": "drivers.tracking.c3d:read_c3d_raw",
+    "motive": "drivers.tracking.readers:read_motive_raw",
+    "c3d": "drivers.tracking.readers:read_c3d_raw",
 }
 #: File suffix -> format name (".csv" is sniffed: canonical or Motive).
 TRACE_SUFFIXES: dict[str, str] = {".csv": "csv", ".c3d": "c3d"}
@@ -225,6 +225,44 @@ def read_canonical_raw(
     if recording.t_s is not None and len(recording) > 1:
         rate = float(1.0 / np.median(np.diff(recording.t_s)))
     return RawTrace(batch=batch, format="csv", rate_hz=rate, meta={"units": units or "m"})
+
+
+def read_motive_raw(
+    source: str | Path | bytes,
+    *,
+    name: str | None = None,
+    units: str | None = None,
+    rigid_body: str | None = None,
+    marker: str | None = None,
+) -> RawTrace:
+    """A Motive CSV export's rigid body (or marker) as raw samples."""
+    from drivers.tracking.motive_csv import read_motive_csv
+
+    trace = read_motive_csv(source, rigid_body=rigid_body, marker=marker, units=units, name=name)
+    meta = {
+        "units": trace.length_units,
+        "rigid_body": trace.rigid_body,
+        "marker": trace.marker,
+        "rotation_type": trace.rotation_type,
+        "take_name": trace.take_name,
+        "rigid_bodies": list(trace.available),
+    }
+    return RawTrace(batch=trace.batch, format="motive", rate_hz=trace.rate_hz, meta=meta)
+
+
+def read_c3d_raw(
+    source: str | Path | bytes,
+    *,
+    name: str | None = None,
+    units: str | None = None,
+    marker: str | None = None,
+) -> RawTrace:
+    """One marker of a C3D file as raw samples (positions only)."""
+    from drivers.tracking.c3d import read_c3d
+
+    trace = read_c3d(source, marker=marker, units=units, name=name)
+    meta = {"units": trace.units, "marker": trace.marker, "markers": list(trace.available)}
+    return RawTrace(batch=trace.batch, format="c3d", rate_hz=trace.rate_hz, meta=meta)
 
 
 def _format_for(source: str | Path | bytes, label: str, fmt: str | None) -> str:

@@ -143,3 +143,47 @@ def test_atomic_path_leaves_the_old_file_when_writing_fails(tmp_path):
     with atomic_path(target) as tmp:
         tmp.write_text("new")
     assert target.read_text() == "new"
+
+
+# --- the registry: every trace format through read_trace ---------------------------------------
+
+
+def test_read_trace_tells_motive_from_canonical_csv_and_cleans_lost_frames(tmp_path):
+    from drivers.tracking.readers import read_trace
+    from tests.drivers.tracking_fixtures import helix, write_motive_csv
+
+    t, position, quat = helix(960)
+    lost = np.zeros(len(t), bool)
+    lost[300:310] = True  # 42 ms: bridged
+    write_motive_csv(
+        tmp_path / "take.csv",
+        t,
+        np.stack([position, position + 0.5]),
+        np.stack([quat, quat]),
+        rigid_bodies=["pen", "table"],
+        lost=np.stack([lost, np.zeros_like(lost)]),
+    )
+    trace = read_trace(tmp_path / "take.csv", rigid_body="pen")
+    assert trace.format == "motive" and trace.raw.meta["rigid_body"] == "pen"
+    assert trace.raw.rate_hz == pytest.approx(240.0)
+    assert len(trace.recording) == len(t) and trace.clean.report.n_bridged == 10
+    # mm in the file, metres out; the bridged frames close to the truth (a smooth helix).
+    assert np.abs(trace.recording.points_m - position).max() < 1e-3
+    with pytest.raises(InputFileError, match="pen.*table|table.*pen"):
+        read_trace(tmp_path / "take.csv")  # two rigid bodies: which one?
+    with pytest.raises(ValueError, match="Motive CSV exports only"):
+        read_trace(tmp_path / "take.csv", fmt="csv", rigid_body="pen")
+
+
+def test_read_trace_reads_a_c3d_marker(tmp_path):
+    from drivers.tracking.readers import read_trace
+    from tests.drivers.tracking_fixtures import helix, write_c3d
+
+    t, position, _ = helix(480)
+    markers = np.stack([position, position + 0.1], axis=1)
+    write_c3d(tmp_path / "take.c3d", ["tip", "tail"], markers, 240.0)
+    trace = read_trace(tmp_path / "take.c3d", marker="tip")
+    assert trace.format == "c3d" and trace.recording.orientations_xyzw is None
+    np.testing.assert_allclose(trace.recording.points_m, position, atol=1e-6)
+    with pytest.raises(InputFileError, match="tip"):
+        read_trace(tmp_path / "take.c3d")  # two markers: which one?

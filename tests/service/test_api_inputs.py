@@ -237,3 +237,139 @@ def test_a_database_from_an_earlier_version_is_upgraded(tmp_path):
         assert body["name"] == "old" and body["tip_offset_m"] is None
         body = client.put("/sessions/ses_old/calibration", json={"tip_offset_m": [0, 0, 0.1]})
         assert body.status_code == 200 and body.json()["tip_offset_m"] == [0, 0, 0.1]
+
+
+def test_motive_and_c3d_uploads_with_their_options(client, sid, tmp_path):
+    from tests.drivers.tracking_fixtures import helix, write_c3d, write_motive_csv
+
+    t, position, quat = helix(720)
+    lost = np.zeros(len(t), bool)
+    lost[100:105] = True
+    write_motive_csv(
+        tmp_path / "take.csv",
+        t,
+        np.stack([position, position + 0.3]),
+        np.stack([quat, quat]),
+        rigid_bodies=["pen", "fixture"],
+        lost=np.stack([lost, lost]),
+    )
+    content = (tmp_path / "take.csv").read_bytes()
+    response = client.put(f"/sessions/{sid}/recording", files={"file": ("take.csv", content)})
+    assert response.status_code == 422 and "pen" in response.json()["message"]
+    response = client.put(
+        f"/sessions/{sid}/recording",
+        files={"file": ("take.csv", content)},
+        data={"rigid_body": "pen"},
+    )
+    assert response.status_code == 201, response.text
+    summary = response.json()["summary"]
+    assert summary["format"] == "motive" and summary["rigid_body"] == "pen"
+    assert summary["gaps"]["n_bridged"] == 5 and summary["has_orientations"]
+    assert response.json()["params"]["units"] == "Millimeters"
+
+    write_c3d(tmp_path / "take.c3d", ["tip", "tail"], np.stack([position, position], 1), 240.0)
+    content = (tmp_path / "take.c3d").read_bytes()
+    response = client.put(
+        f"/sessions/{sid}/recording",
+        files={"file": ("take.c3d", content)},
+        data={"marker": "nose"},
+    )
+    assert response.status_code == 422 and "tip" in response.json()["message"]
+    response = client.put(
+        f"/sessions/{sid}/recording",
+        files={"file": ("take.c3d", content)},
+        data={"marker": "tip"},
+    )
+    assert response.status_code == 201 and response.json()["summary"]["format"] == "c3d"
+
+
+def _wait_capture(client, sid, cid, timeout_s=60.0):
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        body = client.get(f"/sessions/{sid}/captures/{cid}").json()
+        if body["state"] != "running" or time.monotonic() > deadline:
+            return body
+        time.sleep(0.1)
+
+
+@pytest.mark.timeout(120)
+def test_a_live_natnet_capture_records_every_frame(client, sid):
+    from drivers.tracking.natnet_server import NatNetReplayServer
+    from tests.drivers.test_natnet import synthetic
+
+    recording = synthetic(2.0)  # 720 frames at 360 Hz
+    with NatNetReplayServer(recording, rigid_body="Pen", command_port=0) as server:
+        cid = client.post(
+            f"/sessions/{sid}/captures",
+            json={
+                "source": {
+                    "kind": "natnet",
+                    "server": "127.0.0.1",
+                    "rigid_body": "Pen",
+                    "command_port": server.command_port,
+                }
+            },
+        ).json()["id"]
+        server.wait_done(30.0)
+        import time
+
+        time.sleep(0.5)  # the last batches reach the capture file
+        stopped = client.post(f"/sessions/{sid}/captures/{cid}/stop").json()
+    assert stopped["state"] == "stopped" and stopped["n_samples"] == len(recording), stopped
+    stored = client.get(f"/sessions/{sid}/recordings/{stopped['recording_id']}").json()
+    assert stored["summary"]["n_samples"] == len(recording)
+    assert stored["summary"]["has_orientations"]
+    csv_text = client.get(f"/sessions/{sid}/recordings/{stopped['recording_id']}/csv").text
+    xyz = np.loadtxt(io.StringIO(csv_text), delimiter=",", skiprows=1)[:, 1:4]
+    np.testing.assert_allclose(xyz, recording.points_m, atol=1e-6)  # float32 on the wire
+
+
+@pytest.mark.timeout(120)
+def test_natnet_captures_that_cannot_work_fail_with_a_reason(client, sid):
+    from drivers.tracking.natnet_server import NatNetReplayServer
+    from tests.drivers.test_natnet import synthetic
+
+    with NatNetReplayServer(synthetic(1.0), rigid_body="Pen", command_port=0) as server:
+        cid = client.post(
+            f"/sessions/{sid}/captures",
+            json={
+                "source": {
+                    "kind": "natnet",
+                    "server": "127.0.0.1",
+                    "rigid_body": "Stylus",
+                    "command_port": server.command_port,
+                }
+            },
+        ).json()["id"]
+        body = _wait_capture(client, sid, cid)
+    assert body["state"] == "failed" and "Stylus" in body["error"] and "Pen" in body["error"]
+    assert body["recording_id"] is None
+    # Nobody answers on this port.
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        free_port = probe.getsockname()[1]
+    cid = client.post(
+        f"/sessions/{sid}/captures",
+        json={
+            "source": {
+                "kind": "natnet",
+                "server": "127.0.0.1",
+                "rigid_body": "Pen",
+                "command_port": free_port,
+                "timeout_s": 1.0,
+            }
+        },
+    ).json()["id"]
+    body = _wait_capture(client, sid, cid)
+    assert body["state"] == "failed" and "no NatNet server answered" in body["error"]
+    for source in (
+        {"kind": "natnet", "server": "127.0.0.1"},
+        {"kind": "natnet", "server": "127.0.0.1", "rigid_body": "Pen", "command_port": 0},
+        {"kind": "vicon", "server": "127.0.0.1"},
+    ):
+        response = client.post(f"/sessions/{sid}/captures", json={"source": source})
+        assert response.status_code == 422 and response.json()["code"] == "invalid_request"

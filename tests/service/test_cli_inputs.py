@@ -157,3 +157,62 @@ def test_reconstruct_with_tip_calibration_pieces_and_a_stored_scan_pose(scene, t
         out,
     )
     assert wrong.returncode == 1 and "T_scan_tracker" in wrong.stderr
+
+
+@pytest.mark.timeout(120)
+def test_record_from_a_natnet_server(tmp_path):
+    from drivers.tracking.natnet_server import NatNetReplayServer
+    from tests.drivers.test_natnet import synthetic
+
+    recording = synthetic(1.5)
+    out = tmp_path / "rec.csv"
+    with NatNetReplayServer(recording, rigid_body="Pen", command_port=0) as server:
+        port = str(server.command_port)
+        result = run(
+            "record",
+            "--natnet",
+            "127.0.0.1",
+            "--command-port",
+            port,
+            "--rigid-body",
+            "Pen",
+            "--duration",
+            "1.0",
+            "--out",
+            out,
+        )
+        assert result.returncode == 0, result.stderr
+        assert "dropped 0" in result.stdout
+        data = np.loadtxt(out, delimiter=",", skiprows=1)
+        assert data.shape[1] == 8 and 355 <= len(data) <= 362  # 1 s of stream at 360 Hz
+        bad = run(
+            "record",
+            "--natnet",
+            "127.0.0.1",
+            "--command-port",
+            port,
+            "--rigid-body",
+            "Stylus",
+            "--duration",
+            "1",
+            "--out",
+            tmp_path / "x.csv",
+        )
+    assert bad.returncode == 1 and "Stylus" in bad.stderr
+    assert len(bad.stderr.strip().splitlines()) == 2  # the "recording ..." line and the error
+    assert not (tmp_path / "x.csv").exists()
+    nobody = run(
+        "record",
+        "--natnet",
+        "127.0.0.1",
+        "--command-port",
+        port,
+        "--timeout",
+        "1",
+        "--rigid-body",
+        "Pen",
+        "--out",
+        tmp_path / "y.csv",
+    )
+    assert nobody.returncode == 1 and "no NatNet server answered" in nobody.stderr
+    assert not (tmp_path / "y.csv").exists()

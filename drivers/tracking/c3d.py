@@ -1,0 +1,476 @@
+"""C3D marker files (Motive's, Vicon's and most biomechanics tools' binary export), via ezc3d.
+
+One marker is the trace: the pen-tip marker, named in the file's ``POINT:LABELS``. Positions are
+in ``POINT:UNITS``; a sample whose residual is negative is invalid (the marker was not seen).
+
+ezc3d is a C++ library, and some damaged files make it crash the whole process (a segmentation
+fault) or loop forever -- found by feeding it mutated files. So the file is parsed in a short-lived
+child process with a time and memory limit, and a crash there becomes an :class:`InputFileError`
+here (about 0.2 s of start-up per file, measured).
+
+Two things the reader checks that ezc3d does not say:
+
+* A truncated file: ezc3d returns the frames it could read and adjusts its frame count to match,
+  so the count is compared with the file's own header and with the bytes present.
+* Takes over 65535 frames: the header's frame numbers are 16-bit, so long files declare their
+  length in ``POINT:LONG_FRAMES`` or ``TRIAL:ACTUAL_START_FIELD`` / ``ACTUAL_END_FIELD``. ezc3d
+  1.7 stops at frame 65535 regardless; the remaining frames of a float-format (Intel) file are
+  read here, after checking that the first 65535 agree exactly with ezc3d's.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import struct
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drivers.errors import InputFileError
+from drivers.tracking.base import SampleBatch
+from drivers.units import metres_per
+from recon.types import FloatArray, Recording
+
+#: Metres per unit, by the (lower-case) names found in ``POINT:UNITS``.
+C3D_LENGTH_UNITS: dict[str, float] = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
+#: Time allowed to the child process: a base plus a rate. ezc3d reads about 50 MB/s here; the
+#: margin is for a loaded machine, not for slow files.
+CHILD_TIMEOUT_S = 30.0
+CHILD_TIMEOUT_S_PER_MB = 2.0
+#: Address space allowed to the child: ezc3d keeps each point of each frame as an object of about
+#: 250 bytes, some 16 times the file's size, on top of the interpreter and numpy.
+CHILD_MEMORY_BYTES = 1 << 30
+CHILD_MEMORY_PER_FILE_BYTE = 40
+#: What the child runs (tests replace it to simulate a crash or a hang).
+_CHILD_CODE = "from drivers.tracking.c3d import _child_main; _child_main()"
+#: Exit status of the child when ezc3d raised (its message is on stderr).
+_CHILD_REFUSED = 3
+#: Frames ezc3d 1.7 reads at most (the header's 16-bit limit).
+_EZC3D_MAX_FRAMES = 0xFFFF
+_INTEL = 84
+
+
+@dataclass(frozen=True)
+class C3DTrace:
+    """One marker of a C3D file.
+
+    Attributes
+    ----------
+    batch : SampleBatch
+        ``t_s`` (N,) seconds, frame number over ``POINT:RATE``; ``position_m`` (N, 3) metres, NaN
+        where the marker was not seen; ``orientation_xyzw`` None; ``valid`` (N,) False where not
+        seen.
+    rate_hz : float
+        ``POINT:RATE``.
+    units : str
+        ``POINT:UNITS`` as written ("mm"…), or the unit passed if the file has none.
+    marker : str
+        The marker read.
+    available : tuple of str
+        The marker labels in the file.
+    residual_m : ndarray of shape (N,), metres
+        The tracker's residual per sample (0 for interpolated samples); NaN where not seen.
+    first_frame : int
+        Number of the first frame (0-based), which ``t_s`` counts from.
+    """
+
+    batch: SampleBatch
+    rate_hz: float
+    units: str
+    marker: str
+    available: tuple[str, ...]
+    residual_m: FloatArray
+    first_frame: int = 0
+
+    def __len__(self) -> int:
+        return len(self.batch)
+
+    def to_recording(self) -> Recording:
+        """The valid samples as a :class:`~recon.types.Recording` (lost frames left out).
+
+        Raises
+        ------
+        InputFileError
+            Fewer than two valid samples.
+        """
+        keep = self.batch.valid
+        if int(keep.sum()) < 2:
+            raise InputFileError(
+                f"marker {self.marker!r} is seen in {int(keep.sum())} of {len(keep)} frames; a "
+                "trace needs at least two"
+            )
+        return Recording(points_m=self.batch.position_m[keep], t_s=self.batch.t_s[keep])
+
+
+def read_c3d(
+    source: str | Path | bytes,
+    *,
+    marker: str | None = None,
+    units: str | None = None,
+    name: str | None = None,
+) -> C3DTrace:
+    """Read one marker's trajectory from a C3D file.
+
+    Parameters
+    ----------
+    source : path or bytes
+        The file, or its content (an upload).
+    marker : str, optional
+        The marker label; needed when the file has several markers.
+    units : {"m", "mm"}, optional
+        Length unit of the positions, used only when the file has no ``POINT:UNITS``.
+    name : str, optional
+        The file's name, for messages (uploads).
+
+    Returns
+    -------
+    C3DTrace
+
+    Raises
+    ------
+    InputFileError
+        Missing, empty, truncated or damaged file, not a C3D file, no marker of that name (or
+        several and none named), no length unit, no frame rate.
+    ValueError
+        An unknown ``units`` or an empty ``marker``.
+    """
+    if marker is not None and not marker.strip():
+        raise ValueError("marker must be a marker label, not an empty string")
+    fallback_scale = None if units is None else metres_per(units)
+    name = name or ("upload" if isinstance(source, bytes) else str(source))
+    with tempfile.TemporaryDirectory(prefix="teachpath-c3d-") as tmp:
+        if isinstance(source, bytes):
+            path = Path(tmp) / "upload.c3d"
+            path.write_bytes(source)
+        else:
+            path = Path(source)
+            if not path.exists():
+                raise InputFileError(f"{name} does not exist")
+            if path.is_dir():
+                raise InputFileError(f"{name} is a directory, not a C3D file")
+        try:
+            size = path.stat().st_size
+            with path.open("rb") as handle:
+                # The header and, at most 254 blocks on, the parameter section's first bytes.
+                head = handle.read(512 * 256)
+        except OSError as exc:
+            raise InputFileError(f"cannot read {name}: {exc.strerror}") from None
+        if size == 0:
+            raise InputFileError(f"{name} is empty; expected a C3D file")
+        if size < 1024 or (head[0] != 0 and head[1] != 0x50):
+            raise InputFileError(
+                f"{name} is not a C3D file (it lacks the C3D header and parameter blocks); "
+                "export the take as C3D again, or as CSV"
+            )
+        parsed = _parse_in_child(path, marker, Path(tmp) / "parsed.npz", size, name)
+        labels = tuple(str(label) for label in parsed["labels"])
+        if "points" not in parsed:
+            raise _no_marker(name, marker, labels)
+        chosen = labels[int(parsed["index"])]
+        points = parsed["points"]
+        residuals = parsed["residuals"]
+        points, residuals = _check_frame_count(path, head, size, parsed, points, residuals, name)
+
+    rate = float(parsed["rate"])
+    if not (np.isfinite(rate) and rate > 0):
+        raise InputFileError(f"{name} has no frame rate (POINT:RATE is {rate}); export it again")
+    declared = str(parsed["units"]).strip()
+    if declared:
+        scale = C3D_LENGTH_UNITS.get(declared.lower())
+        if scale is None:
+            raise InputFileError(
+                f"{name} has an unknown length unit {declared!r} in POINT:UNITS; export it in "
+                "mm or m"
+            )
+    elif fallback_scale is None:
+        raise InputFileError(
+            f"{name} does not say its length unit (POINT:UNITS is empty); pass the unit the "
+            "positions are in (units='mm' or 'm')"
+        )
+    else:
+        scale, declared = fallback_scale, str(units)
+
+    seen = np.isfinite(points).all(axis=1) & ~(residuals < 0) & np.isfinite(residuals)
+    position = np.where(seen[:, None], points * scale, np.nan)
+    first = int(parsed["first_frame"])
+    t = (first + np.arange(len(position))) / rate
+    return C3DTrace(
+        batch=SampleBatch(t_s=t, position_m=position, orientation_xyzw=None, valid=seen),
+        rate_hz=rate,
+        units=declared,
+        marker=chosen,
+        available=labels,
+        residual_m=np.where(seen, residuals * scale, np.nan),
+        first_frame=first,
+    )
+
+
+def _no_marker(name: str, marker: str | None, labels: tuple[str, ...]) -> InputFileError:
+    listed = ", ".join(repr(label) for label in labels)
+    if not labels:
+        return InputFileError(f"{name} has no markers (POINT:LABELS is empty)")
+    if marker is None:
+        return InputFileError(
+            f"{name} has {len(labels)} markers ({listed}); say which one is the pen tip "
+            "(marker=...)"
+        )
+    return InputFileError(f"{name} has no marker named {marker!r}; it has {listed}")
+
+
+def _parse_in_child(
+    path: Path, marker: str | None, out: Path, size: int, name: str
+) -> dict[str, np.ndarray]:
+    """Run ezc3d on ``path`` in a child process; its arrays, or an InputFileError."""
+    env = dict(os.environ)
+    package_root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
+    # One thread: the child only parses; OpenBLAS's per-thread buffers would eat the memory limit.
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        env[var] = "1"
+    timeout = CHILD_TIMEOUT_S + CHILD_TIMEOUT_S_PER_MB * size / 1e6
+    command = [sys.executable, "-c", _CHILD_CODE, str(path), str(out), marker or "", str(size)]
+    try:
+        done = subprocess.run(
+            command, env=env, capture_output=True, text=True, timeout=timeout, check=False
+        )
+    except subprocess.TimeoutExpired:
+        raise InputFileError(
+            f"{name} could not be read: the C3D reader did not finish within {timeout:.0f} s, "
+            "which a damaged file causes; export the take again"
+        ) from None
+    if done.returncode < 0:
+        try:
+            signal_name = signal.Signals(-done.returncode).name
+        except ValueError:
+            signal_name = f"signal {-done.returncode}"
+        raise InputFileError(
+            f"{name} is damaged: it made the C3D reader crash ({signal_name}); export the take "
+            "again"
+        )
+    if done.returncode == _CHILD_REFUSED:
+        reason = (done.stderr.strip().splitlines() or ["no reason given"])[-1]
+        raise InputFileError(
+            f"{name} is not a readable C3D file ({reason}); export the take again, as C3D or CSV"
+        )
+    if done.returncode != 0 or not out.exists():
+        tail = done.stderr.strip()[-300:]
+        raise InputFileError(
+            f"{name} could not be read: the C3D reader failed (exit status {done.returncode})"
+            + (f": {tail}" if tail else "")
+        )
+    with np.load(out, allow_pickle=False) as data:
+        return {key: data[key] for key in data.files}
+
+
+def _child_main() -> None:
+    """Entry point of the child process: parse ``argv[1]`` with ezc3d, save to ``argv[2]``."""
+    source, out, marker, size = sys.argv[1], sys.argv[2], sys.argv[3] or None, int(sys.argv[4])
+    try:
+        import resource
+
+        limit = CHILD_MEMORY_BYTES + CHILD_MEMORY_PER_FILE_BYTE * size
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    except (ImportError, ValueError, OSError):
+        pass  # no limit where the platform does not offer one
+    try:
+        import ezc3d
+
+        c3d = ezc3d.c3d(source)
+        point = c3d["parameters"]["POINT"]
+        labels = [str(label).strip() for label in point["LABELS"]["value"]]
+        i = 2
+        while f"LABELS{i}" in point:  # more than 255 markers continue in LABELS2, LABELS3...
+            labels += [str(label).strip() for label in point[f"LABELS{i}"]["value"]]
+            i += 1
+        units = point["UNITS"]["value"]
+        rate = point["RATE"]["value"]
+        arrays: dict[str, np.ndarray] = {
+            "labels": np.array(labels, dtype=str),
+            "units": np.array(str(units[0]) if len(units) else ""),
+            "rate": np.array(float(rate[0]) if len(rate) else np.nan),
+            "first_frame": np.array(int(c3d["header"]["points"]["first_frame"])),
+            "long_frames": np.array(_first_number(point, "LONG_FRAMES")),
+        }
+        trial = c3d["parameters"].get("TRIAL", {})
+        words = [
+            trial.get(key, {}).get("value", [])
+            for key in ("ACTUAL_START_FIELD", "ACTUAL_END_FIELD")
+        ]
+        if all(len(w) == 2 for w in words):
+            # Two 16-bit words each (low, high), stored in signed INT parameters.
+            start, end = ((int(w[0]) & 0xFFFF) | ((int(w[1]) & 0xFFFF) << 16) for w in words)
+            arrays["trial_frames"] = np.array(end - start + 1)
+        index = None
+        if marker is not None and marker in labels:
+            index = labels.index(marker)
+        elif marker is None and len(labels) == 1:
+            index = 0
+        if index is not None:
+            arrays["index"] = np.array(index)
+            arrays["points"] = np.ascontiguousarray(c3d["data"]["points"][:3, index, :].T)
+            residuals = c3d["data"]["meta_points"]["residuals"]
+            arrays["residuals"] = np.ascontiguousarray(residuals[0, index, :])
+        np.savez(out, **arrays)
+    except Exception as exc:  # noqa: BLE001 - any failure of the parser is the file's
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        # ezc3d's advice is about its own API, and its stream suffix says nothing to a user.
+        message = message.split(" If you want to ignore")[0].replace(": iostream error", "")
+        sys.stderr.write(f"{message}\n")
+        sys.exit(_CHILD_REFUSED)
+
+
+def _first_number(group: dict, key: str) -> float:
+    values = group.get(key, {}).get("value", [])
+    return float(values[0]) if len(values) else -1.0
+
+
+def _check_frame_count(
+    path: Path,
+    head: bytes,
+    size: int,
+    parsed: dict[str, np.ndarray],
+    points: np.ndarray,
+    residuals: np.ndarray,
+    name: str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The marker's samples after checking that ezc3d read every frame the file holds."""
+    n_read = len(points)
+    layout = _raw_layout(head)
+    if layout is None:
+        return points, residuals  # leading zero bytes (a Vicon quirk): trust ezc3d
+    long_frames = float(parsed["long_frames"])
+    declared = None
+    if long_frames > 0:
+        declared = int(round(long_frames))
+    elif "trial_frames" in parsed and int(parsed["trial_frames"]) > 0:
+        declared = int(parsed["trial_frames"])
+    elif layout.last_frame != 0xFFFF:
+        declared = layout.header_frames
+    available = layout.frames_in(size)
+    if declared is None:
+        # The data section ends on a 512-byte block: the padding may look like a few frames.
+        padding = 511 // (layout.frame_bytes or 1)
+        if n_read >= _EZC3D_MAX_FRAMES and available is not None and available > n_read + padding:
+            raise InputFileError(
+                f"{name} holds more than {_EZC3D_MAX_FRAMES} frames but does not say how many "
+                "(no POINT:LONG_FRAMES or TRIAL:ACTUAL_END_FIELD); export a shorter take or "
+                "use the CSV export"
+            )
+        return points, residuals
+    if available is not None and available < declared:
+        raise InputFileError(
+            f"{name} is truncated: it declares {declared} frames but holds {available}; copy or "
+            "export the take again"
+        )
+    if n_read >= declared:
+        return points, residuals
+    if n_read < _EZC3D_MAX_FRAMES:
+        raise InputFileError(
+            f"{name} is truncated or damaged: it declares {declared} frames but only {n_read} "
+            "could be read; copy or export the take again"
+        )
+    return _read_long_take(path, layout, parsed, points, residuals, declared, name)
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """What the 512-byte header says about the data section."""
+
+    processor: int
+    n_points: int
+    analog_per_frame: int
+    first_frame: int
+    last_frame: int
+    scale: float | None  # None for DEC and MIPS floats (only their sign would be read)
+    data_start: int
+
+    @property
+    def header_frames(self) -> int:
+        # ezc3d's reading of first/last: 1-based unless the first frame is written as 0.
+        return self.last_frame - self.first_frame + 1 if self.first_frame else self.last_frame + 1
+
+    @property
+    def frame_bytes(self) -> int | None:
+        if self.scale is None:
+            return None
+        word = 4 if self.scale < 0 else 2  # float data, or integers times the scale
+        return word * (4 * self.n_points + self.analog_per_frame)
+
+    def frames_in(self, size: int) -> int | None:
+        frame = self.frame_bytes
+        if not frame or self.data_start < 2:
+            return None
+        return max(size - (self.data_start - 1) * 512, 0) // frame
+
+
+def _raw_layout(head: bytes) -> _Layout | None:
+    if len(head) < 512 or head[1] != 0x50 or head[0] < 2:
+        return None
+    processor_at = (head[0] - 1) * 512 + 3
+    if processor_at >= len(head):
+        return None
+    processor = head[processor_at]
+    order = ">" if processor == 86 else "<"  # MIPS is big-endian; Intel and DEC little
+    n_points, analog, first, last = struct.unpack(order + "4H", head[2:10])
+    (data_start,) = struct.unpack(order + "H", head[16:18])
+    scale = struct.unpack("<f", head[12:16])[0] if processor == _INTEL else None
+    return _Layout(processor, n_points, analog, first, last, scale, data_start)
+
+
+def _read_long_take(
+    path: Path,
+    layout: _Layout,
+    parsed: dict[str, np.ndarray],
+    points: np.ndarray,
+    residuals: np.ndarray,
+    declared: int,
+    name: str,
+) -> tuple[np.ndarray, np.ndarray]:
+    """All ``declared`` frames of the marker, from the file, checked against ezc3d's first ones."""
+    labels = parsed["labels"]
+    if layout.processor != _INTEL or layout.scale is None or layout.scale >= 0:
+        raise InputFileError(
+            f"{name} has {declared} frames, more than the {_EZC3D_MAX_FRAMES} the C3D reader "
+            "reads, and is not in the float (Intel) format whose remaining frames can be read "
+            "directly; export it as floats, as a shorter take, or as CSV"
+        )
+    if layout.n_points != len(labels):
+        raise InputFileError(
+            f"{name} is inconsistent: its header says {layout.n_points} markers per frame but it "
+            f"labels {len(labels)}; export the take again"
+        )
+    frame_words = 4 * layout.n_points + layout.analog_per_frame
+    data = np.fromfile(
+        path,
+        dtype="<f4",
+        count=declared * frame_words,
+        offset=(layout.data_start - 1) * 512,
+    )
+    if len(data) < declared * frame_words:
+        raise InputFileError(f"{name} is truncated: it declares {declared} frames; export again")
+    index = int(parsed["index"])
+    cells = data.reshape(declared, frame_words)[:, 4 * index : 4 * index + 4].astype(np.float64)
+    # The fourth word, a float, holds the residual (over the scale) in its integer's second byte
+    # and the camera mask in its first, as ezc3d writes and reads it; negative means unseen.
+    word = cells[:, 3]
+    unseen = word < 0
+    residual = ((np.where(unseen, 0, word).astype(np.int64) >> 8) & 0xFF) * -layout.scale
+    residual[unseen] = -1.0
+    full = np.where(unseen[:, None], np.nan, cells[:, :3])
+    n = len(points)
+    # Only trust this reading of the file if it reproduces every sample ezc3d read.
+    same = np.array_equal(full[:n], points, equal_nan=True) and np.array_equal(
+        residual[:n], residuals, equal_nan=True
+    )
+    if not same:
+        raise InputFileError(
+            f"{name} has {declared} frames, more than the {_EZC3D_MAX_FRAMES} the C3D reader "
+            "reads, and the rest could not be read consistently; export a shorter take or use "
+            "the CSV export"
+        )
+    return full, residual

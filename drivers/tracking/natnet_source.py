@@ -1,0 +1,673 @@
+"""The live OptiTrack feed: a rigid body's pose from Motive over NatNet.
+
+The NatNet client (PyPI ``natnet``, pinned to 0.3.0) runs in a child process of its own
+(``multiprocessing`` spawn) that does nothing else: it receives, parses and forwards samples in
+batches over a queue. UDP does not wait: a receiver that is not scheduled for a while loses
+frames once its socket buffer is full, and in the same process any long call holding the GIL
+(a 1.9 s Open3D call lost 161 of 720 frames at 360 Hz) would starve it. In its own process the
+receiver keeps up whatever the parent does; the parent takes the batches when it is ready.
+
+What the child does, in order:
+
+1. sends ``NAT_CONNECT`` and waits for the server info (``timeout_s``);
+2. requests the model definitions until they come (``timeout_s``) and resolves the rigid
+   body's name to its streaming id (an unknown name is an error listing the names streamed);
+3. from then on, keeps the rigid body's pose from every ``NAT_FRAMEOFDATA`` (frames that came
+   before the definitions are kept and converted once the id is known) and sends them every
+   ``batch_s`` with their frame numbers, timestamps and tracking-valid flags.
+
+Unicast (the default here) needs keep-alives, which natnet sends on every poll of its command
+socket; Motive sends unicast frames to that socket. Two socket details differ from natnet's
+defaults (natnet 0.3.0 only offers them as private methods, hence the name-mangled overrides):
+its unicast data socket is bound to the local address instead of every interface (in unicast
+it receives nothing, so nothing needs to listen beyond ``local``), and both sockets get a
+larger receive buffer (:data:`RECEIVE_BUFFER_BYTES`) to ride out a busy machine.
+
+Positions: NatNet streams metres (Motive's default); ``units="mm"`` converts a server set to
+stream millimetres. The position is the rigid body's pivot point: set it at the pen tip in
+Motive. Frame numbers count frames: a gap is a dropped frame, reported in :attr:`stats`.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import multiprocessing
+import os
+import queue as queue_module
+import select
+import signal
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from natnet import NatNetClient, NatNetNetworkError
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from drivers.errors import (
+    DriverError,
+    TrackerError,
+    TrackerTimeoutError,
+    UnknownBackendError,
+    UnknownRigidBodyError,
+)
+from drivers.tracking.base import SampleBatch, TrackerSource
+from drivers.units import metres_per
+
+#: Receive buffer asked for on the client's sockets (the kernel caps it at net.core.rmem_max;
+#: 4 MiB holds many seconds of rigid-body frames).
+RECEIVE_BUFFER_BYTES = 4 << 20
+#: Time allowed on top of the protocol timeouts for the child process to start (imports).
+STARTUP_ALLOWANCE_S = 15.0
+#: How often the child re-sends the model-definition request while waiting for it.
+MODELDEF_RETRY_S = 0.5
+#: Longest wait of the child's poll: keep-alives go out at least this often while idle.
+POLL_S = 0.1
+#: After a frame number this many frames below the last one, the stream counts as restarted
+#: (Motive looping a take, or restarted), not as a late packet.
+RESTART_BACKSTEP = 1000
+
+
+class NatNetConfig(BaseModel):
+    """Settings of the NatNet source.
+
+    Attributes
+    ----------
+    server : str
+        Address of the NatNet server (the Motive PC).
+    local : str
+        Address of this machine on the tracker's network (sockets bind here).
+    rigid_body : str
+        Name of the pen's rigid body in Motive.
+    multicast : bool
+        Multicast instead of unicast (Motive's Transmission Type must match).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: Literal["natnet"] = "natnet"
+    server: str = Field("127.0.0.1", description="NatNet server (Motive) address")
+    local: str = Field("127.0.0.1", description="this machine's address on that network")
+    rigid_body: str = Field(..., min_length=1, description="the pen's rigid-body name in Motive")
+    multicast: bool = Field(False, description="multicast instead of unicast")
+    multicast_group: str = Field("239.255.42.99", description="Motive's multicast address")
+    command_port: int = Field(1510, ge=1, le=65535)
+    data_port: int = Field(1511, ge=1, le=65535, description="multicast data port")
+    timeout_s: float = Field(5.0, gt=0, description="bound on each answer while connecting")
+    stall_timeout_s: float | None = Field(
+        5.0, gt=0, description="a stream silent this long is an error (None: wait forever)"
+    )
+    units: Literal["m", "mm"] = Field("m", description="length unit the server streams")
+    batch_s: float = Field(0.02, gt=0, le=1.0, description="how often the child sends samples")
+
+    @field_validator("local", "multicast_group")
+    @classmethod
+    def _ipv4(cls, value: str) -> str:
+        try:
+            ipaddress.IPv4Address(value)
+        except ValueError:
+            raise ValueError(f"{value!r} is not an IPv4 address") from None
+        return value
+
+
+@dataclass(frozen=True)
+class NatNetServerInfo:
+    """Who answered.
+
+    Attributes
+    ----------
+    application : str
+        The server's name ("Motive").
+    server_version, natnet_version : str
+    rigid_body_id : int
+        Streaming id of the requested rigid body.
+    rigid_bodies : tuple of str
+        Every rigid body the server describes.
+    """
+
+    application: str
+    server_version: str
+    natnet_version: str
+    rigid_body_id: int
+    rigid_bodies: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class NatNetStats:
+    """Frames seen by the source so far.
+
+    Attributes
+    ----------
+    frames_received : int
+        Frames delivered in batches (valid or not).
+    frames_dropped : int
+        Frame numbers skipped between received frames (lost on the way, or never sent).
+    frames_invalid : int
+        Delivered frames in which the rigid body was not tracked.
+    frames_out_of_order : int
+        Frames older than one already delivered (discarded).
+    restarts : int
+        Times the frame numbers started again (a looped take, a restarted server).
+    first_frame, last_frame : int or None
+        Frame numbers of the first and last delivered frames.
+    """
+
+    frames_received: int = 0
+    frames_dropped: int = 0
+    frames_invalid: int = 0
+    frames_out_of_order: int = 0
+    restarts: int = 0
+    first_frame: int | None = None
+    last_frame: int | None = None
+
+
+@dataclass(frozen=True)
+class NatNetBatch(SampleBatch):
+    """A :class:`~drivers.tracking.base.SampleBatch` that also carries the frame numbers.
+
+    Attributes
+    ----------
+    frame_numbers : ndarray of shape (B,), int64
+        The server's frame numbers, increasing within a stream.
+    """
+
+    frame_numbers: np.ndarray
+
+
+_ERRORS: dict[str, type[DriverError]] = {
+    "timeout": TrackerTimeoutError,
+    "unknown_rigid_body": UnknownRigidBodyError,
+    "missing_dependency": UnknownBackendError,
+    "network": TrackerError,
+    "protocol": TrackerError,
+}
+
+
+class NatNetSource(TrackerSource):
+    """A rigid body's pose from a NatNet server, received in a child process.
+
+    :meth:`connect` (or the first :meth:`batches`) starts the receiver and waits until it has
+    resolved the rigid body; :meth:`batches` then yields what arrived since the last batch,
+    until :meth:`close`. Samples in which the body was not tracked have ``valid`` False and NaN
+    position and orientation (the server's numbers for an untracked body mean nothing).
+
+    Parameters
+    ----------
+    config : NatNetConfig
+    """
+
+    kind = "natnet"
+
+    def __init__(self, config: NatNetConfig) -> None:
+        self.config = config
+        self._ctx = multiprocessing.get_context("spawn")
+        self._process = None
+        self._queue = None
+        self._stop = self._ctx.Event()
+        self._lock = threading.Lock()
+        self._closed = False
+        self._server: NatNetServerInfo | None = None
+        self._stats = NatNetStats()
+        self._scale = metres_per(config.units)
+
+    @property
+    def server(self) -> NatNetServerInfo | None:
+        """The server that answered, once connected."""
+        return self._server
+
+    @property
+    def stats(self) -> NatNetStats:
+        """Frames received, dropped, invalid so far."""
+        return self._stats
+
+    @property
+    def address(self) -> str:
+        return f"{self.config.server}:{self.config.command_port}"
+
+    def connect(self) -> NatNetServerInfo:
+        """Start the receiver and wait until it streams the rigid body.
+
+        Returns
+        -------
+        NatNetServerInfo
+
+        Raises
+        ------
+        TrackerTimeoutError
+            No server info or no model definitions within ``timeout_s`` each.
+        UnknownRigidBodyError
+            The server does not describe a rigid body of that name (the message lists those
+            it does).
+        TrackerError
+            A socket could not be opened (``local`` not an address of this machine), the
+            receiver failed, or the source is closed.
+        """
+        if self._server is not None:
+            return self._server
+        if self._closed:
+            raise TrackerError(f"the NatNet source for {self.address} is closed")
+        cfg = self.config
+        q = self._ctx.Queue()
+        self._stop.clear()
+        process = self._ctx.Process(
+            target=_receiver_main,
+            args=(cfg.model_dump(), q, self._stop),
+            name=f"natnet {self.address}",
+            daemon=True,
+        )
+        process.start()
+        self._process, self._queue = process, q
+        bound_s = 2 * cfg.timeout_s + STARTUP_ALLOWANCE_S
+        deadline = time.monotonic() + bound_s
+        while True:
+            try:
+                kind, payload = q.get(timeout=0.1)
+            except queue_module.Empty:
+                failure = None
+                if self._closed:
+                    failure = TrackerError(f"the NatNet source for {self.address} was closed")
+                elif not process.is_alive():
+                    failure = TrackerError(
+                        f"the NatNet receiver for {self.address} exited (code "
+                        f"{process.exitcode}) before connecting"
+                    )
+                elif time.monotonic() > deadline:
+                    failure = TrackerTimeoutError(
+                        f"the NatNet receiver for {self.address} did not connect within "
+                        f"{bound_s:.0f} s"
+                    )
+                if failure is None:
+                    continue
+                self._shutdown()
+                raise failure from None
+            except (EOFError, OSError, ValueError):  # closed from another thread
+                self._shutdown()
+                raise TrackerError(f"the NatNet source for {self.address} was closed") from None
+            if kind == "ready":
+                self._server = NatNetServerInfo(**payload)
+                return self._server
+            if kind == "error":
+                self._shutdown()
+                error_kind, message = payload
+                raise _ERRORS.get(error_kind, TrackerError)(message)
+
+    def batches(self) -> Iterator[NatNetBatch]:
+        """Samples as they arrive, until :meth:`close` (see :class:`NatNetSource`).
+
+        Yields
+        ------
+        NatNetBatch
+            ``t_s`` the frames' timestamps (seconds, the server's clock), ``position_m`` (B, 3)
+            in metres, ``orientation_xyzw`` (B, 4), ``valid`` (B,), ``frame_numbers`` (B,).
+
+        Raises
+        ------
+        TrackerTimeoutError
+            Connecting timed out, or no frame arrived for ``stall_timeout_s``.
+        UnknownRigidBodyError, TrackerError
+            See :meth:`connect`; or the receiver failed while streaming.
+        """
+        if self._closed:
+            return
+        self.connect()
+        # Locals: close() from another thread clears the attributes while this loop runs.
+        process, q = self._process, self._queue
+        if process is None:
+            return
+        stall = self.config.stall_timeout_s
+        last_data = time.monotonic()
+        while not self._closed:
+            try:
+                kind, payload = q.get(timeout=0.1)
+            except queue_module.Empty:
+                if self._closed:
+                    return
+                if not process.is_alive():
+                    self._shutdown()
+                    raise TrackerError(
+                        f"the NatNet receiver for {self.address} stopped (exit code "
+                        f"{process.exitcode})"
+                    ) from None
+                if stall is not None and time.monotonic() - last_data > stall:
+                    self._shutdown()
+                    raise TrackerTimeoutError(
+                        f"no frame from the NatNet server at {self.address} for {stall:.1f} s "
+                        f"(after {self._stats.frames_received} frames); is Motive still "
+                        "streaming (live mode or playing, streaming enabled)?"
+                    ) from None
+                continue
+            except (EOFError, OSError, ValueError):
+                if self._closed:  # the queue was closed by close() from another thread
+                    return
+                raise
+            if kind == "batch":
+                last_data = time.monotonic()
+                batch = self._accept(*payload)
+                if len(batch):
+                    yield batch
+            elif kind == "error":
+                self._shutdown()
+                error_kind, message = payload
+                raise _ERRORS.get(error_kind, TrackerError)(message)
+
+    def close(self) -> None:
+        """Stop the receiver (idempotent; safe from another thread while :meth:`batches` runs).
+
+        Samples not yet taken from :meth:`batches` are discarded.
+        """
+        self._closed = True
+        self._shutdown()
+
+    def __enter__(self) -> NatNetSource:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _shutdown(self) -> None:
+        with self._lock:
+            process, q = self._process, self._queue
+            self._process = self._queue = None
+        if process is None:
+            return
+        self._stop.set()
+        # Drain while the child flushes and exits: its queue feeder must not block on a pipe
+        # nobody reads.
+        deadline = time.monotonic() + 5.0
+        while process.is_alive() and time.monotonic() < deadline:
+            try:
+                q.get(timeout=0.05)
+            except (queue_module.Empty, EOFError, OSError, ValueError):
+                pass
+        if process.is_alive():
+            process.kill()
+        process.join(timeout=5)
+        # The queue is not closed here: batches() may still be polling it from another thread
+        # (closing its descriptor under it could even hand the number to another file). It is
+        # closed when the last reference goes.
+
+    def _accept(self, frames, t, position, orientation, valid) -> NatNetBatch:
+        """Count drops, discard late frames, convert units."""
+        s = self._stats
+        frames = np.asarray(frames, dtype=np.int64)
+        keep = np.ones(len(frames), dtype=bool)
+        dropped = out_of_order = restarts = 0
+        last = s.last_frame
+        for i, f in enumerate(frames.tolist()):
+            if last is None:
+                pass
+            elif f > last:
+                dropped += f - last - 1
+            elif last - f >= RESTART_BACKSTEP:
+                restarts += 1
+            else:
+                keep[i] = False
+                out_of_order += 1
+                continue
+            last = f
+        valid = np.asarray(valid, dtype=bool)[keep]
+        first = s.first_frame
+        if first is None and keep.any():
+            first = int(frames[keep][0])
+        self._stats = NatNetStats(
+            frames_received=s.frames_received + int(keep.sum()),
+            frames_dropped=s.frames_dropped + dropped,
+            frames_invalid=s.frames_invalid + int((~valid).sum()),
+            frames_out_of_order=s.frames_out_of_order + out_of_order,
+            restarts=s.restarts + restarts,
+            first_frame=first,
+            last_frame=last,
+        )
+        return NatNetBatch(
+            t_s=np.asarray(t, dtype=np.float64)[keep],
+            position_m=np.asarray(position, dtype=np.float64)[keep] * self._scale,
+            orientation_xyzw=np.asarray(orientation, dtype=np.float64)[keep],
+            valid=valid,
+            frame_numbers=frames[keep],
+        )
+
+
+# -- the receiver process ------------------------------------------------------------------------
+
+
+class _Failure(Exception):
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+class _Client(NatNetClient):
+    """natnet's client with our socket set-up (see the module docstring).
+
+    natnet 0.3.0 creates its sockets in private methods; these overrides use their mangled
+    names, which the pinned version guarantees.
+    """
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.sockets: list[socket.socket] = []
+
+    def _NatNetClient__create_command_socket(self):  # noqa: N802 - natnet's private name
+        sock = NatNetClient._NatNetClient__create_command_socket(self)
+        return self._keep(sock)
+
+    def _NatNetClient__create_data_socket(self, port):  # noqa: N802 - natnet's private name
+        if self.use_multicast:
+            return self._keep(NatNetClient._NatNetClient__create_data_socket(self, port))
+        # Unicast frames come to the command socket; this one only has to exist.
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
+        try:
+            sock.bind((self.local_ip_address, 0))
+        except OSError:
+            sock.close()
+            raise
+        sock.settimeout(0.0)
+        return self._keep(sock)
+
+    def _keep(self, sock: socket.socket) -> socket.socket:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
+        self.sockets.append(sock)
+        return sock
+
+
+def _receiver_main(config: dict, out, stop_event) -> None:  # pragma: no cover - child process
+    # Ctrl-C reaches the whole process group: the parent decides when this receiver stops.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    receiver = None
+    try:
+        receiver = _Receiver(config, out)
+        receiver.run(stop_event)
+    except _Failure as failure:
+        out.put(("error", (failure.kind, str(failure))))
+    except Exception as exc:  # the parent must hear of it, not find a dead process
+        out.put(("error", ("protocol", f"the NatNet receiver failed: {type(exc).__name__}: {exc}")))
+    finally:
+        if receiver is not None:
+            receiver.shutdown()
+
+
+class _Receiver:  # pragma: no cover - runs in the child process
+    def __init__(self, config: dict, out) -> None:
+        self.config = config
+        self.out = out
+        self.address = f"{config['server']}:{config['command_port']}"
+        self.client: _Client | None = None
+        self.descriptions = None
+        self.target_id: int | None = None
+        self.pending: list = []  # frames received before the id was known
+        self.rows: list[tuple] = []
+        self.last_modeldef_request = -np.inf
+
+    def run(self, stop_event) -> None:
+        cfg = self.config
+        self.open()
+        info = self.client.server_info
+        self.resolve(cfg["timeout_s"])
+        names = tuple(d.name for d in self.descriptions.rigid_bodies)
+        self.out.put(
+            (
+                "ready",
+                {
+                    "application": info.application_name,
+                    "server_version": str(info.server_version),
+                    "natnet_version": str(info.nat_net_protocol_version),
+                    "rigid_body_id": self.target_id,
+                    "rigid_bodies": names,
+                },
+            )
+        )
+        for frame in self.pending:
+            self.on_frame(frame)
+        self.pending = []
+        last_flush = time.monotonic()
+        parent = os.getppid()
+        # A parent killed without closing us leaves this process to init: stop then too.
+        while not stop_event.is_set() and os.getppid() == parent:
+            readable, _, _ = select.select(self.client.sockets, [], [], POLL_S)
+            if readable:
+                self.client.update_sync()  # drains both sockets, keep-alive per packet
+            elif not cfg["multicast"]:
+                self.client.send_request(NatNetClient.NAT_KEEPALIVE)
+            now = time.monotonic()
+            if self.rows and now - last_flush >= cfg["batch_s"]:
+                self.flush()
+                last_flush = now
+        if os.getppid() != parent:
+            # Nobody reads the queue any more: exit without waiting to flush it.
+            self.out.cancel_join_thread()
+            return
+        self.flush()
+
+    def open(self) -> None:
+        cfg = self.config
+        self.client = _Client(
+            server_ip_address=cfg["server"],
+            local_ip_address=cfg["local"],
+            multicast_address=cfg["multicast_group"],
+            command_port=cfg["command_port"],
+            data_port=cfg["data_port"],
+            use_multicast=cfg["multicast"],
+        )
+        self.client.on_data_description_received_event.handlers.append(self.on_descriptions)
+        self.client.on_data_frame_received_event.handlers.append(self.on_frame)
+        mode = "multicast" if cfg["multicast"] else "unicast"
+        try:
+            self.client.connect(timeout=cfg["timeout_s"])
+        except TimeoutError:
+            raise _Failure(
+                "timeout",
+                f"no NatNet server answered at {self.address} within {cfg['timeout_s']:.1f} s; "
+                f"check that Motive streams (Settings > Streaming > Enable) in {mode} on that "
+                "address and command port",
+            ) from None
+        except (OSError, NatNetNetworkError) as exc:
+            reason = getattr(exc, "inner_error", exc)
+            raise _Failure(
+                "network",
+                f"cannot open a {mode} socket on {cfg['local']} for {self.address}: {reason}; "
+                "'local' must be an address of this machine on the tracker's network",
+            ) from None
+
+    def resolve(self, timeout_s: float) -> None:
+        """Wait for the model definitions and find the rigid body's id."""
+        deadline = time.monotonic() + timeout_s
+        last_request = -np.inf
+        while self.descriptions is None:
+            now = time.monotonic()
+            if now > deadline:
+                raise _Failure(
+                    "timeout",
+                    f"the NatNet server at {self.address} answered but sent no model "
+                    f"definitions within {timeout_s:.1f} s",
+                )
+            if now - last_request >= MODELDEF_RETRY_S:
+                self.client.request_modeldef()
+                last_request = now
+            readable, _, _ = select.select(self.client.sockets, [], [], 0.05)
+            if readable:
+                self.client.update_sync()
+        self.target_id = self.find_id()
+        if self.target_id is None:
+            names = [d.name for d in self.descriptions.rigid_bodies]
+            streamed = (
+                "it streams " + ", ".join(repr(n) for n in names)
+                if names
+                else "it streams no rigid bodies (enable Rigid Bodies in Motive's streaming "
+                "settings)"
+            )
+            raise _Failure(
+                "unknown_rigid_body",
+                f"no rigid body named {self.config['rigid_body']!r} at the NatNet server "
+                f"{self.address}; {streamed}",
+            )
+
+    def find_id(self) -> int | None:
+        for description in self.descriptions.rigid_bodies:
+            if description.name == self.config["rigid_body"]:
+                return int(description.id_num)
+        return None
+
+    def on_descriptions(self, descriptions) -> None:
+        self.descriptions = descriptions
+        if self.target_id is not None:
+            # Motive re-numbers bodies when assets change: follow the name.
+            found = self.find_id()
+            if found is not None:
+                self.target_id = found
+
+    def on_frame(self, frame) -> None:
+        if self.target_id is None:
+            self.pending.append(frame)
+            return
+        # At most once a second: natnet 0.3.0 does not know NatNet 4.1's precision timestamps
+        # and reads this flag from them when Motive streams 4.1.
+        now = time.monotonic()
+        if frame.suffix.tracked_models_changed and now - self.last_modeldef_request > 1.0:
+            self.client.request_modeldef()
+            self.last_modeldef_request = now
+        for body in frame.rigid_bodies:
+            if body.id_num == self.target_id:
+                valid = body.tracking_valid is not False
+                pos, rot = (body.pos, body.rot) if valid else (_NAN3, _NAN4)
+                self.rows.append(
+                    (frame.prefix.frame_number, frame.suffix.timestamp, *pos, *rot, valid)
+                )
+                return
+        # The body is missing from this frame: a frame without it is a frame not tracked.
+        self.rows.append((frame.prefix.frame_number, frame.suffix.timestamp, *_NAN3, *_NAN4, False))
+
+    def flush(self) -> None:
+        if not self.rows:
+            return
+        rows, self.rows = self.rows, []
+        data = np.array(rows, dtype=np.float64)
+        self.out.put(
+            (
+                "batch",
+                (
+                    data[:, 0].astype(np.int64),
+                    data[:, 1],
+                    data[:, 2:5],
+                    data[:, 5:9],
+                    data[:, 9] > 0.5,
+                ),
+            )
+        )
+
+    def shutdown(self) -> None:
+        if self.client is None:
+            return
+        try:
+            if not self.config["multicast"] and self.client.connected:
+                self.client.send_request(NatNetClient.NAT_DISCONNECT)
+        except OSError:
+            pass
+        self.client.shutdown()
+        self.client = None
+
+
+_NAN3 = (float("nan"),) * 3
+_NAN4 = (float("nan"),) * 4
