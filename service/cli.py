@@ -84,7 +84,45 @@ def _trace_options(parser: argparse.ArgumentParser, *, tip: bool = True) -> None
 
 
 def _scan_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scan-format", help="format of the scan (default from the suffix)")
+    from drivers.scanning.base import SCAN_READERS
+
+    parser.add_argument(
+        "--scan-format",
+        choices=sorted(SCAN_READERS),
+        help="format of the scan (default from the suffix; a folder is RGB-D frames)",
+    )
+    parser.add_argument(
+        "--scan-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help='an option of the scan\'s reader, e.g. depth_scale=1000 or fusion="points" '
+        "(repeatable; values are JSON, bare words are text)",
+    )
+
+
+def _read_scan_for(args: argparse.Namespace):
+    """The scan of a command, with its format, unit and reader options."""
+    import json
+
+    from drivers.scanning.base import format_for
+    from drivers.scanning.pointcloud import POINT_CLOUD_FORMATS, read_scan
+
+    options = {}
+    for item in args.scan_option:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--scan-option takes KEY=VALUE, not {item!r}")
+        try:
+            options[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            options[key.strip()] = value
+    fmt = args.scan_format
+    if fmt is None:
+        fmt = "rgbd" if Path(args.scan).is_dir() else format_for(args.scan)
+    # --units is for files that do not state theirs; E57, RGB-D and bags fix their own.
+    units = (args.units or "m") if fmt in POINT_CLOUD_FORMATS.values() else "m"
+    return read_scan(args.scan, units=units, fmt=fmt, options=options or None)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -110,7 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument(
         "--scan",
         metavar="SCAN_FILE",
-        help="scan of the workpiece (PLY, PCD, XYZ, E57, RGB-D, ...; see the README)",
+        help="scan of the workpiece: PLY/PCD/XYZ, E57, RGB-D folder/.zip/.rgbd.json or "
+        "RealSense .bag",
     )
     _scan_options(rec)
     rec.add_argument(
@@ -353,7 +392,6 @@ def _check_output(path: str, suffix: str) -> Path:
 def _cmd_reconstruct(args: argparse.Namespace) -> int:
     from drivers.calibration import read_calibration
     from drivers.export import write_reconstruction_csv
-    from drivers.scanning.pointcloud import read_scan
     from recon.reconstruct import reconstruct
 
     out = _check_output(args.out, ".csv")
@@ -365,8 +403,10 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     recording = _read_trace_for(args)
     scan = None
     if args.scan:
-        scan_file = read_scan(args.scan, units=args.units or "m", fmt=args.scan_format)
+        scan_file = _read_scan_for(args)
         scan = scan_file.scan
+        for note in scan_file.notes:
+            print(f"note: {note}", file=sys.stderr)
         if scan_file.n_dropped:
             print(
                 f"note: {scan_file.n_dropped} scan points without finite coordinates were left out",
@@ -548,7 +588,6 @@ def summary(recon) -> str:
 def _cmd_plan(args: argparse.Namespace) -> int:
     from drivers.calibration import read_calibration
     from drivers.export import read_reconstruction_csv, write_trajectory_csv
-    from drivers.scanning.pointcloud import read_scan
     from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path
 
     out = _check_output(args.out, ".csv")
@@ -570,7 +609,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     if args.scan_from_tracker:
         T_scan_tracker = read_calibration(args.scan_from_tracker, expect="T_scan_tracker").matrix
     if args.scan and params.orientation in ("auto", "scan"):
-        scan = read_scan(args.scan, units=args.units or "m", fmt=args.scan_format).scan
+        scan = _read_scan_for(args).scan
         normals, _ = normals_from_scan(
             recon.points_m,
             recon.mode,

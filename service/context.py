@@ -113,17 +113,25 @@ class AppContext:
         return session.tip_offset_m
 
     async def add_scan(
-        self, session_id: str, content: bytes, filename: str, fmt: str | None, units: str
+        self,
+        session_id: str,
+        content: bytes,
+        filename: str,
+        fmt: str | None,
+        units: str,
+        options: dict | None = None,
     ) -> ArtifactRow:
         self.session(session_id)
-        arrays, summary = await self.jobs.run(tasks.parse_scan_task, content, filename, fmt, units)
+        arrays, summary = await self.jobs.run(
+            tasks.parse_scan_task, content, filename, fmt, units, options
+        )
         artifact_id = new_id(KINDS["scan"])
         row = self._store_arrays(
             session_id,
             "scan",
             artifact_id,
             arrays,
-            params={"format": summary["format"], "units": units},
+            params={"format": summary["format"], "units": units, "options": options},
             summary=summary,
             source_name=filename,
         )

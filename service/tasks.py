@@ -134,12 +134,12 @@ def pivot_task(
 
 
 def parse_scan_task(
-    content: bytes, filename: str, fmt: str | None, units: str
+    content: bytes, filename: str, fmt: str | None, units: str, options: dict | None = None
 ) -> tuple[dict, dict]:
     """Parse an uploaded scan (in a worker process). Returns (arrays, summary)."""
     from drivers.scanning.pointcloud import read_scan
 
-    scan_file = read_scan(content, name=filename, fmt=fmt, units=units)
+    scan_file = read_scan(content, name=filename, fmt=fmt, units=units, options=options)
     scan = scan_file.scan
     points = np.array(scan.points_m)
     return (
@@ -148,6 +148,8 @@ def parse_scan_task(
             "format": scan_file.format,
             "n_points": int(len(points)),
             "n_dropped": scan_file.n_dropped,
+            "has_normals": scan.normals is not None,
+            "notes": list(scan_file.notes),
             "bounds_m": [points.min(axis=0).tolist(), points.max(axis=0).tolist()],
         },
     )

@@ -4,23 +4,34 @@ Open3D's readers fail silently: a missing or corrupt file gives an empty cloud a
 the console. Every read here is checked and turned into an :class:`InputFileError` that says
 what is wrong. Uploads arrive as bytes and are written to a temporary file first, since Open3D
 reads only XYZ text from memory.
+
+:func:`read_scan` here is the entry point the service and the CLI use: it dispatches to every
+registered reader (:mod:`drivers.scanning.base`), point clouds being one kind among several.
 """
 
 from __future__ import annotations
 
-import contextlib
-import os
-import tempfile
-import threading
-from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import open3d as o3d
 
 from drivers.errors import InputFileError, UnknownFormatError
-from drivers.units import metres_per
+from drivers.scanning import base
+from drivers.scanning._native import captured_native_stderr, quiet_open3d
+from drivers.scanning.base import ReaderOptions, ScanFile, ScanReader
 from recon.types import Scan
+
+__all__ = [
+    "POINT_CLOUD_FORMATS",
+    "PointCloudOptions",
+    "PointCloudReader",
+    "ScanFile",
+    "format_for",
+    "read_scan",
+    "write_scan",
+]
 
 #: File suffix -> Open3D format name.
 POINT_CLOUD_FORMATS: dict[str, str] = {
@@ -32,48 +43,54 @@ POINT_CLOUD_FORMATS: dict[str, str] = {
     ".pts": "pts",
 }
 
+# Kept under its old name for callers of the module's private helper.
+_captured_native_stderr = captured_native_stderr
 
-@dataclass(frozen=True)
-class ScanFile:
-    """A scan read from a file.
 
-    Attributes
-    ----------
-    scan : Scan
-        In metres.
-    format : str
-    n_dropped : int
-        Points without finite coordinates (organised clouds mark holes with NaN), left out.
-    """
+class PointCloudOptions(ReaderOptions):
+    """Options of the point-cloud reader (none yet besides its kind)."""
 
-    scan: Scan
-    format: str
-    n_dropped: int
+    kind: Literal["pointcloud"] = "pointcloud"
+
+
+class PointCloudReader(ScanReader):
+    """PLY, PCD, XYZ, XYZN, XYZRGB and PTS files through Open3D, every read checked."""
+
+    kind: ClassVar[str] = "pointcloud"
+    options_class: ClassVar[type[ReaderOptions]] = PointCloudOptions
+
+    def _read(self, path: Path, *, fmt: str, label: str, scale: float) -> ScanFile:
+        cloud = _read(path, fmt, label)
+        points = np.asarray(cloud.points, dtype=np.float64)
+        if len(points) == 0:
+            raise InputFileError(
+                f"{label} holds no points as a {fmt.upper()} file: it is empty, corrupt or not "
+                f"a {fmt.upper()} point cloud"
+            )
+        normals = np.asarray(cloud.normals, dtype=np.float64) if cloud.has_normals() else None
+        finite = np.isfinite(points).all(axis=1)
+        if normals is not None:
+            finite &= np.isfinite(normals).all(axis=1)
+        if not np.any(finite):
+            raise InputFileError(f"{label} has no point with finite coordinates")
+        scan = Scan(
+            points_m=points[finite] * scale,
+            normals=None if normals is None else normals[finite],
+        )
+        return ScanFile(scan=scan, format=fmt, n_dropped=int(np.count_nonzero(~finite)))
 
 
 def format_for(name: str, explicit: str | None = None) -> str:
-    """The point-cloud format of a file, from ``explicit`` or the file's suffix.
+    """The scan format of a file, from ``explicit`` or the file's suffix.
+
+    Covers every registered reader (see :func:`drivers.scanning.base.format_for`).
 
     Raises
     ------
     UnknownFormatError
         No such format, or a suffix that names none.
     """
-    known = sorted(set(POINT_CLOUD_FORMATS.values()))
-    if explicit is not None:
-        fmt = explicit.lower().lstrip(".")
-        if fmt not in known:
-            raise UnknownFormatError(
-                f"unknown scan format {explicit!r}; use one of {', '.join(known)}"
-            )
-        return fmt
-    suffix = Path(name).suffix.lower()
-    if suffix not in POINT_CLOUD_FORMATS:
-        raise UnknownFormatError(
-            f"cannot tell the scan format of {name!r} from its suffix; name the file with one of "
-            f"{', '.join(sorted(POINT_CLOUD_FORMATS))} or give the format explicitly"
-        )
-    return POINT_CLOUD_FORMATS[suffix]
+    return base.format_for(name, explicit)
 
 
 def read_scan(
@@ -82,18 +99,23 @@ def read_scan(
     units: str = "m",
     fmt: str | None = None,
     name: str | None = None,
+    options: ReaderOptions | dict[str, Any] | None = None,
 ) -> ScanFile:
-    """Read a point-cloud scan.
+    """Read a scan: a point cloud, an E57 file, RGB-D frames or a RealSense bag.
 
     Parameters
     ----------
     source : path or bytes
-        The file, or its content (an upload; then ``name`` or ``fmt`` gives the format).
+        The file (or a folder of RGB-D frames), or its content (an upload; then ``name`` or
+        ``fmt`` gives the format).
     units : {"m", "mm"}
+        Unit of point-cloud coordinates; E57, RGB-D and bag input fix their own (metres).
     fmt : str, optional
-        Format name (see :data:`POINT_CLOUD_FORMATS`); default from the suffix.
+        Format name (see :data:`drivers.scanning.base.SCAN_READERS`); default from the suffix.
     name : str, optional
         File name of an upload, for its suffix and for messages.
+    options : ReaderOptions or dict, optional
+        Options of the format's reader (e.g. ``{"depth_trunc_m": 1.5}`` for RGB-D frames).
 
     Returns
     -------
@@ -105,48 +127,24 @@ def read_scan(
         Missing, unreadable or empty file, or one with no finite point.
     UnknownFormatError
     ValueError
-        An unknown unit.
+        An unknown unit, or options that do not fit the reader.
     """
-    scale = metres_per(units)
-    label = name or ("upload" if isinstance(source, bytes) else str(source))
-    fmt = format_for(name or ("" if isinstance(source, bytes) else str(source)), fmt)
-    if isinstance(source, bytes):
-        with tempfile.TemporaryDirectory() as tmp:
-            path = Path(tmp) / f"scan.{fmt}"
-            path.write_bytes(source)
-            cloud = _read(path, fmt, label)
-    else:
-        path = Path(source)
-        if not path.is_file():
-            raise InputFileError(f"{label} does not exist or is not a file")
-        cloud = _read(path, fmt, label)
-    points = np.asarray(cloud.points, dtype=np.float64)
-    if len(points) == 0:
-        raise InputFileError(
-            f"{label} holds no points as a {fmt.upper()} file: it is empty, corrupt or not a "
-            f"{fmt.upper()} point cloud"
-        )
-    normals = np.asarray(cloud.normals, dtype=np.float64) if cloud.has_normals() else None
-    finite = np.isfinite(points).all(axis=1)
-    if normals is not None:
-        finite &= np.isfinite(normals).all(axis=1)
-    if not np.any(finite):
-        raise InputFileError(f"{label} has no point with finite coordinates")
-    scan = Scan(
-        points_m=points[finite] * scale,
-        normals=None if normals is None else normals[finite],
-    )
-    return ScanFile(scan=scan, format=fmt, n_dropped=int(np.count_nonzero(~finite)))
+    return base.read_scan(source, units=units, fmt=fmt, name=name, options=options)
 
 
 def write_scan(path: Path, scan: Scan) -> None:
     """Write a scan as a point cloud in metres; Open3D picks the format from the suffix."""
-    format_for(str(path))  # refuse suffixes we could not read back
+    # Refuse suffixes we could not read back (and formats Open3D cannot write, like E57).
+    if Path(path).suffix.lower() not in POINT_CLOUD_FORMATS:
+        raise UnknownFormatError(
+            f"cannot write a scan as {Path(path).name!r}; name the file with one of "
+            f"{', '.join(sorted(POINT_CLOUD_FORMATS))}"
+        )
     # Vector3dVector needs writeable memory; Scan's arrays are read-only.
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(scan.points_m)))
     if scan.normals is not None:
         cloud.normals = o3d.utility.Vector3dVector(np.array(scan.normals))
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+    with quiet_open3d():
         ok = o3d.io.write_point_cloud(str(path), cloud)
     if not ok:
         raise InputFileError(f"could not write {path}")
@@ -222,29 +220,6 @@ def _pcd_body_complete(path: Path, declared: int) -> bool:
     return True
 
 
-_NATIVE_STDERR_LOCK = threading.Lock()
-
-
-@contextlib.contextmanager
-def _captured_native_stderr():
-    """Collect what native code writes to file descriptor 2 while the block runs.
-
-    Yields a list that receives the captured text when the block ends. Held under a lock and
-    only around one file read, so other threads lose at most a few milliseconds of stderr.
-    """
-    captured: list[str] = []
-    with _NATIVE_STDERR_LOCK, tempfile.TemporaryFile() as sink:
-        saved = os.dup(2)
-        try:
-            os.dup2(sink.fileno(), 2)
-            yield captured
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            sink.seek(0)
-            captured.append(sink.read().decode("utf-8", errors="replace").strip())
-
-
 def _read(path: Path, fmt: str, label: str) -> o3d.geometry.PointCloud:
     _check_signature(path, fmt, label)
     try:
@@ -254,8 +229,8 @@ def _read(path: Path, fmt: str, label: str) -> o3d.geometry.PointCloud:
     # Open3D reports failures as console messages only; capture them for the error message and
     # judge the result instead.
     with (
-        _captured_native_stderr() as native,
-        o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error),
+        captured_native_stderr() as native,
+        quiet_open3d(),
     ):
         try:
             cloud = o3d.io.read_point_cloud(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import tempfile
 from pathlib import Path
 from typing import Literal
@@ -130,15 +131,34 @@ async def upload_recording(
 @router.put("/sessions/{session_id}/scan", status_code=201, response_model=ArtifactOut)
 async def upload_scan(
     session_id: str,
-    file: UploadFile = File(..., description="PLY, PCD or XYZ point cloud"),
-    format: str | None = Form(None, description="ply, pcd, xyz, xyzn, xyzrgb or pts"),
-    units: Literal["m", "mm"] = Form("m"),
+    file: UploadFile = File(
+        ...,
+        description="PLY/PCD/XYZ(N/RGB)/PTS point cloud, E57, a .zip of RGB-D frames (with "
+        "intrinsics and poses), or a RealSense .bag",
+    ),
+    format: str | None = Form(None, description="ply, pcd, xyz, xyzn, xyzrgb, pts, e57, rgbd, bag"),
+    units: Literal["m", "mm"] = Form("m", description="point clouds only; others fix their own"),
+    options: str | None = Form(
+        None,
+        description='the reader\'s options as a JSON object, e.g. {"depth_scale": 1000} for '
+        "RGB-D frames",
+    ),
     ctx=Depends(context),
 ) -> dict:
     """Upload a scan; it becomes the session's scan. A bad file is a 422 and changes nothing."""
+    reader_options = None
+    if options:
+        try:
+            reader_options = json.loads(options)
+        except json.JSONDecodeError as exc:
+            raise ApiError(422, "invalid_request", f"options is not valid JSON: {exc}") from None
+        if not isinstance(reader_options, dict):
+            raise ApiError(422, "invalid_request", "options must be a JSON object")
     content = await _read_upload(file, ctx)
     return artifact_json(
-        await ctx.add_scan(session_id, content, file.filename or "upload", format, units)
+        await ctx.add_scan(
+            session_id, content, file.filename or "upload", format, units, reader_options
+        )
     )
 
 

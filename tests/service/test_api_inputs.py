@@ -373,3 +373,63 @@ def test_natnet_captures_that_cannot_work_fail_with_a_reason(client, sid):
     ):
         response = client.post(f"/sessions/{sid}/captures", json={"source": source})
         assert response.status_code == 422 and response.json()["code"] == "invalid_request"
+
+
+def test_e57_and_rgbd_zip_scans_upload(client, sid, tmp_path):
+    from tests.drivers.test_scan_readers import make_sequence, write_e57, zip_folder
+
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-0.1, 0.1, (2000, 3))
+    write_e57(tmp_path / "scan.e57", [(points, [1.0, 0, 0, 0], [0.0, 0.0, 0.5], None)])
+    response = client.put(
+        f"/sessions/{sid}/scan", files={"file": ("scan.e57", (tmp_path / "scan.e57").read_bytes())}
+    )
+    assert response.status_code == 201, response.text
+    assert response.json()["summary"]["format"] == "e57"
+    assert response.json()["summary"]["n_points"] == 2000
+
+    make_sequence(tmp_path / "frames", 3)
+    archive = zip_folder(tmp_path / "frames", tmp_path / "frames.zip").read_bytes()
+    response = client.put(
+        f"/sessions/{sid}/scan",
+        files={"file": ("frames.zip", archive)},
+        data={"options": '{"fusion": "points"}'},
+    )
+    assert response.status_code == 201, response.text
+    body = response.json()
+    assert body["summary"]["format"] == "rgbd" and body["summary"]["n_points"] > 10_000
+    assert body["params"]["options"] == {"fusion": "points"} and body["summary"]["notes"]
+    assert client.get(f"/sessions/{sid}").json()["scan_id"] == body["id"]
+
+
+@pytest.mark.parametrize(
+    "name, data, code, message",
+    [
+        ("frames.zip", {"options": "{not json"}, "invalid_request", "not valid JSON"),
+        ("frames.zip", {"options": "[1, 2]"}, "invalid_request", "JSON object"),
+        ("frames.zip", {"options": '{"depht_scale": 1000}'}, "invalid_value", "depht_scale"),
+        ("scan.e57", {"units": "mm"}, "invalid_value", "fixes its own length unit"),
+        ("frames.zip", {}, "invalid_file", "intrinsics"),
+    ],
+    ids=["bad-json", "not-object", "typo", "units-on-e57", "zip-without-frames"],
+)
+def test_bad_scan_uploads_change_nothing(client, sid, tmp_path, name, data, code, message):
+    import zipfile
+
+    from tests.drivers.test_scan_readers import write_e57
+
+    if name.endswith(".e57"):
+        write_e57(
+            tmp_path / name,
+            [(np.random.default_rng(0).random((100, 3)), [1.0, 0, 0, 0], [0.0, 0.0, 0.0], None)],
+        )
+    else:
+        with zipfile.ZipFile(tmp_path / name, "w") as archive:
+            archive.writestr("frames/readme.txt", "no frames here")
+    before = client.get(f"/sessions/{sid}").json()
+    response = client.put(
+        f"/sessions/{sid}/scan", files={"file": (name, (tmp_path / name).read_bytes())}, data=data
+    )
+    assert response.status_code == 422, response.text
+    assert response.json()["code"] == code and message in response.json()["message"]
+    assert client.get(f"/sessions/{sid}").json() == before

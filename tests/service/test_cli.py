@@ -132,7 +132,7 @@ def test_path_only_without_a_scan(inputs, tmp_path):
         (lambda d, i: ["reconstruct", d / "missing.csv", "--out", d / "o.csv"], "does not exist"),
         (
             lambda d, i: ["reconstruct", i / "scan.ply", "--out", d / "o.csv"],
-            "not a text|no column",
+            "cannot tell the trace format",
         ),
         (
             lambda d, i: [

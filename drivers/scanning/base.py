@@ -1,0 +1,342 @@
+"""Scan readers: one per kind of scanner output, chosen by file suffix or format name.
+
+Every reader turns a file (or a folder, or the bytes of an upload) into a :class:`ScanFile`: a
+:class:`~recon.types.Scan` in metres plus what was left out. The public method
+:meth:`ScanReader.read` lives here and does what every reader needs (argument checks, uploads
+written to a temporary file, missing files); each reader implements ``_read``.
+
+Formats (:data:`SCAN_READERS`, :data:`SCAN_SUFFIXES`):
+
+========== =============================== ===============================================
+format     suffixes                        reader
+========== =============================== ===============================================
+ply, pcd,  .ply .pcd .xyz .xyzn .xyzrgb    :class:`~drivers.scanning.pointcloud.PointCloudReader`
+xyz, ...   .pts                            (Open3D)
+e57        .e57                            :class:`~drivers.scanning.e57.E57Reader` (pye57)
+rgbd       .rgbd.json, .zip, a folder      :class:`~drivers.scanning.rgbd.RGBDReader`
+bag        .bag                            :class:`~drivers.scanning.bag.RealSenseBagReader`
+========== =============================== ===============================================
+
+Readers are imported lazily, so a missing optional dependency is an error naming it, not an
+import failure of the package. Options are a pydantic model per reader, selected by ``kind``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import tempfile
+from abc import ABC, abstractmethod
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from drivers.errors import InputFileError, UnknownFormatError
+from drivers.units import metres_per
+from recon.types import Scan
+
+#: Format name -> "module:Class" of the reader.
+SCAN_READERS: dict[str, str] = {
+    "ply": "drivers.scanning.pointcloud:PointCloudReader",
+    "pcd": "drivers.scanning.pointcloud:PointCloudReader",
+    "xyz": "drivers.scanning.pointcloud:PointCloudReader",
+    "xyzn": "drivers.scanning.pointcloud:PointCloudReader",
+    "xyzrgb": "drivers.scanning.pointcloud:PointCloudReader",
+    "pts": "drivers.scanning.pointcloud:PointCloudReader",
+    "e57": "drivers.scanning.e57:E57Reader",
+    "rgbd": "drivers.scanning.rgbd:RGBDReader",
+    "bag": "drivers.scanning.bag:RealSenseBagReader",
+}
+
+#: File suffix -> format name. The longest matching suffix wins (``.rgbd.json``).
+SCAN_SUFFIXES: dict[str, str] = {
+    ".ply": "ply",
+    ".pcd": "pcd",
+    ".xyz": "xyz",
+    ".xyzn": "xyzn",
+    ".xyzrgb": "xyzrgb",
+    ".pts": "pts",
+    ".e57": "e57",
+    ".rgbd.json": "rgbd",
+    ".zip": "rgbd",
+    ".bag": "bag",
+}
+
+#: The format of a folder given as a scan.
+FOLDER_FORMAT = "rgbd"
+
+#: Third-party modules a reader needs -> what to install.
+_INSTALL_HINTS = {"pye57": "pye57", "open3d": "open3d-cpu"}
+
+
+@dataclass(frozen=True)
+class ScanFile:
+    """A scan read from a file.
+
+    Attributes
+    ----------
+    scan : Scan
+        In metres.
+    format : str
+        The format name it was read as (a key of :data:`SCAN_READERS`).
+    n_dropped : int
+        Points left out: without finite coordinates (organised clouds mark holes with NaN), or
+        depth measurements outside the accepted range.
+    notes : tuple of str
+        What the reader did that a user may want to know (frames fused, depth scale used).
+    """
+
+    scan: Scan
+    format: str
+    n_dropped: int
+    notes: tuple[str, ...] = ()
+
+
+class ReaderOptions(BaseModel):
+    """Options of a reader; each reader subclasses it with a literal ``kind``."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: str
+
+
+class ScanReader(ABC):
+    """Reads one kind of scanner output into a :class:`ScanFile`.
+
+    Parameters
+    ----------
+    options : ReaderOptions, optional
+        An instance of the reader's :attr:`options_class`; default options if omitted.
+
+    Raises
+    ------
+    ValueError
+        Options of another reader.
+    """
+
+    #: Registry name of the reader.
+    kind: ClassVar[str]
+    #: Its options model.
+    options_class: ClassVar[type[ReaderOptions]]
+    #: Whether the format fixes its length unit (E57 is metres by its standard; depth images
+    #: carry a depth scale), so ``units`` other than metres would be a contradiction.
+    fixed_units: ClassVar[bool] = False
+    #: Whether the reader takes a folder as well as a file.
+    accepts_folders: ClassVar[bool] = False
+
+    def __init__(self, options: ReaderOptions | None = None) -> None:
+        if options is None:
+            options = self.options_class()
+        if not isinstance(options, self.options_class):
+            raise ValueError(
+                f"the {self.kind} reader takes {self.options_class.__name__}, got "
+                f"{type(options).__name__} (kind {getattr(options, 'kind', '?')!r})"
+            )
+        self.options = options
+
+    def read(
+        self,
+        source: str | Path | bytes,
+        *,
+        fmt: str,
+        units: str = "m",
+        name: str | None = None,
+    ) -> ScanFile:
+        """Read a scan.
+
+        Parameters
+        ----------
+        source : path or bytes
+            The file or folder, or an upload's content.
+        fmt : str
+            The format name (one this reader is registered for).
+        units : {"m", "mm"}
+            Length unit of the coordinates, for formats that do not fix it.
+        name : str, optional
+            File name of an upload, for its suffix and for messages.
+
+        Raises
+        ------
+        InputFileError
+            Missing, unreadable, empty or inconsistent input.
+        ValueError
+            An unknown unit, or a unit other than metres for a format that fixes its own.
+        """
+        scale = metres_per(units)
+        if self.fixed_units and units != "m":
+            raise ValueError(
+                f"{fmt.upper()} input fixes its own length unit ({self._unit_note()}); "
+                f"leave units at 'm' instead of {units!r}"
+            )
+        label = name or ("upload" if isinstance(source, bytes) else str(source))
+        with self._materialised(source, fmt, label) as path:
+            return self._read(path, fmt=fmt, label=label, scale=scale)
+
+    @abstractmethod
+    def _read(self, path: Path, *, fmt: str, label: str, scale: float) -> ScanFile:
+        """Read ``path`` (an existing file, or a folder if :attr:`accepts_folders`).
+
+        ``scale`` is metres per unit of the coordinates; ``label`` names the input in messages.
+        """
+
+    def _unit_note(self) -> str:
+        return "metres"
+
+    def _upload_suffix(self, fmt: str) -> str:
+        """Suffix of the temporary file an upload is written to (some libraries look at it)."""
+        return f".{fmt}"
+
+    @contextlib.contextmanager
+    def _materialised(self, source: str | Path | bytes, fmt: str, label: str) -> Iterator[Path]:
+        # Open3D, libe57 and librealsense read files only: uploads go to a temporary file.
+        if isinstance(source, bytes):
+            with tempfile.TemporaryDirectory(prefix="teachpath-scan-") as tmp:
+                path = Path(tmp) / f"upload{self._upload_suffix(fmt)}"
+                path.write_bytes(source)
+                yield path
+            return
+        path = Path(source)
+        if path.is_dir() and self.accepts_folders:
+            yield path
+            return
+        if path.is_dir():
+            raise InputFileError(f"{label} is a folder, not a {fmt.upper()} file")
+        if not path.is_file():
+            raise InputFileError(f"{label} does not exist or is not a file")
+        yield path
+
+
+def format_for(name: str, explicit: str | None = None) -> str:
+    """The scan format of a file, from ``explicit`` or the file's suffix.
+
+    Parameters
+    ----------
+    name : str
+        File name (only its suffix is used).
+    explicit : str, optional
+        A format name (a key of :data:`SCAN_READERS`), with or without a leading dot.
+
+    Raises
+    ------
+    UnknownFormatError
+        No such format, or a suffix that names none.
+    """
+    known = sorted(SCAN_READERS)
+    if explicit is not None:
+        fmt = explicit.lower().lstrip(".")
+        if fmt not in SCAN_READERS:
+            raise UnknownFormatError(
+                f"unknown scan format {explicit!r}; use one of {', '.join(known)}"
+            )
+        return fmt
+    lowered = Path(name).name.lower()
+    for suffix in sorted(SCAN_SUFFIXES, key=len, reverse=True):
+        if lowered.endswith(suffix) and len(lowered) > len(suffix):
+            return SCAN_SUFFIXES[suffix]
+    raise UnknownFormatError(
+        f"cannot tell the scan format of {name!r} from its suffix; name the file with one of "
+        f"{', '.join(sorted(SCAN_SUFFIXES))} (or give a folder of RGB-D frames), or give the "
+        f"format explicitly ({', '.join(known)})"
+    )
+
+
+def reader_class(fmt: str) -> type[ScanReader]:
+    """The reader class registered for format ``fmt``.
+
+    Raises
+    ------
+    UnknownFormatError
+        Unknown format, or the reader's third-party dependency is not installed.
+    """
+    if fmt not in SCAN_READERS:
+        raise UnknownFormatError(
+            f"unknown scan format {fmt!r}; use one of {', '.join(sorted(SCAN_READERS))}"
+        )
+    module_name, class_name = SCAN_READERS[fmt].split(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        missing = (exc.name or "").split(".")[0]
+        package = _INSTALL_HINTS.get(missing, missing)
+        raise UnknownFormatError(
+            f"reading {fmt.upper()} scans needs the Python package {package!r}, which is not "
+            f"installed; install it (pip install {package})"
+        ) from None
+    return getattr(module, class_name)
+
+
+def make_reader(fmt: str, options: ReaderOptions | Mapping[str, Any] | None = None) -> ScanReader:
+    """A reader for ``fmt`` with ``options`` (a model instance, or a mapping validated into one).
+
+    Raises
+    ------
+    UnknownFormatError
+        Unknown format.
+    ValueError
+        Options that do not fit the reader (another reader's, unknown or invalid fields).
+    """
+    cls = reader_class(fmt)
+    if isinstance(options, Mapping):
+        values = dict(options)
+        kind = values.setdefault("kind", cls.kind)
+        if kind != cls.kind:
+            raise ValueError(
+                f"options of kind {kind!r} given for a {fmt!r} scan, which the {cls.kind!r} "
+                "reader reads"
+            )
+        try:
+            options = cls.options_class(**values)
+        except ValidationError as exc:
+            problems = "; ".join(
+                f"{'.'.join(str(p) for p in err['loc']) or 'options'}: {err['msg']}"
+                for err in exc.errors()
+            )
+            raise ValueError(f"invalid {cls.kind} reader options: {problems}") from None
+    return cls(options)
+
+
+def read_scan(
+    source: str | Path | bytes,
+    *,
+    units: str = "m",
+    fmt: str | None = None,
+    name: str | None = None,
+    options: ReaderOptions | Mapping[str, Any] | None = None,
+) -> ScanFile:
+    """Read a scan in any registered format.
+
+    Parameters
+    ----------
+    source : path or bytes
+        A file or a folder (RGB-D frames), or an upload's content (then ``name`` or ``fmt``
+        gives the format).
+    units : {"m", "mm"}
+        Length unit of point-cloud coordinates. E57, RGB-D and bag input fix their own unit, so
+        only "m" is accepted for them.
+    fmt : str, optional
+        Format name (see :data:`SCAN_READERS`); default from the suffix, or "rgbd" for a folder.
+    name : str, optional
+        File name of an upload, for its suffix and for messages.
+    options : ReaderOptions or mapping, optional
+        Reader options (e.g. ``{"depth_trunc_m": 1.5}`` for RGB-D); default options if omitted.
+
+    Returns
+    -------
+    ScanFile
+
+    Raises
+    ------
+    InputFileError
+        Missing, unreadable, empty or inconsistent input; the message says what to change.
+    UnknownFormatError
+        Unknown format or suffix, or a reader whose dependency is missing.
+    ValueError
+        An unknown unit, or options that do not fit the reader.
+    """
+    if fmt is None and name is None and not isinstance(source, bytes) and Path(source).is_dir():
+        fmt = FOLDER_FORMAT
+    fmt = format_for(name or ("" if isinstance(source, bytes) else str(source)), fmt)
+    return make_reader(fmt, options).read(source, fmt=fmt, units=units, name=name)
