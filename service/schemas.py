@@ -201,7 +201,9 @@ class ExecutionCreate(Strict):
 class ReplaySource(Strict):
     kind: Literal["replay"] = "replay"
     recording_id: str
-    speed: float = Field(1.0, gt=0, le=100.0, description="times real time")
+    speed: float | None = Field(
+        1.0, gt=0, le=100.0, description="times real time; null: as fast as possible"
+    )
 
 
 class NatNetSourceIn(Strict):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 
@@ -14,36 +15,88 @@ DEFAULT_RATE_HZ = 240.0
 
 
 class ReplaySource(TrackerSource):
-    """Yields a recording's samples in batches of ``batch_s`` seconds, paced by ``pacer``."""
+    """Yields a recording's samples in batches of ``batch_s`` seconds, paced by ``pacer``.
+
+    Parameters
+    ----------
+    recording : Recording or SampleBatch
+        A clean recording (every sample valid), or raw samples as a reader found them (lost
+        frames flagged, as a live tracker would send them).
+    pacer : Pacer, optional
+        Real time by default; ``Pacer(None)`` replays as fast as the consumer takes it.
+    batch_s : float
+        Stream time per batch.
+    """
 
     kind = "replay"
 
     def __init__(
-        self, recording: Recording, *, pacer: Pacer | None = None, batch_s: float = 0.05
+        self,
+        recording: Recording | SampleBatch,
+        *,
+        pacer: Pacer | None = None,
+        batch_s: float = 0.05,
     ) -> None:
-        self.recording = recording
+        if isinstance(recording, Recording):
+            n = len(recording)
+            recording = SampleBatch(
+                t_s=recording.t_s if recording.t_s is not None else np.arange(n) / DEFAULT_RATE_HZ,
+                position_m=recording.points_m,
+                orientation_xyzw=recording.orientations_xyzw,
+                valid=np.ones(n, dtype=bool),
+            )
+        elif recording.t_s is None:
+            n = len(recording.position_m)
+            recording = SampleBatch(
+                np.arange(n) / DEFAULT_RATE_HZ,
+                recording.position_m,
+                recording.orientation_xyzw,
+                recording.valid,
+            )
+        if not batch_s > 0:
+            raise ValueError(f"batch_s must be positive, got {batch_s}")
+        self.samples = recording
         self.pacer = pacer or Pacer(1.0)
         self.batch_s = batch_s
         self._closed = False
 
+    @classmethod
+    def from_file(
+        cls,
+        source: str | Path | bytes,
+        *,
+        pacer: Pacer | None = None,
+        batch_s: float = 0.05,
+        **reader_options,
+    ) -> ReplaySource:
+        """Replay a trace file in any supported format, lost frames and all.
+
+        ``reader_options`` go to :func:`drivers.tracking.readers.read_raw_trace` (``name``,
+        ``fmt``, ``units``, ``rigid_body``, ``marker``).
+        """
+        from drivers.tracking.readers import read_raw_trace
+
+        return cls(read_raw_trace(source, **reader_options).batch, pacer=pacer, batch_s=batch_s)
+
     def batches(self) -> Iterator[SampleBatch]:
-        rec = self.recording
-        n = len(rec)
-        t = rec.t_s if rec.t_s is not None else np.arange(n) / DEFAULT_RATE_HZ
+        samples = self.samples
+        t = samples.t_s
+        n = len(t)
         start = 0
+        if n:
+            self.pacer.wait_for(float(t[0]))  # the clock starts with the first sample
         while start < n and not self._closed:
             stop = int(np.searchsorted(t, t[start] + self.batch_s, side="left"))
             stop = max(stop, start + 1)
             self.pacer.wait_for(float(t[stop - 1]))
             if self._closed:
                 break
+            q = samples.orientation_xyzw
             yield SampleBatch(
                 t_s=t[start:stop],
-                position_m=rec.points_m[start:stop],
-                orientation_xyzw=None
-                if rec.orientations_xyzw is None
-                else rec.orientations_xyzw[start:stop],
-                valid=np.ones(stop - start, dtype=bool),
+                position_m=samples.position_m[start:stop],
+                orientation_xyzw=None if q is None else q[start:stop],
+                valid=np.asarray(samples.valid[start:stop], dtype=bool),
             )
             start = stop
 

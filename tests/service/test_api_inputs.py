@@ -433,3 +433,18 @@ def test_bad_scan_uploads_change_nothing(client, sid, tmp_path, name, data, code
     assert response.status_code == 422, response.text
     assert response.json()["code"] == code and message in response.json()["message"]
     assert client.get(f"/sessions/{sid}").json() == before
+
+
+def test_a_replay_capture_as_fast_as_possible(client, sid):
+    t = np.arange(2400) / 240.0  # 10 s of recording
+    points = np.column_stack([0.02 * t, 0 * t, 0 * t])
+    rec = client.put(
+        f"/sessions/{sid}/recording",
+        files={"file": ("t.csv", _csv(Recording(points_m=points, t_s=t)))},
+    ).json()
+    cid = client.post(
+        f"/sessions/{sid}/captures",
+        json={"source": {"kind": "replay", "recording_id": rec["id"], "speed": None}},
+    ).json()["id"]
+    body = _wait_capture(client, sid, cid, timeout_s=8.0)  # far less than the 10 s recorded
+    assert body["state"] == "stopped" and body["n_samples"] == 2400, body
