@@ -70,12 +70,11 @@ def read_calibration(
     except (ValueError, TypeError) as exc:
         raise InputFileError(f"{label}: {exc}") from None
     matrix[:3, 3] *= scale
-    residual = data.get("residual_rms_m")
     return Calibration(
         name=name,
         matrix=matrix,
         created=data.get("created"),
-        residual_rms_m=None if residual is None else float(residual),
+        residual_rms_m=_residual(data, label),
     )
 
 
@@ -164,13 +163,24 @@ def read_tip_calibration(source: str | Path | bytes, *, label: str | None = None
             f"{label}: a tip {np.linalg.norm(offset):.1f} m from the rigid body; are the units "
             'right (metres unless the file says "units": "mm")?'
         )
-    residual = data.get("residual_rms_m")
     return TipCalibration(
         offset_m=offset,
         rigid_body=data.get("rigid_body"),
         created=data.get("created"),
-        residual_rms_m=None if residual is None else float(residual),
+        residual_rms_m=_residual(data, label),
     )
+
+
+def _residual(data: dict, label: str) -> float | None:
+    """The optional ``residual_rms_m`` field: a non-negative number of metres, or absent."""
+    value = data.get("residual_rms_m")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not value >= 0:
+        raise InputFileError(
+            f'{label}: "residual_rms_m" must be a non-negative number of metres, got {value!r}'
+        )
+    return float(value)
 
 
 def _load_json(source: str | Path | bytes, label: str) -> dict:

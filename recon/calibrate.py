@@ -204,6 +204,12 @@ class PointPairCalibration:
         return out
 
 
+#: A pair is left out of the fit when its leave-one-out error is this many times the median
+#: of the others' (fitted without it) and above the tolerance: one bad touch among good ones,
+#: not general noise.
+OUTLIER_RATIO = 3.0
+
+
 def fit_point_pairs(
     points_a_m: FloatArray, points_b_m: FloatArray, *, tolerance_m: float = 1e-3
 ) -> PointPairCalibration:
@@ -214,8 +220,11 @@ def fit_point_pairs(
     points_a_m, points_b_m : ndarray of shape (N, 3), metres
         The same N physical points in frames a (e.g. the robot base) and b (e.g. the tracker).
     tolerance_m : float
-        Pairs whose leave-one-out error exceeds this are reported as suspect; the worst are left
-        out of the fit one at a time until the rest agree (at least 4 pairs stay in).
+        Pairs whose leave-one-out error exceeds this are reported as suspect. The worst is left
+        out of the fit, one at a time, while it exceeds the tolerance *and* stands out from the
+        rest (more than ``OUTLIER_RATIO`` times the median of theirs, fitted without it):
+        uniform noise near the tolerance is reported, not stripped away. At most a fifth of the
+        pairs are left out, and at least 4 stay in.
 
     Raises
     ------
@@ -248,13 +257,24 @@ def fit_point_pairs(
     # pair inflates every other pair's error too, so pairs are judged after it is gone.
     inlier = np.ones(len(a), dtype=bool)
     loo = np.full(len(a), np.nan)
-    while np.count_nonzero(inlier) >= 4:
-        idx = np.flatnonzero(inlier)
-        loo[idx] = [_leave_out(a[idx], b[idx], k) for k in range(len(idx))]
-        worst = idx[int(np.argmax(loo[idx]))]
-        if loo[worst] <= tolerance_m or np.count_nonzero(inlier) == 4:
+    max_removed = len(a) // 5
+    idx = np.flatnonzero(inlier)
+    loo_idx = _leave_one_out_errors(a[idx], b[idx]) if len(idx) >= 4 else None
+    while loo_idx is not None and len(idx) > 4 and len(a) - len(idx) < max_removed:
+        at = int(np.argmax(loo_idx))
+        if loo_idx[at] <= tolerance_m:
             break
-        inlier[worst] = False
+        # Judge the worst against the others as they fit without it: one bad pair inflates
+        # every other pair's error while it is in.
+        rest = np.delete(idx, at)
+        loo_rest = _leave_one_out_errors(a[rest], b[rest])
+        if loo_idx[at] <= OUTLIER_RATIO * float(np.median(loo_rest)):
+            break
+        loo[idx[at]] = loo_idx[at]
+        inlier[idx[at]] = False
+        idx, loo_idx = rest, loo_rest
+    if loo_idx is not None:
+        loo[idx] = loo_idx
     T = _kabsch(a[inlier], b[inlier])
     residuals = _pair_errors(T, a, b)
     # Excluded pairs are judged against the final fit; with 3 pairs there is no redundancy and
@@ -272,9 +292,14 @@ def fit_point_pairs(
     )
 
 
-def _leave_out(a: FloatArray, b: FloatArray, k: int) -> float:
-    others = np.arange(len(a)) != k
-    return float(_pair_errors(_kabsch(a[others], b[others]), a[k : k + 1], b[k : k + 1])[0])
+def _leave_one_out_errors(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Each pair's distance from the transform fitted to all the other pairs, shape (N,)."""
+    errors = np.empty(len(a))
+    for k in range(len(a)):
+        others = np.arange(len(a)) != k
+        T = _kabsch(a[others], b[others])
+        errors[k] = _pair_errors(T, a[k : k + 1], b[k : k + 1])[0]
+    return errors
 
 
 def _kabsch(a: FloatArray, b: FloatArray) -> FloatArray:

@@ -12,12 +12,13 @@ import logging
 import os
 import threading
 import time
-import warnings
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
-from drivers.tracking.base import SampleBatch, TrackerSource
+from drivers.errors import InputFileError
+from drivers.tracking.base import SampleBatch, TrackerSource, increasing_times
 from service.store import Store
 
 log = logging.getLogger("teachpath.captures")
@@ -41,14 +42,14 @@ class CaptureRunner:
     ) -> None:
         self.store, self.capture_id, self.source = store, capture_id, source
         self.finalize = finalize
-        self._stop = threading.Event()
         self.thread = threading.Thread(target=self._run, name=f"capture {capture_id}", daemon=True)
 
     def start(self) -> None:
         self.thread.start()
 
     def stop(self) -> None:
-        self._stop.set()
+        # The source ends its batches() after handing over what it had received (a live feed
+        # flushes its receiver), so the last samples reach the file too.
         self.source.close()
 
     def _run(self) -> None:
@@ -76,8 +77,6 @@ class CaptureRunner:
                         os.fsync(handle.fileno())
                         self.store.update_capture(self.capture_id, n_samples=count)
                         last_sync = time.monotonic()
-                    if self._stop.is_set():
-                        break
                 os.fsync(handle.fileno())
         except Exception as exc:  # the samples so far are on disk: keep them
             log.exception("capture %s failed", self.capture_id)
@@ -89,16 +88,35 @@ class CaptureRunner:
 
 
 def read_capture_file(path) -> SampleBatch:
-    """Every sample of a capture file (lost ones flagged), for cleaning into a recording."""
-    with warnings.catch_warnings():
-        # A capture that received nothing has only its header: that is an answer, not a fault.
-        warnings.filterwarnings("ignore", message="loadtxt: input contained no data")
-        data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    if data.size == 0:
-        data = np.zeros((0, 9))
-    # Times must increase: keep the first of repeated stamps.
-    keep = np.concatenate(([True], np.diff(data[:, 0]) > 0)) if len(data) else np.zeros(0, bool)
-    data = data[keep]
+    """Every sample of a capture file (lost ones flagged), for cleaning into a recording.
+
+    The file may end in a torn line (the process died mid-write) and may hold a stretch where
+    the tracker's clock started again (a restarted stream): the torn line and the repeated
+    stretch are dropped, everything else is kept.
+
+    Raises
+    ------
+    InputFileError
+        A complete line that is not 9 numbers (the file was changed by something else).
+    """
+    text = Path(path).read_text()
+    lines = text.split("\n")
+    # The last element is "" after a final newline, else a torn line written when the process
+    # died: drop it either way.
+    body = [line for line in lines[1:-1] if line.strip()]
+    data = np.zeros((len(body), 9))
+    for row, line in enumerate(body):
+        fields = line.split(",")
+        try:
+            if len(fields) != 9:
+                raise ValueError(f"{len(fields)} fields, expected 9")
+            data[row] = [float(f) for f in fields]
+        except ValueError as exc:
+            raise InputFileError(
+                f"capture file {Path(path).name}, line {row + 2}: {exc}; the file was changed "
+                "after it was written -- restore it from a backup"
+            ) from None
+    data = data[increasing_times(data[:, 0])]
     quats = data[:, 4:8]
     has_q = len(quats) > 0 and bool(np.isfinite(quats[data[:, 8] > 0.5]).all())
     return SampleBatch(

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.errors import DriverError
+from drivers.errors import DriverError, InputFileError
 from recon.errors import ReconError
 
 #: Exit status for bad input or impossible work (argparse uses 2 for bad usage).
@@ -439,7 +439,15 @@ def _read_trace_for(args: argparse.Namespace):
 
     tip = None
     if getattr(args, "tip_calibration", None):
-        tip = read_tip_calibration(args.tip_calibration).offset_m
+        calibration = read_tip_calibration(args.tip_calibration)
+        named = calibration.rigid_body
+        if named and args.rigid_body and named != args.rigid_body:
+            raise InputFileError(
+                f"{args.tip_calibration} is the tip of rigid body {named!r}, but the trace is "
+                f"of {args.rigid_body!r}; calibrate that pen (teachpath calibrate pivot) or "
+                "pick the matching --rigid-body"
+            )
+        tip = calibration.offset_m
     trace = read_trace(
         args.path_file,
         fmt=args.path_format,

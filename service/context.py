@@ -122,8 +122,13 @@ class AppContext:
         options: dict | None = None,
     ) -> ArtifactRow:
         self.session(session_id)
+        # A client may lower the reader's resource limits, not raise them past the server's.
+        limits = {
+            "max_unpacked_mb": self.settings.max_scan_unpacked_mb,
+            "timeout_s": self.settings.max_scan_decode_s,
+        }
         arrays, summary = await self.jobs.run(
-            tasks.parse_scan_task, content, filename, fmt, units, options
+            tasks.parse_scan_task, content, filename, fmt, units, options, limits
         )
         artifact_id = new_id(KINDS["scan"])
         row = self._store_arrays(
@@ -156,19 +161,20 @@ class AppContext:
         units: str | None,
         rigid_body: str | None,
     ) -> tuple[SessionRow, dict]:
-        session = self.session(session_id)
+        self.session(session_id)
         result = await self.jobs.run(
             tasks.pivot_task, content, filename, fmt, units, rigid_body, None
         )
-        report = dict(session.calibration_report or {})
-        report["pivot"] = {**result, "source_name": filename, "at": now().isoformat()}
-        row = self.store.update_session(
-            session_id, tip_offset_m=result["tip_offset_m"], calibration_report=report
+        row = self.store.record_calibration(
+            session_id,
+            "pivot",
+            {**result, "source_name": filename, "at": now().isoformat()},
+            tip_offset_m=result["tip_offset_m"],
         )
         return row, result
 
     def base_calibration(self, session_id: str, request) -> tuple[SessionRow, dict]:
-        session = self.session(session_id)
+        self.session(session_id)
         from recon.calibrate import fit_point_pairs
 
         scale = 1e-3 if request.units == "mm" else 1.0
@@ -187,10 +193,11 @@ class AppContext:
             "tolerance_m": fit.tolerance_m,
             "report": fit.lines(),
         }
-        report = dict(session.calibration_report or {})
-        report["base"] = {**result, "at": now().isoformat()}
-        row = self.store.update_session(
-            session_id, T_base_tracker=result["T_base_tracker"], calibration_report=report
+        row = self.store.record_calibration(
+            session_id,
+            "base",
+            {**result, "at": now().isoformat()},
+            T_base_tracker=result["T_base_tracker"],
         )
         return row, result
 
@@ -559,7 +566,10 @@ class AppContext:
         recording_id = None
         try:
             raw = read_capture_file(self.store.data_dir / row.path)
-            tip = session.tip_offset_m if raw.orientation_xyzw is not None else None
+            # A live feed tracks the rigid body: move it to the tip. A replayed recording is
+            # stored at the tip already.
+            live = row.source.get("kind") == "natnet"
+            tip = session.tip_offset_m if live and raw.orientation_xyzw is not None else None
             if tip is not None:
                 raw = apply_tip_offset(raw, np.array(tip))
             clean = clean_trace(raw)
@@ -585,9 +595,10 @@ class AppContext:
             )
             self.store.update_session(row.session_id, recording_id=recording_id)
         except InputFileError as exc:
+            # Nothing to keep is a failure whatever ended the capture; say both.
             recording_id = None
-            if error is None:
-                error = f"nothing usable was received: {exc}"
+            reason = f"nothing usable was received: {exc}"
+            state, error = "failed", (reason if error is None else f"{error}; {reason}")[:500]
         except (OSError, ValueError) as exc:
             recording_id = None
             state, error = "failed", f"the capture file could not be read: {exc}"

@@ -85,7 +85,8 @@ class PointPair(Strict):
 
 
 class BaseCalibrationIn(Strict):
-    pairs: list[PointPair] = Field(..., min_length=3, max_length=1000)
+    # Touching points by hand: tens at most; the fit's outlier search grows with N^3.
+    pairs: list[PointPair] = Field(..., min_length=3, max_length=100)
     units: Literal["m", "mm"] = "m"
     tolerance_m: float = Field(1e-3, gt=0, le=0.1)
 

@@ -29,6 +29,12 @@ class Settings(BaseSettings):
     )
     max_upload_mb: float = Field(200.0, gt=0, description="largest accepted upload")
     max_speed_m_s: float = Field(0.25, gt=0, description="TCP speed cap for real-arm execution")
+    max_scan_unpacked_mb: float = Field(
+        2048.0, gt=0, description="largest size a zipped RGB-D scan upload may unpack to"
+    )
+    max_scan_decode_s: float = Field(
+        300.0, gt=0, description="longest a scan upload (a RealSense bag) may take to decode"
+    )
     cpu_workers: int = Field(
         1,
         ge=1,

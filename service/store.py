@@ -169,6 +169,7 @@ class Store:
         # path of the API and need no database round trip. The database is the record.
         self._jobs: dict[str, JobRow] = {}
         self._jobs_lock = threading.Lock()
+        self._calibration_lock = threading.Lock()
 
     # -- files -----------------------------------------------------------------------------------
 
@@ -233,6 +234,16 @@ class Store:
     def update_session(self, session_id: str, **fields) -> SessionRow:
         with self.db.begin() as db:
             row = db.get(SessionRow, session_id)
+            for key, value in fields.items():
+                setattr(row, key, value)
+            return row
+
+    def record_calibration(self, session_id: str, name: str, entry: dict, **fields) -> SessionRow:
+        """Set calibration fields and file ``entry`` under ``name`` in the session's calibration
+        report, in one step (two calibrations landing together both stay in the report)."""
+        with self._calibration_lock, self.db.begin() as db:
+            row = db.get(SessionRow, session_id)
+            row.calibration_report = {**(row.calibration_report or {}), name: entry}
             for key, value in fields.items():
                 setattr(row, key, value)
             return row

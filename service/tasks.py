@@ -76,13 +76,20 @@ def parse_recording_task(
         marker=marker,
         tip_offset_m=None if tip_offset_m is None else np.array(tip_offset_m),
         piece=piece,
+        # The session's offset is for rigid-body recordings; a position-only file holds tip
+        # positions already (the summary says the offset was not applied).
+        tip_needs_orientations=False,
     )
     recording = trace.recording
     check_scales(recording.points_m, None)
     arrays = recording_arrays(recording)
     summary = recording_summary(arrays, trace.format)
     summary.update(trace.summary())
-    summary["tip_offset_applied"] = tip_offset_m is not None
+    if tip_offset_m is not None and not trace.tip_offset_applied:
+        summary.setdefault("notes", []).append(
+            "the session's tip offset was not applied: the file has positions only (taken "
+            "as the pen's tip)"
+        )
     return arrays, summary
 
 
@@ -134,12 +141,19 @@ def pivot_task(
 
 
 def parse_scan_task(
-    content: bytes, filename: str, fmt: str | None, units: str, options: dict | None = None
+    content: bytes,
+    filename: str,
+    fmt: str | None,
+    units: str,
+    options: dict | None = None,
+    limits: dict | None = None,
 ) -> tuple[dict, dict]:
     """Parse an uploaded scan (in a worker process). Returns (arrays, summary)."""
     from drivers.scanning.pointcloud import read_scan
 
-    scan_file = read_scan(content, name=filename, fmt=fmt, units=units, options=options)
+    scan_file = read_scan(
+        content, name=filename, fmt=fmt, units=units, options=options, limits=limits
+    )
     scan = scan_file.scan
     points = np.array(scan.points_m)
     return (

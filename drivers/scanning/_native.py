@@ -119,6 +119,10 @@ def _check_png(data: bytes, label: str) -> ImageInfo:
                 "does not match)"
             )
         if kind == b"IHDR":
+            if length != 13:  # the PNG specification fixes IHDR at 13 bytes
+                raise InputFileError(
+                    f"{label} is a corrupt PNG (its IHDR header chunk has {length} bytes, not 13)"
+                )
             header = struct.unpack(">IIBB", body[:10])
         if kind == b"IEND":
             break

@@ -268,15 +268,30 @@ def reader_class(fmt: str) -> type[ScanReader]:
     return getattr(module, class_name)
 
 
-def make_reader(fmt: str, options: ReaderOptions | Mapping[str, Any] | None = None) -> ScanReader:
+def make_reader(
+    fmt: str,
+    options: ReaderOptions | Mapping[str, Any] | None = None,
+    limits: Mapping[str, float] | None = None,
+) -> ScanReader:
     """A reader for ``fmt`` with ``options`` (a model instance, or a mapping validated into one).
+
+    Parameters
+    ----------
+    fmt : str
+    options : ReaderOptions or mapping, optional
+    limits : mapping, optional
+        Upper bounds for resource options (e.g. ``{"max_unpacked_mb": 2048, "timeout_s":
+        300}``), set by whoever runs the reader for someone else (the service): a default above
+        a bound is lowered to it, a value asked for above it is refused. Options the reader
+        does not have are ignored.
 
     Raises
     ------
     UnknownFormatError
         Unknown format.
     ValueError
-        Options that do not fit the reader (another reader's, unknown or invalid fields).
+        Options that do not fit the reader (another reader's, unknown or invalid fields), or
+        past a limit.
     """
     cls = reader_class(fmt)
     if isinstance(options, Mapping):
@@ -295,7 +310,26 @@ def make_reader(fmt: str, options: ReaderOptions | Mapping[str, Any] | None = No
                 for err in exc.errors()
             )
             raise ValueError(f"invalid {cls.kind} reader options: {problems}") from None
+    if options is not None and limits:
+        options = _within_limits(options, limits)
+    elif options is None and limits:
+        options = _within_limits(cls.options_class(), limits)
     return cls(options)
+
+
+def _within_limits(options: ReaderOptions, limits: Mapping[str, float]) -> ReaderOptions:
+    lowered = {}
+    for name, limit in limits.items():
+        value = getattr(options, name, None)
+        if value is None or value <= limit:
+            continue
+        if name in options.model_fields_set:
+            raise ValueError(
+                f"option {name}={value:g} exceeds the limit of {limit:g} here; ask for at most "
+                f"{limit:g} (send a smaller scan, or fewer frames)"
+            )
+        lowered[name] = limit
+    return options.model_copy(update=lowered) if lowered else options
 
 
 def read_scan(
@@ -305,6 +339,7 @@ def read_scan(
     fmt: str | None = None,
     name: str | None = None,
     options: ReaderOptions | Mapping[str, Any] | None = None,
+    limits: Mapping[str, float] | None = None,
 ) -> ScanFile:
     """Read a scan in any registered format.
 
@@ -322,6 +357,8 @@ def read_scan(
         File name of an upload, for its suffix and for messages.
     options : ReaderOptions or mapping, optional
         Reader options (e.g. ``{"depth_trunc_m": 1.5}`` for RGB-D); default options if omitted.
+    limits : mapping, optional
+        Upper bounds for resource options (see :func:`make_reader`).
 
     Returns
     -------
@@ -339,4 +376,4 @@ def read_scan(
     if fmt is None and name is None and not isinstance(source, bytes) and Path(source).is_dir():
         fmt = FOLDER_FORMAT
     fmt = format_for(name or ("" if isinstance(source, bytes) else str(source)), fmt)
-    return make_reader(fmt, options).read(source, fmt=fmt, units=units, name=name)
+    return make_reader(fmt, options, limits).read(source, fmt=fmt, units=units, name=name)

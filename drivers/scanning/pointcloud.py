@@ -100,6 +100,7 @@ def read_scan(
     fmt: str | None = None,
     name: str | None = None,
     options: ReaderOptions | dict[str, Any] | None = None,
+    limits: dict[str, float] | None = None,
 ) -> ScanFile:
     """Read a scan: a point cloud, an E57 file, RGB-D frames or a RealSense bag.
 
@@ -116,6 +117,8 @@ def read_scan(
         File name of an upload, for its suffix and for messages.
     options : ReaderOptions or dict, optional
         Options of the format's reader (e.g. ``{"depth_trunc_m": 1.5}`` for RGB-D frames).
+    limits : dict, optional
+        Upper bounds for resource options (see :func:`drivers.scanning.base.make_reader`).
 
     Returns
     -------
@@ -129,7 +132,7 @@ def read_scan(
     ValueError
         An unknown unit, or options that do not fit the reader.
     """
-    return base.read_scan(source, units=units, fmt=fmt, name=name, options=options)
+    return base.read_scan(source, units=units, fmt=fmt, name=name, options=options, limits=limits)
 
 
 def write_scan(path: Path, scan: Scan) -> None:

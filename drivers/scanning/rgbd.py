@@ -114,7 +114,8 @@ class RGBDOptions(ReaderOptions):
     depth_scale: float | None = Field(None, gt=0)
     depth_trunc_m: float = Field(3.0, gt=0)
     fusion: Literal["tsdf", "points"] = "tsdf"
-    voxel_m: float = Field(0.002, gt=0, le=0.1)
+    # Below 0.5 mm the voxels outnumber what a depth camera resolves and memory explodes.
+    voxel_m: float = Field(0.002, ge=5e-4, le=0.1)
     sdf_trunc_voxels: float = Field(4.0, ge=1.0, le=32.0)
     min_observations: int = Field(3, ge=1)
     max_unpacked_mb: float = Field(4096.0, gt=0)

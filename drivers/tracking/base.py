@@ -43,6 +43,28 @@ class SampleBatch:
         return len(self.t_s)
 
 
+def increasing_times(t_s: FloatArray) -> np.ndarray:
+    """Which samples come later than every sample before them.
+
+    A restarted stream (a looped take, a restarted tracker) starts its clock again; keeping
+    only samples past the running maximum drops the repeated stretch instead of making the
+    whole recording unreadable.
+
+    Parameters
+    ----------
+    t_s : ndarray of shape (N,)
+
+    Returns
+    -------
+    ndarray of shape (N,), bool
+    """
+    t_s = np.asarray(t_s, dtype=np.float64)
+    keep = np.ones(len(t_s), dtype=bool)
+    if len(t_s) > 1:
+        keep[1:] = t_s[1:] > np.maximum.accumulate(t_s)[:-1]
+    return keep
+
+
 class Pacer:
     """Releases samples no faster than their timestamps allow, scaled by ``speed``.
 

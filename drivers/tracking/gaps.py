@@ -2,14 +2,18 @@
 
 Optical trackers lose the pen when a marker is hidden (empty cells in a Motive export, a frame
 flagged not tracked in NatNet), and sometimes report a wrong pose for a few frames (a marker
-swap: the position jumps away and back, or the orientation flips). The reconstruction needs one
+swap: the position jumps away and back). The reconstruction needs one
 continuous path per piece, so a raw recording is cleaned before it becomes a
 :class:`~recon.types.Recording`:
 
 1. Samples flagged invalid or with non-finite values are dropped.
 2. Outliers: a sample further than ``outlier_m`` from the moving median of its neighbours
-   (a Hampel filter over ``outlier_window_s``) is dropped; a hand cannot move the pen that far
-   and back within a few frames.
+   (a Hampel filter over ``outlier_window_s``) is a suspect; a suspect is dropped when it is
+   also that far from a quadratic in time fitted to the nearest unsuspected samples on both
+   sides -- a hand cannot move the pen that far and back within a few frames, but it can turn
+   sharply (the apex of a fast hairpin is far from the median, yet on the curve through its
+   neighbours). Orientation outliers are not detected (only quaternion sign flips, which are
+   the same rotation, are made continuous).
 3. Jumps: between consecutive kept samples, a speed above ``max_speed_m_s`` means the pose
    jumped (a swap that persists, or a dropout across which the pen moved): the recording is
    split there.
@@ -285,17 +289,52 @@ def clean_trace(raw: SampleBatch, *, params: GapParams | None = None) -> CleanTr
 
 
 def _outliers(t: FloatArray, pos: FloatArray, ok: np.ndarray, params: GapParams) -> np.ndarray:
-    """Samples far from the moving median of the valid samples around them (Hampel filter)."""
+    """Samples that jump away and back (module docstring, step 2).
+
+    Parameters
+    ----------
+    t : ndarray of shape (N,)
+    pos : ndarray of shape (N, 3)
+    ok : ndarray of shape (N,), bool
+        Samples to consider (valid and finite).
+    params : GapParams
+
+    Returns
+    -------
+    ndarray of shape (N,), bool
+    """
     idx = np.flatnonzero(ok)
+    out = np.zeros(len(t), dtype=bool)
     if len(idx) < 5:
-        return np.zeros(len(t), dtype=bool)
+        return out
     period = float(np.median(np.diff(t[idx])))
     width = max(5, int(round(params.outlier_window_s / period)) | 1)
     median = median_filter(pos[idx], size=(width, 1), mode="nearest")
-    far = np.linalg.norm(pos[idx] - median, axis=1) > params.outlier_m
-    out = np.zeros(len(t), dtype=bool)
-    out[idx[far]] = True
+    suspect = np.linalg.norm(pos[idx] - median, axis=1) > params.outlier_m
+    if not np.any(suspect):
+        return out
+    # Second opinion for the few suspects: the curve through the unsuspected samples nearby.
+    # Fitting only to unsuspected samples keeps a run of swapped frames from vouching for itself.
+    clear = np.flatnonzero(~suspect)
+    reach_s = 2.0 * params.outlier_window_s
+    for k in np.flatnonzero(suspect):
+        at = np.searchsorted(clear, k)
+        before, after = clear[max(0, at - _FIT_SIDE) : at], clear[at : at + _FIT_SIDE]
+        before = before[t[idx[k]] - t[idx[before]] <= reach_s]
+        after = after[t[idx[after]] - t[idx[k]] <= reach_s]
+        if len(before) < 2 or len(after) < 2:
+            out[idx[k]] = True  # nothing to vouch for it on one side: keep the median's verdict
+            continue
+        near = np.concatenate((before, after))
+        dt = t[idx[near]] - t[idx[k]]
+        basis = np.stack((np.ones_like(dt), dt, dt * dt), axis=1)
+        coef, *_ = np.linalg.lstsq(basis, pos[idx[near]], rcond=None)
+        out[idx[k]] = np.linalg.norm(pos[idx[k]] - coef[0]) > params.outlier_m
     return out
+
+
+#: Unsuspected samples per side in the second-opinion fit of :func:`_outliers`.
+_FIT_SIDE = 4
 
 
 def _continuous_sign(quat: FloatArray, ok: np.ndarray) -> FloatArray:

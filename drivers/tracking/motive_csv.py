@@ -374,6 +374,12 @@ def _parse_header(raw: bytes, name: str) -> _Header:
             raise InputFileError(
                 f"{name} has no header (its first row is data); {_HEADERLESS_HINT}"
             )
+        second = first_row[1].strip() if len(first_row) > 1 else ""
+        if not label and second in ("Type", "Name", "ID"):
+            raise InputFileError(
+                f"{name} lacks the metadata row (Format Version, Length Units, Rotation Type) "
+                f"above its {second!r} row, so its units are unknown; {_HEADERLESS_HINT}"
+            )
         raise InputFileError(
             f"{name} is not a Motive CSV export: its first row should start with 'Format "
             f"Version', not {label[:40]!r}"

@@ -66,6 +66,9 @@ STARTUP_ALLOWANCE_S = 15.0
 MODELDEF_RETRY_S = 0.5
 #: Longest wait of the child's poll: keep-alives go out at least this often while idle.
 POLL_S = 0.1
+#: How long close() lets the receiver flush its last frames to a running batches() loop.
+DRAIN_S = 3.0
+
 #: After a frame number this many frames below the last one, the stream counts as restarted
 #: (Motive looping a take, or restarted), not as a late packet.
 RESTART_BACKSTEP = 1000
@@ -209,6 +212,10 @@ class NatNetSource(TrackerSource):
         self._stop = self._ctx.Event()
         self._lock = threading.Lock()
         self._closed = False
+        # Set while batches() runs (by its thread's id), so close() lets it drain the last
+        # frames instead of discarding them; _drained is set when it has.
+        self._consumer: int | None = None
+        self._drained = threading.Event()
         self._server: NatNetServerInfo | None = None
         self._stats = NatNetStats()
         self._scale = metres_per(config.units)
@@ -312,19 +319,35 @@ class NatNetSource(TrackerSource):
         """
         if self._closed:
             return
+        self._drained.clear()
+        self._consumer = threading.get_ident()
+        try:
+            yield from self._receive()
+        finally:
+            self._consumer = None
+            self._shutdown()
+            self._drained.set()
+
+    def _receive(self) -> Iterator[NatNetBatch]:
         self.connect()
-        # Locals: close() from another thread clears the attributes while this loop runs.
+        # Locals: _shutdown() clears the attributes.
         process, q = self._process, self._queue
         if process is None:
             return
         stall = self.config.stall_timeout_s
         last_data = time.monotonic()
-        while not self._closed:
+        drain_until = None
+        while True:
             try:
                 kind, payload = q.get(timeout=0.1)
             except queue_module.Empty:
                 if self._closed:
-                    return
+                    # close() told the receiver to flush and exit: done once it has exited
+                    # and its last batches are read (or it takes too long).
+                    drain_until = drain_until or time.monotonic() + DRAIN_S
+                    if not process.is_alive() or time.monotonic() > drain_until:
+                        return
+                    continue
                 if not process.is_alive():
                     self._shutdown()
                     raise TrackerError(
@@ -340,7 +363,7 @@ class NatNetSource(TrackerSource):
                     ) from None
                 continue
             except (EOFError, OSError, ValueError):
-                if self._closed:  # the queue was closed by close() from another thread
+                if self._closed:
                     return
                 raise
             if kind == "batch":
@@ -356,9 +379,16 @@ class NatNetSource(TrackerSource):
     def close(self) -> None:
         """Stop the receiver (idempotent; safe from another thread while :meth:`batches` runs).
 
-        Samples not yet taken from :meth:`batches` are discarded.
+        While another thread iterates :meth:`batches`, the receiver flushes what it holds and
+        :meth:`batches` yields those last samples before it ends; this waits for that (at most
+        ``DRAIN_S`` and a little). Otherwise samples not taken are discarded.
         """
         self._closed = True
+        self._stop.set()  # the receiver flushes its last frames and exits
+        consumer = self._consumer
+        if consumer is not None and consumer != threading.get_ident():
+            if self._drained.wait(DRAIN_S + 1.0):
+                return
         self._shutdown()
 
     def __enter__(self) -> NatNetSource:

@@ -57,12 +57,15 @@ class TraceFile:
         Every piece and the gap report.
     piece : int
         Index of ``recording`` in ``clean.pieces``.
+    tip_offset_applied : bool
+        Whether the samples were moved to the pen's tip.
     """
 
     recording: Recording
     raw: RawTrace
     clean: CleanTrace
     piece: int
+    tip_offset_applied: bool = False
 
     @property
     def format(self) -> str:
@@ -78,6 +81,7 @@ class TraceFile:
             "n_pieces": len(self.clean.pieces),
             "gaps": self.clean.report.as_dict(),
             "gap_report": self.clean.report.lines(),
+            "tip_offset_applied": self.tip_offset_applied,
         }
 
 
@@ -91,7 +95,11 @@ TRACE_READERS: dict[str, str] = {
 #: File suffix -> format name (".csv" is sniffed: canonical or Motive).
 TRACE_SUFFIXES: dict[str, str] = {".csv": "csv", ".c3d": "c3d"}
 #: The first cells of a Motive export's first line (with or without its metadata header).
-_MOTIVE_FIRST_CELLS = {"format version", "type", "frame"}
+_MOTIVE_FIRST_CELLS = {"format version", "type", "name", "id", "frame"}
+#: Row labels that Motive writes after empty leading cells.
+_MOTIVE_ROW_LABELS = {"type", "name", "id"}
+#: t,x,y,z,qx,qy,qz,qw: a longer row of bare numbers is no canonical trace.
+_CANONICAL_MAX_COLUMNS = 8
 
 
 def read_raw_trace(
@@ -157,6 +165,7 @@ def read_trace(
     tip_offset_m: FloatArray | None = None,
     gaps: GapParams | None = None,
     piece: int | None = None,
+    tip_needs_orientations: bool = True,
 ) -> TraceFile:
     """Read a trace file, move it to the pen's tip, clean it and pick a piece.
 
@@ -172,6 +181,10 @@ def read_trace(
     piece : int, optional
         Which piece to return when long dropouts split the recording (0-based, time order);
         default the longest.
+    tip_needs_orientations : bool
+        True: a tip offset with a position-only trace is an error (the user asked for the
+        offset). False: such a trace is used as it is and ``tip_offset_applied`` says so (a
+        session's stored offset meets a file that already holds tip positions).
 
     Raises
     ------
@@ -182,7 +195,10 @@ def read_trace(
         source, name=name, fmt=fmt, units=units, rigid_body=rigid_body, marker=marker
     )
     batch = raw.batch
-    if tip_offset_m is not None:
+    apply_tip = tip_offset_m is not None and (
+        tip_needs_orientations or batch.orientation_xyzw is not None
+    )
+    if apply_tip:
         batch = apply_tip_offset(batch, tip_offset_m)
     clean = _clean(batch, gaps)
     if piece is None:
@@ -194,7 +210,13 @@ def read_trace(
             f"piece {piece} does not exist: the recording has {len(clean.pieces)} piece(s) "
             f"(0 to {len(clean.pieces) - 1})"
         )
-    return TraceFile(recording=clean.pieces[index], raw=raw, clean=clean, piece=index)
+    return TraceFile(
+        recording=clean.pieces[index],
+        raw=raw,
+        clean=clean,
+        piece=index,
+        tip_offset_applied=apply_tip,
+    )
 
 
 def _clean(batch: SampleBatch, gaps: GapParams | None) -> CleanTrace:
@@ -288,7 +310,10 @@ def _format_for(source: str | Path | bytes, label: str, fmt: str | None) -> str:
 
 def _looks_like_motive(source: str | Path | bytes) -> bool:
     """Motive exports start with their metadata line (``Format Version,...``) or, exported
-    without it, with the ``Type``/``Frame`` rows; canonical files with column names."""
+    without it, with the ``Type``/``Name``/``Frame`` rows (the first cells of the Type, Name
+    and ID rows are empty), or with bare data rows (a whole frame number, then more numbers
+    than a canonical row can hold); canonical files start with column names. Routing the
+    header-less exports to the Motive reader gets them its message about the export option."""
     try:
         if isinstance(source, bytes):
             head = source[:4096]
@@ -299,8 +324,11 @@ def _looks_like_motive(source: str | Path | bytes) -> bool:
         return False  # the reader reports the missing file
     for line in head.decode("utf-8-sig", errors="replace").splitlines():
         if line.strip(" ,\t"):
-            first = line.split(",")[0].strip().strip('"').lower()
-            return first in _MOTIVE_FIRST_CELLS
+            cells = [cell.strip().strip('"').lower() for cell in line.split(",")]
+            label = next(cell for cell in cells if cell)
+            if label in _MOTIVE_FIRST_CELLS and (cells[0] or label in _MOTIVE_ROW_LABELS):
+                return True
+            return cells[0].isdigit() and len(cells) > _CANONICAL_MAX_COLUMNS
     return False
 
 

@@ -10,6 +10,7 @@ from typing import Literal, Protocol
 import numpy as np
 
 from drivers.files import atomic_path
+from drivers.tracking.base import increasing_times
 from drivers.tracking.canonical_csv import write_trace_csv
 from drivers.tracking.natnet_source import (
     NatNetConfig,
@@ -183,10 +184,7 @@ def _write(
     dropped = int(np.sum(steps[steps > 1] - 1))
     tracked = np.flatnonzero(valid)
     # Keep strictly increasing times (a restarted stream starts its clock again).
-    t_tracked = t[tracked]
-    increasing = np.ones(len(tracked), dtype=bool)
-    if len(tracked) > 1:
-        increasing[1:] = t_tracked[1:] > np.maximum.accumulate(t_tracked)[:-1]
+    increasing = increasing_times(t[tracked])
     rows = tracked[increasing]
     if len(rows) < 2:
         raise TrackerError(

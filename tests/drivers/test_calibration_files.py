@@ -57,8 +57,21 @@ def test_transform_in_millimetres(tmp_path):
         ('{"matrix": [[2,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}', "proper rotation"),
         ('{"matrix": [[1,0,0,NaN],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}', "finite"),
         ('{"matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], "units": "ft"}', "unit"),
+        (
+            '{"matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], "residual_rms_m": "small"}',
+            "residual_rms_m.*non-negative number",
+        ),
     ],
-    ids=["empty", "not-object", "no-matrix", "wrong-name", "not-rigid", "nan", "bad-units"],
+    ids=[
+        "empty",
+        "not-object",
+        "no-matrix",
+        "wrong-name",
+        "not-rigid",
+        "nan",
+        "bad-units",
+        "text-residual",
+    ],
 )
 def test_transform_bad_input(tmp_path, content, message):
     path = tmp_path / "T.json"
@@ -95,8 +108,9 @@ def test_tip_round_trip_and_units(tmp_path):
         ('{"name": "tip_offset", "offset": [0, 0, 142]}', "are the units right"),
         ('{"name": "tip_offset", "offset": [0, 0, 0.1], "units": "inch"}', "unit"),
         ('{"name": "tip_offset", "offset": ["a", 0, 0.1]}', "tip.json"),
+        ('{"name": "tip_offset", "offset": [0, 0, 0.1], "residual_rms_m": -1}', "non-negative"),
     ],
-    ids=["transform-file", "short", "nan", "mm-as-m", "bad-units", "not-numbers"],
+    ids=["transform-file", "short", "nan", "mm-as-m", "bad-units", "not-numbers", "neg-residual"],
 )
 def test_tip_bad_input(tmp_path, content, message):
     path = tmp_path / "tip.json"

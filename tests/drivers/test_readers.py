@@ -175,6 +175,23 @@ def test_read_trace_tells_motive_from_canonical_csv_and_cleans_lost_frames(tmp_p
         read_trace(tmp_path / "take.csv", fmt="csv", rigid_body="pen")
 
 
+def test_headerless_motive_exports_get_the_motive_readers_advice(tmp_path):
+    from drivers.tracking.readers import read_trace
+    from tests.drivers.tracking_fixtures import helix, write_motive_csv
+
+    t, position, quat = helix(50)
+    full = write_motive_csv(tmp_path / "full.csv", t, position, quat).read_text()
+    lines = full.split("\n")
+    bare = write_motive_csv(tmp_path / "bare.csv", t, position, quat, header=False).read_bytes()
+    from_type_row = "\n".join(lines[2:]).encode()  # the metadata line cut off: ",Type,..."
+    for content in (bare, from_type_row):
+        with pytest.raises(InputFileError, match="'Header information'"):
+            read_trace(content, name="take.csv")
+    # Bare numbers that fit a canonical row still get the canonical reader's advice.
+    with pytest.raises(InputFileError, match="must name the columns"):
+        read_trace(b"0,0.1,0.2,0.3\n1,0.2,0.2,0.3\n", name="trace.csv")
+
+
 def test_read_trace_reads_a_c3d_marker(tmp_path):
     from drivers.tracking.readers import read_trace
     from tests.drivers.tracking_fixtures import helix, write_c3d

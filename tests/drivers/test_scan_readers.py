@@ -19,6 +19,7 @@ import shutil
 import struct
 import uuid
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -230,11 +231,24 @@ def test_options_are_checked_against_the_reader():
         make_reader("rgbd", {"kind": "e57"})
     with pytest.raises(ValueError, match="depth_trunk_m"):
         make_reader("rgbd", {"depth_trunk_m": 2.0})  # a typo is refused, not ignored
-    with pytest.raises(ValueError, match="greater than 0"):
-        make_reader("rgbd", {"voxel_m": 0})
+    with pytest.raises(ValueError, match="greater than or equal to 0.0005"):
+        make_reader("rgbd", {"voxel_m": 1e-5})  # a million times the voxels of 1 mm
     with pytest.raises(ValueError, match="takes RGBDOptions"):
         make_reader("rgbd", BagOptions())
     assert make_reader("bag", {"n_frames": 3}).options.n_frames == 3
+
+
+def test_resource_limits_lower_defaults_and_refuse_larger_requests():
+    limits = {"max_unpacked_mb": 100.0, "timeout_s": 30.0}
+    assert make_reader("rgbd", None, limits).options.max_unpacked_mb == 100.0
+    assert make_reader("rgbd", {"fusion": "points"}, limits).options.max_unpacked_mb == 100.0
+    assert make_reader("bag", {"n_frames": 3}, limits).options.timeout_s == 30.0
+    assert make_reader("bag", {"timeout_s": 10}, limits).options.timeout_s == 10.0  # lower: fine
+    with pytest.raises(ValueError, match="max_unpacked_mb=5000 exceeds the limit of 100"):
+        make_reader("rgbd", {"max_unpacked_mb": 5000}, limits)
+    with pytest.raises(ValueError, match="timeout_s=3600 exceeds the limit of 30"):
+        make_reader("bag", {"timeout_s": 3600}, limits)
+    make_reader("ply", None, limits)  # readers without those options are unaffected
 
 
 def test_a_missing_dependency_names_the_package(monkeypatch):
@@ -546,6 +560,14 @@ def _flip_bytes(path: Path) -> None:
     path.write_bytes(bytes(data))
 
 
+def _short_ihdr(path: Path) -> None:
+    """A PNG whose header chunk is cut to 4 bytes, with a valid checksum (a crafted file)."""
+    body = b"\x00\x00\x02\x80"
+    chunk = struct.pack(">I4s", len(body), b"IHDR") + body
+    chunk += struct.pack(">I", zlib.crc32(b"IHDR" + body))
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk + struct.pack(">I4sI", 0, b"IEND", 0xAE426082))
+
+
 def _intrinsics(**changes):
     def edit(folder: Path) -> None:
         values = intrinsics_json()
@@ -562,6 +584,7 @@ def _intrinsics(**changes):
 BAD_FRAMES = {
     "truncated depth": (lambda f: _truncate(f / "depth.png"), "truncated PNG"),
     "corrupt depth": (lambda f: _flip_bytes(f / "depth.png"), "corrupt PNG"),
+    "short PNG header": (lambda f: _short_ihdr(f / "depth.png"), "IHDR header chunk has 4 bytes"),
     "empty depth": (lambda f: (f / "depth.png").write_bytes(b""), "is empty"),
     "not an image": (lambda f: (f / "depth.png").write_text("depth"), "neither a PNG nor"),
     "8-bit depth": (

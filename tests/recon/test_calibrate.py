@@ -125,6 +125,24 @@ def test_an_outlier_pair_is_flagged_and_left_out():
     assert any("pair 6 (left out)" in line for line in fit.lines())
 
 
+def test_uniform_noise_near_the_tolerance_is_reported_not_stripped():
+    # Every touch is about as good as the tolerance: some pairs exceed it, none stands out.
+    a, b, T = _pairs(n=12, noise_m=6e-4, seed=3)
+    fit = fit_point_pairs(a, b, tolerance_m=1e-3)
+    assert fit.used.all()
+    assert fit.suspect.any()  # reported, so the operator can touch again
+    assert np.abs(fit.T_a_b[:3, 3] - T[:3, 3]).max() < 1.5e-3
+
+
+def test_at_most_a_fifth_of_the_pairs_are_left_out():
+    a, b, _ = _pairs(n=20)
+    bad = [1, 4, 7, 9, 13]  # five bad touches of twenty
+    a[bad] += [[0.02, 0, 0], [0, 0.03, 0], [0, 0, 0.04], [0.03, 0.03, 0], [0, 0.02, 0.02]]
+    fit = fit_point_pairs(a, b, tolerance_m=1e-3)
+    assert np.count_nonzero(~fit.used) == 4 and not (~fit.used)[np.setdiff1d(range(20), bad)].any()
+    assert fit.suspect[bad].all()  # the fifth is still reported
+
+
 def test_three_pairs_fit_exactly_and_fewer_or_collinear_are_refused():
     a, b, T = _pairs(n=3, noise_m=0.0)
     fit = fit_point_pairs(a, b)

@@ -11,8 +11,10 @@ import pytest
 from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
 
+from drivers.errors import InputFileError
 from recon.types import Recording
 from service.app import create_app
+from service.captures import HEADER, read_capture_file
 from tests.recon.test_calibrate import PIVOT_M, TIP_M, pivot_recording
 from tests.service.conftest import AUTH, make_settings, wait
 
@@ -93,6 +95,51 @@ def test_pivot_calibration_sets_the_tip_and_later_uploads_use_it(client, sid):
     stored = client.get(f"/sessions/{sid}/recordings/{artifact.json()['id']}/csv").text
     xyz = np.loadtxt(io.StringIO(stored), delimiter=",", skiprows=1)[:, 1:4]
     np.testing.assert_allclose(xyz, tip_path, atol=1e-9)
+    # Replaying that recording into a capture keeps it at the tip (no second offset).
+    cid = client.post(
+        f"/sessions/{sid}/captures",
+        json={"source": {"kind": "replay", "recording_id": artifact.json()["id"], "speed": None}},
+    ).json()["id"]
+    captured = _wait_capture(client, sid, cid, timeout_s=20.0)
+    assert captured["state"] == "stopped", captured
+    replayed = client.get(f"/sessions/{sid}/recordings/{captured['recording_id']}/csv").text
+    xyz = np.loadtxt(io.StringIO(replayed), delimiter=",", skiprows=1)[:, 1:4]
+    np.testing.assert_allclose(xyz, tip_path, atol=1e-6)
+    # A position-only file holds tip positions already: used as it is, and the summary says so.
+    plain = Recording(points_m=tip_path, t_s=trace.t_s)
+    artifact = client.put(f"/sessions/{sid}/recording", files={"file": ("p.csv", _csv(plain))})
+    assert artifact.status_code == 201, artifact.text
+    summary = artifact.json()["summary"]
+    assert not summary["tip_offset_applied"]
+    assert any("tip offset was not applied" in note for note in summary["notes"])
+
+
+def _capture_lines(t_s):
+    return "".join(f"{t:.6f},{0.01 * t:.9g},0,0,0,0,0,1,1\n" for t in t_s)
+
+
+def test_a_capture_file_with_a_torn_last_line_keeps_the_rest(tmp_path):
+    path = tmp_path / "cap.csv"
+    t = np.arange(100) / 240.0
+    path.write_text(HEADER + _capture_lines(t) + "0.42083,0.0042")  # died mid-write
+    batch = read_capture_file(path)
+    np.testing.assert_allclose(batch.t_s, np.round(t, 6))
+    assert batch.orientation_xyzw is not None and batch.valid.all()
+
+
+def test_a_capture_across_a_stream_restart_keeps_the_first_stream(tmp_path):
+    path = tmp_path / "cap.csv"
+    first, second = np.arange(100) / 240.0, np.arange(50) / 240.0  # the clock starts again
+    path.write_text(HEADER + _capture_lines(first) + _capture_lines(second))
+    batch = read_capture_file(path)
+    assert len(batch) == 100 and np.all(np.diff(batch.t_s) > 0)
+
+
+def test_a_damaged_capture_file_is_a_clear_error(tmp_path):
+    path = tmp_path / "cap.csv"
+    path.write_text(HEADER + "0.1,0.2,oops,0,0,0,0,1,1\n" + _capture_lines([0.2]))
+    with pytest.raises(InputFileError, match="line 2"):
+        read_capture_file(path)
 
 
 def test_pivot_calibration_bad_input_changes_nothing(client, sid):
@@ -313,9 +360,7 @@ def test_a_live_natnet_capture_records_every_frame(client, sid):
             },
         ).json()["id"]
         server.wait_done(30.0)
-        import time
-
-        time.sleep(0.5)  # the last batches reach the capture file
+        # No pause: stopping hands the receiver's last frames to the capture before it ends.
         stopped = client.post(f"/sessions/{sid}/captures/{cid}/stop").json()
     assert stopped["state"] == "stopped" and stopped["n_samples"] == len(recording), stopped
     stored = client.get(f"/sessions/{sid}/recordings/{stopped['recording_id']}").json()
@@ -408,10 +453,27 @@ def test_e57_and_rgbd_zip_scans_upload(client, sid, tmp_path):
         ("frames.zip", {"options": "{not json"}, "invalid_request", "not valid JSON"),
         ("frames.zip", {"options": "[1, 2]"}, "invalid_request", "JSON object"),
         ("frames.zip", {"options": '{"depht_scale": 1000}'}, "invalid_value", "depht_scale"),
+        (
+            "frames.zip",
+            {"options": '{"max_unpacked_mb": 1e6}'},
+            "invalid_value",
+            "max_unpacked_mb=1e+06 exceeds the limit of 2048",
+        ),
+        ("frames.zip", {"options": '{"voxel_m": 1e-5}'}, "invalid_value", "voxel_m"),
+        ("scan.bag", {"options": '{"timeout_s": 86400}'}, "invalid_value", "timeout_s=86400"),
         ("scan.e57", {"units": "mm"}, "invalid_value", "fixes its own length unit"),
         ("frames.zip", {}, "invalid_file", "intrinsics"),
     ],
-    ids=["bad-json", "not-object", "typo", "units-on-e57", "zip-without-frames"],
+    ids=[
+        "bad-json",
+        "not-object",
+        "typo",
+        "unpack-past-limit",
+        "tiny-voxels",
+        "decode-past-limit",
+        "units-on-e57",
+        "zip-without-frames",
+    ],
 )
 def test_bad_scan_uploads_change_nothing(client, sid, tmp_path, name, data, code, message):
     import zipfile

@@ -157,6 +157,10 @@ def test_reconstruct_with_tip_calibration_pieces_and_a_stored_scan_pose(scene, t
         out,
     )
     assert wrong.returncode == 1 and "T_scan_tracker" in wrong.stderr
+    write_tip_calibration(tmp_path / "tip_pen.json", tip, rigid_body="Pen")
+    other = run(*args[:5], tmp_path / "tip_pen.json", "--rigid-body", "Stylus", "--out", out)
+    assert other.returncode == 1
+    assert "tip of rigid body 'Pen', but the trace is of 'Stylus'" in other.stderr
 
 
 @pytest.mark.timeout(120)
