@@ -330,6 +330,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     serve.set_defaults(handler=_cmd_serve)
 
+    from drivers.robot import fake_ur  # light: imports argparse and logging only
+
+    fake = commands.add_parser(
+        "fake-ur",
+        help="run a fake UR controller on a loopback address (for the ur_rtde backend)",
+        description="Serves RTDE (30004), the dashboard (29999) and the script ports "
+        "(30001-30003) of an emulated UR controller that ur_rtde drives, so the service's "
+        "real-robot path can be tried without a robot: start the service with "
+        "TEACHPATH_UR_HOST set to the same address. Loopback addresses only.",
+    )
+    fake_ur.add_arguments(fake)
+    fake.set_defaults(handler=_cmd_fake_ur)
+
     demo = commands.add_parser(
         "demo",
         help="run the bundled demo: a synthetic cylinder-edge trace and scan, reconstructed",
@@ -649,6 +662,23 @@ def _cmd_dry_run(args: argparse.Namespace) -> int:
     report = dry_run(trajectory, mode=args.mode, tolerance_m=args.tolerance_m)
     print("\n".join(report.lines()))
     return 0 if report.completed and not report.faults else EXIT_FAILURE
+
+
+def _cmd_fake_ur(args: argparse.Namespace) -> int:
+    import ipaddress
+
+    from drivers.robot import fake_ur
+
+    try:
+        loopback = ipaddress.ip_address(args.host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback:
+        raise ValueError(
+            f"--host {args.host!r} is not a loopback address; the fake controller listens on "
+            "127.0.0.x only (use 127.0.0.2, 127.0.0.3, ... to run several)"
+        )
+    return fake_ur.run_from_args(args)
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:

@@ -20,15 +20,23 @@ def _tool(name):
 
 
 def test_dockerfile_passes_hadolint():
-    result = subprocess.run([_tool("hadolint"), str(ROOT / "docker" / "Dockerfile")],
-                            capture_output=True, text=True)
+    result = subprocess.run(
+        [_tool("hadolint"), str(ROOT / "docker" / "Dockerfile")], capture_output=True, text=True
+    )
     assert result.returncode == 0, result.stdout + result.stderr
 
 
 def test_compose_file_passes_yamllint_and_is_sane():
-    result = subprocess.run([_tool("yamllint"), "-c", str(ROOT / ".yamllint.yaml"),
-                             str(ROOT / "docker" / "compose.yaml")], capture_output=True,
-                            text=True)
+    result = subprocess.run(
+        [
+            _tool("yamllint"),
+            "-c",
+            str(ROOT / ".yamllint.yaml"),
+            str(ROOT / "docker" / "compose.yaml"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert result.returncode == 0, result.stdout + result.stderr
     compose = yaml.safe_load((ROOT / "docker" / "compose.yaml").read_text())
     service = compose["services"]["teachpath"]

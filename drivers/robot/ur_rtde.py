@@ -34,7 +34,13 @@ from drivers.errors import (
     RobotTimeoutError,
     UnknownBackendError,
 )
-from drivers.robot.base import BackendConfig, ExecutionRecord, ProgressCallback, RobotBackend
+from drivers.robot.base import (
+    BackendConfig,
+    ExecutionRecord,
+    ProgressCallback,
+    RobotBackend,
+    RobotState,
+)
 from recon.types import FloatArray, JointTrajectory
 from recon.waypoints import CoarsePath
 
@@ -46,6 +52,11 @@ PROGRESS_EVERY = 50
 #: Without new data from the controller for this long, the link counts as lost (ur_rtde itself
 #: gives up on a socket after 2.5 s of silence).
 STALE_AFTER_S = 0.5
+#: Bound on the control script starting after an upload (s).
+SCRIPT_START_TIMEOUT_S = 5.0
+#: The arm rests on a target when within this (rad) and slower than this (rad/s).
+SETTLED_RAD = 1e-4
+SETTLED_RAD_S = 1e-3
 
 
 class URRtdeConfig(BackendConfig):
@@ -93,6 +104,9 @@ class URRtdeBackend(RobotBackend):
         self._pipe = parent
 
     def _kill_worker(self) -> None:
+        # Without its worker the backend has no link: it must be connect()ed again (the base
+        # class only marks ConnectionLostError so; a timeout leaves the link just as dead).
+        self._state = RobotState.DISCONNECTED
         if self._process is not None:
             if self._process.is_alive():
                 self._process.kill()
@@ -334,7 +348,30 @@ class _Worker:  # pragma: no cover - runs in the child process
         if self.receive.isProtectiveStopped():
             raise _Failure("protective_stop", "the arm is in a protective stop")
 
+    def _wait_fresh(self) -> None:
+        """Wait for a data package newer than the call (one control period, 2-8 ms): the
+        getters keep returning the last values after the controller stops answering."""
+        stamp = self.receive.getTimestamp()
+        deadline = time.monotonic() + STALE_AFTER_S
+        while self.receive.getTimestamp() == stamp:
+            if time.monotonic() > deadline:
+                raise _Failure(
+                    "connection",
+                    f"no new data from the controller for {STALE_AFTER_S} s; reconnect",
+                )
+            time.sleep(0.001)
+
+    def _refused(self) -> None:
+        """A command was refused: a safety stop (which stops the control script) is the likely
+        cause and is reported as such; otherwise the caller reports a lost script."""
+        try:
+            self._wait_fresh()
+        except _Failure:
+            pass  # no fresh data either: the caller's connection error stands
+        self._safety()
+
     def read_q(self) -> list[float]:
+        self._wait_fresh()
         self._safety()
         return list(self.receive.getActualQ())
 
@@ -354,8 +391,26 @@ class _Worker:  # pragma: no cover - runs in the child process
                 if time.monotonic() > deadline:
                     raise _Failure("not_enabled", "the arm did not reach RUNNING within 25 s")
                 time.sleep(0.1)
-        if not self.control.isProgramRunning():
-            self.control.reuploadScript()
+        self._ensure_script_running()
+
+    def _ensure_script_running(self) -> None:
+        """(Re)start ur_rtde's control script if it is not running, and wait until it is.
+
+        reuploadScript() returns as soon as the script is sent, before the controller reports
+        it running; a command sent in between is refused (moveJ returns False).
+        """
+        if self.control.isProgramRunning():
+            return
+        self.control.reuploadScript()
+        deadline = time.monotonic() + SCRIPT_START_TIMEOUT_S
+        while not self.control.isProgramRunning():
+            if time.monotonic() > deadline:
+                raise _Failure(
+                    "not_enabled",
+                    f"the control script did not start within {SCRIPT_START_TIMEOUT_S} s "
+                    "(is the arm in remote control, powered and free of safety stops?)",
+                )
+            time.sleep(0.01)
 
     def disable(self) -> None:
         self.control.stopScript()
@@ -363,10 +418,23 @@ class _Worker:  # pragma: no cover - runs in the child process
     def unlock(self) -> None:
         self.dashboard.closeSafetyPopup()
         self.dashboard.unlockProtectiveStop()
+        # A protective stop stops the control script: once the controller reports the stop
+        # cleared, start the script again so the next move is not refused.
+        deadline = time.monotonic() + SCRIPT_START_TIMEOUT_S
+        while self.receive.isProtectiveStopped():
+            if time.monotonic() > deadline:
+                raise _Failure(
+                    "protective_stop",
+                    "the protective stop did not clear: remove its cause and unlock it at the "
+                    "teach pendant",
+                )
+            time.sleep(0.01)
+        self._ensure_script_running()
 
     def move_j(self, q, speed, acceleration) -> None:
         self._safety()
         if not self.control.moveJ(q, speed, acceleration, True):
+            self._refused()
             raise _Failure(
                 "connection",
                 "the controller refused moveJ (is the control script running?); reconnect",
@@ -390,6 +458,7 @@ class _Worker:  # pragma: no cover - runs in the child process
             # Positional only: ur_rtde's binding names these arguments arg0..arg5.
             if not self.control.servoJ(q, 0.0, 0.0, period_s, lookahead, gain):
                 self.control.servoStop(self.config["stop_deceleration_rad_s2"])
+                self._refused()
                 raise _Failure(
                     "connection",
                     "the controller refused servoJ (the control script stopped); reconnect",
@@ -405,11 +474,31 @@ class _Worker:  # pragma: no cover - runs in the child process
             self.control.waitPeriod(t_cycle)
         else:
             completed = True
+            self._hold(q_rows[-1], period_s)
         self.control.servoStop(self.config["stop_deceleration_rad_s2"])
         self.pipe.send(("progress", len(times)))
         if fault == "protective stop":
             raise _Failure("protective_stop", "protective stop during execution")
         return times, actual, completed, fault
+
+    def _hold(self, q, period_s) -> None:
+        """Keep servoing the last sample until the arm rests on it.
+
+        servoJ follows its targets a lookahead behind; a servoStop right after the last sample
+        would brake the arm short of it (measured on the fake controller: 15 mrad on the
+        contract test's line). Bounded by the lookahead plus half a second; a stop request or a
+        protective stop ends it early.
+        """
+        lookahead, gain = self.config["lookahead_s"], self.config["gain"]
+        for _ in range(int((lookahead + 0.5) / period_s)):
+            if self.stop_event.is_set() or self.receive.isProtectiveStopped():
+                return
+            t_cycle = self.control.initPeriod()
+            self.control.servoJ(q, 0.0, 0.0, period_s, lookahead, gain)
+            error = np.abs(np.asarray(self.receive.getActualQ()) - q).max()
+            if error < SETTLED_RAD and np.abs(self.receive.getActualQd()).max() < SETTLED_RAD_S:
+                return
+            self.control.waitPeriod(t_cycle)
 
     def move_path(self, q_rows, speeds, acceleration, blends):
         """Run blended moveJ waypoints as one controller-side path (ur_rtde movePath)."""
@@ -426,6 +515,7 @@ class _Worker:  # pragma: no cover - runs in the child process
                 )
             )
         if not self.control.movePath(path, True):
+            self._refused()
             raise _Failure(
                 "connection",
                 "the controller refused movePath (the control script stopped); reconnect",

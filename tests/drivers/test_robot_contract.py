@@ -1,7 +1,10 @@
 """One contract for every robot backend: lifecycle, motion, execution, stop.
 
-Runs against ``sim`` always, and against ``ur_rtde`` when a controller is configured
-(TEACHPATH_UR_HOST, optionally TEACHPATH_UR_ROBOT) -- a real arm or UR's simulator.
+Runs against ``sim`` and against ``ur_rtde`` talking to the fake UR controller
+(``drivers.robot.fake_ur``, in its own process on a free loopback address) always, and against
+``ur_rtde`` with a real controller when one is configured (TEACHPATH_UR_HOST, optionally
+TEACHPATH_UR_ROBOT) -- a real arm or UR's simulator. Tests that touch ur_rtde carry a timeout:
+ur_rtde waits up to 300 s for a command, so a bug would otherwise be a hang.
 """
 
 from __future__ import annotations
@@ -23,34 +26,59 @@ from drivers.robot.base import RobotState, backend_class, create_backend
 from drivers.robot.clock import FakeClock
 from drivers.robot.sim import SimBackend, SimConfig
 from recon import kinematics
+from tests.drivers import fake_ur_fixture
 from tests.motion_fixtures import line_plan
+
+# The fake controller's fixtures, used by name.
+fake_ur_process = fake_ur_fixture.fake_ur_process
+fake_ur = fake_ur_fixture.fake_ur
+
+#: Bound on one test with a ur_rtde backend (real time motion, a worker process to start).
+UR_TEST_TIMEOUT_S = 120
 
 
 def _backends():
     yield pytest.param("sim", id="sim")
+    yield pytest.param("ur_rtde_fake", id="ur_rtde-fake", marks=pytest.mark.timeout(60))
     host = os.environ.get("TEACHPATH_UR_HOST")
     yield pytest.param(
         "ur_rtde",
         id="ur_rtde",
-        marks=pytest.mark.skipif(not host, reason="no controller: set TEACHPATH_UR_HOST"),
+        marks=[
+            pytest.mark.skipif(not host, reason="no controller: set TEACHPATH_UR_HOST"),
+            pytest.mark.hardware,
+            pytest.mark.timeout(UR_TEST_TIMEOUT_S),
+        ],
     )
 
 
-def make(kind: str):
+def make(kind: str, host: str | None = None):
     if kind == "sim":
         return SimBackend(SimConfig(), clock=FakeClock())
     from drivers.robot.ur_rtde import URRtdeConfig
 
     return create_backend(
         URRtdeConfig(
-            host=os.environ["TEACHPATH_UR_HOST"], robot=os.environ.get("TEACHPATH_UR_ROBOT", "ur5e")
+            host=host or os.environ["TEACHPATH_UR_HOST"],
+            robot=os.environ.get("TEACHPATH_UR_ROBOT", "ur5e") if host is None else "ur5e",
         )
     )
 
 
+#: Where the fake arm starts: 0.2 rad (joint 1) from the test line's start, so moveJ is
+#: exercised without seconds of real-time travel from the home pose.
+FAKE_START_OFFSET_RAD = np.array([0.2, 0, 0, 0, 0, 0])
+
+
 @pytest.fixture(params=list(_backends()))
 def robot(request):
-    backend = make(request.param)
+    host = None
+    if request.param == "ur_rtde_fake":
+        fake = request.getfixturevalue("fake_ur")
+        start = line_plan("ur5e", 0.1).trajectory.q_rad[0] + FAKE_START_OFFSET_RAD
+        fake.control("reset", q_rad=start.tolist())
+        host = fake.host
+    backend = make("ur_rtde" if request.param == "ur_rtde_fake" else request.param, host)
     yield backend
     backend.close()
 

@@ -14,6 +14,9 @@ from drivers.errors import ConnectionLostError, NotConnectedError, RobotTimeoutE
 from drivers.robot.base import RobotState
 from drivers.robot.ur_rtde import URRtdeBackend, URRtdeConfig
 
+#: These tests drive ur_rtde, which waits up to 300 s for a command: bound them.
+pytestmark = pytest.mark.timeout(60)
+
 
 def test_an_unreachable_controller_is_a_clear_error():
     robot = URRtdeBackend(URRtdeConfig(host="127.0.0.9", connect_timeout_s=10))

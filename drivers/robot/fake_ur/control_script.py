@@ -1,0 +1,189 @@
+"""What the fake controller needs to know about ur_rtde's uploaded control script.
+
+ur_rtde (pinned in pyproject.toml) uploads a URScript program on the script port and then talks
+to it through RTDE general purpose registers -- a private protocol of that client version. The
+facts below were read off the script the pinned client uploads (observed on loopback), not
+copied from its source:
+
+- the program is one ``def ...():`` block ending with an ``end`` line at column 0, and carries
+  the markers in :data:`REQUIRED_MARKERS`;
+- the register offset (0, or 24 with the "upper range" flag) is assigned to ``reg_offset_int`` /
+  ``reg_offset_float`` in the header;
+- the command id arrives in input int register 0; the script answers in output int register 0
+  (1 ready, 2 done with the command), writes results to output int register 1 and output double
+  registers 0-5, and async progress to output int register 2;
+- movePath re-uploads the script with the path's moves in place of the ``# inject move path``
+  comment inside ``exec_move_path()``.
+
+:func:`missing_markers` is what the canary test checks against a freshly recorded upload.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Text the pinned client's script contains and the fake relies on.
+REQUIRED_MARKERS: dict[str, str] = {
+    "program": "def rtde_control():",
+    "header": "# HEADER_BEGIN",
+    "header end": "# HEADER_END",
+    "control loop": "# NODE_CONTROL_LOOP_BEGINS",
+    "int register offset": "global reg_offset_int =",
+    "float register offset": "global reg_offset_float =",
+    "command register": "cmd = read_input_integer_reg(0)",
+    "ready signal": "write_output_integer_reg(0, 1)",
+    "done signal": "write_output_integer_reg(0, 2)",
+    "async progress register": "write_output_integer_reg(2, reg_value)",
+    "move path hook": "def exec_move_path():",
+}
+
+#: Commands (input int register 0) of the pinned script that the fake emulates.
+CMD_MOVEJ = 1
+CMD_MOVEJ_IK = 2
+CMD_MOVEL = 3
+CMD_MOVEL_FK = 4
+CMD_SPEEDJ = 9
+CMD_SERVOJ = 11
+CMD_SPEED_STOP = 15
+CMD_SERVO_STOP = 16
+CMD_GET_INVERSE_KIN_ARGS = 30
+CMD_PROTECTIVE_STOP = 31
+CMD_STOPL = 33
+CMD_STOPJ = 34
+CMD_GET_FORWARD_KIN_DEFAULT = 43
+CMD_GET_FORWARD_KIN_ARGS = 44
+CMD_MOVE_PATH = 45
+CMD_GET_INVERSE_KIN_DEFAULT = 46
+CMD_STOP_SCRIPT = 255
+
+#: Commands the script handles "in real time": processed and answered with ready (1) at once,
+#: never with done (2). Read off the main loop of the pinned script.
+REALTIME_COMMANDS = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
+
+_DEF = re.compile(r"^def\s+(\w+)\s*\(\s*\)\s*:", re.MULTILINE)
+_OFFSET = {
+    kind: re.compile(rf"global\s+reg_offset_{kind}\s*=[^\n]*?(?:#[^\n]*)?\n?\s*(\d+)")
+    for kind in ("int", "float")
+}
+_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+_MOVE = re.compile(
+    rf"^\s*(movej|movel)\(\s*(p?)\[([^\]]*)\]((?:\s*,\s*\w+\s*=\s*{_NUMBER})*)\s*\)", re.MULTILINE
+)
+_KEYWORD = re.compile(rf"(\w+)\s*=\s*({_NUMBER})")
+
+
+@dataclass(frozen=True)
+class PathMove:
+    """One move of a movePath, as injected into the script.
+
+    Attributes
+    ----------
+    kind : {"movej", "movel"}
+    target : ndarray of shape (6,)
+        Joint angles (rad) or, with ``is_pose``, a pose x, y, z (m), rotation vector (rad).
+    is_pose : bool
+    speed, acceleration : float
+        ``v`` and ``a`` (rad/s, rad/s^2 for joint moves; m/s, m/s^2 for linear ones).
+    blend_m : float
+        ``r``, the blend radius.
+    """
+
+    kind: str
+    target: np.ndarray
+    is_pose: bool
+    speed: float
+    acceleration: float
+    blend_m: float
+
+
+@dataclass(frozen=True)
+class ScriptInfo:
+    """An uploaded program as the fake sees it.
+
+    Attributes
+    ----------
+    name : str
+        The program's ``def`` name.
+    is_rtde_control : bool
+        It is ur_rtde's control script (all :data:`REQUIRED_MARKERS` present).
+    int_offset, float_offset : int
+        Register offset the script declares (0, or 24 for the upper range).
+    path : tuple of PathMove
+        Moves injected for movePath (empty when none).
+    """
+
+    name: str
+    is_rtde_control: bool
+    int_offset: int = 0
+    float_offset: int = 0
+    path: tuple[PathMove, ...] = field(default_factory=tuple)
+
+
+def program_complete(text: str) -> bool:
+    """Whether ``text`` holds a whole program: a ``def`` line and a closing ``end`` line at
+    column 0 (how the controller delimits a program sent to the script port)."""
+    return _DEF.search(text) is not None and re.search(r"^end\s*$", text, re.MULTILINE) is not None
+
+
+def missing_markers(text: str) -> list[str]:
+    """Names of the :data:`REQUIRED_MARKERS` that ``text`` lacks."""
+    return [name for name, marker in REQUIRED_MARKERS.items() if marker not in text]
+
+
+def register_offset(text: str, kind: str = "int") -> int:
+    """The register offset the script assigns to ``reg_offset_<kind>``.
+
+    Raises
+    ------
+    ValueError
+        The script does not declare it.
+    """
+    match = _OFFSET[kind].search(text)
+    if match is None:
+        raise ValueError(f"the script declares no reg_offset_{kind}")
+    return int(match.group(1))
+
+
+def parse_move_path(text: str) -> tuple[PathMove, ...]:
+    """The moves injected into ``exec_move_path()`` (empty if there are none)."""
+    start = text.find("def exec_move_path():")
+    if start < 0:
+        return ()
+    end = re.compile(r"^\s*end\s*$", re.MULTILINE).search(text, start)
+    body = text[start : end.start() if end else len(text)]
+    moves = []
+    for match in _MOVE.finditer(body):
+        kind, pose_flag, values, keywords = match.groups()
+        target = np.array([float(v) for v in values.split(",")], dtype=np.float64)
+        if target.shape != (6,):
+            raise ValueError(f"a {kind} in the movePath has {target.size} values, not 6")
+        options = {k: float(v) for k, v in _KEYWORD.findall(keywords)}
+        moves.append(
+            PathMove(
+                kind=kind,
+                target=target,
+                is_pose=bool(pose_flag),
+                speed=options.get("v", 1.05 if kind == "movej" else 0.25),
+                acceleration=options.get("a", 1.4 if kind == "movej" else 1.2),
+                blend_m=options.get("r", 0.0),
+            )
+        )
+    return tuple(moves)
+
+
+def inspect(text: str) -> ScriptInfo:
+    """Recognise an uploaded program."""
+    match = _DEF.search(text)
+    name = match.group(1) if match else ""
+    if missing_markers(text):
+        return ScriptInfo(name=name, is_rtde_control=False)
+    return ScriptInfo(
+        name=name,
+        is_rtde_control=True,
+        int_offset=register_offset(text, "int"),
+        float_offset=register_offset(text, "float"),
+        path=parse_move_path(text),
+    )

@@ -1,0 +1,587 @@
+"""The emulated arm and the emulated ur_rtde control script, advanced one control period a tick.
+
+The joints are integrated by the ``sim`` backend's model (:class:`~drivers.robot.sim.SimBackend`:
+servoJ lookahead buffer, critically damped tracking with feed-forward, joint speed limits, a
+joint limit is a protective stop), so the fake moves like the simulated arm teachpath already
+checks its plans against. Every move is a stream of joint targets fed to that model once per
+control period: moveJ a synchronised trapezoid, moveL a Cartesian line solved by the arm's IK,
+movePath the sim's blended path, servoJ the client's latest target, a stop no target (brake).
+
+The script emulation mirrors the main loop of the pinned client's control script
+(:mod:`.control_script`): read the command register, answer ready (1) / done (2), write results
+and async progress registers. Everything here runs under :attr:`FakeController.lock`.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from drivers.errors import ProtectiveStopError
+from drivers.robot.fake_ur import control_script as cs
+from drivers.robot.fake_ur.rtde_protocol import REGISTER_COUNT
+from drivers.robot.sim import (
+    HOME_RAD,
+    SimBackend,
+    SimConfig,
+    _path_targets,
+    _synchronised_trapezoid,
+)
+from recon import kinematics
+from recon.waypoints import CoarsePath
+
+log = logging.getLogger("fake_ur.controller")
+
+#: RTDE robot_mode values.
+ROBOT_MODE_POWER_OFF = 3
+ROBOT_MODE_IDLE = 5
+ROBOT_MODE_RUNNING = 7
+ROBOT_MODE_NAMES = {3: "POWER_OFF", 4: "POWER_ON", 5: "IDLE", 7: "RUNNING"}
+#: RTDE safety_mode values.
+SAFETY_NORMAL = 1
+SAFETY_PROTECTIVE_STOP = 3
+SAFETY_ROBOT_EMERGENCY_STOP = 7
+SAFETY_NAMES = {1: "NORMAL", 3: "PROTECTIVE_STOP", 7: "ROBOT_EMERGENCY_STOP"}
+#: RTDE runtime_state values.
+RUNTIME_STOPPED = 1
+RUNTIME_PLAYING = 2
+#: robot_status_bits: power on, program running.
+STATUS_POWER_ON = 1 << 0
+STATUS_PROGRAM_RUNNING = 1 << 1
+#: safety_status_bits (UR's RTDE guide).
+SAFETY_BIT_NORMAL = 1 << 0
+SAFETY_BIT_PROTECTIVE_STOPPED = 1 << 2
+SAFETY_BIT_ROBOT_EMERGENCY_STOPPED = 1 << 6
+SAFETY_BIT_EMERGENCY_STOPPED = 1 << 7
+#: A move counts as settled when no joint moves faster than this (same as the sim backend).
+SETTLED_RAD_S = 1e-4
+#: Settling after the last target of a move is bounded by this (s), as in the sim backend.
+SETTLE_MAX_S = 0.5
+
+
+@dataclass
+class _Motion:
+    """Joint targets fed to the physics one per tick (None: brake), and how the move ends."""
+
+    name: str
+    targets: Iterator[np.ndarray | None]
+    goal: np.ndarray | None = None  # settle on this after the targets run out
+    sync: bool = False  # the command answers "done" only when the motion ends
+    is_async: bool = False  # report async progress (start, per path move, finished)
+    waypoint_ticks: tuple[int, ...] = ()  # ticks at which a path move is reached
+    started_s: float = 0.0
+    expected_s: float = 0.0
+    tick: int = 0
+    settling: int = 0
+    reported: int = 0  # last async progress written (0: started)
+
+
+class FakeController:
+    """A UR controller's state: arm, safety, program, registers.
+
+    Parameters
+    ----------
+    robot : str
+        UR model (``recon.kinematics.model`` name); sets the kinematics and the control rate
+        (500 Hz e-series, 125 Hz CB3).
+    q_start_rad : sequence of 6 floats, optional
+    powered : bool
+        Start powered on with brakes released (robot mode RUNNING) rather than POWER_OFF.
+    """
+
+    def __init__(self, robot: str = "ur5e", *, q_start_rad=HOME_RAD, powered: bool = True):
+        self.arm = kinematics.model(robot)
+        self.rate_hz = float(self.arm.control_rate_hz)
+        self.dt_s = 1.0 / self.rate_hz
+        self.lock = threading.RLock()
+        self.q_start_rad = tuple(float(v) for v in q_start_rad)
+        self.in_int = [0] * REGISTER_COUNT
+        self.in_double = [0.0] * REGISTER_COUNT
+        self.out_int = [0] * REGISTER_COUNT
+        self.out_double = [0.0] * REGISTER_COUNT
+        self.t_s = 0.0  # controller time since start
+        self.robot_mode = ROBOT_MODE_RUNNING if powered else ROBOT_MODE_POWER_OFF
+        self.safety_mode = SAFETY_NORMAL
+        self.runtime_state = RUNTIME_STOPPED
+        self.program_name = "<none>"
+        self.script: cs.ScriptInfo | None = None
+        self.remote_control = True
+        self.frozen = False  # "stops answering": no data, no replies
+        self.messages: list[str] = []  # text the script would have printed (textmsg)
+        self.command_log: list[tuple[float, int]] = []  # (time, command) for tests and logs
+        self.reset_arm()
+
+    # -- arm ---------------------------------------------------------------------------------------
+
+    def reset_arm(self, q_rad=None) -> None:
+        """Put the arm at rest at ``q_rad`` (default: the start pose) with no motion."""
+        with self.lock:
+            q = self.q_start_rad if q_rad is None else tuple(float(v) for v in q_rad)
+            self.sim = SimBackend(SimConfig(robot=self.arm.name, q_start_rad=q))
+            self.sim._t = self.t_s  # the physics runs on this controller's clock
+            self.motion: _Motion | None = None
+            self.servo_target: np.ndarray | None = None
+            self.speed_qd = np.zeros(6)
+            self._executing = False
+            self._waiting_sync: _Motion | None = None
+            self._async_wr_count = 0
+            self._async_op_id = 0
+
+    @property
+    def q(self) -> np.ndarray:
+        return self.sim._q
+
+    @property
+    def qd(self) -> np.ndarray:
+        return self.sim._qd
+
+    def tcp_pose(self, q=None) -> list[float]:
+        T = kinematics.forward(self.arm, self.q if q is None else np.asarray(q))
+        return [*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_rotvec()]
+
+    @property
+    def protective_stopped(self) -> bool:
+        return self.safety_mode == SAFETY_PROTECTIVE_STOP
+
+    @property
+    def emergency_stopped(self) -> bool:
+        return self.safety_mode == SAFETY_ROBOT_EMERGENCY_STOP
+
+    @property
+    def can_move(self) -> bool:
+        return self.safety_mode == SAFETY_NORMAL and self.robot_mode == ROBOT_MODE_RUNNING
+
+    # -- RTDE outputs --------------------------------------------------------------------------
+
+    def outputs(self) -> dict[str, object]:
+        """Current values of the output fields the fake fills (others read as zeros)."""
+        q = [float(v) for v in self.q]
+        qd = [float(v) for v in self.qd]
+        pose = self.tcp_pose()
+        status = (STATUS_POWER_ON if self.robot_mode >= 4 else 0) | (
+            STATUS_PROGRAM_RUNNING if self.runtime_state == RUNTIME_PLAYING else 0
+        )
+        safety_bits = {
+            SAFETY_NORMAL: SAFETY_BIT_NORMAL,
+            SAFETY_PROTECTIVE_STOP: SAFETY_BIT_PROTECTIVE_STOPPED,
+            SAFETY_ROBOT_EMERGENCY_STOP: SAFETY_BIT_ROBOT_EMERGENCY_STOPPED
+            | SAFETY_BIT_EMERGENCY_STOPPED,
+        }[self.safety_mode]
+        values: dict[str, object] = {
+            "timestamp": self.t_s,
+            "target_q": q,
+            "target_qd": qd,
+            "actual_q": q,
+            "actual_qd": qd,
+            "actual_TCP_pose": pose,
+            "target_TCP_pose": pose,
+            "robot_mode": self.robot_mode,
+            "joint_mode": [253 if self.robot_mode == ROBOT_MODE_RUNNING else 236] * 6,
+            "safety_mode": self.safety_mode,
+            "safety_status": self.safety_mode,
+            "speed_scaling": 1.0,
+            "target_speed_fraction": 1.0,
+            "runtime_state": self.runtime_state,
+            "robot_status_bits": status,
+            "safety_status_bits": safety_bits,
+            "actual_main_voltage": 48.0,
+            "actual_robot_voltage": 48.0 if self.robot_mode >= 4 else 0.0,
+            "joint_temperatures": [30.0] * 6,
+            "actual_execution_time": 0.1,
+        }
+        for i in range(REGISTER_COUNT):
+            values[f"output_int_register_{i}"] = self.out_int[i]
+            values[f"output_double_register_{i}"] = self.out_double[i]
+            values[f"input_int_register_{i}"] = self.in_int[i]
+            values[f"input_double_register_{i}"] = self.in_double[i]
+        return values
+
+    def apply_inputs(self, values: dict[str, object]) -> None:
+        """Input fields of a data package from a client (registers; the rest is ignored)."""
+        for name, value in values.items():
+            if name.startswith("input_int_register_"):
+                self.in_int[int(name.rsplit("_", 1)[1])] = int(value)  # type: ignore[arg-type]
+            elif name.startswith("input_double_register_"):
+                self.in_double[int(name.rsplit("_", 1)[1])] = float(value)  # type: ignore[arg-type]
+
+    # -- program -------------------------------------------------------------------------------
+
+    def load_program(self, text: str) -> bool:
+        """A program arrived on a script port: stop the running one and start it.
+
+        Returns False when the controller refuses to start programs (not running, a safety stop).
+        """
+        info = cs.inspect(text)
+        with self.lock:
+            self.stop_program()
+            if not self.can_move:
+                log.warning("refusing to start %s: the arm is not ready to run programs", info.name)
+                return False
+            self.script = info
+            self.program_name = info.name or "<unnamed>"
+            if not info.is_rtde_control:
+                # Any other URScript: accepted and "run" as a no-op (the fake only emulates
+                # ur_rtde's control script).
+                log.info("program %s is not ur_rtde's control script: not emulated", info.name)
+                return True
+            self.runtime_state = RUNTIME_PLAYING
+            self._executing = False
+            self._waiting_sync = None
+            self._write_async_progress(-1)  # reset_async_progress()
+            self.out_int[self._i(0)] = 1  # signal_ready()
+            self.messages.append("RTDE Control Script Loaded")
+            log.info(
+                "running ur_rtde control script (register offset %d, %d path moves)",
+                info.int_offset,
+                len(info.path),
+            )
+            return True
+
+    def stop_program(self) -> None:
+        with self.lock:
+            if self.runtime_state == RUNTIME_PLAYING:
+                log.info("program %s stopped", self.program_name)
+            self.runtime_state = RUNTIME_STOPPED
+            self._waiting_sync = None
+            if self.motion is not None:
+                self.motion = _Motion("brake", iter(()), goal=None)
+            self.servo_target = None
+
+    def _i(self, index: int) -> int:
+        return index + (self.script.int_offset if self.script else 0)
+
+    def _f(self, index: int) -> int:
+        return index + (self.script.float_offset if self.script else 0)
+
+    def _float_regs(self, first: int, count: int = 6) -> np.ndarray:
+        return np.array([self.in_double[self._f(first + k)] for k in range(count)])
+
+    # -- faults --------------------------------------------------------------------------------
+
+    def protective_stop(self, reason: str = "protective stop (injected)") -> None:
+        with self.lock:
+            log.warning("protective stop: %s", reason)
+            self.safety_mode = SAFETY_PROTECTIVE_STOP
+            self._halt()
+
+    def emergency_stop(self) -> None:
+        with self.lock:
+            log.warning("emergency stop")
+            self.safety_mode = SAFETY_ROBOT_EMERGENCY_STOP
+            self.robot_mode = ROBOT_MODE_POWER_OFF
+            self._halt()
+
+    def release_emergency_stop(self) -> None:
+        with self.lock:
+            if self.emergency_stopped:
+                self.safety_mode = SAFETY_NORMAL  # still powered off: power on, release brakes
+
+    def unlock_protective_stop(self) -> bool:
+        with self.lock:
+            if not self.protective_stopped:
+                return False
+            self.safety_mode = SAFETY_NORMAL
+            return True
+
+    def _halt(self) -> None:
+        """The arm stops hard and the program stops, as a safety stop does."""
+        self.sim._qd[:] = 0.0
+        self.motion = None
+        self.servo_target = None
+        self.stop_program()
+
+    # -- one control period --------------------------------------------------------------------
+
+    def step(self) -> None:
+        """Advance by one control period: the script loop, then the physics."""
+        with self.lock:
+            self.t_s += self.dt_s
+            script = self.script
+            if self.runtime_state == RUNTIME_PLAYING and script and script.is_rtde_control:
+                self._script_loop()
+            self._physics()
+
+    def _script_loop(self) -> None:
+        """One pass of the control script's main loop."""
+        if self._waiting_sync is not None:
+            return  # process_cmd is still blocked in a synchronous move
+        cmd = self.in_int[self._i(0)]
+        if cmd in cs.REALTIME_COMMANDS:
+            self._process(cmd)
+            self.out_int[self._i(0)] = 1
+        elif cmd == 0:
+            self._executing = False
+            self.out_int[self._i(0)] = 1
+        elif not self._executing:
+            self._executing = True
+            self.command_log.append((self.t_s, cmd))
+            if cmd == cs.CMD_STOP_SCRIPT:
+                self.messages.append("Received stop script!")
+                self.stop_program()
+                return
+            if not self._process(cmd):
+                self.out_int[self._i(0)] = 2
+
+    def _process(self, cmd: int) -> bool:
+        """Run one command; True if it answers later (a synchronous move)."""
+        if cmd == cs.CMD_SERVOJ:
+            self.servo_target = self._float_regs(0)
+            lookahead_s, gain = self.in_double[self._f(9)], self.in_double[self._f(10)]
+            if 0.03 <= lookahead_s <= 0.2 and 100 <= gain <= 2000:
+                self.sim._delay = max(1, int(round(lookahead_s / self.dt_s)))
+                self.sim._omega = float(np.sqrt(gain))
+            if self.motion is None or self.motion.name != "servoj":
+                self.motion = _Motion("servoj", self._servo_targets())
+            return False
+        if cmd == cs.CMD_SPEEDJ:
+            self.speed_qd = self._float_regs(0)
+            if self.motion is None or self.motion.name != "speedj":
+                self.motion = _Motion("speedj", self._speed_targets(self._float_regs(6, 1)[0]))
+            return False
+        if cmd in (cs.CMD_SERVO_STOP, cs.CMD_SPEED_STOP):
+            self.motion = _Motion("brake", iter(()), goal=None)
+            self.servo_target = None
+            return False
+        if cmd in (cs.CMD_STOPJ, cs.CMD_STOPL):
+            self._stop_async_move()
+            is_async = self.in_int[self._i(1)] == 1
+            self.motion = _Motion("stop", iter(()), goal=None, sync=not is_async, is_async=is_async)
+            return self._start(self.motion)
+        if cmd in (cs.CMD_MOVEJ, cs.CMD_MOVEJ_IK, cs.CMD_MOVEL, cs.CMD_MOVEL_FK):
+            return self._move(cmd)
+        if cmd == cs.CMD_MOVE_PATH:
+            return self._move_path()
+        if cmd in (cs.CMD_GET_FORWARD_KIN_DEFAULT, cs.CMD_GET_FORWARD_KIN_ARGS):
+            q = self.q if cmd == cs.CMD_GET_FORWARD_KIN_DEFAULT else self._float_regs(0)
+            for k, v in enumerate(self.tcp_pose(q)):
+                self.out_double[self._f(k)] = float(v)
+            return False
+        if cmd in (cs.CMD_GET_INVERSE_KIN_ARGS, cs.CMD_GET_INVERSE_KIN_DEFAULT):
+            near = self._float_regs(6) if cmd == cs.CMD_GET_INVERSE_KIN_ARGS else self.q
+            q = self._ik(self._float_regs(0), near)
+            for k, v in enumerate(self.q if q is None else q):
+                self.out_double[self._f(k)] = float(v)
+            return False
+        if cmd == cs.CMD_PROTECTIVE_STOP:
+            self.protective_stop("triggered by the client")
+            return False
+        # Any other command: acknowledged without effect, so the client never hangs on it.
+        log.info("command %d is not emulated: acknowledged without effect", cmd)
+        return False
+
+    # -- moves ---------------------------------------------------------------------------------
+
+    def _start(self, motion: _Motion) -> bool:
+        motion.started_s = self.t_s
+        if motion.is_async:
+            self._write_async_progress(0)
+        if motion.sync:
+            self._waiting_sync = motion
+        return motion.sync
+
+    def _stop_async_move(self) -> None:
+        if self.motion is not None and self.motion.is_async and self.motion.name != "stop":
+            self._write_async_progress(-1)
+            self.motion = None
+
+    def _move(self, cmd: int) -> bool:
+        target = self._float_regs(0)
+        speed, acceleration = self._float_regs(6, 2)
+        is_async = self.in_int[self._i(1)] == 1
+        self._stop_async_move()
+        q0 = self.q.copy()
+        if cmd in (cs.CMD_MOVEJ, cs.CMD_MOVEJ_IK):
+            goal = target if cmd == cs.CMD_MOVEJ else self._ik(target, q0)
+            if goal is None:
+                self.messages.append("movej_ik: no inverse kinematics solution")
+                log.warning("moveJ_IK to an unreachable pose: not moving")
+                return False
+            targets = _synchronised_trapezoid(q0, goal, speed, acceleration, self.dt_s)
+        else:
+            pose = np.asarray(self.tcp_pose(target)) if cmd == cs.CMD_MOVEL_FK else target
+            targets = self._line_targets(q0, pose, speed, acceleration)
+            if targets is None:
+                log.warning("moveL to a pose the arm cannot reach in a line: not moving")
+                return False
+            goal = targets[-1]
+        motion = _Motion(
+            "move",
+            iter(targets),
+            goal=np.asarray(goal),
+            sync=not is_async,
+            is_async=is_async,
+            expected_s=len(targets) * self.dt_s,
+        )
+        self.motion = motion
+        return self._start(motion)
+
+    def _move_path(self) -> bool:
+        moves = self.script.path if self.script else ()
+        is_async = self.in_int[self._i(1)] == 1
+        self._stop_async_move()
+        if not moves:
+            log.warning("movePath without injected moves: nothing to run")
+            return False
+        q = [self.q.copy()]
+        for move in moves:
+            if move.is_pose or move.kind != "movej":
+                # teachpath sends joint-space moveJ waypoints; a pose target is solved by IK
+                # and run as a joint move (no straight line): documented limitation.
+                goal = move.target if not move.is_pose else self._ik(move.target, q[-1])
+                if goal is None:
+                    log.warning("movePath: unreachable pose, path refused")
+                    return False
+                q.append(np.asarray(goal))
+            else:
+                q.append(move.target)
+        path = CoarsePath(
+            sample_index=np.arange(len(q)),
+            q_rad=np.array(q),
+            speed_rad_s=np.array([moves[0].speed] + [m.speed for m in moves]),
+            acceleration_rad_s2=float(min(m.acceleration for m in moves)),
+            blend_m=np.array([0.0] + [m.blend_m for m in moves[:-1]] + [0.0]),
+            deviation_max_m=0.0,
+        )
+        targets = _path_targets(path, self.dt_s)
+        # The tick at which each waypoint is passed, for progress (index of the move running).
+        ticks = []
+        for k in range(1, len(q)):
+            distance = np.abs(targets - q[k]).max(axis=1)
+            ticks.append(int(np.argmin(distance)))
+        motion = _Motion(
+            "path",
+            iter(list(targets)),
+            goal=q[-1],
+            sync=not is_async,
+            is_async=is_async,
+            waypoint_ticks=tuple(ticks),
+            expected_s=len(targets) * self.dt_s,
+        )
+        self.motion = motion
+        return self._start(motion)
+
+    def _servo_targets(self) -> Iterator[np.ndarray | None]:
+        while True:
+            yield None if self.servo_target is None else self.servo_target.copy()
+
+    def _speed_targets(self, acceleration: float) -> Iterator[np.ndarray | None]:
+        q = self.q.copy()
+        qd = self.qd.copy()
+        acceleration = acceleration if acceleration > 0 else 1.4
+        while True:
+            step = np.clip(self.speed_qd - qd, -acceleration * self.dt_s, acceleration * self.dt_s)
+            qd = np.clip(qd + step, -self.arm.qd_max_rad_s, self.arm.qd_max_rad_s)
+            q = q + qd * self.dt_s
+            yield q.copy()
+
+    def _ik(self, pose, q_near) -> np.ndarray | None:
+        """The IK solution of a flange pose nearest ``q_near`` (None if unreachable)."""
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(np.asarray(pose[3:6])).as_matrix()
+        T[:3, 3] = pose[:3]
+        solutions = kinematics.inverse(self.arm, T[None])
+        valid = solutions.valid[0]
+        if not valid.any():
+            return None
+        candidates = solutions.q_rad[0][valid]
+        # Pick each joint's 2*pi turn nearest q_near, then the closest branch.
+        near = np.asarray(q_near, dtype=np.float64)
+        candidates = candidates + 2 * np.pi * np.round((near - candidates) / (2 * np.pi))
+        best = candidates[np.argmin(np.abs(candidates - near).max(axis=1))]
+        return best
+
+    def _line_targets(self, q0, pose, speed, acceleration) -> list[np.ndarray] | None:
+        """Joint targets along a straight TCP line to ``pose`` (trapezoidal in distance)."""
+        start = np.asarray(self.tcp_pose(q0))
+        distance = float(np.linalg.norm(pose[:3] - start[:3]))
+        fractions = _synchronised_trapezoid(
+            np.zeros(1), np.array([max(distance, 1e-9)]), speed, acceleration, self.dt_s
+        )
+        rotations = Rotation.from_rotvec([start[3:6], pose[3:6]])
+        slerp = Slerp([0.0, 1.0], rotations)
+        targets, q = [], np.asarray(q0, dtype=np.float64)
+        for f in fractions:
+            s = float(np.clip(f[0] / max(distance, 1e-9), 0.0, 1.0))
+            p = np.concatenate([start[:3] + s * (pose[:3] - start[:3]), slerp(s).as_rotvec()])
+            q_next = self._ik(p, q)
+            if q_next is None:
+                return None
+            targets.append(q_next)
+            q = q_next
+        return targets
+
+    # -- physics and async progress ------------------------------------------------------------
+
+    def _physics(self) -> None:
+        motion = self.motion
+        target = None
+        if motion is not None and self.can_move:
+            target = next(motion.targets, None)
+            if target is None and motion.name in ("move", "path"):
+                motion.settling += 1
+                target = motion.goal
+            motion.tick += 1
+            if motion.is_async and motion.waypoint_ticks:
+                # The script signals the index of the move it starts (0 .. n-1).
+                passed = sum(1 for t in motion.waypoint_ticks[:-1] if t < motion.tick)
+                self._progress_if_changed(motion, passed)
+        try:
+            self.sim._advance(self.t_s, target=target)
+        except ProtectiveStopError as error:  # a joint ran into its limit
+            self.sim._active = None
+            self.protective_stop(str(error))
+            return
+        if motion is not None and self._motion_finished(motion):
+            self._finish(motion)
+
+    def _motion_finished(self, motion: _Motion) -> bool:
+        resting = float(np.abs(self.qd).max()) < SETTLED_RAD_S
+        if motion.name in ("brake", "stop"):
+            return resting
+        if motion.name in ("move", "path") and motion.settling > 0:
+            return (resting and motion.settling > self.sim._delay + 2) or (
+                motion.settling * self.dt_s > SETTLE_MAX_S
+            )
+        return False
+
+    def _finish(self, motion: _Motion) -> None:
+        if motion.is_async:
+            self._write_async_progress(-1)
+        if self._waiting_sync is motion:
+            self._waiting_sync = None
+            self.out_int[self._i(0)] = 2  # signal_done_with_cmd()
+        if self.motion is motion:
+            self.motion = None
+
+    def _progress_if_changed(self, motion: _Motion, value: int) -> None:
+        if motion.reported != value:
+            motion.reported = value
+            self._write_async_progress(value)
+
+    def _write_async_progress(self, value: int) -> None:
+        """Encode async progress the way the pinned script does: bits 24-30 operation id
+        (incremented when an operation starts), bits 16-23 a write counter, bit 15 running,
+        bits 0-14 progress; a negative value means finished."""
+        self._async_wr_count = (self._async_wr_count + 1) % 128
+        if value == 0:
+            self._async_op_id = (self._async_op_id + 1) % 128
+        reg = self._async_wr_count * 65536 + self._async_op_id * 16777216
+        if value >= 0:
+            reg += min(value, 32767) + 32768
+        self.out_int[self._i(2)] = reg
+
+    # -- for the watchdog ------------------------------------------------------------------------
+
+    def busy_command(self) -> tuple[str, float, float] | None:
+        """(what, running for s, expected s) of the motion a command waits on, if any."""
+        motion = self._waiting_sync or (
+            self.motion if self.motion is not None and self.motion.is_async else None
+        )
+        if motion is None:
+            return None
+        return motion.name, self.t_s - motion.started_s, motion.expected_s

@@ -1,0 +1,49 @@
+"""Log commands the fake never finishes: ur_rtde waits up to 300 s for a command, so a bug in
+the fake would otherwise look like a silent hang of the test."""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+from drivers.robot.fake_ur.control_script import REALTIME_COMMANDS
+from drivers.robot.fake_ur.controller import FakeController
+
+log = logging.getLogger("fake_ur.watchdog")
+
+#: A command counts as stuck this long after it should have finished (s).
+GRACE_S = 5.0
+#: A command the loop has not picked up after this long is stuck too (s).
+PICKUP_S = 1.0
+
+
+def watch(controller: FakeController, stop: threading.Event, *, period_s: float = 1.0) -> None:
+    """Check every ``period_s`` (until ``stop``) and log a warning for each stuck command."""
+    pending_since: float | None = None
+    warned: set[tuple[str, float]] = set()
+    while not stop.wait(period_s):
+        with controller.lock:
+            busy = controller.busy_command()
+            playing = controller.runtime_state == 2 and controller.script is not None
+            offset = controller.script.int_offset if controller.script else 0
+            cmd = controller.in_int[offset]
+            answered = controller.out_int[offset] == 2 or controller._executing
+            now = controller.t_s
+        if busy is not None:
+            what, running_s, expected_s = busy
+            key = (what, round(now - running_s, 3))
+            if running_s > expected_s + GRACE_S and key not in warned:
+                warned.add(key)
+                log.warning(
+                    "stuck command: %s has run %.1f s (expected %.1f s)",
+                    what,
+                    running_s,
+                    expected_s,
+                )
+        if playing and cmd != 0 and cmd not in REALTIME_COMMANDS and not answered and busy is None:
+            pending_since = now if pending_since is None else pending_since
+            if now - pending_since > PICKUP_S:
+                log.warning("command %d written by the client was never picked up", cmd)
+                pending_since = now
+        else:
+            pending_since = None

@@ -1,0 +1,116 @@
+"""The service's real-robot path end to end: the REST flow drives ur_rtde against the fake UR
+controller (its own process on a free loopback address), as an integrator's dry run would."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from service.app import create_app
+from tests.drivers import fake_ur_fixture
+from tests.service.conftest import AUTH, T_BASE_TRACKER, make_settings, wait
+
+fake_ur_process = fake_ur_fixture.fake_ur_process
+fake_ur = fake_ur_fixture.fake_ur
+
+pytestmark = pytest.mark.timeout(180)
+
+
+@pytest.fixture(scope="module")
+def arm(tmp_path_factory, scene_files, fake_ur_process):
+    """A service whose real arm is the fake, with a trajectory that passed its dry run."""
+    settings = make_settings(
+        tmp_path_factory.mktemp("fake_arm"),
+        ur_host=fake_ur_process.host,
+        ur_robot="ur5e",
+        max_speed_m_s=0.1,
+    )
+    with TestClient(create_app(settings), headers=AUTH) as client:
+        sid = client.post("/sessions", json={"name": "fake arm"}).json()["id"]
+        client.put(f"/sessions/{sid}/recording", files={"file": ("t.csv", scene_files["trace"])})
+        client.put(f"/sessions/{sid}/scan", files={"file": ("s.ply", scene_files["scan"])})
+        client.put(f"/sessions/{sid}/calibration", json={"T_base_tracker": T_BASE_TRACKER})
+        recon = wait(client, client.post(f"/sessions/{sid}/reconstructions", json={}).json())
+        job = client.post(
+            f"/sessions/{sid}/trajectories",
+            json={"reconstruction_id": recon["result"]["reconstruction_id"], "speed_m_s": 0.1},
+        ).json()
+        trajectory_id = wait(client, job)["result"]["trajectory_id"]
+        dry = client.post(f"/sessions/{sid}/executions", json={"trajectory_id": trajectory_id})
+        assert wait(client, dry.json())["result"]["completed"]
+        csv = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}/csv").text
+        q_start = np.array(csv.splitlines()[1].split(",")[1:7], dtype=float)
+        yield client, sid, trajectory_id, q_start
+
+
+def _execute(client, sid, trajectory_id):
+    response = client.post(
+        f"/sessions/{sid}/executions",
+        json={"trajectory_id": trajectory_id, "backend": "ur_rtde", "confirm": True},
+    )
+    assert response.status_code == 202, response.text
+    return response.json()
+
+
+def test_a_confirmed_execution_runs_on_the_controller(arm, fake_ur):
+    client, sid, trajectory_id, q_start = arm
+    # Start a little away from the trajectory: the service moves the arm there first.
+    fake_ur.control("reset", q_rad=(q_start + [0.1, 0, 0, 0, 0, 0]).tolist())
+    job = wait(client, _execute(client, sid, trajectory_id), timeout_s=120)
+    assert job["state"] == "succeeded", job
+    execution_id = job["result"]["execution_id"]
+    execution = client.get(f"/sessions/{sid}/executions/{execution_id}").json()
+    assert execution["params"]["backend"] == "ur_rtde"
+    assert execution["params"]["host"] == fake_ur.host
+    assert execution["summary"]["completed"] and execution["summary"]["samples"] > 100
+    # The controller's arm ended where the plan ends.
+    csv = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}/csv").text
+    q_end = np.array(csv.strip().splitlines()[-1].split(",")[1:7], dtype=float)
+    q_now = np.array(fake_ur.control("status")["q_rad"])
+    assert np.abs(q_now - q_end).max() < 2e-3
+
+
+def test_a_protective_stop_fails_the_job_with_its_code_and_keeps_the_record(arm, fake_ur):
+    client, sid, trajectory_id, q_start = arm
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    job = _execute(client, sid, trajectory_id)
+    deadline = time.monotonic() + 60
+    while client.get(f"/jobs/{job['id']}").json()["progress"] < 0.4:
+        assert time.monotonic() < deadline, "the execution did not get going"
+        time.sleep(0.05)
+    fake_ur.control("protective_stop")
+    job = wait(client, job, timeout_s=60)
+    assert job["state"] == "failed" and job["error"]["code"] == "protective_stop", job
+    execution_id = job["result"]["execution_id"]
+    execution = client.get(f"/sessions/{sid}/executions/{execution_id}").json()
+    assert not execution["summary"]["completed"]
+    assert "protective stop" in execution["summary"]["fault"].lower()
+    # The service stayed responsive throughout, and reports healthy.
+    assert client.get("/health").json()["status"] == "ok"
+
+
+def test_teachpath_fake_ur_runs_by_hand_and_refuses_what_it_cannot_do():
+    import signal
+    import subprocess
+    import sys
+
+    from tests.service.test_cli import run
+
+    refused = run("fake-ur", "--host", "10.1.2.3")
+    assert refused.returncode == 1 and "not a loopback address" in refused.stderr
+    host = fake_ur_fixture.free_loopback_host()
+    command = [sys.executable, "-m", "service.cli", "fake-ur", "--host", host, "--robot", "ur10e"]
+    fake = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert f"fake ur10e controller listening on {host}" in fake.stdout.readline()
+        taken = run("fake-ur", "--host", host)
+        assert taken.returncode == 2 and f"cannot listen on {host}" in taken.stderr
+        fake.send_signal(signal.SIGINT)
+        assert fake.wait(timeout=20) == 0
+    finally:
+        if fake.poll() is None:
+            fake.kill()
+            fake.wait()
