@@ -278,6 +278,53 @@ def test_rtde_handshake_recipes_and_stream(fake_ur):
         assert _request(sock, rp.SETUP_INPUTS, b"input_int_register_1,")[0] == 1
 
 
+def _closed_by_peer(sock) -> bool:
+    try:
+        return sock.recv(65536) == b""
+    except ConnectionResetError:
+        return True
+
+
+@pytest.mark.timeout(30)
+def test_bad_input_on_every_port_is_answered_or_dropped_and_the_fake_lives_on(fake_ur):
+    from drivers.robot.fake_ur.server import CONTROL_PORT
+
+    # RTDE: a request too short for its fields, an impossible packet size, a recipe that is
+    # not text -- each drops that client only.
+    for garbage in (
+        rp.packet(rp.REQUEST_PROTOCOL_VERSION, b""),
+        struct.pack(">HB", 1, rp.START),
+        rp.packet(rp.SETUP_INPUTS, b"\xff\xfe,"),
+    ):
+        with socket.create_connection((fake_ur.host, 30004), timeout=5) as sock:
+            sock.sendall(garbage)
+            assert _closed_by_peer(sock)
+    # An input package for a recipe never set up is ignored; the connection stays usable.
+    with socket.create_connection((fake_ur.host, 30004), timeout=5) as sock:
+        sock.sendall(rp.packet(rp.DATA_PACKAGE, b"\x07" + bytes(8)))
+        assert _request(sock, rp.REQUEST_PROTOCOL_VERSION, struct.pack(">H", 2)) == b"\x01"
+        assert _request(sock, rp.REQUEST_PROTOCOL_VERSION, struct.pack(">H", 9)) == b"\x00"
+    # Dashboard: what it does not know, it says so, as UR's does.
+    with socket.create_connection((fake_ur.host, 29999), timeout=5) as sock:
+        board = sock.makefile("rb")
+        board.readline()  # the greeting
+        sock.sendall(b"make coffee\n\xff\xfe\n")
+        assert board.readline().startswith(b"Could not understand")
+        assert board.readline().startswith(b"Could not understand")
+    # The control channel: a reason for every bad request, and the next one still works.
+    with socket.create_connection((fake_ur.host, CONTROL_PORT), timeout=5) as sock:
+        channel = sock.makefile("rb")
+        for line, reason in (
+            (b"{not json\n", b"JSONDecodeError"),
+            (b"[1, 2]\n", b"a request is a JSON object"),
+            (b'{"cmd": "dance"}\n', b"unknown control command 'dance'"),
+            (b'{"cmd": "reset", "q_rad": "home"}\n', b'"ok": false'),
+        ):
+            sock.sendall(line)
+            assert reason in channel.readline()
+    assert fake_ur.control("status")["robot"] == "ur5e"
+
+
 @pytest.mark.timeout(60)
 def test_canary_the_pinned_ur_rtde_script_still_has_the_markers(fake_ur):
     """Fails when ur_rtde's uploaded control script changes under the fake."""

@@ -56,9 +56,12 @@ class RTDEConnection:
                 buffer += data
                 for kind, body in rp.split_packets(buffer):
                     self._handle(kind, body)
-        except (OSError, ValueError) as exc:
+        except OSError as exc:
             if not self.closed:
                 log.info("RTDE client gone: %s", exc)
+        except (ValueError, struct.error) as exc:
+            # A malformed packet: drop this client (as a controller would), keep serving others.
+            log.warning("malformed RTDE packet, closing the connection: %s", exc)
         finally:
             self.close()
 

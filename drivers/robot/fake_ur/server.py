@@ -43,6 +43,8 @@ DASHBOARD_PORT = 29999
 SCRIPT_PORTS = (30001, 30002, 30003)
 RTDE_PORT = 30004
 CONTROL_PORT = 30100
+#: A script upload larger than this without its end is refused (ur_rtde's is about 60 kB).
+MAX_SCRIPT_CHARS = 4_000_000
 
 
 class FakeUR:
@@ -224,6 +226,11 @@ class FakeUR:
             if not data:
                 return
             text += data.decode(errors="replace")
+            if len(text) > MAX_SCRIPT_CHARS:
+                log.warning(
+                    "script on %d over %d characters without an end: dropped", port, len(text)
+                )
+                return
             if cs.program_complete(text):
                 self.last_script = text
                 started = self.controller.load_program(text)
@@ -232,13 +239,17 @@ class FakeUR:
 
     def _control(self, sock: socket.socket, port: int) -> None:
         for raw in sock.makefile("rb"):
+            command = None
             try:
                 request = json.loads(raw)
+                if not isinstance(request, dict):
+                    raise ValueError('a request is a JSON object: {"cmd": "status", ...}')
+                command = request.get("cmd")
                 answer = {"ok": True, **(self.handle_control(request) or {})}
             except Exception as exc:  # the reply says what went wrong
                 answer = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
             sock.sendall((json.dumps(answer) + "\n").encode())
-            if request.get("cmd") == "shutdown":
+            if command == "shutdown" and answer["ok"]:
                 self.shutdown()
                 return
 
