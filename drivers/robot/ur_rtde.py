@@ -152,12 +152,17 @@ class URRtdeBackend(RobotBackend):
                 error_name, message = payload
                 error = _ERRORS.get(error_name, RobotError)(message)
                 self._fault(error)
+                if isinstance(error, ConnectionLostError):
+                    # The worker's ur_rtde may still hold the controller's RTDE input
+                    # registers, which a new connection then cannot claim (IN_USE).
+                    self._kill_worker()
                 raise error
             return payload
 
     # -- hooks -----------------------------------------------------------------------------------
 
     def _connect(self) -> None:
+        self._kill_worker()  # a worker left from a lost link must not hold the registers
         self._start_worker()
         try:
             self._call("connect", timeout_s=self.config.connect_timeout_s)
@@ -417,7 +422,16 @@ class _Worker:  # pragma: no cover - runs in the child process
 
     def unlock(self) -> None:
         self.dashboard.closeSafetyPopup()
-        self.dashboard.unlockProtectiveStop()
+        try:
+            self.dashboard.unlockProtectiveStop()
+        except RuntimeError as exc:
+            # The controller refuses within 5 s of the stop (and while its cause persists);
+            # that is still a protective stop, not a lost link.
+            raise _Failure(
+                "protective_stop",
+                f"the controller refused to unlock the protective stop ({exc}); inspect its "
+                "cause, wait at least 5 s after the stop, and unlock again",
+            ) from None
         # A protective stop stops the control script: once the controller reports the stop
         # cleared, start the script again so the next move is not refused.
         deadline = time.monotonic() + SCRIPT_START_TIMEOUT_S
@@ -475,7 +489,12 @@ class _Worker:  # pragma: no cover - runs in the child process
         else:
             completed = True
             self._hold(q_rows[-1], period_s)
+            # The hold ends early on a safety stop: then the arm did not arrive.
+            if self.receive.isProtectiveStopped():
+                completed, fault = False, "protective stop"
         self.control.servoStop(self.config["stop_deceleration_rad_s2"])
+        if completed:
+            self._safety()
         self.pipe.send(("progress", len(times)))
         if fault == "protective stop":
             raise _Failure("protective_stop", "protective stop during execution")
@@ -494,7 +513,13 @@ class _Worker:  # pragma: no cover - runs in the child process
             if self.stop_event.is_set() or self.receive.isProtectiveStopped():
                 return
             t_cycle = self.control.initPeriod()
-            self.control.servoJ(q, 0.0, 0.0, period_s, lookahead, gain)
+            if not self.control.servoJ(q, 0.0, 0.0, period_s, lookahead, gain):
+                self._refused()
+                raise _Failure(
+                    "connection",
+                    "the controller refused servoJ on the last sample (the control script "
+                    "stopped); reconnect",
+                )
             error = np.abs(np.asarray(self.receive.getActualQ()) - q).max()
             if error < SETTLED_RAD and np.abs(self.receive.getActualQd()).max() < SETTLED_RAD_S:
                 return

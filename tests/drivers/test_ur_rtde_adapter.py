@@ -10,7 +10,12 @@ import time
 
 import pytest
 
-from drivers.errors import ConnectionLostError, NotConnectedError, RobotTimeoutError
+from drivers.errors import (
+    ConnectionLostError,
+    NotConnectedError,
+    ProtectiveStopError,
+    RobotTimeoutError,
+)
 from drivers.robot.base import RobotState
 from drivers.robot.ur_rtde import URRtdeBackend, URRtdeConfig
 
@@ -75,3 +80,61 @@ def test_a_silent_controller_times_out_without_freezing_the_caller(silent_contro
     assert len(ticks) > 20 and max(gaps) < 0.5
     assert robot.state is RobotState.DISCONNECTED
     robot.close()
+
+
+# -- against the fake controller -------------------------------------------------------------------
+
+from tests.drivers import fake_ur_fixture  # noqa: E402 - the fixtures below use it
+
+fake_ur_process = fake_ur_fixture.fake_ur_process
+fake_ur = fake_ur_fixture.fake_ur
+
+
+def test_a_lost_link_ends_its_worker_so_a_reconnect_starts_clean(fake_ur):
+    robot = URRtdeBackend(URRtdeConfig(host=fake_ur.host, connect_timeout_s=5.0))
+    robot.connect()
+    robot.enable()
+    worker = robot._process
+    fake_ur.control("freeze")
+    time.sleep(0.3)  # packages already on their way reach the client first
+    with pytest.raises(ConnectionLostError, match="no new data"):
+        robot.status()
+    # The old worker (and the RTDE input registers its ur_rtde held) is gone at once.
+    worker.join(timeout=5)
+    assert not worker.is_alive() and robot.state is RobotState.DISCONNECTED
+    fake_ur.control("unfreeze")
+    robot.connect()
+    robot.enable()
+    assert robot.status().q_rad.shape == (6,)
+    robot.close()
+
+
+def test_a_protective_stop_while_settling_on_the_last_sample_is_not_a_success(fake_ur):
+    from dataclasses import replace
+
+    from drivers.robot.ur_rtde import PROGRESS_EVERY
+    from tests.motion_fixtures import line_plan
+
+    full = line_plan("ur5e", 0.1).trajectory
+    # Cut so that the streaming loop's last progress report comes with its last sample: a stop
+    # injected then lands while the adapter holds the last target for the arm (a lookahead
+    # behind, still moving) to arrive.
+    m = (len(full) - 1) // PROGRESS_EVERY * PROGRESS_EVERY + 1
+    fields = ("t_s", "q_rad", "qd_rad_s", "qdd_rad_s2", "tcp_m", "tcp_rotvec", "arc_length_m")
+    trajectory = replace(full, **{name: getattr(full, name)[:m] for name in fields})
+    fake_ur.control("reset", q_rad=trajectory.q_rad[0].tolist())
+    robot = URRtdeBackend(URRtdeConfig(host=fake_ur.host, connect_timeout_s=5.0))
+    robot.connect()
+    robot.enable()
+    stopped = []
+
+    def stop_at_the_end(fraction):
+        if fraction >= 1.0 and not stopped:
+            stopped.append(fake_ur.control("protective_stop"))
+
+    try:
+        with pytest.raises(ProtectiveStopError):
+            robot.execute(trajectory, on_progress=stop_at_the_end)
+        assert stopped and robot.state is RobotState.PROTECTIVE_STOP
+    finally:
+        robot.close()
