@@ -45,7 +45,10 @@ from recon.types import FloatArray, JointTrajectory
 from recon.waypoints import CoarsePath
 
 #: UR robot modes (RTDE robot_mode) and safety modes used here.
+ROBOT_MODE_IDLE = 5
 ROBOT_MODE_RUNNING = 7
+#: Bound on powering on and releasing the brakes (s).
+POWER_ON_TIMEOUT_S = 25.0
 SAFETY_MODE_NORMAL = 1
 #: Progress is reported every this many samples.
 PROGRESS_EVERY = 50
@@ -171,7 +174,9 @@ class URRtdeBackend(RobotBackend):
             raise
 
     def _enable(self) -> None:
-        self._call("enable", timeout_s=max(self.config.command_timeout_s, 30.0))
+        # Powering on, releasing the brakes and starting the control script.
+        bound = POWER_ON_TIMEOUT_S + self.config.connect_timeout_s
+        self._call("enable", timeout_s=max(self.config.command_timeout_s, bound))
 
     def _disable(self) -> None:
         self._call("disable")
@@ -304,9 +309,14 @@ class _Worker:  # pragma: no cover - runs in the child process
         self.control = self.receive = self.dashboard = None
 
     def connect(self) -> None:
+        """The receive and dashboard links; the control link too if the arm is running.
+
+        ur_rtde's control interface uploads its script and waits for it to run, which a
+        powered-off arm never does: for such an arm it is made by :meth:`enable`, after the
+        arm is powered on.
+        """
         try:
             import dashboard_client
-            import rtde_control
             import rtde_receive
         except ImportError as exc:
             raise _Failure(
@@ -314,6 +324,24 @@ class _Worker:  # pragma: no cover - runs in the child process
                 f"ur_rtde is not installed ({exc.name}); "
                 "install teachpath's dependencies (pip install -e .)",
             ) from None
+        host = self.config["host"]
+        try:
+            self.receive = rtde_receive.RTDEReceiveInterface(
+                host, use_upper_range_registers=self.config["upper_range_registers"]
+            )
+            self.dashboard = dashboard_client.DashboardClient(host)
+            self.dashboard.connect()
+        except RuntimeError as exc:
+            raise _Failure(
+                "connection", f"cannot connect to the controller at {host}: {exc}"
+            ) from None
+        self._wait_fresh()
+        if self.receive.getRobotMode() == ROBOT_MODE_RUNNING:
+            self._connect_control()
+
+    def _connect_control(self) -> None:
+        import rtde_control
+
         host = self.config["host"]
         flags = rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
         if host != "127.0.0.1":
@@ -323,15 +351,10 @@ class _Worker:  # pragma: no cover - runs in the child process
         if self.config["upper_range_registers"]:
             flags |= rtde_control.RTDEControlInterface.FLAG_UPPER_RANGE_REGISTERS
         try:
-            self.receive = rtde_receive.RTDEReceiveInterface(
-                host, use_upper_range_registers=self.config["upper_range_registers"]
-            )
-            self.dashboard = dashboard_client.DashboardClient(host)
-            self.dashboard.connect()
             self.control = rtde_control.RTDEControlInterface(host, -1.0, flags)
         except RuntimeError as exc:
             raise _Failure(
-                "connection", f"cannot connect to the controller at {host}: {exc}"
+                "connection", f"cannot start ur_rtde's control script at {host}: {exc}"
             ) from None
 
     def _check_fresh(self) -> None:
@@ -389,14 +412,29 @@ class _Worker:  # pragma: no cover - runs in the child process
                     "the arm is not running: power it on and release "
                     "the brakes at the teach pendant (or set power_on)",
                 )
-            self.dashboard.powerOn()
+            deadline = time.monotonic() + POWER_ON_TIMEOUT_S
+            if self.receive.getRobotMode() < ROBOT_MODE_IDLE:
+                self.dashboard.powerOn()
+                # The controller boots the arm before it takes a brake release.
+                self._wait_for_mode(ROBOT_MODE_IDLE, deadline)
             self.dashboard.brakeRelease()
-            deadline = time.monotonic() + 25.0
-            while self.receive.getRobotMode() != ROBOT_MODE_RUNNING:
-                if time.monotonic() > deadline:
-                    raise _Failure("not_enabled", "the arm did not reach RUNNING within 25 s")
-                time.sleep(0.1)
+            self._wait_for_mode(ROBOT_MODE_RUNNING, deadline)
+        if self.control is None:
+            self._connect_control()
         self._ensure_script_running()
+
+    def _wait_for_mode(self, mode: int, deadline: float) -> None:
+        """Wait until the robot mode is at least ``mode`` (UR's modes count up from power off
+        through idle to running), or fail at ``deadline``."""
+        while self.receive.getRobotMode() < mode:
+            if time.monotonic() > deadline:
+                raise _Failure(
+                    "not_enabled",
+                    f"the arm did not reach robot mode {mode} within {POWER_ON_TIMEOUT_S:.0f} s "
+                    f"of powering on (mode {self.receive.getRobotMode()}); check the pendant",
+                )
+            self._safety()
+            time.sleep(0.05)
 
     def _ensure_script_running(self) -> None:
         """(Re)start ur_rtde's control script if it is not running, and wait until it is.
@@ -418,7 +456,8 @@ class _Worker:  # pragma: no cover - runs in the child process
             time.sleep(0.01)
 
     def disable(self) -> None:
-        self.control.stopScript()
+        if self.control is not None:
+            self.control.stopScript()
 
     def unlock(self) -> None:
         self.dashboard.closeSafetyPopup()

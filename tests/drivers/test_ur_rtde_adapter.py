@@ -138,3 +138,25 @@ def test_a_protective_stop_while_settling_on_the_last_sample_is_not_a_success(fa
         assert stopped and robot.state is RobotState.PROTECTIVE_STOP
     finally:
         robot.close()
+
+
+def test_enable_powers_on_and_releases_the_brakes_only_when_told(tmp_path):
+    from drivers.errors import NotEnabledError
+
+    fake = fake_ur_fixture.FakeURProcess(tmp_path / "fake.log", extra_args=["--powered-off"])
+    fake.start()
+    try:
+        robot = URRtdeBackend(URRtdeConfig(host=fake.host, connect_timeout_s=5.0))
+        robot.connect()
+        with pytest.raises(NotEnabledError, match="power it on"):
+            robot.enable()
+        robot.close()
+        assert fake.control("status")["robot_mode"] == 3  # still powered off
+        robot = URRtdeBackend(URRtdeConfig(host=fake.host, connect_timeout_s=5.0, power_on=True))
+        robot.connect()
+        robot.enable()
+        assert robot.state is RobotState.ENABLED
+        assert fake.control("status")["robot_mode"] == 7  # running
+        robot.close()
+    finally:
+        fake.stop()
