@@ -312,12 +312,19 @@ def _path_targets(path: CoarsePath, dt: float) -> FloatArray:
     apply to). Speed is capped per move, ramps at the path's acceleration, and falls to zero at
     waypoints without a blend and at both ends.
     """
+    return _path_samples(path, dt)[0]
+
+
+def _path_samples(path: CoarsePath, dt: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`_path_targets` (K, 6) with the path parameter of each target (K,) and of each
+    waypoint (N,) (rad of leading-joint travel), so a caller can tell when a waypoint is
+    passed."""
     q = path.q_rad
     length = np.abs(np.diff(q, axis=0)).max(axis=1)  # leading-joint travel per move
     knots = np.concatenate([[0.0], np.cumsum(length)])
     total = float(knots[-1])
     if total < 1e-12:
-        return q[-1:].copy()
+        return q[-1:].copy(), np.zeros(1), knots
     a = path.acceleration_rad_s2
     s = np.linspace(0.0, total, int(np.clip(total / 1e-4, 2, 20000)) + 1)
     move = np.clip(np.searchsorted(knots, s, side="right") - 1, 0, len(length) - 1)
@@ -341,4 +348,4 @@ def _path_targets(path: CoarsePath, dt: float) -> FloatArray:
     s_at = np.interp(np.arange(dt, t[-1] + dt, dt), t, s)
     move_at = np.clip(np.searchsorted(knots, s_at, side="right") - 1, 0, len(length) - 1)
     fraction = np.clip((s_at - knots[move_at]) / np.maximum(length[move_at], 1e-12), 0.0, 1.0)
-    return q[move_at] + fraction[:, None] * (q[move_at + 1] - q[move_at])
+    return q[move_at] + fraction[:, None] * (q[move_at + 1] - q[move_at]), s_at, knots

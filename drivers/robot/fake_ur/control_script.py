@@ -13,9 +13,14 @@ copied from its source:
   (1 ready, 2 done with the command), writes results to output int register 1 and output double
   registers 0-5, and async progress to output int register 2;
 - movePath re-uploads the script with the path's moves in place of the ``# inject move path``
-  comment inside ``exec_move_path()``.
+  comment inside ``exec_move_path()``;
+- each command the fake emulates has its ``cmd == <id>:`` branch in the main loop, reads its
+  arguments from the input registers named in :data:`ARGUMENT_MARKERS`, and the real-time
+  commands are listed on one ``if cmd == .. or cmd == ..:`` line.
 
-:func:`missing_markers` is what the canary test checks against a freshly recorded upload.
+:func:`missing_markers` decides whether an upload is ur_rtde's control script;
+:func:`protocol_differences` (markers, command ids, argument registers, the real-time list) is
+what the canary test checks against a freshly recorded upload.
 """
 
 from __future__ import annotations
@@ -38,6 +43,16 @@ REQUIRED_MARKERS: dict[str, str] = {
     "done signal": "write_output_integer_reg(0, 2)",
     "async progress register": "write_output_integer_reg(2, reg_value)",
     "move path hook": "def exec_move_path():",
+}
+
+#: Where the pinned script reads the arguments the fake interprets (float register numbers).
+ARGUMENT_MARKERS: dict[str, str] = {
+    "servoJ time": "servo_time = read_input_float_reg(8)",
+    "servoJ lookahead": "servo_lookahead_time = read_input_float_reg(9)",
+    "servoJ gain": "servo_gain = read_input_float_reg(10)",
+    "speedJ acceleration": "speed_acceleration = read_input_float_reg(6)",
+    "stop deceleration": "deceleration_rate = read_input_float_reg(0)",
+    "async stop type": "stop_type = 1",
 }
 
 #: Commands (input int register 0) of the pinned script that the fake emulates.
@@ -63,6 +78,29 @@ CMD_STOP_SCRIPT = 255
 #: never with done (2). Read off the main loop of the pinned script.
 REALTIME_COMMANDS = frozenset({6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71})
 
+#: Every command id the fake gives a meaning to (a renumbering in the client breaks the fake).
+EMULATED_COMMANDS = frozenset(
+    {
+        CMD_MOVEJ,
+        CMD_MOVEJ_IK,
+        CMD_MOVEL,
+        CMD_MOVEL_FK,
+        CMD_SPEEDJ,
+        CMD_SERVOJ,
+        CMD_SPEED_STOP,
+        CMD_SERVO_STOP,
+        CMD_GET_INVERSE_KIN_ARGS,
+        CMD_PROTECTIVE_STOP,
+        CMD_STOPL,
+        CMD_STOPJ,
+        CMD_GET_FORWARD_KIN_DEFAULT,
+        CMD_GET_FORWARD_KIN_ARGS,
+        CMD_MOVE_PATH,
+        CMD_GET_INVERSE_KIN_DEFAULT,
+        CMD_STOP_SCRIPT,
+    }
+)
+
 _DEF = re.compile(r"^def\s+(\w+)\s*\(\s*\)\s*:", re.MULTILINE)
 _OFFSET = {
     kind: re.compile(rf"global\s+reg_offset_{kind}\s*=[^\n]*?(?:#[^\n]*)?\n?\s*(\d+)")
@@ -70,9 +108,15 @@ _OFFSET = {
 }
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 _MOVE = re.compile(
-    rf"^\s*(movej|movel)\(\s*(p?)\[([^\]]*)\]((?:\s*,\s*\w+\s*=\s*{_NUMBER})*)\s*\)", re.MULTILINE
+    rf"^\s*(movej|movel|movep)\(\s*(p?)\[([^\]]*)\]((?:\s*,\s*\w+\s*=\s*{_NUMBER})*)\s*\)",
+    re.MULTILINE,
 )
 _KEYWORD = re.compile(rf"(\w+)\s*=\s*({_NUMBER})")
+#: Any motion call in the injected path, parsed or not (what must not be dropped silently).
+_ANY_MOTION = re.compile(r"^[ \t]*((?:move|servo|speed)\w*)\s*\(", re.MULTILINE)
+_REALTIME_LINE = re.compile(
+    r"^\s*if\s+(cmd\s*==\s*\d+(?:\s+or\s+cmd\s*==\s*\d+)+)\s*:", re.MULTILINE
+)
 
 
 @dataclass(frozen=True)
@@ -81,7 +125,7 @@ class PathMove:
 
     Attributes
     ----------
-    kind : {"movej", "movel"}
+    kind : {"movej", "movel", "movep"}
     target : ndarray of shape (6,)
         Joint angles (rad) or, with ``is_pose``, a pose x, y, z (m), rotation vector (rad).
     is_pose : bool
@@ -113,6 +157,8 @@ class ScriptInfo:
         Register offset the script declares (0, or 24 for the upper range).
     path : tuple of PathMove
         Moves injected for movePath (empty when none).
+    path_error : str or None
+        Why the injected path cannot be run (a move the fake cannot parse), if so.
     """
 
     name: str
@@ -120,6 +166,7 @@ class ScriptInfo:
     int_offset: int = 0
     float_offset: int = 0
     path: tuple[PathMove, ...] = field(default_factory=tuple)
+    path_error: str | None = None
 
 
 def program_complete(text: str) -> bool:
@@ -131,6 +178,28 @@ def program_complete(text: str) -> bool:
 def missing_markers(text: str) -> list[str]:
     """Names of the :data:`REQUIRED_MARKERS` that ``text`` lacks."""
     return [name for name, marker in REQUIRED_MARKERS.items() if marker not in text]
+
+
+def realtime_commands(text: str) -> frozenset[int] | None:
+    """The command ids on the script's real-time ``if cmd == .. or ..:`` line (None if absent)."""
+    match = _REALTIME_LINE.search(text)
+    if match is None:
+        return None
+    return frozenset(int(v) for v in re.findall(r"\d+", match.group(1)))
+
+
+def protocol_differences(text: str) -> list[str]:
+    """Everything in ``text`` that differs from the protocol the fake emulates: missing
+    :data:`REQUIRED_MARKERS` and :data:`ARGUMENT_MARKERS`, a missing ``cmd == <id>:`` branch
+    for an id of :data:`EMULATED_COMMANDS`, a different real-time command list."""
+    differences = missing_markers(text)
+    differences += [name for name, marker in ARGUMENT_MARKERS.items() if marker not in text]
+    for cmd in sorted(EMULATED_COMMANDS):
+        if re.search(rf"\bcmd\s*==\s*{cmd}\s*:", text) is None:
+            differences.append(f"command {cmd} branch")
+    if realtime_commands(text) != REALTIME_COMMANDS:
+        differences.append(f"real-time command list (got {sorted(realtime_commands(text) or ())})")
+    return differences
 
 
 def register_offset(text: str, kind: str = "int") -> int:
@@ -148,12 +217,24 @@ def register_offset(text: str, kind: str = "int") -> int:
 
 
 def parse_move_path(text: str) -> tuple[PathMove, ...]:
-    """The moves injected into ``exec_move_path()`` (empty if there are none)."""
+    """The moves injected into ``exec_move_path()`` (empty if there are none).
+
+    Raises
+    ------
+    ValueError
+        A motion call in the path that the fake cannot parse (e.g. ``movec``, or a target
+        without 6 values): running the rest would report a path it did not run.
+    """
     start = text.find("def exec_move_path():")
     if start < 0:
         return ()
     end = re.compile(r"^\s*end\s*$", re.MULTILINE).search(text, start)
     body = text[start : end.start() if end else len(text)]
+    parsed = {m.start(1) for m in _MOVE.finditer(body)}
+    for call in _ANY_MOTION.finditer(body):
+        if call.start(1) not in parsed:
+            line = body[call.start(1) :].splitlines()[0]
+            raise ValueError(f"the movePath has a move the fake cannot run: {line[:120]}")
     moves = []
     for match in _MOVE.finditer(body):
         kind, pose_flag, values, keywords = match.groups()
@@ -166,6 +247,7 @@ def parse_move_path(text: str) -> tuple[PathMove, ...]:
                 kind=kind,
                 target=target,
                 is_pose=bool(pose_flag),
+                # URScript's defaults when v / a are left out.
                 speed=options.get("v", 1.05 if kind == "movej" else 0.25),
                 acceleration=options.get("a", 1.4 if kind == "movej" else 1.2),
                 blend_m=options.get("r", 0.0),
@@ -180,10 +262,15 @@ def inspect(text: str) -> ScriptInfo:
     name = match.group(1) if match else ""
     if missing_markers(text):
         return ScriptInfo(name=name, is_rtde_control=False)
+    try:
+        path, path_error = parse_move_path(text), None
+    except ValueError as exc:  # refused when the path is run, as a script error stops it
+        path, path_error = (), str(exc)
     return ScriptInfo(
         name=name,
         is_rtde_control=True,
         int_offset=register_offset(text, "int"),
         float_offset=register_offset(text, "float"),
-        path=parse_move_path(text),
+        path=path,
+        path_error=path_error,
     )

@@ -9,13 +9,35 @@ movePath the sim's blended path, servoJ the client's latest target, a stop no ta
 
 The script emulation mirrors the main loop of the pinned client's control script
 (:mod:`.control_script`): read the command register, answer ready (1) / done (2), write results
-and async progress registers. Everything here runs under :attr:`FakeController.lock`.
+and async progress registers. A command that fails the way a URScript runtime error would (no IK
+solution, speed or acceleration <= 0, a path the fake cannot run) stops the program with a
+logged message, so ur_rtde returns False / raises as it would against a real controller; it
+never answers "done" for work it did not do. Everything here runs under
+:attr:`FakeController.lock`.
+
+Stops brake at the requested deceleration, as the pinned script does inside the command (so
+"done" comes once the arm rests): servoStop runs ``stopl(a)``, speedStop ``stopj(a)``; stopJ /
+stopL run ``stopj`` synchronously and ``stopl`` asynchronously -- the script picks the kind from
+a global that only an async stop sets, and the fake follows it. servoJ's ``t`` is honoured (the
+target is sampled every ``t`` and approached linearly over it), speedJ's acceleration too.
+
+Not emulated:
+
+- moveL / movePath pose moves ignore orientation speed (a pure rotation turns at once) and a
+  movePath pose move runs as a joint move to its IK solution (no straight line, no ``movep``
+  constant tool speed);
+- speedJ's ``t``: the pinned script re-issues speedj in a loop, so it has no visible effect
+  there either; speedL, servoC, force mode, contact detection, jogging, teach mode, payload,
+  TCP and I/O commands: acknowledged without effect;
+- speed scaling (always 1), joint currents and temperatures, collision detection.
 """
 
 from __future__ import annotations
 
+import bisect
 import logging
 import threading
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -25,13 +47,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from drivers.errors import ProtectiveStopError
 from drivers.robot.fake_ur import control_script as cs
 from drivers.robot.fake_ur.rtde_protocol import REGISTER_COUNT
-from drivers.robot.sim import (
-    HOME_RAD,
-    SimBackend,
-    SimConfig,
-    _path_targets,
-    _synchronised_trapezoid,
-)
+from drivers.robot.sim import HOME_RAD, SimBackend, SimConfig, _path_samples
 from recon import kinematics
 from recon.waypoints import CoarsePath
 
@@ -62,6 +78,20 @@ SAFETY_BIT_EMERGENCY_STOPPED = 1 << 7
 SETTLED_RAD_S = 1e-4
 #: Settling after the last target of a move is bounded by this (s), as in the sim backend.
 SETTLE_MAX_S = 0.5
+#: A protective stop cannot be unlocked sooner than this after it happened (s), as on UR's
+#: controllers (PolyScope enforces it for the dashboard server too).
+UNLOCK_WAIT_S = 5.0
+#: moveL solves IK for this many line points at once: one call costs about as much as one
+#: point, and solving them one chunk per tick keeps the control tick short.
+IK_CHUNK = 16
+#: Bounds on the logs kept for tests and status (entries).
+COMMAND_LOG_MAX = 1000
+MESSAGES_MAX = 200
+
+
+class ScriptRuntimeError(Exception):
+    """What stops a URScript program at run time: no IK solution, an invalid argument, a move
+    the controller cannot run. The fake stops the program, as the controller would."""
 
 
 @dataclass
@@ -70,14 +100,17 @@ class _Motion:
 
     name: str
     targets: Iterator[np.ndarray | None]
-    goal: np.ndarray | None = None  # settle on this after the targets run out
     sync: bool = False  # the command answers "done" only when the motion ends
     is_async: bool = False  # report async progress (start, per path move, finished)
-    waypoint_ticks: tuple[int, ...] = ()  # ticks at which a path move is reached
+    # Ticks at which path moves 1 .. n-1 start (ascending), for async progress.
+    waypoint_ticks: tuple[int, ...] = ()
+    # Braking at a set rate (rad/s^2 per joint, shape (6,)) instead of following targets.
+    deceleration: np.ndarray | None = None
     started_s: float = 0.0
     expected_s: float = 0.0
     tick: int = 0
     settling: int = 0
+    last: np.ndarray | None = None  # last target fed: a move settles on it
     reported: int = 0  # last async progress written (0: started)
 
 
@@ -112,9 +145,23 @@ class FakeController:
         self.script: cs.ScriptInfo | None = None
         self.remote_control = True
         self.frozen = False  # "stops answering": no data, no replies
-        self.messages: list[str] = []  # text the script would have printed (textmsg)
-        self.command_log: list[tuple[float, int]] = []  # (time, command) for tests and logs
+        # Text the script would have printed (textmsg) and runtime errors.
+        self.messages: deque[str] = deque(maxlen=MESSAGES_MAX)
+        # (time, command) for tests and logs.
+        self.command_log: deque[tuple[float, int]] = deque(maxlen=COMMAND_LOG_MAX)
+        self.unlock_wait_s = UNLOCK_WAIT_S
+        self.protective_stop_s = 0.0  # controller time of the last protective stop
+        # RTDE input fields and the connection that set them up (one writer per field).
+        self.input_owners: dict[str, object] = {}
         self.reset_arm()
+
+    def clear_registers(self) -> None:
+        """Zero the general purpose registers (commands, arguments, results)."""
+        with self.lock:
+            for registers in (self.in_int, self.out_int):
+                registers[:] = [0] * REGISTER_COUNT
+            for registers in (self.in_double, self.out_double):
+                registers[:] = [0.0] * REGISTER_COUNT
 
     # -- arm ---------------------------------------------------------------------------------------
 
@@ -126,7 +173,10 @@ class FakeController:
             self.sim._t = self.t_s  # the physics runs on this controller's clock
             self.motion: _Motion | None = None
             self.servo_target: np.ndarray | None = None
+            self.servo_time_s = self.dt_s
             self.speed_qd = np.zeros(6)
+            self.speed_acceleration = 0.5
+            self._stop_type_l = False  # the script's stop_type: set by an async stop
             self._executing = False
             self._waiting_sync: _Motion | None = None
             self._async_wr_count = 0
@@ -218,6 +268,9 @@ class FakeController:
         """
         info = cs.inspect(text)
         with self.lock:
+            if self.frozen:  # a controller that stopped answering starts nothing either
+                log.warning("frozen: program %s not started", info.name)
+                return False
             self.stop_program()
             if not self.can_move:
                 log.warning("refusing to start %s: the arm is not ready to run programs", info.name)
@@ -232,6 +285,7 @@ class FakeController:
             self.runtime_state = RUNTIME_PLAYING
             self._executing = False
             self._waiting_sync = None
+            self._stop_type_l = False
             self._write_async_progress(-1)  # reset_async_progress()
             self.out_int[self._i(0)] = 1  # signal_ready()
             self.messages.append("RTDE Control Script Loaded")
@@ -249,8 +303,15 @@ class FakeController:
             self.runtime_state = RUNTIME_STOPPED
             self._waiting_sync = None
             if self.motion is not None:
-                self.motion = _Motion("brake", iter(()), goal=None)
+                self.motion = _Motion("brake", iter(()))
             self.servo_target = None
+
+    def runtime_error(self, message: str) -> None:
+        """Stop the program as a URScript runtime error does (the arm brakes)."""
+        with self.lock:
+            log.warning("runtime error, program stopped: %s", message)
+            self.messages.append(message)
+            self.stop_program()
 
     def _i(self, index: int) -> int:
         return index + (self.script.int_offset if self.script else 0)
@@ -267,6 +328,7 @@ class FakeController:
         with self.lock:
             log.warning("protective stop: %s", reason)
             self.safety_mode = SAFETY_PROTECTIVE_STOP
+            self.protective_stop_s = self.t_s
             self._halt()
 
     def emergency_stop(self) -> None:
@@ -281,9 +343,17 @@ class FakeController:
             if self.emergency_stopped:
                 self.safety_mode = SAFETY_NORMAL  # still powered off: power on, release brakes
 
-    def unlock_protective_stop(self) -> bool:
+    def unlock_too_early(self) -> bool:
+        """Whether a protective stop is on and happened less than :attr:`unlock_wait_s` ago."""
         with self.lock:
-            if not self.protective_stopped:
+            return self.protective_stopped and (
+                self.t_s - self.protective_stop_s < self.unlock_wait_s
+            )
+
+    def unlock_protective_stop(self) -> bool:
+        """Clear a protective stop; False if there is none or it is too early to unlock."""
+        with self.lock:
+            if not self.protective_stopped or self.unlock_too_early():
                 return False
             self.safety_mode = SAFETY_NORMAL
             return True
@@ -311,26 +381,37 @@ class FakeController:
         if self._waiting_sync is not None:
             return  # process_cmd is still blocked in a synchronous move
         cmd = self.in_int[self._i(0)]
-        if cmd in cs.REALTIME_COMMANDS:
-            self._process(cmd)
-            self.out_int[self._i(0)] = 1
-        elif cmd == 0:
-            self._executing = False
-            self.out_int[self._i(0)] = 1
-        elif not self._executing:
-            self._executing = True
-            self.command_log.append((self.t_s, cmd))
-            if cmd == cs.CMD_STOP_SCRIPT:
-                self.messages.append("Received stop script!")
-                self.stop_program()
-                return
-            if not self._process(cmd):
-                self.out_int[self._i(0)] = 2
+        try:
+            if cmd in cs.REALTIME_COMMANDS:
+                self._process(cmd)
+                self.out_int[self._i(0)] = 1
+            elif cmd == 0:
+                self._executing = False
+                self.out_int[self._i(0)] = 1
+            elif not self._executing:
+                self._executing = True
+                self.command_log.append((self.t_s, cmd))
+                if cmd == cs.CMD_STOP_SCRIPT:
+                    self.messages.append("Received stop script!")
+                    self.stop_program()
+                    return
+                if not self._process(cmd):
+                    self.out_int[self._i(0)] = 2
+        except ScriptRuntimeError as error:
+            self.runtime_error(str(error))
+        except Exception:
+            # A bug in the fake: without this the command would stay "executing" and ur_rtde
+            # would wait 300 s for it. Stopped like a runtime error, so the client fails fast.
+            log.exception("command %d failed inside the fake controller", cmd)
+            self.runtime_error(f"command {cmd} failed inside the fake controller")
 
     def _process(self, cmd: int) -> bool:
         """Run one command; True if it answers later (a synchronous move)."""
         if cmd == cs.CMD_SERVOJ:
             self.servo_target = self._float_regs(0)
+            # servoj(q, t=...): the controller approaches each target over t (one period or
+            # more); the register protocol's servoj thread re-reads the target every t.
+            self.servo_time_s = max(float(self.in_double[self._f(8)]), self.dt_s)
             lookahead_s, gain = self.in_double[self._f(9)], self.in_double[self._f(10)]
             if 0.03 <= lookahead_s <= 0.2 and 100 <= gain <= 2000:
                 self.sim._delay = max(1, int(round(lookahead_s / self.dt_s)))
@@ -339,19 +420,27 @@ class FakeController:
                 self.motion = _Motion("servoj", self._servo_targets())
             return False
         if cmd == cs.CMD_SPEEDJ:
+            acceleration = float(self.in_double[self._f(6)])
+            if not acceleration > 0:
+                raise ScriptRuntimeError(f"speedj: acceleration must be > 0, got {acceleration}")
             self.speed_qd = self._float_regs(0)
+            self.speed_acceleration = acceleration
             if self.motion is None or self.motion.name != "speedj":
-                self.motion = _Motion("speedj", self._speed_targets(self._float_regs(6, 1)[0]))
+                self.motion = _Motion("speedj", self._speed_targets())
             return False
         if cmd in (cs.CMD_SERVO_STOP, cs.CMD_SPEED_STOP):
-            self.motion = _Motion("brake", iter(()), goal=None)
+            # The script brakes inside the command: stopl(a) after servoJ, stopj(a) after
+            # speedJ; "done" comes when the arm rests.
             self.servo_target = None
-            return False
+            linear = cmd == cs.CMD_SERVO_STOP
+            return self._start(self._brake("stop", linear, sync=True, is_async=False))
         if cmd in (cs.CMD_STOPJ, cs.CMD_STOPL):
             self._stop_async_move()
             is_async = self.in_int[self._i(1)] == 1
-            self.motion = _Motion("stop", iter(()), goal=None, sync=not is_async, is_async=is_async)
-            return self._start(self.motion)
+            if is_async:
+                self._stop_type_l = True  # the script's stop_type = 1, kept for later stops
+            linear = self._stop_type_l
+            return self._start(self._brake("stop", linear, sync=not is_async, is_async=is_async))
         if cmd in (cs.CMD_MOVEJ, cs.CMD_MOVEJ_IK, cs.CMD_MOVEL, cs.CMD_MOVEL_FK):
             return self._move(cmd)
         if cmd == cs.CMD_MOVE_PATH:
@@ -364,7 +453,9 @@ class FakeController:
         if cmd in (cs.CMD_GET_INVERSE_KIN_ARGS, cs.CMD_GET_INVERSE_KIN_DEFAULT):
             near = self._float_regs(6) if cmd == cs.CMD_GET_INVERSE_KIN_ARGS else self.q
             q = self._ik(self._float_regs(0), near)
-            for k, v in enumerate(self.q if q is None else q):
+            if q is None:  # get_inverse_kin raises in URScript: the program stops
+                raise ScriptRuntimeError("get_inverse_kin: no inverse kinematics solution")
+            for k, v in enumerate(q):
                 self.out_double[self._f(k)] = float(v)
             return False
         if cmd == cs.CMD_PROTECTIVE_STOP:
@@ -377,6 +468,7 @@ class FakeController:
     # -- moves ---------------------------------------------------------------------------------
 
     def _start(self, motion: _Motion) -> bool:
+        self.motion = motion
         motion.started_s = self.t_s
         if motion.is_async:
             self._write_async_progress(0)
@@ -389,56 +481,84 @@ class FakeController:
             self._write_async_progress(-1)
             self.motion = None
 
+    def _brake(self, name: str, linear: bool, *, sync: bool, is_async: bool) -> _Motion:
+        """A stop at the deceleration in float register 0: ``stopj(a)`` (rad/s^2, the fastest
+        joint) or, ``linear``, ``stopl(a)`` (m/s^2 of the tool). All joints slow down in
+        proportion, so the arm stops on the line it was moving along."""
+        rate = float(self.in_double[self._f(0)])
+        if not rate > 0:
+            raise ScriptRuntimeError(f"{'stopl' if linear else 'stopj'}: deceleration must be > 0")
+        qd = np.abs(self.qd)
+        speed = float(qd.max())
+        if linear:
+            h = 1e-3  # s: the tool's speed by a finite difference of the forward kinematics
+            ahead = np.asarray(self.tcp_pose(self.q + self.qd * h))[:3]
+            speed = float(np.linalg.norm(ahead - np.asarray(self.tcp_pose())[:3]) / h)
+        t_stop = speed / rate
+        deceleration = qd / t_stop if t_stop > 1e-9 else np.full(6, np.inf)
+        return _Motion(
+            name,
+            iter(()),
+            sync=sync,
+            is_async=is_async,
+            deceleration=np.minimum(deceleration, self.sim._acc_max),
+            expected_s=t_stop,
+        )
+
     def _move(self, cmd: int) -> bool:
         target = self._float_regs(0)
-        speed, acceleration = self._float_regs(6, 2)
+        speed, acceleration = (float(v) for v in self._float_regs(6, 2))
         is_async = self.in_int[self._i(1)] == 1
+        kind = "movej" if cmd in (cs.CMD_MOVEJ, cs.CMD_MOVEJ_IK) else "movel"
+        if not (speed > 0 and acceleration > 0):  # also refuses NaN
+            raise ScriptRuntimeError(
+                f"{kind}: speed and acceleration must be > 0 (v={speed}, a={acceleration})"
+            )
         self._stop_async_move()
         q0 = self.q.copy()
-        if cmd in (cs.CMD_MOVEJ, cs.CMD_MOVEJ_IK):
+        if kind == "movej":
             goal = target if cmd == cs.CMD_MOVEJ else self._ik(target, q0)
             if goal is None:
-                self.messages.append("movej_ik: no inverse kinematics solution")
-                log.warning("moveJ_IK to an unreachable pose: not moving")
-                return False
-            targets = _synchronised_trapezoid(q0, goal, speed, acceleration, self.dt_s)
+                raise ScriptRuntimeError("movej: no inverse kinematics solution for the pose")
+            fractions = _trapezoid_fractions(
+                float(np.abs(goal - q0).max()), speed, acceleration, self.dt_s
+            )
+            targets: Iterator[np.ndarray] = iter(q0 + (goal - q0) * fractions[:, None])
         else:
             pose = np.asarray(self.tcp_pose(target)) if cmd == cs.CMD_MOVEL_FK else target
-            targets = self._line_targets(q0, pose, speed, acceleration)
-            if targets is None:
-                log.warning("moveL to a pose the arm cannot reach in a line: not moving")
-                return False
-            goal = targets[-1]
+            if self._ik(pose, q0) is None:
+                raise ScriptRuntimeError("movel: no inverse kinematics solution for the pose")
+            fractions, targets = self._line_targets(q0, pose, speed, acceleration)
         motion = _Motion(
             "move",
-            iter(targets),
-            goal=np.asarray(goal),
+            targets,
             sync=not is_async,
             is_async=is_async,
-            expected_s=len(targets) * self.dt_s,
+            expected_s=len(fractions) * self.dt_s,
         )
-        self.motion = motion
         return self._start(motion)
 
     def _move_path(self) -> bool:
-        moves = self.script.path if self.script else ()
+        script = self.script
         is_async = self.in_int[self._i(1)] == 1
+        if script is not None and script.path_error:
+            raise ScriptRuntimeError(script.path_error)
+        moves = script.path if script else ()
         self._stop_async_move()
         if not moves:
             log.warning("movePath without injected moves: nothing to run")
             return False
+        bad = [m for m in moves if not (m.speed > 0 and m.acceleration > 0)]
+        if bad:
+            raise ScriptRuntimeError(f"{bad[0].kind}: speed and acceleration must be > 0")
         q = [self.q.copy()]
         for move in moves:
-            if move.is_pose or move.kind != "movej":
-                # teachpath sends joint-space moveJ waypoints; a pose target is solved by IK
-                # and run as a joint move (no straight line): documented limitation.
-                goal = move.target if not move.is_pose else self._ik(move.target, q[-1])
-                if goal is None:
-                    log.warning("movePath: unreachable pose, path refused")
-                    return False
-                q.append(np.asarray(goal))
-            else:
-                q.append(move.target)
+            # teachpath sends joint-space moveJ waypoints; a pose target is solved by IK
+            # and run as a joint move (no straight line): documented limitation.
+            goal = self._ik(move.target, q[-1]) if move.is_pose else move.target
+            if goal is None:
+                raise ScriptRuntimeError(f"{move.kind}: no inverse kinematics solution")
+            q.append(np.asarray(goal))
         path = CoarsePath(
             sample_index=np.arange(len(q)),
             q_rad=np.array(q),
@@ -447,97 +567,153 @@ class FakeController:
             blend_m=np.array([0.0] + [m.blend_m for m in moves[:-1]] + [0.0]),
             deviation_max_m=0.0,
         )
-        targets = _path_targets(path, self.dt_s)
-        # The tick at which each waypoint is passed, for progress (index of the move running).
-        ticks = []
-        for k in range(1, len(q)):
-            distance = np.abs(targets - q[k]).max(axis=1)
-            ticks.append(int(np.argmin(distance)))
+        targets, s_at, knots = _path_samples(path, self.dt_s)
+        # Move k+1 starts at the first target past waypoint k along the path parameter, which
+        # only grows: a path that comes back over itself still reports its moves in order.
+        starts = np.searchsorted(s_at, knots[1:-1] - 1e-9)
         motion = _Motion(
             "path",
-            iter(list(targets)),
-            goal=q[-1],
+            iter(targets),
             sync=not is_async,
             is_async=is_async,
-            waypoint_ticks=tuple(ticks),
+            waypoint_ticks=tuple(int(t) for t in starts),
             expected_s=len(targets) * self.dt_s,
         )
-        self.motion = motion
         return self._start(motion)
 
     def _servo_targets(self) -> Iterator[np.ndarray | None]:
+        """The servoj thread: every ``t`` take the client's latest target and approach it
+        linearly over ``t`` (one control period when ``t`` is the period)."""
+        previous = None
         while True:
-            yield None if self.servo_target is None else self.servo_target.copy()
+            if self.servo_target is None:
+                previous = None
+                yield None
+                continue
+            target = self.servo_target.copy()
+            start = self.q.copy() if previous is None else previous
+            ticks = max(1, int(round(self.servo_time_s / self.dt_s)))
+            for k in range(1, ticks + 1):
+                yield start + (target - start) * (k / ticks)
+            previous = target
 
-    def _speed_targets(self, acceleration: float) -> Iterator[np.ndarray | None]:
+    def _speed_targets(self) -> Iterator[np.ndarray | None]:
         q = self.q.copy()
         qd = self.qd.copy()
-        acceleration = acceleration if acceleration > 0 else 1.4
         while True:
-            step = np.clip(self.speed_qd - qd, -acceleration * self.dt_s, acceleration * self.dt_s)
-            qd = np.clip(qd + step, -self.arm.qd_max_rad_s, self.arm.qd_max_rad_s)
+            step = self.speed_acceleration * self.dt_s
+            qd = np.clip(
+                qd + np.clip(self.speed_qd - qd, -step, step),
+                -self.arm.qd_max_rad_s,
+                self.arm.qd_max_rad_s,
+            )
             q = q + qd * self.dt_s
             yield q.copy()
 
     def _ik(self, pose, q_near) -> np.ndarray | None:
         """The IK solution of a flange pose nearest ``q_near`` (None if unreachable)."""
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_rotvec(np.asarray(pose[3:6])).as_matrix()
-        T[:3, 3] = pose[:3]
-        solutions = kinematics.inverse(self.arm, T[None])
-        valid = solutions.valid[0]
-        if not valid.any():
-            return None
-        candidates = solutions.q_rad[0][valid]
-        # Pick each joint's 2*pi turn nearest q_near, then the closest branch.
-        near = np.asarray(q_near, dtype=np.float64)
-        candidates = candidates + 2 * np.pi * np.round((near - candidates) / (2 * np.pi))
-        best = candidates[np.argmin(np.abs(candidates - near).max(axis=1))]
-        return best
+        return self._ik_many(np.asarray(pose, dtype=np.float64)[None], q_near)[0]
 
-    def _line_targets(self, q0, pose, speed, acceleration) -> list[np.ndarray] | None:
-        """Joint targets along a straight TCP line to ``pose`` (trapezoidal in distance)."""
+    def _ik_many(self, poses: np.ndarray, q_near) -> list[np.ndarray | None]:
+        """IK of poses (N, 6) in order, each solution nearest the previous one (the first
+        nearest ``q_near``); None where a pose is unreachable."""
+        T = np.repeat(np.eye(4)[None], len(poses), axis=0)
+        T[:, :3, :3] = Rotation.from_rotvec(poses[:, 3:6]).as_matrix()
+        T[:, :3, 3] = poses[:, :3]
+        solutions = kinematics.inverse(self.arm, T)
+        near = np.asarray(q_near, dtype=np.float64)
+        out: list[np.ndarray | None] = []
+        for valid, candidates in zip(solutions.valid, solutions.q_rad, strict=True):
+            if not valid.any():
+                out.append(None)
+                continue
+            candidates = candidates[valid]
+            # Pick each joint's 2*pi turn nearest q_near, then the closest branch.
+            candidates = candidates + 2 * np.pi * np.round((near - candidates) / (2 * np.pi))
+            near = candidates[np.argmin(np.abs(candidates - near).max(axis=1))]
+            out.append(near)
+        return out
+
+    def _line_targets(self, q0, pose, speed, acceleration):
+        """Fractions (K,) of a straight TCP line to ``pose`` (trapezoidal in distance) and its
+        joint targets, solved lazily :data:`IK_CHUNK` at a time as the motion consumes them --
+        solving a long line at once would stall the control tick for seconds.
+
+        Raises ScriptRuntimeError from the iterator when a point of the line has no IK
+        solution (movel fails mid-way on a real controller too)."""
         start = np.asarray(self.tcp_pose(q0))
         distance = float(np.linalg.norm(pose[:3] - start[:3]))
-        fractions = _synchronised_trapezoid(
-            np.zeros(1), np.array([max(distance, 1e-9)]), speed, acceleration, self.dt_s
-        )
-        rotations = Rotation.from_rotvec([start[3:6], pose[3:6]])
-        slerp = Slerp([0.0, 1.0], rotations)
-        targets, q = [], np.asarray(q0, dtype=np.float64)
-        for f in fractions:
-            s = float(np.clip(f[0] / max(distance, 1e-9), 0.0, 1.0))
-            p = np.concatenate([start[:3] + s * (pose[:3] - start[:3]), slerp(s).as_rotvec()])
-            q_next = self._ik(p, q)
-            if q_next is None:
-                return None
-            targets.append(q_next)
-            q = q_next
-        return targets
+        fractions = _trapezoid_fractions(max(distance, 1e-9), speed, acceleration, self.dt_s)
+        slerp = Slerp([0.0, 1.0], Rotation.from_rotvec([start[3:6], pose[3:6]]))
+
+        def solve() -> Iterator[np.ndarray]:
+            q = np.asarray(q0, dtype=np.float64)
+            for first in range(0, len(fractions), IK_CHUNK):
+                s = fractions[first : first + IK_CHUNK]
+                points = np.hstack(
+                    [start[:3] + s[:, None] * (pose[:3] - start[:3]), slerp(s).as_rotvec()]
+                )
+                for q_next in self._ik_many(points, q):
+                    if q_next is None:
+                        raise ScriptRuntimeError(
+                            "movel: no inverse kinematics solution on the line"
+                        )
+                    q = q_next
+                    yield q
+
+        return fractions, solve()
 
     # -- physics and async progress ------------------------------------------------------------
 
     def _physics(self) -> None:
         motion = self.motion
+        if motion is not None and motion.deceleration is not None and self.can_move:
+            self._brake_step(motion)
+        else:
+            self._follow(motion)
+        if self.motion is motion and motion is not None and self._motion_finished(motion):
+            self._finish(motion)
+
+    def _follow(self, motion: _Motion | None) -> None:
+        """One period of the servo law towards the motion's next target (None: brake hard)."""
         target = None
         if motion is not None and self.can_move:
-            target = next(motion.targets, None)
-            if target is None and motion.name in ("move", "path"):
-                motion.settling += 1
-                target = motion.goal
-            motion.tick += 1
-            if motion.is_async and motion.waypoint_ticks:
-                # The script signals the index of the move it starts (0 .. n-1).
-                passed = sum(1 for t in motion.waypoint_ticks[:-1] if t < motion.tick)
-                self._progress_if_changed(motion, passed)
+            try:
+                target = next(motion.targets, None)
+            except ScriptRuntimeError as error:
+                self.runtime_error(str(error))  # the motion is now a brake
+                motion, target = None, None
+            if motion is not None:
+                if target is not None:
+                    motion.last = target
+                elif motion.name in ("move", "path"):
+                    motion.settling += 1
+                    target = motion.last
+                motion.tick += 1
+                if motion.is_async and motion.waypoint_ticks:
+                    # The script signals the index of the move it starts (0 .. n-1).
+                    passed = bisect.bisect_left(motion.waypoint_ticks, motion.tick)
+                    self._progress_if_changed(motion, passed)
         try:
             self.sim._advance(self.t_s, target=target)
         except ProtectiveStopError as error:  # a joint ran into its limit
             self.sim._active = None
             self.protective_stop(str(error))
-            return
-        if motion is not None and self._motion_finished(motion):
-            self._finish(motion)
+
+    def _brake_step(self, motion: _Motion) -> None:
+        """One period of braking at the motion's deceleration (stopj / stopl)."""
+        assert motion.deceleration is not None
+        qd = self.sim._qd
+        slower = np.sign(qd) * np.maximum(np.abs(qd) - motion.deceleration * self.dt_s, 0.0)
+        q = self.sim._q + 0.5 * (qd + slower) * self.dt_s
+        self.sim._buffer.clear()  # what servoJ had buffered is dropped by a stop
+        self.sim._t = self.t_s
+        outside = (q < self.arm.q_min_rad) | (q > self.arm.q_max_rad)
+        self.sim._q = np.clip(q, self.arm.q_min_rad, self.arm.q_max_rad)
+        self.sim._qd = slower
+        motion.tick += 1
+        if np.any(outside):
+            self.protective_stop(f"joint {int(np.argmax(outside)) + 1} reached its position limit")
 
     def _motion_finished(self, motion: _Motion) -> bool:
         resting = float(np.abs(self.qd).max()) < SETTLED_RAD_S
@@ -585,3 +761,33 @@ class FakeController:
         if motion is None:
             return None
         return motion.name, self.t_s - motion.started_s, motion.expected_s
+
+
+def _trapezoid_fractions(distance, speed, acceleration, dt) -> np.ndarray:
+    """Fractions (K,) of a move of ``distance`` done at each control period ``dt`` (s) with a
+    trapezoidal speed profile (``speed`` and ``acceleration`` in distance units per s, s^2).
+
+    The sim backend's moveJ profile, vectorised: a long move is planned in milliseconds, not
+    in a Python loop inside the control tick. The last fraction is 1.
+    """
+    if distance < 1e-12:
+        return np.ones(1)
+    t_acc = speed / acceleration
+    if acceleration * t_acc**2 >= distance:  # triangular profile
+        t_acc = float(np.sqrt(distance / acceleration))
+        t_total = 2 * t_acc
+        peak = acceleration * t_acc
+    else:
+        t_total = distance / speed + t_acc
+        peak = speed
+    t = np.arange(dt, t_total + dt, dt)
+    d = np.where(
+        t < t_acc,
+        0.5 * acceleration * t**2,
+        np.where(
+            t < t_total - t_acc,
+            0.5 * acceleration * t_acc**2 + peak * (t - t_acc),
+            distance - 0.5 * acceleration * (t_total - t) ** 2,
+        ),
+    )
+    return np.clip(d / distance, 0.0, 1.0)

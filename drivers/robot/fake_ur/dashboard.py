@@ -10,6 +10,12 @@ from __future__ import annotations
 from drivers.robot.fake_ur import controller as ctl
 
 GREETING = "Connected: Universal Robots Dashboard Server"
+#: The reply to an unlock within :data:`~.controller.UNLOCK_WAIT_S` of the protective stop
+#: (UR's wording).
+UNLOCK_TOO_EARLY = (
+    "Cannot unlock protective stop until 5s after occurrence. "
+    "Always inspect cause of protective stop before unlocking"
+)
 
 
 def reply(c: ctl.FakeController, line: str, *, polyscope: str, serial: str, model: str) -> str:
@@ -67,6 +73,8 @@ def reply(c: ctl.FakeController, line: str, *, polyscope: str, serial: str, mode
                 c.robot_mode = ctl.ROBOT_MODE_RUNNING
             return "Brake releasing"
         if lower == "unlock protective stop":
+            if c.unlock_too_early():
+                return UNLOCK_TOO_EARLY
             if c.unlock_protective_stop():
                 return "Protective stop releasing"
             return "Cannot unlock protective stop"

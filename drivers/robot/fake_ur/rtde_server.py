@@ -3,6 +3,13 @@
 One :class:`RTDEConnection` per client. Its reader thread answers requests and applies input
 packages; the controller's tick calls :meth:`RTDEConnection.send_data` so data streams at the
 rate the client asked for, continuously (ur_rtde treats 2.5 s of silence as a dead link).
+
+The tick never blocks on a client: packets go out with non-blocking sends through a per-client
+backlog, and a client that has not taken its data for :data:`SEND_STALL_S` is dropped, as a
+real controller drops a client that cannot keep up -- one stalled reader must not stall the
+physics or the other clients. An input field belongs to the connection that set it up until
+that connection closes; another client's recipe naming it is answered ``IN_USE``, as UR's
+controller does.
 """
 
 from __future__ import annotations
@@ -11,6 +18,7 @@ import logging
 import socket
 import struct
 import threading
+import time
 
 from drivers.robot.fake_ur import rtde_protocol as rp
 from drivers.robot.fake_ur.controller import FakeController
@@ -19,6 +27,15 @@ log = logging.getLogger("fake_ur.rtde")
 
 #: Protocol versions the fake accepts.
 SUPPORTED_PROTOCOLS = (1, 2)
+#: A client whose data has waited this long to be sent (its socket buffers full) is dropped
+#: (s of wall time). Longer than a client stall on a busy machine, shorter than ur_rtde's own
+#: 2.5 s dead-link limit.
+SEND_STALL_S = 2.0
+#: A client with more than this waiting to be sent is dropped at once (bytes).
+SEND_BACKLOG_MAX = 8 << 20
+#: Kernel send buffer of an RTDE socket (bytes): small, so a client that stops reading shows
+#: as a backlog within a fraction of a second instead of after megabytes of autotuned buffer.
+SOCKET_SEND_BUFFER = 64 << 10
 
 
 class RTDEConnection:
@@ -34,6 +51,7 @@ class RTDEConnection:
 
     def __init__(self, sock: socket.socket, controller: FakeController, version) -> None:
         self.sock = sock
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_SEND_BUFFER)
         self.controller = controller
         self.version = version
         self.output: rp.Recipe | None = None
@@ -43,6 +61,8 @@ class RTDEConnection:
         self.closed = False
         self._tick = 0
         self._send_lock = threading.Lock()
+        self._backlog = bytearray()  # bytes not yet taken by the socket, in order
+        self._stalled_since: float | None = None  # monotonic time the backlog began
         self.protocol = 1
 
     def serve(self) -> None:
@@ -69,7 +89,34 @@ class RTDEConnection:
         if self.controller.frozen:
             return  # a controller that stopped answering
         with self._send_lock:
-            self.sock.sendall(rp.packet(kind, payload))
+            self._send(rp.packet(kind, payload))
+
+    def _send(self, data: bytes) -> None:
+        """Queue ``data`` after what is waiting and send what the socket takes now, without
+        blocking (call with the send lock held). Drops a client that stopped taking data."""
+        self._backlog += data
+        try:
+            while self._backlog:
+                sent = self.sock.send(self._backlog, socket.MSG_DONTWAIT)
+                del self._backlog[:sent]
+        except (BlockingIOError, InterruptedError):
+            pass
+        except OSError:
+            self.close()
+            return
+        if not self._backlog:
+            self._stalled_since = None
+            return
+        now = time.monotonic()
+        if self._stalled_since is None:
+            self._stalled_since = now
+        elif now - self._stalled_since > SEND_STALL_S or len(self._backlog) > SEND_BACKLOG_MAX:
+            log.warning(
+                "RTDE client took no data for %.1f s (%d bytes waiting): dropped",
+                now - self._stalled_since,
+                len(self._backlog),
+            )
+            self.close()
 
     def _handle(self, kind: int, body: bytes) -> None:
         c = self.controller
@@ -108,17 +155,31 @@ class RTDEConnection:
             self._reply(kind, rp.setup_reply(1, types))
         elif kind == rp.SETUP_INPUTS:
             names = tuple(n for n in body.decode().split(",") if n)
-            types = tuple(rp.input_type(n) or "NOT_FOUND" for n in names)
-            if "NOT_FOUND" in types:
-                log.warning("refused input recipe: %s", names)
+            with c.lock:
+                types = tuple(
+                    "IN_USE"
+                    if c.input_owners.get(n, self) is not self
+                    else (rp.input_type(n) or "NOT_FOUND")
+                    for n in names
+                )
+                refused = "NOT_FOUND" in types or "IN_USE" in types
+                if not refused:
+                    for name in names:
+                        c.input_owners[name] = self
+            if refused:
+                log.warning("refused input recipe: %s -> %s", names, types)
                 self._reply(kind, rp.setup_reply(0, types))
                 return
             recipe_id = len(self.inputs) + 1  # numbered per connection from 1
             self.inputs[recipe_id] = rp.Recipe(recipe_id, names, types)
             self._reply(kind, rp.setup_reply(recipe_id, types))
         elif kind == rp.START:
-            self.streaming = self.output is not None
-            self._reply(kind, bytes([self.streaming]))
+            if self.controller.frozen:
+                return
+            # The reply goes out before the first data package: both under the send lock.
+            with self._send_lock:
+                self._send(rp.packet(kind, bytes([self.output is not None])))
+                self.streaming = self.output is not None
         elif kind == rp.PAUSE:
             self.streaming = False
             self._reply(kind, b"\x01")
@@ -128,24 +189,31 @@ class RTDEConnection:
             log.warning("unknown RTDE package type %d", kind)
 
     def send_data(self, values: dict[str, object]) -> None:
-        """Called every control period: send a data package when one is due."""
-        if not self.streaming or self.output is None or self.closed:
+        """Called every control period: send a data package when one is due (never blocks)."""
+        if self.closed:
             return
-        self._tick += 1
-        every = max(1, round(self.controller.rate_hz / self.frequency_hz))
-        if self._tick % every:
-            return
-        try:
+        with self._send_lock:
+            if not self.streaming or self.output is None:
+                if self._backlog:
+                    self._send(b"")  # replies still waiting for room
+                return
+            self._tick += 1
+            every = max(1, round(self.controller.rate_hz / self.frequency_hz))
+            if self._tick % every:
+                if self._backlog:
+                    self._send(b"")
+                return
             payload = self.output.pack(_with_defaults(self.output, values))
-            with self._send_lock:
-                self.sock.sendall(rp.packet(rp.DATA_PACKAGE, payload))
-        except OSError:
-            self.close()
+            self._send(rp.packet(rp.DATA_PACKAGE, payload))
 
     def close(self) -> None:
         if not self.closed:
             self.closed = True
             self.streaming = False
+            with self.controller.lock:  # its input fields are free for other clients
+                owners = self.controller.input_owners
+                for name in [n for n, owner in owners.items() if owner is self]:
+                    del owners[name]
             try:
                 self.sock.shutdown(socket.SHUT_RDWR)
             except OSError:

@@ -18,7 +18,10 @@ Control channel commands (reply ``{"ok": true, ...}`` or ``{"ok": false, "error"
 closed at once for that long -- a link that stays down, which ur_rtde's automatic
 reconnection cannot bridge);
 ``freeze`` / ``unfreeze`` (stop / resume answering: no data, no replies, sockets stay open);
-``reset`` (arm at rest at ``q_rad`` or the start pose, faults cleared, powered, program stopped);
+``reset`` (arm at rest at ``q_rad`` or the start pose, faults cleared, powered, program stopped,
+registers zeroed, options back to their defaults);
+``configure`` (options: ``unlock_wait_s``, how long after a protective stop the dashboard
+refuses to unlock it, default 5 s as on UR's controllers -- 0 for tests that do not care);
 ``last_script`` (the text of the last program received); ``shutdown``.
 """
 
@@ -127,7 +130,9 @@ class FakeUR:
     def _spawn(self, target, *args, name: str) -> None:
         thread = threading.Thread(target=target, args=args, name=name, daemon=True)
         thread.start()
-        self._threads.append(thread)
+        # One thread per client connection: forget the finished ones so a long-running fake
+        # does not keep every connection it ever served.
+        self._threads = [t for t in self._threads if t.is_alive()] + [thread]
 
     def _accept(self, server: socket.socket, handler) -> None:
         while not self._stop.is_set():
@@ -186,7 +191,10 @@ class FakeUR:
                 for connection in connections:
                     connection.send_data(values)
             except Exception:
+                # A bug in the fake: stop the program so a waiting client fails instead of
+                # hanging, and keep ticking (data keeps flowing, the test can go on).
                 log.exception("error in the control tick")
+                c.runtime_error("internal error in the fake controller's control tick")
 
     # -- ports -----------------------------------------------------------------------------------
 
@@ -267,7 +275,7 @@ class FakeUR:
                     "runtime_state": c.runtime_state,
                     "frozen": c.frozen,
                     "int_offset": c.script.int_offset if c.script else None,
-                    "commands": [cmd for _, cmd in c.command_log[-50:]],
+                    "commands": [cmd for _, cmd in list(c.command_log)[-50:]],
                     "path_moves": len(c.script.path) if c.script else 0,
                     "rtde_clients": len(self._rtde),
                 }
@@ -293,6 +301,18 @@ class FakeUR:
                 c.stop_program()
                 q = request.get("q_rad")
                 c.reset_arm(None if q is None else np.asarray(q, dtype=np.float64))
+                c.clear_registers()  # no command or result of the last test left behind
+                c.unlock_wait_s = ctl.UNLOCK_WAIT_S
+        elif command == "configure":
+            unknown = set(request) - {"cmd", "unlock_wait_s"}
+            if unknown:
+                raise ValueError(f"unknown options {sorted(unknown)}")
+            if "unlock_wait_s" in request:
+                wait_s = float(request["unlock_wait_s"])
+                if not wait_s >= 0:
+                    raise ValueError("unlock_wait_s must be >= 0")
+                with c.lock:
+                    c.unlock_wait_s = wait_s
         elif command == "last_script":
             return {"script": self.last_script}
         elif command == "shutdown":

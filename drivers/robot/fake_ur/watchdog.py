@@ -13,7 +13,8 @@ log = logging.getLogger("fake_ur.watchdog")
 
 #: A command counts as stuck this long after it should have finished (s).
 GRACE_S = 5.0
-#: A command the loop has not picked up after this long is stuck too (s).
+#: A command not answered "done" after this long, with no motion running for it, is stuck
+#: too (s): never picked up, or picked up and lost.
 PICKUP_S = 1.0
 
 
@@ -27,7 +28,9 @@ def watch(controller: FakeController, stop: threading.Event, *, period_s: float 
             playing = controller.runtime_state == 2 and controller.script is not None
             offset = controller.script.int_offset if controller.script else 0
             cmd = controller.in_int[offset]
-            answered = controller.out_int[offset] == 2 or controller._executing
+            # Done is the only answer to a command; "executing" is not one -- a command the
+            # loop took but neither finished nor started moving for hangs the client too.
+            answered = controller.out_int[offset] == 2
             now = controller.t_s
         if busy is not None:
             what, running_s, expected_s = busy
@@ -43,7 +46,11 @@ def watch(controller: FakeController, stop: threading.Event, *, period_s: float 
         if playing and cmd != 0 and cmd not in REALTIME_COMMANDS and not answered and busy is None:
             pending_since = now if pending_since is None else pending_since
             if now - pending_since > PICKUP_S:
-                log.warning("command %d written by the client was never picked up", cmd)
+                log.warning(
+                    "command %d written by the client was never picked up, or never answered "
+                    "and no motion runs for it",
+                    cmd,
+                )
                 pending_since = now
         else:
             pending_since = None
