@@ -114,3 +114,30 @@ def test_teachpath_fake_ur_runs_by_hand_and_refuses_what_it_cannot_do():
         if fake.poll() is None:
             fake.kill()
             fake.wait()
+
+
+def test_a_controller_that_stops_answering_fails_the_job_and_the_service_stays_responsive(
+    arm, fake_ur
+):
+    client, sid, trajectory_id, q_start = arm
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    job = _execute(client, sid, trajectory_id)
+    deadline = time.monotonic() + 60
+    while client.get(f"/jobs/{job['id']}").json()["progress"] < 0.3:
+        assert time.monotonic() < deadline, "the execution did not get going"
+        time.sleep(0.05)
+    fake_ur.control("freeze")
+    # While the controller is silent, every request is still answered at once.
+    slowest_s = 0.0
+    while (state := client.get(f"/jobs/{job['id']}").json())["state"] == "running":
+        started = time.monotonic()
+        assert client.get("/health").status_code == 200
+        slowest_s = max(slowest_s, time.monotonic() - started)
+        assert time.monotonic() < deadline + 60, "the job never noticed the silence"
+        time.sleep(0.05)
+    assert state["state"] == "failed", state
+    assert state["error"]["code"] in ("robot_connection_lost", "robot_timeout"), state
+    # A service blocked by the robot link would stall for the adapter's timeouts (seconds, or
+    # ur_rtde's 300 s command wait); the bound is loose for a busy shared machine.
+    assert slowest_s < 3.0
+    fake_ur.control("unfreeze")
