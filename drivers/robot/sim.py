@@ -278,11 +278,26 @@ class SimBackend(RobotBackend):
         self._check_faults()
 
 
-def _synchronised_trapezoid(start, goal, speed, acceleration, dt):
-    """Joint targets of a moveJ: all joints start and stop together (trapezoidal speed)."""
+def _synchronised_trapezoid(start, goal, speed, acceleration, dt) -> FloatArray:
+    """Joint targets (K, 6) of a moveJ: all joints start and stop together (trapezoidal speed
+    of the leading joint)."""
+    goal = np.asarray(goal, dtype=np.float64)
     distance = float(np.abs(goal - start).max())
     if distance < 1e-12:
-        return [goal]
+        return goal[None].copy()
+    fractions = trapezoid_fractions(distance, speed, acceleration, dt)
+    return start + (goal - start) * fractions[:, None]
+
+
+def trapezoid_fractions(distance, speed, acceleration, dt) -> FloatArray:
+    """Fractions (K,) of a move of ``distance`` done at each control period ``dt`` (s) with a
+    trapezoidal speed profile (``speed`` and ``acceleration`` in distance units per s, s^2;
+    triangular when the move is too short to reach ``speed``). The last fraction is 1.
+
+    Vectorised: the fake UR controller plans long moves with it inside its control tick.
+    """
+    if distance < 1e-12:
+        return np.ones(1)
     t_acc = speed / acceleration
     if acceleration * t_acc**2 >= distance:  # triangular profile
         t_acc = float(np.sqrt(distance / acceleration))
@@ -291,18 +306,17 @@ def _synchronised_trapezoid(start, goal, speed, acceleration, dt):
     else:
         t_total = distance / speed + t_acc
         peak = speed
-
-    def fraction(t):
-        if t < t_acc:
-            d = 0.5 * acceleration * t**2
-        elif t < t_total - t_acc:
-            d = 0.5 * acceleration * t_acc**2 + peak * (t - t_acc)
-        else:
-            d = distance - 0.5 * acceleration * (t_total - t) ** 2
-        return min(max(d / distance, 0.0), 1.0)
-
-    times = np.arange(dt, t_total + dt, dt)
-    return [start + (goal - start) * fraction(t) for t in times]
+    t = np.arange(dt, t_total + dt, dt)
+    d = np.where(
+        t < t_acc,
+        0.5 * acceleration * t**2,
+        np.where(
+            t < t_total - t_acc,
+            0.5 * acceleration * t_acc**2 + peak * (t - t_acc),
+            distance - 0.5 * acceleration * (t_total - t) ** 2,
+        ),
+    )
+    return np.clip(d / distance, 0.0, 1.0)
 
 
 def _path_targets(path: CoarsePath, dt: float) -> FloatArray:

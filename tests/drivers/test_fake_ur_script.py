@@ -162,12 +162,29 @@ def test_a_long_move_l_is_planned_without_stalling_the_control_tick():
     assert c.motion is not None and c.motion.name == "move"
 
 
+def _reference_fraction(t, distance, speed, acceleration):
+    """The trapezoid, one instant at a time (an independent scalar form)."""
+    t_acc = min(speed / acceleration, np.sqrt(distance / acceleration))
+    t_total = 2 * t_acc if acceleration * t_acc * t_acc >= distance else distance / speed + t_acc
+    peak = acceleration * t_acc
+    if t < t_acc:
+        d = 0.5 * acceleration * t**2
+    elif t < t_total - t_acc:
+        d = 0.5 * acceleration * t_acc**2 + peak * (t - t_acc)
+    else:
+        d = distance - 0.5 * acceleration * (t_total - t) ** 2
+    return min(max(d / distance, 0.0), 1.0)
+
+
 def test_move_j_profile_is_the_sim_backends():
+    # The fake and the sim share one profile; check it against the scalar form.
     start, goal = np.array(HOME_RAD), np.array(HOME_RAD) + [0.7, -0.2, 0, 0, 0, 0.1]
     for speed, acceleration in ((1.0, 2.0), (0.2, 5.0), (3.0, 0.5)):
-        expected = np.array(_synchronised_trapezoid(start, goal, speed, acceleration, 0.002))
-        fractions = ctl._trapezoid_fractions(0.7, speed, acceleration, 0.002)
-        assert start + (goal - start) * fractions[:, None] == pytest.approx(expected, abs=1e-12)
+        profile = _synchronised_trapezoid(start, goal, speed, acceleration, 0.002)
+        times = 0.002 * np.arange(1, len(profile) + 1)
+        fractions = [_reference_fraction(t, 0.7, speed, acceleration) for t in times]
+        expected = start + (goal - start) * np.array(fractions)[:, None]
+        assert profile == pytest.approx(expected, abs=1e-12)
 
 
 def test_a_there_and_back_path_reports_each_move_when_it_starts():

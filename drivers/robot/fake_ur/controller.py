@@ -47,7 +47,13 @@ from scipy.spatial.transform import Rotation, Slerp
 from drivers.errors import ProtectiveStopError
 from drivers.robot.fake_ur import control_script as cs
 from drivers.robot.fake_ur.rtde_protocol import REGISTER_COUNT
-from drivers.robot.sim import HOME_RAD, SimBackend, SimConfig, _path_samples
+from drivers.robot.sim import (
+    HOME_RAD,
+    SimBackend,
+    SimConfig,
+    _path_samples,
+    trapezoid_fractions,
+)
 from recon import kinematics
 from recon.waypoints import CoarsePath
 
@@ -520,7 +526,7 @@ class FakeController:
             goal = target if cmd == cs.CMD_MOVEJ else self._ik(target, q0)
             if goal is None:
                 raise ScriptRuntimeError("movej: no inverse kinematics solution for the pose")
-            fractions = _trapezoid_fractions(
+            fractions = trapezoid_fractions(
                 float(np.abs(goal - q0).max()), speed, acceleration, self.dt_s
             )
             targets: Iterator[np.ndarray] = iter(q0 + (goal - q0) * fractions[:, None])
@@ -643,7 +649,7 @@ class FakeController:
         solution (movel fails mid-way on a real controller too)."""
         start = np.asarray(self.tcp_pose(q0))
         distance = float(np.linalg.norm(pose[:3] - start[:3]))
-        fractions = _trapezoid_fractions(max(distance, 1e-9), speed, acceleration, self.dt_s)
+        fractions = trapezoid_fractions(max(distance, 1e-9), speed, acceleration, self.dt_s)
         slerp = Slerp([0.0, 1.0], Rotation.from_rotvec([start[3:6], pose[3:6]]))
 
         def solve() -> Iterator[np.ndarray]:
@@ -761,33 +767,3 @@ class FakeController:
         if motion is None:
             return None
         return motion.name, self.t_s - motion.started_s, motion.expected_s
-
-
-def _trapezoid_fractions(distance, speed, acceleration, dt) -> np.ndarray:
-    """Fractions (K,) of a move of ``distance`` done at each control period ``dt`` (s) with a
-    trapezoidal speed profile (``speed`` and ``acceleration`` in distance units per s, s^2).
-
-    The sim backend's moveJ profile, vectorised: a long move is planned in milliseconds, not
-    in a Python loop inside the control tick. The last fraction is 1.
-    """
-    if distance < 1e-12:
-        return np.ones(1)
-    t_acc = speed / acceleration
-    if acceleration * t_acc**2 >= distance:  # triangular profile
-        t_acc = float(np.sqrt(distance / acceleration))
-        t_total = 2 * t_acc
-        peak = acceleration * t_acc
-    else:
-        t_total = distance / speed + t_acc
-        peak = speed
-    t = np.arange(dt, t_total + dt, dt)
-    d = np.where(
-        t < t_acc,
-        0.5 * acceleration * t**2,
-        np.where(
-            t < t_total - t_acc,
-            0.5 * acceleration * t_acc**2 + peak * (t - t_acc),
-            distance - 0.5 * acceleration * (t_total - t) ** 2,
-        ),
-    )
-    return np.clip(d / distance, 0.0, 1.0)
