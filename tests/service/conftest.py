@@ -52,6 +52,22 @@ def wait(client, job: dict, timeout_s: float = 120.0) -> dict:
     return job
 
 
+def planned_session(client, scene_files, speeds_m_s, name="arm") -> tuple[str, dict]:
+    """A calibrated session with the box-corner trace and scan, reconstructed and planned at
+    each speed. Returns the session id and {speed: trajectory id}."""
+    sid = client.post("/sessions", json={"name": name}).json()["id"]
+    client.put(f"/sessions/{sid}/recording", files={"file": ("t.csv", scene_files["trace"])})
+    client.put(f"/sessions/{sid}/scan", files={"file": ("s.ply", scene_files["scan"])})
+    client.put(f"/sessions/{sid}/calibration", json={"T_base_tracker": T_BASE_TRACKER})
+    recon = wait(client, client.post(f"/sessions/{sid}/reconstructions", json={}).json())
+    trajectories = {}
+    for speed in speeds_m_s:
+        body = {"reconstruction_id": recon["result"]["reconstruction_id"], "speed_m_s": speed}
+        job = wait(client, client.post(f"/sessions/{sid}/trajectories", json=body).json())
+        trajectories[speed] = job["result"]["trajectory_id"]
+    return sid, trajectories
+
+
 @pytest.fixture(scope="module")
 def session(client, scene_files):
     """A session with the box-corner trace and scan uploaded and its calibration set."""

@@ -6,7 +6,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from tests.service.conftest import AUTH, T_BASE_TRACKER, make_settings, wait
+from tests.service.conftest import AUTH, make_settings, planned_session, wait
 
 
 @pytest.fixture(scope="module")
@@ -16,24 +16,7 @@ def arm_client(tmp_path_factory, scene_files):
         tmp_path_factory.mktemp("arm"), ur_host="127.0.0.9", ur_robot="ur5e", max_speed_m_s=0.06
     )
     with TestClient(create_app(settings), headers=AUTH) as client:
-        sid = client.post("/sessions", json={"name": "arm"}).json()["id"]
-        client.put(f"/sessions/{sid}/recording", files={"file": ("t.csv", scene_files["trace"])})
-        client.put(f"/sessions/{sid}/scan", files={"file": ("s.ply", scene_files["scan"])})
-        client.put(f"/sessions/{sid}/calibration", json={"T_base_tracker": T_BASE_TRACKER})
-        recon = wait(client, client.post(f"/sessions/{sid}/reconstructions", json={}).json())
-        trajectories = {}
-        for speed in (0.05, 0.1):
-            job = wait(
-                client,
-                client.post(
-                    f"/sessions/{sid}/trajectories",
-                    json={
-                        "reconstruction_id": recon["result"]["reconstruction_id"],
-                        "speed_m_s": speed,
-                    },
-                ).json(),
-            )
-            trajectories[speed] = job["result"]["trajectory_id"]
+        sid, trajectories = planned_session(client, scene_files, (0.05, 0.1))
         yield client, sid, trajectories
 
 
