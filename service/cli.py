@@ -665,19 +665,8 @@ def _cmd_dry_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_fake_ur(args: argparse.Namespace) -> int:
-    import ipaddress
-
     from drivers.robot import fake_ur
 
-    try:
-        loopback = ipaddress.ip_address(args.host).is_loopback
-    except ValueError:
-        loopback = False
-    if not loopback:
-        raise ValueError(
-            f"--host {args.host!r} is not a loopback address; the fake controller listens on "
-            "127.0.0.x only (use 127.0.0.2, 127.0.0.3, ... to run several)"
-        )
     return fake_ur.run_from_args(args)
 
 

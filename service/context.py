@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.errors import InputFileError
-from drivers.tracking.gaps import apply_tip_offset, clean_trace
+from drivers.tracking.readers import RawTrace, trace_from_raw
 from service import tasks
 from service.captures import CaptureRunner, read_capture_file
 from service.errors import ApiError, not_found
@@ -565,32 +565,31 @@ class AppContext:
         session = self.store.session(row.session_id)
         recording_id = None
         try:
-            raw = read_capture_file(self.store.data_dir / row.path)
-            # A live feed tracks the rigid body: move it to the tip. A replayed recording is
-            # stored at the tip already.
+            raw = RawTrace(read_capture_file(self.store.data_dir / row.path), "capture")
+            # A live feed tracks the rigid body: move it to the tip (when it has orientations).
+            # A replayed recording is stored at the tip already.
             live = row.source.get("kind") == "natnet"
-            tip = session.tip_offset_m if live and raw.orientation_xyzw is not None else None
-            if tip is not None:
-                raw = apply_tip_offset(raw, np.array(tip))
-            clean = clean_trace(raw)
-            index = clean.longest()
-            arrays = tasks.recording_arrays(clean.pieces[index])
+            tip = session.tip_offset_m if live else None
+            trace = trace_from_raw(
+                raw,
+                tip_offset_m=None if tip is None else np.array(tip),
+                tip_needs_orientations=False,
+            )
+            arrays = tasks.recording_arrays(trace.recording)
             recording_id = new_id(KINDS["recording"])
             summary = tasks.recording_summary(arrays, "capture")
-            summary.update(
-                piece=index,
-                n_pieces=len(clean.pieces),
-                gaps=clean.report.as_dict(),
-                gap_report=clean.report.lines(),
-                tip_offset_applied=tip is not None,
-            )
+            summary.update(trace.summary())
             self._store_arrays(
                 row.session_id,
                 "recording",
                 recording_id,
                 arrays,
                 inputs={"capture_id": capture_id},
-                params={"format": "capture", "tip_offset_m": tip, "piece": index},
+                params={
+                    "format": "capture",
+                    "tip_offset_m": tip if trace.tip_offset_applied else None,
+                    "piece": trace.piece,
+                },
                 summary=summary,
             )
             self.store.update_session(row.session_id, recording_id=recording_id)

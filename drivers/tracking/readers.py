@@ -194,6 +194,27 @@ def read_trace(
     raw = read_raw_trace(
         source, name=name, fmt=fmt, units=units, rigid_body=rigid_body, marker=marker
     )
+    return trace_from_raw(
+        raw,
+        tip_offset_m=tip_offset_m,
+        gaps=gaps,
+        piece=piece,
+        tip_needs_orientations=tip_needs_orientations,
+    )
+
+
+def trace_from_raw(
+    raw: RawTrace,
+    *,
+    tip_offset_m: FloatArray | None = None,
+    gaps: GapParams | None = None,
+    piece: int | None = None,
+    tip_needs_orientations: bool = True,
+) -> TraceFile:
+    """Raw samples (from a file or a capture) moved to the pen's tip, cleaned, a piece picked.
+
+    Parameters and errors as :func:`read_trace` from ``tip_offset_m`` on.
+    """
     batch = raw.batch
     apply_tip = tip_offset_m is not None and (
         tip_needs_orientations or batch.orientation_xyzw is not None

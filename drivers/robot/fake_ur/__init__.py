@@ -25,11 +25,25 @@ def run_fake_ur(host: str, robot: str = "ur5e", *, powered: bool = True) -> None
 
     Raises
     ------
+    ValueError
+        ``host`` is not a loopback address: the fake never listens beyond this machine.
     OSError
         A port on ``host`` is taken (another fake or a real controller): pick another loopback
         address (127.0.0.2, 127.0.0.3, ...).
     """
+    import ipaddress
+
     from drivers.robot.fake_ur.server import FakeUR
+
+    try:
+        loopback = ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback:
+        raise ValueError(
+            f"--host {host!r} is not a loopback address; the fake controller listens on "
+            "127.0.0.x only (use 127.0.0.2, 127.0.0.3, ... to run several)"
+        )
 
     fake = FakeUR(host, robot, powered=powered)
     fake.start()
@@ -70,4 +84,8 @@ def main(argv: list[str] | None = None) -> int:
         "host at it.",
     )
     add_arguments(parser)
-    return run_from_args(parser.parse_args(argv))
+    try:
+        return run_from_args(parser.parse_args(argv))
+    except ValueError as exc:
+        print(f"teachpath fake-ur: error: {exc}", file=sys.stderr)
+        return 1
