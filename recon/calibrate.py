@@ -255,10 +255,9 @@ def fit_point_pairs(
             )
     # Leave-one-out errors, removing the worst pair while it breaks the tolerance: one bad
     # pair inflates every other pair's error too, so pairs are judged after it is gone.
-    inlier = np.ones(len(a), dtype=bool)
     loo = np.full(len(a), np.nan)
     max_removed = len(a) // 5
-    idx = np.flatnonzero(inlier)
+    idx = np.arange(len(a))  # the pairs in the fit
     loo_idx = _leave_one_out_errors(a[idx], b[idx]) if len(idx) >= 4 else None
     while loo_idx is not None and len(idx) > 4 and len(a) - len(idx) < max_removed:
         at = int(np.argmax(loo_idx))
@@ -271,10 +270,11 @@ def fit_point_pairs(
         if loo_idx[at] <= OUTLIER_RATIO * float(np.median(loo_rest)):
             break
         loo[idx[at]] = loo_idx[at]
-        inlier[idx[at]] = False
         idx, loo_idx = rest, loo_rest
     if loo_idx is not None:
         loo[idx] = loo_idx
+    inlier = np.zeros(len(a), dtype=bool)
+    inlier[idx] = True
     T = _kabsch(a[inlier], b[inlier])
     residuals = _pair_errors(T, a, b)
     # Excluded pairs are judged against the final fit; with 3 pairs there is no redundancy and

@@ -310,10 +310,8 @@ def make_reader(
                 for err in exc.errors()
             )
             raise ValueError(f"invalid {cls.kind} reader options: {problems}") from None
-    if options is not None and limits:
-        options = _within_limits(options, limits)
-    elif options is None and limits:
-        options = _within_limits(cls.options_class(), limits)
+    if limits:
+        options = _within_limits(options or cls.options_class(), limits)
     return cls(options)
 
 
