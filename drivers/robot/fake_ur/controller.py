@@ -59,6 +59,11 @@ from recon.waypoints import CoarsePath
 
 log = logging.getLogger("fake_ur.controller")
 
+#: From a program's arrival to its command loop's first pass (s): a real controller compiles and
+#: starts a program in far longer; this only has to outlast the client's clearing of the
+#: command register, sent on another socket while it uploads.
+PROGRAM_START_S = 0.02
+
 #: RTDE robot_mode values.
 ROBOT_MODE_POWER_OFF = 3
 ROBOT_MODE_IDLE = 5
@@ -131,9 +136,20 @@ class FakeController:
     q_start_rad : sequence of 6 floats, optional
     powered : bool
         Start powered on with brakes released (robot mode RUNNING) rather than POWER_OFF.
+    program_start_s : float
+        From a program's arrival to its command loop's first pass (see
+        :data:`PROGRAM_START_S`, what the served fake uses); 0 for tests that step it directly.
     """
 
-    def __init__(self, robot: str = "ur5e", *, q_start_rad=HOME_RAD, powered: bool = True):
+    def __init__(
+        self,
+        robot: str = "ur5e",
+        *,
+        q_start_rad=HOME_RAD,
+        powered: bool = True,
+        program_start_s: float = 0.0,
+    ):
+        self.program_start_s = program_start_s
         self.arm = kinematics.model(robot)
         self.rate_hz = float(self.arm.control_rate_hz)
         self.dt_s = 1.0 / self.rate_hz
@@ -144,6 +160,7 @@ class FakeController:
         self.out_int = [0] * REGISTER_COUNT
         self.out_double = [0.0] * REGISTER_COUNT
         self.t_s = 0.0  # controller time since start
+        self._loop_starts_s = 0.0  # when the loaded program's command loop begins
         self.robot_mode = ROBOT_MODE_RUNNING if powered else ROBOT_MODE_POWER_OFF
         self.safety_mode = SAFETY_NORMAL
         self.runtime_state = RUNTIME_STOPPED
@@ -289,6 +306,10 @@ class FakeController:
                 log.info("program %s is not ur_rtde's control script: not emulated", info.name)
                 return True
             self.runtime_state = RUNTIME_PLAYING
+            # A controller takes a while to compile and start a program; ur_rtde clears its
+            # command register while it uploads one, and that must land before the new loop
+            # reads it, as it does on a real controller (else a stale command runs again).
+            self._loop_starts_s = self.t_s + self.program_start_s
             self._executing = False
             self._waiting_sync = None
             self._stop_type_l = False
@@ -386,6 +407,8 @@ class FakeController:
         """One pass of the control script's main loop."""
         if self._waiting_sync is not None:
             return  # process_cmd is still blocked in a synchronous move
+        if self.t_s < self._loop_starts_s:
+            return  # the program is still starting
         cmd = self.in_int[self._i(0)]
         try:
             if cmd in cs.REALTIME_COMMANDS:

@@ -65,7 +65,9 @@ class FakeUR:
 
     def __init__(self, host: str, robot: str = "ur5e", *, powered: bool = True) -> None:
         self.host = host
-        self.controller = ctl.FakeController(robot, powered=powered)
+        self.controller = ctl.FakeController(
+            robot, powered=powered, program_start_s=ctl.PROGRAM_START_S
+        )
         e_series = self.controller.rate_hz >= 500
         self.version = (5, 11, 1, 108318) if e_series else (3, 15, 7, 106331)
         self.polyscope = (
