@@ -1,17 +1,16 @@
-"""Writing reconstruction results as files users open elsewhere (CSV)."""
+"""Result files users open elsewhere (CSV): reconstructions and trajectories."""
 
 from __future__ import annotations
 
 import csv
 import io
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from drivers.errors import InputFileError
 from drivers.files import atomic_path
-from recon.types import FloatArray, JointTrajectory, PointMode, Reconstruction
+from recon.types import FloatArray, JointTrajectory, PointMode, Reconstruction, ReconstructedPath
 
 QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw")
 #: Columns of a trajectory file (the contract of ``teachpath plan``).
@@ -95,26 +94,12 @@ def reconstruction_csv_text(arrays: dict) -> str:
     return buffer.getvalue()
 
 
-@dataclass(frozen=True)
-class ReconstructionFile:
-    """A reconstruction read back from its CSV.
-
-    Attributes
-    ----------
-    points_m : ndarray of shape (N, 3)
-    mode : ndarray of shape (N,), int8
-        :class:`PointMode` per point (``path`` where the file has no mode column).
-    orientations_xyzw : ndarray of shape (N, 4), or None
-    """
-
-    points_m: FloatArray
-    mode: np.ndarray
-    orientations_xyzw: FloatArray | None
-
-
-def read_reconstruction_csv(source: str | Path | bytes, *, name: str | None = None):
+def read_reconstruction_csv(
+    source: str | Path | bytes, *, name: str | None = None
+) -> ReconstructedPath:
     """Read a reconstruction CSV (as written by :func:`write_reconstruction_csv`, or any CSV with
-    ``x,y,z`` in metres).
+    ``x,y,z`` in metres). The file does not say which ``T_scan_tracker`` the reconstruction used:
+    the result's is None.
 
     Raises
     ------
@@ -148,19 +133,26 @@ def read_reconstruction_csv(source: str | Path | bytes, *, name: str | None = No
     if all(c in header for c in QUATERNION_COLUMNS):
         q = _numbers(body, [header.index(c) for c in QUATERNION_COLUMNS], label)
         orientations = q / np.maximum(np.linalg.norm(q, axis=1), 1e-12)[:, None]
-    return ReconstructionFile(points_m=points, mode=modes, orientations_xyzw=orientations)
+    return ReconstructedPath(points_m=points, mode=modes, orientations_xyzw=orientations)
 
 
 def write_trajectory_csv(path: str | Path, trajectory: JointTrajectory) -> None:
     """``t,q0..q5`` (s, rad) then the planned TCP ``x,y,z,rx,ry,rz`` (m, rotation vector), base
     frame, one row per controller period. The file appears only when complete."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(trajectory_csv_text(trajectory))
+
+
+def trajectory_csv_text(trajectory: JointTrajectory) -> str:
+    """The CSV of a trajectory (see :func:`write_trajectory_csv`)."""
     data = np.column_stack(
         [trajectory.t_s, trajectory.q_rad, trajectory.tcp_m, trajectory.tcp_rotvec]
     )
-    with atomic_path(path) as tmp:
-        np.savetxt(
-            tmp, data, delimiter=",", header=",".join(TRAJECTORY_COLUMNS), comments="", fmt="%.10g"
-        )
+    buffer = io.StringIO()
+    np.savetxt(
+        buffer, data, delimiter=",", header=",".join(TRAJECTORY_COLUMNS), comments="", fmt="%.10g"
+    )
+    return buffer.getvalue()
 
 
 def read_trajectory_csv(source: str | Path | bytes, *, robot: str, name: str | None = None):

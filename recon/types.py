@@ -389,6 +389,29 @@ class Reconstruction:
 
 
 @dataclass(frozen=True)
+class ReconstructedPath:
+    """What planning needs of a reconstruction, however it was stored (an artifact, a CSV).
+
+    Attributes
+    ----------
+    points_m : ndarray of shape (N, 3), metres
+        The reconstructed path, tracker frame.
+    mode : ndarray of shape (N,), int8
+        :class:`PointMode` per point.
+    orientations_xyzw : ndarray of shape (N, 4), or None
+        The pen's orientations, tracker frame, scalar last.
+    T_scan_tracker : ndarray of shape (4, 4), or None
+        The transform the reconstruction used between tracker and scan (None: no scan, or not
+        recorded).
+    """
+
+    points_m: FloatArray
+    mode: NDArray[np.int8]
+    orientations_xyzw: FloatArray | None = None
+    T_scan_tracker: FloatArray | None = None
+
+
+@dataclass(frozen=True)
 class ToolPath:
     """TCP poses along a path.
 

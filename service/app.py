@@ -12,10 +12,22 @@ from fastapi import Depends, FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import HTMLResponse
 
+from service import captures as capture_workflow
 from service import errors
-from service.api import captures, health, jobs, products, sessions
+from service.api import (
+    captures,
+    executions,
+    health,
+    jobs,
+    reconstructions,
+    recordings,
+    scans,
+    sessions,
+    trajectories,
+)
 from service.api.deps import require_token
-from service.context import AppContext
+from service.core import Services
+from service.demo import create_demo_session
 from service.jobs import JobManager
 from service.schemas import ErrorBody
 from service.settings import Settings
@@ -82,6 +94,14 @@ class _TooLarge(Exception):
     pass
 
 
+def _recover(services: Services) -> None:
+    """After a restart: fail jobs that were running, keep what captures received."""
+    failed = services.store.fail_interrupted_jobs()
+    if failed:
+        log.warning("marked %d interrupted job(s) failed", failed)
+    capture_workflow.recover(services)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The service for ``settings`` (default: from the environment, TEACHPATH_*)."""
     settings = settings or Settings()
@@ -89,23 +109,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         store = Store(settings.data_dir, settings.db_url)
-        manager = JobManager(store, settings.cpu_workers)
-        ctx = AppContext(
-            settings=settings, store=store, jobs=manager, token=settings.access_token()
+        services = Services(
+            settings=settings,
+            store=store,
+            jobs=JobManager(store, settings.cpu_workers),
+            token=settings.access_token(),
         )
-        ctx.recover()
+        _recover(services)
         if settings.demo:
-            ctx.create_demo_session()
-        app.state.ctx = ctx
+            create_demo_session(store)
+        app.state.services = services
         try:
             yield
         finally:
-            for runner in list(ctx.executions.values()):
-                runner.stop()
-            for capture in list(ctx.captures.values()):
-                capture.stop()
-            manager.shutdown()
-            store.engine.dispose()
+            services.close()
 
     try:
         version = metadata.version("teachpath")
@@ -133,8 +150,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(health.router)
     protected = [Depends(require_token)]
     documented = {status: {"model": ErrorBody} for status in (401, 404, 409, 413, 422)}
-    for module in (sessions, products, jobs, captures):
-        app.include_router(module.router, dependencies=protected, responses=documented)
+    for router in (
+        sessions.router,
+        recordings.router,
+        scans.router,
+        reconstructions.router,
+        trajectories.router,
+        executions.router,
+        executions.stop_router,
+        jobs.router,
+        jobs.session_router,
+        captures.router,
+    ):
+        app.include_router(router, dependencies=protected, responses=documented)
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def ui() -> HTMLResponse:

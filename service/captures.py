@@ -1,127 +1,129 @@
-"""Captures: samples from a tracker source written to disk as they arrive.
+"""Captures: a tracker source recorded into the session as the samples arrive.
 
-Each capture appends its samples to ``captures/<id>.csv`` (flushed every batch, fsynced at
-least every half second), so a crash keeps what was received. Stopping it (or the source
-ending) turns the file into an immutable recording artifact; a capture left running by a
-process that died is turned into one on the next start.
+The samples go to a file as they arrive (:mod:`service.capture_runner`); when the capture stops,
+the source ends or the service restarts after a crash, the file is cleaned into an immutable
+recording that becomes the session's current one.
 """
 
 from __future__ import annotations
 
-import logging
-import os
-import threading
-import time
-from collections.abc import Callable
-from pathlib import Path
-
 import numpy as np
 
 from drivers.errors import InputFileError
-from drivers.tracking.base import SampleBatch, TrackerSource, increasing_times
-from service.store import Store
-
-log = logging.getLogger("teachpath.captures")
-
-HEADER = "t,x,y,z,qx,qy,qz,qw,valid\n"
-FSYNC_EVERY_S = 0.5
-
-
-class CaptureRunner:
-    """Pulls batches from ``source`` in a thread until stopped or exhausted.
-
-    ``finalize(capture_id, state, error)`` is called once at the end (in the runner's thread).
-    """
-
-    def __init__(
-        self,
-        store: Store,
-        capture_id: str,
-        source: TrackerSource,
-        finalize: Callable[[str, str, str | None], None],
-    ) -> None:
-        self.store, self.capture_id, self.source = store, capture_id, source
-        self.finalize = finalize
-        self.thread = threading.Thread(target=self._run, name=f"capture {capture_id}", daemon=True)
-
-    def start(self) -> None:
-        self.thread.start()
-
-    def stop(self) -> None:
-        # The source ends its batches() after handing over what it had received (a live feed
-        # flushes its receiver), so the last samples reach the file too.
-        self.source.close()
-
-    def _run(self) -> None:
-        row = self.store.capture(self.capture_id)
-        path = self.store.data_dir / row.path
-        count, state, error = 0, "stopped", None
-        last_sync = time.monotonic()
-        try:
-            with path.open("w", buffering=1) as handle:
-                handle.write(HEADER)
-                for batch in self.source.batches():
-                    q = batch.orientation_xyzw
-                    if q is None:
-                        q = np.full((len(batch), 4), np.nan)
-                    for i in range(len(batch)):
-                        x, y, z = batch.position_m[i]
-                        handle.write(
-                            f"{batch.t_s[i]:.6f},{x:.9g},{y:.9g},{z:.9g},"
-                            f"{q[i, 0]:.9g},{q[i, 1]:.9g},{q[i, 2]:.9g},{q[i, 3]:.9g},"
-                            f"{int(batch.valid[i])}\n"
-                        )
-                    handle.flush()
-                    count += len(batch)
-                    if time.monotonic() - last_sync >= FSYNC_EVERY_S:
-                        os.fsync(handle.fileno())
-                        self.store.update_capture(self.capture_id, n_samples=count)
-                        last_sync = time.monotonic()
-                os.fsync(handle.fileno())
-        except Exception as exc:  # the samples so far are on disk: keep them
-            log.exception("capture %s failed", self.capture_id)
-            state, error = "failed", str(exc)
-        finally:
-            self.source.close()
-            self.store.update_capture(self.capture_id, n_samples=count)
-            self.finalize(self.capture_id, state, error)
+from drivers.tracking.readers import RawTrace, trace_from_raw
+from service import tasks
+from service.artifacts import ID_PREFIX, RecordingCodec
+from service.capture_runner import CaptureRunner, read_capture_file
+from service.core import Services
+from service.errors import not_found
+from service.schemas import CaptureCreate
+from service.store import CaptureRow, new_id
 
 
-def read_capture_file(path) -> SampleBatch:
-    """Every sample of a capture file (lost ones flagged), for cleaning into a recording.
+def _source_for(services: Services, session_id: str, source_request):
+    """The tracker source a capture request names, built through the sources' registry."""
+    from drivers.tracking.base import create_source
 
-    The file may end in a torn line (the process died mid-write) and may hold a stretch where
-    the tracker's clock started again (a restarted stream): the torn line and the repeated
-    stretch are dropped, everything else is kept.
+    if source_request.kind == "replay":
+        recording = services.artifact(session_id, "recording", source_request.recording_id)
+        return create_source(
+            source_request.source_config(),
+            recording=RecordingCodec.decode(services.store.read_arrays(recording)),
+        )
+    # The NatNet receiver runs in a child process of its own (no frame lost to the GIL held
+    # elsewhere here); it connects when the runner asks for the first batch, and a server that
+    # does not answer fails the capture with a clear error.
+    return create_source(source_request.source_config())
 
-    Raises
-    ------
-    InputFileError
-        A complete line that is not 9 numbers (the file was changed by something else).
-    """
-    text = Path(path).read_text()
-    lines = text.split("\n")
-    # The last element is "" after a final newline, else a torn line written when the process
-    # died: drop it either way.
-    body = [line for line in lines[1:-1] if line.strip()]
-    data = np.zeros((len(body), 9))
-    for row, line in enumerate(body):
-        fields = line.split(",")
-        try:
-            if len(fields) != 9:
-                raise ValueError(f"{len(fields)} fields, expected 9")
-            data[row] = [float(f) for f in fields]
-        except ValueError as exc:
-            raise InputFileError(
-                f"capture file {Path(path).name}, line {row + 2}: {exc}; the file was changed "
-                "after it was written -- restore it from a backup"
-            ) from None
-    data = data[increasing_times(data[:, 0])]
-    quats = data[:, 4:8]
-    has_q = len(quats) > 0 and bool(np.isfinite(quats[data[:, 8] > 0.5]).all())
-    return SampleBatch(
-        t_s=data[:, 0],
-        position_m=data[:, 1:4],
-        orientation_xyzw=quats if has_q else None,
-        valid=data[:, 8] > 0.5,
+
+def start(services: Services, session_id: str, request: CaptureCreate) -> CaptureRow:
+    """Start capturing from the request's source."""
+    services.session(session_id)
+    source = _source_for(services, session_id, request.source)
+    row = services.store.create_capture(session_id, request.source.model_dump())
+    runner = CaptureRunner(
+        services.store,
+        row.id,
+        source,
+        lambda capture_id, state, error: finish(services, capture_id, state, error),
     )
+    with services.live.lock:
+        services.live.captures[row.id] = runner
+    runner.start()
+    return row
+
+
+def get(services: Services, session_id: str, capture_id: str) -> CaptureRow:
+    services.session(session_id)
+    row = services.store.capture(capture_id)
+    if row is None or row.session_id != session_id:
+        raise not_found("capture", capture_id)
+    return row
+
+
+def stop(services: Services, session_id: str, capture_id: str) -> CaptureRow:
+    """Stop a capture; its samples so far become a recording."""
+    get(services, session_id, capture_id)
+    runner = services.live.captures.get(capture_id)
+    if runner is not None:
+        runner.stop()
+        runner.thread.join(timeout=10)
+    return services.store.capture(capture_id)
+
+
+def finish(services: Services, capture_id: str, state: str, error: str | None) -> None:
+    """Turn a capture's file into a recording (also for one interrupted by a restart)."""
+    store = services.store
+    row = store.capture(capture_id)
+    session = store.session(row.session_id)
+    recording_id = None
+    try:
+        raw = RawTrace(read_capture_file(store.data_dir / row.path), "capture")
+        # A live feed tracks the rigid body: move it to the tip (when it has orientations).
+        # A replayed recording is stored at the tip already.
+        live = row.source.get("kind") == "natnet"
+        tip = session.tip_offset_m if live and session is not None else None
+        trace = trace_from_raw(
+            raw,
+            tip_offset_m=None if tip is None else np.array(tip),
+            tip_needs_orientations=False,
+        )
+        recording_id = new_id(ID_PREFIX["recording"])
+        summary = tasks.recording_summary(trace.recording, "capture")
+        summary.update(trace.summary())
+        store.add_arrays_artifact(
+            artifact_id=recording_id,
+            session_id=row.session_id,
+            kind="recording",
+            arrays=RecordingCodec.encode(trace.recording),
+            inputs={"capture_id": capture_id},
+            params={
+                "format": "capture",
+                "tip_offset_m": tip if trace.tip_offset_applied else None,
+                "piece": trace.piece,
+            },
+            summary=summary,
+        )
+        store.update_session(row.session_id, recording_id=recording_id)
+    except InputFileError as exc:
+        # Nothing to keep is a failure whatever ended the capture; say both.
+        recording_id = None
+        reason = f"nothing usable was received: {exc}"
+        state, error = "failed", (reason if error is None else f"{error}; {reason}")[:500]
+    except (OSError, ValueError) as exc:
+        recording_id = None
+        state, error = "failed", f"the capture file could not be read: {exc}"
+    store.update_capture(capture_id, state=state, recording_id=recording_id, error=error)
+    with services.live.lock:
+        services.live.captures.pop(capture_id, None)
+
+
+def recover(services: Services) -> None:
+    """After a restart: captures left running keep what they received, as recordings."""
+    for row in services.store.stop_interrupted_captures():
+        finish(
+            services,
+            row.id,
+            "interrupted",
+            "the service stopped during the capture; the samples received so far were kept",
+        )

@@ -17,6 +17,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from drivers import errors as driver_errors
 from recon import errors as recon_errors
+from service import gate
 from service.store import StorageError
 
 log = logging.getLogger("teachpath.service")
@@ -36,6 +37,14 @@ def not_found(what: str, ident: str) -> ApiError:
 
 #: Domain error class -> (HTTP status, code). Subclasses before their bases.
 ERROR_MAP: list[tuple[type[Exception], int, str]] = [
+    # Why the real arm was refused: one class per reason (service/gate.py).
+    (gate.NoRobotConfigured, 409, "no_robot"),
+    (gate.TrajectoryForAnotherRobot, 409, "trajectory_mismatch"),
+    (gate.ConfirmationRequired, 409, "confirmation_required"),
+    (gate.SpeedCapExceeded, 409, "speed_cap"),
+    (gate.DryRunRequired, 409, "dry_run_required"),
+    (gate.UnreadableTrajectory, 409, "trajectory_unreadable"),
+    (gate.RealArmRefused, 409, "real_arm_refused"),
     (recon_errors.UnitsMismatchError, 422, "units_mismatch"),
     (recon_errors.NoOverlapError, 422, "no_overlap"),
     (recon_errors.DegenerateInputError, 422, "degenerate_input"),

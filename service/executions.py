@@ -1,117 +1,176 @@
-"""Executions on a real arm (or UR's simulator): one runner thread each, a ur_rtde worker
-process underneath.
+"""Executions: a trajectory run on the simulated arm (a dry run) or, through the real-arm gate,
+on the configured arm; and stopping one.
 
-Dry runs on the simulated arm are ordinary CPU jobs (``tasks.dry_run_task``); this module is for
-``backend="ur_rtde"``. The runner connects, enables, moves to the trajectory's start, streams it
-and records what happened; ``stop()`` decelerates the arm. ur_rtde's blocking calls run in the
-backend's own worker process (see ``drivers.robot.ur_rtde``), so neither this thread nor the
-event loop can be frozen by a controller that stops answering.
+A dry run is an ordinary CPU job (:class:`service.tasks.DryRun`). A real-arm execution runs in a
+thread of this process (:class:`service.arm_runner.ExecutionRunner`) that talks to the arm
+through the ur_rtde backend's own worker process. Both record the same
+:class:`~service.artifacts.ExecutionSummary`, which is what the gate reads back.
 """
 
 from __future__ import annotations
 
-import logging
-import threading
-import time
-from collections.abc import Callable
+from pathlib import Path
 
-from drivers.robot.base import RobotBackend
-from recon.types import JointTrajectory
-from service.errors import error_body
-from service.store import Store, now
-
-log = logging.getLogger("teachpath.executions")
-
-#: Speed and acceleration of the move to the trajectory's start.
-APPROACH_SPEED_RAD_S = 0.3
-APPROACH_ACCELERATION_RAD_S2 = 0.5
+from drivers.robot.base import backend_config, create_backend
+from service import tasks
+from service.arm_runner import ExecutionRunner
+from service.artifacts import ID_PREFIX, ExecutionCodec
+from service.core import Services
+from service.errors import not_found
+from service.gate import check_real_arm
+from service.pipelines import ExecutionOutcome
+from service.schemas import ExecutionCreate
+from service.store import ArtifactRow, JobRow, new_id
 
 
-class ExecutionRunner:
-    """One execution: a thread that drives ``backend`` through ``trajectory``.
+def start(services: Services, session_id: str, request: ExecutionCreate) -> JobRow:
+    """Start an execution; the job's result names it.
 
-    ``record`` is called with the execution record when it ends (also after a fault) and returns
-    the job's result.
+    Raises
+    ------
+    RealArmRefused
+        A real-arm execution the gate refuses (see :mod:`service.gate`).
     """
+    services.session(session_id)
+    trajectory = services.artifact(session_id, "trajectory", request.trajectory_id)
+    out_id = new_id(ID_PREFIX["execution"])
+    if request.backend == "sim":
+        job = _dry_run(services, session_id, trajectory, request, out_id)
+    else:
+        job = _on_arm(services, session_id, trajectory, request, out_id)
+    with services.live.lock:
+        services.live.execution_jobs[out_id] = job.id
+    return job
 
-    def __init__(
-        self,
-        store: Store,
-        job_id: str,
-        backend: RobotBackend,
-        trajectory: JointTrajectory,
-        record: Callable,
-        *,
-        mode: str = "servoj",
-        tolerance_m: float = 5e-4,
-    ) -> None:
-        self.store, self.job_id = store, job_id
-        self.mode, self.tolerance_m = mode, tolerance_m
-        self.backend, self.trajectory, self.record = backend, trajectory, record
-        self.thread = threading.Thread(target=self._run, name=f"execution {job_id}", daemon=True)
-        self._last_progress = 0.0
 
-    def start(self) -> None:
-        self.thread.start()
+def _job_params(request: ExecutionCreate, trajectory: ArtifactRow, out_id: str) -> dict:
+    return {
+        "backend": request.backend,
+        "mode": request.mode,
+        "tolerance_m": request.tolerance_m,
+        "execution_id": out_id,
+        "trajectory_id": trajectory.id,
+    }
 
-    def stop(self) -> None:
-        self.backend.stop()
 
-    def _progress(self, fraction: float) -> None:
-        if fraction - self._last_progress >= 0.01 or fraction >= 1.0:
-            self._last_progress = fraction
-            self.store.update_job(self.job_id, progress=round(0.1 + 0.9 * fraction, 4))
+def _artifact_params(services: Services, request: ExecutionCreate) -> dict:
+    params = {
+        "backend": request.backend,
+        "dry_run": request.backend == "sim",
+        "mode": request.mode,
+        "tolerance_m": request.tolerance_m,
+    }
+    if request.backend == "ur_rtde":
+        params["host"] = services.settings.ur_host
+    return params
 
-    def _run(self) -> None:
-        self.store.update_job(self.job_id, state="running", progress=0.0, started_at=now())
-        record = None
-        try:
-            self.backend.connect()
-            self.backend.enable()
-            self.backend.move_joints(
-                self.trajectory.q_rad[0],
-                speed_rad_s=APPROACH_SPEED_RAD_S,
-                acceleration_rad_s2=APPROACH_ACCELERATION_RAD_S2,
-            )
-            self.store.update_job(self.job_id, progress=0.1)
-            if self.mode == "movepath":
-                record = self.backend.execute_path(
-                    self.trajectory, tolerance_m=self.tolerance_m, on_progress=self._progress
-                )
-            else:
-                record = self.backend.execute(self.trajectory, on_progress=self._progress)
-            result = self.record(record, None)
-            state = "succeeded" if record.completed else "cancelled"
-            self.store.update_job(
-                self.job_id,
-                state=state,
-                result=result,
-                finished_at=now(),
-                progress=1.0 if record.completed else self._last_progress,
-            )
-        except Exception as error:  # every failure ends the job, with what was recorded
-            log.warning("execution job %s failed: %s", self.job_id, error)
-            try:
-                result = self.record(
-                    record or getattr(self.backend, "last_record", None), str(error)
-                )
-            except Exception:
-                log.exception("could not record the execution of job %s", self.job_id)
-                result = None
-            self.store.update_job(
-                self.job_id,
-                state="failed",
-                error=error_body(error),
-                result=result,
-                finished_at=now(),
-            )
-        finally:
-            started = time.monotonic()
-            try:
-                self.backend.close()
-            except Exception:
-                log.exception(
-                    "closing the robot after job %s took %.1f s and failed",
-                    self.job_id,
-                    time.monotonic() - started,
-                )
+
+def _dry_run(services, session_id, trajectory, request, out_id) -> JobRow:
+    out_path = services.array_path(out_id)
+
+    def done(summary: dict) -> dict:
+        services.store.add_file_artifact(
+            artifact_id=out_id,
+            session_id=session_id,
+            kind="execution",
+            path=str(Path(out_path).relative_to(services.store.data_dir)),
+            inputs={"trajectory_id": trajectory.id},
+            params=_artifact_params(services, request),
+            summary=summary,
+        )
+        return {"execution_id": out_id, "completed": summary["completed"]}
+
+    task = tasks.DryRun(
+        trajectory_path=str(services.store.path_of(trajectory)),
+        trajectory_summary=trajectory.summary,
+        out_path=out_path,
+        mode=request.mode,
+        tolerance_m=request.tolerance_m,
+    )
+    return services.jobs.submit(
+        session_id, "execution", _job_params(request, trajectory, out_id), task, done
+    )
+
+
+def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
+    from drivers.robot.dryrun import execution_report
+
+    settings = services.settings
+    check_real_arm(
+        settings,
+        trajectory,
+        services.store.artifacts(session_id, "execution"),
+        confirm=request.confirm,
+        mode=request.mode,
+        tolerance_m=request.tolerance_m,
+    )
+    loaded = tasks.load_trajectory(services.store.path_of(trajectory), trajectory.summary)
+    config = backend_config("ur_rtde", host=settings.ur_host, robot=settings.ur_robot)
+    backend = create_backend(config)
+    job = services.store.create_job(
+        session_id, "execution", _job_params(request, trajectory, out_id)
+    )
+
+    def record(execution_record, faults: list[str], duration_s: float) -> dict:
+        outcome = ExecutionOutcome(
+            report=execution_report(
+                loaded,
+                execution_record,
+                mode=request.mode,
+                duration_s=duration_s,
+                lookahead_s=config.lookahead_s,
+                faults=faults,
+                dry_run=False,
+            ),
+            record=execution_record,
+            backend="ur_rtde",
+            tolerance_m=request.tolerance_m,
+        )
+        summary = outcome.summary()
+        services.store.add_arrays_artifact(
+            artifact_id=out_id,
+            session_id=session_id,
+            kind="execution",
+            arrays=ExecutionCodec.encode(execution_record),
+            inputs={"trajectory_id": trajectory.id},
+            params=_artifact_params(services, request),
+            summary=summary,
+        )
+        return {"execution_id": out_id, "completed": summary["completed"]}
+
+    runner = ExecutionRunner(
+        services.store,
+        job.id,
+        backend,
+        loaded,
+        record,
+        mode=request.mode,
+        tolerance_m=request.tolerance_m,
+    )
+    with services.live.lock:
+        services.live.executions[out_id] = runner
+    runner.start()
+    return services.store.job(job.id)
+
+
+def stop(services: Services, execution_id: str) -> JobRow:
+    """Stop the arm of a running execution (it decelerates) or cancel one not yet started."""
+    job_id = services.live.execution_jobs.get(execution_id)
+    if job_id is None:
+        job = next(
+            (
+                j
+                for j in services.store.jobs()
+                if j.kind == "execution" and j.params.get("execution_id") == execution_id
+            ),
+            None,
+        )
+        if job is None:
+            raise not_found("execution", execution_id)
+        job_id = job.id
+    runner = services.live.executions.get(execution_id)
+    if runner is not None:
+        runner.stop()
+    elif services.store.job(job_id).state == "queued":
+        services.jobs.cancel(job_id)
+    return services.store.job(job_id)

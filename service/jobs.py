@@ -17,16 +17,28 @@ import multiprocessing
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
-from typing import Any
+from typing import Any, Protocol
 
 from service.errors import ApiError, error_body
-from service.store import FINISHED, JobRow, Store, iso, now
+from service.store import FINISHED, JobRow, Store, now
 
 log = logging.getLogger("teachpath.jobs")
 
 #: Called in the main process with the task's return value; returns the job's result (the
 #: ids of what it made) after recording the artifact.
 OnSuccess = Callable[[Any], dict]
+
+
+class Task(Protocol):
+    """Work for a worker process: a picklable object (a frozen dataclass of its arguments, see
+    :mod:`service.tasks`) whose ``run()`` does it there."""
+
+    def run(self) -> Any: ...
+
+
+def _run(task: Task) -> Any:
+    """Runs in the worker process."""
+    return task.run()
 
 
 class JobManager:
@@ -56,14 +68,13 @@ class JobManager:
         session_id: str,
         kind: str,
         params: dict,
-        fn: Callable,
-        args: tuple,
+        task: Task,
         on_success: OnSuccess,
     ) -> JobRow:
-        """Queue ``fn(*args)`` in a worker process as a new job."""
+        """Queue ``task`` in a worker process as a new job."""
         job = self.store.create_job(session_id, kind, params)
         with self._lock:
-            future = self._pool.submit(fn, *args)
+            future = self._pool.submit(_run, task)
             self._futures[job.id] = future
             self._order.append(job.id)
             self._promote()
@@ -92,12 +103,12 @@ class JobManager:
             )
         return self.store.job(job_id)
 
-    async def run(self, fn: Callable, *args):
-        """Await ``fn(*args)`` in a worker process (for work a request waits on, such as
-        parsing an upload: Open3D's readers hold the GIL)."""
+    async def run(self, task: Task):
+        """Await ``task`` in a worker process (for work a request waits on, such as parsing an
+        upload: Open3D's readers hold the GIL)."""
         import asyncio
 
-        return await asyncio.get_running_loop().run_in_executor(self._pool, fn, *args)
+        return await asyncio.get_running_loop().run_in_executor(self._pool, _run, task)
 
     def shutdown(self) -> None:
         self._pool.shutdown(wait=False, cancel_futures=True)
@@ -163,20 +174,3 @@ def _worker_init() -> None:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     except (AttributeError, OSError):  # not Linux, or not permitted: the niceness stays
         pass
-
-
-def job_json(job: JobRow) -> dict:
-    """The API's view of a job."""
-    return {
-        "id": job.id,
-        "session_id": job.session_id,
-        "kind": job.kind,
-        "state": job.state,
-        "progress": job.progress,
-        "created_at": iso(job.created_at),
-        "started_at": iso(job.started_at),
-        "finished_at": iso(job.finished_at),
-        "params": job.params,
-        "result": job.result,
-        "error": job.error,
-    }

@@ -3,11 +3,40 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Literal
+from datetime import datetime
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_validator,
+)
+
+from service.artifacts import (
+    ExecutionSummary,
+    ReconstructionSummary,
+    RecordingSummary,
+    ScanSummary,
+    TrajectorySummary,
+)
 
 Matrix4 = list[list[float]]
+
+
+def _iso(value):
+    """ISO 8601 in UTC (SQLite returns naive datetimes: they were stored as UTC)."""
+    if isinstance(value, datetime):
+        from service.store import iso
+
+        return iso(value)
+    return value
+
+
+#: A moment as ISO 8601 text, read from a row's datetime.
+Timestamp = Annotated[str | None, BeforeValidator(_iso)]
 
 
 class Strict(BaseModel):
@@ -91,10 +120,16 @@ class BaseCalibrationIn(Strict):
     tolerance_m: float = Field(1e-3, gt=0, le=0.1)
 
 
-class SessionOut(BaseModel):
+class FromRow(BaseModel):
+    """A response model read off a database row's attributes."""
+
+    model_config = ConfigDict(from_attributes=True)
+
+
+class SessionOut(FromRow):
     id: str
     name: str
-    created_at: str
+    created_at: Timestamp
     recording_id: str | None
     scan_id: str | None
     T_base_tracker: Matrix4 | None
@@ -108,28 +143,58 @@ class CalibrationResult(BaseModel):
     result: dict[str, Any]
 
 
-class ArtifactOut(BaseModel):
+class _ArtifactOut(FromRow):
     id: str
     session_id: str
-    kind: str
-    created_at: str
+    created_at: Timestamp
     inputs: dict[str, Any]
     params: dict[str, Any]
-    summary: dict[str, Any]
     sha256: str
     size: int
     source_name: str | None
 
 
-class JobOut(BaseModel):
+class RecordingOut(_ArtifactOut):
+    kind: Literal["recording"]
+    summary: RecordingSummary
+
+
+class ScanOut(_ArtifactOut):
+    kind: Literal["scan"]
+    summary: ScanSummary
+
+
+class ReconstructionOut(_ArtifactOut):
+    kind: Literal["reconstruction"]
+    summary: ReconstructionSummary
+
+
+class TrajectoryOut(_ArtifactOut):
+    kind: Literal["trajectory"]
+    summary: TrajectorySummary
+
+
+class ExecutionOut(_ArtifactOut):
+    kind: Literal["execution"]
+    summary: ExecutionSummary
+
+
+#: Any artifact, told apart by its ``kind``.
+ArtifactOut = Annotated[
+    RecordingOut | ScanOut | ReconstructionOut | TrajectoryOut | ExecutionOut,
+    Field(discriminator="kind"),
+]
+
+
+class JobOut(FromRow):
     id: str
     session_id: str
     kind: str
     state: Literal["queued", "running", "succeeded", "failed", "cancelled"]
     progress: float
-    created_at: str | None
-    started_at: str | None
-    finished_at: str | None
+    created_at: Timestamp
+    started_at: Timestamp
+    finished_at: Timestamp
     params: dict[str, Any]
     result: dict[str, Any] | None
     error: dict[str, Any] | None
@@ -163,6 +228,17 @@ class ReconstructionCreate(Strict):
             raise ValueError("alpha must be in [0, 1] or 'auto'")
         return value
 
+    def recon_params(self) -> dict:
+        """The core's parameters (:class:`recon.types.ReconParams`), checked by the core."""
+        from recon.types import ReconParams
+
+        params = self.model_dump(
+            exclude={"recording_id", "scan_id", "use_scan", "registration", "T_scan_tracker"}
+        )
+        params["register"] = self.registration
+        ReconParams(**params)
+        return params
+
 
 class TrajectoryCreate(Strict):
     reconstruction_id: str
@@ -183,6 +259,14 @@ class TrajectoryCreate(Strict):
         if not all(math.isfinite(v) and abs(v) <= 1.0 for v in value):
             raise ValueError("tcp_offset_m must be finite and within 1 m")
         return value
+
+    def plan_params(self) -> dict:
+        """The core's parameters (:class:`recon.plan.PlanParams`), checked by the core."""
+        from recon.plan import PlanParams
+
+        params = self.model_dump(exclude={"reconstruction_id", "T_base_tracker"})
+        PlanParams(**params)
+        return params
 
 
 class ExecutionCreate(Strict):
@@ -206,6 +290,12 @@ class ReplaySource(Strict):
         1.0, gt=0, le=100.0, description="times real time; null: as fast as possible"
     )
 
+    def source_config(self):
+        """The replay source's configuration (the recording is handed over separately)."""
+        from drivers.tracking.replay import ReplayConfig
+
+        return ReplayConfig(speed=self.speed)
+
 
 class NatNetSourceIn(Strict):
     kind: Literal["natnet"]
@@ -217,6 +307,13 @@ class NatNetSourceIn(Strict):
     data_port: int = Field(1511, ge=1, le=65535)
     units: Literal["m", "mm"] = "m"
     timeout_s: float = Field(5.0, gt=0, le=60)
+
+    def source_config(self):
+        """The NatNet source's configuration: a capture waits for the operator as long as it
+        takes (no stall timeout)."""
+        from drivers.tracking.natnet_source import NatNetConfig
+
+        return NatNetConfig(**self.model_dump(), stall_timeout_s=None)
 
 
 class CaptureCreate(Strict):
@@ -231,12 +328,53 @@ class CaptureCreate(Strict):
         return value
 
 
-class CaptureOut(BaseModel):
+class CaptureOut(FromRow):
     id: str
     session_id: str
     source: dict[str, Any]
     state: str
-    created_at: str
+    created_at: Timestamp
     n_samples: int
     recording_id: str | None
     error: str | None
+
+
+# -- request fields generated from the core's parameter declarations (recon.params) ---------------
+
+
+def _bounded(hint, spec):
+    """``hint`` with the spec's bounds on its numbers (inside a union or a tuple too)."""
+    import typing
+
+    if hint in (int, float):
+        return Annotated[
+            hint,
+            Field(ge=spec.ge, gt=spec.gt, le=spec.le, lt=spec.lt, allow_inf_nan=False)
+            if hint is float
+            else Field(ge=spec.ge, gt=spec.gt, le=spec.le, lt=spec.lt),
+        ]
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is tuple:
+        return tuple[tuple(_bounded(a, spec) for a in args)]  # type: ignore[misc]
+    if args and origin not in (typing.Literal,):
+        return typing.Union[tuple(_bounded(a, spec) for a in args)]  # noqa: UP007
+    return hint
+
+
+def param_fields(cls, names) -> dict:
+    """Pydantic field definitions for the named parameters of a core dataclass: its type with
+    its bounds, its default, and its help, unit and bounds as the description."""
+    from recon.params import default_of, specs, type_hints
+
+    declared, hints = specs(cls), type_hints(cls)
+    fields = {}
+    for name in names:
+        spec = declared[name]
+        bounds = spec.describe()
+        unit = f" ({spec.unit})" if spec.unit and not bounds else ""
+        description = spec.help + unit + (f"; {bounds}" if bounds else "")
+        fields[name] = (
+            _bounded(hints[name], spec),
+            Field(default_of(cls, name), description=description),
+        )
+    return fields

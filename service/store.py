@@ -36,14 +36,6 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
 from drivers.files import atomic_path
 
-#: Artifact kinds and the prefix of their ids.
-KINDS = {
-    "recording": "rec",
-    "scan": "scn",
-    "reconstruction": "rcn",
-    "trajectory": "trj",
-    "execution": "exe",
-}
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 FINISHED = ("succeeded", "failed", "cancelled")
 
@@ -165,10 +157,6 @@ class Store:
         Base.metadata.create_all(self.engine)
         _add_missing_columns(self.engine)
         self.db = sessionmaker(self.engine, expire_on_commit=False)
-        # The latest state of each job, kept with every write: status polls are the hottest
-        # path of the API and need no database round trip. The database is the record.
-        self._jobs: dict[str, JobRow] = {}
-        self._jobs_lock = threading.Lock()
         self._calibration_lock = threading.Lock()
 
     # -- files -----------------------------------------------------------------------------------
@@ -281,6 +269,22 @@ class Store:
             db.add(row)
         return row
 
+    def add_arrays_artifact(
+        self, *, artifact_id: str, session_id: str, kind: str, arrays: dict, **fields
+    ) -> ArtifactRow:
+        """Write ``arrays`` and record them as a new artifact (fields: inputs, params, summary,
+        source_name)."""
+        path, sha, size = self.write_arrays(artifact_id, arrays)
+        return self.add_artifact(
+            artifact_id=artifact_id,
+            session_id=session_id,
+            kind=kind,
+            path=path,
+            sha256=sha,
+            size=size,
+            **fields,
+        )
+
     def add_file_artifact(
         self, *, artifact_id: str, session_id: str, kind: str, path: str, **fields
     ) -> ArtifactRow:
@@ -357,8 +361,6 @@ class Store:
             row = db.get(JobRow, job_id)
             for key, value in fields.items():
                 setattr(row, key, _jsonable(value) if isinstance(value, dict) else value)
-        with self._jobs_lock:
-            self._jobs[job_id] = row
         return row
 
     def fail_interrupted_jobs(self) -> int:
@@ -366,7 +368,6 @@ class Store:
         with self.db.begin() as db:
             rows = list(db.scalars(select(JobRow).where(JobRow.state.in_(("queued", "running")))))
             for row in rows:
-                self._jobs.pop(row.id, None)
                 row.state = "failed"
                 row.finished_at = now()
                 row.error = {

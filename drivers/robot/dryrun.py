@@ -1,4 +1,5 @@
-"""Dry runs: a trajectory executed on the simulated arm, and what that showed."""
+"""Dry runs (a trajectory executed on the simulated arm) and the report of any execution:
+what it showed against its plan, measured the same way for the sim and a real arm."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivers.errors import RobotError
+from drivers.robot.base import ExecutionRecord
 from drivers.robot.clock import FakeClock
 from drivers.robot.sim import SimBackend, SimConfig
 from recon import kinematics
@@ -15,8 +17,8 @@ from recon.types import JointTrajectory, SpeedDrop
 
 
 @dataclass(frozen=True)
-class DryRunReport:
-    """What a simulated execution showed.
+class ExecutionReport:
+    """What an execution showed, on the simulated arm (a dry run) or on a real one.
 
     Attributes
     ----------
@@ -25,12 +27,13 @@ class DryRunReport:
     mode : {"servoj", "movepath"}
         How it ran: every sample streamed, or coarse waypoints run by the controller.
     duration_s, planned_duration_s : float
-        Simulated and planned execution time (the simulation includes settling at the end).
-    max_path_deviation_m : float
-        Largest distance of the simulated TCP from the planned TCP path (across the path).
-    max_lag_m : float
-        Largest distance between simulated and planned TCP at the same instant (along it too).
-    max_joint_error_rad : float
+        Execution time (a simulation includes settling at the end) and the plan's.
+    max_path_deviation_m : float or None
+        Largest distance of the executed TCP from the planned TCP path (across the path);
+        None when nothing was recorded.
+    max_lag_m : float or None
+        Largest distance between executed and planned TCP at the same instant (along it too).
+    max_joint_error_rad : float or None
         Largest joint difference from the plan delayed by servoJ's lookahead.
     min_limit_margin_rad : float
         Closest approach of any joint to its position limit (planned).
@@ -40,6 +43,10 @@ class DryRunReport:
     speed_drops : tuple of SpeedDrop
         Where the plan is slower than requested, and why.
     faults : tuple of str
+    n_samples : int
+        Samples recorded.
+    dry_run : bool
+        Whether it ran on the simulated arm.
     """
 
     robot: str
@@ -47,9 +54,9 @@ class DryRunReport:
     mode: str
     duration_s: float
     planned_duration_s: float
-    max_path_deviation_m: float
-    max_lag_m: float
-    max_joint_error_rad: float
+    max_path_deviation_m: float | None
+    max_lag_m: float | None
+    max_joint_error_rad: float | None
     min_limit_margin_rad: float
     min_wrist_singularity: float
     min_elbow_singularity: float
@@ -57,27 +64,38 @@ class DryRunReport:
     mean_speed_m_s: float
     speed_drops: tuple[SpeedDrop, ...] = ()
     faults: tuple[str, ...] = field(default=())
+    n_samples: int = 0
+    dry_run: bool = True
 
     def lines(self) -> list[str]:
         """The report as short lines for a terminal."""
         mm = 1e3
+        where = f"a simulated {self.robot}" if self.dry_run else f"the {self.robot}"
         out = [
-            f"dry run on a simulated {self.robot} ({self.mode}): "
+            f"{'dry run' if self.dry_run else 'run'} on {where} ({self.mode}): "
             + ("completed" if self.completed else "DID NOT COMPLETE"),
             f"duration {self.duration_s:.2f} s (planned {self.planned_duration_s:.2f} s); "
             f"mean TCP speed {self.mean_speed_m_s * mm:.1f} mm/s of "
             f"{self.requested_speed_m_s * mm:.1f} requested",
-            f"tracking: {self.max_path_deviation_m * mm:.3f} mm off the path at most, "
-            f"{self.max_lag_m * mm:.2f} mm from the planned point of the same instant at most "
-            + (
-                "(servoJ's lookahead)"
-                if self.mode == "servoj"
-                else "(the controller times a movePath itself)"
-            ),
+        ]
+        if self.max_path_deviation_m is None or self.max_lag_m is None:
+            out.append("tracking: not measured (nothing was recorded)")
+        else:
+            out.append(
+                f"tracking: {self.max_path_deviation_m * mm:.3f} mm off the path at most, "
+                f"{self.max_lag_m * mm:.2f} mm from the planned point of the same instant at "
+                "most "
+                + (
+                    "(servoJ's lookahead)"
+                    if self.mode == "servoj"
+                    else "(the controller times a movePath itself)"
+                )
+            )
+        out.append(
             f"margins: joint limits {np.degrees(self.min_limit_margin_rad):.1f} deg, wrist "
             f"|sin q5| {self.min_wrist_singularity:.2f}, elbow |sin q3| "
-            f"{self.min_elbow_singularity:.2f}",
-        ]
+            f"{self.min_elbow_singularity:.2f}"
+        )
         for drop in self.speed_drops:
             out.append(
                 f"slower than requested from {drop.start_m * mm:.0f} to {drop.end_m * mm:.0f} mm "
@@ -87,6 +105,10 @@ class DryRunReport:
         return out
 
 
+#: The name earlier versions used for a simulated execution's report.
+DryRunReport = ExecutionReport
+
+
 def dry_run(
     trajectory: JointTrajectory,
     *,
@@ -94,7 +116,7 @@ def dry_run(
     backend: SimBackend | None = None,
     mode: str = "servoj",
     tolerance_m: float = 5e-4,
-) -> DryRunReport:
+) -> ExecutionReport:
     """Execute ``trajectory`` on a simulated arm (fake clock: faster than real time).
 
     Parameters
@@ -112,7 +134,6 @@ def dry_run(
     """
     if mode not in ("servoj", "movepath"):
         raise ValueError(f"mode must be 'servoj' or 'movepath', got {mode!r}")
-    arm = kinematics.model(trajectory.robot)
     if backend is None:
         base = config or SimConfig()
         settings = base.model_copy(
@@ -136,8 +157,47 @@ def dry_run(
         record = getattr(backend, "last_record", None)
     finally:
         backend.close()
-    duration = backend.clock.now() - t0
+    return execution_report(
+        trajectory,
+        record,
+        mode=mode,
+        duration_s=backend.clock.now() - t0,
+        lookahead_s=backend.config.lookahead_s,
+        faults=faults,
+        dry_run=True,
+    )
+
+
+def execution_report(
+    trajectory: JointTrajectory,
+    record: ExecutionRecord | None,
+    *,
+    mode: str,
+    duration_s: float,
+    lookahead_s: float,
+    faults: list[str],
+    dry_run: bool,
+) -> ExecutionReport:
+    """Measure an execution's record against its plan (the same for the sim and a real arm).
+
+    Parameters
+    ----------
+    trajectory : JointTrajectory
+        The plan.
+    record : ExecutionRecord or None
+        What was executed (None or empty: nothing moved).
+    mode : {"servoj", "movepath"}
+    duration_s : float
+        How long the execution took.
+    lookahead_s : float
+        servoJ's lookahead: the executed joints are compared with the plan delayed by it.
+    faults : list of str
+    dry_run : bool
+    """
+    arm = kinematics.model(trajectory.robot)
     planned_tcp = trajectory.tcp_m
+    deviation = lag = joint_error = None
+    completed = False
     if record is not None and len(record):
         actual_flange = kinematics.forward(arm, record.q_actual_rad)
         planned_flange = kinematics.forward(arm, record.q_planned_rad)
@@ -152,22 +212,19 @@ def dry_run(
             np.linalg.norm(actual_flange[:, :3, 3] - planned_flange[:, :3, 3], axis=1).max()
         )
         # servoJ follows the stream a lookahead behind: compare joints with the plan delayed so.
-        delay = max(1, int(round(backend.config.lookahead_s * arm.control_rate_hz)))
+        delay = max(1, int(round(lookahead_s * arm.control_rate_hz)))
         joint_error = float(
             np.abs(record.q_actual_rad[delay:] - record.q_planned_rad[:-delay]).max(initial=0.0)
         )
         completed = record.completed
-    else:
-        deviation = lag = joint_error = float("nan")
-        completed = False
     q = trajectory.q_rad
     margin = float(np.min(np.minimum(q - arm.q_min_rad, arm.q_max_rad - q)))
     path_length = float(np.sum(np.linalg.norm(np.diff(planned_tcp, axis=0), axis=1)))
-    return DryRunReport(
+    return ExecutionReport(
         robot=trajectory.robot,
         completed=completed,
         mode=mode,
-        duration_s=duration,
+        duration_s=duration_s,
         planned_duration_s=trajectory.duration_s,
         max_path_deviation_m=deviation,
         max_lag_m=lag,
@@ -179,4 +236,6 @@ def dry_run(
         mean_speed_m_s=path_length / max(trajectory.duration_s, 1e-12),
         speed_drops=trajectory.speed_drops,
         faults=tuple(faults),
+        n_samples=0 if record is None else len(record),
+        dry_run=dry_run,
     )

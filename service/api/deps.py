@@ -1,29 +1,31 @@
-"""Dependencies shared by the routers: the app context and the access token."""
+"""Dependencies shared by the routers: the services bundle, the access token, a session id."""
 
 from __future__ import annotations
 
 import hmac
+from typing import Annotated
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from service.context import AppContext
+from service.core import Services
 from service.errors import ApiError
 
 _bearer = HTTPBearer(auto_error=False, description="the access token printed at start-up")
 
 
-async def context(request: Request) -> AppContext:
-    return request.app.state.ctx
+async def services(request: Request) -> Services:
+    """The app's :class:`~service.core.Services` (built in the lifespan)."""
+    return request.app.state.services
 
 
 async def require_token(
     request: Request,
-    credentials: HTTPAuthorizationCredentials | None = Depends(_bearer),
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> None:
     """Every route but /health needs ``Authorization: Bearer TOKEN``.
 
-    Async, like :func:`context`: a sync dependency would send every request through the
+    Async, like :func:`services`: a sync dependency would send every request through the
     thread pool just to compare a string.
     """
     if credentials is None:
@@ -33,6 +35,10 @@ async def require_token(
             "missing access token: send "
             "'Authorization: Bearer TOKEN' (the token is printed at start-up)",
         )
-    expected = request.app.state.ctx.token
+    expected = request.app.state.services.token
     if not hmac.compare_digest(credentials.credentials.encode(), expected.encode()):
         raise ApiError(401, "unauthorized", "wrong access token")
+
+
+#: The services bundle, for a route's signature.
+ServicesDep = Annotated[Services, Depends(services)]

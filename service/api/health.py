@@ -5,12 +5,12 @@ from __future__ import annotations
 import functools
 from importlib import metadata
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter
 
-from service.api.deps import context
+from service.api.deps import ServicesDep
 from service.schemas import Health
 
-router = APIRouter(tags=["health"])
+router = APIRouter(prefix="/health", tags=["health"])
 
 
 @functools.cache
@@ -21,10 +21,10 @@ def _version(name: str) -> str:
         return "not installed"
 
 
-@router.get("/health", response_model=Health)
-def health(ctx=Depends(context)) -> dict:
+@router.get("", response_model=Health)
+def health(services: ServicesDep) -> dict:
     """Liveness, versions and the robot backends' state."""
-    running = ctx.store.count_jobs("running")
+    settings = services.settings
     return {
         "status": "ok",
         "version": _version("teachpath"),
@@ -35,10 +35,10 @@ def health(ctx=Depends(context)) -> dict:
         "robot_backends": {
             "sim": "available",
             "ur_rtde": (
-                f"configured: {ctx.settings.ur_robot} at {ctx.settings.ur_host}"
-                if ctx.settings.ur_host
+                f"configured: {settings.ur_robot} at {settings.ur_host}"
+                if settings.ur_host
                 else "not configured"
             ),
         },
-        "jobs_running": running,
+        "jobs_running": services.store.count_jobs("running"),
     }

@@ -1,73 +1,77 @@
-"""Jobs: state, progress, a server-sent event stream, cancellation."""
+"""Jobs: state, progress, a server-sent event stream, cancellation.
+
+Every database read runs in the thread pool (sync routes, ``run_in_threadpool`` in the event
+stream), never on the event loop.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import json
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
-from service.api.deps import context
+from service.api.deps import ServicesDep
 from service.errors import not_found
-from service.jobs import job_json
 from service.schemas import JobOut
-from service.store import FINISHED
+from service.store import FINISHED, JobRow
 
-router = APIRouter(tags=["jobs"])
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+session_router = APIRouter(prefix="/sessions/{session_id}/jobs", tags=["jobs"])
 
 #: How often the event stream looks at a job.
 POLL_S = 0.2
 
 
-def _job(ctx, job_id: str):
-    job = ctx.store.job(job_id)
+def _job(services, job_id: str) -> JobRow:
+    job = services.store.job(job_id)
     if job is None:
         raise not_found("job", job_id)
     return job
 
 
-@router.get("/jobs/{job_id}", response_model=JobOut)
-async def get_job(job_id: str, ctx=Depends(context)) -> dict:
+@router.get("/{job_id}", response_model=JobOut)
+def get_job(job_id: str, services: ServicesDep):
     """State (queued, running, succeeded, failed, cancelled), progress 0..1, result or error."""
-    return job_json(_job(ctx, job_id))
+    return _job(services, job_id)
 
 
-@router.get("/sessions/{session_id}/jobs", response_model=list[JobOut])
-def list_jobs(session_id: str, ctx=Depends(context)) -> list[dict]:
-    ctx.session(session_id)
-    return [job_json(j) for j in ctx.store.jobs(session_id)]
+@session_router.get("", response_model=list[JobOut])
+def list_jobs(session_id: str, services: ServicesDep):
+    services.session(session_id)
+    return services.store.jobs(session_id)
 
 
-@router.post("/jobs/{job_id}/cancel", response_model=JobOut)
-def cancel_job(job_id: str, ctx=Depends(context)) -> dict:
+@router.post("/{job_id}/cancel", response_model=JobOut)
+def cancel_job(job_id: str, services: ServicesDep):
     """Cancel a job that has not started (409 once it runs or has finished)."""
-    _job(ctx, job_id)
-    return job_json(ctx.jobs.cancel(job_id))
+    _job(services, job_id)
+    return services.jobs.cancel(job_id)
 
 
 @router.get(
-    "/jobs/{job_id}/events",
+    "/{job_id}/events",
     response_class=StreamingResponse,
     responses={200: {"content": {"text/event-stream": {}}}},
 )
-async def job_events(job_id: str, ctx=Depends(context)) -> StreamingResponse:
+async def job_events(job_id: str, services: ServicesDep) -> StreamingResponse:
     """Server-sent events: the job as JSON each time it changes, until it has finished."""
-    first = await run_in_threadpool(_job, ctx, job_id)
+    first = await run_in_threadpool(_job, services, job_id)
 
     async def stream():
         last = None
         job = first
         while True:
-            body = job_json(job)
+            body = JobOut.model_validate(job).model_dump(mode="json")
             if body != last:
                 yield f"event: job\ndata: {json.dumps(body)}\n\n"
                 last = body
             if job.state in FINISHED:
                 return
             await asyncio.sleep(POLL_S)
-            job = ctx.store.job(job_id)  # the store keeps jobs in memory: no I/O here
+            job = await run_in_threadpool(_job, services, job_id)
 
     return StreamingResponse(
         stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}

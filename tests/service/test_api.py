@@ -443,7 +443,7 @@ def test_a_restart_keeps_everything_and_fails_interrupted_jobs(tmp_path, scene_f
     with TestClient(create_app(settings), headers=AUTH) as first:
         sid = first.post("/sessions", json={"name": "kept"}).json()["id"]
         first.put(f"/sessions/{sid}/recording", files={"file": ("trace.csv", scene_files["trace"])})
-        ctx = first.app.state.ctx
+        ctx = first.app.state.services
         stuck = ctx.store.create_job(sid, "reconstruction", {})
         ctx.store.update_job(stuck.id, state="running")
     with TestClient(create_app(settings), headers=AUTH) as second:

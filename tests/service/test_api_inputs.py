@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from drivers.errors import InputFileError
 from recon.types import Recording
 from service.app import create_app
-from service.captures import HEADER, read_capture_file
+from service.capture_runner import HEADER, read_capture_file
 from tests.recon.test_calibrate import PIVOT_M, TIP_M, pivot_recording
 from tests.service.conftest import AUTH, make_settings, wait
 

@@ -1,0 +1,65 @@
+"""Pieces several routers share: the list/get routes of an artifact kind, uploads, downloads."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, UploadFile
+from fastapi.responses import Response
+
+from service.api.deps import ServicesDep
+from service.errors import ApiError
+from service.inputs import Upload
+
+
+def add_artifact_routes(router: APIRouter, kind: str, plural: str, model: type) -> None:
+    """``GET /{plural}`` (oldest first) and ``GET /{plural}/{artifact_id}`` for one kind."""
+
+    def list_artifacts(session_id: str, services: ServicesDep):
+        services.session(session_id)
+        return services.store.artifacts(session_id, kind)
+
+    def get_artifact(session_id: str, artifact_id: str, services: ServicesDep):
+        return services.artifact(session_id, kind, artifact_id)
+
+    router.add_api_route(
+        f"/{plural}",
+        list_artifacts,
+        methods=["GET"],
+        response_model=list[model],
+        name=f"list_{plural}",
+        summary=f"Every {kind} of the session, oldest first",
+    )
+    router.add_api_route(
+        f"/{plural}/{{artifact_id}}",
+        get_artifact,
+        methods=["GET"],
+        response_model=model,
+        name=f"get_{kind}",
+        summary=f"One {kind}: its inputs, parameters and summary",
+    )
+
+
+async def read_upload(file: UploadFile, services) -> Upload:
+    """The uploaded file's bytes, refused above the server's limit or when empty."""
+    limit_mb = services.settings.max_upload_mb
+    limit = int(limit_mb * 1024 * 1024)
+    content = await file.read(limit + 1)
+    if len(content) > limit:
+        raise ApiError(413, "upload_too_large", f"the upload exceeds {limit_mb:g} MB")
+    if not content:
+        raise ApiError(422, "invalid_file", "the uploaded file is empty")
+    return Upload(content=content, filename=file.filename or "upload")
+
+
+def download(content: bytes | str, *, media_type: str, filename: str) -> Response:
+    """A file download."""
+    return Response(
+        content,
+        media_type=media_type,
+        headers={"Content-Disposition": f'attachment; filename="{filename}"'},
+    )
+
+
+#: OpenAPI entries of the download routes.
+CSV = {200: {"content": {"text/csv": {}}}}
+BINARY = {200: {"content": {"application/octet-stream": {}}}}
+PNG = {200: {"content": {"image/png": {}}}}

@@ -1,0 +1,52 @@
+"""Executions: dry runs on the simulated arm and runs on the real one; stopping them."""
+
+from __future__ import annotations
+
+import csv
+import io
+
+import numpy as np
+from fastapi import APIRouter, Response
+
+from service import executions
+from service.api.common import CSV, add_artifact_routes, download
+from service.api.deps import ServicesDep
+from service.artifacts import ExecutionCodec
+from service.errors import ApiError
+from service.schemas import ExecutionCreate, ExecutionOut, JobOut
+
+router = APIRouter(prefix="/sessions/{session_id}", tags=["executions"])
+stop_router = APIRouter(prefix="/executions", tags=["executions"])
+
+
+@router.post("/executions", status_code=202, response_model=JobOut)
+def start_execution(session_id: str, body: ExecutionCreate, services: ServicesDep):
+    """Run a trajectory: on the simulated arm (a dry run, the default) or, confirmed and after
+    a passed dry run, on the configured real arm."""
+    return executions.start(services, session_id, body)
+
+
+add_artifact_routes(router, "execution", "executions", ExecutionOut)
+
+
+@router.get("/executions/{artifact_id}/csv", response_class=Response, responses=CSV)
+def execution_csv(session_id: str, artifact_id: str, services: ServicesDep):
+    """What ran: t, planned and actual joints."""
+    row = services.artifact(session_id, "execution", artifact_id)
+    samples = ExecutionCodec.decode(services.store.read_arrays(row))
+    if samples is None:
+        raise ApiError(404, "not_found", f"execution {artifact_id} recorded no samples")
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(
+        ["t"] + [f"q{i}_planned" for i in range(6)] + [f"q{i}_actual" for i in range(6)]
+    )
+    for row_values in np.column_stack([samples.t_s, samples.q_planned_rad, samples.q_actual_rad]):
+        writer.writerow(["" if not np.isfinite(v) else f"{v:.10g}" for v in row_values])
+    return download(buffer.getvalue(), media_type="text/csv", filename=f"{artifact_id}.csv")
+
+
+@stop_router.post("/{execution_id}/stop", response_model=JobOut)
+def stop_execution(execution_id: str, services: ServicesDep):
+    """Stop the arm (decelerating) or cancel an execution that has not started."""
+    return executions.stop(services, execution_id)

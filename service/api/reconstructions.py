@@ -1,0 +1,48 @@
+"""Reconstructions: started as jobs, listed for comparison, downloaded."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Response
+from fastapi.responses import FileResponse
+
+from service import reconstructions
+from service.api.common import CSV, PNG, add_artifact_routes, download
+from service.api.deps import ServicesDep
+from service.artifacts import ReconstructionCodec
+from service.errors import ApiError
+from service.schemas import JobOut, ReconstructionCreate, ReconstructionOut
+
+router = APIRouter(prefix="/sessions/{session_id}", tags=["reconstructions"])
+
+
+@router.post("/reconstructions", status_code=202, response_model=JobOut)
+def start_reconstruction(session_id: str, body: ReconstructionCreate, services: ServicesDep):
+    """Reconstruct the session's recording (with its scan); the job's result names the
+    reconstruction."""
+    return reconstructions.start(services, session_id, body)
+
+
+add_artifact_routes(router, "reconstruction", "reconstructions", ReconstructionOut)
+
+
+@router.get("/reconstructions/{artifact_id}/csv", response_class=Response, responses=CSV)
+def reconstruction_csv(session_id: str, artifact_id: str, services: ServicesDep):
+    """x,y,z (m) with the per-point diagnostics, as `teachpath reconstruct` writes it."""
+    from drivers.export import reconstruction_csv_text
+
+    row = services.artifact(session_id, "reconstruction", artifact_id)
+    arrays = services.store.read_arrays(row)
+    text = reconstruction_csv_text(ReconstructionCodec.per_point(arrays))
+    return download(text, media_type="text/csv", filename=f"{artifact_id}.csv")
+
+
+@router.get(
+    "/reconstructions/{artifact_id}/preview.png", response_class=FileResponse, responses=PNG
+)
+def reconstruction_preview(session_id: str, artifact_id: str, services: ServicesDep):
+    """A picture of the scan, the trace and the reconstruction, with the displacements."""
+    services.artifact(session_id, "reconstruction", artifact_id)
+    path = reconstructions.preview_path(services, artifact_id)
+    if not path.is_file():
+        raise ApiError(404, "not_found", f"no preview for {artifact_id}")
+    return FileResponse(path, media_type="image/png")

@@ -1,0 +1,57 @@
+"""Recordings of a session: trace uploads (captures add them too) and their downloads."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Literal
+
+from fastapi import APIRouter, File, Form, Response, UploadFile
+
+from service import inputs
+from service.api.common import CSV, add_artifact_routes, download, read_upload
+from service.api.deps import ServicesDep
+from service.artifacts import RecordingCodec
+from service.schemas import RecordingOut
+
+router = APIRouter(prefix="/sessions/{session_id}", tags=["recordings"])
+
+
+@router.put("/recording", status_code=201, response_model=RecordingOut)
+async def upload_recording(
+    session_id: str,
+    services: ServicesDep,
+    file: UploadFile = File(..., description="the trace; format from the name or `format`"),
+    format: str | None = Form(None, description="csv, motive or c3d"),
+    units: Literal["m", "mm"] | None = Form(None, description="if the file states none (m)"),
+    rigid_body: str | None = Form(None, description="Motive: the pen's rigid body"),
+    marker: str | None = Form(None, description="Motive or C3D: a single marker as the pen"),
+    piece: int | None = Form(
+        None, ge=0, description="after long dropouts: which piece (default the longest)"
+    ),
+):
+    """Upload a trace; it becomes the session's recording. The session's tip offset is applied,
+    short dropouts are bridged and long ones split it (the summary says what was done). A bad
+    file is a 422 and changes nothing."""
+    options = inputs.TraceOptions(
+        format=format, units=units, rigid_body=rigid_body, marker=marker, piece=piece
+    )
+    upload = await read_upload(file, services)
+    return await inputs.add_recording(services, session_id, upload, options)
+
+
+add_artifact_routes(router, "recording", "recordings", RecordingOut)
+
+
+@router.get("/recordings/{artifact_id}/csv", response_class=Response, responses=CSV)
+def recording_csv(session_id: str, artifact_id: str, services: ServicesDep):
+    """The recording as the canonical trace CSV (metres, seconds)."""
+    from drivers.tracking.canonical_csv import write_trace_csv
+
+    row = services.artifact(session_id, "recording", artifact_id)
+    recording = RecordingCodec.decode(services.store.read_arrays(row))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "trace.csv"
+        write_trace_csv(path, recording)
+        content = path.read_bytes()
+    return download(content, media_type="text/csv", filename=f"{artifact_id}.csv")

@@ -1,0 +1,35 @@
+"""Trajectories: planned as jobs, listed, downloaded."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Response
+
+from service import tasks, trajectories
+from service.api.common import CSV, add_artifact_routes, download
+from service.api.deps import ServicesDep
+from service.schemas import JobOut, TrajectoryCreate, TrajectoryOut
+
+router = APIRouter(prefix="/sessions/{session_id}", tags=["trajectories"])
+
+
+@router.post("/trajectories", status_code=202, response_model=JobOut)
+def start_trajectory(session_id: str, body: TrajectoryCreate, services: ServicesDep):
+    """Plan a timed joint trajectory along a reconstruction; the result holds the feasibility
+    report."""
+    return trajectories.start(services, session_id, body)
+
+
+add_artifact_routes(router, "trajectory", "trajectories", TrajectoryOut)
+
+
+@router.get("/trajectories/{artifact_id}/csv", response_class=Response, responses=CSV)
+def trajectory_csv(session_id: str, artifact_id: str, services: ServicesDep):
+    """t,q0..q5 (s, rad) and the planned TCP x,y,z,rx,ry,rz (base frame), as `teachpath plan`
+    writes it."""
+    from drivers.export import trajectory_csv_text
+
+    row = services.artifact(session_id, "trajectory", artifact_id)
+    trajectory = tasks.load_trajectory(services.store.path_of(row), row.summary)
+    return download(
+        trajectory_csv_text(trajectory), media_type="text/csv", filename=f"{artifact_id}.csv"
+    )

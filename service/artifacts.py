@@ -1,0 +1,366 @@
+"""Artifacts by kind: one codec each (domain object <-> arrays on disk) and typed summaries.
+
+An artifact is an immutable product of a session (a recording, a scan, a reconstruction, a
+trajectory, an execution) stored as one ``.npz`` of arrays plus a JSON summary in the database.
+Everything that writes or reads those arrays goes through the codec of its kind, so the names of
+the arrays live here only; everything that reads a summary goes through its model, so the OpenAPI
+spec says what each kind reports and a reader (the real-arm gate) works on typed fields.
+
+Summaries written by earlier versions lack newer fields: every field added later has a default,
+and readers that must decide something from a summary (see :mod:`service.gate`) refuse when a
+field they need is missing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated, Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from recon.types import FloatArray, JointTrajectory, ReconstructedPath, Recording, Scan, SpeedDrop
+
+Arrays = dict[str, np.ndarray]
+
+KindName = Literal["recording", "scan", "reconstruction", "trajectory", "execution"]
+
+#: Artifact kinds and the prefix of their ids.
+ID_PREFIX: dict[str, str] = {
+    "recording": "rec",
+    "scan": "scn",
+    "reconstruction": "rcn",
+    "trajectory": "trj",
+    "execution": "exe",
+}
+
+
+def _present(arrays: Arrays) -> Arrays:
+    """The arrays that exist (optional fields are simply not stored)."""
+    return {name: value for name, value in arrays.items() if value is not None}
+
+
+# -- codecs ----------------------------------------------------------------------------------------
+
+
+class RecordingCodec:
+    """A recording: pen-tip positions (tracker frame, m), times (s), orientations (xyzw)."""
+
+    kind: ClassVar[str] = "recording"
+
+    @staticmethod
+    def encode(recording: Recording) -> Arrays:
+        return _present(
+            {
+                "points_m": np.asarray(recording.points_m),
+                "t_s": recording.t_s,
+                "orientations_xyzw": recording.orientations_xyzw,
+            }
+        )
+
+    @staticmethod
+    def decode(arrays: Arrays) -> Recording:
+        return Recording(
+            points_m=arrays["points_m"],
+            t_s=arrays.get("t_s"),
+            orientations_xyzw=arrays.get("orientations_xyzw"),
+        )
+
+
+class ScanCodec:
+    """A scan: points (scan frame, m) and optional normals."""
+
+    kind: ClassVar[str] = "scan"
+
+    @staticmethod
+    def encode(scan: Scan) -> Arrays:
+        return _present({"points_m": np.asarray(scan.points_m), "normals": scan.normals})
+
+    @staticmethod
+    def decode(arrays: Arrays) -> Scan:
+        return Scan(points_m=arrays["points_m"], normals=arrays.get("normals"))
+
+
+#: The per-point arrays of a reconstruction, in the order of the CSV's columns.
+RECONSTRUCTION_FIELDS = (
+    "points_m",
+    "input_points_m",
+    "t_s",
+    "orientations_xyzw",
+    "displacement_m",
+    "mode",
+    "segment",
+    "n_path",
+    "n_surface",
+    "residual_path_m",
+    "residual_surface_m",
+    "alpha",
+)
+#: Key prefix of the scan model's arrays stored beside a reconstruction.
+SCAN_MODEL_PREFIX = "scan_model."
+
+
+class ReconstructionCodec:
+    """A reconstruction: per-point arrays, the ``T_scan_tracker`` it used, and its scan model.
+
+    The scan model (the cropped scan's structure in the scan frame) is stored so that planning
+    reuses it with the same transform instead of registering and analysing the scan again.
+    """
+
+    kind: ClassVar[str] = "reconstruction"
+
+    @staticmethod
+    def encode(recon) -> Arrays:
+        """Arrays of a :class:`recon.types.Reconstruction`."""
+        arrays = {name: getattr(recon, name) for name in RECONSTRUCTION_FIELDS}
+        arrays["T_scan_tracker"] = recon.T_scan_tracker
+        if recon.scan_model is not None:
+            for name, value in recon.scan_model.to_arrays().items():
+                arrays[SCAN_MODEL_PREFIX + name] = value
+        return _present(arrays)
+
+    @staticmethod
+    def per_point(arrays: Arrays) -> Arrays:
+        """The per-point arrays only (what the CSV holds)."""
+        return {name: arrays[name] for name in RECONSTRUCTION_FIELDS if name in arrays}
+
+    @staticmethod
+    def decode(arrays: Arrays) -> ReconstructedPath:
+        """What planning needs: points, modes, pen orientations, the transform used."""
+        T = arrays.get("T_scan_tracker")
+        return ReconstructedPath(
+            points_m=arrays["points_m"],
+            mode=arrays["mode"],
+            orientations_xyzw=arrays.get("orientations_xyzw"),
+            T_scan_tracker=None if T is None or T.shape != (4, 4) else T,
+        )
+
+    @staticmethod
+    def scan_model(arrays: Arrays):
+        """The stored scan model, or None (no scan was used)."""
+        from recon.scan_model import ScanModel
+
+        part = {
+            name[len(SCAN_MODEL_PREFIX) :]: value
+            for name, value in arrays.items()
+            if name.startswith(SCAN_MODEL_PREFIX)
+        }
+        return ScanModel.from_arrays(part) if part else None
+
+
+#: The sample arrays of a trajectory.
+TRAJECTORY_FIELDS = (
+    "t_s",
+    "q_rad",
+    "qd_rad_s",
+    "qdd_rad_s2",
+    "tcp_m",
+    "tcp_rotvec",
+    "arc_length_m",
+)
+
+
+class TrajectoryCodec:
+    """A timed joint trajectory on the controller's grid (base frame)."""
+
+    kind: ClassVar[str] = "trajectory"
+
+    @staticmethod
+    def encode(trajectory: JointTrajectory) -> Arrays:
+        return {name: getattr(trajectory, name) for name in TRAJECTORY_FIELDS}
+
+    @staticmethod
+    def decode(arrays: Arrays, summary: TrajectorySummary) -> JointTrajectory:
+        """The trajectory; what it was planned for comes from its summary."""
+        return JointTrajectory(
+            robot=summary.robot,
+            requested_speed_m_s=summary.requested_speed_m_s,
+            speed_drops=tuple(SpeedDrop(**d.model_dump()) for d in summary.speed_drops),
+            **{name: arrays[name] for name in TRAJECTORY_FIELDS},
+        )
+
+
+@dataclass(frozen=True)
+class ExecutionSamples:
+    """What an execution recorded, sample by sample (empty when it never moved).
+
+    Attributes
+    ----------
+    t_s : ndarray of shape (K,)
+    q_planned_rad, q_actual_rad : ndarray of shape (K, 6)
+    """
+
+    t_s: FloatArray
+    q_planned_rad: FloatArray
+    q_actual_rad: FloatArray
+
+
+class ExecutionCodec:
+    """An execution's samples (dry run or real arm: the same arrays)."""
+
+    kind: ClassVar[str] = "execution"
+
+    @staticmethod
+    def encode(record) -> Arrays:
+        """Arrays of a :class:`drivers.robot.base.ExecutionRecord` (or None: nothing ran)."""
+        if record is None or len(record) == 0:
+            return {}
+        return {
+            "t_s": record.t_s,
+            "q_planned_rad": record.q_planned_rad,
+            "q_actual_rad": record.q_actual_rad,
+        }
+
+    @staticmethod
+    def decode(arrays: Arrays) -> ExecutionSamples | None:
+        if "t_s" not in arrays:
+            return None
+        return ExecutionSamples(arrays["t_s"], arrays["q_planned_rad"], arrays["q_actual_rad"])
+
+
+# -- typed summaries -------------------------------------------------------------------------------
+
+
+class _Summary(BaseModel):
+    # Older rows may hold keys a summary has since dropped: keep them rather than fail to show
+    # the artifact at all.
+    model_config = ConfigDict(extra="allow")
+
+
+Vector3 = tuple[float, float, float]
+Matrix4 = list[list[float]]
+
+
+class RecordingSummary(_Summary):
+    """What an upload, a capture or the demo recorded, and what cleaning did to it.
+
+    Reader-specific facts (the Motive rigid body, units, take name, ...) appear as extra keys.
+    """
+
+    format: str
+    n_samples: int
+    length_m: float
+    duration_s: float | None = None
+    has_orientations: bool = False
+    bounds_m: list[Vector3] | None = Field(None, description="lower and upper corner, metres")
+    rate_hz: float | None = None
+    piece: int | None = None
+    n_pieces: int | None = None
+    gaps: dict[str, Any] | None = None
+    gap_report: list[str] = Field(default_factory=list)
+    tip_offset_applied: bool = False
+    notes: list[str] = Field(default_factory=list)
+
+
+class ScanSummary(_Summary):
+    format: str
+    n_points: int
+    n_dropped: int = 0
+    has_normals: bool = False
+    notes: list[str] = Field(default_factory=list)
+    bounds_m: list[Vector3] | None = None
+
+
+class SegmentSummary(BaseModel):
+    start: int
+    stop: int
+    kind: Literal["edge", "surface", "path"]
+    edge_fraction: float
+
+
+class RegistrationSummary(BaseModel):
+    T_scan_tracker: Matrix4
+    rmse_m: float
+    fitness: float
+    n_pairs: int
+    target: Literal["edge", "surface"]
+    constrained_dof: int
+
+
+class ReconstructionSummary(_Summary):
+    n_points: int
+    modes: dict[str, int] = Field(..., description="points per mode: path, surface, edge, ...")
+    mean_displacement_m: float
+    max_displacement_m: float
+    segments: list[SegmentSummary]
+    T_scan_tracker: Matrix4 | None = Field(
+        None, description="the transform used: registered, else the given one; null: no scan"
+    )
+    registration: RegistrationSummary | None = None
+    notes: list[str] = Field(default_factory=list)
+
+
+class SpeedDropSummary(BaseModel):
+    start_m: float
+    end_m: float
+    min_speed_m_s: float
+    cause: str
+
+
+class TrajectorySummary(_Summary):
+    robot: str
+    requested_speed_m_s: float
+    duration_s: float
+    n_samples: int
+    rate_hz: float
+    path_length_m: float
+    tool_axis_from: str
+    ik_branch: int
+    min_limit_margin_rad: float
+    min_wrist_singularity: float
+    min_elbow_singularity: float
+    min_shoulder_margin_m: float
+    speed_drops: list[SpeedDropSummary] = Field(default_factory=list)
+    T_scan_tracker: Matrix4 | None = Field(
+        None, description="the scan's transform the tool axis was taken with (no new ICP)"
+    )
+    report: list[str] = Field(default_factory=list)
+
+
+class ExecutionSummary(_Summary):
+    """One shape for every execution: a dry run on the simulated arm or a run on a real one.
+
+    Numbers that could not be measured (nothing moved) are null, never NaN.
+    """
+
+    backend: Literal["sim", "ur_rtde"]
+    dry_run: bool
+    robot: str
+    mode: Literal["servoj", "movepath"]
+    tolerance_m: float
+    completed: bool
+    faults: list[str]
+    n_samples: int
+    duration_s: float | None = None
+    planned_duration_s: float | None = None
+    max_path_deviation_m: float | None = None
+    max_lag_m: float | None = None
+    max_joint_error_rad: float | None = None
+    min_limit_margin_rad: float | None = None
+    min_wrist_singularity: float | None = None
+    min_elbow_singularity: float | None = None
+    requested_speed_m_s: float | None = None
+    mean_speed_m_s: float | None = None
+    speed_drops: list[SpeedDropSummary] = Field(default_factory=list)
+    report: list[str] = Field(default_factory=list)
+
+
+SUMMARY_MODELS: dict[str, type[_Summary]] = {
+    "recording": RecordingSummary,
+    "scan": ScanSummary,
+    "reconstruction": ReconstructionSummary,
+    "trajectory": TrajectorySummary,
+    "execution": ExecutionSummary,
+}
+
+
+def summary_of(kind: str, summary: dict) -> _Summary:
+    """The typed summary of a stored artifact (raises pydantic's ValidationError if it does not
+    fit its kind's model)."""
+    return SUMMARY_MODELS[kind].model_validate(summary)
+
+
+AnySummary = Annotated[
+    RecordingSummary | ScanSummary | ReconstructionSummary | TrajectorySummary | ExecutionSummary,
+    Field(description="the summary of the artifact's kind"),
+]

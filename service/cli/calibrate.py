@@ -1,0 +1,103 @@
+"""``teachpath calibrate pivot|base``: the pen's tip offset and the tracker-to-robot transform."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from service.cli.options import OneLineParser, add_trace_options, check_output, positive
+
+
+def add_parser(commands) -> None:
+    calibrate = commands.add_parser(
+        "calibrate",
+        help="pen-tip (pivot) and tracker-to-robot (point pairs) calibrations",
+        description="Compute a calibration, print its residuals and save it as JSON.",
+    )
+    kinds = calibrate.add_subparsers(dest="kind", required=True, parser_class=OneLineParser)
+    pivot = kinds.add_parser(
+        "pivot",
+        help="the pen's tip offset from a pivoting recording",
+        description="The tip stays on one point while the pen is tilted in every direction; "
+        "the least-squares pivot gives the tip in the rigid body's frame. Pass the result to "
+        "reconstruct with --tip-calibration.",
+    )
+    pivot.add_argument("recording", metavar="REC", help="recording with orientations")
+    add_trace_options(pivot, tip=False)
+    pivot.add_argument("--units", choices=("m", "mm"), help="unit if the file states none")
+    pivot.add_argument("--out", required=True, metavar="TIP.json")
+    pivot.set_defaults(handler=run_pivot)
+    base = kinds.add_parser(
+        "base",
+        help="T_base_tracker from point pairs",
+        description="PAIRS.csv has a header naming base_x,base_y,base_z,tracker_x,tracker_y,"
+        "tracker_z: the same physical points (touched by the robot's TCP and by the tracked "
+        "tip) in both frames, at least 3 not on a line. Pairs that disagree with the others "
+        "by more than the tolerance are reported and left out.",
+    )
+    base.add_argument("pairs", metavar="PAIRS.csv")
+    base.add_argument("--units", choices=("m", "mm"), default="m", help="unit of the pairs")
+    base.add_argument(
+        "--tolerance-m", type=positive, default=1e-3, help="largest acceptable pair error"
+    )
+    base.add_argument("--out", required=True, metavar="T_base_tracker.json")
+    base.set_defaults(handler=run_base)
+
+
+def run_pivot(args: argparse.Namespace) -> int:
+    from drivers.calibration import write_tip_calibration
+    from drivers.tracking.readers import read_raw_trace
+    from service import pipelines
+
+    out = check_output(args.out, ".json")
+    raw = read_raw_trace(
+        args.recording,
+        fmt=args.path_format,
+        units=args.units,
+        rigid_body=args.rigid_body,
+        marker=args.marker,
+    )
+    outcome = pipelines.pivot(raw)
+    print(outcome.line())
+    result = outcome.as_json()
+    write_tip_calibration(
+        out,
+        outcome.calibration.tip_offset_m,
+        rigid_body=result["rigid_body"],
+        residual_rms_m=result["residual_rms_m"],
+        extra={
+            key: result[key]
+            for key in (
+                "residual_max_m",
+                "pivot_point_m",
+                "rotation_spread_deg",
+                "n_used",
+                "n_rejected",
+            )
+        }
+        | {"source": Path(args.recording).name},
+    )
+    return 0
+
+
+def run_base(args: argparse.Namespace) -> int:
+    from drivers.calibration import write_calibration
+    from drivers.tracking.point_pairs import read_point_pairs
+    from service import pipelines
+
+    out = check_output(args.out, ".json")
+    base_m, tracker_m = read_point_pairs(args.pairs, units=args.units)
+    outcome = pipelines.point_pairs(base_m, tracker_m, tolerance_m=args.tolerance_m)
+    print("\n".join(outcome.lines()))
+    result = outcome.as_json()
+    write_calibration(
+        out,
+        "T_base_tracker",
+        outcome.fit.T_a_b,
+        residual_rms_m=result["residual_rms_m"],
+        extra={
+            key: result[key] for key in ("residuals_m", "leave_one_out_m", "used", "tolerance_m")
+        }
+        | {"source": Path(args.pairs).name},
+    )
+    return 0

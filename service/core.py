@@ -1,0 +1,91 @@
+"""The small bundle every workflow takes: settings, store, job manager and the live runners.
+
+The workflows (``inputs``, ``reconstructions``, ``trajectories``, ``executions``, ``captures``)
+are plain functions of a :class:`Services` and a request; the routers only hand them over. Things
+that run in threads of this process (an execution on a real arm, a capture) are kept in
+:class:`LiveRunners` so a stop request or the shutdown can reach them.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+from service.errors import not_found
+from service.jobs import JobManager
+from service.settings import Settings
+from service.store import ArtifactRow, SessionRow, Store
+
+
+@dataclass
+class LiveRunners:
+    """Runners that live in this process, by id.
+
+    Attributes
+    ----------
+    executions : dict of str to ExecutionRunner
+        Real-arm executions by execution id, while they run.
+    execution_jobs : dict of str to str
+        Execution id -> job id, for every execution started by this process.
+    captures : dict of str to CaptureRunner
+        Captures by capture id, while they run.
+    """
+
+    executions: dict = field(default_factory=dict)
+    execution_jobs: dict[str, str] = field(default_factory=dict)
+    captures: dict = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def stop_all(self) -> None:
+        """Stop every arm and capture (at shutdown)."""
+        with self.lock:
+            executions, captures = list(self.executions.values()), list(self.captures.values())
+        for runner in executions:
+            runner.stop()
+        for runner in captures:
+            runner.stop()
+
+
+@dataclass
+class Services:
+    """What a workflow needs.
+
+    Attributes
+    ----------
+    settings : Settings
+    store : Store
+    jobs : JobManager
+    token : str
+        The access token every route but ``/health`` checks.
+    live : LiveRunners
+    """
+
+    settings: Settings
+    store: Store
+    jobs: JobManager
+    token: str
+    live: LiveRunners = field(default_factory=LiveRunners)
+
+    def session(self, session_id: str) -> SessionRow:
+        """The session, or a 404."""
+        row = self.store.session(session_id)
+        if row is None:
+            raise not_found("session", session_id)
+        return row
+
+    def artifact(self, session_id: str, kind: str, artifact_id: str) -> ArtifactRow:
+        """An artifact of a session, or a 404."""
+        self.session(session_id)
+        row = self.store.artifact(artifact_id, kind=kind, session_id=session_id)
+        if row is None:
+            raise not_found(kind, artifact_id)
+        return row
+
+    def array_path(self, artifact_id: str, suffix: str = "npz") -> str:
+        """Where a worker writes the file of a new artifact (absolute)."""
+        return str(self.store.data_dir / "arrays" / f"{artifact_id}.{suffix}")
+
+    def close(self) -> None:
+        self.live.stop_all()
+        self.jobs.shutdown()
+        self.store.engine.dispose()

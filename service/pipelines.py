@@ -1,0 +1,429 @@
+"""The pipelines behind every job, shared by the command line and the service's worker tasks.
+
+Each pipeline takes domain objects (a raw trace, a recording and a scan, a reconstructed path, a
+trajectory) and returns an outcome that knows its JSON summary and its terminal report. Reading
+and writing files is the caller's business: ``service/cli`` reads the user's files, the worker
+tasks (``service/tasks.py``) the session's stored arrays. So a reconstruction, its preview, a
+plan or a dry run comes out the same whichever way it was asked for.
+
+Heavy imports (Open3D, SciPy, toppra, matplotlib) happen inside the functions: the command line
+imports this module for every command.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from recon.types import FloatArray
+
+
+def _jsonable_or_none(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+# -- calibrations ----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PivotOutcome:
+    """A pivot calibration from a recording, with what was left out of it."""
+
+    calibration: object  # recon.calibrate.PivotCalibration
+    n_lost: int
+    rigid_body: str | None
+    format: str
+
+    def as_json(self) -> dict:
+        c = self.calibration
+        return {
+            "tip_offset_m": c.tip_offset_m.tolist(),
+            "pivot_point_m": c.pivot_point_m.tolist(),
+            "residual_rms_m": c.residual_rms_m,
+            "residual_max_m": c.residual_max_m,
+            "rotation_spread_deg": c.rotation_spread_deg,
+            "n_used": c.n_used,
+            "n_rejected": c.n_rejected,
+            "n_lost": self.n_lost,
+            "rigid_body": self.rigid_body,
+            "format": self.format,
+        }
+
+    def line(self) -> str:
+        c, mm = self.calibration, 1e3
+        x, y, z = c.tip_offset_m * mm
+        return (
+            f"tip offset ({x:.2f}, {y:.2f}, {z:.2f}) mm in the rigid body's frame; residual "
+            f"{c.residual_rms_m * mm:.3f} mm RMS, {c.residual_max_m * mm:.3f} mm max; pen "
+            f"turned {c.rotation_spread_deg:.0f} deg; {c.n_used} samples used, "
+            f"{c.n_rejected} rejected, {self.n_lost} lost"
+        )
+
+
+def pivot(raw) -> PivotOutcome:
+    """The pen's tip offset from a pivoting recording.
+
+    Parameters
+    ----------
+    raw : drivers.tracking.readers.RawTrace
+        Every sample as read; lost samples and samples without an orientation are left out.
+
+    Raises
+    ------
+    InputFileError
+        The recording has no orientations.
+    DegenerateInputError
+        Too few samples, or the pen did not pivot about two axes.
+    """
+    from drivers.tracking.readers import require_orientations
+    from recon.calibrate import pivot_calibration
+
+    require_orientations(raw, "a pivot calibration")
+    batch = raw.batch
+    q = np.asarray(batch.orientation_xyzw, dtype=np.float64)
+    good = (
+        np.asarray(batch.valid, dtype=bool)
+        & np.isfinite(batch.position_m).all(axis=1)
+        & np.isfinite(q).all(axis=1)
+    )
+    q = q[good] / np.linalg.norm(q[good], axis=1)[:, None]
+    calibration = pivot_calibration(np.asarray(batch.position_m)[good], q)
+    return PivotOutcome(
+        calibration=calibration,
+        n_lost=int(np.count_nonzero(~good)),
+        rigid_body=raw.meta.get("rigid_body"),
+        format=raw.format,
+    )
+
+
+@dataclass(frozen=True)
+class PointPairOutcome:
+    """``T_base_tracker`` fitted to point pairs, with every pair's residuals."""
+
+    fit: object  # recon.calibrate.PointPairCalibration
+
+    def as_json(self) -> dict:
+        fit = self.fit
+        return {
+            "T_base_tracker": fit.T_a_b.tolist(),
+            "residuals_m": fit.residuals_m.tolist(),
+            "leave_one_out_m": [_jsonable_or_none(v) for v in fit.leave_one_out_m],
+            "residual_rms_m": fit.residual_rms_m,
+            "suspect": fit.suspect.tolist(),
+            "used": fit.used.tolist(),
+            "tolerance_m": fit.tolerance_m,
+            "report": fit.lines(),
+        }
+
+    def lines(self) -> list[str]:
+        return self.fit.lines()
+
+
+def point_pairs(base_m: FloatArray, tracker_m: FloatArray, *, tolerance_m: float):
+    """Fit ``T_base_tracker`` to the same points measured in both frames (metres).
+
+    Raises
+    ------
+    DegenerateInputError
+        Fewer than 3 pairs, or collinear points.
+    """
+    from recon.calibrate import fit_point_pairs
+
+    fit = fit_point_pairs(
+        np.asarray(base_m, dtype=np.float64),
+        np.asarray(tracker_m, dtype=np.float64),
+        tolerance_m=tolerance_m,
+    )
+    return PointPairOutcome(fit)
+
+
+# -- reconstruction --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ReconstructOutcome:
+    """A reconstruction and what its preview draws.
+
+    Attributes
+    ----------
+    reconstruction : recon.types.Reconstruction
+    scan_tracker_m : ndarray of shape (M, 3), or None
+        The scan moved into the tracker frame with the transform the reconstruction used (the
+        registration's, else the given one), so the preview draws it where the path saw it.
+    """
+
+    reconstruction: object
+    scan_tracker_m: FloatArray | None
+
+    def summary(self) -> dict:
+        """The artifact's summary (see :class:`service.artifacts.ReconstructionSummary`)."""
+        from recon.types import PointMode
+
+        recon = self.reconstruction
+        reg = recon.registration
+        T = recon.T_scan_tracker
+        return {
+            "n_points": len(recon),
+            "modes": {m.label: recon.count(m) for m in PointMode},
+            "mean_displacement_m": float(recon.displacement_m.mean()),
+            "max_displacement_m": float(recon.displacement_m.max()),
+            "segments": [asdict(s) for s in recon.segments],
+            "T_scan_tracker": None if T is None else np.asarray(T).tolist(),
+            "registration": None
+            if reg is None
+            else {
+                "T_scan_tracker": reg.T_scan_tracker.tolist(),
+                "rmse_m": reg.rmse_m,
+                "fitness": reg.fitness,
+                "n_pairs": reg.n_pairs,
+                "target": str(reg.target),
+                "constrained_dof": reg.constrained_dof,
+            },
+            "notes": list(recon.notes),
+        }
+
+    def lines(self) -> list[str]:
+        """A few lines on what the reconstruction did (the command line prints them)."""
+        from recon.types import PointMode
+
+        recon, mm = self.reconstruction, 1e3
+        counts = ", ".join(
+            f"{recon.count(mode)} {mode.label}" for mode in PointMode if recon.count(mode)
+        )
+        lines = [
+            f"{len(recon)} points ({counts}) in {len(recon.segments)} segment(s); "
+            f"moved {np.mean(recon.displacement_m) * mm:.2f} mm on average, "
+            f"{np.max(recon.displacement_m) * mm:.2f} mm at most",
+        ]
+        reg = recon.registration
+        if reg is not None:
+            lines.append(
+                f"registered to the scan's {reg.target}: moved "
+                f"{np.linalg.norm(reg.translation_m) * mm:.2f} mm and {reg.rotation_deg:.2f} deg, "
+                f"residual {reg.rmse_m * mm:.2f} mm RMS, "
+                f"{reg.fitness * 100:.0f} % of the path paired, {reg.constrained_dof}/6 motions "
+                "fixed"
+            )
+        lines += [f"note: {note}" for note in recon.notes]
+        return lines
+
+    def write_preview(self, path: str | Path, *, title: str) -> None:
+        """A PNG of the scan, the trace and the result, with the displacements."""
+        from service.plots import plot_reconstruction
+
+        plot_reconstruction(path, self.reconstruction, scan_m=self.scan_tracker_m, title=title)
+
+
+def reconstruct(recording, scan, *, params, T_scan_tracker_init=None) -> ReconstructOutcome:
+    """Reconstruct a trace with the scan's structure (see :func:`recon.reconstruct.reconstruct`).
+
+    Parameters
+    ----------
+    recording : recon.types.Recording
+    scan : recon.types.Scan or None
+    params : recon.types.ReconParams
+    T_scan_tracker_init : ndarray of shape (4, 4), optional
+        The stored calibration: registration's initial guess, or the transform itself when
+        ``params.register`` is False.
+    """
+    from recon.transforms import apply_transform, invert_transform
+
+    from recon.reconstruct import reconstruct as run
+
+    init = None if T_scan_tracker_init is None else np.asarray(T_scan_tracker_init, np.float64)
+    recon = run(recording, scan, params=params, T_scan_tracker_init=init)
+    scan_tracker = None
+    if scan is not None:
+        T = recon.T_scan_tracker if recon.T_scan_tracker is not None else init
+        scan_tracker = (
+            np.asarray(scan.points_m)
+            if T is None
+            else apply_transform(invert_transform(np.asarray(T)), scan.points_m)
+        )
+    return ReconstructOutcome(reconstruction=recon, scan_tracker_m=scan_tracker)
+
+
+# -- planning --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PlacedScan:
+    """A scan's structure near a path, and where the scan is relative to the tracker.
+
+    Attributes
+    ----------
+    model : recon.scan_model.ScanModel
+        Scan frame.
+    T_scan_tracker : ndarray of shape (4, 4)
+    registration : recon.types.Registration or None
+        Set when the transform had to be found by registering the path here.
+    """
+
+    model: object
+    T_scan_tracker: FloatArray
+    registration: object | None
+
+
+def place_scan(scan, path, *, recon_params=None) -> PlacedScan:
+    """The scan model around a reconstructed path, placed with the path's ``T_scan_tracker``.
+
+    For a path that does not say where the scan was (a reconstruction CSV from the command line
+    without ``--scan-from-tracker``), the path is registered to the scan first, as the
+    reconstruction did; the result says so.
+    """
+    from recon.registration import register_path
+    from recon.scan_model import build_scan_model
+    from recon.transforms import apply_transform
+    from recon.types import ReconParams
+
+    params = recon_params or ReconParams()
+    if path.T_scan_tracker is not None:
+        T = np.asarray(path.T_scan_tracker, dtype=np.float64)
+        model = build_scan_model(scan, apply_transform(T, path.points_m), params)
+        return PlacedScan(model=model, T_scan_tracker=T, registration=None)
+    model, registration = register_path(path.points_m, scan, params)
+    return PlacedScan(
+        model=model, T_scan_tracker=registration.T_scan_tracker, registration=registration
+    )
+
+
+@dataclass(frozen=True)
+class PlanOutcome:
+    """A planned trajectory and the transform its tool axis was taken with."""
+
+    plan: object  # recon.plan.Plan
+    T_scan_tracker: FloatArray | None
+
+    @property
+    def trajectory(self):
+        return self.plan.trajectory
+
+    def summary(self) -> dict:
+        """The artifact's summary (see :class:`service.artifacts.TrajectorySummary`)."""
+        plan, traj = self.plan, self.plan.trajectory
+        joints = plan.joints
+        return {
+            "robot": traj.robot,
+            "requested_speed_m_s": traj.requested_speed_m_s,
+            "duration_s": traj.duration_s,
+            "n_samples": len(traj),
+            "rate_hz": 1.0 / traj.period_s,
+            "path_length_m": float(plan.tool.arc_length_m[-1]),
+            "tool_axis_from": plan.tool.source,
+            "ik_branch": joints.branch,
+            "min_limit_margin_rad": float(joints.limit_margin_rad.min()),
+            "min_wrist_singularity": float(joints.wrist_singularity.min()),
+            "min_elbow_singularity": float(joints.elbow_singularity.min()),
+            "min_shoulder_margin_m": float(joints.shoulder_margin_m.min()),
+            "speed_drops": [asdict(d) for d in traj.speed_drops],
+            "T_scan_tracker": None
+            if self.T_scan_tracker is None
+            else np.asarray(self.T_scan_tracker).tolist(),
+            "report": plan.report_lines(),
+        }
+
+    def lines(self) -> list[str]:
+        return self.plan.report_lines()
+
+
+def plan(path, *, params, T_base_tracker=None, scan_model=None, recon_params=None) -> PlanOutcome:
+    """Tool poses, inverse kinematics and timing along a reconstructed path.
+
+    Parameters
+    ----------
+    path : recon.types.ReconstructedPath
+        The reconstruction (tracker frame) with the ``T_scan_tracker`` it used.
+    params : recon.plan.PlanParams
+    T_base_tracker : ndarray of shape (4, 4), optional
+        Where the tracker frame is in the robot's base frame (default: the same frame).
+    scan_model : recon.scan_model.ScanModel, optional
+        The scan's structure near the path (scan frame), for the tool axis from the scan's
+        normals. It is used with ``path.T_scan_tracker``: nothing is registered again.
+    recon_params : recon.types.ReconParams, optional
+        The reconstruction's parameters (the radii of the normal fits); default the defaults.
+
+    Raises
+    ------
+    ValueError
+        A scan model without the transform it belongs to, or a missing orientation source.
+    InfeasibleTrajectoryError
+        The arm cannot follow the path.
+    """
+    from recon.plan import approach_in, normals_from_scan, plan_path
+
+    T_base = None if T_base_tracker is None else np.asarray(T_base_tracker, dtype=np.float64)
+    normals = None
+    T_scan_tracker = None
+    if scan_model is not None and params.orientation in ("auto", "scan"):
+        if path.T_scan_tracker is None:
+            raise ValueError(
+                "the reconstruction does not record where the scan was (T_scan_tracker): "
+                "reconstruct it again with the scan, or give the transform"
+            )
+        T_scan_tracker = np.asarray(path.T_scan_tracker, dtype=np.float64)
+        normals = normals_from_scan(
+            path.points_m,
+            path.mode,
+            scan_model,
+            T_scan_tracker=T_scan_tracker,
+            approach_tracker=approach_in(T_base, params.approach),
+            recon_params=recon_params,
+        )
+    result = plan_path(
+        path.points_m,
+        params=params,
+        T_base_tracker=T_base,
+        normals=normals,
+        pen_xyzw=path.orientations_xyzw,
+    )
+    return PlanOutcome(plan=result, T_scan_tracker=T_scan_tracker)
+
+
+# -- execution -------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ExecutionOutcome:
+    """What an execution showed (dry run or real arm) and what it recorded."""
+
+    report: object  # drivers.robot.dryrun.ExecutionReport
+    record: object  # drivers.robot.base.ExecutionRecord or None
+    backend: str
+    tolerance_m: float
+
+    def summary(self) -> dict:
+        """The artifact's summary (see :class:`service.artifacts.ExecutionSummary`)."""
+        report = asdict(self.report)
+        report["faults"] = list(report["faults"])
+        report["speed_drops"] = [dict(d) for d in report["speed_drops"]]
+        return {
+            **report,
+            "backend": self.backend,
+            "tolerance_m": self.tolerance_m,
+            "report": self.report.lines(),
+        }
+
+    def lines(self) -> list[str]:
+        return self.report.lines()
+
+    @property
+    def passed(self) -> bool:
+        return bool(self.report.completed and not self.report.faults)
+
+
+def dry_run(trajectory, *, mode: str = "servoj", tolerance_m: float = 5e-4) -> ExecutionOutcome:
+    """Execute ``trajectory`` on the simulated arm, faster than real time."""
+    from drivers.robot.clock import FakeClock
+    from drivers.robot.dryrun import dry_run as run
+    from drivers.robot.sim import SimBackend, SimConfig
+
+    sim = SimBackend(
+        SimConfig(robot=trajectory.robot, q_start_rad=tuple(trajectory.q_rad[0])),
+        clock=FakeClock(),
+    )
+    report = run(trajectory, backend=sim, mode=mode, tolerance_m=tolerance_m)
+    return ExecutionOutcome(
+        report=report, record=sim.last_record, backend="sim", tolerance_m=tolerance_m
+    )

@@ -1,0 +1,61 @@
+"""Trajectories: a reconstruction planned for a UR arm, as a job.
+
+Planning reuses what the reconstruction stored: its path, the transform between tracker and scan
+it used and the scan model it built, so no registration runs twice and the plan records which
+``T_scan_tracker`` its tool axis was taken with.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from service import tasks
+from service.artifacts import ID_PREFIX
+from service.core import Services
+from service.schemas import TrajectoryCreate
+from service.store import JobRow, new_id
+
+#: What the stored reconstruction parameters hold beyond the core's ReconParams.
+_NOT_RECON_PARAMS = ("T_scan_tracker_init",)
+
+
+def start(services: Services, session_id: str, request: TrajectoryCreate) -> JobRow:
+    """Queue the planning; the job's result names the trajectory.
+
+    Raises
+    ------
+    ApiError
+        404 for an unknown reconstruction.
+    ValueError
+        Parameters the core refuses (an unknown robot, ...).
+    """
+    session = services.session(session_id)
+    recon = services.artifact(session_id, "reconstruction", request.reconstruction_id)
+    params = request.plan_params()  # refuses bad combinations now, not in the worker
+    T = request.T_base_tracker or session.T_base_tracker
+    recon_params = {k: v for k, v in recon.params.items() if k not in _NOT_RECON_PARAMS}
+    out_id = new_id(ID_PREFIX["trajectory"])
+    inputs = {"reconstruction_id": recon.id, "scan_id": recon.inputs.get("scan_id")}
+    stored_params = {**params, "T_base_tracker": T}
+    out_path = services.array_path(out_id)
+
+    def done(summary: dict) -> dict:
+        services.store.add_file_artifact(
+            artifact_id=out_id,
+            session_id=session_id,
+            kind="trajectory",
+            path=str(Path(out_path).relative_to(services.store.data_dir)),
+            inputs=inputs,
+            params=stored_params,
+            summary=summary,
+        )
+        return {"trajectory_id": out_id}
+
+    task = tasks.Plan(
+        reconstruction_path=str(services.store.path_of(recon)),
+        params=params,
+        recon_params=recon_params,
+        T_base_tracker=T,
+        out_path=out_path,
+    )
+    return services.jobs.submit(session_id, "trajectory", {**stored_params, **inputs}, task, done)
