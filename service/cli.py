@@ -201,7 +201,8 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument(
         "--scan-from-tracker",
         metavar="T.json",
-        help="stored calibration T_scan_tracker (initial guess for finding the scan's normals)",
+        help="T_scan_tracker the scan is used at (the reconstruction's registered transform or "
+        "a calibration; default: scan and path in one frame); it is not refined",
     )
     plan.add_argument("--robot", default="ur5e", help="UR model (default ur5e)")
     plan.add_argument("--speed-m-s", type=_positive, required=True, help="TCP speed")
@@ -428,7 +429,7 @@ def _cmd_reconstruct(args: argparse.Namespace) -> int:
     recon = reconstruct(recording, scan, params=params, T_scan_tracker_init=T_scan_tracker)
     if plot is not None:
         # Written first: if the plot fails, no CSV claims the run succeeded.
-        from recon.align import apply_transform, invert_transform
+        from recon.transforms import apply_transform, invert_transform
         from service.plots import plot_reconstruction
 
         scan_tracker = None
@@ -609,7 +610,13 @@ def summary(recon) -> str:
 def _cmd_plan(args: argparse.Namespace) -> int:
     from drivers.calibration import read_calibration
     from drivers.export import read_reconstruction_csv, write_trajectory_csv
-    from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path
+    from recon.plan import (
+        PlanParams,
+        approach_in,
+        normals_from_scan,
+        plan_path,
+        scan_model_for_path,
+    )
 
     out = _check_output(args.out, ".csv")
     params = PlanParams(
@@ -631,12 +638,14 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         T_scan_tracker = read_calibration(args.scan_from_tracker, expect="T_scan_tracker").matrix
     if args.scan and params.orientation in ("auto", "scan"):
         scan = _read_scan_for(args).scan
-        normals, _ = normals_from_scan(
+        # No registration here: the scan is used at the given transform (identity without one).
+        T_scan_tracker = np.eye(4) if T_scan_tracker is None else T_scan_tracker
+        normals = normals_from_scan(
             recon.points_m,
             recon.mode,
-            scan,
+            scan_model_for_path(scan, recon.points_m, T_scan_tracker=T_scan_tracker),
+            T_scan_tracker=T_scan_tracker,
             approach_tracker=approach_in(T_base_tracker, params.approach),
-            T_scan_tracker_init=T_scan_tracker,
         )
     plan = plan_path(
         recon.points_m,
@@ -709,9 +718,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from drivers.scanning.pointcloud import write_scan
     from drivers.tracking.canonical_csv import write_trace_csv
     from recon import scenes
-    from recon.align import apply_transform, invert_transform
     from recon.evaluation import default_variants, evaluate, format_table
     from recon.reconstruct import reconstruct
+    from recon.transforms import apply_transform, invert_transform
     from service.plots import plot_reconstruction
 
     out_dir = Path(args.out_dir)

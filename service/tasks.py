@@ -178,8 +178,8 @@ def reconstruct_task(
     T_scan_tracker_init: list | None = None,
 ) -> dict:
     """Reconstruct; write the result's arrays and a PNG preview; return a summary."""
-    from recon.align import apply_transform, invert_transform
     from recon.reconstruct import reconstruct
+    from recon.transforms import apply_transform, invert_transform
     from service.plots import plot_reconstruction
 
     recording = recording_from(_load(recording_path))
@@ -242,19 +242,30 @@ def plan_task(
     out_path: str,
 ) -> dict:
     """Plan a trajectory along a stored reconstruction; write it; return the report."""
-    from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path
+    from recon.plan import (
+        PlanParams,
+        approach_in,
+        normals_from_scan,
+        plan_path,
+        scan_model_for_path,
+    )
 
     recon = _load(reconstruction_path)
     plan_params = PlanParams(**params)
     T = None if T_base_tracker is None else np.array(T_base_tracker)
     normals = None
     if scan_path and plan_params.orientation in ("auto", "scan"):
-        normals, _ = normals_from_scan(
+        # The transform the reconstruction used (None: the scan was used as it is); no
+        # registration here.
+        T_scan = np.eye(4) if T_scan_tracker is None else np.array(T_scan_tracker)
+        normals = normals_from_scan(
             recon["points_m"],
             recon["mode"],
-            scan_from(_load(scan_path)),
+            scan_model_for_path(
+                scan_from(_load(scan_path)), recon["points_m"], T_scan_tracker=T_scan
+            ),
+            T_scan_tracker=T_scan,
             approach_tracker=approach_in(T, plan_params.approach),
-            T_scan_tracker_init=None if T_scan_tracker is None else np.array(T_scan_tracker),
         )
     plan = plan_path(
         recon["points_m"],
