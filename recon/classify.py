@@ -9,12 +9,17 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from recon.fitting import gather
-from recon.scan_model import ScanModel
 from recon.types import FloatArray, ReconParams
+
+if TYPE_CHECKING:
+    # For the annotation only: Segment imports this module for SegmentKind, which should not
+    # pull in the scan model's Open3D and SciPy.
+    from recon.scan_model import ScanModel
 
 #: A segment whose points lie this close (median) to the thinned edge follows it: 2.5 times
 #: the operator's typical error (paper, Sec. VI: std 0.5-1 mm).

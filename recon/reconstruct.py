@@ -164,9 +164,11 @@ def reconstruct(
     model: ScanModel | None = None
     T_scan_tracker: FloatArray | None = None
     if scan is not None and params.uses_scan:
-        model, T_scan_tracker, registration = prepare_scan_model(
+        prepared = prepare_scan_model(
             points, scan, bounds, params, T_scan_tracker_init=T_scan_tracker_init
         )
+        model, T_scan_tracker = prepared.model, prepared.T_scan_tracker
+        registration = prepared.registration
         work_points = apply_transform(T_scan_tracker, points)
         classes = classify_segments(work_points, bounds, model, params)
     else:
@@ -207,6 +209,25 @@ def reconstruct(
     )
 
 
+@dataclass(frozen=True)
+class PreparedScan:
+    """The scan model near a path and the transform to use it with.
+
+    Attributes
+    ----------
+    model : ScanModel
+        Scan frame.
+    T_scan_tracker : ndarray of shape (4, 4)
+        The registration's transform, else the initial one.
+    registration : Registration or None
+        None when registration was switched off.
+    """
+
+    model: ScanModel
+    T_scan_tracker: FloatArray
+    registration: Registration | None
+
+
 def prepare_scan_model(
     points_tracker_m: FloatArray,
     scan: Scan,
@@ -214,7 +235,7 @@ def prepare_scan_model(
     params: ReconParams,
     *,
     T_scan_tracker_init: FloatArray | None = None,
-) -> tuple[ScanModel, FloatArray, Registration | None]:
+) -> PreparedScan:
     """The scan model near a path (scan frame) and the transform to use it with.
 
     The model is built around the path mapped by the initial transform (the crop margin covers
@@ -234,11 +255,7 @@ def prepare_scan_model(
 
     Returns
     -------
-    model : ScanModel
-    T_scan_tracker : ndarray of shape (4, 4)
-        The registration's transform, else the initial one.
-    registration : Registration or None
-        None when ``params.register`` is False.
+    PreparedScan
 
     Raises
     ------
@@ -258,7 +275,7 @@ def prepare_scan_model(
             points_tracker_m, model, bounds, params, T_scan_tracker_init=T_scan_tracker
         )
         T_scan_tracker = registration.T_scan_tracker
-    return model, T_scan_tracker, registration
+    return PreparedScan(model=model, T_scan_tracker=T_scan_tracker, registration=registration)
 
 
 def _assemble(

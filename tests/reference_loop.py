@@ -244,9 +244,10 @@ def reconstruct_loop(recording, scan, params: ReconParams, T_scan_tracker_init=N
     T = np.eye(4)
     model = None
     if scan is not None and params.uses_scan:
-        model, T, _ = R.prepare_scan_model(
+        prepared = R.prepare_scan_model(
             points, scan, bounds, params, T_scan_tracker_init=T_scan_tracker_init
         )
+        model, T = prepared.model, prepared.T_scan_tracker
         work = apply_transform(T, points)
         classes = classify_segments(work, bounds, model, params)
     else:

@@ -122,7 +122,8 @@ def test_speed_table():
             # The per-point stage on its own, vectorised and looped, on the same scan model.
             plan = R.plan_segments(scene.recording, params)
             points, bounds, half = plan.resampled.points_m, plan.bounds, plan.half_width
-            model, T, _ = R.prepare_scan_model(points, scene.scan, bounds, params)
+            prepared = R.prepare_scan_model(points, scene.scan, bounds, params)
+            model, T = prepared.model, prepared.T_scan_tracker
             work = apply_transform(T, points)
             kind = classify_segments(work, bounds, model, params)[0].kind
             start, stop = bounds[0]

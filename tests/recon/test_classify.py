@@ -33,7 +33,8 @@ def test_the_box_corner_segments_follow_edges_and_the_trace_without_a_scan_nothi
     params = ReconParams()
     plan = plan_segments(scene.recording, params)
     points = plan.resampled.points_m
-    model, T, _ = prepare_scan_model(points, scene.scan, plan.bounds, params)
+    prepared = prepare_scan_model(points, scene.scan, plan.bounds, params)
+    model, T = prepared.model, prepared.T_scan_tracker
     classes = classify_segments(apply_transform(T, points), plan.bounds, model, params)
     assert [c.kind for c in classes] == [SegmentKind.EDGE, SegmentKind.EDGE]
     assert all(c.edge_fraction > 0.9 for c in classes)

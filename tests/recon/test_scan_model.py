@@ -75,9 +75,9 @@ def test_a_stored_model_restores_every_array_and_gives_the_same_normals(cylinder
 
 def test_a_model_without_edges_round_trips():
     scene = scenes.flat_liftoff(0)
-    model, _, _ = prepare_scan_model(
+    model = prepare_scan_model(
         scene.recording.points_m, scene.scan, [(0, len(scene.recording))], ReconParams()
-    )
+    ).model
     empty = replace(model, edges=model.edges.empty())
     restored = ScanModel.from_arrays(stored_and_loaded(empty.to_arrays()))
     assert len(restored.edges) == 0 and restored.edge_tree is None
@@ -137,10 +137,9 @@ def test_planning_reuses_the_reconstructions_transform_and_model_without_icp(cyl
     # What planning did before: resample the reconstructed path, rebuild the scan model around
     # it and register it again (the same steps as the old scan_context).
     plan = plan_segments(Recording(points_m=recon.points_m), params)
-    old_model, old_T, old_registration = prepare_scan_model(
-        plan.resampled.points_m, scene.scan, plan.bounds, params
-    )
-    assert old_registration is not None
+    prepared = prepare_scan_model(plan.resampled.points_m, scene.scan, plan.bounds, params)
+    old_model, old_T = prepared.model, prepared.T_scan_tracker
+    assert prepared.registration is not None
     old = normals_from_scan(
         recon.points_m,
         recon.mode,
