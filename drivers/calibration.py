@@ -26,7 +26,7 @@ import numpy as np
 from drivers.errors import InputFileError
 from drivers.files import atomic_path
 from drivers.units import metres_per
-from recon.align import check_rigid
+from recon.transforms import check_rigid
 from recon.types import FloatArray
 
 

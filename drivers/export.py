@@ -10,7 +10,7 @@ import numpy as np
 
 from drivers.errors import InputFileError
 from drivers.files import atomic_path
-from recon.types import FloatArray, JointTrajectory, PointMode, Reconstruction, ReconstructedPath
+from recon.types import FloatArray, JointTrajectory, PointMode, ReconstructedPath, Reconstruction
 
 QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw")
 #: Columns of a trajectory file (the contract of ``teachpath plan``).

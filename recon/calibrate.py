@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from recon.errors import DegenerateInputError
+from recon.transforms import apply_transform
 from recon.types import FloatArray
 
 #: The pen must turn through at least this much (about two different axes) for a pivot fit.
@@ -313,4 +314,4 @@ def _kabsch(a: FloatArray, b: FloatArray) -> FloatArray:
 
 
 def _pair_errors(T: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    return np.linalg.norm(b @ T[:3, :3].T + T[:3, 3] - a, axis=1)
+    return np.linalg.norm(apply_transform(T, b) - a, axis=1)

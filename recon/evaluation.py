@@ -18,10 +18,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from recon.align import apply_transform, invert_transform
 from recon.metrics import ErrorStats, best_savitzky_golay, error_stats
 from recon.reconstruct import reconstruct
 from recon.scenes import Scene
+from recon.transforms import apply_transform, invert_transform
 from recon.types import FloatArray, ReconParams, Reconstruction
 
 

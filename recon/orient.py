@@ -25,11 +25,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter1d
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from recon.features import ScanFeatures, fit_edge_lines
+from recon.edge_lines import fit_edge_lines
 from recon.fitting import gather, weighted_pca
+from recon.scan_model import ScanModel
 from recon.types import FloatArray, PointMode, ToolPath
 
 #: Scan points per local surface-normal fit.
@@ -47,28 +47,32 @@ class ScanNormals:
     normals : ndarray of shape (N, 3)
         Unit vectors pointing away from the material, towards the tool; zero where unknown.
     known : ndarray of shape (N,), bool
+    T_scan_tracker : ndarray of shape (4, 4), or None
+        The transform the scan was looked up with, when the normals are in the tracker frame
+        and came from a scan (see :func:`recon.plan.normals_from_scan`).
     """
 
     normals: FloatArray
     known: NDArray[np.bool_]
+    T_scan_tracker: FloatArray | None = None
 
 
 def scan_normals(
     points_m: FloatArray,
-    features: ScanFeatures,
+    model: ScanModel,
     *,
     mode: NDArray[np.int8],
     approach: FloatArray,
     radius_m: float,
-    edge_fit_radius_m: float,
 ) -> ScanNormals:
     """Surface normals (or edge bisectors) of the scan at the path's points.
 
     Parameters
     ----------
-    points_m : ndarray of shape (N, 3)
-        Path points, in the frame of ``features``.
-    features : ScanFeatures
+    points_m : ndarray of shape (N, 3), metres
+        Path points, in the frame of ``model`` (the scan frame).
+    model : ScanModel
+        Its trees are reused; the two-face fits at edges use its ``edge_fit_radius_m``.
     mode : ndarray of shape (N,)
         :class:`PointMode` of each point: edge points get the bisector of the two faces, surface
         points the normal of a local plane fit, path-only points none.
@@ -76,8 +80,6 @@ def scan_normals(
         Direction the tool comes from, in the same frame: normals are turned to face it.
     radius_m : float
         Neighbourhood radius of the plane fits.
-    edge_fit_radius_m : float
-        Ball radius of the two-face fits at edges.
 
     Returns
     -------
@@ -90,13 +92,15 @@ def scan_normals(
     on_edge = mode == PointMode.EDGE
     on_surface = mode == PointMode.SURFACE
     if np.any(on_edge):
-        fit = fit_edge_lines(points[on_edge], features, radius_m=edge_fit_radius_m)
+        fit = fit_edge_lines(
+            points[on_edge], model.features, radius_m=model.edge_fit_radius_m, trees=model.trees
+        )
         normals[on_edge] = fit.bisector
         known[on_edge] = fit.ok
     if np.any(on_surface):
-        dense = features.dense_points_m
+        dense = model.features.dense_points_m
         k = min(NORMAL_NEIGHBOURS, len(dense))
-        dist, idx = cKDTree(dense).query(
+        dist, idx = model.dense_tree.query(
             points[on_surface], k=k, distance_upper_bound=radius_m, workers=-1
         )
         if k == 1:

@@ -84,9 +84,7 @@ def param(
 
 def specs(cls) -> dict[str, Spec]:
     """Name -> :class:`Spec` of every declared parameter of a dataclass, in field order."""
-    return {
-        f.name: f.metadata[SPEC_KEY] for f in dataclasses.fields(cls) if SPEC_KEY in f.metadata
-    }
+    return {f.name: f.metadata[SPEC_KEY] for f in dataclasses.fields(cls) if SPEC_KEY in f.metadata}
 
 
 def type_hints(cls) -> dict[str, Any]:

@@ -1,4 +1,11 @@
-"""From a reconstructed path to a timed joint trajectory: orientation, IK, timing, report."""
+"""From a reconstructed path to a timed joint trajectory: orientation, IK, timing, report.
+
+The scan enters planning only through the tool axis: :func:`normals_from_scan` looks the normals
+up in the scan model the reconstruction built, at the transform it used (``Reconstruction
+.scan_model`` and ``.T_scan_tracker``), so planning neither registers nor rebuilds anything.
+Where only a stored path and the scan are at hand (the command line), :func:`scan_model_for_path`
+builds the model around the path at a known transform, again without registering.
+"""
 
 from __future__ import annotations
 
@@ -8,15 +15,22 @@ from typing import Literal
 import numpy as np
 
 from recon import kinematics
-from recon.align import apply_transform, check_rigid, invert_transform
 from recon.orient import ScanNormals, fill_along_path, scan_normals, tool_path
+from recon.scan_model import ScanModel, build_scan_model
 from recon.timing import limits_for, time_parameterize
+from recon.transforms import (
+    apply_transform,
+    check_rigid,
+    invert_transform,
+    rotate_vectors,
+    rotation_angle_deg,
+    translation_m,
+)
 from recon.types import (
     FloatArray,
     JointPath,
     JointTrajectory,
     ReconParams,
-    Registration,
     Scan,
     ToolPath,
 )
@@ -81,12 +95,24 @@ class PlanParams:
 
 @dataclass(frozen=True)
 class Plan:
-    """A planned trajectory with everything that led to it."""
+    """A planned trajectory with everything that led to it.
+
+    Attributes
+    ----------
+    tool : ToolPath
+    joints : JointPath
+    trajectory : JointTrajectory
+    params : PlanParams
+    T_scan_tracker : ndarray of shape (4, 4), or None
+        The transform the scan's normals were looked up with, when the tool axis came from the
+        scan; None otherwise.
+    """
 
     tool: ToolPath
     joints: JointPath
     trajectory: JointTrajectory
     params: PlanParams
+    T_scan_tracker: FloatArray | None = None
 
     def report_lines(self) -> list[str]:
         """The feasibility report for a terminal."""
@@ -102,6 +128,12 @@ class Plan:
             f"{joints.elbow_singularity.min():.2f}, shoulder "
             f"{joints.shoulder_margin_m.min() * mm:.0f} mm",
         ]
+        if self.T_scan_tracker is not None:
+            lines.append(
+                f"scan normals at T_scan_tracker: "
+                f"{np.linalg.norm(translation_m(self.T_scan_tracker)) * mm:.2f} mm and "
+                f"{rotation_angle_deg(self.T_scan_tracker):.2f} deg from the tracker frame"
+            )
         for drop in traj.speed_drops:
             lines.append(
                 f"slower than requested from {drop.start_m * mm:.0f} to "
@@ -129,7 +161,9 @@ def plan_path(
     T_base_tracker : ndarray of shape (4, 4), optional
         Where the tracker frame is in the robot base frame (identity: the same frame).
     normals : ScanNormals, optional
-        Outward surface directions at the points, tracker frame.
+        Outward surface directions at the points, tracker frame (see
+        :func:`normals_from_scan`); its ``T_scan_tracker`` is recorded in the plan when the
+        tool axis comes from it.
     pen_xyzw : ndarray of shape (N, 4), optional
         Pen orientations at the points, tracker frame.
     q_near_rad : ndarray of shape (6,), optional
@@ -185,7 +219,13 @@ def plan_path(
         acceleration_scale=params.acceleration_scale,
     )
     trajectory = time_parameterize(arm, joints, tool, limits, T_flange_tcp=params.T_flange_tcp)
-    return Plan(tool=tool, joints=joints, trajectory=trajectory, params=params)
+    return Plan(
+        tool=tool,
+        joints=joints,
+        trajectory=trajectory,
+        params=params,
+        T_scan_tracker=normals.T_scan_tracker if source == "scan" else None,
+    )
 
 
 def approach_in(T_base_tracker: FloatArray | None, approach_base) -> FloatArray:
@@ -194,34 +234,105 @@ def approach_in(T_base_tracker: FloatArray | None, approach_base) -> FloatArray:
     return R.T @ np.asarray(approach_base, dtype=np.float64)
 
 
+def scan_model_for_path(
+    scan: Scan,
+    points_tracker_m: FloatArray,
+    *,
+    T_scan_tracker: FloatArray | None = None,
+    recon_params: ReconParams | None = None,
+) -> ScanModel:
+    """The scan model around a stored path at a known transform, without registering.
+
+    For callers that have a path and the scan but not the reconstruction's own model (the
+    command line reads a reconstruction CSV). The model is built around the path itself, so it
+    differs a little from the reconstruction's (built around the raw trace), not in substance.
+
+    Parameters
+    ----------
+    scan : Scan
+        Scan frame.
+    points_tracker_m : ndarray of shape (N, 3), metres
+        The path, tracker frame.
+    T_scan_tracker : ndarray of shape (4, 4), optional
+        The transform to use (a calibration, or the one the reconstruction used); identity if
+        not given: path and scan already in one frame.
+    recon_params : ReconParams, optional
+        Crop, voxel and curvature settings (defaults if not given).
+
+    Returns
+    -------
+    ScanModel
+        Scan frame.
+
+    Raises
+    ------
+    ValueError
+        ``T_scan_tracker`` is not a rigid transform.
+    NoOverlapError
+        The scan has too few points near the path at that transform.
+    """
+    T = np.eye(4) if T_scan_tracker is None else check_rigid(T_scan_tracker, name="T_scan_tracker")
+    points = apply_transform(T, np.asarray(points_tracker_m, dtype=np.float64))
+    return build_scan_model(scan, points, recon_params or ReconParams())
+
+
 def normals_from_scan(
     points_tracker_m: FloatArray,
     mode: np.ndarray,
-    scan: Scan,
+    scan_model: ScanModel,
     *,
+    T_scan_tracker: FloatArray,
     approach_tracker: FloatArray,
     recon_params: ReconParams | None = None,
-    T_scan_tracker_init: FloatArray | None = None,
-) -> tuple[ScanNormals, Registration | None]:
+) -> ScanNormals:
     """Outward surface directions of the scan at a reconstructed path's points (tracker frame).
 
-    The path is registered to the scan as the reconstruction was (it lies on the scan's
-    features, so this finds the same transform); edge points get the bisector of the two faces,
-    surface points the local normal, turned towards ``approach_tracker``.
+    Nothing is registered or recomputed: the path is mapped into the scan frame by
+    ``T_scan_tracker`` and looked up in ``scan_model``. Edge points get the bisector of the two
+    faces, surface points the local normal, turned towards ``approach_tracker``.
+
+    Parameters
+    ----------
+    points_tracker_m : ndarray of shape (N, 3), metres
+        The reconstructed path, tracker frame.
+    mode : ndarray of shape (N,), int8
+        :class:`recon.types.PointMode` of each point (``Reconstruction.mode``).
+    scan_model : ScanModel
+        Scan frame: ``Reconstruction.scan_model``, a stored one
+        (:meth:`ScanModel.from_arrays`) or :func:`scan_model_for_path`.
+    T_scan_tracker : ndarray of shape (4, 4)
+        The transform the model is used with (``Reconstruction.T_scan_tracker``).
+    approach_tracker : ndarray of shape (3,)
+        Where the tool comes from, tracker frame (see :func:`approach_in`).
+    recon_params : ReconParams, optional
+        ``radius_m`` is the radius of the surface-normal fits (defaults if not given).
+
+    Returns
+    -------
+    ScanNormals
+        Tracker frame, with ``T_scan_tracker`` recorded.
+
+    Raises
+    ------
+    ValueError
+        ``T_scan_tracker`` is not a rigid transform, or ``mode`` does not match the points.
     """
     params = recon_params or ReconParams()
-    from recon.reconstruct import EDGE_FIT_RADIUS_FACTOR, scan_context
-
-    context, T_scan_tracker, registration = scan_context(
-        points_tracker_m, scan, params=params, T_scan_tracker_init=T_scan_tracker_init
-    )
-    R = T_scan_tracker[:3, :3]
+    T = check_rigid(T_scan_tracker, name="T_scan_tracker")
+    points = np.asarray(points_tracker_m, dtype=np.float64)
+    mode = np.asarray(mode)
+    if mode.shape != (len(points),):
+        raise ValueError(f"mode has shape {mode.shape} for {len(points)} points")
     found = scan_normals(
-        apply_transform(T_scan_tracker, np.asarray(points_tracker_m, dtype=np.float64)),
-        context.features,
+        apply_transform(T, points),
+        scan_model,
         mode=mode,
-        approach=R @ np.asarray(approach_tracker, dtype=np.float64),
+        approach=rotate_vectors(T, np.asarray(approach_tracker, dtype=np.float64)[None])[0],
         radius_m=params.radius_m,
-        edge_fit_radius_m=EDGE_FIT_RADIUS_FACTOR * params.curvature_radius_m,
     )
-    return ScanNormals(normals=found.normals @ R, known=found.known), registration
+    # Back to the tracker frame: rotate by R^T (row vectors times R).
+    return ScanNormals(
+        normals=rotate_vectors(invert_transform(T), found.normals),
+        known=found.known,
+        T_scan_tracker=T.copy(),
+    )

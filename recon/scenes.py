@@ -20,6 +20,7 @@ import numpy as np
 from scipy.ndimage import convolve1d
 from scipy.spatial.transform import Rotation
 
+from recon.transforms import apply_transform
 from recon.types import FloatArray, Recording, Scan
 
 MM = 1e-3
@@ -179,10 +180,6 @@ def misalignment(rng: np.random.Generator, *, shift_m: float, angle_deg: float) 
     return T
 
 
-def _apply(T: FloatArray, points: FloatArray) -> FloatArray:
-    return points @ T[:3, :3].T + T[:3, 3]
-
-
 def _scan_from_surface(
     points: FloatArray,
     normals: FloatArray,
@@ -198,7 +195,7 @@ def _scan_from_surface(
     if n_out:
         lo, hi = points.min(axis=0) - 0.01, points.max(axis=0) + 0.01
         noisy = np.concatenate([noisy, rng.uniform(lo, hi, size=(n_out, 3))])
-    return Scan(points_m=_apply(T_scan_tracker, noisy))
+    return Scan(points_m=apply_transform(T_scan_tracker, noisy))
 
 
 def _sample_count(area_m2: float, density_per_mm2: float) -> int:
@@ -366,7 +363,7 @@ def flat_liftoff(
     noisy = pts.copy()
     noisy[:, 2] += scan_noise_m * (0.6 * field + 0.8 * rng.standard_normal(n))
     T = misalignment(rng, shift_m=shift_m, angle_deg=angle_deg)
-    scan = Scan(points_m=_apply(T, noisy))
+    scan = Scan(points_m=apply_transform(T, noisy))
     return Scene(
         name="flat_liftoff",
         description=f"Fig. 7: flat plate, trace lifts off by {lift_m / MM:.0f} mm mid-way, "

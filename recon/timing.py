@@ -17,10 +17,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from recon.errors import InfeasibleTrajectoryError
 from recon.kinematics import URModel, forward
+from recon.transforms import pose_from_transform
 from recon.types import FloatArray, JointPath, JointTrajectory, SpeedDrop, ToolPath
 
 #: Samples may exceed a limit by this fraction (the parametrizer's own rounding).
@@ -237,6 +237,7 @@ def _assemble(arm, samples, limits, joints, tool, T_flange_tcp) -> JointTrajecto
     q = samples["x"][:, :6]
     flange = forward(arm, q)
     tcp = flange if T_flange_tcp is None else flange @ np.asarray(T_flange_tcp)
+    tcp_pose = pose_from_transform(tcp)
     arc = samples["x"][:, 6]
     speed = samples["xd"][:, 6]
     return JointTrajectory(
@@ -245,8 +246,8 @@ def _assemble(arm, samples, limits, joints, tool, T_flange_tcp) -> JointTrajecto
         q_rad=q,
         qd_rad_s=samples["xd"][:, :6],
         qdd_rad_s2=samples["xdd"][:, :6],
-        tcp_m=tcp[:, :3, 3],
-        tcp_rotvec=Rotation.from_matrix(tcp[:, :3, :3]).as_rotvec(),
+        tcp_m=tcp_pose[:, :3],
+        tcp_rotvec=tcp_pose[:, 3:],
         arc_length_m=arc,
         requested_speed_m_s=limits.speed_m_s,
         speed_drops=tuple(_speed_drops(arc, speed, joints, tool, limits)),

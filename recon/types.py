@@ -11,10 +11,17 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from numpy.typing import NDArray
+
+from recon.transforms import rotation_angle_deg, translation_m
+
+if TYPE_CHECKING:
+    # Annotations only: both modules import this one.
+    from recon.classify import SegmentKind
+    from recon.scan_model import ScanModel
 
 FloatArray = NDArray[np.float64]
 
@@ -252,12 +259,21 @@ class Segment:
 
     ``start`` and ``stop`` index the resampled path (``stop`` exclusive); neighbouring segments
     share their corner point, which belongs to the later one in ``Reconstruction.segment``.
+    ``kind`` is a :class:`recon.classify.SegmentKind`, a string enum: ``dataclasses.asdict`` of a
+    segment serialises to JSON as ``"edge"``, ``"surface"`` or ``"path"``.
     """
 
     start: int
     stop: int
-    kind: Literal["edge", "surface", "path"]
+    kind: SegmentKind
     edge_fraction: float
+
+    def __post_init__(self) -> None:
+        # Imported here: recon.classify imports this module. A plain string is accepted (a
+        # segment read back from JSON) and refused if it names no kind.
+        from recon.classify import SegmentKind
+
+        object.__setattr__(self, "kind", SegmentKind(self.kind))
 
 
 @dataclass(frozen=True)
@@ -297,13 +313,12 @@ class Registration:
 
     @property
     def translation_m(self) -> FloatArray:
-        return self.T_scan_tracker[:3, 3]
+        return translation_m(self.T_scan_tracker)
 
     @property
     def rotation_deg(self) -> float:
         """Angle of the rotation part, degrees."""
-        c = (np.trace(self.T_scan_tracker[:3, :3]) - 1.0) / 2.0
-        return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+        return rotation_angle_deg(self.T_scan_tracker)
 
 
 @dataclass(frozen=True)
@@ -336,6 +351,15 @@ class Reconstruction:
     registration : Registration or None
         None when no scan was used or registration was switched off.
     params : ReconParams
+    notes : tuple of str
+    orientations_xyzw : see above
+    T_scan_tracker : ndarray of shape (4, 4), or None
+        The transform the scan was used with: the registration's, else the initial (calibrated)
+        one given, else identity when a scan was used without either; None when no scan was used.
+    scan_model : ScanModel or None
+        The scan's structure near the path, scan frame, as the reconstruction used it (None
+        without a scan). Planning reuses it with ``T_scan_tracker`` instead of recomputing it.
+        Left out of equality and repr: it is large and derived from the inputs.
     """
 
     points_m: FloatArray
@@ -354,8 +378,16 @@ class Reconstruction:
     params: ReconParams
     notes: tuple[str, ...] = field(default=())
     orientations_xyzw: FloatArray | None = None
+    T_scan_tracker: FloatArray | None = None
+    scan_model: ScanModel | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
+        if self.T_scan_tracker is not None:
+            T = np.array(self.T_scan_tracker, dtype=np.float64)
+            if T.shape != (4, 4):
+                raise ValueError(f"T_scan_tracker must be 4x4, got {T.shape}")
+            T.setflags(write=False)
+            object.__setattr__(self, "T_scan_tracker", T)
         n = len(self.points_m)
         for name in (
             "orientations_xyzw",

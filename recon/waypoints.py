@@ -13,10 +13,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from recon import kinematics
 from recon.kinematics import URModel
+from recon.transforms import invert_transform, transform_from_pose
 from recon.types import FloatArray, JointTrajectory
 
 #: Longest stretch (samples) considered between two waypoints: bounds the work per check.
@@ -148,7 +148,6 @@ def coarse_waypoints(
 
 def _tcp_offset(arm: URModel, trajectory: JointTrajectory) -> FloatArray:
     """``T_flange_tcp`` recovered from the first sample's planned TCP pose, shape (4, 4)."""
-    T_base_tcp = np.eye(4)
-    T_base_tcp[:3, :3] = Rotation.from_rotvec(np.array(trajectory.tcp_rotvec[0])).as_matrix()
-    T_base_tcp[:3, 3] = trajectory.tcp_m[0]
-    return np.linalg.inv(kinematics.forward(arm, trajectory.q_rad[0])) @ T_base_tcp
+    first_pose = np.concatenate([trajectory.tcp_m[0], trajectory.tcp_rotvec[0]])
+    T_base_tcp = transform_from_pose(first_pose)
+    return invert_transform(kinematics.forward(arm, trajectory.q_rad[0])) @ T_base_tcp

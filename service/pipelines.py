@@ -228,9 +228,8 @@ def reconstruct(recording, scan, *, params, T_scan_tracker_init=None) -> Reconst
         The stored calibration: registration's initial guess, or the transform itself when
         ``params.register`` is False.
     """
-    from recon.transforms import apply_transform, invert_transform
-
     from recon.reconstruct import reconstruct as run
+    from recon.transforms import apply_transform, invert_transform
 
     init = None if T_scan_tracker_init is None else np.asarray(T_scan_tracker_init, np.float64)
     recon = run(recording, scan, params=params, T_scan_tracker_init=init)
@@ -273,19 +272,23 @@ def place_scan(scan, path, *, recon_params=None) -> PlacedScan:
     without ``--scan-from-tracker``), the path is registered to the scan first, as the
     reconstruction did; the result says so.
     """
-    from recon.registration import register_path
-    from recon.scan_model import build_scan_model
-    from recon.transforms import apply_transform
-    from recon.types import ReconParams
+    from recon.plan import scan_model_for_path
+    from recon.reconstruct import plan_segments, prepare_scan_model
+    from recon.types import ReconParams, Recording
 
     params = recon_params or ReconParams()
     if path.T_scan_tracker is not None:
         T = np.asarray(path.T_scan_tracker, dtype=np.float64)
-        model = build_scan_model(scan, apply_transform(T, path.points_m), params)
+        model = scan_model_for_path(scan, path.points_m, T_scan_tracker=T, recon_params=params)
         return PlacedScan(model=model, T_scan_tracker=T, registration=None)
-    model, registration = register_path(path.points_m, scan, params)
+    segments = plan_segments(Recording(points_m=path.points_m), params)
+    prepared = prepare_scan_model(
+        segments.resampled.points_m, scan, segments.bounds, params, T_scan_tracker_init=None
+    )
     return PlacedScan(
-        model=model, T_scan_tracker=registration.T_scan_tracker, registration=registration
+        model=prepared.model,
+        T_scan_tracker=prepared.T_scan_tracker,
+        registration=prepared.registration,
     )
 
 

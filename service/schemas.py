@@ -50,7 +50,7 @@ def _check_matrix(value: Matrix4 | None) -> Matrix4 | None:
         raise ValueError("must be a 4x4 matrix (a list of 4 rows of 4 numbers)")
     if not all(math.isfinite(v) for row in value for v in row):
         raise ValueError("must hold finite numbers")
-    from recon.align import check_rigid
+    from recon.transforms import check_rigid
 
     check_rigid(value, name="the matrix")
     return value

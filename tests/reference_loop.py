@@ -7,7 +7,7 @@ Independent of ``recon.fitting``: one point at a time with ``numpy.linalg.eigh``
   method, written from the paper and the module docstrings rather than from the batched code);
 * the speed benchmark times it next to the vectorised one, in the same process.
 
-It consumes the same scan context (features, thinned edges, trees) as the vectorised code, so it
+It consumes the same scan model (features, thinned edges, trees) as the vectorised code, so it
 covers Algorithm 2 and the anchored method, not the scan preparation they share.
 """
 
@@ -16,6 +16,11 @@ from __future__ import annotations
 import numpy as np
 
 from recon import reconstruct as R
+from recon.classify import PATH_ONLY, SegmentKind, classify_segments
+from recon.methods import anchored as A
+from recon.methods.common import EDGE_DIRECTION_TOLERANCE_DEG
+from recon.methods.paper import align_scan_axes
+from recon.transforms import apply_transform, invert_transform
 from recon.types import ReconParams
 
 
@@ -71,17 +76,17 @@ def _window(i: int, n: int, half: int) -> np.ndarray:
     return np.arange(start, start + w)
 
 
-def _edge_nbrs(centre, direction, context, radius):
+def _edge_nbrs(centre, direction, model, radius):
     """Edge points near ``centre`` running along ``direction``, and their line-fit variances."""
-    edges = context.edges
-    idx = context.edge_tree.query_ball_point(centre, radius)
+    edges = model.edges
+    idx = model.edge_tree.query_ball_point(centre, radius)
     idx = sorted(idx, key=lambda j: np.linalg.norm(edges.points_m[j] - centre))[:64]
     idx = np.array(
         [
             j
             for j in idx
             if abs(edges.directions[j] @ direction)
-            >= np.cos(np.radians(R.EDGE_DIRECTION_TOLERANCE_DEG))
+            >= np.cos(np.radians(EDGE_DIRECTION_TOLERANCE_DEG))
         ],
         dtype=int,
     )
@@ -90,12 +95,12 @@ def _edge_nbrs(centre, direction, context, radius):
     return edges.points_m[idx], edges.variance_m2[idx]
 
 
-def paper_segment_loop(points, kind, context, params: ReconParams, half_width: int):
+def paper_segment_loop(points, kind, model, params: ReconParams, half_width: int):
     """Eq. (4), one point at a time. Returns (points (n, 3), alpha (n,))."""
     n = len(points)
     degree = min(params.degree, min(2 * half_width + 1, n) - 2)
     scale = params.radius_m
-    use_scan = kind != "path" and params.alpha != 1.0
+    use_scan = kind != SegmentKind.PATH and params.alpha != 1.0
     out = np.empty_like(points)
     alphas = np.ones(n)
     for i in range(n):
@@ -108,20 +113,20 @@ def paper_segment_loop(points, kind, context, params: ReconParams, half_width: i
         f_p = float(design_at @ coef_p[:, 0])
         alpha, f_s = 1.0, 0.0
         if use_scan:
-            if kind == "edge":
-                ns, _ = _edge_nbrs(points[i], axes[:, 0], context, params.radius_m)
+            if kind == SegmentKind.EDGE:
+                ns, _ = _edge_nbrs(points[i], axes[:, 0], model, params.radius_m)
             else:
                 ns = np.concatenate(
                     [
-                        context.features.dense_points_m[
-                            context.dense_tree.query(points[j], k=params.surface_k)[1]
+                        model.features.dense_points_m[
+                            model.dense_tree.query(points[j], k=params.surface_k)[1]
                         ]
                         for j in _window(i, n, half_width)
                     ]
                 )
             if len(ns) >= degree + 2:
                 mean_s, axes_s = _pca(ns)
-                axes_s = R.align_scan_axes(axes_s[None], axes[None])[0]
+                axes_s = align_scan_axes(axes_s[None], axes[None])[0]
                 local_s = (ns - mean_s) @ axes_s
                 coef_s, rms_s, inv_s, dof_s, _ = _fit_robust(
                     _design(local_s[:, 0], degree, scale), local_s[:, 1]
@@ -140,12 +145,12 @@ def paper_segment_loop(points, kind, context, params: ReconParams, half_width: i
     return out, alphas
 
 
-def anchored_segment_loop(points, kind, context, params: ReconParams, half_width: int):
+def anchored_segment_loop(points, kind, model, params: ReconParams, half_width: int):
     """The anchored method, one point at a time. Returns (points (n, 3), alpha (n,))."""
     n = len(points)
     degree = min(params.degree, min(2 * half_width + 1, n) - 2)
     scale = params.radius_m
-    use_scan = kind != "path" and params.alpha != 1.0
+    use_scan = kind != SegmentKind.PATH and params.alpha != 1.0
     smoothed = np.empty_like(points)
     target = points.copy()
     var_fit = np.zeros(n)
@@ -161,9 +166,9 @@ def anchored_segment_loop(points, kind, context, params: ReconParams, half_width
         var_fit[i] = rms**2 * design_at @ inverse @ design_at
         if not use_scan:
             continue
-        if kind == "edge":
+        if kind == SegmentKind.EDGE:
             ns, line_var = _edge_nbrs(
-                smoothed[i], axes[:, 0], context, R.EDGE_SCAN_RADII * params.radius_m
+                smoothed[i], axes[:, 0], model, A.EDGE_SCAN_RADII * params.radius_m
             )
             if len(ns) < degree + 3:
                 continue
@@ -180,16 +185,16 @@ def anchored_segment_loop(points, kind, context, params: ReconParams, half_width
             inside = xs.min() - 0.5 * params.radius_m <= x_at <= xs.max() + 0.5 * params.radius_m
             if dof_s >= 2 and inside:
                 target[i] = mean_s + axes_s @ np.concatenate([[x_at], d_at @ coef_s])
-                scatter = rms_s**2 * min(d_at @ inv_s @ d_at * R.edge_dependence(context), 1.0)
+                scatter = rms_s**2 * min(d_at @ inv_s @ d_at * A.edge_dependence(model), 1.0)
                 # The line fits' own precision, averaged over the points the fit kept.
                 var_t[i] = max(scatter, float(np.mean(line_var[keep])))
         else:
-            dense = context.features.dense_points_m
-            idx = context.dense_tree.query_ball_point(
-                smoothed[i], R.SURFACE_SCAN_RADII * params.radius_m
+            dense = model.features.dense_points_m
+            idx = model.dense_tree.query_ball_point(
+                smoothed[i], A.SURFACE_SCAN_RADII * params.radius_m
             )
             idx = sorted(idx, key=lambda j: np.linalg.norm(dense[j] - smoothed[i]))
-            ns = dense[np.array(idx[: R.SURFACE_NEIGHBOURS], dtype=int)]
+            ns = dense[np.array(idx[: A.SURFACE_NEIGHBOURS], dtype=int)]
             if len(ns) < 7:
                 continue
             mean_s, axes_s = _pca(ns)
@@ -208,7 +213,7 @@ def anchored_segment_loop(points, kind, context, params: ReconParams, half_width
     if not use_scan:
         alpha = np.ones(n)
     elif params.alpha == "auto":
-        size = int(2 * R.DRIFT_WINDOW_RADII * half_width + 1)
+        size = int(2 * A.DRIFT_WINDOW_RADII * half_width + 1)
         half = size // 2
         disc = np.where(supported, np.sum((smoothed - target) ** 2, axis=1), 0.0)
         alpha = np.ones(n)
@@ -234,22 +239,23 @@ def reconstruct_loop(recording, scan, params: ReconParams, T_scan_tracker_init=N
         Tracker frame, one per resampled point (the corner point of two segments from the later
         one, as in ``recon.reconstruct``).
     """
-    from recon.align import apply_transform, invert_transform
-
     plan = R.plan_segments(recording, params)
     points, bounds, half = plan.resampled.points_m, plan.bounds, plan.half_width
     T = np.eye(4)
-    context = None
+    model = None
     if scan is not None and params.uses_scan:
-        context, T, _ = R._prepare_context(points, scan, bounds, params, T_scan_tracker_init)
+        prepared = R.prepare_scan_model(
+            points, scan, bounds, params, T_scan_tracker_init=T_scan_tracker_init
+        )
+        model, T = prepared.model, prepared.T_scan_tracker
         work = apply_transform(T, points)
-        kinds = R._classify(work, bounds, context, params)
+        classes = classify_segments(work, bounds, model, params)
     else:
         work = points
-        kinds = [("path", 0.0)] * len(bounds)
+        classes = [PATH_ONLY] * len(bounds)
     loop = anchored_segment_loop if params.method == "anchored" else paper_segment_loop
     out = np.empty_like(points)
-    for (start, stop), (kind, _) in zip(bounds, kinds, strict=True):
-        result, _ = loop(work[start:stop], kind, context, params, half)
+    for (start, stop), segment_class in zip(bounds, classes, strict=True):
+        result, _ = loop(work[start:stop], segment_class.kind, model, params, half)
         out[start:stop] = result
     return apply_transform(invert_transform(T), out)

@@ -33,6 +33,7 @@ from drivers.errors import (
 )
 from drivers.robot.clock import Clock, RealClock
 from recon import kinematics
+from recon.transforms import pose_from_transform
 from recon.types import FloatArray, JointTrajectory
 from recon.waypoints import CoarsePath, coarse_waypoints
 
@@ -324,10 +325,7 @@ class RobotBackend(ABC):
                 self._state = RobotState.ENABLED
 
     def _flange_pose(self, q: FloatArray) -> FloatArray:
-        from scipy.spatial.transform import Rotation
-
-        T = kinematics.forward(self.arm, q)
-        return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
+        return pose_from_transform(kinematics.forward(self.arm, q))
 
     def _require_connected(self) -> None:
         if self._state is RobotState.DISCONNECTED:

@@ -22,6 +22,7 @@ from scipy.spatial.transform import Rotation
 from drivers.errors import InputFileError
 from drivers.scanning._native import captured_native_stderr
 from drivers.scanning.base import ReaderOptions, ScanFile, ScanReader
+from recon.transforms import apply_transform
 from recon.types import FloatArray, Scan
 
 #: Every E57 file starts with this signature (the standard's file header).
@@ -146,7 +147,7 @@ def _read_scan(e57: pye57.E57, index: int, label: str) -> tuple[FloatArray, int]
     n_invalid_state = total - len(xyz)  # pye57 drops points the file flags invalid
     finite = np.isfinite(xyz).all(axis=1)
     T = _pose(header, index, label)
-    points = xyz[finite] @ T[:3, :3].T + T[:3, 3]
+    points = apply_transform(T, xyz[finite])
     return points, n_invalid_state + int(np.count_nonzero(~finite))
 
 

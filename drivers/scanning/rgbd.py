@@ -68,6 +68,7 @@ from scipy.spatial.transform import Rotation
 from drivers.errors import InputFileError
 from drivers.scanning._native import check_image_file, quiet_open3d, read_image
 from drivers.scanning.base import ReaderOptions, ScanFile, ScanReader
+from recon.transforms import RIGID_TOLERANCE, is_proper_rotation
 from recon.types import FloatArray, Scan
 
 #: Raw depth units per metre when nothing says otherwise (16-bit PNGs in millimetres).
@@ -267,11 +268,10 @@ def check_pose(value: Any, label: str) -> FloatArray:
         raise InputFileError(f"{label} must be a 4x4 matrix, got shape {T.shape}")
     if not np.all(np.isfinite(T)):
         raise InputFileError(f"{label} has NaN or infinite values")
-    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
+    if not np.allclose(T[3], [0, 0, 0, 1], rtol=0.0, atol=RIGID_TOLERANCE):
         raise InputFileError(f"{label} has last row {T[3].tolist()}, not [0, 0, 0, 1]")
-    R = T[:3, :3]
-    # 1e-4: poses written with 6-8 significant digits are orthonormal to about 1e-6.
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+    # The project's one rigidity tolerance (see recon.transforms.RIGID_TOLERANCE).
+    if not is_proper_rotation(T[:3, :3]):
         raise InputFileError(
             f"{label}: the rotation part is not a rotation (scaled, sheared or mirrored); give "
             "T_world_camera as a rigid transform"

@@ -225,7 +225,8 @@ def _value_type(name: str, hint, spec):
             choices = " or ".join(repr(w) for w in words)
             kind = "an integer" if numeric is int else "a number"
             raise argparse.ArgumentTypeError(
-                f"{_flag(name)} takes {kind}" + (f" or {choices}" if words else "")
+                f"{_flag(name)} takes {kind}"
+                + (f" or {choices}" if words else "")
                 + f", not {value!r}"
             ) from None
 

@@ -16,9 +16,11 @@ import pytest
 
 from recon import reconstruct as R
 from recon import scenes
-from recon.align import apply_transform
+from recon.classify import classify_segments
 from recon.evaluation import default_variants, evaluate, format_table, registered_truth
+from recon.methods.anchored import anchored_segment
 from recon.metrics import error_stats
+from recon.transforms import apply_transform
 from recon.types import ReconParams
 from tests.reference_loop import anchored_segment_loop
 
@@ -117,21 +119,21 @@ def test_speed_table():
             total = _median_time(
                 partial(R.reconstruct, scene.recording, scene.scan, params=params), repeats
             )
-            # The per-point stage on its own, vectorised and looped, on the same context.
+            # The per-point stage on its own, vectorised and looped, on the same scan model.
             plan = R.plan_segments(scene.recording, params)
             points, bounds, half = plan.resampled.points_m, plan.bounds, plan.half_width
-            context, T, _ = R._prepare_context(points, scene.scan, bounds, params, None)
+            prepared = R.prepare_scan_model(points, scene.scan, bounds, params)
+            model, T = prepared.model, prepared.T_scan_tracker
             work = apply_transform(T, points)
-            kinds = R._classify(work, bounds, context, params)
+            kind = classify_segments(work, bounds, model, params)[0].kind
             start, stop = bounds[0]
-            kind = kinds[0][0]
             seg = work[start:stop]
             vector = _median_time(
-                partial(R._anchored_segment, seg, kind, context, params, half), repeats
+                partial(anchored_segment, seg, kind, model, params, half), repeats
             )
             sub = seg[:LOOP_POINTS]
             loop = (
-                _median_time(partial(anchored_segment_loop, sub, kind, context, params, half), 1)
+                _median_time(partial(anchored_segment_loop, sub, kind, model, params, half), 1)
                 * len(seg)
                 / len(sub)
             )

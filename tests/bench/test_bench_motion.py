@@ -60,8 +60,12 @@ def test_achieved_speed_with_and_without_orientation_smoothing():
     for name in ("cylinder_edge", "box_corner", "flat_liftoff"):
         scene = scenes.SCENES[name](0)
         recon = reconstruct(scene.recording, scene.scan)
-        normals, _ = normals_from_scan(
-            recon.points_m, recon.mode, scene.scan, approach_tracker=approach_in(T, (0, 0, 1))
+        normals = normals_from_scan(
+            recon.points_m,
+            recon.mode,
+            recon.scan_model,
+            T_scan_tracker=recon.T_scan_tracker,
+            approach_tracker=approach_in(T, (0, 0, 1)),
         )
         for speed in (0.05, 0.2):
             cells = []
@@ -94,8 +98,12 @@ def test_dry_run_tracking():
     for name in ("cylinder_edge", "box_corner"):
         scene = scenes.SCENES[name](0)
         recon = reconstruct(scene.recording, scene.scan)
-        normals, _ = normals_from_scan(
-            recon.points_m, recon.mode, scene.scan, approach_tracker=approach_in(T, (0, 0, 1))
+        normals = normals_from_scan(
+            recon.points_m,
+            recon.mode,
+            recon.scan_model,
+            T_scan_tracker=recon.T_scan_tracker,
+            approach_tracker=approach_in(T, (0, 0, 1)),
         )
         for speed in (0.05, 0.1):
             plan = plan_path(

@@ -676,8 +676,12 @@ def test_a_dry_run_sized_trajectory_streams_with_servoj_and_runs_as_a_path(fake_
     T = base_from_tracker()
     scene = scenes.SCENES["cylinder_edge"](0)
     recon = reconstruct(scene.recording, scene.scan)
-    normals, _ = normals_from_scan(
-        recon.points_m, recon.mode, scene.scan, approach_tracker=approach_in(T, (0, 0, 1))
+    normals = normals_from_scan(
+        recon.points_m,
+        recon.mode,
+        recon.scan_model,
+        T_scan_tracker=recon.T_scan_tracker,
+        approach_tracker=approach_in(T, (0, 0, 1)),
     )
     trajectory = plan_path(
         recon.points_m, T_base_tracker=T, normals=normals, params=PlanParams(speed_m_s=0.1)

@@ -4,14 +4,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from recon.edge_lines import fit_edge_lines
+from recon.edges import thin_edges
 from recon.errors import NoOverlapError
-from recon.features import (
-    crop_near,
-    edge_threshold,
-    fit_edge_lines,
-    prepare_scan,
-    thin_edges,
-)
+from recon.features import crop_near, edge_threshold, prepare_scan
 
 
 def dihedral(

@@ -114,10 +114,14 @@ def test_the_reconstructed_demo_path_plans_with_scan_normals():
     recon = reconstruct(scene.recording, scene.scan)
     T = base_from_tracker()
     params = PlanParams(speed_m_s=0.05)
-    normals, registration = normals_from_scan(
-        recon.points_m, recon.mode, scene.scan, approach_tracker=approach_in(T, params.approach)
+    normals = normals_from_scan(
+        recon.points_m,
+        recon.mode,
+        recon.scan_model,
+        T_scan_tracker=recon.T_scan_tracker,
+        approach_tracker=approach_in(T, params.approach),
     )
-    assert normals.known.all() and registration is not None
+    assert normals.known.all() and recon.registration is not None
     # At the rim the tool axis bisects the top face and the wall: (cos a, sin a, 1)/sqrt 2 out.
     a = np.arctan2(recon.points_m[:, 1], recon.points_m[:, 0])
     expected = np.column_stack([np.cos(a), np.sin(a), np.ones_like(a)]) / np.sqrt(2)

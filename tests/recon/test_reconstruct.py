@@ -7,11 +7,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from recon import scenes
-from recon.align import apply_transform, invert_transform
 from recon.errors import DegenerateInputError, NoOverlapError, UnitsMismatchError
 from recon.evaluation import height_above_registered, registered_truth
 from recon.metrics import best_savitzky_golay, error_stats
 from recon.reconstruct import reconstruct
+from recon.transforms import apply_transform, invert_transform
 from recon.types import PointMode, ReconParams, Recording, Scan
 from tests.reference_loop import reconstruct_loop
 
@@ -125,7 +125,7 @@ def test_fig4_cylinder_edge_meets_the_papers_ratio_and_beats_the_baselines(cylin
 
     Errors are measured as in the paper, against the edge where the registered scan puts it
     (the ratio 13.0 / 21.9 = 0.59 is theirs), and also in the tracker frame, where the part of the
-    operator's drift that looks like a rigid motion stays (see recon.align).
+    operator's drift that looks like a rigid motion stays (see recon.icp).
     """
     default = reconstruct(cylinder.recording, cylinder.scan)
     path_only = reconstruct(cylinder.recording, None)

@@ -141,7 +141,11 @@ def test_a_calibrated_scanner_without_registration(client, scene_folder, tmp_pat
     sid = service_session(client, scene_folder, T_scan_tracker=T)
     rid, service_csv, service_png = service_reconstruction(client, sid, registration=False)
     cli_csv, cli_png = cli_reconstruction(
-        scene_folder, tmp_path, "--no-register", "--scan-from-tracker", str(scene_folder / "T_scan.json")
+        scene_folder,
+        tmp_path,
+        "--no-register",
+        "--scan-from-tracker",
+        str(scene_folder / "T_scan.json"),
     )
     assert cli_csv == service_csv
     assert cli_png == service_png

@@ -55,6 +55,7 @@ from drivers.robot.sim import (
     trapezoid_fractions,
 )
 from recon import kinematics
+from recon.transforms import pose_from_transform, transform_from_pose
 from recon.waypoints import CoarsePath
 
 log = logging.getLogger("fake_ur.controller")
@@ -215,7 +216,7 @@ class FakeController:
 
     def tcp_pose(self, q=None) -> list[float]:
         T = kinematics.forward(self.arm, self.q if q is None else np.asarray(q))
-        return [*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_rotvec()]
+        return pose_from_transform(T).tolist()
 
     @property
     def protective_stopped(self) -> bool:
@@ -646,9 +647,7 @@ class FakeController:
     def _ik_many(self, poses: np.ndarray, q_near) -> list[np.ndarray | None]:
         """IK of poses (N, 6) in order, each solution nearest the previous one (the first
         nearest ``q_near``); None where a pose is unreachable."""
-        T = np.repeat(np.eye(4)[None], len(poses), axis=0)
-        T[:, :3, :3] = Rotation.from_rotvec(poses[:, 3:6]).as_matrix()
-        T[:, :3, 3] = poses[:, :3]
+        T = transform_from_pose(poses[:, :6])
         solutions = kinematics.inverse(self.arm, T)
         near = np.asarray(q_near, dtype=np.float64)
         out: list[np.ndarray | None] = []

@@ -1,12 +1,13 @@
-"""Registration: known transforms recovered, free motions left alone, checked against Open3D."""
+"""The ICP: known transforms recovered, free motions left alone, checked against Open3D."""
 
 import numpy as np
 import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
-from recon.align import apply_transform, check_rigid, invert_transform, register_icp
 from recon.errors import RegistrationError
+from recon.icp import register_icp
+from recon.transforms import apply_transform, invert_transform
 
 
 def transform(rotvec_deg, translation_m):
@@ -151,11 +152,3 @@ def test_no_overlap_is_an_error():
             target_directions=directions,
             target_label="edge",
         )
-
-
-@pytest.mark.parametrize(
-    "bad", [np.eye(3), np.full((4, 4), np.nan), np.diag([1.0, 1, -1, 1]), np.diag([2.0, 1, 1, 1])]
-)
-def test_check_rigid_refuses_non_rigid_matrices(bad):
-    with pytest.raises(ValueError):
-        check_rigid(bad)

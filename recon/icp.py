@@ -1,8 +1,8 @@
-"""Registration of the traced path to the scan's features (ICP), and rigid-transform helpers.
+"""A degeneracy-aware ICP: rigid registration of a path onto feature points (edge or surface).
 
 The paper aligns the noisy path to the scan's edge points with ICP because a mobile scanner's
 pose relative to the tracker is uncertain. Here the path is registered to the *thinned* edge
-(points on the edge itself, see ``recon.features.thin_edges``) when it follows edges, and to the
+(points on the edge itself, see ``recon.edges.thin_edges``) when it follows edges, and to the
 surface (point-to-plane) otherwise; registering to the raw edge band, whose centroid lies inside
 the corner, leaves an error of about a millimetre.
 
@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from recon.errors import RegistrationError
+from recon.transforms import apply_transform, check_rigid
 from recon.types import FloatArray, Registration
 
 #: Fewest path points that must find a partner for a registration to be trusted.
@@ -39,50 +40,6 @@ CONVERGED_M = 1e-7
 #: Scale of Tukey's robust weights: pairs farther than this from the feature (a pen lifted off
 #: the surface, a stretch off the edge) have no influence. Twice a typical trace's error.
 ROBUST_SCALE_M = 0.002
-
-
-def apply_transform(T: FloatArray, points_m: FloatArray) -> FloatArray:
-    """Map points by a 4x4 rigid transform.
-
-    Parameters
-    ----------
-    T : ndarray of shape (4, 4)
-    points_m : ndarray of shape (N, 3)
-
-    Returns
-    -------
-    ndarray of shape (N, 3)
-    """
-    return points_m @ T[:3, :3].T + T[:3, 3]
-
-
-def invert_transform(T: FloatArray) -> FloatArray:
-    """Inverse of a rigid transform (exact, without a general matrix inverse)."""
-    R, t = T[:3, :3], T[:3, 3]
-    inverse = np.eye(4)
-    inverse[:3, :3] = R.T
-    inverse[:3, 3] = -R.T @ t
-    return inverse
-
-
-def check_rigid(T: FloatArray, *, name: str = "transform") -> FloatArray:
-    """Validate a 4x4 rigid transform and return it as a float array.
-
-    Raises
-    ------
-    ValueError
-        Wrong shape, non-finite values, a rotation part that is not orthonormal with
-        determinant +1, or a bottom row other than (0, 0, 0, 1).
-    """
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"{name} must be a finite 4x4 matrix, got shape {T.shape}")
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-        raise ValueError(f"{name} has a rotation part that is not a proper rotation")
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise ValueError(f"{name} must have (0, 0, 0, 1) as its last row")
-    return T
 
 
 def register_icp(

@@ -1,0 +1,229 @@
+"""The anchored method (ours): the path smoothed in 3-D, pulled towards the registered scan.
+
+Once the scan is registered, its absolute position is known, and that is what removes the
+slow drift off the feature that no window-sized smoother can see. The path is smoothed by a
+3-D polynomial (all three components kept); the scan supplies a target point: on the edge
+(a 3-D polynomial through the thinned edge points near it) or on the surface (the point's
+projection onto a local quadric along the surface normal, which is all a surface defines).
+The result is ``p + beta (alpha s + (1 - alpha) t - p)`` for smoothed point s and target t.
+
+``alpha="auto"`` chooses the balance per point by inverse-variance weighting,
+``alpha = var_scan / (var_scan + var_path)``: var_scan is the variance of the target from its fit
+(thinned edge points are correlated over a face-fit ball, so their count is discounted
+accordingly). var_path must include the drift, which the path's own residuals cannot show; it is
+estimated by the method of moments from the path-to-target discrepancy averaged over a long
+stretch (ten radii), ``E|s - t|^2 - var_scan``, and is never below the smoothed path's own
+variance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import uniform_filter1d
+
+from recon.classify import SegmentKind
+from recon.fitting import (
+    fit_linear_robust,
+    gather,
+    poly_design,
+    quadric_design,
+    weighted_pca,
+    window_indices,
+)
+from recon.methods.common import SegmentResult, chunks, edge_neighbourhoods, path_fit
+from recon.scan_model import ScanModel
+from recon.types import FloatArray, PointMode, ReconParams
+
+#: The drift estimate averages the path-to-scan discrepancy over this many radii.
+DRIFT_WINDOW_RADII = 10.0
+#: Nearest scan neighbours per point for the surface fits.
+SURFACE_NEIGHBOURS = 128
+#: N_S on an edge reaches this many radii from the smoothed point.
+EDGE_SCAN_RADII = 1.5
+#: N_S on a surface reaches this many radii from the smoothed point.
+SURFACE_SCAN_RADII = 1.5
+
+
+def anchored_segment(
+    points: FloatArray,
+    kind: SegmentKind,
+    model: ScanModel | None,
+    params: ReconParams,
+    half_width: int,
+) -> SegmentResult:
+    """The anchored method for every point of one segment (see the module docstring).
+
+    Parameters
+    ----------
+    points : ndarray of shape (n, 3), metres
+        The segment, scan frame (tracker frame without a scan).
+    kind : SegmentKind
+        What the segment follows: the target is on the thinned edge for an edge, on a local
+        quadric of the dense cloud for a surface.
+    model : ScanModel or None
+        None only for ``kind`` PATH.
+    params : ReconParams
+    half_width : int
+        N_P's half-width, in points.
+
+    Returns
+    -------
+    SegmentResult
+    """
+    n = len(points)
+    windows = window_indices(n, half_width)
+    degree = min(params.degree, windows.shape[1] - 2)
+    scale = params.radius_m
+    use_scan = kind != SegmentKind.PATH and params.alpha != 1.0
+    out = SegmentResult.unchanged(points)
+    smoothed = np.empty_like(points)
+    target = points.copy()
+    var_path_fit = np.zeros(n)
+    var_target = np.full(n, np.inf)
+    supported = np.zeros(n, dtype=bool)
+    for rows in chunks(n):
+        # A 3-D curve: both transverse components as polynomials of the first.
+        fitted = path_fit(points, windows[rows], rows, degree=degree, scale=scale, outputs=2)
+        frame, x_i, design_at, fit_p = fitted.frame, fitted.x_i, fitted.design_at, fitted.fit
+        on_curve = np.column_stack([x_i, fit_p.predict(design_at)])
+        smoothed[rows] = frame.to_world(on_curve)
+        var_path_fit[rows] = fit_p.rms**2 * fit_p.leverage(design_at)
+        out.n_path[rows] = windows.shape[1]
+        out.residual_path[rows] = fit_p.rms
+        if not use_scan:
+            continue
+        if kind == SegmentKind.EDGE:
+            t, var_t, count, resid = _edge_targets(
+                smoothed[rows], frame.axes[:, :, 0], model, params, degree
+            )
+        else:
+            t, var_t, count, resid = _surface_targets(smoothed[rows], model, params)
+        ok = np.isfinite(var_t)
+        target[rows] = np.where(ok[:, None], t, smoothed[rows])
+        var_target[rows] = var_t
+        supported[rows] = ok
+        out.n_surface[rows] = np.where(ok, count, 0)
+        out.residual_surface[rows] = np.where(ok, resid, np.nan)
+
+    if use_scan:
+        if params.alpha == "auto":
+            alpha = _auto_alpha(smoothed, target, var_target, var_path_fit, supported, half_width)
+        else:
+            alpha = np.full(n, float(params.alpha))
+        alpha = np.where(supported, alpha, 1.0)
+        followed = PointMode.EDGE if kind == SegmentKind.EDGE else PointMode.SURFACE
+        out.mode[:] = np.where(supported, followed, PointMode.PATH)
+    else:
+        alpha = np.ones(n)
+        out.mode[:] = PointMode.PATH
+    blended = alpha[:, None] * smoothed + (1.0 - alpha[:, None]) * target
+    out.points[:] = points + params.beta * (blended - points)
+    out.alpha[:] = alpha
+    return out
+
+
+def _edge_targets(centres, direction, model, params, degree):
+    """Nearest point of the local edge curve to each smoothed path point.
+
+    A 3-D polynomial (both transverse components of the edge points' principal frame as
+    functions of the first) is fitted robustly to the thinned edge points near the point.
+
+    Returns
+    -------
+    target : (B, 3); var : (B,) (inf where unfit); count : (B,); residual : (B,)
+    """
+    if model.edge_tree is None:
+        b = len(centres)
+        return centres, np.full(b, np.inf), np.zeros(b, np.int64), np.full(b, np.nan)
+    ns, ws, idx_s = edge_neighbourhoods(
+        centres, direction, model, EDGE_SCAN_RADII * params.radius_m
+    )
+    frame = weighted_pca(ns, ws)
+    axes = frame.axes.copy()
+    flip = np.einsum("bi,bi->b", axes[:, :, 0], direction) < 0
+    axes[flip, :, 0] *= -1
+    local = np.einsum("bij,bki->bkj", axes, ns - frame.mean[:, None])
+    scale = params.radius_m
+    fit, ws = fit_linear_robust(
+        poly_design(local[..., 0], degree=degree, scale=scale), local[..., 1:], ws, floor=1e-5
+    )
+    x_at = np.einsum("bi,bi->b", axes[:, :, 0], centres - frame.mean)
+    design_at = poly_design(x_at, degree=degree, scale=scale)
+    target = frame.mean + np.einsum(
+        "bij,bj->bi", axes, np.column_stack([x_at, fit.predict(design_at)])
+    )
+    var_from_scatter = fit.rms**2 * np.minimum(
+        fit.leverage(design_at) * edge_dependence(model), 1.0
+    )
+    # The scatter about the local curve hides what the line fits share over a ball's diameter,
+    # so the fits' own precision bounds the target's variance from below.
+    line_variance = gather(model.edges.variance_m2, idx_s, fill_index=len(model.edges))
+    var_from_fits = (ws * line_variance).sum(axis=1) / np.maximum(ws.sum(axis=1), 1e-300)
+    var = np.maximum(var_from_scatter, var_from_fits)
+    # Require support on both sides of short extrapolation: the point must lie within the span.
+    span_ok = _within_span(local[..., 0], ws, x_at, margin=0.5 * params.radius_m)
+    ok = (fit.dof >= 2) & span_ok
+    count = np.count_nonzero(ws, axis=1)
+    return target, np.where(ok, var, np.inf), count, fit.rms
+
+
+def edge_dependence(model: ScanModel) -> float:
+    """How many edge samples carry one sample's worth of independent information.
+
+    Edge samples come from line fits in overlapping balls of the scan, so their errors are shared
+    over a ball's diameter: count one independent sample per diameter, not one per sample.
+    """
+    return 2.0 * model.edge_fit_radius_m / model.edge_sample_spacing_m
+
+
+def _surface_targets(centres, model, params):
+    """Each smoothed path point moved along the local surface normal onto a fitted quadric.
+
+    Returns
+    -------
+    target : (B, 3); var : (B,) (inf where unfit); count : (B,); residual : (B,)
+    """
+    dense = model.features.dense_points_m
+    k = min(SURFACE_NEIGHBOURS, len(dense))
+    dist, idx = model.dense_tree.query(
+        centres, k=k, distance_upper_bound=SURFACE_SCAN_RADII * params.radius_m, workers=-1
+    )
+    if k == 1:
+        dist, idx = dist[:, None], idx[:, None]
+    ns = gather(dense, idx, fill_index=len(dense))
+    ws = np.isfinite(dist).astype(np.float64)
+    frame = weighted_pca(ns, ws)
+    local = frame.to_local(ns)
+    scale = params.radius_m
+    fit, ws = fit_linear_robust(
+        quadric_design(local[..., 0], local[..., 1], scale=scale), local[..., 2], ws, floor=1e-5
+    )
+    at = frame.to_local(centres)
+    design_at = quadric_design(at[:, 0], at[:, 1], scale=scale)
+    height = fit.predict(design_at)[:, 0]
+    normal = frame.axes[:, :, 2]
+    target = centres + (height - at[:, 2])[:, None] * normal
+    var = fit.rms**2 * np.minimum(fit.leverage(design_at), 1.0)
+    ok = fit.dof >= 4
+    count = np.count_nonzero(ws, axis=1)
+    return target, np.where(ok, var, np.inf), count, fit.rms
+
+
+def _within_span(x: FloatArray, weights: FloatArray, x_at: FloatArray, *, margin: float):
+    """Whether ``x_at`` lies within the weighted points' extent along x, plus ``margin``."""
+    lo = np.where(weights > 0, x, np.inf).min(axis=1)
+    hi = np.where(weights > 0, x, -np.inf).max(axis=1)
+    return (x_at >= lo - margin) & (x_at <= hi + margin)
+
+
+def _auto_alpha(smoothed, target, var_target, var_path_fit, supported, half_width):
+    """Inverse-variance weight of the path (see the module docstring)."""
+    discrepancy = np.where(supported, np.sum((smoothed - target) ** 2, axis=1), 0.0)
+    size = int(2 * DRIFT_WINDOW_RADII * half_width + 1)
+    weight = uniform_filter1d(supported.astype(np.float64), size, mode="nearest")
+    mean_discrepancy = uniform_filter1d(discrepancy, size, mode="nearest") / np.maximum(
+        weight, 1e-12
+    )
+    var_t = np.where(supported, var_target, 0.0)
+    var_path = np.maximum(mean_discrepancy - var_t, var_path_fit)
+    return var_t / np.maximum(var_t + var_path, 1e-300)
