@@ -96,9 +96,11 @@ def default_of(cls, name: str) -> Any:
     return next(f.default for f in dataclasses.fields(cls) if f.name == name)
 
 
-def _check_number(name: str, value: Any, spec: Spec) -> None:
+def _check_number(name: str, value: Any, spec: Spec, *, integer: bool = False) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise ValueError(f"{name} must be a finite number, got {value!r}")
+    if integer and not isinstance(value, int):
+        raise ValueError(f"{name} must be an integer, got {value!r}")
     problems = []
     if spec.ge is not None and not value >= spec.ge:
         problems.append(f">= {spec.ge:g}")
@@ -139,7 +141,8 @@ def check_bounds(instance) -> None:
                 raise ValueError(
                     f"{name} must be one of {', '.join(map(str, options))}, got {value!r}"
                 )
-            if not options:
+            hint = hints.get(name)
+            if not options and not (hint is str or str in typing.get_args(hint)):
                 raise ValueError(f"{name} must be a number, got {value!r}")
             continue
         if isinstance(value, tuple):
@@ -150,7 +153,7 @@ def check_bounds(instance) -> None:
             raise ValueError(
                 f"{name} must be one of {', '.join(map(str, spec.choices))}, got {value!r}"
             )
-        _check_number(name, value, spec)
+        _check_number(name, value, spec, integer=hints.get(name) is int)
 
 
 def _literals(hint) -> list:

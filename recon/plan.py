@@ -10,7 +10,6 @@ builds the model around the path at a known transform, again without registering
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 
@@ -30,67 +29,11 @@ from recon.types import (
     FloatArray,
     JointPath,
     JointTrajectory,
+    PlanParams,
     ReconParams,
     Scan,
     ToolPath,
 )
-
-Orientation = Literal["auto", "scan", "pen", "fixed"]
-
-
-@dataclass(frozen=True)
-class PlanParams:
-    """How to turn a path into a trajectory.
-
-    Attributes
-    ----------
-    robot : str
-        UR model.
-    speed_m_s : float
-        Requested TCP speed.
-    orientation : {"auto", "scan", "pen", "fixed"}
-        Source of the tool axis; "auto" takes the scan if given, else the pen, else fixed.
-    lead_deg, tilt_deg : float
-        Lean of the tool (see ``recon.orient``).
-    smooth_m : float
-        Smoothing of the tool axis along the path (0 turns it off).
-    approach : tuple of 3 floats
-        Where the tool comes from, base frame (default from above).
-    tcp_offset_m : tuple of 3 floats
-        The TCP in the flange frame (a tool of length L along the flange's z: (0, 0, L)).
-    velocity_scale, acceleration_scale : float
-        Fractions of the arm's joint limits to plan within.
-    """
-
-    robot: str = "ur5e"
-    speed_m_s: float = 0.05
-    orientation: Orientation = "auto"
-    lead_deg: float = 0.0
-    tilt_deg: float = 0.0
-    smooth_m: float = 0.01
-    approach: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    tcp_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    velocity_scale: float = 1.0
-    acceleration_scale: float = 1.0
-
-    def __post_init__(self) -> None:
-        kinematics.model(self.robot)  # raises on an unknown arm
-        if self.orientation not in ("auto", "scan", "pen", "fixed"):
-            raise ValueError(
-                f"orientation must be auto, scan, pen or fixed, got {self.orientation!r}"
-            )
-        if not (-60.0 <= self.lead_deg <= 60.0 and -60.0 <= self.tilt_deg <= 60.0):
-            raise ValueError("lead_deg and tilt_deg must be within +-60 degrees")
-        if not (self.smooth_m >= 0 and np.isfinite(self.smooth_m)):
-            raise ValueError("smooth_m must be >= 0")
-        if np.linalg.norm(self.approach) < 1e-9:
-            raise ValueError("approach must be a non-zero direction")
-
-    @property
-    def T_flange_tcp(self) -> FloatArray:
-        T = np.eye(4)
-        T[:3, 3] = self.tcp_offset_m
-        return T
 
 
 @dataclass(frozen=True)

@@ -9,13 +9,13 @@ changed behind the back of whoever stored it.
 from __future__ import annotations
 
 import enum
-import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
+from recon.params import check_bounds, param
 from recon.transforms import rotation_angle_deg, translation_m
 
 if TYPE_CHECKING:
@@ -175,69 +175,124 @@ class ReconParams:
         k nearest scan points of every point of N_P that form N_S on a surface.
     """
 
-    spacing_m: float = 0.001
-    radius_m: float = 0.008
-    degree: int = 2
-    alpha: float | Literal["auto"] = "auto"
-    beta: float = 1.0
-    method: Method = "anchored"
-    corner_angle_deg: float = 50.0
-    corner_scale_m: float = 0.004
+    spacing_m: float = param(0.001, gt=0, le=0.01, unit="m", help="resampling step")
+    radius_m: float = param(0.008, gt=0, le=0.2, unit="m", help="reconstruction radius r")
+    degree: int = param(2, ge=1, le=5, help="polynomial degree")
+    alpha: float | Literal["auto"] = param(
+        "auto", ge=0, le=1, help="weight of the path against the scan (1: path only), or auto"
+    )
+    beta: float = param(1.0, ge=0, le=1, help="amount of reconstruction")
+    method: Method = param(
+        "anchored", help="paper: the paper's Eq. (4); anchored: ours, using the scan's position"
+    )
+    corner_angle_deg: float = param(
+        50.0, gt=0, le=180, unit="deg", help="turning angle that splits the path at a corner"
+    )
+    corner_scale_m: float = param(
+        0.004, gt=0, le=0.05, unit="m", help="chord over which the turning angle is measured"
+    )
     register: bool = True
-    icp_max_distance_m: float = 0.010
-    crop_margin_m: float = 0.020
-    voxel_m: float = 0.002
-    curvature_radius_m: float = 0.008
-    edge_curvature: float | None = None
-    edge_fraction: float = 0.5
-    surface_k: int = 10
+    icp_max_distance_m: float = param(
+        0.010, gt=0, le=0.1, unit="m", help="largest path-to-scan distance ICP pairs over"
+    )
+    crop_margin_m: float = param(
+        0.020, gt=0, le=0.2, unit="m", help="scan points farther from the path are left out"
+    )
+    voxel_m: float = param(
+        0.002, ge=0, le=0.05, unit="m", help="voxel the cropped scan is averaged to (0: none)"
+    )
+    curvature_radius_m: float = param(
+        0.008, gt=0, le=0.1, unit="m", help="ball of the scan's normals and curvature"
+    )
+    edge_curvature: float | None = param(
+        None, gt=0, lt=1 / 3, help="surface variation above which a scan point is an edge"
+    )
+    edge_fraction: float = param(
+        0.5, gt=0, le=1, help="share of edge points near a segment that makes it follow an edge"
+    )
+    surface_k: int = param(
+        10, ge=3, le=1000, help="nearest scan points per path point on a surface"
+    )
 
     def __post_init__(self) -> None:
-        positive = (
-            "spacing_m",
-            "radius_m",
-            "corner_scale_m",
-            "icp_max_distance_m",
-            "crop_margin_m",
-            "curvature_radius_m",
-        )
-        for name in positive:
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive number of metres, got {value!r}")
-        if not (isinstance(self.voxel_m, (int, float)) and self.voxel_m >= 0):
-            raise ValueError(
-                f"voxel_m must be >= 0 (0 disables downsampling), got {self.voxel_m!r}"
-            )
+        check_bounds(self)
         if self.radius_m < 2 * self.spacing_m:
             raise ValueError(
                 f"radius_m ({self.radius_m}) must be at least twice spacing_m ({self.spacing_m}) "
                 "so that N_P holds enough points for a fit"
             )
-        if not (isinstance(self.degree, int) and 1 <= self.degree <= 5):
-            raise ValueError(f"degree must be an integer from 1 to 5, got {self.degree!r}")
-        if self.alpha != "auto":
-            if not (isinstance(self.alpha, (int, float)) and 0.0 <= self.alpha <= 1.0):
-                raise ValueError(f"alpha must be a number in [0, 1] or 'auto', got {self.alpha!r}")
-        if not (isinstance(self.beta, (int, float)) and 0.0 <= self.beta <= 1.0):
-            raise ValueError(f"beta must be a number in [0, 1], got {self.beta!r}")
-        if self.method not in METHODS:
-            raise ValueError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
-        if not (0.0 < self.corner_angle_deg <= 180.0):
-            raise ValueError(f"corner_angle_deg must be in (0, 180], got {self.corner_angle_deg!r}")
-        if self.edge_curvature is not None and not (0.0 < self.edge_curvature < 1.0 / 3.0):
-            raise ValueError(
-                f"edge_curvature is a surface variation in (0, 1/3), got {self.edge_curvature!r}"
-            )
-        if not (0.0 < self.edge_fraction <= 1.0):
-            raise ValueError(f"edge_fraction must be in (0, 1], got {self.edge_fraction!r}")
-        if not (isinstance(self.surface_k, int) and self.surface_k >= 3):
-            raise ValueError(f"surface_k must be an integer >= 3, got {self.surface_k!r}")
 
     @property
     def uses_scan(self) -> bool:
         """Whether the scan can influence the result at all (alpha = 1 means path only)."""
         return self.alpha == "auto" or self.alpha < 1.0
+
+
+Orientation = Literal["auto", "scan", "pen", "fixed"]
+
+
+@dataclass(frozen=True)
+class PlanParams:
+    """How to turn a path into a trajectory.
+
+    Attributes
+    ----------
+    robot : str
+        UR model.
+    speed_m_s : float
+        Requested TCP speed.
+    orientation : {"auto", "scan", "pen", "fixed"}
+        Source of the tool axis; "auto" takes the scan if given, else the pen, else fixed.
+    lead_deg, tilt_deg : float
+        Lean of the tool (see ``recon.orient``).
+    smooth_m : float
+        Smoothing of the tool axis along the path (0 turns it off).
+    approach : tuple of 3 floats
+        Where the tool comes from, base frame (default from above).
+    tcp_offset_m : tuple of 3 floats
+        The TCP in the flange frame (a tool of length L along the flange's z: (0, 0, L)).
+    velocity_scale, acceleration_scale : float
+        Fractions of the arm's joint limits to plan within.
+    """
+
+    robot: str = param(
+        "ur5e", help="UR model (ur3e, ur5e, ur10e, ur16e, ur20, ur30, ur3, ur5, ur10)"
+    )
+    speed_m_s: float = param(0.05, gt=0, le=2.0, unit="m/s", help="requested TCP speed")
+    orientation: Orientation = param(
+        "auto", help="tool axis from the scan's normals, the pen, or fixed; auto picks in order"
+    )
+    lead_deg: float = param(0.0, ge=-60, le=60, unit="deg", help="lean along the travel")
+    tilt_deg: float = param(0.0, ge=-60, le=60, unit="deg", help="lean across the travel")
+    smooth_m: float = param(
+        0.01, ge=0, le=0.1, unit="m", help="smoothing of the tool axis along the path (0: off)"
+    )
+    approach: tuple[float, float, float] = param(
+        (0.0, 0.0, 1.0), ge=-1, le=1, help="where the tool comes from, base frame"
+    )
+    tcp_offset_m: tuple[float, float, float] = param(
+        (0.0, 0.0, 0.0), ge=-1, le=1, unit="m", help="the TCP in the flange frame"
+    )
+    velocity_scale: float = param(
+        1.0, gt=0, le=1, help="fraction of the arm's joint speed limits to plan within"
+    )
+    acceleration_scale: float = param(
+        1.0, gt=0, le=1, help="fraction of the arm's joint acceleration limits to plan within"
+    )
+
+    def __post_init__(self) -> None:
+        from recon import kinematics  # here: kinematics imports this module
+
+        kinematics.model(self.robot)  # raises on an unknown arm
+        check_bounds(self)
+        if np.linalg.norm(self.approach) < 1e-9:
+            raise ValueError("approach must be a non-zero direction")
+
+    @property
+    def T_flange_tcp(self) -> FloatArray:
+        T = np.eye(4)
+        T[:3, 3] = self.tcp_offset_m
+        return T
 
 
 class PointMode(enum.IntEnum):

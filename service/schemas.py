@@ -15,6 +15,8 @@ from pydantic import (
     model_validator,
 )
 
+from recon.params import default_of, specs, type_hints
+from recon.types import PlanParams, ReconParams
 from service.artifacts import (
     ExecutionSummary,
     ReconstructionSummary,
@@ -200,18 +202,29 @@ class JobOut(FromRow):
     error: dict[str, Any] | None
 
 
-class ReconstructionCreate(Strict):
+#: The core's reconstruction parameters a request may set (the others keep their defaults).
+RECONSTRUCTION_PARAMS = ("radius_m", "alpha", "beta", "degree", "method", "spacing_m")
+#: The core's planning parameters a request may set.
+TRAJECTORY_PARAMS = (
+    "robot",
+    "speed_m_s",
+    "orientation",
+    "lead_deg",
+    "tilt_deg",
+    "smooth_m",
+    "tcp_offset_m",
+)
+
+
+class _ReconstructionRequest(Strict):
+    """What to reconstruct, and how; the numbers' defaults and bounds are the core's."""
+
     recording_id: str | None = Field(None, description="default: the session's recording")
     scan_id: str | None = Field(None, description="default: the session's scan")
     use_scan: bool = Field(True, description="false: path-only reconstruction")
-    radius_m: float = Field(0.008, gt=0, le=0.2)
-    alpha: float | Literal["auto"] = "auto"
-    beta: float = Field(1.0, ge=0, le=1)
-    degree: int = Field(2, ge=1, le=5)
-    method: Literal["paper", "anchored"] = "anchored"
-    spacing_m: float = Field(0.001, gt=0, le=0.01)
     registration: bool = Field(
-        True, description="register the path to the scan (ICP); false trusts the frames as given"
+        default_of(ReconParams, "register"),
+        description="register the path to the scan (ICP); false trusts the frames as given",
     )
     T_scan_tracker: Matrix4 | None = Field(
         None,
@@ -221,50 +234,25 @@ class ReconstructionCreate(Strict):
 
     _matrix = field_validator("T_scan_tracker")(_check_matrix)
 
-    @field_validator("alpha")
-    @classmethod
-    def _alpha(cls, value):
-        if value != "auto" and not (0.0 <= value <= 1.0):
-            raise ValueError("alpha must be in [0, 1] or 'auto'")
-        return value
-
     def recon_params(self) -> dict:
         """The core's parameters (:class:`recon.types.ReconParams`), checked by the core."""
-        from recon.types import ReconParams
-
-        params = self.model_dump(
-            exclude={"recording_id", "scan_id", "use_scan", "registration", "T_scan_tracker"}
-        )
+        params = {name: getattr(self, name) for name in RECONSTRUCTION_PARAMS}
         params["register"] = self.registration
         ReconParams(**params)
         return params
 
 
-class TrajectoryCreate(Strict):
+class _TrajectoryRequest(Strict):
+    """What to plan; the numbers' defaults and bounds are the core's."""
+
     reconstruction_id: str
-    robot: str = Field("ur5e", description="UR model")
-    speed_m_s: float = Field(..., gt=0, le=2.0)
-    orientation: Literal["auto", "scan", "pen", "fixed"] = "auto"
-    lead_deg: float = Field(0.0, ge=-60, le=60)
-    tilt_deg: float = Field(0.0, ge=-60, le=60)
-    smooth_m: float = Field(0.01, ge=0, le=0.1)
-    tcp_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     T_base_tracker: Matrix4 | None = Field(None, description="default: the session's")
 
     _matrix = field_validator("T_base_tracker")(_check_matrix)
 
-    @field_validator("tcp_offset_m")
-    @classmethod
-    def _offset(cls, value):
-        if not all(math.isfinite(v) and abs(v) <= 1.0 for v in value):
-            raise ValueError("tcp_offset_m must be finite and within 1 m")
-        return value
-
     def plan_params(self) -> dict:
-        """The core's parameters (:class:`recon.plan.PlanParams`), checked by the core."""
-        from recon.plan import PlanParams
-
-        params = self.model_dump(exclude={"reconstruction_id", "T_base_tracker"})
+        """The core's parameters (:class:`recon.types.PlanParams`), checked by the core."""
+        params = {name: getattr(self, name) for name in TRAJECTORY_PARAMS}
         PlanParams(**params)
         return params
 
@@ -364,8 +352,6 @@ def _bounded(hint, spec):
 def param_fields(cls, names) -> dict:
     """Pydantic field definitions for the named parameters of a core dataclass: its type with
     its bounds, its default, and its help, unit and bounds as the description."""
-    from recon.params import default_of, specs, type_hints
-
     declared, hints = specs(cls), type_hints(cls)
     fields = {}
     for name in names:
@@ -378,3 +364,21 @@ def param_fields(cls, names) -> dict:
             Field(default_of(cls, name), description=description),
         )
     return fields
+
+
+def _request_model(name: str, base: type[BaseModel], cls, names, *, required=()) -> type:
+    from pydantic import create_model
+
+    fields = param_fields(cls, names)
+    for field_name in required:
+        annotation, info = fields[field_name]
+        fields[field_name] = (annotation, Field(..., description=info.description))
+    return create_model(name, __base__=base, __doc__=base.__doc__, **fields)
+
+
+ReconstructionCreate = _request_model(
+    "ReconstructionCreate", _ReconstructionRequest, ReconParams, RECONSTRUCTION_PARAMS
+)
+TrajectoryCreate = _request_model(
+    "TrajectoryCreate", _TrajectoryRequest, PlanParams, TRAJECTORY_PARAMS, required=("speed_m_s",)
+)

@@ -27,20 +27,6 @@ def note(message: str) -> None:
 # -- value types -----------------------------------------------------------------------------------
 
 
-def alpha_value(value: str) -> float | str:
-    if value == "auto":
-        return "auto"
-    try:
-        alpha = float(value)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"alpha must be a number in [0, 1] or 'auto', not {value!r}"
-        ) from None
-    if not (0.0 <= alpha <= 1.0) or math.isnan(alpha):
-        raise argparse.ArgumentTypeError(f"alpha must be in [0, 1], got {value}")
-    return alpha
-
-
 def positive(value: str) -> float:
     try:
         number = float(value)
@@ -233,11 +219,12 @@ def _value_type(name: str, hint, spec):
     return parse
 
 
-def add_param_options(parser: argparse.ArgumentParser, cls, names) -> None:
+def add_param_options(parser: argparse.ArgumentParser, cls, names, *, required=()) -> None:
     """Options for the named parameters of a core dataclass, with its help, default and bounds.
 
-    An option not given leaves the core's default; the values are checked by the core itself
-    when the parameters are built (:func:`params_from_args`).
+    An option not given leaves the core's default (``required`` ones have to be given); the
+    values are checked by the core itself when the parameters are built
+    (:func:`params_from_args`).
     """
     import typing
 
@@ -247,17 +234,19 @@ def add_param_options(parser: argparse.ArgumentParser, cls, names) -> None:
     for name in names:
         spec, hint, default = declared[name], hints[name], default_of(cls, name)
         shown = ",".join(f"{v:g}" for v in default) if isinstance(default, tuple) else default
-        unit = f" {spec.unit}" if spec.unit and not isinstance(default, str) else ""
         bounds = spec.describe()
+        unit = f" {spec.unit}" if spec.unit and not bounds and default is not None else ""
         words = spec.choices or tuple(w for w in _literals(hint) if isinstance(w, str))
         only_words = words and not any(t in (int, float) for t in (hint, *typing.get_args(hint)))
+        given = f"default {shown}{unit}" if name not in required else "required"
         parser.add_argument(
             _flag(name),
             dest=name,
             type=None if only_words else _value_type(name, hint, spec),
             choices=words if only_words else None,
+            required=name in required,
             metavar="X,Y,Z" if isinstance(default, tuple) else None,
-            help=f"{spec.help} (default {shown}{unit}" + (f"; {bounds})" if bounds else ")"),
+            help=f"{spec.help} ({given}" + (f"; {bounds})" if bounds else ")"),
         )
 
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 import argparse
 
 from service.cli.options import (
+    add_param_options,
     add_scan_options,
     add_units_option,
     check_output,
-    positive,
+    params_from_args,
     read_matrix,
     read_scan_for,
-    vector3,
 )
 
 
@@ -39,28 +39,14 @@ def add_parser(commands) -> None:
         "the scan is placed with it, nothing is registered again; without it the path is "
         "registered to the scan here",
     )
-    plan.add_argument("--robot", default="ur5e", help="UR model (default ur5e)")
-    plan.add_argument("--speed-m-s", type=positive, required=True, help="TCP speed")
+    from recon.types import PlanParams
+    from service.schemas import TRAJECTORY_PARAMS
+
+    add_param_options(plan, PlanParams, TRAJECTORY_PARAMS, required=("speed_m_s",))
     plan.add_argument(
         "--base-from-tracker",
         metavar="T.json",
         help="calibration T_base_tracker (default: the path is in the base frame)",
-    )
-    plan.add_argument("--orientation", choices=("auto", "scan", "pen", "fixed"), default="auto")
-    plan.add_argument("--lead-deg", type=float, default=0.0)
-    plan.add_argument("--tilt-deg", type=float, default=0.0)
-    plan.add_argument(
-        "--smooth-m",
-        type=float,
-        default=0.01,
-        help="smoothing of the tool axis along the path (default 0.01)",
-    )
-    plan.add_argument(
-        "--tcp-offset-m",
-        type=vector3,
-        default=(0.0, 0.0, 0.0),
-        metavar="X,Y,Z",
-        help="TCP in the flange frame (default 0,0,0)",
     )
     plan.add_argument("--out", required=True, metavar="TRAJ.csv")
     plan.set_defaults(handler=run)
@@ -70,20 +56,13 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from drivers.export import read_reconstruction_csv, write_trajectory_csv
-    from recon.plan import PlanParams
+    from recon.types import PlanParams
     from service import pipelines
     from service.cli.options import note
+    from service.schemas import TRAJECTORY_PARAMS
 
     out = check_output(args.out, ".csv")
-    params = PlanParams(
-        robot=args.robot,
-        speed_m_s=args.speed_m_s,
-        orientation=args.orientation,
-        lead_deg=args.lead_deg,
-        tilt_deg=args.tilt_deg,
-        smooth_m=args.smooth_m,
-        tcp_offset_m=args.tcp_offset_m,
-    )
+    params = params_from_args(PlanParams, args, TRAJECTORY_PARAMS)
     path = read_reconstruction_csv(args.recon_file)
     T_base_tracker = read_matrix(args.base_from_tracker, "T_base_tracker")
     path = replace(path, T_scan_tracker=read_matrix(args.scan_from_tracker, "T_scan_tracker"))

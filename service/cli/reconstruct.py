@@ -6,12 +6,12 @@ import argparse
 from pathlib import Path
 
 from service.cli.options import (
+    add_param_options,
     add_scan_options,
     add_trace_options,
     add_units_option,
-    alpha_value,
     check_output,
-    positive,
+    params_from_args,
     read_matrix,
     read_scan_for,
     read_trace_for,
@@ -46,18 +46,10 @@ def add_parser(commands) -> None:
         help="stored calibration T_scan_tracker: the initial guess for registration (or the "
         "transform itself with --no-register)",
     )
-    rec.add_argument("--radius-m", type=positive, help="reconstruction radius r (default 0.008)")
-    rec.add_argument(
-        "--alpha", type=alpha_value, help="path weight in [0, 1] or 'auto' (default auto)"
-    )
-    rec.add_argument("--beta", type=float, help="amount of reconstruction in [0, 1] (default 1)")
-    rec.add_argument("--degree", type=int, help="polynomial degree (default 2)")
-    rec.add_argument(
-        "--method",
-        choices=("paper", "anchored"),
-        help="paper: Eq. (4) of the paper; anchored: ours (default)",
-    )
-    rec.add_argument("--spacing-m", type=positive, help="resampling step (default 0.001)")
+    from recon.types import ReconParams
+    from service.schemas import RECONSTRUCTION_PARAMS
+
+    add_param_options(rec, ReconParams, RECONSTRUCTION_PARAMS)
     rec.add_argument(
         "--no-register",
         action="store_true",
@@ -74,26 +66,6 @@ def add_parser(commands) -> None:
     rec.set_defaults(handler=run)
 
 
-def params_from(args: argparse.Namespace):
-    """The core's parameters: the defaults, with what the command line named."""
-    from dataclasses import replace
-
-    from recon.types import ReconParams
-
-    overrides = {
-        "radius_m": args.radius_m,
-        "alpha": args.alpha,
-        "beta": args.beta,
-        "degree": args.degree,
-        "method": args.method,
-        "spacing_m": args.spacing_m,
-    }
-    params = replace(ReconParams(), **{k: v for k, v in overrides.items() if v is not None})
-    if args.no_register:
-        params = replace(params, register=False)
-    return params
-
-
 def run(args: argparse.Namespace) -> int:
     from drivers.calibration import write_calibration
     from drivers.export import write_reconstruction_csv
@@ -106,7 +78,15 @@ def run(args: argparse.Namespace) -> int:
     )
     if registration_out is not None and not args.scan:
         raise ValueError("--registration-out needs --scan: without a scan nothing is registered")
-    params = params_from(args)
+    from recon.types import ReconParams
+    from service.schemas import RECONSTRUCTION_PARAMS
+
+    params = params_from_args(
+        ReconParams,
+        args,
+        RECONSTRUCTION_PARAMS,
+        **({"register": False} if args.no_register else {}),
+    )
     T_init = read_matrix(args.scan_from_tracker, "T_scan_tracker")
     recording = read_trace_for(args)
     scan = read_scan_for(args) if args.scan else None
