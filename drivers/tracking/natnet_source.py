@@ -45,7 +45,7 @@ from typing import Literal
 
 import numpy as np
 from natnet import NatNetClient, NatNetNetworkError
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
 from drivers.errors import (
     DriverError,
@@ -54,7 +54,7 @@ from drivers.errors import (
     UnknownBackendError,
     UnknownRigidBodyError,
 )
-from drivers.tracking.base import SampleBatch, TrackerSource
+from drivers.tracking.base import SampleBatch, SourceConfig, TrackerSource
 from drivers.units import metres_per
 
 #: Receive buffer asked for on the client's sockets (the kernel caps it at net.core.rmem_max;
@@ -74,7 +74,7 @@ DRAIN_S = 3.0
 RESTART_BACKSTEP = 1000
 
 
-class NatNetConfig(BaseModel):
+class NatNetConfig(SourceConfig):
     """Settings of the NatNet source.
 
     Attributes
@@ -88,8 +88,6 @@ class NatNetConfig(BaseModel):
     multicast : bool
         Multicast instead of unicast (Motive's Transmission Type must match).
     """
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     kind: Literal["natnet"] = "natnet"
     server: str = Field("127.0.0.1", description="NatNet server (Motive) address")
@@ -203,6 +201,7 @@ class NatNetSource(TrackerSource):
     """
 
     kind = "natnet"
+    config_class = NatNetConfig
 
     def __init__(self, config: NatNetConfig) -> None:
         self.config = config
