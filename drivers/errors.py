@@ -11,6 +11,8 @@ table: nothing received from a child is ever imported or unpickled as an excepti
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from recon import errors as _recon_errors
 
 
@@ -235,7 +237,7 @@ def error_from_wire(
     name: str,
     message: str,
     *,
-    fallback: type[Exception] = DriverError,
+    fallback: Callable[[str], Exception] = DriverError,
     table: dict[str, type[Exception]] | None = None,
 ) -> Exception:
     """The exception a child process reported, rebuilt in this one.
@@ -244,7 +246,7 @@ def error_from_wire(
     ----------
     name, message : str
         What :func:`error_to_wire` sent.
-    fallback : exception class
+    fallback : exception class, or callable taking a message
         Used for a class name not in the table; its message then names the original class.
     table : dict, optional
         Allowed classes by name; default :data:`WIRE_ERRORS`.

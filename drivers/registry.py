@@ -44,7 +44,7 @@ INSTALL_HINTS: dict[str, str] = {
 
 #: Top-level packages of teachpath itself: an import error inside them is a bug, not a missing
 #: dependency, and is raised as it is.
-_OWN_PACKAGES = frozenset({"drivers", "recon", "service"})
+OWN_PACKAGES = frozenset({"drivers", "recon", "service"})
 
 
 def missing_dependency(
@@ -201,7 +201,7 @@ class Registry(Generic[T]):
             module = importlib.import_module(module_name)
         except ImportError as exc:
             missing = (exc.name or "").split(".")[0]
-            if missing in _OWN_PACKAGES and plugin is None:
+            if missing in OWN_PACKAGES and plugin is None:
                 raise  # a built-in entry that points nowhere, or a broken import of ours
             package = None
             if plugin is not None and missing == module_name.split(".")[0]:
