@@ -285,7 +285,9 @@ def _child_main(spec: dict) -> None:  # pragma: no cover - runs in the child pro
     _confine(spec["memory_bytes"], spec["parent_pid"])
     try:
         target, args, kwargs = pickle.loads(spec["call"])
-        function = _resolve(target)
+        from drivers.registry import import_target
+
+        function = import_target(target)
         result = function(*args, **kwargs)
         _save(result, folder / _RESULT)
         status = _OK_STATUS
@@ -335,15 +337,6 @@ def _confine(memory_bytes: int | None, parent_pid: int) -> None:  # pragma: no c
             resource.setrlimit(resource.RLIMIT_FSIZE, (memory_bytes, memory_bytes))
     except (ImportError, ValueError, OSError):
         pass  # no limit where the platform does not offer one
-
-
-def _resolve(target: str):  # pragma: no cover - runs in the child process
-    import importlib
-
-    module_name, sep, attr = target.partition(":")
-    if not sep:
-        raise ValueError(f"target {target!r} is not 'module:function'")
-    return getattr(importlib.import_module(module_name), attr)
 
 
 def _save(result, path: Path) -> None:  # pragma: no cover - runs in the child process

@@ -246,6 +246,22 @@ class Registry(Generic[T]):
         return self._plugins().get(name)
 
 
+def import_target(target: str):
+    """The object a ``"module:attr"`` string names, its module imported now.
+
+    Raises
+    ------
+    ValueError
+        Not of the form ``module:attr``.
+    ImportError, AttributeError
+        No such module or attribute.
+    """
+    module_name, sep, attr = target.partition(":")
+    if not sep or not module_name or not attr:
+        raise ValueError(f"{target!r} is not 'module:attr'")
+    return getattr(importlib.import_module(module_name), attr)
+
+
 def _split(target: str, name: str) -> tuple[str, str]:
     module_name, sep, attr = target.partition(":")
     if not sep or not module_name or not attr:

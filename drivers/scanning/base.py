@@ -56,6 +56,7 @@ SCAN_SUFFIXES: dict[str, str] = {
 #: The format of a folder given as a scan.
 FOLDER_FORMAT = "rgbd"
 
+
 @dataclass(frozen=True)
 class ScanFile:
     """A scan read from a file.

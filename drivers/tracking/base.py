@@ -192,7 +192,6 @@ def create_source(
     cls = source_class(config.kind)
     if not isinstance(config, cls.config_class):
         raise ValueError(
-            f"the {cls.kind} source takes {cls.config_class.__name__}, got "
-            f"{type(config).__name__}"
+            f"the {cls.kind} source takes {cls.config_class.__name__}, got {type(config).__name__}"
         )
     return cls.from_config(config, recording=recording, clock=clock)

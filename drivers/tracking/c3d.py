@@ -217,9 +217,7 @@ def _no_marker(name: str, marker: str | None, labels: tuple[str, ...]) -> InputF
     return InputFileError(f"{name} has no marker named {marker!r}; it has {listed}")
 
 
-def _parse_in_child(
-    path: Path, marker: str | None, size: int, name: str
-) -> dict[str, np.ndarray]:
+def _parse_in_child(path: Path, marker: str | None, size: int, name: str) -> dict[str, np.ndarray]:
     """Run ezc3d on ``path`` in a child process; its arrays, or an InputFileError."""
     limits = Limits(
         time_s=CHILD_TIMEOUT_S + CHILD_TIMEOUT_S_PER_MB * size / 1e6,
