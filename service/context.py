@@ -430,12 +430,13 @@ class AppContext:
                 + (" with the same tolerance_m" if request.mode == "movepath" else "")
                 + ": execute it with backend 'sim' first",
             )
-        from drivers.robot.ur_rtde import URRtdeBackend, URRtdeConfig
+        from drivers.robot.base import create_backend
+        from drivers.robot.ur_rtde import URRtdeConfig
 
         loaded = tasks.load_trajectory(
             str(self.store.path_of(trajectory)), trajectory.summary["robot"], speed
         )
-        backend = URRtdeBackend(URRtdeConfig(host=settings.ur_host, robot=settings.ur_robot))
+        backend = create_backend(URRtdeConfig(host=settings.ur_host, robot=settings.ur_robot))
         job = self.store.create_job(session_id, "execution", {**params, **inputs})
 
         def record(execution_record, fault) -> dict:
@@ -527,22 +528,25 @@ class AppContext:
     def start_capture(self, session_id: str, request) -> object:
         self.session(session_id)
         source_request = request.source
-        if source_request.kind == "replay":
-            recording = self.artifact(session_id, "recording", source_request.recording_id)
-            from drivers.tracking.base import Pacer
-            from drivers.tracking.replay import ReplaySource
+        from drivers.tracking.base import create_source
 
-            source = ReplaySource(
-                tasks.recording_from(self.store.read_arrays(recording)),
-                pacer=Pacer(source_request.speed),
+        if source_request.kind == "replay":
+            from drivers.tracking.replay import ReplayConfig
+
+            recording = self.artifact(session_id, "recording", source_request.recording_id)
+            source = create_source(
+                ReplayConfig(speed=source_request.speed),
+                recording=tasks.recording_from(self.store.read_arrays(recording)),
             )
         else:
-            from drivers.tracking.natnet_source import NatNetConfig, NatNetSource
+            from drivers.tracking.natnet_source import NatNetConfig
 
             # The receiver runs in a child process of its own (no frame lost to the GIL held
             # elsewhere here); it connects when the runner asks for the first batch, and a
             # server that does not answer fails the capture with a clear error.
-            source = NatNetSource(NatNetConfig(**source_request.model_dump(), stall_timeout_s=None))
+            source = create_source(
+                NatNetConfig(**source_request.model_dump(), stall_timeout_s=None)
+            )
         row = self.store.create_capture(session_id, source_request.model_dump())
         runner = CaptureRunner(self.store, row.id, source, self.finish_capture)
         self.captures[row.id] = runner

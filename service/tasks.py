@@ -314,14 +314,15 @@ def dry_run_task(
     """Execute a stored trajectory on the simulated arm; write the record; return the report."""
     from dataclasses import replace
 
+    from drivers.robot.base import create_backend
     from drivers.robot.clock import FakeClock
     from drivers.robot.dryrun import dry_run
-    from drivers.robot.sim import SimBackend, SimConfig
+    from drivers.robot.sim import SimConfig
     from recon.types import SpeedDrop
 
     trajectory = load_trajectory(trajectory_path, robot, requested_speed_m_s)
     trajectory = replace(trajectory, speed_drops=tuple(SpeedDrop(**d) for d in speed_drops))
-    sim = SimBackend(
+    sim = create_backend(
         SimConfig(robot=robot, q_start_rad=tuple(trajectory.q_rad[0])), clock=FakeClock()
     )
     report = dry_run(trajectory, backend=sim, mode=mode, tolerance_m=tolerance_m)
