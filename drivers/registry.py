@@ -161,12 +161,7 @@ class Registry(Generic[T]):
         DriverError
             :attr:`unknown_error` for an unknown name; the message lists the known ones.
         """
-        if name in self.builtins:
-            return self.builtins[name]
-        plugin = self._plugin(name)
-        if plugin is None:
-            raise self.unknown(name)
-        return plugin.target
+        return self._lookup(name)[0]
 
     def unknown(self, name: str) -> DriverError:
         """The error for an unknown ``name``, listing the available names."""
@@ -188,21 +183,16 @@ class Registry(Generic[T]):
         TypeError
             The object is not a subclass of :attr:`base`.
         """
-        plugin = None
-        if name in self.builtins:
-            target = self.builtins[name]
-        else:
-            plugin = self._plugin(name)
-            if plugin is None:
-                raise self.unknown(name)
-            target = plugin.target
+        target, plugin = self._lookup(name)
         module_name, attr = _split(target, name)
         try:
             module = importlib.import_module(module_name)
         except ImportError as exc:
             missing = (exc.name or "").split(".")[0]
-            if missing in OWN_PACKAGES and plugin is None:
-                raise  # a built-in entry that points nowhere, or a broken import of ours
+            if missing in OWN_PACKAGES:
+                # An entry that points nowhere, or a plugin written for another teachpath:
+                # a bug to fix, not a package to install.
+                raise
             package = None
             if plugin is not None and missing == module_name.split(".")[0]:
                 package = plugin.distribution
@@ -222,6 +212,15 @@ class Registry(Generic[T]):
         return obj
 
     # -- entry points ----------------------------------------------------------------------------
+
+    def _lookup(self, name: str) -> tuple[str, _Plugin | None]:
+        """The target of ``name`` and, if a package registered it, the plugin's details."""
+        if name in self.builtins:
+            return self.builtins[name], None
+        plugin = self._plugin(name)
+        if plugin is None:
+            raise self.unknown(name)
+        return plugin.target, plugin
 
     def _entry_points(self) -> list[metadata.EntryPoint]:
         # Looked up on every call, not cached: it only happens for names that are not built in,
