@@ -19,6 +19,9 @@ child process (``multiprocessing`` spawn) that builds a server object and serves
 * the worker ends when the client closes, and when the parent process dies: it then sets the
   stop event (a running command winds down, e.g. an arm decelerates) and exits shortly after.
 
+Being ``multiprocessing``'s spawn method, the worker imports the parent's ``__main__`` module
+again: a script that starts one needs the usual ``if __name__ == "__main__":`` guard.
+
 The NatNet receiver (:mod:`drivers.tracking.natnet_source`) streams samples without being asked
 and does not fit this request-and-reply shape; it shares only the error transport.
 """
@@ -72,7 +75,8 @@ class WorkerClient:
     """A child process serving one :class:`WorkerServer`; send it commands with :meth:`call`.
 
     The process starts here. Calls are one at a time (a second thread waits for the first, within
-    its own bound); :attr:`stop_event` may be set from any thread.
+    its own bound); :attr:`stop_event` may be set from any thread; :meth:`close` belongs to the
+    thread that makes the calls.
 
     Parameters
     ----------
@@ -189,7 +193,11 @@ class WorkerClient:
             raise WorkerLostError(f"{self.name} is gone") from None
         while True:
             remaining = deadline - time.monotonic()
-            if remaining <= 0 or not conn.poll(remaining):
+            try:
+                answered = remaining > 0 and conn.poll(remaining)
+            except (OSError, ValueError):  # closed under this call from another thread
+                raise WorkerLostError(f"{self.name} was closed during {command.label()}") from None
+            if not answered:
                 self.close(grace_s=0)
                 raise WorkerTimeoutError(
                     f"{self.name} did not answer {command.label()} within {timeout_s:.1f} s"
