@@ -51,6 +51,9 @@ ERROR_MAP: list[tuple[type[Exception], int, str]] = [
     (recon_errors.RegistrationError, 422, "registration_failed"),
     (recon_errors.InfeasibleTrajectoryError, 422, "infeasible_trajectory"),
     (recon_errors.ReconError, 422, "reconstruction_failed"),
+    # Before UnknownFormatError and UnknownBackendError, which it subclasses: a package missing
+    # on the server is the server's fault, not the request's.
+    (driver_errors.MissingDependencyError, 501, "missing_dependency"),
     (driver_errors.InputFileError, 422, "invalid_file"),
     (driver_errors.UnknownFormatError, 422, "unknown_format"),
     (driver_errors.TrajectoryMismatchError, 409, "trajectory_mismatch"),

@@ -418,14 +418,12 @@ class ExecutionOutcome:
 
 def dry_run(trajectory, *, mode: str = "servoj", tolerance_m: float = 5e-4) -> ExecutionOutcome:
     """Execute ``trajectory`` on the simulated arm, faster than real time."""
+    from drivers.robot.base import backend_config, create_backend
     from drivers.robot.clock import FakeClock
     from drivers.robot.dryrun import dry_run as run
-    from drivers.robot.sim import SimBackend, SimConfig
 
-    sim = SimBackend(
-        SimConfig(robot=trajectory.robot, q_start_rad=tuple(trajectory.q_rad[0])),
-        clock=FakeClock(),
-    )
+    config = backend_config("sim", robot=trajectory.robot, q_start_rad=tuple(trajectory.q_rad[0]))
+    sim = create_backend(config, clock=FakeClock())
     report = run(trajectory, backend=sim, mode=mode, tolerance_m=tolerance_m)
     return ExecutionOutcome(
         report=report, record=sim.last_record, backend="sim", tolerance_m=tolerance_m

@@ -5,14 +5,14 @@ live here, check the lifecycle and the arguments, and call a backend's private h
 (DESIGN.md): ``connect()`` reads state and moves nothing, ``enable()`` readies the arm, then
 motion, ``disable()``, ``close()`` (idempotent). Motion while not enabled raises.
 
-Backends are registered by name and imported lazily (:func:`create_backend`), so a missing
-optional dependency is an error that names it, not an import failure of the whole package.
+Backends are registered by name in :data:`BACKENDS` (a :class:`~drivers.registry.Registry`) and
+imported lazily (:func:`create_backend`), so a missing optional dependency is an error that names
+it, not an import failure of the whole package.
 """
 
 from __future__ import annotations
 
 import enum
-import importlib
 import threading
 from abc import ABC, abstractmethod
 from collections.abc import Callable
@@ -31,6 +31,7 @@ from drivers.errors import (
     TrajectoryMismatchError,
     UnknownBackendError,
 )
+from drivers.registry import Registry
 from drivers.robot.clock import Clock, RealClock
 from recon import kinematics
 from recon.transforms import pose_from_transform
@@ -117,6 +118,8 @@ class RobotBackend(ABC):
     """
 
     kind: ClassVar[str]
+    #: Its config model (what :func:`create_backend` takes for it).
+    config_class: ClassVar[type[BackendConfig]]
 
     def __init__(self, config: BackendConfig, *, clock: Clock | None = None) -> None:
         self.config = config
@@ -400,11 +403,18 @@ class RobotBackend(ABC):
     def _unlock_protective_stop(self) -> None: ...
 
 
-#: Backend name -> "module:Class", imported on first use.
-BACKENDS: dict[str, str] = {
-    "sim": "drivers.robot.sim:SimBackend",
-    "ur_rtde": "drivers.robot.ur_rtde:URRtdeBackend",
-}
+#: Robot backends by name, imported on first use; packages add more through the entry-point
+#: group ``teachpath.robot_backends``.
+BACKENDS: Registry[type[RobotBackend]] = Registry(
+    "robot backend",
+    {
+        "sim": "drivers.robot.sim:SimBackend",
+        "ur_rtde": "drivers.robot.ur_rtde:URRtdeBackend",
+    },
+    group="teachpath.robot_backends",
+    unknown_error=UnknownBackendError,
+    base=RobotBackend,
+)
 
 
 def backend_class(kind: str) -> type[RobotBackend]:
@@ -413,23 +423,32 @@ def backend_class(kind: str) -> type[RobotBackend]:
     Raises
     ------
     UnknownBackendError
-        An unknown name, or a backend whose optional dependency is not installed.
+        An unknown name (the message lists the known ones).
+    MissingDependencyError
+        The backend needs a package that is not installed (a subclass of UnknownBackendError).
     """
-    if kind not in BACKENDS:
-        raise UnknownBackendError(
-            f"unknown robot backend {kind!r}; available: {', '.join(sorted(BACKENDS))}"
-        )
-    module_name, class_name = BACKENDS[kind].split(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise UnknownBackendError(
-            f"the {kind} backend needs a package that is not installed ({exc.name}); "
-            "install teachpath with its dependencies (pip install -e .)"
-        ) from None
-    return getattr(module, class_name)
+    return BACKENDS.load(kind)
+
+
+def backend_config(kind: str, **fields) -> BackendConfig:
+    """The config of the backend registered as ``kind``, built from ``fields``.
+
+    Raises
+    ------
+    UnknownBackendError, MissingDependencyError
+        See :func:`backend_class`.
+    pydantic.ValidationError
+        A field the backend does not take, or a bad value.
+    """
+    return backend_class(kind).config_class(**fields)
 
 
 def create_backend(config: BackendConfig, *, clock: Clock | None = None) -> RobotBackend:
-    """A backend for ``config``, chosen by its ``kind`` field."""
+    """A backend for ``config``, chosen by its ``kind`` field.
+
+    Raises
+    ------
+    UnknownBackendError, MissingDependencyError
+        See :func:`backend_class`.
+    """
     return backend_class(config.kind)(config, clock=clock)  # type: ignore[attr-defined]

@@ -70,6 +70,7 @@ class SimBackend(RobotBackend):
     """The simulated arm (see the module docstring)."""
 
     kind = "sim"
+    config_class = SimConfig
 
     def __init__(self, config: SimConfig, *, clock=None) -> None:
         super().__init__(config, clock=clock)

@@ -2,10 +2,12 @@
 
 ur_rtde's constructors and blocking calls hold the Python GIL while they wait on the network: a
 controller that does not answer would freeze every thread of the calling process. So the
-client lives in a child process started for this backend; the parent sends it commands over a
-pipe and waits for each answer with a timeout (:class:`~drivers.errors.RobotTimeoutError`, and
-the child is killed). A stop request is a shared event the child checks every control period,
-so it works while the child is busy streaming.
+client lives in a worker process started for this backend (:class:`drivers.worker.WorkerClient`
+serving :class:`URRtdeServer`); the parent sends it typed commands (:class:`Connect`,
+:class:`MoveJ`, :class:`Execute`, ...) and waits for each answer with a bound
+(:class:`~drivers.errors.RobotTimeoutError`, and the worker is killed). Errors come back as
+their ``drivers.errors`` class. A stop request is the worker's stop event, which the server
+checks every control period, so it works while the worker is busy streaming.
 
 Execution streams the trajectory with servoJ at the controller rate (initPeriod/waitPeriod) and
 records the actual joints every period; :meth:`~drivers.robot.base.RobotBackend.execute_path`
@@ -18,9 +20,10 @@ floor that is the operator's decision, at the teach pendant.
 
 from __future__ import annotations
 
-import multiprocessing
 import time
-from typing import Literal
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
@@ -32,8 +35,11 @@ from drivers.errors import (
     ProtectiveStopError,
     RobotError,
     RobotTimeoutError,
-    UnknownBackendError,
+    WorkerError,
+    WorkerLostError,
+    WorkerTimeoutError,
 )
+from drivers.registry import missing_dependency
 from drivers.robot.base import (
     BackendConfig,
     ExecutionRecord,
@@ -41,6 +47,7 @@ from drivers.robot.base import (
     RobotBackend,
     RobotState,
 )
+from drivers.worker import Command, WorkerClient, WorkerLink, WorkerServer
 from recon.types import FloatArray, JointTrajectory
 from recon.waypoints import CoarsePath
 
@@ -57,6 +64,8 @@ PROGRESS_EVERY = 50
 STALE_AFTER_S = 0.5
 #: Bound on the control script starting after an upload (s).
 SCRIPT_START_TIMEOUT_S = 5.0
+#: How long close() lets the worker disconnect its clients before it is killed (s).
+CLOSE_GRACE_S = 2.0
 #: The arm rests on a target when within this (rad) and slower than this (rad/s).
 SETTLED_RAD = 1e-4
 SETTLED_RAD_S = 1e-3
@@ -79,88 +88,124 @@ class URRtdeConfig(BackendConfig):
     stop_deceleration_rad_s2: float = Field(4.0, gt=0, le=40.0)
 
 
+# -- the commands the worker serves --------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Connect(Command):
+    """Open the receive and dashboard links (and the control link if the arm runs)."""
+
+
+@dataclass(frozen=True)
+class Enable(Command):
+    """Power on if allowed, release the brakes, start the control script."""
+
+
+@dataclass(frozen=True)
+class Disable(Command):
+    """Stop the control script."""
+
+
+@dataclass(frozen=True)
+class Close(Command):
+    """Stop motion and the control script before the worker ends."""
+
+
+@dataclass(frozen=True)
+class ReadQ(Command):
+    """The actual joints (rad), from a data package newer than the command."""
+
+
+@dataclass(frozen=True)
+class Unlock(Command):
+    """Clear a protective stop and restart the control script."""
+
+
+@dataclass(frozen=True)
+class MoveJ(Command):
+    """moveJ to ``q`` (rad) at ``speed`` (rad/s) and ``acceleration`` (rad/s^2)."""
+
+    q: list[float]
+    speed: float
+    acceleration: float
+
+
+@dataclass(frozen=True)
+class Execute(Command):
+    """Stream ``q_rows`` (K lists of 6 joints, rad) with servoJ every ``period_s``."""
+
+    q_rows: list[list[float]]
+    period_s: float
+
+
+@dataclass(frozen=True)
+class MovePath(Command):
+    """Blended moveJ waypoints as one movePath."""
+
+    q_rows: list[list[float]]
+    speeds: list[float]
+    acceleration: float
+    blends: list[float]
+
+
 class URRtdeBackend(RobotBackend):
     """A UR controller through ur_rtde (see the module docstring)."""
 
     kind = "ur_rtde"
+    config_class = URRtdeConfig
 
     def __init__(self, config: URRtdeConfig, *, clock=None) -> None:
         super().__init__(config, clock=clock)
-        self._ctx = multiprocessing.get_context("spawn")
-        self._process = None
-        self._pipe = None
-        self._stop_event = self._ctx.Event()
+        self._worker: WorkerClient | None = None
 
     # -- the worker ------------------------------------------------------------------------------
 
     def _start_worker(self) -> None:
-        parent, child = self._ctx.Pipe()
-        self._stop_event.clear()
-        self._process = self._ctx.Process(
-            target=_worker_main,
-            args=(child, self._stop_event, self.config.model_dump()),
+        self._worker = WorkerClient(
+            "drivers.robot.ur_rtde:URRtdeServer",
+            (self.config.model_dump(),),
             name=f"ur_rtde {self.config.host}",
-            daemon=True,
+            fallback=RobotError,
         )
-        self._process.start()
-        child.close()
-        self._pipe = parent
 
     def _kill_worker(self) -> None:
         # Without its worker the backend has no link: it must be connect()ed again (the base
         # class only marks ConnectionLostError so; a timeout leaves the link just as dead).
         self._state = RobotState.DISCONNECTED
-        if self._process is not None:
-            if self._process.is_alive():
-                self._process.kill()
-            self._process.join(timeout=5)
-        if self._pipe is not None:
-            self._pipe.close()
-        self._process = self._pipe = None
+        if self._worker is not None:
+            self._worker.close(grace_s=0)
+        self._worker = None
 
     def _call(
         self,
-        command: str,
-        *args,
+        command: Command,
+        *,
         timeout_s: float | None = None,
         on_progress: ProgressCallback | None = None,
     ):
-        if self._pipe is None:
+        if self._worker is None:
             raise ConnectionLostError("no connection to the controller: connect() first")
         timeout = self.config.command_timeout_s if timeout_s is None else timeout_s
         try:
-            self._pipe.send((command, args))
-        except (BrokenPipeError, OSError):
+            return self._worker.call(command, timeout_s=timeout, on_progress=on_progress)
+        except WorkerTimeoutError:
+            self._kill_worker()  # the client has ended it; the link is gone with it
+            raise RobotTimeoutError(
+                f"the controller at {self.config.host} did not answer {command.label()} within "
+                f"{timeout:.1f} s; check the network and the arm, then reconnect"
+            ) from None
+        except WorkerLostError:
             self._kill_worker()
-            raise ConnectionLostError("the ur_rtde worker is gone; reconnect") from None
-        deadline = time.monotonic() + timeout
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0 or not self._pipe.poll(remaining):
+            raise ConnectionLostError("the ur_rtde worker stopped unexpectedly") from None
+        except WorkerError as exc:
+            raise RobotError(str(exc)) from None
+        except RobotError as error:
+            self._fault(error)
+            if isinstance(error, ConnectionLostError):
+                # The worker's ur_rtde may still hold the controller's RTDE input
+                # registers, which a new connection then cannot claim (IN_USE).
                 self._kill_worker()
-                raise RobotTimeoutError(
-                    f"the controller at {self.config.host} did not answer {command} within "
-                    f"{timeout:.1f} s; check the network and the arm, then reconnect"
-                )
-            try:
-                kind, payload = self._pipe.recv()
-            except (EOFError, OSError):
-                self._kill_worker()
-                raise ConnectionLostError("the ur_rtde worker stopped unexpectedly") from None
-            if kind == "progress":
-                if on_progress is not None:
-                    on_progress(payload)
-                continue
-            if kind == "error":
-                error_name, message = payload
-                error = _ERRORS.get(error_name, RobotError)(message)
-                self._fault(error)
-                if isinstance(error, ConnectionLostError):
-                    # The worker's ur_rtde may still hold the controller's RTDE input
-                    # registers, which a new connection then cannot claim (IN_USE).
-                    self._kill_worker()
-                raise error
-            return payload
+            raise
 
     # -- hooks -----------------------------------------------------------------------------------
 
@@ -168,38 +213,40 @@ class URRtdeBackend(RobotBackend):
         self._kill_worker()  # a worker left from a lost link must not hold the registers
         self._start_worker()
         try:
-            self._call("connect", timeout_s=self.config.connect_timeout_s)
-        except RobotError:
+            self._call(Connect(), timeout_s=self.config.connect_timeout_s)
+        except Exception:  # a missing ur_rtde too: no worker is left behind
             self._kill_worker()
             raise
 
     def _enable(self) -> None:
         # Powering on, releasing the brakes and starting the control script.
         bound = POWER_ON_TIMEOUT_S + self.config.connect_timeout_s
-        self._call("enable", timeout_s=max(self.config.command_timeout_s, bound))
+        self._call(Enable(), timeout_s=max(self.config.command_timeout_s, bound))
 
     def _disable(self) -> None:
-        self._call("disable")
+        self._call(Disable())
 
     def _close(self) -> None:
-        if self._pipe is not None:
+        worker = self._worker
+        if worker is not None:
             try:
-                self._call("close")
+                self._call(Close())
             except RobotError:
                 pass  # closing anyway
+        if self._worker is not None:
+            # Let the worker disconnect its clients (the controller frees the registers at
+            # once), then end it whatever it does.
+            self._worker.close(grace_s=CLOSE_GRACE_S)
         self._kill_worker()
 
     def _read_q(self) -> FloatArray:
-        return np.array(self._call("read_q"), dtype=np.float64)
+        return np.array(self._call(ReadQ()), dtype=np.float64)
 
     def _move_joints(self, q: FloatArray, speed: float, acceleration: float) -> None:
         distance = float(np.abs(q - self._read_q()).max())
         expected = distance / speed + speed / acceleration
         self._call(
-            "move_j",
-            list(map(float, q)),
-            speed,
-            acceleration,
+            MoveJ(list(map(float, q)), speed, acceleration),
             timeout_s=expected + self.config.motion_margin_s,
         )
 
@@ -209,9 +256,7 @@ class URRtdeBackend(RobotBackend):
         n = len(trajectory)
         try:
             times, actual, completed, fault = self._call(
-                "execute",
-                trajectory.q_rad.tolist(),
-                trajectory.period_s,
+                Execute(trajectory.q_rad.tolist(), trajectory.period_s),
                 timeout_s=trajectory.duration_s + self.config.motion_margin_s,
                 on_progress=(None if on_progress is None else (lambda i: on_progress(i / n))),
             )
@@ -238,11 +283,12 @@ class URRtdeBackend(RobotBackend):
         )
         try:
             times, actual, completed, fault = self._call(
-                "move_path",
-                path.q_rad.tolist(),
-                path.speed_rad_s.tolist(),
-                path.acceleration_rad_s2,
-                path.blend_m.tolist(),
+                MovePath(
+                    path.q_rad.tolist(),
+                    path.speed_rad_s.tolist(),
+                    path.acceleration_rad_s2,
+                    path.blend_m.tolist(),
+                ),
                 timeout_s=expected_s + self.config.motion_margin_s,
                 on_progress=(
                     None if on_progress is None else (lambda i: on_progress(i / len(path)))
@@ -256,57 +302,50 @@ class URRtdeBackend(RobotBackend):
         return np.array(times), np.array(actual).reshape(-1, 6), completed, fault
 
     def _stop(self) -> None:
-        self._stop_event.set()
+        worker = self._worker
+        if worker is not None:
+            worker.stop_event.set()
 
     def _unlock_protective_stop(self) -> None:
-        self._call("unlock", timeout_s=max(self.config.command_timeout_s, 10.0))
-
-
-_ERRORS: dict[str, type[RobotError]] = {
-    "protective_stop": ProtectiveStopError,
-    "emergency_stop": EmergencyStopError,
-    "connection": ConnectionLostError,
-    "not_enabled": NotEnabledError,
-    "missing_dependency": UnknownBackendError,  # type: ignore[dict-item]
-    "robot": RobotError,
-}
+        self._call(Unlock(), timeout_s=max(self.config.command_timeout_s, 10.0))
 
 
 # -- the child process ---------------------------------------------------------------------------
 
 
-class _Failure(Exception):
-    def __init__(self, kind: str, message: str) -> None:
-        super().__init__(message)
-        self.kind = kind
+class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker process
+    """The ur_rtde clients, in the worker process; one method per command.
 
+    Parameters
+    ----------
+    link : WorkerLink
+    config : dict
+        The backend's :class:`URRtdeConfig`, dumped.
+    """
 
-def _worker_main(pipe, stop_event, config: dict) -> None:  # pragma: no cover - other process
-    """Serve commands from the parent until ``close`` or the pipe breaks."""
-    worker = _Worker(config, stop_event, pipe)
-    while True:
-        try:
-            command, args = pipe.recv()
-        except (EOFError, OSError):
-            break
-        try:
-            result = getattr(worker, command)(*args)
-            pipe.send(("ok", result))
-        except _Failure as failure:
-            pipe.send(("error", (failure.kind, str(failure))))
-        except RuntimeError as exc:  # ur_rtde reports lost connections as RuntimeError
-            pipe.send(("error", ("connection", f"ur_rtde: {exc}")))
-        if command == "close":
-            break
-    worker.shutdown()
-
-
-class _Worker:  # pragma: no cover - runs in the child process
-    def __init__(self, config: dict, stop_event, pipe) -> None:
+    def __init__(self, link: WorkerLink, config: dict) -> None:
+        super().__init__(link)
         self.config = config
-        self.stop_event = stop_event
-        self.pipe = pipe
+        self.stop_event = link.stop_event
         self.control = self.receive = self.dashboard = None
+
+    def handlers(self) -> Mapping[type[Command], Callable[[Any], Any]]:
+        return {
+            Connect: lambda _: self.connect(),
+            Enable: lambda _: self.enable(),
+            Disable: lambda _: self.disable(),
+            Close: lambda _: self.close(),
+            ReadQ: lambda _: self.read_q(),
+            Unlock: lambda _: self.unlock(),
+            MoveJ: lambda c: self.move_j(c.q, c.speed, c.acceleration),
+            Execute: lambda c: self.execute(c.q_rows, c.period_s),
+            MovePath: lambda c: self.move_path(c.q_rows, c.speeds, c.acceleration, c.blends),
+        }
+
+    def translate(self, error: Exception) -> Exception:
+        if isinstance(error, RuntimeError):  # ur_rtde reports lost connections as RuntimeError
+            return ConnectionLostError(f"ur_rtde: {error}")
+        return error
 
     def connect(self) -> None:
         """The receive and dashboard links; the control link too if the arm is running.
@@ -319,11 +358,7 @@ class _Worker:  # pragma: no cover - runs in the child process
             import dashboard_client
             import rtde_receive
         except ImportError as exc:
-            raise _Failure(
-                "missing_dependency",
-                f"ur_rtde is not installed ({exc.name}); "
-                "install teachpath's dependencies (pip install -e .)",
-            ) from None
+            raise missing_dependency(exc, "the ur_rtde robot backend") from None
         host = self.config["host"]
         try:
             self.receive = rtde_receive.RTDEReceiveInterface(
@@ -332,8 +367,8 @@ class _Worker:  # pragma: no cover - runs in the child process
             self.dashboard = dashboard_client.DashboardClient(host)
             self.dashboard.connect()
         except RuntimeError as exc:
-            raise _Failure(
-                "connection", f"cannot connect to the controller at {host}: {exc}"
+            raise ConnectionLostError(
+                f"cannot connect to the controller at {host}: {exc}"
             ) from None
         self._wait_fresh()
         if self.receive.getRobotMode() == ROBOT_MODE_RUNNING:
@@ -353,8 +388,8 @@ class _Worker:  # pragma: no cover - runs in the child process
         try:
             self.control = rtde_control.RTDEControlInterface(host, -1.0, flags)
         except RuntimeError as exc:
-            raise _Failure(
-                "connection", f"cannot start ur_rtde's control script at {host}: {exc}"
+            raise ConnectionLostError(
+                f"cannot start ur_rtde's control script at {host}: {exc}"
             ) from None
 
     def _check_fresh(self) -> None:
@@ -366,15 +401,15 @@ class _Worker:  # pragma: no cover - runs in the child process
             self._last_stamp, self._last_fresh = stamp, now
         elif now - getattr(self, "_last_fresh", now) > STALE_AFTER_S:
             self.control.servoStop(self.config["stop_deceleration_rad_s2"])
-            raise _Failure(
-                "connection", f"no new data from the controller for {STALE_AFTER_S} s; reconnect"
+            raise ConnectionLostError(
+                f"no new data from the controller for {STALE_AFTER_S} s; reconnect"
             )
 
     def _safety(self) -> None:
         if self.receive.isEmergencyStopped():
-            raise _Failure("emergency_stop", "the emergency stop is engaged")
+            raise EmergencyStopError("the emergency stop is engaged")
         if self.receive.isProtectiveStopped():
-            raise _Failure("protective_stop", "the arm is in a protective stop")
+            raise ProtectiveStopError("the arm is in a protective stop")
 
     def _wait_fresh(self) -> None:
         """Wait for a data package newer than the call (one control period, 2-8 ms): the
@@ -383,8 +418,7 @@ class _Worker:  # pragma: no cover - runs in the child process
         deadline = time.monotonic() + STALE_AFTER_S
         while self.receive.getTimestamp() == stamp:
             if time.monotonic() > deadline:
-                raise _Failure(
-                    "connection",
+                raise ConnectionLostError(
                     f"no new data from the controller for {STALE_AFTER_S} s; reconnect",
                 )
             time.sleep(0.001)
@@ -394,7 +428,7 @@ class _Worker:  # pragma: no cover - runs in the child process
         cause and is reported as such; otherwise the caller reports a lost script."""
         try:
             self._wait_fresh()
-        except _Failure:
+        except ConnectionLostError:
             pass  # no fresh data either: the caller's connection error stands
         self._safety()
 
@@ -407,8 +441,7 @@ class _Worker:  # pragma: no cover - runs in the child process
         self._safety()
         if self.receive.getRobotMode() != ROBOT_MODE_RUNNING:
             if not self.config["power_on"]:
-                raise _Failure(
-                    "not_enabled",
+                raise NotEnabledError(
                     "the arm is not running: power it on and release "
                     "the brakes at the teach pendant (or set power_on)",
                 )
@@ -428,8 +461,7 @@ class _Worker:  # pragma: no cover - runs in the child process
         through idle to running), or fail at ``deadline``."""
         while self.receive.getRobotMode() < mode:
             if time.monotonic() > deadline:
-                raise _Failure(
-                    "not_enabled",
+                raise NotEnabledError(
                     f"the arm did not reach robot mode {mode} within {POWER_ON_TIMEOUT_S:.0f} s "
                     f"of powering on (mode {self.receive.getRobotMode()}); check the pendant",
                 )
@@ -448,8 +480,7 @@ class _Worker:  # pragma: no cover - runs in the child process
         deadline = time.monotonic() + SCRIPT_START_TIMEOUT_S
         while not self.control.isProgramRunning():
             if time.monotonic() > deadline:
-                raise _Failure(
-                    "not_enabled",
+                raise NotEnabledError(
                     f"the control script did not start within {SCRIPT_START_TIMEOUT_S} s "
                     "(is the arm in remote control, powered and free of safety stops?)",
                 )
@@ -466,8 +497,7 @@ class _Worker:  # pragma: no cover - runs in the child process
         except RuntimeError as exc:
             # The controller refuses within 5 s of the stop (and while its cause persists);
             # that is still a protective stop, not a lost link.
-            raise _Failure(
-                "protective_stop",
+            raise ProtectiveStopError(
                 f"the controller refused to unlock the protective stop ({exc}); inspect its "
                 "cause, wait at least 5 s after the stop, and unlock again",
             ) from None
@@ -476,8 +506,7 @@ class _Worker:  # pragma: no cover - runs in the child process
         deadline = time.monotonic() + SCRIPT_START_TIMEOUT_S
         while self.receive.isProtectiveStopped():
             if time.monotonic() > deadline:
-                raise _Failure(
-                    "protective_stop",
+                raise ProtectiveStopError(
                     "the protective stop did not clear: remove its cause and unlock it at the "
                     "teach pendant",
                 )
@@ -488,8 +517,7 @@ class _Worker:  # pragma: no cover - runs in the child process
         self._safety()
         if not self.control.moveJ(q, speed, acceleration, True):
             self._refused()
-            raise _Failure(
-                "connection",
+            raise ConnectionLostError(
                 "the controller refused moveJ (is the control script running?); reconnect",
             )
         while self.control.getAsyncOperationProgressEx().isAsyncOperationRunning():
@@ -512,8 +540,7 @@ class _Worker:  # pragma: no cover - runs in the child process
             if not self.control.servoJ(q, 0.0, 0.0, period_s, lookahead, gain):
                 self.control.servoStop(self.config["stop_deceleration_rad_s2"])
                 self._refused()
-                raise _Failure(
-                    "connection",
+                raise ConnectionLostError(
                     "the controller refused servoJ (the control script stopped); reconnect",
                 )
             times.append(time.monotonic() - start)
@@ -523,7 +550,7 @@ class _Worker:  # pragma: no cover - runs in the child process
                 fault = "protective stop"
                 break
             if i % PROGRESS_EVERY == 0:
-                self.pipe.send(("progress", i + 1))
+                self.link.progress(i + 1)
             self.control.waitPeriod(t_cycle)
         else:
             completed = True
@@ -534,9 +561,9 @@ class _Worker:  # pragma: no cover - runs in the child process
         self.control.servoStop(self.config["stop_deceleration_rad_s2"])
         if completed:
             self._safety()
-        self.pipe.send(("progress", len(times)))
+        self.link.progress(len(times))
         if fault == "protective stop":
-            raise _Failure("protective_stop", "protective stop during execution")
+            raise ProtectiveStopError("protective stop during execution")
         return times, actual, completed, fault
 
     def _hold(self, q, period_s) -> None:
@@ -554,8 +581,7 @@ class _Worker:  # pragma: no cover - runs in the child process
             t_cycle = self.control.initPeriod()
             if not self.control.servoJ(q, 0.0, 0.0, period_s, lookahead, gain):
                 self._refused()
-                raise _Failure(
-                    "connection",
+                raise ConnectionLostError(
                     "the controller refused servoJ on the last sample (the control script "
                     "stopped); reconnect",
                 )
@@ -580,8 +606,7 @@ class _Worker:  # pragma: no cover - runs in the child process
             )
         if not self.control.movePath(path, True):
             self._refused()
-            raise _Failure(
-                "connection",
+            raise ConnectionLostError(
                 "the controller refused movePath (the control script stopped); reconnect",
             )
         times, actual, fault, completed = [], [], None, False
@@ -601,12 +626,12 @@ class _Worker:  # pragma: no cover - runs in the child process
                 fault = "stopped on request"
                 break
             if self.receive.isProtectiveStopped():
-                raise _Failure("protective_stop", "protective stop during the path")
+                raise ProtectiveStopError("protective stop during the path")
             if status.progress() != reported:
                 reported = status.progress()
-                self.pipe.send(("progress", max(reported, 0)))
+                self.link.progress(max(reported, 0))
             time.sleep(period_s)
-        self.pipe.send(("progress", len(q_rows) if completed else max(reported, 0)))
+        self.link.progress(len(q_rows) if completed else max(reported, 0))
         return times, actual, completed, fault
 
     def close(self) -> None:

@@ -10,17 +10,13 @@ a moving camera needs its poses: export its frames with Open3D's reconstruction 
 the folder as RGB-D frames.
 
 librealsense decodes the bag on a thread of its own, and an error there terminates the process
-(Open3D raises from that thread). The bag is therefore read in a child process
-(``python -m drivers.scanning.bag``), so a corrupt recording costs an error message, not the
-service's worker.
+(Open3D raises from that thread). The bag is therefore decoded in a child process under a time
+and memory limit (:func:`drivers.isolation.run_isolated` runs :func:`decode_bag`), so a corrupt
+recording costs an error message, not the service's worker.
 """
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Any, ClassVar, Literal
@@ -28,7 +24,8 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from drivers.errors import InputFileError
+from drivers.errors import InputFileError, ReaderCrashError, ResourceLimitError
+from drivers.isolation import Limits, run_isolated
 from drivers.scanning.base import ReaderOptions, ScanFile, ScanReader
 from drivers.scanning.rgbd import (
     DEFAULT_DEPTH_SCALE,
@@ -43,12 +40,18 @@ from recon.types import Scan
 #: A ROS1 bag (what librealsense records) starts with this line.
 BAG_SIGNATURE = b"#ROSBAG V2.0\n"
 
-# Exit codes of the child process.
+# What went wrong in the child (BagReadError.status).
 _EXIT_CANNOT_OPEN = 3
 _EXIT_NO_FRAMES = 4
 _EXIT_BAD_STREAMS = 5
 
-_PROJECT_ROOT = Path(__file__).resolve().parents[2]
+#: Address space allowed to the child: the interpreter with Open3D and librealsense (about
+#: 0.5 GB mapped), plus the frames it keeps (a 1280 x 720 Z16 frame is 1.8 MB; kept once in the
+#: list and once stacked, with room for the colour frame being decoded).
+CHILD_MEMORY_BYTES = 2 << 30
+CHILD_MEMORY_PER_FRAME_BYTES = 16 << 20
+#: What the child runs, "module:function".
+_CHILD_TARGET = "drivers.scanning.bag:decode_bag"
 
 
 class BagOptions(ReaderOptions):
@@ -107,61 +110,42 @@ class RealSenseBagReader(ScanReader):
 
     def _extract_in_child(self, path: Path, label: str) -> dict[str, Any]:
         opts = self.options
-        with tempfile.TemporaryDirectory(prefix="teachpath-bag-") as tmp:
-            out = Path(tmp) / "frames.npz"
-            env = dict(os.environ)
-            env["PYTHONPATH"] = os.pathsep.join(
-                p for p in (str(_PROJECT_ROOT), env.get("PYTHONPATH", "")) if p
+        limits = Limits(
+            time_s=opts.timeout_s,
+            memory_bytes=CHILD_MEMORY_BYTES + CHILD_MEMORY_PER_FRAME_BYTES * opts.n_frames,
+            time_setting="timeout_s",
+            memory_setting="n_frames",
+        )
+        try:
+            return run_isolated(
+                _CHILD_TARGET,
+                (str(path), opts.first_frame, opts.n_frames, label),
+                limits=limits,
+                what=f"reading {label}",
             )
-            command = [
-                sys.executable,
-                "-m",
-                "drivers.scanning.bag",
-                str(path),
-                str(out),
-                str(opts.first_frame),
-                str(opts.n_frames),
-            ]
-            try:
-                done = subprocess.run(
-                    command, capture_output=True, text=True, timeout=opts.timeout_s, env=env
-                )
-            except subprocess.TimeoutExpired:
-                raise InputFileError(
+        except ResourceLimitError as exc:
+            if exc.limit == "time":
+                message = (
                     f"reading {label} took longer than {opts.timeout_s:g} s; read fewer frames "
                     "(n_frames) or raise timeout_s"
-                ) from None
-            detail = _last_line(done.stderr)
-            if done.returncode == _EXIT_CANNOT_OPEN:
-                raise InputFileError(
-                    f"librealsense cannot play {label}: it is truncated or corrupt, or lacks a "
-                    "depth (Z16) and a colour (RGB8/BGR8) stream at the same frame rate, which "
-                    "Open3D's reader needs" + (f" ({detail})" if detail else "")
                 )
-            if done.returncode == _EXIT_NO_FRAMES:
-                raise InputFileError(
-                    f"{label} holds no frames after the first {opts.first_frame} skipped; "
-                    "record longer or lower first_frame"
+            else:
+                message = (
+                    f"reading {label} needed more than {limits.memory_bytes / 2**20:.0f} MB of "
+                    f"memory for {opts.n_frames} frames; read fewer frames (n_frames)"
                 )
-            if done.returncode == _EXIT_BAD_STREAMS:
-                raise InputFileError(f"{label} has unusable streams: {detail}")
-            if done.returncode < 0:
-                raise InputFileError(
-                    f"the RealSense library crashed reading {label} (signal {-done.returncode}); "
-                    "the recording is likely truncated or corrupt: record it again"
-                )
-            if done.returncode != 0 or not out.is_file():
-                raise InputFileError(
-                    f"{label} could not be read as a RealSense bag"
-                    + (f": {detail}" if detail else f" (exit status {done.returncode})")
-                )
-            with np.load(out) as data:
-                return {key: data[key] for key in data.files}
-
-
-def _last_line(text: str) -> str:
-    lines = [line.strip() for line in (text or "").splitlines() if line.strip()]
-    return lines[-1] if lines else ""
+            raise ResourceLimitError(
+                message, limit=exc.limit, value=exc.value, setting=exc.setting
+            ) from None
+        except ReaderCrashError as exc:
+            how = exc.signal_name or f"exit status {exc.exit_code}"
+            raise ReaderCrashError(
+                f"the RealSense library crashed reading {label} ({how}); the recording is "
+                "likely truncated or corrupt: record it again",
+                signal_name=exc.signal_name,
+                exit_code=exc.exit_code,
+                output_tail=exc.output_tail,
+            ) from None
 
 
 def median_depth(stack: np.ndarray, min_valid_fraction: float) -> np.ndarray:
@@ -316,16 +300,30 @@ def extract_frames(
     }
 
 
-def _main(argv: list[str]) -> int:
-    path, out, first, count = argv
+def decode_bag(path: str, first_frame: int, n_frames: int, label: str) -> dict[str, Any]:
+    """:func:`extract_frames` with its failures as the messages a user reads.
+
+    Runs in the child process (see the module docstring).
+
+    Raises
+    ------
+    InputFileError
+        The bag cannot be played, holds no frames after ``first_frame``, or has unusable
+        streams.
+    """
     try:
-        frames = extract_frames(path, int(first), int(count))
+        return extract_frames(path, first_frame, n_frames)
     except BagReadError as exc:
-        print(str(exc), file=sys.stderr)
-        return exc.status
-    np.savez(out, **frames)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(_main(sys.argv[1:]))
+        detail = str(exc)
+        if exc.status == _EXIT_CANNOT_OPEN:
+            raise InputFileError(
+                f"librealsense cannot play {label}: it is truncated or corrupt, or lacks a "
+                "depth (Z16) and a colour (RGB8/BGR8) stream at the same frame rate, which "
+                "Open3D's reader needs" + (f" ({detail})" if detail else "")
+            ) from None
+        if exc.status == _EXIT_NO_FRAMES:
+            raise InputFileError(
+                f"{label} holds no frames after the first {first_frame} skipped; "
+                "record longer or lower first_frame"
+            ) from None
+        raise InputFileError(f"{label} has unusable streams: {detail}") from None

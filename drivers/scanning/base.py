@@ -17,14 +17,14 @@ rgbd       .rgbd.json, .zip, a folder      :class:`~drivers.scanning.rgbd.RGBDRe
 bag        .bag                            :class:`~drivers.scanning.bag.RealSenseBagReader`
 ========== =============================== ===============================================
 
-Readers are imported lazily, so a missing optional dependency is an error naming it, not an
-import failure of the package. Options are a pydantic model per reader, selected by ``kind``.
+Readers are registered in :data:`SCAN_READERS` (a :class:`~drivers.registry.Registry`) and
+imported lazily, so a missing optional dependency is an error naming it, not an import failure of
+the package. Options are a pydantic model per reader, selected by ``kind``.
 """
 
 from __future__ import annotations
 
 import contextlib
-import importlib
 import tempfile
 from abc import ABC, abstractmethod
 from collections.abc import Iterator, Mapping
@@ -35,21 +35,9 @@ from typing import Any, ClassVar
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from drivers.errors import InputFileError, UnknownFormatError
+from drivers.registry import Registry
 from drivers.units import metres_per
 from recon.types import Scan
-
-#: Format name -> "module:Class" of the reader.
-SCAN_READERS: dict[str, str] = {
-    "ply": "drivers.scanning.pointcloud:PointCloudReader",
-    "pcd": "drivers.scanning.pointcloud:PointCloudReader",
-    "xyz": "drivers.scanning.pointcloud:PointCloudReader",
-    "xyzn": "drivers.scanning.pointcloud:PointCloudReader",
-    "xyzrgb": "drivers.scanning.pointcloud:PointCloudReader",
-    "pts": "drivers.scanning.pointcloud:PointCloudReader",
-    "e57": "drivers.scanning.e57:E57Reader",
-    "rgbd": "drivers.scanning.rgbd:RGBDReader",
-    "bag": "drivers.scanning.bag:RealSenseBagReader",
-}
 
 #: File suffix -> format name. The longest matching suffix wins (``.rgbd.json``).
 SCAN_SUFFIXES: dict[str, str] = {
@@ -68,9 +56,6 @@ SCAN_SUFFIXES: dict[str, str] = {
 #: The format of a folder given as a scan.
 FOLDER_FORMAT = "rgbd"
 
-#: Third-party modules a reader needs -> what to install.
-_INSTALL_HINTS = {"pye57": "pye57", "open3d": "open3d-cpu"}
-
 
 @dataclass(frozen=True)
 class ScanFile:
@@ -81,7 +66,7 @@ class ScanFile:
     scan : Scan
         In metres.
     format : str
-        The format name it was read as (a key of :data:`SCAN_READERS`).
+        The format name it was read as (a name in :data:`SCAN_READERS`).
     n_dropped : int
         Points left out: without finite coordinates (organised clouds mark holes with NaN), or
         depth measurements outside the accepted range.
@@ -209,6 +194,28 @@ class ScanReader(ABC):
         yield path
 
 
+#: Scan readers by format name, imported on first use; packages add formats through the
+#: entry-point group ``teachpath.scan_readers`` (a plugin format is chosen explicitly, or by a
+#: file suffix equal to its name, e.g. ``.las`` for ``las``).
+SCAN_READERS: Registry[type[ScanReader]] = Registry(
+    "scan format",
+    {
+        "ply": "drivers.scanning.pointcloud:PointCloudReader",
+        "pcd": "drivers.scanning.pointcloud:PointCloudReader",
+        "xyz": "drivers.scanning.pointcloud:PointCloudReader",
+        "xyzn": "drivers.scanning.pointcloud:PointCloudReader",
+        "xyzrgb": "drivers.scanning.pointcloud:PointCloudReader",
+        "pts": "drivers.scanning.pointcloud:PointCloudReader",
+        "e57": "drivers.scanning.e57:E57Reader",
+        "rgbd": "drivers.scanning.rgbd:RGBDReader",
+        "bag": "drivers.scanning.bag:RealSenseBagReader",
+    },
+    group="teachpath.scan_readers",
+    unknown_error=UnknownFormatError,
+    base=ScanReader,
+)
+
+
 def format_for(name: str, explicit: str | None = None) -> str:
     """The scan format of a file, from ``explicit`` or the file's suffix.
 
@@ -217,25 +224,26 @@ def format_for(name: str, explicit: str | None = None) -> str:
     name : str
         File name (only its suffix is used).
     explicit : str, optional
-        A format name (a key of :data:`SCAN_READERS`), with or without a leading dot.
+        A format name (one of :data:`SCAN_READERS`), with or without a leading dot.
 
     Raises
     ------
     UnknownFormatError
         No such format, or a suffix that names none.
     """
-    known = sorted(SCAN_READERS)
     if explicit is not None:
         fmt = explicit.lower().lstrip(".")
         if fmt not in SCAN_READERS:
-            raise UnknownFormatError(
-                f"unknown scan format {explicit!r}; use one of {', '.join(known)}"
-            )
+            raise SCAN_READERS.unknown(explicit)
         return fmt
     lowered = Path(name).name.lower()
     for suffix in sorted(SCAN_SUFFIXES, key=len, reverse=True):
         if lowered.endswith(suffix) and len(lowered) > len(suffix):
             return SCAN_SUFFIXES[suffix]
+    plugin = Path(lowered).suffix.lstrip(".")
+    if plugin and plugin in SCAN_READERS:
+        return plugin
+    known = SCAN_READERS.names()
     raise UnknownFormatError(
         f"cannot tell the scan format of {name!r} from its suffix; name the file with one of "
         f"{', '.join(sorted(SCAN_SUFFIXES))} (or give a folder of RGB-D frames), or give the "
@@ -249,23 +257,12 @@ def reader_class(fmt: str) -> type[ScanReader]:
     Raises
     ------
     UnknownFormatError
-        Unknown format, or the reader's third-party dependency is not installed.
+        Unknown format (the message lists the known ones).
+    MissingDependencyError
+        The reader's third-party dependency is not installed (a subclass of
+        UnknownFormatError; the message says what to install).
     """
-    if fmt not in SCAN_READERS:
-        raise UnknownFormatError(
-            f"unknown scan format {fmt!r}; use one of {', '.join(sorted(SCAN_READERS))}"
-        )
-    module_name, class_name = SCAN_READERS[fmt].split(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        missing = (exc.name or "").split(".")[0]
-        package = _INSTALL_HINTS.get(missing, missing)
-        raise UnknownFormatError(
-            f"reading {fmt.upper()} scans needs the Python package {package!r}, which is not "
-            f"installed; install it (pip install {package})"
-        ) from None
-    return getattr(module, class_name)
+    return SCAN_READERS.load(fmt)
 
 
 def make_reader(

@@ -3,21 +3,29 @@
 A source yields batches of :class:`Sample` (tip position in metres, orientation as a scalar-last
 quaternion, a flag for missing or low-quality frames). File replays pair a reader with a separate
 :class:`Pacer` (as fast as possible, or real time times a factor); live feeds pace themselves.
-Sources are registered by name (:data:`SOURCES`) and imported lazily.
+
+Sources are registered by name in :data:`SOURCES` (a :class:`~drivers.registry.Registry`) and
+imported lazily; each has a pydantic config (a :class:`SourceConfig` with a literal ``kind``), and
+:func:`create_source` builds the source a config names.
 """
 
 from __future__ import annotations
 
-import importlib
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict
 
 from drivers.errors import UnknownBackendError
+from drivers.registry import Registry
 from drivers.robot.clock import Clock, RealClock
 from recon.types import FloatArray
+
+if TYPE_CHECKING:
+    from recon.types import Recording
 
 
 @dataclass(frozen=True)
@@ -87,10 +95,39 @@ class Pacer:
         self.clock.sleep_until(start + (t_s - t0) / self.speed)
 
 
+class SourceConfig(BaseModel):
+    """Settings of a source; each source subclasses it with a literal ``kind``."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: str
+
+
 class TrackerSource(ABC):
     """A stream of pen samples; iterate :meth:`batches` until it ends or :meth:`close`."""
 
-    kind: str
+    kind: ClassVar[str]
+    #: Its config model (what :func:`create_source` takes for it).
+    config_class: ClassVar[type[SourceConfig]]
+
+    @classmethod
+    def from_config(
+        cls,
+        config: SourceConfig,
+        *,
+        recording: Recording | SampleBatch | None = None,
+        clock: Clock | None = None,
+    ) -> TrackerSource:
+        """The source for ``config`` (see :func:`create_source`).
+
+        Sources that replay stored samples take ``recording`` and pace with ``clock``; live
+        sources take neither, and refuse them rather than ignore them.
+        """
+        if recording is not None or clock is not None:
+            raise ValueError(
+                f"the {cls.kind} source takes neither a recording nor a clock: it streams live"
+            )
+        return cls(config)  # type: ignore[call-arg]
 
     @abstractmethod
     def batches(self) -> Iterator[SampleBatch]: ...
@@ -99,11 +136,18 @@ class TrackerSource(ABC):
         """Release the source (a network socket, a file)."""
 
 
-#: Source name -> "module:Class".
-SOURCES: dict[str, str] = {
-    "replay": "drivers.tracking.replay:ReplaySource",
-    "natnet": "drivers.tracking.natnet_source:NatNetSource",
-}
+#: Tracker sources by name, imported on first use; packages add more through the entry-point
+#: group ``teachpath.tracker_sources``.
+SOURCES: Registry[type[TrackerSource]] = Registry(
+    "tracker source",
+    {
+        "replay": "drivers.tracking.replay:ReplaySource",
+        "natnet": "drivers.tracking.natnet_source:NatNetSource",
+    },
+    group="teachpath.tracker_sources",
+    unknown_error=UnknownBackendError,
+    base=TrackerSource,
+)
 
 
 def source_class(kind: str) -> type[TrackerSource]:
@@ -112,17 +156,42 @@ def source_class(kind: str) -> type[TrackerSource]:
     Raises
     ------
     UnknownBackendError
-        Unknown name, or a missing optional dependency.
+        Unknown name (the message lists the known ones).
+    MissingDependencyError
+        The source needs a package that is not installed (a subclass of UnknownBackendError).
     """
-    if kind not in SOURCES:
-        raise UnknownBackendError(
-            f"unknown tracker source {kind!r}; available: {', '.join(sorted(SOURCES))}"
+    return SOURCES.load(kind)
+
+
+def create_source(
+    config: SourceConfig,
+    *,
+    recording: Recording | SampleBatch | None = None,
+    clock: Clock | None = None,
+) -> TrackerSource:
+    """The source for ``config``, chosen by its ``kind`` field.
+
+    Parameters
+    ----------
+    config : SourceConfig
+        E.g. :class:`~drivers.tracking.replay.ReplayConfig` or
+        :class:`~drivers.tracking.natnet_source.NatNetConfig`.
+    recording : Recording or SampleBatch, optional
+        The samples a replay streams (replay sources only).
+    clock : Clock, optional
+        What a replay is paced by (replay sources only); real time by default.
+
+    Raises
+    ------
+    UnknownBackendError, MissingDependencyError
+        See :func:`source_class`.
+    ValueError
+        A config of another source than its ``kind`` names, or a recording or clock given to a
+        source that takes none (or none given to one that needs it).
+    """
+    cls = source_class(config.kind)
+    if not isinstance(config, cls.config_class):
+        raise ValueError(
+            f"the {cls.kind} source takes {cls.config_class.__name__}, got {type(config).__name__}"
         )
-    module_name, class_name = SOURCES[kind].split(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        raise UnknownBackendError(
-            f"the {kind} source needs {exc.name}, which is not installed"
-        ) from None
-    return getattr(module, class_name)
+    return cls.from_config(config, recording=recording, clock=clock)

@@ -5,8 +5,8 @@ in ``POINT:UNITS``; a sample whose residual is negative is invalid (the marker w
 
 ezc3d is a C++ library, and some damaged files make it crash the whole process (a segmentation
 fault) or loop forever -- found by feeding it mutated files. So the file is parsed in a short-lived
-child process with a time and memory limit, and a crash there becomes an :class:`InputFileError`
-here (about 0.2 s of start-up per file, measured).
+child process with a time and memory limit (:func:`drivers.isolation.run_isolated`), and a crash
+there becomes an :class:`InputFileError` here (about 0.2 s of start-up per file, measured).
 
 Two things the reader checks that ezc3d does not say:
 
@@ -20,18 +20,15 @@ Two things the reader checks that ezc3d does not say:
 
 from __future__ import annotations
 
-import os
-import signal
 import struct
-import subprocess
-import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from drivers.errors import InputFileError
+from drivers.errors import InputFileError, ReaderCrashError, ResourceLimitError
+from drivers.isolation import Limits, run_isolated
 from drivers.tracking.base import SampleBatch
 from drivers.units import metres_per
 from recon.types import FloatArray, Recording
@@ -46,10 +43,8 @@ CHILD_TIMEOUT_S_PER_MB = 2.0
 #: 250 bytes, some 16 times the file's size, on top of the interpreter and numpy.
 CHILD_MEMORY_BYTES = 1 << 30
 CHILD_MEMORY_PER_FILE_BYTE = 40
-#: What the child runs (tests replace it to simulate a crash or a hang).
-_CHILD_CODE = "from drivers.tracking.c3d import _child_main; _child_main()"
-#: Exit status of the child when ezc3d raised (its message is on stderr).
-_CHILD_REFUSED = 3
+#: What the child runs, "module:function" (tests replace it to simulate a crash or a hang).
+_CHILD_TARGET = "drivers.tracking.c3d:parse_with_ezc3d"
 #: Frames ezc3d 1.7 reads at most (the header's 16-bit limit).
 _EZC3D_MAX_FRAMES = 0xFFFF
 _INTEL = 84
@@ -167,7 +162,7 @@ def read_c3d(
                 f"{name} is not a C3D file (it lacks the C3D header and parameter blocks); "
                 "export the take as C3D again, or as CSV"
             )
-        parsed = _parse_in_child(path, marker, Path(tmp) / "parsed.npz", size, name)
+        parsed = _parse_in_child(path, marker, size, name)
         labels = tuple(str(label) for label in parsed["labels"])
         if "points" not in parsed:
             raise _no_marker(name, marker, labels)
@@ -222,64 +217,76 @@ def _no_marker(name: str, marker: str | None, labels: tuple[str, ...]) -> InputF
     return InputFileError(f"{name} has no marker named {marker!r}; it has {listed}")
 
 
-def _parse_in_child(
-    path: Path, marker: str | None, out: Path, size: int, name: str
-) -> dict[str, np.ndarray]:
+def _parse_in_child(path: Path, marker: str | None, size: int, name: str) -> dict[str, np.ndarray]:
     """Run ezc3d on ``path`` in a child process; its arrays, or an InputFileError."""
-    env = dict(os.environ)
-    package_root = str(Path(__file__).resolve().parents[2])
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (package_root, env.get("PYTHONPATH")) if p)
-    # One thread: the child only parses; OpenBLAS's per-thread buffers would eat the memory limit.
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        env[var] = "1"
-    timeout = CHILD_TIMEOUT_S + CHILD_TIMEOUT_S_PER_MB * size / 1e6
-    command = [sys.executable, "-c", _CHILD_CODE, str(path), str(out), marker or "", str(size)]
+    limits = Limits(
+        time_s=CHILD_TIMEOUT_S + CHILD_TIMEOUT_S_PER_MB * size / 1e6,
+        memory_bytes=CHILD_MEMORY_BYTES + CHILD_MEMORY_PER_FILE_BYTE * size,
+    )
     try:
-        done = subprocess.run(
-            command, env=env, capture_output=True, text=True, timeout=timeout, check=False
+        return run_isolated(
+            _CHILD_TARGET, (str(path), marker, name), limits=limits, what="the C3D reader"
         )
-    except subprocess.TimeoutExpired:
-        raise InputFileError(
-            f"{name} could not be read: the C3D reader did not finish within {timeout:.0f} s, "
-            "which a damaged file causes; export the take again"
+    except ResourceLimitError as exc:
+        # Limits scaled to the file's size are only reached by a damaged file.
+        spent = (
+            f"did not finish within {limits.time_s:.0f} s"
+            if exc.limit == "time"
+            else f"needed more than {limits.memory_bytes / 2**20:.0f} MB of memory"
+        )
+        raise ResourceLimitError(
+            f"{name} could not be read: the C3D reader {spent}, which a damaged file causes; "
+            "export the take again",
+            limit=exc.limit,
+            value=exc.value,
+            setting=exc.setting,
         ) from None
-    if done.returncode < 0:
-        try:
-            signal_name = signal.Signals(-done.returncode).name
-        except ValueError:
-            signal_name = f"signal {-done.returncode}"
-        raise InputFileError(
-            f"{name} is damaged: it made the C3D reader crash ({signal_name}); export the take "
-            "again"
-        )
-    if done.returncode == _CHILD_REFUSED:
-        reason = (done.stderr.strip().splitlines() or ["no reason given"])[-1]
-        raise InputFileError(
-            f"{name} is not a readable C3D file ({reason}); export the take again, as C3D or CSV"
-        )
-    if done.returncode != 0 or not out.exists():
-        tail = done.stderr.strip()[-300:]
-        raise InputFileError(
-            f"{name} could not be read: the C3D reader failed (exit status {done.returncode})"
-            + (f": {tail}" if tail else "")
-        )
-    with np.load(out, allow_pickle=False) as data:
-        return {key: data[key] for key in data.files}
+    except ReaderCrashError as exc:
+        if exc.signal_name is not None:
+            message = f"{name} is damaged: it made the C3D reader crash ({exc.signal_name})"
+        else:
+            message = (
+                f"{name} could not be read: the C3D reader exited (status {exc.exit_code}) "
+                "without an answer"
+            )
+        raise ReaderCrashError(
+            f"{message}; export the take again",
+            signal_name=exc.signal_name,
+            exit_code=exc.exit_code,
+            output_tail=exc.output_tail,
+        ) from None
 
 
-def _child_main() -> None:
-    """Entry point of the child process: parse ``argv[1]`` with ezc3d, save to ``argv[2]``."""
-    source, out, marker, size = sys.argv[1], sys.argv[2], sys.argv[3] or None, int(sys.argv[4])
+def parse_with_ezc3d(source: str, marker: str | None, name: str) -> dict[str, np.ndarray]:
+    """Parse a C3D file with ezc3d: what :func:`read_c3d` needs of it, as arrays.
+
+    Runs in a child process (see the module docstring): ezc3d may crash or hang on a damaged
+    file.
+
+    Parameters
+    ----------
+    source : str
+        The file.
+    marker : str or None
+        The marker whose samples to return.
+    name : str
+        The file's name for messages.
+
+    Returns
+    -------
+    dict of str to ndarray
+        ``labels``, ``units``, ``rate``, ``first_frame``, ``long_frames``, and if present
+        ``trial_frames``; with the marker found, its ``index``, ``points`` (N, 3) and
+        ``residuals`` (N,).
+
+    Raises
+    ------
+    InputFileError
+        ezc3d refused the file (its reason in the message).
+    """
+    import ezc3d  # not installed: an ImportError, which the isolation reports as such
+
     try:
-        import resource
-
-        limit = CHILD_MEMORY_BYTES + CHILD_MEMORY_PER_FILE_BYTE * size
-        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-    except (ImportError, ValueError, OSError):
-        pass  # no limit where the platform does not offer one
-    try:
-        import ezc3d
-
         c3d = ezc3d.c3d(source)
         point = c3d["parameters"]["POINT"]
         labels = [str(label).strip() for label in point["LABELS"]["value"]]
@@ -315,13 +322,16 @@ def _child_main() -> None:
             arrays["points"] = np.ascontiguousarray(c3d["data"]["points"][:3, index, :].T)
             residuals = c3d["data"]["meta_points"]["residuals"]
             arrays["residuals"] = np.ascontiguousarray(residuals[0, index, :])
-        np.savez(out, **arrays)
+    except MemoryError:
+        raise  # the isolation reports the memory limit
     except Exception as exc:  # noqa: BLE001 - any failure of the parser is the file's
         message = " ".join(str(exc).split()) or type(exc).__name__
         # ezc3d's advice is about its own API, and its stream suffix says nothing to a user.
         message = message.split(" If you want to ignore")[0].replace(": iostream error", "")
-        sys.stderr.write(f"{message}\n")
-        sys.exit(_CHILD_REFUSED)
+        raise InputFileError(
+            f"{name} is not a readable C3D file ({message}); export the take again, as C3D or CSV"
+        ) from None
+    return arrays
 
 
 def _first_number(group: dict, key: str) -> float:

@@ -16,6 +16,12 @@ What the child does, in order:
    before the definitions are kept and converted once the id is known) and sends them every
    ``batch_s`` with their frame numbers, timestamps and tracking-valid flags.
 
+A failure in the child (no server, an unknown rigid body, a socket that cannot be opened) is
+raised there as its :mod:`drivers.errors` class and sent as the class's name and message, which
+the parent raises again as that class (:func:`~drivers.errors.error_from_wire`). The receiver is
+not a :class:`drivers.worker.WorkerClient`: it streams without being asked, and a request and
+reply per batch would only add latency and a second thread in the child.
+
 Unicast (the default here) needs keep-alives, which natnet sends on every poll of its command
 socket; Motive sends unicast frames to that socket. Two socket details differ from natnet's
 defaults (natnet 0.3.0 only offers them as private methods, hence the name-mangled overrides):
@@ -45,16 +51,17 @@ from typing import Literal
 
 import numpy as np
 from natnet import NatNetClient, NatNetNetworkError
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
 from drivers.errors import (
     DriverError,
     TrackerError,
     TrackerTimeoutError,
-    UnknownBackendError,
     UnknownRigidBodyError,
+    error_from_wire,
+    error_to_wire,
 )
-from drivers.tracking.base import SampleBatch, TrackerSource
+from drivers.tracking.base import SampleBatch, SourceConfig, TrackerSource
 from drivers.units import metres_per
 
 #: Receive buffer asked for on the client's sockets (the kernel caps it at net.core.rmem_max;
@@ -74,7 +81,7 @@ DRAIN_S = 3.0
 RESTART_BACKSTEP = 1000
 
 
-class NatNetConfig(BaseModel):
+class NatNetConfig(SourceConfig):
     """Settings of the NatNet source.
 
     Attributes
@@ -88,8 +95,6 @@ class NatNetConfig(BaseModel):
     multicast : bool
         Multicast instead of unicast (Motive's Transmission Type must match).
     """
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     kind: Literal["natnet"] = "natnet"
     server: str = Field("127.0.0.1", description="NatNet server (Motive) address")
@@ -180,15 +185,6 @@ class NatNetBatch(SampleBatch):
     frame_numbers: np.ndarray
 
 
-_ERRORS: dict[str, type[DriverError]] = {
-    "timeout": TrackerTimeoutError,
-    "unknown_rigid_body": UnknownRigidBodyError,
-    "missing_dependency": UnknownBackendError,
-    "network": TrackerError,
-    "protocol": TrackerError,
-}
-
-
 class NatNetSource(TrackerSource):
     """A rigid body's pose from a NatNet server, received in a child process.
 
@@ -203,6 +199,7 @@ class NatNetSource(TrackerSource):
     """
 
     kind = "natnet"
+    config_class = NatNetConfig
 
     def __init__(self, config: NatNetConfig) -> None:
         self.config = config
@@ -298,8 +295,7 @@ class NatNetSource(TrackerSource):
                 return self._server
             if kind == "error":
                 self._shutdown()
-                error_kind, message = payload
-                raise _ERRORS.get(error_kind, TrackerError)(message)
+                raise error_from_wire(*payload, fallback=TrackerError)
 
     def batches(self) -> Iterator[NatNetBatch]:
         """Samples as they arrive, until :meth:`close` (see :class:`NatNetSource`).
@@ -373,8 +369,7 @@ class NatNetSource(TrackerSource):
                     yield batch
             elif kind == "error":
                 self._shutdown()
-                error_kind, message = payload
-                raise _ERRORS.get(error_kind, TrackerError)(message)
+                raise error_from_wire(*payload, fallback=TrackerError)
 
     def close(self) -> None:
         """Stop the receiver (idempotent; safe from another thread while :meth:`batches` runs).
@@ -463,12 +458,6 @@ class NatNetSource(TrackerSource):
 # -- the receiver process ------------------------------------------------------------------------
 
 
-class _Failure(Exception):
-    def __init__(self, kind: str, message: str) -> None:
-        super().__init__(message)
-        self.kind = kind
-
-
 class _Client(NatNetClient):
     """natnet's client with our socket set-up (see the module docstring).
 
@@ -510,10 +499,11 @@ def _receiver_main(config: dict, out, stop_event) -> None:  # pragma: no cover -
     try:
         receiver = _Receiver(config, out)
         receiver.run(stop_event)
-    except _Failure as failure:
-        out.put(("error", (failure.kind, str(failure))))
+    except DriverError as error:  # by class name: the parent raises the same class
+        out.put(("error", error_to_wire(error)))
     except Exception as exc:  # the parent must hear of it, not find a dead process
-        out.put(("error", ("protocol", f"the NatNet receiver failed: {type(exc).__name__}: {exc}")))
+        failure = TrackerError(f"the NatNet receiver failed: {type(exc).__name__}: {exc}")
+        out.put(("error", error_to_wire(failure)))
     finally:
         if receiver is not None:
             receiver.shutdown()
@@ -587,16 +577,14 @@ class _Receiver:  # pragma: no cover - runs in the child process
         try:
             self.client.connect(timeout=cfg["timeout_s"])
         except TimeoutError:
-            raise _Failure(
-                "timeout",
+            raise TrackerTimeoutError(
                 f"no NatNet server answered at {self.address} within {cfg['timeout_s']:.1f} s; "
                 f"check that Motive streams (Settings > Streaming > Enable) in {mode} on that "
                 "address and command port",
             ) from None
         except (OSError, NatNetNetworkError) as exc:
             reason = getattr(exc, "inner_error", exc)
-            raise _Failure(
-                "network",
+            raise TrackerError(
                 f"cannot open a {mode} socket on {cfg['local']} for {self.address}: {reason}; "
                 "'local' must be an address of this machine on the tracker's network",
             ) from None
@@ -608,8 +596,7 @@ class _Receiver:  # pragma: no cover - runs in the child process
         while self.descriptions is None:
             now = time.monotonic()
             if now > deadline:
-                raise _Failure(
-                    "timeout",
+                raise TrackerTimeoutError(
                     f"the NatNet server at {self.address} answered but sent no model "
                     f"definitions within {timeout_s:.1f} s",
                 )
@@ -628,8 +615,7 @@ class _Receiver:  # pragma: no cover - runs in the child process
                 else "it streams no rigid bodies (enable Rigid Bodies in Motive's streaming "
                 "settings)"
             )
-            raise _Failure(
-                "unknown_rigid_body",
+            raise UnknownRigidBodyError(
                 f"no rigid body named {self.config['rigid_body']!r} at the NatNet server "
                 f"{self.address}; {streamed}",
             )

@@ -4,20 +4,24 @@ A reader turns a file into a raw :class:`~drivers.tracking.base.SampleBatch` (ev
 lost ones flagged); :func:`read_trace` then moves the samples to the pen's tip (with a tip
 calibration), cleans dropouts and outliers (:mod:`drivers.tracking.gaps`) and picks a piece.
 
-Formats are registered by name and imported lazily: ``csv`` (the canonical
-``t,x,y,z,qx,qy,qz,qw``), ``motive`` (OptiTrack Motive CSV exports, which share the ``.csv``
-suffix and are told apart by their first line) and ``c3d`` (marker files).
+Formats are registered by name in :data:`TRACE_READERS` (a :class:`~drivers.registry.Registry`)
+and imported lazily: ``csv`` (the canonical ``t,x,y,z,qx,qy,qz,qw``), ``motive`` (OptiTrack
+Motive CSV exports, which share the ``.csv`` suffix and are told apart by their first line) and
+``c3d`` (marker files). Packages add formats through the entry-point group
+``teachpath.trace_readers``: a function taking ``(source, *, name, units, **options)`` and
+returning a :class:`RawTrace`, chosen explicitly or by a suffix equal to its name.
 """
 
 from __future__ import annotations
 
-import importlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from drivers.errors import InputFileError, UnknownFormatError
+from drivers.registry import Registry
 from drivers.tracking.base import SampleBatch
 from drivers.tracking.gaps import CleanTrace, GapParams, apply_tip_offset, clean_trace
 from recon.types import FloatArray, Recording
@@ -85,13 +89,18 @@ class TraceFile:
         }
 
 
-#: Format name -> "module:function"; each reads (source, *, name, units, rigid_body, marker)
-#: into a RawTrace.
-TRACE_READERS: dict[str, str] = {
-    "csv": "drivers.tracking.readers:read_canonical_raw",
-    "motive": "drivers.tracking.readers:read_motive_raw",
-    "c3d": "drivers.tracking.readers:read_c3d_raw",
-}
+#: Trace readers by format name ("module:function"), each reading (source, *, name, units,
+#: rigid_body, marker) into a RawTrace; imported on first use.
+TRACE_READERS: Registry[Callable[..., RawTrace]] = Registry(
+    "trace format",
+    {
+        "csv": "drivers.tracking.readers:read_canonical_raw",
+        "motive": "drivers.tracking.readers:read_motive_raw",
+        "c3d": "drivers.tracking.readers:read_c3d_raw",
+    },
+    group="teachpath.trace_readers",
+    unknown_error=UnknownFormatError,
+)
 #: File suffix -> format name (".csv" is sniffed: canonical or Motive).
 TRACE_SUFFIXES: dict[str, str] = {".csv": "csv", ".c3d": "c3d"}
 #: The first cells of a Motive export's first line (with or without its metadata header).
@@ -130,6 +139,9 @@ def read_raw_trace(
     ------
     UnknownFormatError
         No reader for the format or suffix.
+    MissingDependencyError
+        The format's reader needs a package that is not installed (a subclass of
+        UnknownFormatError).
     InputFileError
         The file is wrong for its format.
     ValueError
@@ -141,14 +153,7 @@ def read_raw_trace(
         raise ValueError("a rigid body name applies to Motive CSV exports only")
     if marker is not None and fmt not in ("motive", "c3d"):
         raise ValueError("a marker name applies to Motive CSV exports and C3D files only")
-    module_name, function_name = TRACE_READERS[fmt].split(":")
-    try:
-        reader = getattr(importlib.import_module(module_name), function_name)
-    except ImportError as exc:
-        raise UnknownFormatError(
-            f"the {fmt} reader needs {exc.name}, which is not installed; install teachpath "
-            "with its dependencies (pip install -e .)"
-        ) from None
+    reader = TRACE_READERS.load(fmt)
     options = {"rigid_body": rigid_body, "marker": marker}
     options = {k: v for k, v in options.items() if v is not None}
     return reader(source, name=label, units=units, **options)
@@ -312,17 +317,17 @@ def _format_for(source: str | Path | bytes, label: str, fmt: str | None) -> str:
     if fmt is not None:
         fmt = fmt.lower()
         if fmt not in TRACE_READERS:
-            raise UnknownFormatError(
-                f"unknown trace format {fmt!r}; use one of {', '.join(sorted(TRACE_READERS))}"
-            )
+            raise TRACE_READERS.unknown(fmt)
         return fmt
     suffix = Path(label).suffix.lower()
     fmt = TRACE_SUFFIXES.get(suffix)
+    if fmt is None and suffix[1:] and suffix[1:] in TRACE_READERS:
+        return suffix[1:]  # a format a package registered, named like its suffix
     if fmt is None:
         raise UnknownFormatError(
             f"cannot tell the trace format of {label!r} from its suffix; use one of "
             f"{', '.join(sorted(TRACE_SUFFIXES))} or give the format "
-            f"({', '.join(sorted(TRACE_READERS))})"
+            f"({', '.join(TRACE_READERS.names())})"
         )
     if fmt == "csv" and _looks_like_motive(source):
         return "motive"

@@ -1,17 +1,37 @@
-"""Replay of a stored recording as if it were arriving from a tracker."""
+"""Replay of a stored recording as if it were arriving from a tracker: :class:`ReplaySource` and
+its config, :class:`ReplayConfig`."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
+from pydantic import Field
 
-from drivers.tracking.base import Pacer, SampleBatch, TrackerSource
+from drivers.robot.clock import Clock
+from drivers.tracking.base import Pacer, SampleBatch, SourceConfig, TrackerSource
 from recon.types import Recording
 
 #: Assumed tracker rate for recordings without times (OptiTrack's default is 240 Hz).
 DEFAULT_RATE_HZ = 240.0
+
+
+class ReplayConfig(SourceConfig):
+    """Settings of a replay (the samples themselves are given to :func:`create_source`).
+
+    Attributes
+    ----------
+    speed : float or None
+        Times real time; None replays as fast as the consumer takes the samples.
+    batch_s : float
+        Stream time per batch.
+    """
+
+    kind: Literal["replay"] = "replay"
+    speed: float | None = Field(1.0, gt=0, description="times real time; None: as fast as possible")
+    batch_s: float = Field(0.05, gt=0, description="stream time per batch (s)")
 
 
 class ReplaySource(TrackerSource):
@@ -29,6 +49,7 @@ class ReplaySource(TrackerSource):
     """
 
     kind = "replay"
+    config_class = ReplayConfig
 
     def __init__(
         self,
@@ -59,6 +80,25 @@ class ReplaySource(TrackerSource):
         self.pacer = pacer or Pacer(1.0)
         self.batch_s = batch_s
         self._closed = False
+
+    @classmethod
+    def from_config(
+        cls,
+        config: ReplayConfig,
+        *,
+        recording: Recording | SampleBatch | None = None,
+        clock: Clock | None = None,
+    ) -> ReplaySource:
+        """Replay ``recording`` as ``config`` says, paced by ``clock`` (real time by default).
+
+        Raises
+        ------
+        ValueError
+            No recording given.
+        """
+        if recording is None:
+            raise ValueError("a replay needs the recording to replay (recording=...)")
+        return cls(recording, pacer=Pacer(config.speed, clock=clock), batch_s=config.batch_s)
 
     @classmethod
     def from_file(

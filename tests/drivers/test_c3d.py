@@ -150,13 +150,13 @@ def test_files_that_crash_or_hang_ezc3d_do_not_take_the_process_down(
 
 def test_a_crash_of_the_parser_becomes_an_input_file_error(small_c3d, monkeypatch):
     # Whatever ezc3d's version does with the files above, a segmentation fault is reported.
-    monkeypatch.setattr(c3d_module, "_CHILD_CODE", "import ctypes; ctypes.string_at(0)")
+    monkeypatch.setattr(c3d_module, "_CHILD_TARGET", "tests.drivers.isolation_targets:segfault")
     with pytest.raises(InputFileError, match=r"damaged: it made the C3D reader crash \(SIGSEGV\)"):
         read_c3d(small_c3d, name="take.c3d")
 
 
 def test_a_hanging_parser_is_stopped(small_c3d, monkeypatch):
-    monkeypatch.setattr(c3d_module, "_CHILD_CODE", "import time; time.sleep(60)")
+    monkeypatch.setattr(c3d_module, "_CHILD_TARGET", "tests.drivers.isolation_targets:hang")
     monkeypatch.setattr(c3d_module, "CHILD_TIMEOUT_S", 1.0)
     with pytest.raises(InputFileError, match="did not finish within 1 s"):
         read_c3d(small_c3d, name="take.c3d")

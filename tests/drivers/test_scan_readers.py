@@ -30,7 +30,7 @@ from pye57 import libe57
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from drivers.errors import InputFileError, UnknownFormatError
+from drivers.errors import InputFileError, MissingDependencyError, UnknownFormatError
 from drivers.scanning import bag as bag_module
 from drivers.scanning import base
 from drivers.scanning.bag import BagOptions, BagReadError, extract_frames, frames_to_scan
@@ -252,9 +252,10 @@ def test_resource_limits_lower_defaults_and_refuse_larger_requests():
 
 
 def test_a_missing_dependency_names_the_package(monkeypatch):
-    monkeypatch.setitem(SCAN_READERS, "e57", "pye57_is_not_installed_here:Reader")
-    with pytest.raises(UnknownFormatError, match="pip install pye57_is_not_installed_here"):
+    monkeypatch.setitem(SCAN_READERS.builtins, "e57", "pye57_is_not_installed_here:Reader")
+    with pytest.raises(UnknownFormatError, match="pip install pye57_is_not_installed_here") as err:
         base.reader_class("e57")
+    assert isinstance(err.value, MissingDependencyError)
 
 
 def test_fixed_unit_formats_refuse_other_units(tmp_path):

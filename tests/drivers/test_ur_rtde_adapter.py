@@ -94,7 +94,7 @@ def test_a_lost_link_ends_its_worker_so_a_reconnect_starts_clean(fake_ur):
     robot = URRtdeBackend(URRtdeConfig(host=fake_ur.host, connect_timeout_s=5.0))
     robot.connect()
     robot.enable()
-    worker = robot._process
+    worker = robot._worker.process
     fake_ur.control("freeze")
     time.sleep(0.3)  # packages already on their way reach the client first
     with pytest.raises(ConnectionLostError, match="no new data"):
