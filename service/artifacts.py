@@ -13,6 +13,8 @@ field they need is missing.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar, Literal
 
@@ -98,13 +100,18 @@ RECONSTRUCTION_FIELDS = (
 )
 #: Key prefix of the scan model's arrays stored beside a reconstruction.
 SCAN_MODEL_PREFIX = "scan_model."
+#: Key of the reconstruction's parameters (JSON text in a 0-d array: no pickle needed).
+PARAMS_KEY = "params_json"
 
 
 class ReconstructionCodec:
-    """A reconstruction: per-point arrays, the ``T_scan_tracker`` it used, and its scan model.
+    """A reconstruction: per-point arrays, the ``T_scan_tracker`` and the parameters it used, and
+    its scan model.
 
     The scan model (the cropped scan's structure in the scan frame) is stored so that planning
-    reuses it with the same transform instead of registering and analysing the scan again.
+    reuses it with the same transform instead of registering and analysing the scan again. The
+    service stores these arrays as the artifact; ``teachpath reconstruct`` writes them beside its
+    CSV (``OUT.npz``) so that ``teachpath plan`` does the same.
     """
 
     kind: ClassVar[str] = "reconstruction"
@@ -114,6 +121,7 @@ class ReconstructionCodec:
         """Arrays of a :class:`recon.types.Reconstruction`."""
         arrays = {name: getattr(recon, name) for name in RECONSTRUCTION_FIELDS}
         arrays["T_scan_tracker"] = recon.T_scan_tracker
+        arrays[PARAMS_KEY] = np.array(json.dumps(dataclasses.asdict(recon.params)))
         if recon.scan_model is not None:
             for name, value in recon.scan_model.to_arrays().items():
                 arrays[SCAN_MODEL_PREFIX + name] = value
@@ -134,6 +142,15 @@ class ReconstructionCodec:
             orientations_xyzw=arrays.get("orientations_xyzw"),
             T_scan_tracker=None if T is None or T.shape != (4, 4) else T,
         )
+
+    @staticmethod
+    def recon_params(arrays: Arrays):
+        """The parameters the reconstruction ran with, or None (stored by an older version)."""
+        from recon.types import ReconParams
+
+        if PARAMS_KEY not in arrays:
+            return None
+        return ReconParams(**json.loads(str(arrays[PARAMS_KEY])))
 
     @staticmethod
     def scan_model(arrays: Arrays):

@@ -3,7 +3,8 @@
 A real arm moves only when every check passes: an arm is configured, the trajectory was planned
 for that model, the request says ``"confirm": true``, its speed is within the server's cap, and
 the same trajectory passed a dry run in the same mode (and, for movePath, the same tolerance).
-The gate reads typed summaries and fails closed: a stored dry run whose summary is not a complete
+The gate reads typed summaries, strictly (no coercion: ``"yes"`` is not ``true``), and fails
+closed: a stored dry run whose summary is not a complete
 :class:`~service.artifacts.ExecutionSummary` (an older or damaged record, a missing field) does
 not count as passed, and a trajectory whose summary cannot be read is refused.
 
@@ -54,7 +55,7 @@ class UnreadableTrajectory(RealArmRefused):
 def trajectory_summary(trajectory: ArtifactRow) -> TrajectorySummary:
     """The trajectory's typed summary, or a refusal if it cannot be read."""
     try:
-        return TrajectorySummary.model_validate(trajectory.summary)
+        return TrajectorySummary.model_validate(trajectory.summary, strict=True)
     except ValidationError as exc:
         raise UnreadableTrajectory(
             f"the summary of trajectory {trajectory.id} cannot be read "
@@ -71,7 +72,7 @@ def passed_dry_run(
         if row.inputs.get("trajectory_id") != trajectory_id:
             continue
         try:
-            summary = ExecutionSummary.model_validate(row.summary)
+            summary = ExecutionSummary.model_validate(row.summary, strict=True)
         except ValidationError:
             continue  # an unreadable record proves nothing
         if not (summary.dry_run and summary.backend == "sim"):

@@ -198,6 +198,8 @@ def _value_type(name: str, hint, spec):
 
     words = [w for w in _literals(hint) if isinstance(w, str)]
     args = typing.get_args(hint)
+    if hint is str:
+        return str
     if typing.get_origin(hint) is tuple:
         return vector3
     numeric = int if hint is int or int in args else float

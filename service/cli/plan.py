@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import argparse
 
+import numpy as np
+
 from service.cli.options import (
     add_param_options,
     add_scan_options,
     add_units_option,
     check_output,
+    note,
     params_from_args,
     read_matrix,
     read_scan_for,
@@ -28,16 +31,17 @@ def add_parser(commands) -> None:
     plan.add_argument(
         "--scan",
         metavar="SCAN_FILE",
-        help="the scan the path follows (tool axis from its normals)",
+        help="the scan the path follows (tool axis from its normals): with the RECON.npz "
+        "`teachpath reconstruct` wrote beside RECON.csv, its stored model and transform are "
+        "used",
     )
     add_scan_options(plan)
     add_units_option(plan, "unit of the scan file if it does not state one")
     plan.add_argument(
         "--scan-from-tracker",
         metavar="T.json",
-        help="T_scan_tracker the reconstruction used (teachpath reconstruct --registration-out): "
-        "the scan is placed with it, nothing is registered again; without it the path is "
-        "registered to the scan here",
+        help="place the scan with this T_scan_tracker instead (nothing is registered); without "
+        "it and without RECON.npz the path is registered to the scan here",
     )
     from recon.types import PlanParams
     from service.schemas import TRAJECTORY_PARAMS
@@ -52,31 +56,66 @@ def add_parser(commands) -> None:
     plan.set_defaults(handler=run)
 
 
+def _reconstruction(recon_file: str):
+    """The reconstruction to plan along: its CSV, and the arrays ``teachpath reconstruct`` wrote
+    beside it (``RECON.npz``: the transform, parameters and scan model it used) when they are
+    there and belong to it. Returns (path, scan model or None, parameters or None)."""
+    from drivers.export import read_reconstruction_csv
+    from service.artifacts import ReconstructionCodec
+    from service.cli.reconstruct import sidecar_of
+    from service.tasks import load_arrays
+
+    path = read_reconstruction_csv(recon_file)
+    sidecar = sidecar_of(recon_file)
+    if not sidecar.is_file():
+        return path, None, None
+    arrays = load_arrays(sidecar)
+    stored = ReconstructionCodec.decode(arrays)
+    # The CSV holds 9 significant digits; anything more is an edited CSV or another sidecar.
+    if stored.points_m.shape != path.points_m.shape or not np.allclose(
+        stored.points_m, path.points_m, rtol=0, atol=1e-7
+    ):
+        note(f"{sidecar.name} does not belong to {recon_file} (other points): not used")
+        return path, None, None
+    return stored, ReconstructionCodec.scan_model(arrays), ReconstructionCodec.recon_params(arrays)
+
+
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from drivers.export import read_reconstruction_csv, write_trajectory_csv
+    from drivers.export import write_trajectory_csv
     from recon.types import PlanParams
     from service import pipelines
-    from service.cli.options import note
     from service.schemas import TRAJECTORY_PARAMS
 
     out = check_output(args.out, ".csv")
     params = params_from_args(PlanParams, args, TRAJECTORY_PARAMS)
-    path = read_reconstruction_csv(args.recon_file)
+    path, scan_model, recon_params = _reconstruction(args.recon_file)
     T_base_tracker = read_matrix(args.base_from_tracker, "T_base_tracker")
-    path = replace(path, T_scan_tracker=read_matrix(args.scan_from_tracker, "T_scan_tracker"))
-    scan_model = None
-    if args.scan and params.orientation in ("auto", "scan"):
-        placed = pipelines.place_scan(read_scan_for(args), path)
-        if placed.registration is not None:
-            note(
-                "registered the path to the scan to find its normals; pass the reconstruction's "
-                "own transform with --scan-from-tracker (reconstruct --registration-out)"
+    given = read_matrix(args.scan_from_tracker, "T_scan_tracker")
+    wants_scan = args.scan and params.orientation in ("auto", "scan")
+    if given is not None or (wants_scan and scan_model is None):
+        # A transform given by hand, or no stored model: build one from the scan file.
+        scan_model = None
+        if wants_scan:
+            placed = pipelines.place_scan(
+                read_scan_for(args), replace(path, T_scan_tracker=given), recon_params=recon_params
             )
-        path, scan_model = replace(path, T_scan_tracker=placed.T_scan_tracker), placed.model
+            if placed.registration is not None:
+                note(
+                    f"registered the path to the scan to find its normals ({args.recon_file} "
+                    "came without the arrays `teachpath reconstruct` writes beside it); pass "
+                    "--scan-from-tracker to use a known transform"
+                )
+            path, scan_model = replace(path, T_scan_tracker=placed.T_scan_tracker), placed.model
+    elif not wants_scan:
+        scan_model = None
     outcome = pipelines.plan(
-        path, params=params, T_base_tracker=T_base_tracker, scan_model=scan_model
+        path,
+        params=params,
+        T_base_tracker=T_base_tracker,
+        scan_model=scan_model,
+        recon_params=recon_params,
     )
     write_trajectory_csv(out, outcome.trajectory)
     print("\n".join(outcome.lines()))

@@ -23,7 +23,8 @@ def add_parser(commands) -> None:
         "reconstruct",
         help="reconstruct a traced path with a scan of the workpiece",
         description="Reconstruct a traced path, using the scan's structure where there is one. "
-        "Writes the path (x,y,z, metres) with per-point diagnostics as CSV.",
+        "Writes the path (x,y,z, metres) with per-point diagnostics as CSV, and beside it "
+        "OUT.npz: the same with the scan's transform and model, which `teachpath plan` reuses.",
     )
     rec.add_argument(
         "path_file",
@@ -57,36 +58,27 @@ def add_parser(commands) -> None:
     )
     rec.add_argument("--out", required=True, metavar="OUT.csv", help="reconstructed path (CSV)")
     rec.add_argument("--plot", metavar="OUT.png", help="also write a picture")
-    rec.add_argument(
-        "--registration-out",
-        metavar="T.json",
-        help="also write the T_scan_tracker the reconstruction used (registered, or the one "
-        "given), for `teachpath plan --scan-from-tracker`",
-    )
+
     rec.set_defaults(handler=run)
 
 
+def sidecar_of(csv_path: Path) -> Path:
+    """Where ``teachpath reconstruct --out OUT.csv`` writes its arrays: ``OUT.npz``."""
+    return Path(csv_path).with_suffix(".npz")
+
+
 def run(args: argparse.Namespace) -> int:
-    from drivers.calibration import write_calibration
     from drivers.export import write_reconstruction_csv
+    from recon.types import ReconParams
     from service import pipelines
+    from service.artifacts import ReconstructionCodec
+    from service.schemas import RECONSTRUCTION_PARAMS
+    from service.tasks import save_arrays
 
     out = check_output(args.out, ".csv")
     plot = check_output(args.plot, ".png") if args.plot else None
-    registration_out = (
-        check_output(args.registration_out, ".json") if args.registration_out else None
-    )
-    if registration_out is not None and not args.scan:
-        raise ValueError("--registration-out needs --scan: without a scan nothing is registered")
-    from recon.types import ReconParams
-    from service.schemas import RECONSTRUCTION_PARAMS
-
-    params = params_from_args(
-        ReconParams,
-        args,
-        RECONSTRUCTION_PARAMS,
-        **({"register": False} if args.no_register else {}),
-    )
+    fixed = {"register": False} if args.no_register else {}
+    params = params_from_args(ReconParams, args, RECONSTRUCTION_PARAMS, **fixed)
     T_init = read_matrix(args.scan_from_tracker, "T_scan_tracker")
     recording = read_trace_for(args)
     scan = read_scan_for(args) if args.scan else None
@@ -94,20 +86,9 @@ def run(args: argparse.Namespace) -> int:
     if plot is not None:
         # Written first: if the plot fails, no CSV claims the run succeeded.
         outcome.write_preview(plot, title=Path(args.path_file).name)
-    recon = outcome.reconstruction
-    if registration_out is not None:
-        if recon.T_scan_tracker is None:
-            raise ValueError("--registration-out needs a scan: no transform was used")
-        write_calibration(
-            registration_out,
-            "T_scan_tracker",
-            recon.T_scan_tracker,
-            residual_rms_m=None if recon.registration is None else recon.registration.rmse_m,
-            extra={
-                "source": Path(args.path_file).name,
-                "registered": recon.registration is not None,
-            },
-        )
-    write_reconstruction_csv(out, recon)
+    # Beside the CSV, for `teachpath plan`: the arrays the service stores (with the transform
+    # and the scan model the reconstruction used, so planning registers nothing again).
+    save_arrays(sidecar_of(out), ReconstructionCodec.encode(outcome.reconstruction))
+    write_reconstruction_csv(out, outcome.reconstruction)
     print("\n".join(outcome.lines()))
     return 0

@@ -8,7 +8,6 @@ frame), and the plan (the trajectory's samples), with registration and with a ca
 from __future__ import annotations
 
 import io
-import json
 
 import numpy as np
 import pytest
@@ -22,6 +21,7 @@ from recon.transforms import apply_transform, invert_transform
 from service import pipelines
 from service.app import create_app
 from service.cli import main
+from service.tasks import load_arrays
 from tests.service.conftest import AUTH, T_BASE_TRACKER, make_settings, wait
 
 
@@ -38,7 +38,7 @@ def scene_folder(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def client(tmp_path_factory):
-    app = create_app(make_settings(tmp_path_factory.mktemp("data"), max_upload_mb=50))
+    app = create_app(make_settings(tmp_path_factory.mktemp("data")))
     with TestClient(app, headers=AUTH) as test_client:
         yield test_client
 
@@ -76,8 +76,6 @@ def cli_reconstruction(folder, out_dir, *options) -> tuple[bytes, bytes]:
         str(out_dir / "r.csv"),
         "--plot",
         str(out_dir / "r.png"),
-        "--registration-out",
-        str(out_dir / "T_used.json"),
         *options,
     ]
     assert main(args) == 0
@@ -95,9 +93,10 @@ def test_reconstruction_preview_and_plan_are_the_same(client, scene_folder, tmp_
     assert cli_csv == service_csv
     assert cli_png == service_png
 
-    # The registration the reconstruction used is what the service stored and the CLI wrote.
+    # The registration the reconstruction used is what the service stored and the CLI wrote
+    # beside its CSV.
     stored = client.get(f"/sessions/{sid}/reconstructions/{rid}").json()["summary"]
-    used = read_calibration(tmp_path / "T_used.json", expect="T_scan_tracker").matrix
+    used = load_arrays(tmp_path / "r.npz")["T_scan_tracker"]
     np.testing.assert_allclose(used, stored["T_scan_tracker"], atol=1e-12)
 
     job = wait(
@@ -116,8 +115,6 @@ def test_reconstruction_preview_and_plan_are_the_same(client, scene_folder, tmp_
         str(tmp_path / "r.csv"),
         "--scan",
         str(scene_folder / "scan.ply"),
-        "--scan-from-tracker",
-        str(tmp_path / "T_used.json"),
         "--base-from-tracker",
         str(scene_folder / "T_base.json"),
         "--speed-m-s",
@@ -127,12 +124,9 @@ def test_reconstruction_preview_and_plan_are_the_same(client, scene_folder, tmp_
     ]
     assert main(plan_args) == 0
     cli_traj = trajectory_columns((tmp_path / "traj.csv").read_bytes())
-    assert cli_traj.shape == service_traj.shape
-    # The TCP path is the reconstruction's, exactly; the tool axis comes from the scan model,
-    # which the service stored and the command line rebuilt around the reconstructed path
-    # with the same transform: the same normals up to the crop's edge.
-    np.testing.assert_allclose(cli_traj[:, 7:10], service_traj[:, 7:10], atol=1e-9)
-    np.testing.assert_allclose(cli_traj[:, 1:7], service_traj[:, 1:7], atol=1e-3)
+    # The command line reuses the arrays it wrote beside the CSV as the service reuses its
+    # stored ones: the same transform, the same scan model, the same plan.
+    np.testing.assert_array_equal(cli_traj, service_traj)
 
 
 def test_a_calibrated_scanner_without_registration(client, scene_folder, tmp_path):
@@ -152,8 +146,7 @@ def test_a_calibrated_scanner_without_registration(client, scene_folder, tmp_pat
     summary = client.get(f"/sessions/{sid}/reconstructions/{rid}").json()["summary"]
     assert summary["registration"] is None
     np.testing.assert_allclose(summary["T_scan_tracker"], T, atol=1e-12)
-    written = json.loads((tmp_path / "T_used.json").read_text())
-    assert written["registered"] is False
+    np.testing.assert_allclose(load_arrays(tmp_path / "r.npz")["T_scan_tracker"], T, atol=1e-12)
 
 
 def test_the_preview_moves_the_scan_into_the_tracker_frame():
