@@ -1,15 +1,19 @@
 """Inputs of a session: uploaded recordings and scans, and its calibrations.
 
-Uploads are parsed in a worker process (Open3D's readers hold the GIL); a file that cannot be read
-is a 422 that changes nothing. Each upload becomes an immutable artifact and the session's current
-recording or scan; the original bytes are kept beside it. Calibrations are fields of the session,
-and how each was obtained (the residuals of its fit) goes into its calibration report.
+Uploads are parsed in a worker process (Open3D's readers hold the GIL); a file that cannot be
+read is a 422 that changes nothing. The upload workflows are coroutines (they await the parse),
+so their database and file work runs in the thread pool, never on the event loop. Each upload
+becomes an immutable artifact and the session's current recording or scan; the original bytes
+are kept beside it. Calibrations are fields of the session, and how each was obtained (the
+residuals of its fit) goes into its calibration report.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+
+from starlette.concurrency import run_in_threadpool
 
 from service import pipelines, tasks
 from service.artifacts import ID_PREFIX
@@ -55,7 +59,7 @@ async def add_recording(
     services: Services, session_id: str, upload: Upload, options: TraceOptions
 ) -> ArtifactRow:
     """Parse an uploaded trace and make it the session's recording."""
-    session = services.session(session_id)
+    session = await run_in_threadpool(services.session, session_id)
     tip = _tip_for(session, options.marker)
     arrays, summary = await services.jobs.run(
         tasks.ParseRecording(
@@ -69,25 +73,41 @@ async def add_recording(
             piece=options.piece,
         )
     )
-    artifact_id = new_id(ID_PREFIX["recording"])
+    params = {
+        "format": summary["format"],
+        "units": summary.get("units") or options.units,
+        "rigid_body": options.rigid_body,
+        "marker": options.marker,
+        "piece": summary.get("piece"),
+        "tip_offset_m": list(tip) if tip and summary["tip_offset_applied"] else None,
+    }
+    return await run_in_threadpool(
+        _store_upload, services, session_id, "recording", upload, arrays, params, summary
+    )
+
+
+def _store_upload(
+    services: Services,
+    session_id: str,
+    kind: str,
+    upload: Upload,
+    arrays: dict,
+    params: dict,
+    summary: dict,
+) -> ArtifactRow:
+    """Record a parsed upload as the session's current recording or scan, with its bytes."""
+    artifact_id = new_id(ID_PREFIX[kind])
     row = services.store.add_arrays_artifact(
         artifact_id=artifact_id,
         session_id=session_id,
-        kind="recording",
+        kind=kind,
         arrays=arrays,
-        params={
-            "format": summary["format"],
-            "units": summary.get("units") or options.units,
-            "rigid_body": options.rigid_body,
-            "marker": options.marker,
-            "piece": summary.get("piece"),
-            "tip_offset_m": list(tip) if tip and summary["tip_offset_applied"] else None,
-        },
+        params=params,
         summary=summary,
         source_name=upload.filename,
     )
     _keep_upload(services, artifact_id, upload)
-    services.store.update_session(session_id, recording_id=artifact_id)
+    services.store.update_session(session_id, **{f"{kind}_id": artifact_id})
     return row
 
 
@@ -101,7 +121,7 @@ async def add_scan(
     options: dict | None,
 ) -> ArtifactRow:
     """Parse an uploaded scan and make it the session's scan."""
-    services.session(session_id)
+    await run_in_threadpool(services.session, session_id)
     settings = services.settings
     # A client may lower the reader's resource limits, not raise them past the server's.
     limits = {
@@ -118,19 +138,10 @@ async def add_scan(
             limits=limits,
         )
     )
-    artifact_id = new_id(ID_PREFIX["scan"])
-    row = services.store.add_arrays_artifact(
-        artifact_id=artifact_id,
-        session_id=session_id,
-        kind="scan",
-        arrays=arrays,
-        params={"format": summary["format"], "units": units, "options": options},
-        summary=summary,
-        source_name=upload.filename,
+    params = {"format": summary["format"], "units": units, "options": options}
+    return await run_in_threadpool(
+        _store_upload, services, session_id, "scan", upload, arrays, params, summary
     )
-    _keep_upload(services, artifact_id, upload)
-    services.store.update_session(session_id, scan_id=artifact_id)
-    return row
 
 
 def set_calibration(services: Services, session_id: str, request: CalibrationIn) -> SessionRow:
@@ -144,7 +155,7 @@ async def pivot_calibration(
     services: Services, session_id: str, upload: Upload, options: TraceOptions
 ) -> tuple[SessionRow, dict]:
     """The tip offset from a pivoting recording; sets the session's ``tip_offset_m``."""
-    services.session(session_id)
+    await run_in_threadpool(services.session, session_id)
     result = await services.jobs.run(
         tasks.ParsePivot(
             content=upload.content,
@@ -154,7 +165,8 @@ async def pivot_calibration(
             rigid_body=options.rigid_body,
         )
     )
-    row = services.store.record_calibration(
+    row = await run_in_threadpool(
+        services.store.record_calibration,
         session_id,
         "pivot",
         {**result, "source_name": upload.filename, "at": now().isoformat()},

@@ -313,15 +313,13 @@ class Store:
             return None
         return row
 
-    def artifacts(self, session_id: str, kind: str) -> list[ArtifactRow]:
+    def artifacts(self, session_id: str, kind: str | None = None) -> list[ArtifactRow]:
+        """The session's artifacts of one kind (or of every kind), oldest first."""
+        query = select(ArtifactRow).where(ArtifactRow.session_id == session_id)
+        if kind is not None:
+            query = query.where(ArtifactRow.kind == kind)
         with self.db() as db:
-            return list(
-                db.scalars(
-                    select(ArtifactRow)
-                    .where(ArtifactRow.session_id == session_id, ArtifactRow.kind == kind)
-                    .order_by(ArtifactRow.created_at)
-                )
-            )
+            return list(db.scalars(query.order_by(ArtifactRow.created_at)))
 
     # -- jobs ------------------------------------------------------------------------------------
 

@@ -10,6 +10,7 @@ from service import inputs
 from service.api.common import read_upload
 from service.api.deps import ServicesDep
 from service.schemas import (
+    ArtifactOut,
     BaseCalibrationIn,
     CalibrationIn,
     CalibrationResult,
@@ -43,6 +44,14 @@ def delete_session(session_id: str, services: ServicesDep) -> Response:
     services.session(session_id)
     services.store.update_session(session_id, deleted_at=now())
     return Response(status_code=204)
+
+
+@router.get("/{session_id}/artifacts", response_model=list[ArtifactOut])
+def list_artifacts(session_id: str, services: ServicesDep):
+    """Every artifact of the session, of every kind, oldest first: what it is made of and what
+    each was made from (inputs, parameters, checksum)."""
+    services.session(session_id)
+    return services.store.artifacts(session_id)
 
 
 @router.put("/{session_id}/calibration", response_model=SessionOut)

@@ -329,6 +329,23 @@ def test_dry_run_report(client, session, dry_run):
     assert csv_text.startswith("t,q0_planned")
 
 
+def test_every_artifact_of_a_session_with_its_typed_summary(client, session, dry_run):
+    artifacts = client.get(f"/sessions/{session}/artifacts").json()
+    kinds = [a["kind"] for a in artifacts]
+    assert {"recording", "scan", "reconstruction", "trajectory", "execution"} <= set(kinds)
+    assert [a["created_at"] for a in artifacts] == sorted(a["created_at"] for a in artifacts)
+    by_kind = {a["kind"]: a for a in artifacts}
+    # Each kind reports its own summary, as the OpenAPI spec says (a union told apart by kind).
+    assert by_kind["execution"]["summary"]["backend"] == "sim"
+    assert by_kind["trajectory"]["summary"]["rate_hz"] == pytest.approx(500)
+    assert by_kind["reconstruction"]["summary"]["modes"]["edge"] > 0
+    spec = client.get("/openapi.json").json()
+    schema = spec["paths"]["/sessions/{session_id}/artifacts"]["get"]["responses"]["200"]
+    items = schema["content"]["application/json"]["schema"]["items"]
+    assert items["discriminator"]["propertyName"] == "kind"
+    assert set(items["discriminator"]["mapping"]) == set(by_kind)
+
+
 def test_real_arm_execution_is_refused_without_a_configured_arm(client, session, trajectory):
     assert_error(
         client.post(
