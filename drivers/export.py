@@ -10,44 +10,28 @@ import numpy as np
 
 from drivers.errors import InputFileError
 from drivers.files import atomic_path
-from recon.types import FloatArray, JointTrajectory, PointMode, ReconstructedPath, Reconstruction
+from recon.types import (
+    PER_POINT_FIELDS,
+    FloatArray,
+    JointTrajectory,
+    PointMode,
+    ReconstructedPath,
+    Reconstruction,
+)
 
 QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw")
 #: Columns of a trajectory file (the contract of ``teachpath plan``).
 TRAJECTORY_COLUMNS = ("t", "q0", "q1", "q2", "q3", "q4", "q5", "x", "y", "z", "rx", "ry", "rz")
 
-#: Columns after x, y, z, in order (the CSV contract of ``teachpath reconstruct``).
-DIAGNOSTIC_COLUMNS = (
-    "displacement_m",
-    "mode",
-    "segment",
-    "n_path",
-    "n_surface",
-    "residual_path_m",
-    "residual_surface_m",
-    "alpha",
-)
+#: Columns after x, y, z, t and the quaternion, in order (the CSV contract of ``teachpath
+#: reconstruct``): the per-point diagnostics of a reconstruction.
+DIAGNOSTIC_COLUMNS = PER_POINT_FIELDS[PER_POINT_FIELDS.index("displacement_m") :]
 
 
 def write_reconstruction_csv(path: str | Path, recon: Reconstruction) -> None:
     """Write a reconstruction: ``x,y,z`` (metres), ``t`` and the pen's ``qx,qy,qz,qw`` if known,
     then per-point diagnostics. The file appears only when complete."""
-    arrays = {
-        name: getattr(recon, name)
-        for name in (
-            "points_m",
-            "t_s",
-            "orientations_xyzw",
-            "displacement_m",
-            "mode",
-            "segment",
-            "n_path",
-            "n_surface",
-            "residual_path_m",
-            "residual_surface_m",
-            "alpha",
-        )
-    }
+    arrays = {name: getattr(recon, name) for name in PER_POINT_FIELDS}
     with atomic_path(path) as tmp:
         tmp.write_text(reconstruction_csv_text(arrays))
 

@@ -376,6 +376,24 @@ class Registration:
         return rotation_angle_deg(self.T_scan_tracker)
 
 
+#: The fields of a :class:`Reconstruction` that hold one row per point, in the order of the
+#: reconstruction CSV's columns.
+PER_POINT_FIELDS = (
+    "points_m",
+    "input_points_m",
+    "t_s",
+    "orientations_xyzw",
+    "displacement_m",
+    "mode",
+    "segment",
+    "n_path",
+    "n_surface",
+    "residual_path_m",
+    "residual_surface_m",
+    "alpha",
+)
+
+
 @dataclass(frozen=True)
 class Reconstruction:
     """A reconstructed path with per-point diagnostics, in the tracker frame.
@@ -444,20 +462,7 @@ class Reconstruction:
             T.setflags(write=False)
             object.__setattr__(self, "T_scan_tracker", T)
         n = len(self.points_m)
-        for name in (
-            "orientations_xyzw",
-            "points_m",
-            "input_points_m",
-            "t_s",
-            "displacement_m",
-            "mode",
-            "segment",
-            "n_path",
-            "n_surface",
-            "residual_path_m",
-            "residual_surface_m",
-            "alpha",
-        ):
+        for name in PER_POINT_FIELDS:
             value = getattr(self, name)
             if value is None:
                 continue

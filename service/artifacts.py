@@ -21,7 +21,15 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from recon.types import FloatArray, JointTrajectory, ReconstructedPath, Recording, Scan, SpeedDrop
+from recon.types import (
+    PER_POINT_FIELDS,
+    FloatArray,
+    JointTrajectory,
+    ReconstructedPath,
+    Recording,
+    Scan,
+    SpeedDrop,
+)
 
 Arrays = dict[str, np.ndarray]
 
@@ -83,21 +91,6 @@ class ScanCodec:
         return Scan(points_m=arrays["points_m"], normals=arrays.get("normals"))
 
 
-#: The per-point arrays of a reconstruction, in the order of the CSV's columns.
-RECONSTRUCTION_FIELDS = (
-    "points_m",
-    "input_points_m",
-    "t_s",
-    "orientations_xyzw",
-    "displacement_m",
-    "mode",
-    "segment",
-    "n_path",
-    "n_surface",
-    "residual_path_m",
-    "residual_surface_m",
-    "alpha",
-)
 #: Key prefix of the scan model's arrays stored beside a reconstruction.
 SCAN_MODEL_PREFIX = "scan_model."
 #: Key of the reconstruction's parameters (JSON text in a 0-d array: no pickle needed).
@@ -119,7 +112,7 @@ class ReconstructionCodec:
     @staticmethod
     def encode(recon) -> Arrays:
         """Arrays of a :class:`recon.types.Reconstruction`."""
-        arrays = {name: getattr(recon, name) for name in RECONSTRUCTION_FIELDS}
+        arrays = {name: getattr(recon, name) for name in PER_POINT_FIELDS}
         arrays["T_scan_tracker"] = recon.T_scan_tracker
         arrays[PARAMS_KEY] = np.array(json.dumps(dataclasses.asdict(recon.params)))
         if recon.scan_model is not None:
@@ -130,7 +123,7 @@ class ReconstructionCodec:
     @staticmethod
     def per_point(arrays: Arrays) -> Arrays:
         """The per-point arrays only (what the CSV holds)."""
-        return {name: arrays[name] for name in RECONSTRUCTION_FIELDS if name in arrays}
+        return {name: arrays[name] for name in PER_POINT_FIELDS if name in arrays}
 
     @staticmethod
     def decode(arrays: Arrays) -> ReconstructedPath:

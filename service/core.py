@@ -9,6 +9,7 @@ that run in threads of this process (an execution on a real arm, a capture) are 
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from service.errors import not_found
@@ -84,6 +85,33 @@ class Services:
     def array_path(self, artifact_id: str, suffix: str = "npz") -> str:
         """Where a worker writes the file of a new artifact (absolute)."""
         return str(self.store.data_dir / "arrays" / f"{artifact_id}.{suffix}")
+
+    def record_when_done(
+        self,
+        session_id: str,
+        kind: str,
+        artifact_id: str,
+        *,
+        inputs: dict,
+        params: dict,
+        result: Callable[[dict], dict],
+    ) -> Callable[[dict], dict]:
+        """What a job does with its task's summary when it succeeds: record the artifact whose
+        file the worker wrote at :meth:`array_path`, and return the job's ``result(summary)``."""
+
+        def done(summary: dict) -> dict:
+            self.store.add_file_artifact(
+                artifact_id=artifact_id,
+                session_id=session_id,
+                kind=kind,
+                path=f"arrays/{artifact_id}.npz",
+                inputs=inputs,
+                params=params,
+                summary=summary,
+            )
+            return result(summary)
+
+        return done
 
     def close(self) -> None:
         self.live.stop_all()

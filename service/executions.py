@@ -9,8 +9,6 @@ through the ur_rtde backend's own worker process. Both record the same
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from drivers.robot.base import backend_config, create_backend
 from service import tasks
 from service.arm_runner import ExecutionRunner
@@ -53,6 +51,10 @@ def _job_params(request: ExecutionCreate, trajectory: ArtifactRow, out_id: str) 
     }
 
 
+def _job_result(execution_id: str, summary: dict) -> dict:
+    return {"execution_id": execution_id, "completed": summary["completed"]}
+
+
 def _artifact_params(services: Services, request: ExecutionCreate) -> dict:
     params = {
         "backend": request.backend,
@@ -66,24 +68,18 @@ def _artifact_params(services: Services, request: ExecutionCreate) -> dict:
 
 
 def _dry_run(services, session_id, trajectory, request, out_id) -> JobRow:
-    out_path = services.array_path(out_id)
-
-    def done(summary: dict) -> dict:
-        services.store.add_file_artifact(
-            artifact_id=out_id,
-            session_id=session_id,
-            kind="execution",
-            path=str(Path(out_path).relative_to(services.store.data_dir)),
-            inputs={"trajectory_id": trajectory.id},
-            params=_artifact_params(services, request),
-            summary=summary,
-        )
-        return {"execution_id": out_id, "completed": summary["completed"]}
-
+    done = services.record_when_done(
+        session_id,
+        "execution",
+        out_id,
+        inputs={"trajectory_id": trajectory.id},
+        params=_artifact_params(services, request),
+        result=lambda summary: _job_result(out_id, summary),
+    )
     task = tasks.DryRun(
         trajectory_path=str(services.store.path_of(trajectory)),
         trajectory_summary=trajectory.summary,
-        out_path=out_path,
+        out_path=services.array_path(out_id),
         mode=request.mode,
         tolerance_m=request.tolerance_m,
     )
@@ -136,7 +132,7 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
             params=_artifact_params(services, request),
             summary=summary,
         )
-        return {"execution_id": out_id, "completed": summary["completed"]}
+        return _job_result(out_id, summary)
 
     runner = ExecutionRunner(
         services.store,

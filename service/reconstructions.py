@@ -52,25 +52,19 @@ def start(services: Services, session_id: str, request: ReconstructionCreate) ->
     out_id = new_id(ID_PREFIX["reconstruction"])
     inputs = {"recording_id": recording.id, "scan_id": scan.id if scan else None}
     stored_params = {**params, "T_scan_tracker_init": T_init if scan else None}
-    out_path = services.array_path(out_id)
-
-    def done(summary: dict) -> dict:
-        services.store.add_file_artifact(
-            artifact_id=out_id,
-            session_id=session_id,
-            kind="reconstruction",
-            path=str(Path(out_path).relative_to(services.store.data_dir)),
-            inputs=inputs,
-            params=stored_params,
-            summary=summary,
-        )
-        return {"reconstruction_id": out_id}
-
+    done = services.record_when_done(
+        session_id,
+        "reconstruction",
+        out_id,
+        inputs=inputs,
+        params=stored_params,
+        result=lambda summary: {"reconstruction_id": out_id},
+    )
     task = tasks.Reconstruct(
         recording_path=str(services.store.path_of(recording)),
         scan_path=str(services.store.path_of(scan)) if scan else None,
         params=params,
-        out_path=out_path,
+        out_path=services.array_path(out_id),
         preview_path=str(preview_path(services, out_id)),
         preview_title=recording.source_name or "reconstruction",
         T_scan_tracker_init=T_init if scan else None,

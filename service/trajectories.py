@@ -7,8 +7,6 @@ it used and the scan model it built, so no registration runs twice and the plan 
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from service import tasks
 from service.artifacts import ID_PREFIX
 from service.core import Services
@@ -37,25 +35,19 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
     out_id = new_id(ID_PREFIX["trajectory"])
     inputs = {"reconstruction_id": recon.id, "scan_id": recon.inputs.get("scan_id")}
     stored_params = {**params, "T_base_tracker": T}
-    out_path = services.array_path(out_id)
-
-    def done(summary: dict) -> dict:
-        services.store.add_file_artifact(
-            artifact_id=out_id,
-            session_id=session_id,
-            kind="trajectory",
-            path=str(Path(out_path).relative_to(services.store.data_dir)),
-            inputs=inputs,
-            params=stored_params,
-            summary=summary,
-        )
-        return {"trajectory_id": out_id}
-
+    done = services.record_when_done(
+        session_id,
+        "trajectory",
+        out_id,
+        inputs=inputs,
+        params=stored_params,
+        result=lambda summary: {"trajectory_id": out_id},
+    )
     task = tasks.Plan(
         reconstruction_path=str(services.store.path_of(recon)),
         params=params,
         recon_params=recon_params,
         T_base_tracker=T,
-        out_path=out_path,
+        out_path=services.array_path(out_id),
     )
     return services.jobs.submit(session_id, "trajectory", {**stored_params, **inputs}, task, done)
