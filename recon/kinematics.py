@@ -250,6 +250,26 @@ def _dh(theta: FloatArray, d: float, a: float, alpha: float) -> FloatArray:
     return T
 
 
+def joint_frames(arm: URModel, q_rad: FloatArray) -> FloatArray:
+    """Every DH frame along the chain, base first: ``T_base_i`` for i = 0 (base) to 6 (flange).
+
+    Parameters
+    ----------
+    arm : URModel
+    q_rad : ndarray of shape (..., 6)
+
+    Returns
+    -------
+    ndarray of shape (..., 7, 4, 4)
+    """
+    q = np.asarray(q_rad, dtype=np.float64)
+    d, a = arm.d, arm.a
+    frames = [np.broadcast_to(np.eye(4), (*q.shape[:-1], 4, 4))]
+    for i in range(6):
+        frames.append(frames[-1] @ _dh(q[..., i], d[i], a[i], ALPHA[i]))
+    return np.stack(frames, axis=-3)
+
+
 def forward(arm: URModel, q_rad: FloatArray) -> FloatArray:
     """Flange poses for joint vectors.
 
@@ -383,6 +403,107 @@ def wrist_singularity(q_rad: FloatArray) -> FloatArray:
 def elbow_singularity(q_rad: FloatArray) -> FloatArray:
     """|sin q3|: 0 with the arm fully stretched or folded (elbow singularity)."""
     return np.abs(np.sin(np.asarray(q_rad)[..., 2]))
+
+
+@dataclass(frozen=True)
+class Configuration:
+    """Which of the arm's solutions to take, in words (``None``: either).
+
+    Attributes
+    ----------
+    shoulder : {"left", "right"} or None
+        Which side of the arm's reach the shoulder joint's axis points to, seen from above
+        (the two solutions of joint 1).
+    elbow : {"up", "down"} or None
+        Whether the elbow lies above or below the line from the shoulder to the wrist (for a
+        table mount, "up" keeps it away from the table).
+    wrist : {"flip", "noflip"} or None
+        The sign of joint 5: ``noflip`` for sin(q5) > 0.
+    """
+
+    shoulder: str | None = None
+    elbow: str | None = "up"
+    wrist: str | None = None
+
+    def __post_init__(self) -> None:
+        for name, options in (
+            ("shoulder", ("left", "right")),
+            ("elbow", ("up", "down")),
+            ("wrist", ("flip", "noflip")),
+        ):
+            value = getattr(self, name)
+            if value is not None and value not in options:
+                raise ValueError(
+                    f"{name} must be one of {', '.join(options)} or any, got {value!r}"
+                )
+
+    def matches(self, named: Configuration) -> bool:
+        """Whether a solution named ``named`` (every field set) is one this allows."""
+        return all(
+            want is None or want == have
+            for want, have in (
+                (self.shoulder, named.shoulder),
+                (self.elbow, named.elbow),
+                (self.wrist, named.wrist),
+            )
+        )
+
+    def words(self) -> str:
+        """E.g. "shoulder left, elbow up, wrist noflip" (or "any configuration")."""
+        parts = [
+            f"{name} {value}"
+            for name, value in (
+                ("shoulder", self.shoulder),
+                ("elbow", self.elbow),
+                ("wrist", self.wrist),
+            )
+            if value is not None
+        ]
+        return ", ".join(parts) or "any configuration"
+
+
+def configuration_of(arm: URModel, q_rad: FloatArray) -> Configuration:
+    """The configuration a joint vector is in (every field set).
+
+    Parameters
+    ----------
+    arm : URModel
+    q_rad : ndarray of shape (6,)
+    """
+    frames = joint_frames(arm, np.asarray(q_rad, dtype=np.float64))
+    shoulder, elbow, wrist = frames[1, :3, 3], frames[2, :3, 3], frames[3, :3, 3]
+    up = np.array([0.0, 0.0, 1.0])
+    # Elbow: above or below the shoulder-wrist chord, "above" meaning towards the base's +z
+    # (measured perpendicular to the chord; for a vertical chord, away from the base's axis).
+    chord = wrist - shoulder
+    chord /= max(float(np.linalg.norm(chord)), 1e-12)
+    across = up - (up @ chord) * chord
+    if np.linalg.norm(across) < 1e-6:
+        across = np.array([wrist[0], wrist[1], 0.0])
+    offset = elbow - shoulder
+    elbow_up = float((offset - (offset @ chord) * chord) @ across) >= 0.0
+    # Shoulder: joint 2's axis (z of frame 1) points to the left or right of the horizontal
+    # direction from the base's axis to the wrist, seen from above.
+    reach = np.array([wrist[0], wrist[1], 0.0])
+    axis = frames[1, :3, 2]
+    left = float(np.cross(reach, axis)[2]) >= 0.0
+    return Configuration(
+        shoulder="left" if left else "right",
+        elbow="up" if elbow_up else "down",
+        wrist="noflip" if np.sin(q_rad[4]) >= 0 else "flip",
+    )
+
+
+def branches_for(arm: URModel, T_base_flange: FloatArray, want: Configuration) -> tuple[int, ...]:
+    """The IK branches (see :class:`IKSolutions`) whose solution at a pose is in the wanted
+    configuration. A branch keeps its configuration along a path that passes no singularity,
+    which :func:`follow_path` refuses anyway, so the first pose decides."""
+    sol = inverse(arm, np.asarray(T_base_flange, dtype=np.float64)[None])
+    return tuple(
+        b
+        for b in range(8)
+        if sol.valid[0, b] and want.matches(configuration_of(arm, sol.q_rad[0, b]))
+    )
 
 
 #: Below these the path is refused as passing (too near) a singularity: |sin q5| and |sin q3| of

@@ -582,6 +582,20 @@ class SpeedDrop:
     cause: str
 
 
+class Phase(enum.IntEnum):
+    """What a sample of a planned motion is part of."""
+
+    TRANSIT = 0  #: a joint move from where the arm is to above the path
+    APPROACH = 1  #: a straight line down the tool axis onto the path's first point
+    PROCESS = 2  #: the path itself
+    RETRACT = 3  #: a straight line up the tool axis from the path's last point
+    RETURN = 4  #: a joint move back to where the arm started
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
 @dataclass(frozen=True)
 class JointTrajectory:
     """A timed joint trajectory, sampled at the controller rate.
@@ -597,9 +611,14 @@ class JointTrajectory:
     tcp_rotvec : ndarray of shape (M, 3)
         Planned TCP orientation as a rotation vector (UR's pose convention).
     arc_length_m : ndarray of shape (M,)
-        Path parameter at each sample.
+        Path parameter at each sample: how far the TCP has travelled since the start.
     requested_speed_m_s : float
+        The speed asked for along the process path.
     speed_drops : tuple of SpeedDrop
+        Where the process path is slower than requested (metres of process path).
+    phase : ndarray of shape (M,), int8, or None
+        :class:`Phase` of each sample; None for a trajectory that is the process path alone
+        (one read from a file that does not say).
     """
 
     robot: str
@@ -612,6 +631,7 @@ class JointTrajectory:
     arc_length_m: FloatArray
     requested_speed_m_s: float
     speed_drops: tuple[SpeedDrop, ...] = ()
+    phase: NDArray[np.int8] | None = None
 
     def __post_init__(self) -> None:
         n = len(self.t_s)
@@ -631,9 +651,32 @@ class JointTrajectory:
                 raise ValueError(f"{name} has NaN or infinite values")
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
+        if self.phase is not None:
+            phase = np.array(self.phase, dtype=np.int8)
+            if phase.shape != (n,):
+                raise ValueError(f"phase has shape {phase.shape} for {n} samples")
+            if not np.isin(phase, [int(p) for p in Phase]).all():
+                raise ValueError("phase holds values that name no Phase")
+            phase.setflags(write=False)
+            object.__setattr__(self, "phase", phase)
 
     def __len__(self) -> int:
         return len(self.t_s)
+
+    @property
+    def phases(self) -> NDArray[np.int8]:
+        """:class:`Phase` per sample (all PROCESS when the trajectory does not say)."""
+        if self.phase is None:
+            return np.full(len(self), int(Phase.PROCESS), dtype=np.int8)
+        return self.phase
+
+    def phase_durations_s(self) -> dict[str, float]:
+        """Seconds spent in each phase present, in the order they run."""
+        phases, dt = self.phases, self.period_s
+        out: dict[str, float] = {}
+        for value in dict.fromkeys(phases.tolist()):
+            out[Phase(value).label] = float(np.count_nonzero(phases == value) * dt)
+        return out
 
     @property
     def duration_s(self) -> float:

@@ -37,6 +37,7 @@ from drivers.robot.base import (
     RobotBackend,
     RobotState,
 )
+from recon.motion import trapezoid, trapezoid_duration
 from recon.types import FloatArray, JointTrajectory
 from recon.waypoints import CoarsePath
 
@@ -293,31 +294,17 @@ def _synchronised_trapezoid(start, goal, speed, acceleration, dt) -> FloatArray:
 def trapezoid_fractions(distance, speed, acceleration, dt) -> FloatArray:
     """Fractions (K,) of a move of ``distance`` done at each control period ``dt`` (s) with a
     trapezoidal speed profile (``speed`` and ``acceleration`` in distance units per s, s^2;
-    triangular when the move is too short to reach ``speed``). The last fraction is 1.
+    triangular when the move is too short to reach ``speed``), from ``dt`` on. The last
+    fraction is 1.
 
     Vectorised: the fake UR controller plans long moves with it inside its control tick.
     """
     if distance < 1e-12:
         return np.ones(1)
-    t_acc = speed / acceleration
-    if acceleration * t_acc**2 >= distance:  # triangular profile
-        t_acc = float(np.sqrt(distance / acceleration))
-        t_total = 2 * t_acc
-        peak = acceleration * t_acc
-    else:
-        t_total = distance / speed + t_acc
-        peak = speed
+    t_total = trapezoid_duration(distance, speed, acceleration)
     t = np.arange(dt, t_total + dt, dt)
-    d = np.where(
-        t < t_acc,
-        0.5 * acceleration * t**2,
-        np.where(
-            t < t_total - t_acc,
-            0.5 * acceleration * t_acc**2 + peak * (t - t_acc),
-            distance - 0.5 * acceleration * (t_total - t) ** 2,
-        ),
-    )
-    return np.clip(d / distance, 0.0, 1.0)
+    position, _, _ = trapezoid(distance, speed, acceleration, t)
+    return position / distance
 
 
 def _path_targets(path: CoarsePath, dt: float) -> FloatArray:

@@ -167,7 +167,9 @@ def _reference_fraction(t, distance, speed, acceleration):
     t_acc = min(speed / acceleration, np.sqrt(distance / acceleration))
     t_total = 2 * t_acc if acceleration * t_acc * t_acc >= distance else distance / speed + t_acc
     peak = acceleration * t_acc
-    if t < t_acc:
+    if t >= t_total:  # at rest at the goal (the last control period may end after the move)
+        d = distance
+    elif t < t_acc:
         d = 0.5 * acceleration * t**2
     elif t < t_total - t_acc:
         d = 0.5 * acceleration * t_acc**2 + peak * (t - t_acc)
