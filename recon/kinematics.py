@@ -22,6 +22,8 @@ from recon.errors import InfeasibleTrajectoryError
 from recon.types import FloatArray, JointPath
 
 ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
+#: A home pose for every UR arm: upper arm up, forearm forward, tool pointing down (elbow up).
+HOME_Q_RAD = (0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0)
 DEG = np.pi / 180.0
 
 

@@ -135,6 +135,10 @@ def check_bounds(instance) -> None:
         allowed = _literals(hints.get(name))
         if value is None and _allows_none(hints.get(name)):
             continue
+        if hints.get(name) is bool:
+            if not isinstance(value, bool):
+                raise ValueError(f"{name} must be true or false, got {value!r}")
+            continue
         if isinstance(value, str):
             options = spec.choices or tuple(allowed)
             if options and value not in options:

@@ -9,11 +9,12 @@ builds the model around the path at a known transform, again without registering
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from recon import kinematics
+from recon import kinematics, motion
+from recon.errors import InfeasibleTrajectoryError
 from recon.orient import ScanNormals, fill_along_path, scan_normals, tool_path
 from recon.scan_model import ScanModel, build_scan_model
 from recon.timing import limits_for, time_parameterize
@@ -29,6 +30,7 @@ from recon.types import (
     FloatArray,
     JointPath,
     JointTrajectory,
+    Phase,
     PlanParams,
     ReconParams,
     Scan,
@@ -38,17 +40,30 @@ from recon.types import (
 
 @dataclass(frozen=True)
 class Plan:
-    """A planned trajectory with everything that led to it.
+    """A planned motion with everything that led to it.
 
     Attributes
     ----------
     tool : ToolPath
+        The process path's TCP poses (base frame).
     joints : JointPath
+        Its joints, one IK branch throughout.
     trajectory : JointTrajectory
+        The whole motion (transit, approach, process, retract, return), labelled per sample.
     params : PlanParams
     T_scan_tracker : ndarray of shape (4, 4), or None
         The transform the scan's normals were looked up with, when the tool axis came from the
         scan; None otherwise.
+    start_q_rad : ndarray of shape (6,)
+        Where the motion starts.
+    start_from : str
+        Where ``start_q_rad`` came from ("given" or "home").
+    configuration : Configuration
+        The configuration of the branch kept, every field named.
+    approach_m : float
+        The approach height used (more than asked when the transit had to come in higher).
+    collision : CollisionReport or None
+        The check of the whole motion against the cell (None: no cell given).
     """
 
     tool: ToolPath
@@ -56,21 +71,35 @@ class Plan:
     trajectory: JointTrajectory
     params: PlanParams
     T_scan_tracker: FloatArray | None = None
+    start_q_rad: FloatArray | None = None
+    start_from: str = "given"
+    configuration: kinematics.Configuration | None = None
+    approach_m: float = 0.0
+    collision: object | None = None
 
     def report_lines(self) -> list[str]:
         """The feasibility report for a terminal."""
         traj, joints, mm = self.trajectory, self.joints, 1e3
         length = float(self.tool.arc_length_m[-1])
+        process = traj.phase_durations_s().get(Phase.PROCESS.label, traj.duration_s)
         lines = [
-            f"{self.params.robot}: {length * mm:.0f} mm of path in {traj.duration_s:.2f} s "
-            f"({len(traj)} samples at {1 / traj.period_s:.0f} Hz), requested "
-            f"{traj.requested_speed_m_s * mm:.0f} mm/s, mean {length / traj.duration_s * mm:.1f}",
-            f"tool axis from the {self.tool.source}; IK branch {joints.branch}",
+            f"{self.params.robot}: {length * mm:.0f} mm of path in {process:.2f} s "
+            f"({len(traj)} samples at {1 / traj.period_s:.0f} Hz in all), requested "
+            f"{traj.requested_speed_m_s * mm:.0f} mm/s, mean {length / process * mm:.1f}",
+            "phases: "
+            + ", ".join(f"{name} {t:.2f} s" for name, t in traj.phase_durations_s().items())
+            + f" ({traj.duration_s:.2f} s in all; approach {self.approach_m * mm:.0f} mm)",
+            f"starts from {self.start_from} "
+            f"[{', '.join(f'{np.degrees(v):.1f}' for v in self.start_q_rad)}] deg",
+            f"tool axis from the {self.tool.source}; {self.configuration.words()} "
+            f"(IK branch {joints.branch})",
             f"margins: joint limits {np.degrees(joints.limit_margin_rad.min()):.1f} deg, wrist "
             f"|sin q5| {joints.wrist_singularity.min():.2f}, elbow |sin q3| "
             f"{joints.elbow_singularity.min():.2f}, shoulder "
             f"{joints.shoulder_margin_m.min() * mm:.0f} mm",
         ]
+        if self.collision is not None:
+            lines += self.collision.lines()
         if self.T_scan_tracker is not None:
             lines.append(
                 f"scan normals at T_scan_tracker: "
@@ -86,6 +115,13 @@ class Plan:
         return lines
 
 
+#: Approach heights tried, as multiples of the one asked for, when the transit or the approach
+#: would hit something: coming in higher clears a workpiece the direct joint move sweeps through.
+APPROACH_LIFTS = (1.0, 2.0, 4.0, 8.0)
+#: Never lift the approach beyond this.
+MAX_APPROACH_M = 0.5
+
+
 def plan_path(
     points_tracker_m: FloatArray,
     *,
@@ -93,9 +129,9 @@ def plan_path(
     T_base_tracker: FloatArray | None = None,
     normals: ScanNormals | None = None,
     pen_xyzw: FloatArray | None = None,
-    q_near_rad: FloatArray | None = None,
+    cell=None,
 ) -> Plan:
-    """Plan a trajectory along a path given in the tracker frame.
+    """Plan the whole motion along a path given in the tracker frame.
 
     Parameters
     ----------
@@ -109,20 +145,86 @@ def plan_path(
         tool axis comes from it.
     pen_xyzw : ndarray of shape (N, 4), optional
         Pen orientations at the points, tracker frame.
-    q_near_rad : ndarray of shape (6,), optional
-        The arm's current joints, to pick the nearest IK branch.
+    cell : recon.collision.Cell, optional
+        What the arm must not touch (mounting plane, keep-out boxes, the scan); without it no
+        collision check is made.
 
     Raises
     ------
     ValueError
         Inconsistent inputs (the requested orientation source is missing, bad shapes).
     InfeasibleTrajectoryError
-        The arm cannot follow the path (the message names the waypoint and why).
+        The arm cannot follow the path (the message names the waypoint and why), no solution
+        has the configuration asked for, or the motion collides (:class:`CollisionError`).
     """
     arm = kinematics.model(params.robot)
     T = np.eye(4) if T_base_tracker is None else check_rigid(T_base_tracker, name="T_base_tracker")
-    R = T[:3, :3]
-    points = apply_transform(T, np.asarray(points_tracker_m, dtype=np.float64))
+    tool, source = _process_tool_path(points_tracker_m, T, params, normals, pen_xyzw)
+    T_flange_tcp = params.T_flange_tcp
+    flange = tool.poses() @ invert_transform(T_flange_tcp)
+    start_from = "given" if params.start_q_rad is not None else "home"
+    q_start = np.asarray(params.start_q_rad or kinematics.HOME_Q_RAD, dtype=np.float64)
+    want = params.configuration
+    branches = kinematics.branches_for(arm, flange[0], want)
+    if not branches and kinematics.branches_for(
+        arm, flange[0], kinematics.Configuration(elbow=None)
+    ):
+        x, y, z = flange[0, :3, 3]
+        raise InfeasibleTrajectoryError(
+            f"no solution of the {arm.name} in the configuration asked for ({want.words()}) "
+            f"reaches the path's first point at ({x:.3f}, {y:.3f}, {z:.3f}) m: choose another "
+            "configuration (shoulder, elbow, wrist) or move the workpiece"
+        )
+    # Unreachable in every configuration: follow_path names the waypoint and why.
+    joints = kinematics.follow_path(
+        arm, flange, q_near_rad=q_start, allowed_branches=branches or None
+    )
+    limits = limits_for(
+        arm,
+        params.speed_m_s,
+        velocity_scale=params.velocity_scale,
+        acceleration_scale=params.acceleration_scale,
+    )
+    process = time_parameterize(arm, joints, tool, limits, T_flange_tcp=T_flange_tcp)
+    heights = [params.approach_m * lift for lift in APPROACH_LIFTS]
+    report = None
+    for height in (h for h in heights if h <= max(MAX_APPROACH_M, params.approach_m)):
+        trajectory = _whole_motion(arm, process, joints.branch, q_start, height, params)
+        if cell is not None:
+            from recon.collision import check_motion
+
+            report = check_motion(
+                arm,
+                trajectory,
+                cell,
+                T_flange_tcp=T_flange_tcp,
+                tool_radius_m=params.tool_radius_m,
+                margin_m=params.clearance_m,
+            )
+        if report is None or report.first is None:
+            return Plan(
+                tool=tool,
+                joints=joints,
+                trajectory=trajectory,
+                params=params,
+                T_scan_tracker=normals.T_scan_tracker if source == "scan" else None,
+                start_q_rad=q_start,
+                start_from=start_from,
+                configuration=kinematics.configuration_of(arm, joints.q_rad[0]),
+                approach_m=height,
+                collision=report,
+            )
+        if report.first.phase not in (Phase.TRANSIT, Phase.APPROACH):
+            break  # coming in higher cannot help
+    from recon.collision import CollisionError
+
+    raise CollisionError(report)
+
+
+def _process_tool_path(points_tracker_m, T_base_tracker, params, normals, pen_xyzw):
+    """The process path's TCP poses in the base frame, and where the tool axis came from."""
+    R = T_base_tracker[:3, :3]
+    points = apply_transform(T_base_tracker, np.asarray(points_tracker_m, dtype=np.float64))
     source = params.orientation
     if source == "auto":
         source = (
@@ -153,21 +255,51 @@ def plan_path(
         smooth_m=params.smooth_m,
         **kwargs,
     )
-    flange = tool.poses() @ invert_transform(params.T_flange_tcp)
-    joints = kinematics.follow_path(arm, flange, q_near_rad=q_near_rad)
-    limits = limits_for(
+    return tool, source
+
+
+def _whole_motion(arm, process, branch, q_start, approach_m, params) -> JointTrajectory:
+    """Transit, approach, the timed process path, retract and (if asked) return."""
+    T_flange_tcp = params.T_flange_tcp
+    ends = kinematics.forward(arm, process.q_rad[[0, -1]]) @ T_flange_tcp
+    line = {
+        "branch": branch,
+        "T_flange_tcp": T_flange_tcp,
+        "speed_m_s": params.approach_speed_m_s,
+        "velocity_scale": params.velocity_scale,
+        "acceleration_scale": params.acceleration_scale,
+    }
+    approach = motion.line_move(
         arm,
-        params.speed_m_s,
-        velocity_scale=params.velocity_scale,
-        acceleration_scale=params.acceleration_scale,
+        motion.tool_line(motion.lifted(ends[0], approach_m), ends[0]),
+        q_end_rad=process.q_rad[0],
+        q_start_rad=None,
+        phase=Phase.APPROACH,
+        **line,
     )
-    trajectory = time_parameterize(arm, joints, tool, limits, T_flange_tcp=params.T_flange_tcp)
-    return Plan(
-        tool=tool,
-        joints=joints,
-        trajectory=trajectory,
-        params=params,
-        T_scan_tracker=normals.T_scan_tracker if source == "scan" else None,
+    retract = motion.line_move(
+        arm,
+        motion.tool_line(ends[1], motion.lifted(ends[1], approach_m)),
+        q_end_rad=None,
+        q_start_rad=process.q_rad[-1],
+        phase=Phase.RETRACT,
+        **line,
+    )
+    joint_move = {
+        "speed_scale": params.transit_speed_scale,
+        "acceleration_scale": params.transit_acceleration_scale,
+    }
+    phases = [
+        motion.joint_move(arm, q_start, approach.q_rad[0], **joint_move),
+        approach,
+        motion.PhaseSamples.of(Phase.PROCESS, process),
+        retract,
+    ]
+    if params.return_to_start:
+        back = motion.joint_move(arm, retract.q_rad[-1], q_start, **joint_move)
+        phases.append(replace(back, phase=Phase.RETURN))
+    return motion.assemble(
+        arm, phases, T_flange_tcp=T_flange_tcp, requested_speed_m_s=params.speed_m_s
     )
 
 

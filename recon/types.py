@@ -9,6 +9,7 @@ changed behind the back of whoever stored it.
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
@@ -233,14 +234,14 @@ Orientation = Literal["auto", "scan", "pen", "fixed"]
 
 @dataclass(frozen=True)
 class PlanParams:
-    """How to turn a path into a trajectory.
+    """How to turn a path into the whole motion of the arm.
 
     Attributes
     ----------
     robot : str
         UR model.
     speed_m_s : float
-        Requested TCP speed.
+        Requested TCP speed along the path.
     orientation : {"auto", "scan", "pen", "fixed"}
         Source of the tool axis; "auto" takes the scan if given, else the pen, else fixed.
     lead_deg, tilt_deg : float
@@ -248,11 +249,37 @@ class PlanParams:
     smooth_m : float
         Smoothing of the tool axis along the path (0 turns it off).
     approach : tuple of 3 floats
-        Where the tool comes from, base frame (default from above).
+        Where the tool comes from, base frame (default from above): surface normals are turned
+        to face it.
     tcp_offset_m : tuple of 3 floats
-        The TCP in the flange frame (a tool of length L along the flange's z: (0, 0, L)).
+        The TCP in the flange frame, position only (a tool of length L along the flange's z:
+        (0, 0, L)); ``tcp_pose`` also sets its orientation.
+    tcp_pose : tuple of 6 floats
+        The TCP in the flange frame as UR's pendant sets it: x, y, z (m), rx, ry, rz (rotation
+        vector, rad). All zero: use ``tcp_offset_m``.
     velocity_scale, acceleration_scale : float
-        Fractions of the arm's joint limits to plan within.
+        Fractions of the arm's joint limits to plan the path within.
+    start_q_rad : tuple of 6 floats or None
+        The joints the motion starts from (the arm's, read at planning time); None: home.
+    shoulder, elbow, wrist : str
+        The IK configuration (see :class:`recon.kinematics.Configuration`); "any" for either.
+    approach_m : float
+        How far above the path's first and last points (along the tool axis) the approach
+        starts and the retract ends.
+    approach_speed_m_s : float
+        TCP speed of the approach and retract lines.
+    transit_speed_scale, transit_acceleration_scale : float
+        Fractions of the joint limits for the joint moves (transit and return).
+    return_to_start : bool
+        Move back to the start joints after the retract.
+    payload_kg : float
+    payload_cog_m : tuple of 3 floats
+        The payload's centre of gravity in the flange frame.
+    tool_radius_m : float
+        Radius of the tool's body from the flange to the TCP, for the collision check.
+    clearance_m : float
+        Smallest distance the arm and tool keep from the scan, the mounting plane and the
+        keep-out boxes (the tool's tip may touch the workpiece along the path only).
     """
 
     robot: str = param(
@@ -273,26 +300,96 @@ class PlanParams:
     tcp_offset_m: tuple[float, float, float] = param(
         (0.0, 0.0, 0.0), ge=-1, le=1, unit="m", help="the TCP in the flange frame"
     )
+    tcp_pose: tuple[float, float, float, float, float, float] = param(
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+        ge=-2 * math.pi,
+        le=2 * math.pi,
+        help="the TCP in the flange frame as on UR's pendant: x,y,z (m), rx,ry,rz (rad)",
+    )
     velocity_scale: float = param(
         1.0, gt=0, le=1, help="fraction of the arm's joint speed limits to plan within"
     )
     acceleration_scale: float = param(
         1.0, gt=0, le=1, help="fraction of the arm's joint acceleration limits to plan within"
     )
+    start_q_rad: tuple[float, float, float, float, float, float] | None = param(
+        None,
+        ge=-2 * math.pi,
+        le=2 * math.pi,
+        unit="rad",
+        help="the joints the motion starts from (default: the arm's, or its home)",
+    )
+    shoulder: Literal["any", "left", "right"] = param("any", help="IK configuration: shoulder")
+    elbow: Literal["up", "down", "any"] = param("up", help="IK configuration: elbow")
+    wrist: Literal["any", "flip", "noflip"] = param("any", help="IK configuration: wrist")
+    approach_m: float = param(
+        0.05, ge=0.005, le=0.5, unit="m", help="approach and retract height along the tool axis"
+    )
+    approach_speed_m_s: float = param(
+        0.05, gt=0, le=0.25, unit="m/s", help="TCP speed of the approach and retract"
+    )
+    transit_speed_scale: float = param(
+        0.3, gt=0, le=1, help="fraction of the joint speed limits for the transit and return"
+    )
+    transit_acceleration_scale: float = param(
+        0.3, gt=0, le=1, help="fraction of the joint accelerations for the transit and return"
+    )
+    return_to_start: bool = param(False, help="move back to the start joints at the end")
+    payload_kg: float = param(0.0, ge=0, le=35, unit="kg", help="the payload's mass")
+    payload_cog_m: tuple[float, float, float] = param(
+        (0.0, 0.0, 0.0), ge=-0.5, le=0.5, unit="m", help="the payload's centre of gravity"
+    )
+    tool_radius_m: float = param(
+        0.02, gt=0, le=0.2, unit="m", help="radius of the tool's body (collision check)"
+    )
+    clearance_m: float = param(
+        0.01, ge=0, le=0.1, unit="m", help="distance the arm and tool keep from obstacles"
+    )
 
     def __post_init__(self) -> None:
         from recon import kinematics  # here: kinematics imports this module
 
-        kinematics.model(self.robot)  # raises on an unknown arm
+        arm = kinematics.model(self.robot)  # raises on an unknown arm
         check_bounds(self)
         if np.linalg.norm(self.approach) < 1e-9:
             raise ValueError("approach must be a non-zero direction")
+        if any(self.tcp_pose) and any(self.tcp_offset_m):
+            raise ValueError("give the TCP as tcp_pose or as tcp_offset_m, not both")
+        if any(abs(v) > 1.0 for v in self.tcp_pose[:3]):
+            raise ValueError(f"the TCP must be within 1 m of the flange, got {self.tcp_pose[:3]}")
+        if self.payload_kg > arm.payload_kg:
+            raise ValueError(
+                f"payload_kg {self.payload_kg} is above the {arm.name}'s {arm.payload_kg} kg"
+            )
+        if self.start_q_rad is not None:
+            q = np.asarray(self.start_q_rad)
+            if np.any(q < arm.q_min_rad) or np.any(q > arm.q_max_rad):
+                raise ValueError("start_q_rad is outside the arm's joint limits")
+
+    @property
+    def tcp(self) -> tuple[float, float, float, float, float, float]:
+        """The TCP pose in the flange frame (x, y, z, rx, ry, rz), whichever way it was given."""
+        if any(self.tcp_pose):
+            return self.tcp_pose
+        return (*self.tcp_offset_m, 0.0, 0.0, 0.0)
 
     @property
     def T_flange_tcp(self) -> FloatArray:
-        T = np.eye(4)
-        T[:3, 3] = self.tcp_offset_m
-        return T
+        from recon.transforms import transform_from_pose
+
+        return transform_from_pose(np.asarray(self.tcp, dtype=np.float64))
+
+    @property
+    def configuration(self):
+        """The wanted :class:`recon.kinematics.Configuration` ("any" as None)."""
+        from recon.kinematics import Configuration
+
+        def named(value: str) -> str | None:
+            return None if value == "any" else value
+
+        return Configuration(
+            shoulder=named(self.shoulder), elbow=named(self.elbow), wrist=named(self.wrist)
+        )
 
 
 class PointMode(enum.IntEnum):
@@ -669,6 +766,32 @@ class JointTrajectory:
         if self.phase is None:
             return np.full(len(self), int(Phase.PROCESS), dtype=np.int8)
         return self.phase
+
+    def of_phase(self, phase: Phase) -> JointTrajectory:
+        """The samples of one phase, as a trajectory of their own (times from 0).
+
+        Raises
+        ------
+        ValueError
+            The trajectory has no sample of that phase.
+        """
+        keep = np.flatnonzero(self.phases == int(phase))
+        if len(keep) == 0:
+            raise ValueError(f"the trajectory has no {phase.label} phase")
+        rows = slice(keep[0], keep[-1] + 1)  # a phase is one contiguous run
+        return JointTrajectory(
+            robot=self.robot,
+            t_s=self.t_s[rows] - self.t_s[keep[0]],
+            q_rad=self.q_rad[rows],
+            qd_rad_s=self.qd_rad_s[rows],
+            qdd_rad_s2=self.qdd_rad_s2[rows],
+            tcp_m=self.tcp_m[rows],
+            tcp_rotvec=self.tcp_rotvec[rows],
+            arc_length_m=self.arc_length_m[rows] - self.arc_length_m[keep[0]],
+            requested_speed_m_s=self.requested_speed_m_s,
+            speed_drops=self.speed_drops if phase is Phase.PROCESS else (),
+            phase=self.phases[rows],
+        )
 
     def phase_durations_s(self) -> dict[str, float]:
         """Seconds spent in each phase present, in the order they run."""

@@ -177,7 +177,8 @@ class TrajectoryCodec:
 
     @staticmethod
     def encode(trajectory: JointTrajectory) -> Arrays:
-        return {name: getattr(trajectory, name) for name in TRAJECTORY_FIELDS}
+        arrays = {name: getattr(trajectory, name) for name in TRAJECTORY_FIELDS}
+        return _present({**arrays, "phase": trajectory.phase})
 
     @staticmethod
     def decode(arrays: Arrays, summary: TrajectorySummary) -> JointTrajectory:
@@ -186,6 +187,7 @@ class TrajectoryCodec:
             robot=summary.robot,
             requested_speed_m_s=summary.requested_speed_m_s,
             speed_drops=tuple(SpeedDrop(**d.model_dump()) for d in summary.speed_drops),
+            phase=arrays.get("phase"),
             **{name: arrays[name] for name in TRAJECTORY_FIELDS},
         )
 
@@ -352,6 +354,15 @@ class ExecutionSummary(_Summary):
     requested_speed_m_s: float | None = None
     mean_speed_m_s: float | None = None
     speed_drops: list[SpeedDropSummary] = Field(default_factory=list)
+    phase_durations_s: dict[str, float] = Field(
+        default_factory=dict, description="planned seconds per phase"
+    )
+    executed_phase_durations_s: dict[str, float] = Field(
+        default_factory=dict, description="seconds recorded per phase (where it got to)"
+    )
+    max_deviation_by_phase_m: dict[str, float] = Field(
+        default_factory=dict, description="largest distance from the planned TCP path, per phase"
+    )
     report: list[str] = Field(default_factory=list)
 
 

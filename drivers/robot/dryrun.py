@@ -13,7 +13,7 @@ from drivers.robot.clock import FakeClock
 from drivers.robot.sim import SimBackend, SimConfig
 from recon import kinematics
 from recon.metrics import distance_to_curve
-from recon.types import JointTrajectory, SpeedDrop
+from recon.types import JointTrajectory, Phase, SpeedDrop
 
 
 @dataclass(frozen=True)
@@ -29,10 +29,12 @@ class ExecutionReport:
     duration_s, planned_duration_s : float
         Execution time (a simulation includes settling at the end) and the plan's.
     max_path_deviation_m : float or None
-        Largest distance of the executed TCP from the planned TCP path (across the path);
-        None when nothing was recorded.
+        Largest distance of the executed TCP from the planned TCP path (across the path)
+        along the process phase (the path itself; all of the motion for a trajectory without
+        phases); None when nothing of it was recorded.
     max_lag_m : float or None
-        Largest distance between executed and planned TCP at the same instant (along it too).
+        Largest distance between executed and planned TCP at the same instant (along it too),
+        along the process phase.
     max_joint_error_rad : float or None
         Largest joint difference from the plan delayed by servoJ's lookahead.
     min_limit_margin_rad : float
@@ -47,6 +49,12 @@ class ExecutionReport:
         Samples recorded.
     dry_run : bool
         Whether it ran on the simulated arm.
+    phase_durations_s : dict of str to float
+        Planned seconds per phase.
+    executed_phase_durations_s : dict of str to float
+        Seconds recorded per phase (where the execution got to).
+    max_deviation_by_phase_m : dict of str to float
+        Largest distance of the executed TCP from the planned TCP path, per phase recorded.
     """
 
     robot: str
@@ -66,6 +74,9 @@ class ExecutionReport:
     faults: tuple[str, ...] = field(default=())
     n_samples: int = 0
     dry_run: bool = True
+    phase_durations_s: dict = field(default_factory=dict)
+    executed_phase_durations_s: dict = field(default_factory=dict)
+    max_deviation_by_phase_m: dict = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         """The report as short lines for a terminal."""
@@ -89,6 +100,20 @@ class ExecutionReport:
                     "(servoJ's lookahead)"
                     if self.mode == "servoj"
                     else "(the controller times a movePath itself)"
+                )
+            )
+        if self.phase_durations_s:
+            out.append(
+                "phases: "
+                + ", ".join(
+                    f"{name} {self.executed_phase_durations_s.get(name, 0.0):.2f} of "
+                    f"{planned:.2f} s"
+                    + (
+                        f" ({self.max_deviation_by_phase_m[name] * mm:.3f} mm off)"
+                        if name in self.max_deviation_by_phase_m
+                        else ""
+                    )
+                    for name, planned in self.phase_durations_s.items()
                 )
             )
         out.append(
@@ -198,19 +223,33 @@ def execution_report(
     planned_tcp = trajectory.tcp_m
     deviation = lag = joint_error = None
     completed = False
+    by_phase: dict[str, float] = {}
+    executed: dict[str, float] = {}
     if record is not None and len(record):
         actual_flange = kinematics.forward(arm, record.q_actual_rad)
         planned_flange = kinematics.forward(arm, record.q_planned_rad)
+        plan_flange = kinematics.forward(arm, trajectory.q_rad)[:, :3, 3]
         # The planned TCP may sit off the flange; the tracking error is the same rigid offset
-        # either way, so it is measured on the flange.
-        deviation = float(
-            distance_to_curve(
-                actual_flange[:, :3, 3], kinematics.forward(arm, trajectory.q_rad)[:, :3, 3]
-            ).max()
+        # either way, so it is measured on the flange, against the whole planned path.
+        off_path = distance_to_curve(actual_flange[:, :3, 3], plan_flange)
+        # Which phase each recorded sample belongs to: servoJ runs the plan a lookahead behind.
+        index = np.clip(
+            np.searchsorted(trajectory.t_s, record.t_s - lookahead_s - 1e-9),
+            0,
+            len(trajectory) - 1,
         )
-        lag = float(
-            np.linalg.norm(actual_flange[:, :3, 3] - planned_flange[:, :3, 3], axis=1).max()
-        )
+        recorded_phase = trajectory.phases[index]
+        for value in dict.fromkeys(trajectory.phases.tolist()):
+            mine = recorded_phase == value
+            if mine.any():
+                name = Phase(value).label
+                by_phase[name] = float(off_path[mine].max())
+                executed[name] = float(np.count_nonzero(mine) * trajectory.period_s)
+        deviation = by_phase.get(Phase.PROCESS.label)
+        # The lag grows with speed; along the path is what matters (the transit runs faster).
+        on_path = recorded_phase == int(Phase.PROCESS)
+        behind = np.linalg.norm(actual_flange[:, :3, 3] - planned_flange[:, :3, 3], axis=1)
+        lag = float(behind[on_path].max()) if on_path.any() else None
         # servoJ follows the stream a lookahead behind: compare joints with the plan delayed so.
         delay = max(1, int(round(lookahead_s * arm.control_rate_hz)))
         joint_error = float(
@@ -238,4 +277,7 @@ def execution_report(
         faults=tuple(faults),
         n_samples=0 if record is None else len(record),
         dry_run=dry_run,
+        phase_durations_s=trajectory.phase_durations_s(),
+        executed_phase_durations_s=executed,
+        max_deviation_by_phase_m=by_phase,
     )

@@ -12,6 +12,7 @@ from recon.orient import smooth_directions, tool_path
 from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path
 from recon.reconstruct import reconstruct
 from recon.timing import limits_for
+from recon.types import Phase
 from tests.motion_fixtures import base_from_tracker, line_plan
 
 
@@ -54,19 +55,23 @@ def test_orientation_smoothing_removes_noise_on_the_sphere():
 
 def test_every_sample_respects_the_limits_and_straight_speed_is_exact():
     plan = line_plan("ur5e", 0.1)
-    traj = plan.trajectory
+    whole = plan.trajectory
     arm = model("ur5e")
-    assert np.all(np.abs(traj.qd_rad_s) <= arm.qd_max_rad_s * 1.001)
-    assert np.all(np.abs(traj.qdd_rad_s2) <= arm.qdd_max_rad_s2 * 1.001)
-    assert np.all(np.diff(traj.t_s) == pytest.approx(0.002))
+    # Every phase of the whole motion keeps the limits, on the controller's grid.
+    assert np.all(np.abs(whole.qd_rad_s) <= arm.qd_max_rad_s * 1.001)
+    assert np.all(np.abs(whole.qdd_rad_s2) <= arm.qdd_max_rad_s2 * 1.001)
+    assert np.all(np.diff(whole.t_s) == pytest.approx(0.002))
+    # The whole motion starts and ends at rest.
+    assert np.abs(whole.qd_rad_s[[0, -1]]).max() < 1e-9
+    traj = whole.of_phase(Phase.PROCESS)
     # TCP speed from the planned joints (forward kinematics, not the planner's own numbers).
     tcp = forward(arm, traj.q_rad)[:, :3, 3]
     speed = np.linalg.norm(np.diff(tcp, axis=0), axis=1) / np.diff(traj.t_s)
     cruise = speed[len(speed) // 3 : 2 * len(speed) // 3]
     assert np.abs(cruise / 0.1 - 1).max() < 0.01
     assert speed.max() <= 0.1 * 1.01
-    # Starts and ends at rest, on the path.
-    assert np.abs(traj.qd_rad_s[[0, -1]]).max() < 1e-9
+    # The process phase ends at rest, on the path.
+    assert np.abs(traj.qd_rad_s[-1]).max() < 1e-9
     assert distance_to_curve(tcp, plan.tool.points_m).max() < 1e-4
 
 
@@ -129,4 +134,5 @@ def test_the_reconstructed_demo_path_plans_with_scan_normals():
     assert np.median(angle) < 2.0
     plan = plan_path(recon.points_m, params=params, T_base_tracker=T, normals=normals)
     assert plan.tool.source == "scan"
-    assert plan.trajectory.duration_s == pytest.approx(0.3 / 0.05, rel=0.1)
+    durations = plan.trajectory.phase_durations_s()
+    assert durations["process"] == pytest.approx(0.3 / 0.05, rel=0.1)

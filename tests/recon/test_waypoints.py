@@ -29,7 +29,9 @@ def _dense_deviation(arm, trajectory, path) -> float:
     """Distance of each planned TCP sample from the densely sampled joint lines (FK)."""
     T_flange_tcp = np.linalg.inv(kinematics.forward(arm, trajectory.q_rad[0]))
     T_flange_tcp = T_flange_tcp @ _pose(trajectory.tcp_m[0], trajectory.tcp_rotvec[0])
-    u = np.linspace(0.0, 1.0, 400)[:, None, None]
+    # Dense enough for every joint line, a long transit included: 0.02 mrad per step.
+    steps = int(np.abs(np.diff(path.q_rad, axis=0)).max() / 2e-5) + 400
+    u = np.linspace(0.0, 1.0, steps)[:, None, None]
     q0, q1 = path.q_rad[:-1][None], path.q_rad[1:][None]
     lines = (q0 + u * (q1 - q0)).reshape(-1, 6)
     tcp = (kinematics.forward(arm, lines) @ T_flange_tcp)[:, :3, 3]
