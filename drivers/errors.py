@@ -40,6 +40,10 @@ class NotEnabledError(RobotError):
     """Motion was requested while the arm is not enabled (call enable() first)."""
 
 
+class MotionStoppedError(RobotError):
+    """A stop was requested for this execution: no further motion (start a new execution)."""
+
+
 class ProtectiveStopError(RobotError):
     """The arm is in a protective stop; clear the cause and unlock it before moving again."""
 
@@ -191,6 +195,7 @@ WIRE_ERRORS: dict[str, type[Exception]] = {
         RobotError,
         NotConnectedError,
         NotEnabledError,
+        MotionStoppedError,
         ProtectiveStopError,
         EmergencyStopError,
         ConnectionLostError,

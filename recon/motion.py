@@ -259,19 +259,20 @@ def assemble(
 ) -> JointTrajectory:
     """One trajectory from phases that each start where the previous one ends, at rest.
 
-    Each later phase's first sample (the previous phase's last, at rest) is dropped and its
-    times shifted on, so the controller's grid continues without a gap or a repeated instant.
+    Every phase keeps all its samples: where two meet, the arm rests on the joining pose for
+    one controller period (the last sample of one, then the first of the next), so each phase
+    read back with :meth:`JointTrajectory.of_phase` starts and ends at rest, as it was planned.
 
     Raises
     ------
     ValueError
         Phases that do not join (a bug of the caller).
     """
+    dt = 1.0 / arm.control_rate_hz
     t, q, qd, qdd, label = [], [], [], [], []
     offset = 0.0
     drops: tuple[SpeedDrop, ...] = ()
     for index, part in enumerate(phases):
-        first = 0 if index == 0 else 1
         if index:
             gap = float(np.abs(part.q_rad[0] - q[-1][-1]).max())
             if gap > BOUNDARY_TOLERANCE_RAD:
@@ -279,21 +280,19 @@ def assemble(
                     f"the {part.phase.label} phase starts {gap:.2e} rad from where the "
                     "previous one ends"
                 )
-        t.append(part.t_s[first:] + offset)
-        q.append(part.q_rad[first:])
-        qd.append(part.qd_rad_s[first:])
-        qdd.append(part.qdd_rad_s2[first:])
-        label.append(np.full(len(part.t_s) - first, int(part.phase), dtype=np.int8))
-        offset += float(part.t_s[-1])
+        t.append(part.t_s + offset)
+        q.append(part.q_rad)
+        qd.append(part.qd_rad_s)
+        qdd.append(part.qdd_rad_s2)
+        label.append(np.full(len(part.t_s), int(part.phase), dtype=np.int8))
+        offset += float(part.t_s[-1]) + dt
         if part.phase is Phase.PROCESS:
             drops = part.speed_drops
     q_all = np.concatenate(q)
     tcp = pose_from_transform(kinematics.forward(arm, q_all) @ np.asarray(T_flange_tcp))
     travel = np.linalg.norm(np.diff(tcp[:, :3], axis=0), axis=1)
-    t_all = np.concatenate(t)
-    # Round to the grid: the sum of phase durations carries float error into later phases.
-    dt = 1.0 / arm.control_rate_hz
-    t_all = np.round(t_all / dt) * dt
+    # On the grid: the sum of phase durations carries float error into later phases.
+    t_all = np.round(np.concatenate(t) / dt) * dt
     return JointTrajectory(
         robot=arm.name,
         t_s=t_all,

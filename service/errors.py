@@ -59,6 +59,7 @@ ERROR_MAP: list[tuple[type[Exception], int, str]] = [
     (driver_errors.TrajectoryMismatchError, 409, "trajectory_mismatch"),
     (driver_errors.NotEnabledError, 409, "robot_not_enabled"),
     (driver_errors.NotConnectedError, 409, "robot_not_connected"),
+    (driver_errors.MotionStoppedError, 409, "stopped"),
     (driver_errors.ProtectiveStopError, 409, "protective_stop"),
     (driver_errors.EmergencyStopError, 409, "emergency_stop"),
     (driver_errors.ConnectionLostError, 502, "robot_connection_lost"),

@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from drivers.errors import (
     ConnectionLostError,
     EmergencyStopError,
+    MotionStoppedError,
     NotConnectedError,
     NotEnabledError,
     ProtectiveStopError,
@@ -214,7 +215,7 @@ class RobotBackend(ABC):
             raise ValueError("acceleration_rad_s2 must be in (0, 10]")
         with self._lock:
             self._require_enabled()
-            self._stop_requested.clear()
+            self._require_not_stopped()
             self._state = RobotState.MOVING
         try:
             self._move_joints(q, speed_rad_s, acceleration_rad_s2)
@@ -294,14 +295,32 @@ class RobotBackend(ABC):
                     f"the arm is {np.degrees(gap):.1f} deg (largest joint) from the "
                     "trajectory's start: move it there first (move_joints)"
                 )
-            self._stop_requested.clear()
+            self._require_not_stopped()
             self._state = RobotState.MOVING
 
     def stop(self) -> None:
-        """Decelerate to a stop. Safe to call from another thread, and when not moving."""
+        """Decelerate to a stop and refuse every later motion of this backend.
+
+        Safe to call from any thread at any time: before :meth:`connect`, while connecting,
+        between moves or during one. The request is latched: a stop can never be lost to a
+        motion that starts just after it. A new execution takes a new backend (or calls
+        :meth:`clear_stop` first).
+        """
         self._stop_requested.set()
-        if self._state is RobotState.MOVING:
-            self._stop()
+        self._stop()
+
+    @property
+    def stop_requested(self) -> bool:
+        """Whether a stop was requested (and not cleared since)."""
+        return self._stop_requested.is_set()
+
+    def clear_stop(self) -> None:
+        """Forget a stop request: only for starting a new execution on the same backend."""
+        with self._lock:
+            if self._state is RobotState.MOVING:
+                raise NotEnabledError("the arm is moving: a stop cannot be cleared now")
+            self._stop_requested.clear()
+            self._clear_stop()
 
     def unlock_protective_stop(self) -> None:
         """Clear a protective stop (after its cause is gone); the arm is then enabled again."""
@@ -333,6 +352,12 @@ class RobotBackend(ABC):
     def _require_connected(self) -> None:
         if self._state is RobotState.DISCONNECTED:
             raise NotConnectedError(f"the {self.kind} robot is not connected: call connect()")
+
+    def _require_not_stopped(self) -> None:
+        if self._stop_requested.is_set():
+            raise MotionStoppedError(
+                "a stop was requested: this execution moves no further (start a new one)"
+            )
 
     def _require_enabled(self) -> None:
         self._require_connected()
@@ -397,7 +422,11 @@ class RobotBackend(ABC):
         completed, and why not."""
 
     @abstractmethod
-    def _stop(self) -> None: ...
+    def _stop(self) -> None:
+        """Decelerate now if moving; called for every stop request, moving or not."""
+
+    def _clear_stop(self) -> None:  # noqa: B027 - optional hook
+        """Forget a stop request below the base class (a worker's own flag)."""
 
     @abstractmethod
     def _unlock_protective_stop(self) -> None: ...

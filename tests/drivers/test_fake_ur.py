@@ -34,7 +34,7 @@ from drivers.robot.fake_ur import rtde_protocol as rp
 from drivers.robot.sim import HOME_RAD, SimBackend, SimConfig
 from drivers.robot.ur_rtde import URRtdeBackend, URRtdeConfig
 from tests.drivers import fake_ur_fixture
-from tests.motion_fixtures import base_from_tracker, line_plan
+from tests.motion_fixtures import base_from_tracker, line_process
 
 # The fake controller's fixtures, used by name.
 fake_ur_process = fake_ur_fixture.fake_ur_process
@@ -569,7 +569,7 @@ def test_ur_rtde_commands_fail_or_succeed_as_on_a_controller(fake_ur):
 
 @pytest.fixture
 def robot(fake_ur):
-    start = line_plan("ur5e", 0.1).trajectory.q_rad[0]
+    start = line_process("ur5e", 0.1).q_rad[0]
     fake_ur.control("reset", q_rad=start.tolist())
     backend = URRtdeBackend(
         URRtdeConfig(host=fake_ur.host, connect_timeout_s=5.0, motion_margin_s=3.0)
@@ -592,7 +592,7 @@ def _inject_at(fake, fraction_wanted, command, **arguments):
 
 @pytest.mark.timeout(60)
 def test_a_protective_stop_during_execution_is_reported_and_unlocked(fake_ur, robot):
-    trajectory = line_plan("ur5e", 0.1).trajectory
+    trajectory = line_process("ur5e", 0.1)
     fake_ur.control("configure", unlock_wait_s=0.0)  # not what this test is about
     with pytest.raises(ProtectiveStopError):
         robot.execute(trajectory, on_progress=_inject_at(fake_ur, 0.3, "protective_stop"))
@@ -616,7 +616,7 @@ def test_an_emergency_stop_is_reported(fake_ur, robot):
 
 @pytest.mark.timeout(60)
 def test_a_dropped_connection_is_reported_and_reconnecting_works(fake_ur, robot):
-    trajectory = line_plan("ur5e", 0.1).trajectory
+    trajectory = line_process("ur5e", 0.1)
     # The link stays down for 2 s: ur_rtde's own reconnection (which would bridge a short
     # drop) fails, and the adapter reports the loss. Usually as a lost connection ("End of
     # file", 0.52 s after the start); but a timeout is genuinely possible: measured once in

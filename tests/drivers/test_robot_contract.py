@@ -27,7 +27,7 @@ from drivers.robot.clock import FakeClock
 from drivers.robot.sim import SimBackend, SimConfig
 from recon import kinematics
 from tests.drivers import fake_ur_fixture
-from tests.motion_fixtures import line_plan
+from tests.motion_fixtures import line_process
 
 # The fake controller's fixtures, used by name.
 fake_ur_process = fake_ur_fixture.fake_ur_process
@@ -75,7 +75,7 @@ def robot(request):
     host = None
     if request.param == "ur_rtde_fake":
         fake = request.getfixturevalue("fake_ur")
-        start = line_plan("ur5e", 0.1).trajectory.q_rad[0] + FAKE_START_OFFSET_RAD
+        start = line_process("ur5e", 0.1).q_rad[0] + FAKE_START_OFFSET_RAD
         fake.control("reset", q_rad=start.tolist())
         host = fake.host
     backend = make("ur_rtde" if request.param == "ur_rtde_fake" else request.param, host)
@@ -84,7 +84,8 @@ def robot(request):
 
 
 def _trajectory(robot):
-    return line_plan(robot.arm.name, 0.1).trajectory
+    """The line alone (the contract is about running a trajectory, not planning one)."""
+    return line_process(robot.arm.name, 0.1)
 
 
 def test_nothing_moves_before_connect_and_enable(robot):
@@ -167,7 +168,7 @@ def test_a_trajectory_that_does_not_fit_is_refused(robot):
     robot.enable()
     with pytest.raises(TrajectoryMismatchError, match="move it there first"):
         robot.execute(trajectory)  # the arm is not at the start
-    other = line_plan("ur10e" if robot.arm.name != "ur10e" else "ur5e", 0.1).trajectory
+    other = line_process("ur10e" if robot.arm.name != "ur10e" else "ur5e", 0.1)
     with pytest.raises(TrajectoryMismatchError, match="planned for"):
         robot.execute(other)
 

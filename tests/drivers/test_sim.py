@@ -14,12 +14,12 @@ from drivers.robot.base import RobotState
 from drivers.robot.clock import FakeClock
 from drivers.robot.dryrun import dry_run
 from drivers.robot.sim import SimBackend, SimConfig
-from tests.motion_fixtures import line_plan
+from tests.motion_fixtures import line_plan, line_process
 
 
 @pytest.fixture
 def ready():
-    trajectory = line_plan("ur5e", 0.1).trajectory
+    trajectory = line_process("ur5e", 0.1)
     sim = SimBackend(SimConfig(q_start_rad=tuple(trajectory.q_rad[0])), clock=FakeClock())
     sim.connect()
     sim.enable()
@@ -115,7 +115,7 @@ def test_dry_run_report():
 
 
 def test_dry_run_reports_an_injected_fault():
-    trajectory = line_plan("ur5e", 0.1).trajectory
+    trajectory = line_process("ur5e", 0.1)
     sim = SimBackend(SimConfig(q_start_rad=tuple(trajectory.q_rad[0])), clock=FakeClock())
     sim.inject(ProtectiveStopError, after_s=0.3)
     report = dry_run(trajectory, backend=sim)

@@ -113,14 +113,23 @@ def test_a_protective_stop_while_settling_on_the_last_sample_is_not_a_success(fa
     from dataclasses import replace
 
     from drivers.robot.ur_rtde import PROGRESS_EVERY
-    from tests.motion_fixtures import line_plan
+    from tests.motion_fixtures import line_process
 
-    full = line_plan("ur5e", 0.1).trajectory
+    full = line_process("ur5e", 0.1)
     # Cut so that the streaming loop's last progress report comes with its last sample: a stop
     # injected then lands while the adapter holds the last target for the arm (a lookahead
     # behind, still moving) to arrive.
     m = (len(full) - 1) // PROGRESS_EVERY * PROGRESS_EVERY + 1
-    fields = ("t_s", "q_rad", "qd_rad_s", "qdd_rad_s2", "tcp_m", "tcp_rotvec", "arc_length_m")
+    fields = (
+        "t_s",
+        "q_rad",
+        "qd_rad_s",
+        "qdd_rad_s2",
+        "tcp_m",
+        "tcp_rotvec",
+        "arc_length_m",
+        "phase",
+    )
     trajectory = replace(full, **{name: getattr(full, name)[:m] for name in fields})
     fake_ur.control("reset", q_rad=trajectory.q_rad[0].tolist())
     robot = URRtdeBackend(URRtdeConfig(host=fake_ur.host, connect_timeout_s=5.0))
