@@ -17,6 +17,7 @@ import threading
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
@@ -92,6 +93,9 @@ class ExecutionRecord:
         All samples were sent and the arm came to rest.
     fault : str or None
         Why it ended early (a stop request, a protective stop, a lost connection).
+    tcp_actual : ndarray of shape (K, 6), or None
+        The controller's actual TCP pose at each sample (x, y, z, rx, ry, rz; base frame, with
+        the TCP it was told), where the backend reads it.
     """
 
     t_s: FloatArray
@@ -99,6 +103,7 @@ class ExecutionRecord:
     q_actual_rad: FloatArray
     completed: bool
     fault: str | None = None
+    tcp_actual: FloatArray | None = None
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -129,6 +134,8 @@ class RobotBackend(ABC):
         self._state = RobotState.DISCONNECTED
         self._lock = threading.RLock()
         self._stop_requested = threading.Event()
+        #: The TCP the controller was told (:meth:`set_tool`): x, y, z, rx, ry, rz.
+        self.tcp_pose = np.zeros(6)
 
     # -- lifecycle -----------------------------------------------------------------------------
 
@@ -222,15 +229,49 @@ class RobotBackend(ABC):
         finally:
             self._settle_state()
 
+    def set_tool(
+        self,
+        tcp_pose: FloatArray,
+        *,
+        payload_kg: float = 0.0,
+        payload_cog_m: FloatArray = (0.0, 0.0, 0.0),
+    ) -> None:
+        """Tell the controller the tool: its TCP in the flange frame (x, y, z, rx, ry, rz, as on
+        UR's pendant) and its payload (mass, centre of gravity in the flange frame). Before
+        motion: the controller's TCP pose readings and its payload compensation follow it.
+
+        Raises
+        ------
+        NotEnabledError, ValueError
+        """
+        pose = np.asarray(tcp_pose, dtype=np.float64)
+        cog = np.asarray(payload_cog_m, dtype=np.float64)
+        if pose.shape != (6,) or not np.all(np.isfinite(pose)) or np.abs(pose[:3]).max() > 1.0:
+            raise ValueError(f"tcp_pose must be 6 finite numbers within 1 m, got {tcp_pose!r}")
+        if not (0.0 <= payload_kg <= self.arm.payload_kg) or cog.shape != (3,):
+            raise ValueError(
+                f"the payload must be 0..{self.arm.payload_kg} kg with a 3-vector centre of "
+                f"gravity, got {payload_kg!r}, {payload_cog_m!r}"
+            )
+        with self._lock:
+            self._require_enabled()
+            self._set_tool(pose, float(payload_kg), cog)
+            self.tcp_pose = pose
+
     def execute(
-        self, trajectory: JointTrajectory, *, on_progress: ProgressCallback | None = None
+        self,
+        trajectory: JointTrajectory,
+        *,
+        on_progress: ProgressCallback | None = None,
+        journal: str | Path | None = None,
     ) -> ExecutionRecord:
         """Stream a trajectory to the arm at the controller rate (servoJ) and record it.
 
         The arm must be enabled and at the trajectory's first sample (within
         :data:`START_TOLERANCE_RAD`); move it there with :meth:`move_joints` first. A
         :meth:`stop` from another thread ends the run early with a controlled deceleration; the
-        record says so.
+        record says so. With ``journal``, every sample is also written to that file as it
+        arrives (:mod:`drivers.robot.journal`), by the process that talks to the arm.
 
         Raises
         ------
@@ -242,7 +283,7 @@ class RobotBackend(ABC):
         self._begin(trajectory)
         self.last_record: ExecutionRecord | None = None
         try:
-            record = self._execute(trajectory, on_progress)
+            record = self._execute(trajectory, on_progress, journal)
             self.last_record = record
             return record
         finally:
@@ -255,6 +296,7 @@ class RobotBackend(ABC):
         tolerance_m: float = 5e-4,
         blend_m: float = 1e-3,
         on_progress: ProgressCallback | None = None,
+        journal: str | Path | None = None,
     ) -> ExecutionRecord:
         """Run a trajectory as a path the controller executes itself (UR's movePath).
 
@@ -269,7 +311,7 @@ class RobotBackend(ABC):
         path = coarse_waypoints(self.arm, trajectory, tolerance_m=tolerance_m, blend_m=blend_m)
         self.last_record = None
         try:
-            t_s, q_actual, completed, fault = self._execute_path(path, on_progress)
+            t_s, q_actual, completed, fault = self._execute_path(path, on_progress, journal)
             planned_index = np.searchsorted(trajectory.t_s - trajectory.t_s[0], t_s)
             record = ExecutionRecord(
                 t_s=np.asarray(t_s, dtype=np.float64),
@@ -288,6 +330,7 @@ class RobotBackend(ABC):
         self._check_trajectory(trajectory)
         with self._lock:
             self._require_enabled()
+            self._require_not_stopped()
             q_now = self._read_q()
             gap = float(np.abs(q_now - trajectory.q_rad[0]).max())
             if gap > START_TOLERANCE_RAD:
@@ -295,7 +338,6 @@ class RobotBackend(ABC):
                     f"the arm is {np.degrees(gap):.1f} deg (largest joint) from the "
                     "trajectory's start: move it there first (move_joints)"
                 )
-            self._require_not_stopped()
             self._state = RobotState.MOVING
 
     def stop(self) -> None:
@@ -411,15 +453,24 @@ class RobotBackend(ABC):
 
     @abstractmethod
     def _execute(
-        self, trajectory: JointTrajectory, on_progress: ProgressCallback | None
+        self,
+        trajectory: JointTrajectory,
+        on_progress: ProgressCallback | None,
+        journal: str | Path | None,
     ) -> ExecutionRecord: ...
 
     @abstractmethod
     def _execute_path(
-        self, path: CoarsePath, on_progress: ProgressCallback | None
+        self,
+        path: CoarsePath,
+        on_progress: ProgressCallback | None,
+        journal: str | Path | None,
     ) -> tuple[FloatArray, FloatArray, bool, str | None]:
         """Run ``path``; return the sample times (s), actual joints (K, 6), whether it
         completed, and why not."""
+
+    @abstractmethod
+    def _set_tool(self, tcp_pose: FloatArray, payload_kg: float, cog_m: FloatArray) -> None: ...
 
     @abstractmethod
     def _stop(self) -> None:

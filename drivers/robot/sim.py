@@ -18,6 +18,7 @@ never through magic values.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -37,12 +38,16 @@ from drivers.robot.base import (
     RobotBackend,
     RobotState,
 )
+from drivers.robot.journal import JournalWriter
+from drivers.robot.monitor import ArmState, RobotMonitor
+from recon import kinematics
 from recon.motion import trapezoid, trapezoid_duration
+from recon.transforms import pose_from_transform, transform_from_pose
 from recon.types import FloatArray, JointTrajectory
 from recon.waypoints import CoarsePath
 
 #: A home pose: elbow up, tool pointing down, well away from singularities.
-HOME_RAD = (0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0)
+HOME_RAD = kinematics.HOME_Q_RAD
 #: The simulated joints accelerate at up to this multiple of the planning acceleration.
 PHYSICAL_ACCELERATION_FACTOR = 4.0
 #: Integration steps per controller period.
@@ -164,21 +169,34 @@ class SimBackend(RobotBackend):
             self.clock.sleep_until(self.clock.now() + self._dt)
             self._advance(self.clock.now(), target=q if not self._stopping else self._q)
 
+    def _set_tool(self, tcp_pose: FloatArray, payload_kg: float, cog_m: FloatArray) -> None:
+        self.payload_kg, self.payload_cog_m = payload_kg, cog_m
+
     def _execute(
-        self, trajectory: JointTrajectory, on_progress: ProgressCallback | None
+        self,
+        trajectory: JointTrajectory,
+        on_progress: ProgressCallback | None,
+        journal: str | Path | None,
     ) -> ExecutionRecord:
-        times, actual, completed, fault = self._stream(trajectory.q_rad, on_progress)
+        times, actual, completed, fault = self._stream(trajectory.q_rad, on_progress, journal)
         return self._record(times, trajectory.q_rad[: len(times)], actual, completed, fault)
 
-    def _execute_path(self, path: CoarsePath, on_progress: ProgressCallback | None):
+    def _execute_path(
+        self, path: CoarsePath, on_progress: ProgressCallback | None, journal: str | Path | None
+    ):
         # The controller runs the path itself: joint-space lines between the waypoints at each
         # move's speed, without stopping where a blend is asked for. Fed to the same servo law,
         # which rounds the corners the way blending does.
         targets = _path_targets(path, self._dt)
-        times, actual, completed, fault = self._stream(targets, on_progress)
+        times, actual, completed, fault = self._stream(targets, on_progress, journal)
         return np.array(times), np.array(actual).reshape(-1, 6), completed, fault
 
-    def _stream(self, targets: FloatArray, on_progress: ProgressCallback | None):
+    def _stream(
+        self,
+        targets: FloatArray,
+        on_progress: ProgressCallback | None,
+        journal: str | Path | None = None,
+    ):
         """Follow ``targets`` (K, 6), one per controller period, as servoJ does."""
         n = len(targets)
         t0 = self.clock.now()
@@ -186,6 +204,8 @@ class SimBackend(RobotBackend):
         times, actual = [], []
         fault = None
         completed = False
+        writer = None if journal is None else JournalWriter(journal)
+        T_flange_tcp = transform_from_pose(self.tcp_pose)
         try:
             for i in range(n):
                 if self._stop_requested.is_set():
@@ -195,6 +215,9 @@ class SimBackend(RobotBackend):
                 self._advance(self.clock.now(), target=targets[i])
                 times.append(self.clock.now() - t0)
                 actual.append(self._q.copy())
+                if writer is not None:
+                    tcp = pose_from_transform(kinematics.forward(self.arm, self._q) @ T_flange_tcp)
+                    writer.add(times[-1], self._q, tcp)
                 if on_progress is not None and (i % PROGRESS_EVERY == 0 or i == n - 1):
                     on_progress((i + 1) / n)
             else:
@@ -204,6 +227,9 @@ class SimBackend(RobotBackend):
         except RobotError as error:
             self._record(times, targets[: len(times)], actual, False, str(error))
             raise
+        finally:
+            if writer is not None:
+                writer.close()
         return times, actual, completed, fault
 
     # -- physics ---------------------------------------------------------------------------------
@@ -351,3 +377,29 @@ def _path_samples(path: CoarsePath, dt: float) -> tuple[FloatArray, FloatArray, 
     move_at = np.clip(np.searchsorted(knots, s_at, side="right") - 1, 0, len(length) - 1)
     fraction = np.clip((s_at - knots[move_at]) / np.maximum(length[move_at], 1e-12), 0.0, 1.0)
     return q[move_at] + fraction[:, None] * (q[move_at + 1] - q[move_at]), s_at, knots
+
+
+class SimMonitor(RobotMonitor):
+    """The simulated arm's state: always reachable, running, at its configured start joints
+    (a dry run simulates its own arm from the trajectory's first sample)."""
+
+    kind = "sim"
+
+    def __init__(self, config: SimConfig) -> None:
+        self.config = config
+        self.arm = kinematics.model(config.robot)
+
+    def read(self) -> ArmState:
+        q = np.asarray(self.config.q_start_rad, dtype=np.float64)
+        return ArmState(
+            backend="sim",
+            reachable=True,
+            robot_mode="SIMULATED",
+            safety_status="NORMAL",
+            remote_control=True,
+            q_rad=tuple(float(v) for v in q),
+            tcp_pose=tuple(float(v) for v in pose_from_transform(kinematics.forward(self.arm, q))),
+        )
+
+    def unlock_protective_stop(self) -> None:
+        """Nothing to unlock: the simulated arm is never stopped between dry runs."""

@@ -20,9 +20,11 @@ floor that is the operator's decision, at the teach pendant.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -47,6 +49,7 @@ from drivers.robot.base import (
     RobotBackend,
     RobotState,
 )
+from drivers.robot.journal import JournalWriter
 from drivers.worker import Command, WorkerClient, WorkerLink, WorkerServer
 from recon.types import FloatArray, JointTrajectory
 from recon.waypoints import CoarsePath
@@ -132,20 +135,33 @@ class MoveJ(Command):
 
 @dataclass(frozen=True)
 class Execute(Command):
-    """Stream ``q_rows`` (K lists of 6 joints, rad) with servoJ every ``period_s``."""
+    """Stream ``q_rows`` (K lists of 6 joints, rad) with servoJ every ``period_s``; with a
+    ``journal`` path, write every sample there as it is taken."""
 
     q_rows: list[list[float]]
     period_s: float
+    journal: str | None = None
+
+
+@dataclass(frozen=True)
+class SetTool(Command):
+    """The TCP (x, y, z, rx, ry, rz in the flange frame) and the payload (kg, centre of
+    gravity in the flange frame, m)."""
+
+    tcp_pose: list[float]
+    payload_kg: float
+    cog_m: list[float]
 
 
 @dataclass(frozen=True)
 class MovePath(Command):
-    """Blended moveJ waypoints as one movePath."""
+    """Blended moveJ waypoints as one movePath (samples journalled as in :class:`Execute`)."""
 
     q_rows: list[list[float]]
     speeds: list[float]
     acceleration: float
     blends: list[float]
+    journal: str | None = None
 
 
 class URRtdeBackend(RobotBackend):
@@ -250,13 +266,23 @@ class URRtdeBackend(RobotBackend):
             timeout_s=expected + self.config.motion_margin_s,
         )
 
+    def _set_tool(self, tcp_pose: FloatArray, payload_kg: float, cog_m: FloatArray) -> None:
+        self._call(SetTool(list(map(float, tcp_pose)), payload_kg, list(map(float, cog_m))))
+
     def _execute(
-        self, trajectory: JointTrajectory, on_progress: ProgressCallback | None
+        self,
+        trajectory: JointTrajectory,
+        on_progress: ProgressCallback | None,
+        journal: str | Path | None,
     ) -> ExecutionRecord:
         n = len(trajectory)
         try:
-            times, actual, completed, fault = self._call(
-                Execute(trajectory.q_rad.tolist(), trajectory.period_s),
+            times, actual, tcp, completed, fault = self._call(
+                Execute(
+                    trajectory.q_rad.tolist(),
+                    trajectory.period_s,
+                    None if journal is None else str(journal),
+                ),
                 timeout_s=trajectory.duration_s + self.config.motion_margin_s,
                 on_progress=(None if on_progress is None else (lambda i: on_progress(i / n))),
             )
@@ -272,9 +298,12 @@ class URRtdeBackend(RobotBackend):
             q_actual_rad=np.array(actual).reshape(-1, 6),
             completed=completed,
             fault=fault,
+            tcp_actual=np.array(tcp).reshape(-1, 6),
         )
 
-    def _execute_path(self, path: CoarsePath, on_progress: ProgressCallback | None):
+    def _execute_path(
+        self, path: CoarsePath, on_progress: ProgressCallback | None, journal: str | Path | None
+    ):
         # The controller's own timing may run longer than the plan (it stops where it cannot
         # blend): allow the slowest move profile on top of the margin.
         lead = np.abs(np.diff(path.q_rad, axis=0)).max(axis=1)
@@ -288,6 +317,7 @@ class URRtdeBackend(RobotBackend):
                     path.speed_rad_s.tolist(),
                     path.acceleration_rad_s2,
                     path.blend_m.tolist(),
+                    None if journal is None else str(journal),
                 ),
                 timeout_s=expected_s + self.config.motion_margin_s,
                 on_progress=(
@@ -338,8 +368,11 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             ReadQ: lambda _: self.read_q(),
             Unlock: lambda _: self.unlock(),
             MoveJ: lambda c: self.move_j(c.q, c.speed, c.acceleration),
-            Execute: lambda c: self.execute(c.q_rows, c.period_s),
-            MovePath: lambda c: self.move_path(c.q_rows, c.speeds, c.acceleration, c.blends),
+            SetTool: lambda c: self.set_tool(c.tcp_pose, c.payload_kg, c.cog_m),
+            Execute: lambda c: self.execute(c.q_rows, c.period_s, c.journal),
+            MovePath: lambda c: self.move_path(
+                c.q_rows, c.speeds, c.acceleration, c.blends, c.journal
+            ),
         }
 
     def translate(self, error: Exception) -> Exception:
@@ -527,9 +560,23 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             self._safety()
             time.sleep(0.01)
 
-    def execute(self, q_rows, period_s):
+    def set_tool(self, tcp_pose, payload_kg, cog_m) -> None:
+        self._safety()
+        if not self.control.setTcp(tcp_pose):
+            self._refused()
+            raise ConnectionLostError("the controller refused setTcp; reconnect")
+        if not self.control.setPayload(payload_kg, cog_m):
+            self._refused()
+            raise ConnectionLostError("the controller refused setPayload; reconnect")
+
+    def execute(self, q_rows, period_s, journal=None):
+        with contextlib.ExitStack() as stack:
+            writer = None if journal is None else stack.enter_context(JournalWriter(journal))
+            return self._stream(q_rows, period_s, writer)
+
+    def _stream(self, q_rows, period_s, writer):
         lookahead, gain = self.config["lookahead_s"], self.config["gain"]
-        times, actual, fault, completed = [], [], None, False
+        times, actual, tcp, fault, completed = [], [], [], None, False
         start = time.monotonic()
         for i, q in enumerate(q_rows):
             if self.stop_event.is_set():
@@ -545,6 +592,9 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
                 )
             times.append(time.monotonic() - start)
             actual.append(list(self.receive.getActualQ()))
+            tcp.append(list(self.receive.getActualTCPPose()))
+            if writer is not None:
+                writer.add(times[-1], actual[-1], tcp[-1])
             self._check_fresh()
             if self.receive.isProtectiveStopped():
                 fault = "protective stop"
@@ -564,7 +614,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         self.link.progress(len(times))
         if fault == "protective stop":
             raise ProtectiveStopError("protective stop during execution")
-        return times, actual, completed, fault
+        return times, actual, tcp, completed, fault
 
     def _hold(self, q, period_s) -> None:
         """Keep servoing the last sample until the arm rests on it.
@@ -590,8 +640,13 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
                 return
             self.control.waitPeriod(t_cycle)
 
-    def move_path(self, q_rows, speeds, acceleration, blends):
+    def move_path(self, q_rows, speeds, acceleration, blends, journal=None):
         """Run blended moveJ waypoints as one controller-side path (ur_rtde movePath)."""
+        with contextlib.ExitStack() as stack:
+            writer = None if journal is None else stack.enter_context(JournalWriter(journal))
+            return self._move_path(q_rows, speeds, acceleration, blends, writer)
+
+    def _move_path(self, q_rows, speeds, acceleration, blends, writer):
         import rtde_control
 
         self._safety()
@@ -609,7 +664,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             raise ConnectionLostError(
                 "the controller refused movePath (the control script stopped); reconnect",
             )
-        times, actual, fault, completed = [], [], None, False
+        times, actual, tcp, fault, completed = [], [], [], None, False
         start = time.monotonic()
         period_s = 1.0 / 125.0  # sampling the actual joints; the controller runs the path
         reported = -1
@@ -617,6 +672,9 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             status = self.control.getAsyncOperationProgressEx()
             times.append(time.monotonic() - start)
             actual.append(list(self.receive.getActualQ()))
+            tcp.append(list(self.receive.getActualTCPPose()))
+            if writer is not None:
+                writer.add(times[-1], actual[-1], tcp[-1])
             self._check_fresh()
             if not status.isAsyncOperationRunning():
                 completed = True

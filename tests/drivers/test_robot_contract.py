@@ -17,6 +17,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from drivers.errors import (
+    MotionStoppedError,
     NotConnectedError,
     NotEnabledError,
     TrajectoryMismatchError,
@@ -211,3 +212,63 @@ def test_close_is_idempotent(robot):
 def test_unknown_backend_names_the_known_ones():
     with pytest.raises(UnknownBackendError, match="sim"):
         backend_class("kuka")
+
+
+def test_a_stop_is_latched_for_the_backend(robot):
+    """A stop before anything moves (even before connect) refuses every later motion."""
+    trajectory = _trajectory(robot)
+    robot.stop()  # before connect: nothing to decelerate, but remembered
+    robot.connect()
+    robot.enable()
+    q_before = robot.status().q_rad
+    with pytest.raises(MotionStoppedError):
+        robot.move_joints(trajectory.q_rad[0], speed_rad_s=1.0, acceleration_rad_s2=2.0)
+    with pytest.raises(MotionStoppedError):
+        robot.execute(trajectory)
+    assert np.abs(robot.status().q_rad - q_before).max() < 1e-6
+    robot.clear_stop()  # a new execution on the same backend
+    robot.move_joints(trajectory.q_rad[0], speed_rad_s=1.0, acceleration_rad_s2=2.0)
+    assert np.abs(robot.status().q_rad - trajectory.q_rad[0]).max() < 2e-3
+
+
+def test_a_stop_during_one_move_refuses_the_next(robot):
+    trajectory = _trajectory(robot)
+    robot.connect()
+    robot.enable()
+    robot.move_joints(trajectory.q_rad[0], speed_rad_s=1.0, acceleration_rad_s2=2.0)
+
+    def stop_soon(fraction):
+        if fraction > 0.2:
+            threading.Thread(target=robot.stop).start()
+
+    record = robot.execute(trajectory, on_progress=stop_soon)
+    assert not record.completed
+    with pytest.raises(MotionStoppedError):
+        robot.move_joints(trajectory.q_rad[0], speed_rad_s=1.0, acceleration_rad_s2=2.0)
+
+
+def test_the_tool_is_set_and_every_sample_journalled(robot, tmp_path):
+    from drivers.robot.journal import read_journal
+
+    trajectory = _trajectory(robot)
+    robot.connect()
+    robot.enable()
+    robot.set_tool([0.0, 0.0, 0.1, 0.0, 0.0, 0.0], payload_kg=0.5, payload_cog_m=[0, 0, 0.05])
+    with pytest.raises(ValueError):
+        robot.set_tool([0.0, 0.0, 2.0, 0.0, 0.0, 0.0])
+    with pytest.raises(ValueError):
+        robot.set_tool(np.zeros(6), payload_kg=100.0)
+    robot.move_joints(trajectory.q_rad[0], speed_rad_s=1.0, acceleration_rad_s2=2.0)
+    journal = tmp_path / "journal.csv"
+    record = robot.execute(trajectory, journal=journal)
+    t, q, tcp = read_journal(journal)
+    assert len(t) == len(record) and np.allclose(q, record.q_actual_rad, atol=1e-8)
+    # The journal's TCP is the flange with the tool it was told (10 cm along the flange's z).
+    flange = kinematics.forward(robot.arm, q)
+    np.testing.assert_allclose(tcp[:, :3], (flange @ _tool(0.1))[:, :3, 3], atol=1e-4)
+
+
+def _tool(length_m: float) -> np.ndarray:
+    T = np.eye(4)
+    T[2, 3] = length_m
+    return T
