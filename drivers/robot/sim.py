@@ -153,6 +153,9 @@ class SimBackend(RobotBackend):
     def _stop(self) -> None:
         self._stopping = True
 
+    def _clear_stop(self) -> None:
+        self._stopping = False
+
     def _move_joints(self, q: FloatArray, speed: float, acceleration: float) -> None:
         start = self._read_q()
         profile = _synchronised_trapezoid(start, q, speed, acceleration, self._dt)

@@ -336,6 +336,11 @@ class URRtdeBackend(RobotBackend):
         if worker is not None:
             worker.stop_event.set()
 
+    def _clear_stop(self) -> None:
+        worker = self._worker
+        if worker is not None:
+            worker.stop_event.clear()
+
     def _unlock_protective_stop(self) -> None:
         self._call(Unlock(), timeout_s=max(self.config.command_timeout_s, 10.0))
 
