@@ -213,6 +213,7 @@ WIRE_ERRORS: dict[str, type[Exception]] = {
         _recon_errors.UnitsMismatchError,
         _recon_errors.RegistrationError,
         _recon_errors.InfeasibleTrajectoryError,
+        _recon_errors.CollisionError,
     )
 }
 

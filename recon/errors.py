@@ -31,3 +31,12 @@ class RegistrationError(ReconError):
 
 class InfeasibleTrajectoryError(ReconError):
     """The robot cannot follow the path within its limits (reach, joint limits, singularities)."""
+
+
+class CollisionError(InfeasibleTrajectoryError):
+    """The motion would bring the arm or the tool into the cell (the workpiece, the mounting
+    plane, a keep-out box). ``detail`` says where: phase, time, link, point, clearance."""
+
+    def __init__(self, message: str, *, detail: dict | None = None) -> None:
+        super().__init__(message)
+        self.detail = detail

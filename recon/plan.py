@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from recon import kinematics, motion
-from recon.errors import InfeasibleTrajectoryError
+from recon.errors import CollisionError, InfeasibleTrajectoryError
 from recon.orient import ScanNormals, fill_along_path, scan_normals, tool_path
 from recon.scan_model import ScanModel, build_scan_model
 from recon.timing import limits_for, time_parameterize
@@ -191,17 +191,8 @@ def plan_path(
     for height in (h for h in heights if h <= max(MAX_APPROACH_M, params.approach_m)):
         trajectory = _whole_motion(arm, process, joints.branch, q_start, height, params)
         if cell is not None:
-            from recon.collision import check_motion
-
-            report = check_motion(
-                arm,
-                trajectory,
-                cell,
-                T_flange_tcp=T_flange_tcp,
-                tool_radius_m=params.tool_radius_m,
-                margin_m=params.clearance_m,
-            )
-        if report is None or report.first is None:
+            report = check_cell(arm, trajectory, cell, params)
+        if report is None or report.first_collision is None:
             return Plan(
                 tool=tool,
                 joints=joints,
@@ -214,11 +205,47 @@ def plan_path(
                 approach_m=height,
                 collision=report,
             )
-        if report.first.phase not in (Phase.TRANSIT, Phase.APPROACH):
+        if report.first_collision.phase not in (Phase.TRANSIT, Phase.APPROACH):
             break  # coming in higher cannot help
-    from recon.collision import CollisionError
+    raise _collision_error(report)
 
-    raise CollisionError(report)
+
+def check_cell(arm, trajectory: JointTrajectory, cell, params: PlanParams):
+    """The collision check of a whole motion: the arm's links and the tool (a capsule of
+    ``tool_radius_m`` from the flange to the TCP) against the cell; the tool may touch the
+    workpiece along the process path only."""
+    from recon.collision import CapsuleTool, ContactZone, check_motion
+
+    process = trajectory.phases == int(Phase.PROCESS)
+    return check_motion(
+        arm,
+        trajectory.q_rad,
+        trajectory.phases,
+        cell,
+        T_flange_tcp=params.T_flange_tcp,
+        tool=CapsuleTool(radius_m=params.tool_radius_m),
+        margin_m=params.clearance_m,
+        contact_zone=ContactZone(path_m=trajectory.tcp_m[process]),
+        t_s=trajectory.t_s,
+    )
+
+
+def _collision_error(report) -> CollisionError:
+    first = report.first_collision
+    return CollisionError(
+        f"the motion collides: {first.describe()}. Change the tool orientation (lead, tilt), "
+        "the configuration, the start pose or the cell (keep-out boxes), or move the workpiece",
+        detail={
+            "phase": Phase(int(first.phase)).label,
+            "t_s": first.t_s,
+            "sample": first.sample,
+            "link": first.link,
+            "obstacle": first.obstacle,
+            "point_m": [float(v) for v in first.point_m],
+            "clearance_m": float(first.clearance_m),
+            "margin_m": float(first.margin_m),
+        },
+    )
 
 
 def _process_tool_path(points_tracker_m, T_base_tracker, params, normals, pen_xyzw):

@@ -14,6 +14,7 @@ from fastapi.responses import HTMLResponse
 
 from service import captures as capture_workflow
 from service import errors
+from service import executions as execution_workflow
 from service.api import (
     captures,
     executions,
@@ -21,6 +22,7 @@ from service.api import (
     jobs,
     reconstructions,
     recordings,
+    robot,
     scans,
     sessions,
     trajectories,
@@ -29,6 +31,7 @@ from service.api.deps import require_token
 from service.core import Services
 from service.demo import create_demo_session
 from service.jobs import JobManager
+from service.robot import RobotWatch
 from service.schemas import ErrorBody
 from service.settings import Settings
 from service.store import Store
@@ -95,11 +98,13 @@ class _TooLarge(Exception):
 
 
 def _recover(services: Services) -> None:
-    """After a restart: fail jobs that were running, keep what captures received."""
+    """After a restart: fail jobs that were running, keep what captures received and what real-arm
+    executions journalled."""
     failed = services.store.fail_interrupted_jobs()
     if failed:
         log.warning("marked %d interrupted job(s) failed", failed)
     capture_workflow.recover(services)
+    execution_workflow.recover(services)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -114,7 +119,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             store=store,
             jobs=JobManager(store, settings.cpu_workers),
             token=settings.access_token(),
+            robot=RobotWatch(settings),
         )
+        services.robot.start()
         _recover(services)
         if settings.demo:
             create_demo_session(store)
@@ -151,6 +158,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     protected = [Depends(require_token)]
     documented = {status: {"model": ErrorBody} for status in (401, 404, 409, 413, 422)}
     for router in (
+        robot.router,
         sessions.router,
         recordings.router,
         scans.router,

@@ -2,10 +2,20 @@
 process underneath.
 
 Dry runs on the simulated arm are ordinary CPU jobs (:class:`service.tasks.DryRun`); this
-module is for ``backend="ur_rtde"``. The runner connects, enables, moves to the trajectory's
-start, streams it and records what happened; ``stop()`` decelerates the arm. ur_rtde's
-blocking calls run in the backend's own worker process (see ``drivers.robot.ur_rtde``), so
-neither this thread nor the event loop can be frozen by a controller that stops answering.
+module is for ``backend="ur_rtde"``. The runner connects, enables, tells the controller the
+tool, and runs the planned samples -- the whole motion, from where the arm stands, as it was
+dry-run -- and nothing else: there is no move of its own to the start (an arm that is not at the
+plan's start is refused). ur_rtde's blocking calls run in the backend's own worker process (see
+``drivers.robot.ur_rtde``), so neither this thread nor the event loop can be frozen by a
+controller that stops answering.
+
+**A stop wins at any instant.** :meth:`ExecutionRunner.stop` latches the request on the runner
+and on its backend (a new backend per execution, so a new execution starts unlatched). It is
+checked before connecting, after every step and inside the backend's motion loops; once it is
+acknowledged nothing moves any more. The job then ends ``cancelled`` with where it stopped.
+
+Every sample is journalled to a file by the worker process as it arrives, so a crash of the
+service keeps what was executed (see :func:`service.executions.recover`).
 """
 
 from __future__ import annotations
@@ -15,23 +25,41 @@ import threading
 import time
 from collections.abc import Callable
 
-from drivers.robot.base import RobotBackend
-from recon.types import JointTrajectory
+import numpy as np
+
+from drivers.errors import MotionStoppedError
+from drivers.robot.base import ExecutionRecord, RobotBackend
+from recon.types import JointTrajectory, Phase
 from service.errors import error_body
 from service.store import Store, now
 
 log = logging.getLogger("teachpath.executions")
 
-#: Speed and acceleration of the move to the trajectory's start.
-APPROACH_SPEED_RAD_S = 0.3
-APPROACH_ACCELERATION_RAD_S2 = 0.5
+#: The runner's steps, in order, as the job reports where it is.
+STEPS = ("queued", "connecting", "enabling", "setting the tool", "moving")
 
 
 class ExecutionRunner:
     """One execution: a thread that drives ``backend`` through ``trajectory``.
 
-    ``record(execution_record, faults, duration_s)`` is called when it ends (also after a fault,
-    with the record so far or None) and returns the job's result.
+    Parameters
+    ----------
+    store : Store
+    job_id : str
+    backend : RobotBackend
+        A fresh backend (its stop latch unset).
+    trajectory : JointTrajectory
+        The whole planned motion.
+    record : callable
+        ``record(execution_record, faults, duration_s, stopped_in)`` is called once at the end
+        (also after a fault or a stop, with the record so far or None) and returns the job's
+        result.
+    tool : tuple
+        ``(tcp_pose, payload_kg, payload_cog_m)`` told to the controller before motion.
+    journal : str
+        Where the samples are written as they arrive.
+    mode : {"servoj", "movepath"}
+    tolerance_m : float
     """
 
     def __init__(
@@ -42,62 +70,83 @@ class ExecutionRunner:
         trajectory: JointTrajectory,
         record: Callable,
         *,
+        tool: tuple,
+        journal: str,
         mode: str = "servoj",
         tolerance_m: float = 5e-4,
     ) -> None:
         self.store, self.job_id = store, job_id
         self.mode, self.tolerance_m = mode, tolerance_m
         self.backend, self.trajectory, self.record = backend, trajectory, record
+        self.tool, self.journal = tool, journal
         self.thread = threading.Thread(target=self._run, name=f"execution {job_id}", daemon=True)
+        self._stop = threading.Event()
         self._last_progress = 0.0
+        self.step = STEPS[0]
+
+    @property
+    def running(self) -> bool:
+        """Whether the arm may still be moved by this execution."""
+        return self.thread.is_alive() or not self.thread.ident
 
     def start(self) -> None:
         self.thread.start()
 
     def stop(self) -> None:
+        """Latch a stop (any thread, any time) and decelerate the arm if it moves."""
+        self._stop.set()
         self.backend.stop()
+
+    @property
+    def stop_requested(self) -> bool:
+        return self._stop.is_set()
 
     def _progress(self, fraction: float) -> None:
         if fraction - self._last_progress >= 0.01 or fraction >= 1.0:
             self._last_progress = fraction
             self.store.update_job(self.job_id, progress=round(0.1 + 0.9 * fraction, 4))
 
+    def _next(self, step: str) -> None:
+        """Go on to ``step`` unless a stop was requested."""
+        if self._stop.is_set():
+            raise MotionStoppedError(f"stopped on request before {step}")
+        self.step = step
+
     def _run(self) -> None:
         self.store.update_job(self.job_id, state="running", progress=0.0, started_at=now())
-        record = None
+        record: ExecutionRecord | None = None
         started = time.monotonic()
         try:
+            self._next("connecting")
             self.backend.connect()
+            self._next("enabling")
             self.backend.enable()
-            self.backend.move_joints(
-                self.trajectory.q_rad[0],
-                speed_rad_s=APPROACH_SPEED_RAD_S,
-                acceleration_rad_s2=APPROACH_ACCELERATION_RAD_S2,
-            )
+            self._next("setting the tool")
+            tcp_pose, payload_kg, cog_m = self.tool
+            self.backend.set_tool(tcp_pose, payload_kg=payload_kg, payload_cog_m=cog_m)
+            self._next("moving")
             self.store.update_job(self.job_id, progress=0.1)
             if self.mode == "movepath":
                 record = self.backend.execute_path(
-                    self.trajectory, tolerance_m=self.tolerance_m, on_progress=self._progress
+                    self.trajectory,
+                    tolerance_m=self.tolerance_m,
+                    on_progress=self._progress,
+                    journal=self.journal,
                 )
             else:
-                record = self.backend.execute(self.trajectory, on_progress=self._progress)
-            faults = [record.fault] if record.fault else []
-            result = self.record(record, faults, time.monotonic() - started)
-            state = "succeeded" if record.completed else "cancelled"
-            self.store.update_job(
-                self.job_id,
-                state=state,
-                result=result,
-                finished_at=now(),
-                progress=1.0 if record.completed else self._last_progress,
-            )
+                record = self.backend.execute(
+                    self.trajectory, on_progress=self._progress, journal=self.journal
+                )
+            self._finish(record, [record.fault] if record.fault else [], started)
         except Exception as error:  # every failure ends the job, with what was recorded
+            record = record or getattr(self.backend, "last_record", None)
+            if isinstance(error, MotionStoppedError) or self._stop.is_set():
+                self._finish(record, [str(error)], started)
+                return
             log.warning("execution job %s failed: %s", self.job_id, error)
             try:
                 result = self.record(
-                    record or getattr(self.backend, "last_record", None),
-                    [str(error)],
-                    time.monotonic() - started,
+                    record, [str(error)], time.monotonic() - started, self.where(record)
                 )
             except Exception:
                 log.exception("could not record the execution of job %s", self.job_id)
@@ -119,3 +168,27 @@ class ExecutionRunner:
                     self.job_id,
                     time.monotonic() - closing,
                 )
+
+    def _finish(self, record: ExecutionRecord | None, faults: list[str], started: float) -> None:
+        """Record the execution; the job succeeded, or was cancelled by a stop."""
+        completed = record is not None and record.completed and not self._stop.is_set()
+        stopped_in = None if completed else self.where(record)
+        result = self.record(record, faults, time.monotonic() - started, stopped_in)
+        self.store.update_job(
+            self.job_id,
+            state="succeeded" if completed else "cancelled",
+            result=result,
+            finished_at=now(),
+            progress=1.0 if completed else self._last_progress,
+        )
+
+    def where(self, record: ExecutionRecord | None) -> str:
+        """Where the execution got to: a step before motion, or the phase of its last sample."""
+        if record is None or len(record) == 0:
+            return f"before moving ({self.step})"
+        index = int(
+            np.clip(
+                np.searchsorted(self.trajectory.t_s, record.t_s[-1]), 0, len(self.trajectory) - 1
+            )
+        )
+        return Phase(int(self.trajectory.phases[index])).label

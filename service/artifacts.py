@@ -176,9 +176,11 @@ class TrajectoryCodec:
     kind: ClassVar[str] = "trajectory"
 
     @staticmethod
-    def encode(trajectory: JointTrajectory) -> Arrays:
+    def encode(trajectory: JointTrajectory, *, clearance_m: FloatArray | None = None) -> Arrays:
+        """The samples, their phases, and (when the plan was checked) the smallest clearance
+        of the arm and tool to the cell per sample (m)."""
         arrays = {name: getattr(trajectory, name) for name in TRAJECTORY_FIELDS}
-        return _present({**arrays, "phase": trajectory.phase})
+        return _present({**arrays, "phase": trajectory.phase, "clearance_m": clearance_m})
 
     @staticmethod
     def decode(arrays: Arrays, summary: TrajectorySummary) -> JointTrajectory:
@@ -326,6 +328,22 @@ class TrajectorySummary(_Summary):
     T_scan_tracker: Matrix4 | None = Field(
         None, description="the scan's transform the tool axis was taken with (no new ICP)"
     )
+    phase_durations_s: dict[str, float] = Field(
+        default_factory=dict, description="seconds per phase: transit, approach, process, ..."
+    )
+    start_q_rad: list[float] | None = Field(None, description="where the motion starts")
+    start_from: str | None = Field(None, description="arm, home or given")
+    configuration: str | None = Field(None, description="the IK configuration kept, in words")
+    approach_m: float | None = None
+    tcp_pose: list[float] | None = Field(None, description="x, y, z (m), rx, ry, rz: flange")
+    payload_kg: float | None = None
+    payload_cog_m: list[float] | None = None
+    T_base_tracker: Matrix4 | None = None
+    min_clearance_m: float | None = Field(
+        None, description="closest approach of the arm and tool to the cell (null: not checked)"
+    )
+    checks: list[str] = Field(default_factory=list, description="the checks the plan passed")
+    teachpath: str | None = Field(None, description="the version that planned it")
     report: list[str] = Field(default_factory=list)
 
 
@@ -362,6 +380,9 @@ class ExecutionSummary(_Summary):
     )
     max_deviation_by_phase_m: dict[str, float] = Field(
         default_factory=dict, description="largest distance from the planned TCP path, per phase"
+    )
+    stopped_in: str | None = Field(
+        None, description="where a stopped or failed execution got to (a phase or a step)"
     )
     report: list[str] = Field(default_factory=list)
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 from service.errors import not_found
 from service.jobs import JobManager
+from service.robot import RobotWatch
 from service.settings import Settings
 from service.store import ArtifactRow, SessionRow, Store
 
@@ -58,6 +59,8 @@ class Services:
     jobs : JobManager
     token : str
         The access token every route but ``/health`` checks.
+    robot : RobotWatch
+        The arm's state, read all the time.
     live : LiveRunners
     """
 
@@ -65,6 +68,7 @@ class Services:
     store: Store
     jobs: JobManager
     token: str
+    robot: RobotWatch
     live: LiveRunners = field(default_factory=LiveRunners)
 
     def session(self, session_id: str) -> SessionRow:
@@ -115,5 +119,6 @@ class Services:
 
     def close(self) -> None:
         self.live.stop_all()
+        self.robot.close()
         self.jobs.shutdown()
         self.store.engine.dispose()

@@ -9,7 +9,14 @@ through the ur_rtde backend's own worker process. Both record the same
 
 from __future__ import annotations
 
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
 from drivers.robot.base import backend_config, create_backend
+from recon.types import Phase
 from service import tasks
 from service.arm_runner import ExecutionRunner
 from service.artifacts import ID_PREFIX, ExecutionCodec
@@ -18,7 +25,9 @@ from service.errors import not_found
 from service.gate import check_real_arm
 from service.pipelines import ExecutionOutcome
 from service.schemas import ExecutionCreate
-from service.store import ArtifactRow, JobRow, new_id
+from service.store import FINISHED, ArtifactRow, JobRow, new_id
+
+log = logging.getLogger("teachpath.executions")
 
 
 def start(services: Services, session_id: str, request: ExecutionCreate) -> JobRow:
@@ -88,41 +97,77 @@ def _dry_run(services, session_id, trajectory, request, out_id) -> JobRow:
     )
 
 
+def journal_path(services: Services, execution_id: str) -> Path:
+    """Where a real-arm execution's samples are written as they arrive."""
+    return services.store.data_dir / "journals" / f"{execution_id}.csv"
+
+
+def arm_owner(services: Services) -> str | None:
+    """The execution that owns the real arm now (call with ``live.lock`` held)."""
+    for execution_id, runner in services.live.executions.items():
+        if runner.running:
+            return execution_id
+    return None
+
+
 def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
-    from drivers.robot.dryrun import execution_report
-
     settings = services.settings
-    check_real_arm(
-        settings,
-        trajectory,
-        services.store.artifacts(session_id, "execution"),
-        confirm=request.confirm,
-        mode=request.mode,
-        tolerance_m=request.tolerance_m,
-    )
     loaded = tasks.load_trajectory(services.store.path_of(trajectory), trajectory.summary)
-    config = backend_config("ur_rtde", host=settings.ur_host, robot=settings.ur_robot)
-    backend = create_backend(config)
-    job = services.store.create_job(
-        session_id, "execution", _job_params(request, trajectory, out_id)
-    )
-
-    def record(execution_record, faults: list[str], duration_s: float) -> dict:
-        outcome = ExecutionOutcome(
-            report=execution_report(
-                loaded,
-                execution_record,
-                mode=request.mode,
-                duration_s=duration_s,
-                lookahead_s=config.lookahead_s,
-                faults=faults,
-                dry_run=False,
-            ),
-            record=execution_record,
-            backend="ur_rtde",
+    tool = _tool_of(trajectory)
+    # One owner: deciding and taking the arm happen under one lock, so two requests that
+    # arrive together cannot both pass the gate.
+    with services.live.lock:
+        check_real_arm(
+            settings,
+            trajectory,
+            services.store.artifacts(session_id, "execution"),
+            confirm=request.confirm,
+            mode=request.mode,
+            tolerance_m=request.tolerance_m,
+            owner=arm_owner(services),
+            arm=services.robot.fresh(),
+            q_start_rad=loaded.q_rad[0],
+        )
+        config = backend_config("ur_rtde", host=settings.ur_host, robot=settings.ur_robot)
+        job = services.store.create_job(
+            session_id, "execution", _job_params(request, trajectory, out_id)
+        )
+        runner = ExecutionRunner(
+            services.store,
+            job.id,
+            create_backend(config),
+            loaded,
+            _recorder(services, session_id, trajectory, request, out_id, loaded, config),
+            tool=tool,
+            journal=str(journal_path(services, out_id)),
+            mode=request.mode,
             tolerance_m=request.tolerance_m,
         )
-        summary = outcome.summary()
+        services.live.executions[out_id] = runner
+    runner.start()
+    return services.store.job(job.id)
+
+
+def _tool_of(trajectory: ArtifactRow) -> tuple:
+    """The TCP pose and payload a trajectory was planned with (for the controller)."""
+    params = trajectory.params
+    tcp = params.get("tcp_pose") or [*(params.get("tcp_offset_m") or (0.0, 0.0, 0.0)), 0, 0, 0]
+    if not any(tcp):
+        tcp = [*(params.get("tcp_offset_m") or (0.0, 0.0, 0.0)), 0.0, 0.0, 0.0]
+    return (
+        [float(v) for v in tcp],
+        float(params.get("payload_kg") or 0.0),
+        [float(v) for v in params.get("payload_cog_m") or (0.0, 0.0, 0.0)],
+    )
+
+
+def _recorder(services, session_id, trajectory, request, out_id, loaded, config):
+    """What the runner calls at the end: the execution's artifact, measured as a dry run is."""
+
+    def record(execution_record, faults: list[str], duration_s: float, stopped_in) -> dict:
+        summary = _real_summary(
+            loaded, execution_record, faults, duration_s, stopped_in, request, config
+        )
         services.store.add_arrays_artifact(
             artifact_id=out_id,
             session_id=session_id,
@@ -132,25 +177,43 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
             params=_artifact_params(services, request),
             summary=summary,
         )
-        return _job_result(out_id, summary)
+        journal_path(services, out_id).unlink(missing_ok=True)  # the artifact holds it now
+        return {**_job_result(out_id, summary), "stopped_in": stopped_in}
 
-    runner = ExecutionRunner(
-        services.store,
-        job.id,
-        backend,
-        loaded,
-        record,
-        mode=request.mode,
+    return record
+
+
+def _real_summary(trajectory, record, faults, duration_s, stopped_in, request, config) -> dict:
+    from drivers.robot.dryrun import execution_report
+
+    outcome = ExecutionOutcome(
+        report=execution_report(
+            trajectory,
+            record,
+            mode=request.mode,
+            duration_s=duration_s,
+            lookahead_s=config.lookahead_s,
+            faults=faults,
+            dry_run=False,
+        ),
+        record=record,
+        backend="ur_rtde",
         tolerance_m=request.tolerance_m,
     )
-    with services.live.lock:
-        services.live.executions[out_id] = runner
-    runner.start()
-    return services.store.job(job.id)
+    return {**outcome.summary(), "stopped_in": stopped_in}
 
 
-def stop(services: Services, execution_id: str) -> JobRow:
-    """Stop the arm of a running execution (it decelerates) or cancel one not yet started."""
+@dataclass(frozen=True)
+class StopOutcome:
+    """What a stop request found: the job, and whether its execution had already ended."""
+
+    job: JobRow
+    already_ended: bool
+
+
+def stop(services: Services, execution_id: str) -> StopOutcome:
+    """Stop the arm of a running execution (it decelerates, and nothing moves after), or
+    cancel one not yet started; says whether the execution had already ended."""
     job_id = services.live.execution_jobs.get(execution_id)
     if job_id is None:
         job = next(
@@ -165,8 +228,83 @@ def stop(services: Services, execution_id: str) -> JobRow:
             raise not_found("execution", execution_id)
         job_id = job.id
     runner = services.live.executions.get(execution_id)
+    job = services.store.job(job_id)
+    already_ended = job.state in FINISHED
     if runner is not None:
-        runner.stop()
-    elif services.store.job(job_id).state == "queued":
+        runner.stop()  # latched, whether it moves yet or not
+    elif job.state == "queued":
         services.jobs.cancel(job_id)
-    return services.store.job(job_id)
+    return StopOutcome(job=services.store.job(job_id), already_ended=already_ended)
+
+
+def recover(services: Services) -> None:
+    """After a restart: real-arm executions that were running when the service stopped become
+    execution records from their journals (what was executed is kept)."""
+    folder = services.store.data_dir / "journals"
+    if not folder.is_dir():
+        return
+    for journal in sorted(folder.glob("exe_*.csv")):
+        execution_id = journal.stem
+        try:
+            _recover_one(services, execution_id, journal)
+        except Exception:  # one damaged journal must not stop the service from starting
+            log.exception("could not recover the execution journal %s", journal)
+
+
+def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
+    from drivers.robot.base import ExecutionRecord
+    from drivers.robot.journal import read_journal
+
+    store = services.store
+    job = next(
+        (
+            j
+            for j in store.jobs()
+            if j.kind == "execution" and j.params.get("execution_id") == execution_id
+        ),
+        None,
+    )
+    if job is None or store.artifact(execution_id) is not None:
+        journal.unlink(missing_ok=True)
+        return
+    trajectory_row = store.artifact(job.params["trajectory_id"], kind="trajectory")
+    trajectory = tasks.load_trajectory(store.path_of(trajectory_row), trajectory_row.summary)
+    t_s, q, tcp = read_journal(journal)
+    index = np.clip(np.searchsorted(trajectory.t_s, t_s), 0, len(trajectory) - 1)
+    record = ExecutionRecord(
+        t_s=t_s,
+        q_planned_rad=trajectory.q_rad[index],
+        q_actual_rad=q,
+        completed=False,
+        fault="the service stopped during the execution",
+        tcp_actual=tcp,
+    )
+    request = ExecutionCreate(
+        trajectory_id=trajectory_row.id,
+        backend="ur_rtde",
+        mode=job.params.get("mode", "servoj"),
+        tolerance_m=job.params.get("tolerance_m", 5e-4),
+    )
+    config = backend_config(
+        "ur_rtde", host=services.settings.ur_host or "unknown", robot=trajectory.robot
+    )
+    where = "before moving" if len(t_s) == 0 else Phase(int(trajectory.phases[index[-1]])).label
+    summary = _real_summary(
+        trajectory,
+        record,
+        [record.fault],
+        float(t_s[-1]) if len(t_s) else 0.0,
+        where,
+        request,
+        config,
+    )
+    store.add_arrays_artifact(
+        artifact_id=execution_id,
+        session_id=job.session_id,
+        kind="execution",
+        arrays=ExecutionCodec.encode(record),
+        inputs={"trajectory_id": trajectory_row.id},
+        params={**_artifact_params(services, request), "recovered_from_journal": True},
+        summary=summary,
+    )
+    journal.unlink(missing_ok=True)

@@ -298,16 +298,61 @@ class PlanOutcome:
 
     plan: object  # recon.plan.Plan
     T_scan_tracker: FloatArray | None
+    T_base_tracker: FloatArray | None = None
+    start_from: str = "given"
 
     @property
     def trajectory(self):
         return self.plan.trajectory
 
+    def checks(self) -> list[str]:
+        """The checks the plan passed, in words (what the trajectory file and the pendant show)."""
+        plan = self.plan
+        passed = [
+            "joint position, speed and acceleration limits at every sample",
+            "wrist, elbow and shoulder singularity margins along the path",
+            f"one IK configuration throughout ({plan.configuration.words()})",
+        ]
+        report = plan.collision
+        if report is not None:
+            smallest = float(np.min(report.clearance_m)) if len(report.clearance_m) else np.inf
+            passed.append(
+                "no collision of the arm or the tool with the mounting plane, the keep-out "
+                f"boxes or the scan (smallest clearance {smallest * 1e3:.1f} mm, margin "
+                f"{report.margin_m * 1e3:.1f} mm)"
+            )
+        return passed
+
     def summary(self) -> dict:
         """The artifact's summary (see :class:`service.artifacts.TrajectorySummary`)."""
+        from importlib import metadata
+
         plan, traj = self.plan, self.plan.trajectory
         joints = plan.joints
+        params = plan.params
+        try:
+            version = metadata.version("teachpath")
+        except metadata.PackageNotFoundError:
+            version = "0"
+        report = plan.collision
+        clearance = None
+        if report is not None and len(report.clearance_m):
+            clearance = float(np.min(report.clearance_m))
         return {
+            "phase_durations_s": traj.phase_durations_s(),
+            "start_q_rad": [float(v) for v in plan.start_q_rad],
+            "start_from": self.start_from,
+            "configuration": plan.configuration.words(),
+            "approach_m": plan.approach_m,
+            "tcp_pose": [float(v) for v in params.tcp],
+            "payload_kg": params.payload_kg,
+            "payload_cog_m": list(params.payload_cog_m),
+            "T_base_tracker": None
+            if self.T_base_tracker is None
+            else np.asarray(self.T_base_tracker).tolist(),
+            "min_clearance_m": clearance if clearance is None or np.isfinite(clearance) else None,
+            "checks": self.checks(),
+            "teachpath": version,
             "robot": traj.robot,
             "requested_speed_m_s": traj.requested_speed_m_s,
             "duration_s": traj.duration_s,
@@ -331,14 +376,24 @@ class PlanOutcome:
         return self.plan.report_lines()
 
 
-def plan(path, *, params, T_base_tracker=None, scan_model=None, recon_params=None) -> PlanOutcome:
-    """Tool poses, inverse kinematics and timing along a reconstructed path.
+def plan(
+    path,
+    *,
+    params,
+    T_base_tracker=None,
+    scan_model=None,
+    recon_params=None,
+    scan=None,
+    keep_out_boxes=(),
+    start_from: str = "given",
+) -> PlanOutcome:
+    """The whole motion along a reconstructed path, checked against the cell.
 
     Parameters
     ----------
     path : recon.types.ReconstructedPath
         The reconstruction (tracker frame) with the ``T_scan_tracker`` it used.
-    params : recon.plan.PlanParams
+    params : recon.types.PlanParams
     T_base_tracker : ndarray of shape (4, 4), optional
         Where the tracker frame is in the robot's base frame (default: the same frame).
     scan_model : recon.scan_model.ScanModel, optional
@@ -346,13 +401,20 @@ def plan(path, *, params, T_base_tracker=None, scan_model=None, recon_params=Non
         normals. It is used with ``path.T_scan_tracker``: nothing is registered again.
     recon_params : recon.types.ReconParams, optional
         The reconstruction's parameters (the radii of the normal fits); default the defaults.
+    scan : recon.types.Scan, optional
+        The workpiece, for the collision check (placed with ``path.T_scan_tracker`` and
+        ``T_base_tracker``).
+    keep_out_boxes : sequence of 6 floats each
+        ``x_min, y_min, z_min, x_max, y_max, z_max`` in the base frame (m).
+    start_from : str
+        Where ``params.start_q_rad`` came from ("arm", "home", "given"), for the record.
 
     Raises
     ------
     ValueError
         A scan model without the transform it belongs to, or a missing orientation source.
     InfeasibleTrajectoryError
-        The arm cannot follow the path.
+        The arm cannot follow the path; ``CollisionError`` when the motion collides.
     """
     from recon.plan import approach_in, normals_from_scan, plan_path
 
@@ -380,8 +442,30 @@ def plan(path, *, params, T_base_tracker=None, scan_model=None, recon_params=Non
         T_base_tracker=T_base,
         normals=normals,
         pen_xyzw=path.orientations_xyzw,
+        cell=cell_for(scan, path.T_scan_tracker, T_base, keep_out_boxes),
     )
-    return PlanOutcome(plan=result, T_scan_tracker=T_scan_tracker)
+    return PlanOutcome(
+        plan=result, T_scan_tracker=T_scan_tracker, T_base_tracker=T_base, start_from=start_from
+    )
+
+
+def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=()):
+    """The cell a plan is checked against (base frame): the mounting surface (the base's z = 0
+    plane), the keep-out boxes and, when the scan's place is known, the scanned workpiece."""
+    from recon.collision import Box, Cell
+
+    from recon.transforms import apply_transform, invert_transform
+
+    boxes = tuple(
+        Box(min_m=box[:3], max_m=box[3:], name=f"keep-out box {index + 1}")
+        for index, box in enumerate(keep_out_boxes)
+    )
+    points = None
+    if scan is not None and T_scan_tracker is not None:
+        T_base = np.eye(4) if T_base_tracker is None else np.asarray(T_base_tracker)
+        T_base_scan = T_base @ invert_transform(np.asarray(T_scan_tracker, dtype=np.float64))
+        points = apply_transform(T_base_scan, np.asarray(scan.points_m))
+    return Cell(boxes=boxes, scan_points_m=points)
 
 
 # -- execution -------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    StrictBool,
     field_validator,
     model_validator,
 )
@@ -213,6 +214,20 @@ TRAJECTORY_PARAMS = (
     "tilt_deg",
     "smooth_m",
     "tcp_offset_m",
+    "tcp_pose",
+    "start_q_rad",
+    "shoulder",
+    "elbow",
+    "wrist",
+    "approach_m",
+    "approach_speed_m_s",
+    "transit_speed_scale",
+    "transit_acceleration_scale",
+    "return_to_start",
+    "payload_kg",
+    "payload_cog_m",
+    "tool_radius_m",
+    "clearance_m",
 )
 
 
@@ -252,7 +267,11 @@ class _TrajectoryRequest(Strict):
 
     def plan_params(self) -> dict:
         """The core's parameters (:class:`recon.types.PlanParams`), checked by the core."""
-        params = {name: getattr(self, name) for name in TRAJECTORY_PARAMS}
+        return self.plan_params_with({name: getattr(self, name) for name in TRAJECTORY_PARAMS})
+
+    @staticmethod
+    def plan_params_with(params: dict) -> dict:
+        """``params`` checked by the core (:class:`recon.types.PlanParams`)."""
         PlanParams(**params)
         return params
 
@@ -268,7 +287,9 @@ class ExecutionCreate(Strict):
     tolerance_m: float = Field(
         5e-4, gt=0, le=0.01, description="movepath: largest TCP deviation from the plan"
     )
-    confirm: bool = Field(False, description="must be true to move a real arm")
+    confirm: StrictBool = Field(
+        False, description="must be the JSON boolean true to move a real arm"
+    )
 
 
 class ReplaySource(Strict):
@@ -314,6 +335,39 @@ class CaptureCreate(Strict):
         if isinstance(value, dict) and "kind" not in value:
             return {**value, "kind": "replay"}
         return value
+
+
+class StopOut(JobOut):
+    """The execution's job after the stop request."""
+
+    already_ended: bool = Field(
+        ..., description="the execution had ended before the stop (nothing was stopped)"
+    )
+
+
+class RobotOut(BaseModel):
+    """The arm now: what the operator's safety bar shows."""
+
+    backend: Literal["sim", "ur_rtde"]
+    real_arm: bool
+    robot: str
+    host: str | None
+    reachable: bool
+    robot_mode: str
+    safety_status: str
+    protective_stop: bool
+    emergency_stop: bool
+    remote_control: bool | None
+    program_running: bool
+    q_rad: list[float] | None
+    tcp_pose: list[float] | None = Field(None, description="x, y, z (m), rx, ry, rz; base")
+    error: str | None
+    age_s: float | None = Field(None, description="how old the reading is")
+    unlock_in_s: float | None = Field(
+        None, description="in a protective stop: seconds until the controller allows unlocking"
+    )
+    owner_execution_id: str | None = Field(None, description="the execution that owns the arm")
+    max_speed_m_s: float = Field(..., description="the server's TCP speed cap on a real arm")
 
 
 class CaptureOut(FromRow):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import secrets
 from pathlib import Path
@@ -45,6 +46,16 @@ class Settings(BaseSettings):
     cors_origins: list[str] = Field(default_factory=list, description="closed by default")
     ur_host: str | None = Field(None, description="controller address for backend ur_rtde")
     ur_robot: str = Field("ur5e", description="the model of the arm at ur_host")
+    home_q_rad: tuple[float, float, float, float, float, float] = Field(
+        (0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0),
+        description="where plans start on the simulated arm (rad)",
+    )
+    robot_poll_s: float = Field(0.2, gt=0.01, le=5.0, description="how often the arm is read")
+    keep_out_boxes: list[tuple[float, float, float, float, float, float]] = Field(
+        default_factory=list,
+        description="boxes the arm and tool must keep out of, base frame: "
+        "x_min, y_min, z_min, x_max, y_max, z_max (m)",
+    )
     demo: bool = Field(False, description="create the demo session on start if missing")
 
     @field_validator("data_dir")

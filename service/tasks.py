@@ -203,10 +203,12 @@ class Plan:
     recon_params: dict
     T_base_tracker: list | None
     out_path: str
+    scan_path: str | None = None
+    keep_out_boxes: list = ()
+    start_from: str = "given"
 
     def run(self) -> dict:
-        from recon.plan import PlanParams
-        from recon.types import ReconParams
+        from recon.types import PlanParams, ReconParams
 
         arrays = load_arrays(self.reconstruction_path)
         outcome = pipelines.plan(
@@ -215,8 +217,15 @@ class Plan:
             T_base_tracker=self.T_base_tracker,
             scan_model=ReconstructionCodec.scan_model(arrays),
             recon_params=ReconParams(**self.recon_params),
+            scan=ScanCodec.decode(load_arrays(self.scan_path)) if self.scan_path else None,
+            keep_out_boxes=self.keep_out_boxes,
+            start_from=self.start_from,
         )
-        save_arrays(self.out_path, TrajectoryCodec.encode(outcome.trajectory))
+        report = outcome.plan.collision
+        clearance = None if report is None else report.clearance_m
+        save_arrays(
+            self.out_path, TrajectoryCodec.encode(outcome.trajectory, clearance_m=clearance)
+        )
         return outcome.summary()
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 from service import tasks
 from service.artifacts import ID_PREFIX
 from service.core import Services
+from service.robot import start_joints
 from service.schemas import TrajectoryCreate
 from service.store import JobRow, new_id
 
@@ -30,11 +31,17 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
     session = services.session(session_id)
     recon = services.artifact(session_id, "reconstruction", request.reconstruction_id)
     params = request.plan_params()  # refuses bad combinations now, not in the worker
+    start_from = "given"
+    if params["start_q_rad"] is None:
+        # The plan starts where the arm is (a real arm's joints now, the sim's home).
+        q_start, start_from = start_joints(services.robot, services.settings)
+        params["start_q_rad"] = tuple(float(v) for v in q_start)
+        request.plan_params_with(params)  # the arm's joints are checked as the request's are
     T = request.T_base_tracker or session.T_base_tracker
     recon_params = {k: v for k, v in recon.params.items() if k not in _NOT_RECON_PARAMS}
     out_id = new_id(ID_PREFIX["trajectory"])
     inputs = {"reconstruction_id": recon.id, "scan_id": recon.inputs.get("scan_id")}
-    stored_params = {**params, "T_base_tracker": T}
+    stored_params = {**params, "T_base_tracker": T, "start_from": start_from}
     done = services.record_when_done(
         session_id,
         "trajectory",
@@ -43,11 +50,16 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
         params=stored_params,
         result=lambda summary: {"trajectory_id": out_id},
     )
+    scan_id = recon.inputs.get("scan_id")
+    scan = services.store.artifact(scan_id, kind="scan") if scan_id else None
     task = tasks.Plan(
         reconstruction_path=str(services.store.path_of(recon)),
         params=params,
         recon_params=recon_params,
         T_base_tracker=T,
         out_path=services.array_path(out_id),
+        scan_path=None if scan is None else str(services.store.path_of(scan)),
+        keep_out_boxes=[list(box) for box in services.settings.keep_out_boxes],
+        start_from=start_from,
     )
     return services.jobs.submit(session_id, "trajectory", {**stored_params, **inputs}, task, done)

@@ -13,7 +13,7 @@ from service.api.common import CSV, add_artifact_routes, download
 from service.api.deps import ServicesDep
 from service.artifacts import ExecutionCodec
 from service.errors import ApiError
-from service.schemas import ExecutionCreate, ExecutionOut, JobOut
+from service.schemas import ExecutionCreate, ExecutionOut, JobOut, StopOut
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["executions"])
 stop_router = APIRouter(prefix="/executions", tags=["executions"])
@@ -46,7 +46,10 @@ def execution_csv(session_id: str, artifact_id: str, services: ServicesDep):
     return download(buffer.getvalue(), media_type="text/csv", filename=f"{artifact_id}.csv")
 
 
-@stop_router.post("/{execution_id}/stop", response_model=JobOut)
-def stop_execution(execution_id: str, services: ServicesDep):
-    """Stop the arm (decelerating) or cancel an execution that has not started."""
-    return executions.stop(services, execution_id)
+@stop_router.post("/{execution_id}/stop", response_model=StopOut)
+def stop_execution(execution_id: str, services: ServicesDep) -> dict:
+    """Stop the arm (decelerating; nothing of this execution moves afterwards) or cancel an
+    execution that has not started; says whether it had already ended."""
+    outcome = executions.stop(services, execution_id)
+    job = JobOut.model_validate(outcome.job).model_dump()
+    return {**job, "already_ended": outcome.already_ended}
