@@ -1,19 +1,28 @@
-"""Result files users open elsewhere (CSV): reconstructions and trajectories."""
+"""Result files users open elsewhere (CSV): reconstructions and trajectories.
+
+A trajectory file starts with one comment line, ``# teachpath: {...}``: a JSON object saying what
+it is (the robot it was planned for, the controller rate, the requested speed, the TCP and
+payload, the configuration, the checks the plan passed, the teachpath version). Commands that
+read it back refuse a file planned for another arm.
+"""
 
 from __future__ import annotations
 
 import csv
 import io
+import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from drivers.errors import InputFileError
+from drivers.errors import InputFileError, TrajectoryMismatchError
 from drivers.files import atomic_path
 from recon.types import (
     PER_POINT_FIELDS,
     FloatArray,
     JointTrajectory,
+    Phase,
     PointMode,
     ReconstructedPath,
     Reconstruction,
@@ -91,7 +100,7 @@ def read_reconstruction_csv(
         Missing file, no x,y,z header, non-numeric or non-finite values, unknown modes, fewer
         than two rows.
     """
-    rows, label = _read_rows(source, name)
+    _meta, rows, label = _read_rows(source, name)
     header = [c.strip().lower() for c in rows[0]]
     missing = [c for c in ("x", "y", "z") if c not in header]
     if missing:
@@ -120,37 +129,97 @@ def read_reconstruction_csv(
     return ReconstructedPath(points_m=points, mode=modes, orientations_xyzw=orientations)
 
 
-def write_trajectory_csv(path: str | Path, trajectory: JointTrajectory) -> None:
-    """``t,q0..q5`` (s, rad) then the planned TCP ``x,y,z,rx,ry,rz`` (m, rotation vector), base
-    frame, one row per controller period. The file appears only when complete."""
+#: How a teachpath file's metadata line starts (a comment to CSV readers: pandas takes
+#: ``comment="#"``, numpy.loadtxt skips it by default).
+META_PREFIX = "# teachpath: "
+
+
+def write_trajectory_csv(path: str | Path, trajectory: JointTrajectory, *, meta=None) -> None:
+    """``t,q0..q5`` (s, rad), the planned TCP ``x,y,z,rx,ry,rz`` (m, rotation vector, base
+    frame) and the ``phase`` of each sample, one row per controller period, after a metadata
+    line (robot, rate, what was planned and checked). The file appears only when complete."""
     with atomic_path(path) as tmp:
-        tmp.write_text(trajectory_csv_text(trajectory))
+        tmp.write_text(trajectory_csv_text(trajectory, meta=meta))
 
 
-def trajectory_csv_text(trajectory: JointTrajectory) -> str:
-    """The CSV of a trajectory (see :func:`write_trajectory_csv`)."""
-    data = np.column_stack(
+def trajectory_csv_text(trajectory: JointTrajectory, *, meta: dict | None = None) -> str:
+    """The CSV of a trajectory (see :func:`write_trajectory_csv`).
+
+    Parameters
+    ----------
+    trajectory : JointTrajectory
+    meta : dict, optional
+        What else the file should say (the plan's summary: TCP, configuration, checks, ...);
+        ``robot``, ``rate_hz`` and ``requested_speed_m_s`` come from the trajectory.
+    """
+    labels = np.array([p.label for p in Phase])[trajectory.phases]
+    numbers = np.column_stack(
         [trajectory.t_s, trajectory.q_rad, trajectory.tcp_m, trajectory.tcp_rotvec]
     )
+    head = {
+        **(meta or {}),
+        "kind": "trajectory",
+        "robot": trajectory.robot,
+        "rate_hz": 1.0 / trajectory.period_s if len(trajectory) > 1 else None,
+        "requested_speed_m_s": trajectory.requested_speed_m_s,
+    }
     buffer = io.StringIO()
-    np.savetxt(
-        buffer, data, delimiter=",", header=",".join(TRAJECTORY_COLUMNS), comments="", fmt="%.10g"
-    )
+    buffer.write(META_PREFIX + json.dumps(head, allow_nan=False) + "\n")
+    buffer.write(",".join((*TRAJECTORY_COLUMNS, "phase")) + "\n")
+    body = io.StringIO()
+    np.savetxt(body, numbers, delimiter=",", fmt="%.10g")
+    for line, label in zip(body.getvalue().splitlines(), labels, strict=True):
+        buffer.write(f"{line},{label}\n")
     return buffer.getvalue()
 
 
-def read_trajectory_csv(source: str | Path | bytes, *, robot: str, name: str | None = None):
-    """Read a trajectory CSV back as a :class:`JointTrajectory` for ``robot``.
+@dataclass(frozen=True)
+class TrajectoryFile:
+    """A trajectory read back from its CSV, with what the file says about it.
+
+    Attributes
+    ----------
+    trajectory : JointTrajectory
+    meta : dict
+        The metadata line (empty for a file written before it existed).
+    """
+
+    trajectory: JointTrajectory
+    meta: dict
+
+
+def read_trajectory_csv(
+    source: str | Path | bytes, *, robot: str | None = None, name: str | None = None
+) -> TrajectoryFile:
+    """Read a trajectory CSV back, for the robot it was planned for.
 
     Velocities and accelerations are recovered by finite differences; the samples must be
-    equally spaced in time.
+    equally spaced in time, at the robot's controller rate.
+
+    Parameters
+    ----------
+    robot : str, optional
+        The arm it is to run on; a file planned for another one is refused. Default: the one
+        the file names (a file that names none: UR5e).
 
     Raises
     ------
     InputFileError
         Wrong columns, non-numeric or non-finite values, uneven or non-increasing times.
+    TrajectoryMismatchError
+        The file was planned for another arm, or its samples are not at the arm's rate.
     """
-    rows, label = _read_rows(source, name)
+    from recon.kinematics import model
+
+    meta, rows, label = _read_rows(source, name)
+    planned_for = meta.get("robot")
+    if robot is not None and planned_for is not None and robot.lower() != planned_for:
+        raise TrajectoryMismatchError(
+            f"{label} was planned for a {planned_for}, not a {robot.lower()}: plan it again for "
+            "that arm, or run it on the arm it was planned for"
+        )
+    robot = (robot or planned_for or "ur5e").lower()
+    arm = model(robot)
     header = [c.strip().lower() for c in rows[0]]
     if tuple(header[: len(TRAJECTORY_COLUMNS)]) != TRAJECTORY_COLUMNS:
         raise InputFileError(
@@ -167,9 +236,25 @@ def read_trajectory_csv(source: str | Path | bytes, *, robot: str, name: str | N
             f"{label}: the times must increase in equal steps (one controller "
             "period); plan the trajectory again"
         )
+    if abs(dt[0] * arm.control_rate_hz - 1.0) > 1e-3:
+        raise TrajectoryMismatchError(
+            f"{label} is sampled every {dt[0] * 1e3:.3f} ms; the {robot}'s controller runs at "
+            f"{arm.control_rate_hz:.0f} Hz: it was planned for another arm"
+        )
+    phase = None
+    if "phase" in header:
+        by_label = {p.label: int(p) for p in Phase}
+        column = header.index("phase")
+        try:
+            phase = np.array([by_label[r[column].strip()] for r in rows[1:]], dtype=np.int8)
+        except (KeyError, IndexError) as exc:
+            raise InputFileError(
+                f"{label} has an unknown phase {exc}; expected one of {', '.join(by_label)}"
+            ) from None
     q = data[:, 1:7]
     qd = np.gradient(q, t, axis=0)
-    return JointTrajectory(
+    requested = meta.get("requested_speed_m_s")
+    trajectory = JointTrajectory(
         robot=robot,
         t_s=t,
         q_rad=q,
@@ -180,9 +265,11 @@ def read_trajectory_csv(source: str | Path | bytes, *, robot: str, name: str | N
         arc_length_m=np.concatenate(
             ([0.0], np.cumsum(np.linalg.norm(np.diff(data[:, 7:10], axis=0), axis=1)))
         ),
-        # The file does not say what was requested; its mean speed stands in for it.
-        requested_speed_m_s=_mean_speed(data[:, 7:10], t),
+        # A file that does not say what was requested: its mean speed stands in for it.
+        requested_speed_m_s=float(requested) if requested else _mean_speed(data[:, 7:10], t),
+        phase=phase,
     )
+    return TrajectoryFile(trajectory=trajectory, meta=meta)
 
 
 def _mean_speed(p, t) -> float:
@@ -202,10 +289,22 @@ def _read_rows(source, name):
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError:
         raise InputFileError(f"{label} is not a text CSV file") from None
-    rows = [r for r in csv.reader(text.splitlines()) if any(c.strip() for c in r)]
+    lines = text.splitlines()
+    meta = {}
+    if lines and lines[0].startswith(META_PREFIX):
+        try:
+            meta = json.loads(lines[0][len(META_PREFIX) :])
+        except json.JSONDecodeError:
+            raise InputFileError(
+                f"{label}: its first line is a damaged teachpath header; write the file again"
+            ) from None
+        if not isinstance(meta, dict):
+            raise InputFileError(f"{label}: its teachpath header is not a JSON object")
+        lines = lines[1:]
+    rows = [r for r in csv.reader(lines) if any(c.strip() for c in r)]
     if not rows:
         raise InputFileError(f"{label} is empty")
-    return rows, label
+    return meta, rows, label
 
 
 def _numbers(body, columns, label) -> FloatArray:

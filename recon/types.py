@@ -317,7 +317,7 @@ class PlanParams:
         ge=-2 * math.pi,
         le=2 * math.pi,
         unit="rad",
-        help="the joints the motion starts from (default: the arm's, or its home)",
+        help="the joints the motion starts from (the service: the arm's now; else home)",
     )
     shoulder: Literal["any", "left", "right"] = param("any", help="IK configuration: shoulder")
     elbow: Literal["up", "down", "any"] = param("up", help="IK configuration: elbow")

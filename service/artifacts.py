@@ -346,6 +346,28 @@ class TrajectorySummary(_Summary):
     teachpath: str | None = Field(None, description="the version that planned it")
     report: list[str] = Field(default_factory=list)
 
+    #: What a trajectory file's metadata line holds besides robot, rate and speed.
+    FILE_KEYS: ClassVar[tuple[str, ...]] = (
+        "teachpath",
+        "duration_s",
+        "phase_durations_s",
+        "start_q_rad",
+        "start_from",
+        "configuration",
+        "approach_m",
+        "tcp_pose",
+        "payload_kg",
+        "payload_cog_m",
+        "T_base_tracker",
+        "T_scan_tracker",
+        "min_clearance_m",
+        "checks",
+    )
+
+    def file_meta(self) -> dict:
+        """The metadata line of the trajectory's CSV (see :mod:`drivers.export`)."""
+        return {key: getattr(self, key) for key in self.FILE_KEYS}
+
 
 class ExecutionSummary(_Summary):
     """One shape for every execution: a dry run on the simulated arm or a run on a real one.

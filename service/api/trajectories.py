@@ -7,6 +7,7 @@ from fastapi import APIRouter, Response
 from service import tasks, trajectories
 from service.api.common import CSV, add_artifact_routes, download
 from service.api.deps import ServicesDep
+from service.artifacts import TrajectorySummary
 from service.schemas import JobOut, TrajectoryCreate, TrajectoryOut
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["trajectories"])
@@ -30,6 +31,9 @@ def trajectory_csv(session_id: str, artifact_id: str, services: ServicesDep):
 
     row = services.artifact(session_id, "trajectory", artifact_id)
     trajectory = tasks.load_trajectory(services.store.path_of(row), row.summary)
+    meta = TrajectorySummary.model_validate(row.summary).file_meta()
     return download(
-        trajectory_csv_text(trajectory), media_type="text/csv", filename=f"{artifact_id}.csv"
+        trajectory_csv_text(trajectory, meta={**meta, "session_id": session_id, "id": row.id}),
+        media_type="text/csv",
+        filename=f"{artifact_id}.csv",
     )

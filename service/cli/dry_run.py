@@ -15,7 +15,11 @@ def add_parser(commands) -> None:
         "duration, tracking deviation, margins, speed drops and faults.",
     )
     dry.add_argument("traj_file", metavar="TRAJ.csv")
-    dry.add_argument("--robot", default="ur5e", help="UR model the trajectory was planned for")
+    dry.add_argument(
+        "--robot",
+        help="the UR model to run it on (default: the one the file was planned for; a file "
+        "planned for another is refused)",
+    )
     dry.add_argument(
         "--mode",
         choices=("servoj", "movepath"),
@@ -36,10 +40,11 @@ def run(args: argparse.Namespace) -> int:
     from recon.kinematics import model
     from service import pipelines
 
-    model(args.robot)  # an unknown arm is a one-line error before reading anything
+    if args.robot is not None:
+        model(args.robot)  # an unknown arm is a one-line error before reading anything
     if not args.tolerance_m > 0:
         raise ValueError(f"--tolerance-m must be positive, got {args.tolerance_m}")
-    trajectory = read_trajectory_csv(args.traj_file, robot=args.robot.lower())
+    trajectory = read_trajectory_csv(args.traj_file, robot=args.robot).trajectory
     outcome = pipelines.dry_run(trajectory, mode=args.mode, tolerance_m=args.tolerance_m)
     print("\n".join(outcome.lines()))
     return 0 if outcome.passed else EXIT_FAILURE

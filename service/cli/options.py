@@ -37,14 +37,25 @@ def positive(value: str) -> float:
     return number
 
 
-def vector3(value: str) -> tuple[float, float, float]:
-    try:
-        parts = tuple(float(v) for v in value.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected X,Y,Z numbers, not {value!r}") from None
-    if len(parts) != 3 or not all(math.isfinite(v) for v in parts):
-        raise argparse.ArgumentTypeError(f"expected three finite numbers X,Y,Z, not {value!r}")
-    return parts  # type: ignore[return-value]
+def numbers(count: int, what: str):
+    """An argparse type for ``count`` comma-separated finite numbers (``what`` names them)."""
+
+    def parse(value: str) -> tuple[float, ...]:
+        try:
+            parts = tuple(float(v) for v in value.split(","))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what} numbers, not {value!r}") from None
+        if len(parts) != count or not all(math.isfinite(v) for v in parts):
+            raise argparse.ArgumentTypeError(
+                f"expected {count} finite numbers {what}, not {value!r}"
+            )
+        return parts
+
+    return parse
+
+
+vector3 = numbers(3, "X,Y,Z")
+box6 = numbers(6, "X0,Y0,Z0,X1,Y1,Z1")
 
 
 def check_output(path: str, suffix: str) -> Path:
@@ -200,8 +211,12 @@ def _value_type(name: str, hint, spec):
     args = typing.get_args(hint)
     if hint is str:
         return str
-    if typing.get_origin(hint) is tuple:
-        return vector3
+    if hint is bool:
+        return _boolean
+    tuples = [a for a in (hint, *args) if typing.get_origin(a) is tuple]
+    if tuples:
+        count = len(typing.get_args(tuples[0]))
+        return numbers(count, ",".join(["N"] * count))
     numeric = int if hint is int or int in args else float
 
     def parse(value: str):
@@ -221,12 +236,22 @@ def _value_type(name: str, hint, spec):
     return parse
 
 
-def add_param_options(parser: argparse.ArgumentParser, cls, names, *, required=()) -> None:
+def _boolean(value: str) -> bool:
+    if value.lower() in ("true", "yes", "1"):
+        return True
+    if value.lower() in ("false", "no", "0"):
+        return False
+    raise argparse.ArgumentTypeError(f"expected true or false, not {value!r}")
+
+
+def add_param_options(
+    parser: argparse.ArgumentParser, cls, names, *, required=(), aliases=None
+) -> None:
     """Options for the named parameters of a core dataclass, with its help, default and bounds.
 
     An option not given leaves the core's default (``required`` ones have to be given); the
     values are checked by the core itself when the parameters are built
-    (:func:`params_from_args`).
+    (:func:`params_from_args`). ``aliases`` maps a name to more option strings.
     """
     import typing
 
@@ -241,15 +266,28 @@ def add_param_options(parser: argparse.ArgumentParser, cls, names, *, required=(
         words = spec.choices or tuple(w for w in _literals(hint) if isinstance(w, str))
         only_words = words and not any(t in (int, float) for t in (hint, *typing.get_args(hint)))
         given = f"default {shown}{unit}" if name not in required else "required"
+        if default is None and name not in required:
+            given = "default: see above"
         parser.add_argument(
             _flag(name),
+            *(aliases or {}).get(name, ()),
             dest=name,
             type=None if only_words else _value_type(name, hint, spec),
             choices=words if only_words else None,
             required=name in required,
-            metavar="X,Y,Z" if isinstance(default, tuple) else None,
+            metavar=_metavar(hint),
             help=f"{spec.help} ({given}" + (f"; {bounds})" if bounds else ")"),
         )
+
+
+def _metavar(hint) -> str | None:
+    import typing
+
+    for a in (hint, *typing.get_args(hint)):
+        if typing.get_origin(a) is tuple:
+            count = len(typing.get_args(a))
+            return "X,Y,Z" if count == 3 else ",".join(["N"] * count)
+    return None
 
 
 def params_from_args(cls, args: argparse.Namespace, names, **fixed):

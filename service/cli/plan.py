@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 
@@ -10,6 +11,7 @@ from service.cli.options import (
     add_param_options,
     add_scan_options,
     add_units_option,
+    box6,
     check_output,
     note,
     params_from_args,
@@ -46,11 +48,25 @@ def add_parser(commands) -> None:
     from recon.types import PlanParams
     from service.schemas import TRAJECTORY_PARAMS
 
-    add_param_options(plan, PlanParams, TRAJECTORY_PARAMS, required=("speed_m_s",))
+    add_param_options(
+        plan,
+        PlanParams,
+        TRAJECTORY_PARAMS,
+        required=("speed_m_s",),
+        aliases={"start_q_rad": ("--start-q",)},
+    )
     plan.add_argument(
         "--base-from-tracker",
         metavar="T.json",
         help="calibration T_base_tracker (default: the path is in the base frame)",
+    )
+    plan.add_argument(
+        "--keep-out-box",
+        action="append",
+        default=[],
+        type=box6,
+        metavar="X0,Y0,Z0,X1,Y1,Z1",
+        help="a box the arm and tool must keep out of, base frame, metres (repeatable)",
     )
     plan.add_argument("--out", required=True, metavar="TRAJ.csv")
     plan.set_defaults(handler=run)
@@ -86,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
     from drivers.export import write_trajectory_csv
     from recon.types import PlanParams
     from service import pipelines
+    from service.artifacts import TrajectorySummary
     from service.schemas import TRAJECTORY_PARAMS
 
     out = check_output(args.out, ".csv")
@@ -94,12 +111,13 @@ def run(args: argparse.Namespace) -> int:
     T_base_tracker = read_matrix(args.base_from_tracker, "T_base_tracker")
     given = read_matrix(args.scan_from_tracker, "T_scan_tracker")
     wants_scan = args.scan and params.orientation in ("auto", "scan")
+    scan = read_scan_for(args) if args.scan else None  # the tool axis, and the collision check
     if given is not None or (wants_scan and scan_model is None):
         # A transform given by hand, or no stored model: build one from the scan file.
         scan_model = None
         if wants_scan:
             placed = pipelines.place_scan(
-                read_scan_for(args), replace(path, T_scan_tracker=given), recon_params=recon_params
+                scan, replace(path, T_scan_tracker=given), recon_params=recon_params
             )
             if placed.registration is not None:
                 note(
@@ -116,7 +134,13 @@ def run(args: argparse.Namespace) -> int:
         T_base_tracker=T_base_tracker,
         scan_model=scan_model,
         recon_params=recon_params,
+        scan=scan,
+        keep_out_boxes=args.keep_out_box,
+        start_from="given" if args.start_q_rad is not None else "home",
     )
-    write_trajectory_csv(out, outcome.trajectory)
+    meta = TrajectorySummary.model_validate(outcome.summary()).file_meta()
+    write_trajectory_csv(
+        out, outcome.trajectory, meta={**meta, "source": Path(args.recon_file).name}
+    )
     print("\n".join(outcome.lines()))
     return 0
