@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response
+from typing import Literal
+
+from fastapi import APIRouter, Query, Response
 
 from service import tasks, trajectories
 from service.api.common import CSV, add_artifact_routes, download
@@ -37,3 +39,35 @@ def trajectory_csv(session_id: str, artifact_id: str, services: ServicesDep):
         media_type="text/csv",
         filename=f"{artifact_id}.csv",
     )
+
+
+@router.get(
+    "/trajectories/{artifact_id}/urscript",
+    response_class=Response,
+    responses={200: {"content": {"text/plain": {}}}},
+)
+def trajectory_urscript(
+    session_id: str,
+    artifact_id: str,
+    services: ServicesDep,
+    mode: Literal["servoj", "movep"] = Query("servoj", description="the path as servoj or movep"),
+    tolerance_m: float = Query(5e-4, gt=0, le=0.01, description="movep: largest deviation"),
+):
+    """The trajectory as a standalone URScript program for the teach pendant (see
+    `teachpath export-urscript`)."""
+    from drivers.robot.urscript import program_header, urscript_program
+
+    row = services.artifact(session_id, "trajectory", artifact_id)
+    trajectory = tasks.load_trajectory(services.store.path_of(row), row.summary)
+    summary = TrajectorySummary.model_validate(row.summary)
+    meta = {**summary.file_meta(), "session_id": session_id, "id": row.id}
+    program = urscript_program(
+        trajectory,
+        tcp_pose=summary.tcp_pose or (0.0,) * 6,
+        payload_kg=summary.payload_kg or 0.0,
+        payload_cog_m=summary.payload_cog_m or (0.0, 0.0, 0.0),
+        mode=mode,
+        tolerance_m=tolerance_m,
+        header=program_header(meta, f"trajectory {row.id}"),
+    )
+    return download(program, media_type="text/plain", filename=f"{artifact_id}.script")

@@ -13,11 +13,21 @@ from collections.abc import Sequence
 
 from drivers.errors import DriverError
 from recon.errors import ReconError
-from service.cli import calibrate, demo, dry_run, fake_ur, plan, reconstruct, record, serve
+from service.cli import (
+    calibrate,
+    demo,
+    dry_run,
+    export_urscript,
+    fake_ur,
+    plan,
+    reconstruct,
+    record,
+    serve,
+)
 from service.cli.options import EXIT_FAILURE, OneLineParser
 
 #: The commands in the order ``--help`` lists them.
-COMMANDS = (reconstruct, plan, dry_run, record, calibrate, serve, fake_ur, demo)
+COMMANDS = (reconstruct, plan, dry_run, export_urscript, record, calibrate, serve, fake_ur, demo)
 
 
 def build_parser() -> OneLineParser:
