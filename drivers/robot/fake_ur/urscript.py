@@ -729,8 +729,8 @@ class Runner:
 
     def _execute(self, statement: Statement) -> None:
         function, args = statement.function, statement.args
-        self.status.executed += 1
         if function == "=":
+            self.status.executed += 1
             self.variables[statement.target] = self._value(args[0])
             self.pc += 1
             return
@@ -740,6 +740,7 @@ class Runner:
             self._block_on(self.host.settle_servo())
             if self._wait is not None:
                 return  # the statement runs when the arm has settled
+        self.status.executed += 1
         if function in MOVES:
             self._moves()
             return
@@ -840,6 +841,7 @@ class Runner:
                 break
             self.status.line = following.line
             group.append(self._move_args(following))
+            self.status.executed += 1
             end += 1
         self.status.line = first.line
         motion, ticks = self.host.start_moves(group)
