@@ -115,7 +115,8 @@ class FakeURProcess:
 
     def wait_program(self, after_s: float, timeout_s: float = 30.0, *, running=False) -> dict:
         """The ``program_status`` of the program started after controller time ``after_s`` once
-        it has ended (or, ``running``, once it runs)."""
+        it has ended (or, ``running``, once it runs: for programs that run a while -- one
+        that ends between two polls is never seen running)."""
         deadline = time.monotonic() + timeout_s
         while True:
             status = self.control("program_status")

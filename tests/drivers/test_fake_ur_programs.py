@@ -459,7 +459,7 @@ def test_a_protective_stop_or_an_emergency_stop_stops_a_running_program(fake_ur)
     for source, name in (("robot", "ROBOT_EMERGENCY_STOP"), ("system", "SYSTEM_EMERGENCY_STOP")):
         fake_ur.control("emergency_stop", source=source)
         status = fake_ur.wait_program(t0)
-        assert status["state"] in ("stopped", "refused")
+        assert status["state"] == "stopped" and status["message"] == f"{source} emergency stop"
         assert _dashboard(fake_ur.host, *STATE_QUERIES)[:3] == [
             "Robotmode: POWER_OFF",
             f"Safetystatus: {name}",

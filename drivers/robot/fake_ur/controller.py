@@ -160,12 +160,16 @@ class Trace:
         """Samples ``start`` .. ``stop`` (indices counted from the program's start, dropped ones
         included), every ``every``-th, shape (K, 14): t, q0..q5, x, y, z, rx, ry, rz, line
         (of a standalone program; 0 for none)."""
-        if not self.blocks:
-            return np.empty((0, 14))
-        data = np.concatenate(list(self.blocks))[: len(self)]
+        size = len(self)
         first = max(start - self.dropped, 0)
-        last = len(data) if stop is None else max(min(stop - self.dropped, len(data)), first)
-        return data[first:last:every]
+        last = size if stop is None else max(min(stop - self.dropped, size), first)
+        if first >= last:
+            return np.empty((0, 14))
+        # Only the blocks asked for are copied: this runs under the controller's lock.
+        blocks = list(self.blocks)[first // TRACE_BLOCK : (last - 1) // TRACE_BLOCK + 1]
+        offset = (first // TRACE_BLOCK) * TRACE_BLOCK
+        data = np.concatenate(blocks)
+        return data[first - offset : last - offset : every]
 
 
 @dataclass
