@@ -159,34 +159,6 @@ def test_moves_sleep_and_servoj_take_the_time_they_ask_for():
     assert np.abs(c.q - (goal + [0.009, 0, 0, 0, 0, 0])).max() < 1e-4
 
 
-def test_movep_keeps_its_speed_and_passes_within_the_blend_radius_of_each_pose():
-    c = ctl.FakeController("ur5e")
-    start = np.array(c.tcp_pose())
-    r, v = 0.01, 0.1
-    offsets = [
-        (0.08, 0, 0),
-        (0.08, 0.08, 0),
-        (0.16, 0.08, -0.03),
-        (0.16, 0.0, -0.03),
-        (0.1, -0.05, 0),
-    ]
-    poses = [np.concatenate([start[:3] + o, start[3:]]) for o in offsets]
-    moves = "".join(f"  movep(p[{fmt(p)}], a=1.2, v={v}, r={r})\n" for p in poses)
-    assert c.load_program(f"def corners():\n{moves}end\n")
-    assert run(c).state == "finished"
-    xyz = c.trace.rows()[:, 7:10]
-    for k, pose in enumerate(poses[:-1]):
-        passed = np.linalg.norm(xyz - pose[:3], axis=1).min()
-        assert passed <= r + 5e-4, (k, passed)
-        assert passed > 1e-3  # blended: the corner is cut, not visited
-    assert np.linalg.norm(xyz[-1] - poses[-1][:3]) < 5e-4  # the last move stops on its pose
-    speed = np.linalg.norm(np.diff(xyz, axis=0), axis=1) / c.dt_s
-    assert speed.max() < 1.03 * v
-    cruising = speed[speed > 0.5 * v]
-    assert np.median(cruising) == pytest.approx(v, rel=0.01)
-    assert np.mean(np.abs(cruising - v) < 0.03 * v) > 0.8  # constant speed through the blends
-
-
 def test_blended_movel_and_movej_runs_do_not_stop_at_their_waypoints():
     c = ctl.FakeController("ur5e")
     start = np.array(c.tcp_pose())
@@ -404,6 +376,35 @@ def test_an_exported_program_runs_where_it_is_planned(fake_ur):
     print(
         f"movel off its line {off_line.max() * 1e3:.3f} mm; arc radial {radial.max() * 1e3:.3f} mm"
     )
+
+
+@pytest.mark.timeout(60)
+def test_movep_keeps_its_speed_and_passes_within_the_blend_radius_of_each_pose(fake_ur):
+    start = tcp_of(HOME, np.zeros(6))
+    r, v = 0.01, 0.1
+    offsets = [
+        (0.08, 0, 0),
+        (0.08, 0.08, 0),
+        (0.16, 0.08, -0.03),
+        (0.16, 0.0, -0.03),
+        (0.1, -0.05, 0),
+    ]
+    poses = [np.concatenate([start[:3] + o, start[3:]]) for o in offsets]
+    moves = "".join(f"  movep(p[{fmt(p)}], a=1.2, v={v}, r={r})\n" for p in poses)
+    status = fake_ur.wait_program(fake_ur.send_program(f"def corners():\n{moves}end\n"))
+    assert status["state"] == "finished", status
+    trace = fake_ur.program_trace()
+    xyz = trace["tcp_pose"][:, :3]
+    for k, pose in enumerate(poses[:-1]):
+        passed = np.linalg.norm(xyz - pose[:3], axis=1).min()
+        assert passed <= r + 5e-4, (k, passed)
+        assert passed > 1e-3  # blended: the corner is cut, not visited
+    assert np.linalg.norm(xyz[-1] - poses[-1][:3]) < 5e-4  # the last move stops on its pose
+    speed = np.linalg.norm(np.diff(xyz, axis=0), axis=1) / np.diff(trace["t_s"])
+    assert speed.max() < 1.03 * v
+    cruising = speed[speed > 0.5 * v]
+    assert np.median(cruising) == pytest.approx(v, rel=0.01)
+    assert np.mean(np.abs(cruising - v) < 0.03 * v) > 0.8  # constant speed through the blends
 
 
 @pytest.mark.timeout(60)

@@ -633,10 +633,12 @@ class Runner:
     period; ``stopj`` / ``stopl`` brake at their rate and return once the arm rests.
 
     The host (the fake controller) provides ``t_s``, ``dt_s``, ``message(text)``,
-    ``set_tcp(pose)``, ``set_payload(mass, cog, inertia)``, ``current_joints()``,
-    ``solve_ik(pose, near)``, ``tcp_of(q)``, ``start_moves(moves)`` (returns a motion and the
-    ticks at which each move after the first starts), ``servo(q, t, lookahead, gain)``,
-    ``settle_servo()`` (a motion or None), ``brake(linear, a)`` and ``motion_running(motion)``.
+    ``set_tcp(pose)``, ``set_payload(mass, cog, inertia)`` (None: kept),
+    ``start_moves(moves)`` (starts one move or a blended run; returns its motion and the tick
+    at which each move after the first starts), ``servo(q, t, lookahead, gain)`` (returns the
+    call's length in control periods), ``settle_servo()`` (a motion, or None when no servo
+    stream runs), ``brake(linear, a)`` (a motion) and ``motion_running(motion)``. Its methods
+    raise :class:`ScriptRuntimeError` (with a ``line`` attribute for a move within a run).
     """
 
     program: Program
