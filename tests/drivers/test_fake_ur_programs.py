@@ -260,6 +260,20 @@ def test_the_tcp_moves_every_reported_pose_and_the_payload_is_kept():
     assert c._ik(tcp_of(q), HOME) == pytest.approx(q, abs=1e-9)
 
 
+def test_a_program_sets_the_payload_every_way_urscript_has():
+    c = started(
+        "set_target_payload(1.0, [0, 0, 0.1], [0.01, 0.02, 0.03, 0, 0, 0])\n"
+        "set_payload_mass(1.25)\n"
+        "set_payload_cog([0.01, 0, 0.1])\n"
+        f"set_tcp(p[{fmt(TCP)}])\n"
+    )
+    assert run(c).state == "finished"
+    assert c.payload_kg == 1.25 and c.payload_cog_m.tolist() == [0.01, 0, 0.1]
+    assert c.payload_inertia.tolist() == [0.01, 0.02, 0.03, 0, 0, 0]
+    assert c.tcp_offset.tolist() == TCP.tolist()
+    assert np.array(c.tcp_pose()) == pytest.approx(tcp_of(HOME), abs=1e-12)
+
+
 def test_the_control_channel_pages_the_trace_and_reset_clears_the_tool(monkeypatch):
     fake = FakeUR("127.0.0.1")  # never started: no ports bound
     c = fake.controller
