@@ -20,6 +20,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from drivers.robot.fake_ur.server import CONTROL_PORT, DASHBOARD_PORT, RTDE_PORT, SCRIPT_PORTS
@@ -103,6 +104,41 @@ class FakeURProcess:
         if not reply.pop("ok"):
             raise RuntimeError(f"fake controller refused {cmd}: {reply['error']}")
         return reply
+
+    def send_program(self, text: str, port: int = SCRIPT_PORTS[1]) -> float:
+        """Send a URScript program to a script port and close the connection (which completes
+        it). The controller time just before, for :meth:`wait_program`."""
+        t0 = self.control("program_status")["t_s"]
+        with socket.create_connection((self.host, port), timeout=5.0) as sock:
+            sock.sendall(text.encode())
+        return t0
+
+    def wait_program(self, after_s: float, timeout_s: float = 30.0, *, running=False) -> dict:
+        """The ``program_status`` of the program started after controller time ``after_s`` once
+        it has ended (or, ``running``, once it runs: for programs that run a while -- one
+        that ends between two polls is never seen running)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            status = self.control("program_status")
+            started = status["started_s"] is not None and status["started_s"] >= after_s
+            if started and (status["state"] != "running") != running:
+                return status
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"the program did not get there: {status}")
+            time.sleep(0.02)
+
+    def program_trace(self, every: int = 1) -> dict:
+        """The whole trace of the last program (every ``every``-th sample), as arrays."""
+        parts: dict[str, list] = {"t_s": [], "q_rad": [], "tcp_pose": [], "line": []}
+        start = 0
+        while True:
+            page = self.control("program_trace", start=start, every=every)
+            for name in parts:
+                parts[name].extend(page[name])
+            if not page["t_s"] or page["next"] >= page["total"]:
+                break
+            start = page["next"]
+        return {name: np.array(values) for name, values in parts.items()}
 
     def log_text(self) -> str:
         return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""

@@ -33,6 +33,8 @@ from drivers.robot.fake_ur import dashboard, rtde_server, watchdog
 from drivers.robot.fake_ur import rtde_protocol as rp
 from drivers.robot.sim import HOME_RAD, SimBackend, SimConfig
 from drivers.robot.ur_rtde import URRtdeBackend, URRtdeConfig
+from recon import kinematics
+from recon.transforms import pose_from_transform
 from tests.drivers import fake_ur_fixture
 from tests.motion_fixtures import base_from_tracker, line_process
 
@@ -130,7 +132,9 @@ def test_protocol_differences_name_missing_command_branches_and_real_time_change
     assert "command 45 branch" in cs.protocol_differences(_script())
     realtime = " or ".join(f"cmd == {c}" for c in sorted(cs.REALTIME_COMMANDS))
     branches = "".join(
-        f"        elif cmd == {c}:\n            x = 1\n" for c in cs.EMULATED_COMMANDS
+        f"        elif cmd == {c}:\n            x = 1\n"
+        + "".join(f"            {marker}\n" for marker in cs.BRANCH_MARKERS.get(c, ()))
+        for c in cs.EMULATED_COMMANDS
     )
     arguments = "".join(f"    {marker}\n" for marker in cs.ARGUMENT_MARKERS.values())
     complete = _script().replace(
@@ -139,9 +143,19 @@ def test_protocol_differences_name_missing_command_branches_and_real_time_change
     )
     assert cs.protocol_differences(complete) == []
     renumbered = complete.replace("cmd == 45:", "cmd == 46:", 1)
-    assert cs.protocol_differences(renumbered) == ["command 45 branch"]
+    assert cs.protocol_differences(renumbered)[0] == "command 45 branch"
     fewer = complete.replace(" or cmd == 71", "")
     assert cs.protocol_differences(fewer)[0].startswith("real-time command list")
+    # An upgrade that renumbers setTcp and setPayload keeps branches with those ids, but
+    # their calls move: the branch markers catch it.
+    swapped = (
+        complete.replace(f"cmd == {cs.CMD_SET_TCP}:", "cmd == 999:")
+        .replace(f"cmd == {cs.CMD_SET_PAYLOAD}:", f"cmd == {cs.CMD_SET_TCP}:")
+        .replace("cmd == 999:", f"cmd == {cs.CMD_SET_PAYLOAD}:")
+    )
+    differences = cs.protocol_differences(swapped)
+    assert f"command {cs.CMD_SET_TCP} branch lacks 'set_tcp(pose)'" in differences
+    assert f"command {cs.CMD_SET_PAYLOAD} branch lacks 'set_payload(mass, cog)'" in differences
 
 
 def _run_until(controller, condition, max_s=10.0):
@@ -528,9 +542,10 @@ def test_ur_rtde_commands_fail_or_succeed_as_on_a_controller(fake_ur):
         restart()
         assert time.monotonic() - started < 5  # refusals are prompt
         near = home + [0.2, 0.1, -0.1, 0.1, 0.1, -0.1]
-        solution = control.getInverseKinematics(
-            control.getForwardKinematics(list(near)), list(near)
-        )
+        # The pose comes from recon's FK: ur_rtde's getForwardKinematics(q) leaves the script's
+        # TCP registers as the last command wrote them (test_fake_ur_programs pins that quirk).
+        near_pose = pose_from_transform(kinematics.forward(kinematics.model("ur5e"), near))
+        solution = control.getInverseKinematics(list(near_pose), list(near))
         assert np.array(solution) == pytest.approx(near, abs=1e-6)
         goal = pose + [0, 0, -0.05, 0, 0, 0]
         assert control.moveL(list(goal), 0.25, 1.2) is True

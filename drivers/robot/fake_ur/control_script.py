@@ -64,14 +64,18 @@ CMD_SPEEDJ = 9
 CMD_SERVOJ = 11
 CMD_SPEED_STOP = 15
 CMD_SERVO_STOP = 16
+CMD_SET_PAYLOAD = 17
+CMD_SET_TCP = 29
 CMD_GET_INVERSE_KIN_ARGS = 30
 CMD_PROTECTIVE_STOP = 31
 CMD_STOPL = 33
 CMD_STOPJ = 34
+CMD_GET_TCP_OFFSET = 40
 CMD_GET_FORWARD_KIN_DEFAULT = 43
 CMD_GET_FORWARD_KIN_ARGS = 44
 CMD_MOVE_PATH = 45
 CMD_GET_INVERSE_KIN_DEFAULT = 46
+CMD_SET_TARGET_PAYLOAD = 65
 CMD_STOP_SCRIPT = 255
 
 #: Commands the script handles "in real time": processed and answered with ready (1) at once,
@@ -89,17 +93,54 @@ EMULATED_COMMANDS = frozenset(
         CMD_SERVOJ,
         CMD_SPEED_STOP,
         CMD_SERVO_STOP,
+        CMD_SET_PAYLOAD,
+        CMD_SET_TCP,
         CMD_GET_INVERSE_KIN_ARGS,
         CMD_PROTECTIVE_STOP,
         CMD_STOPL,
         CMD_STOPJ,
+        CMD_GET_TCP_OFFSET,
         CMD_GET_FORWARD_KIN_DEFAULT,
         CMD_GET_FORWARD_KIN_ARGS,
         CMD_MOVE_PATH,
         CMD_GET_INVERSE_KIN_DEFAULT,
+        CMD_SET_TARGET_PAYLOAD,
         CMD_STOP_SCRIPT,
     }
 )
+
+#: What the branch of a command must contain (its URScript call and where it reads its
+#: arguments), for the commands whose meaning the fake takes from the branch rather than
+#: from the id alone: a client upgrade that renumbers them moves these lines to another
+#: branch, which :func:`protocol_differences` reports. Read off the pinned script.
+BRANCH_MARKERS: dict[int, tuple[str, ...]] = {
+    CMD_SET_PAYLOAD: (
+        "set_payload(mass, cog)",
+        "mass = read_input_float_reg(0)",
+        "cog_x = read_input_float_reg(1)",
+        "cog_z = read_input_float_reg(3)",
+        "set_payload(mass, get_target_payload_cog())",
+    ),
+    CMD_SET_TCP: ("pose = pose_from_input_float_registers(0)", "set_tcp(pose)"),
+    CMD_GET_TCP_OFFSET: ("get_tcp_offset()", "pose_to_output_float_registers(0, tcp_offset)"),
+    CMD_GET_FORWARD_KIN_DEFAULT: ("get_forward_kin()",),
+    CMD_GET_FORWARD_KIN_ARGS: (
+        "q = q_from_input_float_registers(0)",
+        "tcp_offset = pose_from_input_float_registers(6)",
+        "get_forward_kin(q, tcp_offset)",
+    ),
+    CMD_GET_INVERSE_KIN_DEFAULT: ("x = pose_from_input_float_registers(0)", "get_inverse_kin(x)"),
+    CMD_GET_INVERSE_KIN_ARGS: (
+        "qnear = q_from_input_float_registers(6)",
+        "get_inverse_kin(x, qnear, maxPositionError, maxOrientationError)",
+    ),
+    CMD_SET_TARGET_PAYLOAD: (
+        "mass = read_input_float_reg(0)",
+        "inertia[0] = read_input_float_reg(4)",
+        "inertia[5] = read_input_float_reg(9)",
+        "set_target_payload(mass, cog, inertia)",
+    ),
+}
 
 _DEF = re.compile(r"^def\s+(\w+)\s*\(\s*\)\s*:", re.MULTILINE)
 _OFFSET = {
@@ -188,15 +229,32 @@ def realtime_commands(text: str) -> frozenset[int] | None:
     return frozenset(int(v) for v in re.findall(r"\d+", match.group(1)))
 
 
+def command_branch(text: str, cmd: int) -> str | None:
+    """The body of the script's ``cmd == <cmd>:`` branch, up to the next ``cmd == ..``
+    branch (None if it has none)."""
+    match = re.search(rf"\bcmd\s*==\s*{cmd}\s*:", text)
+    if match is None:
+        return None
+    following = re.compile(r"^\s*(?:el)?if\s+cmd\s*==\s*\d+\s*:", re.MULTILINE)
+    end = following.search(text, match.end())
+    return text[match.end() : end.start() if end else len(text)]
+
+
 def protocol_differences(text: str) -> list[str]:
     """Everything in ``text`` that differs from the protocol the fake emulates: missing
     :data:`REQUIRED_MARKERS` and :data:`ARGUMENT_MARKERS`, a missing ``cmd == <id>:`` branch
-    for an id of :data:`EMULATED_COMMANDS`, a different real-time command list."""
+    for an id of :data:`EMULATED_COMMANDS`, a branch without its :data:`BRANCH_MARKERS`, a
+    different real-time command list."""
     differences = missing_markers(text)
     differences += [name for name, marker in ARGUMENT_MARKERS.items() if marker not in text]
     for cmd in sorted(EMULATED_COMMANDS):
-        if re.search(rf"\bcmd\s*==\s*{cmd}\s*:", text) is None:
+        branch = command_branch(text, cmd)
+        if branch is None:
             differences.append(f"command {cmd} branch")
+            continue
+        for marker in BRANCH_MARKERS.get(cmd, ()):
+            if marker not in branch:
+                differences.append(f"command {cmd} branch lacks {marker!r}")
     if realtime_commands(text) != REALTIME_COMMANDS:
         differences.append(f"real-time command list (got {sorted(realtime_commands(text) or ())})")
     return differences

@@ -7,6 +7,15 @@ checks its plans against. Every move is a stream of joint targets fed to that mo
 control period: moveJ a synchronised trapezoid, moveL a Cartesian line solved by the arm's IK,
 movePath the sim's blended path, servoJ the client's latest target, a stop no target (brake).
 
+Programs that are not ur_rtde's control script are compiled and run by :mod:`.urscript` (its
+:class:`~.urscript.Runner` is stepped by the same tick), on the same motion machinery.
+
+The active TCP (``set_tcp`` / ur_rtde's setTcp) and payload (``set_payload`` / setPayload) are
+kept: every pose the controller reports or takes -- actual / target TCP pose, forward and
+inverse kinematics, moveL and movel lines, tool speed for stopl -- is the TCP's, as on a real
+controller. The payload is stored and reported only (no dynamics are modelled). Both persist
+until changed or the fake is reset, across program stops and uploads.
+
 The script emulation mirrors the main loop of the pinned client's control script
 (:mod:`.control_script`): read the command register, answer ready (1) / done (2), write results
 and async progress registers. A command that fails the way a URScript runtime error would (no IK
@@ -27,8 +36,8 @@ Not emulated:
   movePath pose move runs as a joint move to its IK solution (no straight line, no ``movep``
   constant tool speed);
 - speedJ's ``t``: the pinned script re-issues speedj in a loop, so it has no visible effect
-  there either; speedL, servoC, force mode, contact detection, jogging, teach mode, payload,
-  TCP and I/O commands: acknowledged without effect;
+  there either; speedL, servoC, force mode, contact detection, jogging, teach mode and I/O
+  commands: acknowledged without effect; the payload has no effect on the motion;
 - speed scaling (always 1), joint currents and temperatures, collision detection.
 """
 
@@ -46,6 +55,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from drivers.errors import ProtectiveStopError
 from drivers.robot.fake_ur import control_script as cs
+from drivers.robot.fake_ur import urscript
 from drivers.robot.fake_ur.rtde_protocol import REGISTER_COUNT
 from drivers.robot.sim import (
     HOME_RAD,
@@ -55,7 +65,7 @@ from drivers.robot.sim import (
     trapezoid_fractions,
 )
 from recon import kinematics
-from recon.transforms import pose_from_transform, transform_from_pose
+from recon.transforms import invert_transform, pose_from_transform, transform_from_pose
 from recon.waypoints import CoarsePath
 
 log = logging.getLogger("fake_ur.controller")
@@ -73,8 +83,15 @@ ROBOT_MODE_NAMES = {3: "POWER_OFF", 4: "POWER_ON", 5: "IDLE", 7: "RUNNING"}
 #: RTDE safety_mode values.
 SAFETY_NORMAL = 1
 SAFETY_PROTECTIVE_STOP = 3
+SAFETY_SYSTEM_EMERGENCY_STOP = 6
 SAFETY_ROBOT_EMERGENCY_STOP = 7
-SAFETY_NAMES = {1: "NORMAL", 3: "PROTECTIVE_STOP", 7: "ROBOT_EMERGENCY_STOP"}
+SAFETY_NAMES = {
+    1: "NORMAL",
+    3: "PROTECTIVE_STOP",
+    6: "SYSTEM_EMERGENCY_STOP",
+    7: "ROBOT_EMERGENCY_STOP",
+}
+EMERGENCY_STOPS = (SAFETY_SYSTEM_EMERGENCY_STOP, SAFETY_ROBOT_EMERGENCY_STOP)
 #: RTDE runtime_state values.
 RUNTIME_STOPPED = 1
 RUNTIME_PLAYING = 2
@@ -84,6 +101,7 @@ STATUS_PROGRAM_RUNNING = 1 << 1
 #: safety_status_bits (UR's RTDE guide).
 SAFETY_BIT_NORMAL = 1 << 0
 SAFETY_BIT_PROTECTIVE_STOPPED = 1 << 2
+SAFETY_BIT_SYSTEM_EMERGENCY_STOPPED = 1 << 5
 SAFETY_BIT_ROBOT_EMERGENCY_STOPPED = 1 << 6
 SAFETY_BIT_EMERGENCY_STOPPED = 1 << 7
 #: A move counts as settled when no joint moves faster than this (same as the sim backend).
@@ -99,11 +117,59 @@ IK_CHUNK = 16
 #: Bounds on the logs kept for tests and status (entries).
 COMMAND_LOG_MAX = 1000
 MESSAGES_MAX = 200
+#: A program's recorded trace (joints and TCP each control period) keeps this many samples at
+#: most (10 min at 500 Hz, ~30 MB); older ones are dropped and counted.
+TRACE_MAX = 300_000
+TRACE_BLOCK = 5_000
+#: After a program ends the trace goes on while the arm still moves (a stop's braking), this
+#: long at most (s).
+TRACE_TAIL_S = 2.0
+
+ScriptRuntimeError = urscript.ScriptRuntimeError
 
 
-class ScriptRuntimeError(Exception):
-    """What stops a URScript program at run time: no IK solution, an invalid argument, a move
-    the controller cannot run. The fake stops the program, as the controller would."""
+class Trace:
+    """Controller time, actual joints, actual TCP pose and the program line executing, one
+    row a control period, in blocks so that a long program neither reallocates nor grows
+    without bound."""
+
+    def __init__(self, max_samples: int = TRACE_MAX) -> None:
+        self.max_samples = max_samples
+        self.blocks: deque[np.ndarray] = deque()
+        self.fill = TRACE_BLOCK  # rows used in the last block
+        self.dropped = 0
+
+    def __len__(self) -> int:
+        return max(0, len(self.blocks) * TRACE_BLOCK - (TRACE_BLOCK - self.fill))
+
+    def append(self, t_s: float, q, pose, line: int = 0) -> None:
+        if self.fill == TRACE_BLOCK:
+            self.blocks.append(np.empty((TRACE_BLOCK, 14)))
+            self.fill = 0
+            while len(self.blocks) * TRACE_BLOCK > self.max_samples and len(self.blocks) > 1:
+                self.blocks.popleft()
+                self.dropped += TRACE_BLOCK
+        row = self.blocks[-1][self.fill]
+        row[0] = t_s
+        row[1:7] = q
+        row[7:13] = pose
+        row[13] = line
+        self.fill += 1
+
+    def rows(self, start: int = 0, stop: int | None = None, every: int = 1) -> np.ndarray:
+        """Samples ``start`` .. ``stop`` (indices counted from the program's start, dropped ones
+        included), every ``every``-th, shape (K, 14): t, q0..q5, x, y, z, rx, ry, rz, line
+        (of a standalone program; 0 for none)."""
+        size = len(self)
+        first = max(start - self.dropped, 0)
+        last = size if stop is None else max(min(stop - self.dropped, size), first)
+        if first >= last:
+            return np.empty((0, 14))
+        # Only the blocks asked for are copied: this runs under the controller's lock.
+        blocks = list(self.blocks)[first // TRACE_BLOCK : (last - 1) // TRACE_BLOCK + 1]
+        offset = (first // TRACE_BLOCK) * TRACE_BLOCK
+        data = np.concatenate(blocks)
+        return data[first - offset : last - offset : every]
 
 
 @dataclass
@@ -177,7 +243,22 @@ class FakeController:
         self.protective_stop_s = 0.0  # controller time of the last protective stop
         # RTDE input fields and the connection that set them up (one writer per field).
         self.input_owners: dict[str, object] = {}
+        # A standalone URScript program and what became of the last program of either kind.
+        self.runner: urscript.Runner | None = None
+        self.run: urscript.RunState | None = None
+        self.trace = Trace()
+        self._trace_until: float | None = None  # recording ends then (None: while running)
+        self._pose_cache: tuple[bytes, list[float]] = (b"", [])
+        self.reset_tool()
         self.reset_arm()
+
+    def reset_tool(self) -> None:
+        """No TCP offset (the flange) and no payload, as after a reset."""
+        with self.lock:
+            self.tcp_offset = np.zeros(6)  # flange -> TCP, pose (m, rotation vector)
+            self.payload_kg = 0.0
+            self.payload_cog_m = np.zeros(3)
+            self.payload_inertia = np.zeros(6)  # Ixx, Iyy, Izz, Ixy, Ixz, Iyz (kg m^2)
 
     def clear_registers(self) -> None:
         """Zero the general purpose registers (commands, arguments, results)."""
@@ -214,8 +295,21 @@ class FakeController:
     def qd(self) -> np.ndarray:
         return self.sim._qd
 
-    def tcp_pose(self, q=None) -> list[float]:
-        T = kinematics.forward(self.arm, self.q if q is None else np.asarray(q))
+    def tcp_pose(self, q=None, tcp=None) -> list[float]:
+        """The TCP pose at ``q`` (default: now) with ``tcp`` (default: the active TCP)."""
+        if q is None and tcp is None:
+            # Asked several times a period (stream, trace, status): computed once per state.
+            key = self.q.tobytes() + self.tcp_offset.tobytes()
+            if self._pose_cache[0] != key:
+                self._pose_cache = (key, self._tcp_pose(self.q, self.tcp_offset))
+            return list(self._pose_cache[1])
+        offset = self.tcp_offset if tcp is None else np.asarray(tcp, dtype=np.float64)
+        return self._tcp_pose(self.q if q is None else np.asarray(q), offset)
+
+    def _tcp_pose(self, q, offset) -> list[float]:
+        T = kinematics.forward(self.arm, q)
+        if np.any(offset):
+            T = T @ transform_from_pose(offset)
         return pose_from_transform(T).tolist()
 
     @property
@@ -224,7 +318,7 @@ class FakeController:
 
     @property
     def emergency_stopped(self) -> bool:
-        return self.safety_mode == SAFETY_ROBOT_EMERGENCY_STOP
+        return self.safety_mode in EMERGENCY_STOPS
 
     @property
     def can_move(self) -> bool:
@@ -243,6 +337,8 @@ class FakeController:
         safety_bits = {
             SAFETY_NORMAL: SAFETY_BIT_NORMAL,
             SAFETY_PROTECTIVE_STOP: SAFETY_BIT_PROTECTIVE_STOPPED,
+            SAFETY_SYSTEM_EMERGENCY_STOP: SAFETY_BIT_SYSTEM_EMERGENCY_STOPPED
+            | SAFETY_BIT_EMERGENCY_STOPPED,
             SAFETY_ROBOT_EMERGENCY_STOP: SAFETY_BIT_ROBOT_EMERGENCY_STOPPED
             | SAFETY_BIT_EMERGENCY_STOPPED,
         }[self.safety_mode]
@@ -267,6 +363,10 @@ class FakeController:
             "actual_robot_voltage": 48.0 if self.robot_mode >= 4 else 0.0,
             "joint_temperatures": [30.0] * 6,
             "actual_execution_time": 0.1,
+            "payload": self.payload_kg,
+            "payload_cog": [float(v) for v in self.payload_cog_m],
+            "payload_inertia": [float(v) for v in self.payload_inertia],
+            "script_control_line": self._control_line(),
         }
         for i in range(REGISTER_COUNT):
             values[f"output_int_register_{i}"] = self.out_int[i]
@@ -288,23 +388,52 @@ class FakeController:
     def load_program(self, text: str) -> bool:
         """A program arrived on a script port: stop the running one and start it.
 
-        Returns False when the controller refuses to start programs (not running, a safety stop).
+        ur_rtde's control script is emulated by its register protocol; any other program is
+        compiled by :mod:`.urscript` (outside the lock: a long program takes a while) and run
+        by the tick. Returns False when the program does not start: the controller refuses
+        programs (frozen, local control, not running, a safety stop) or it does not compile.
         """
         info = cs.inspect(text)
+        program: urscript.Program | None = None
+        compile_error: urscript.CompileError | None = None
+        if not info.is_rtde_control:
+            try:
+                program = urscript.compile_program(text)
+            except urscript.CompileError as error:
+                compile_error = error
         with self.lock:
             if self.frozen:  # a controller that stopped answering starts nothing either
                 log.warning("frozen: program %s not started", info.name)
                 return False
-            self.stop_program()
+            name = info.name or (program.name if program else "") or "<unnamed>"
+            if not self.remote_control:
+                # In local control the controller takes no programs from the script ports.
+                self._refused(name, "the controller is in local control")
+                return False
+            self.stop_program("replaced by a new program")
             if not self.can_move:
-                log.warning("refusing to start %s: the arm is not ready to run programs", info.name)
+                log.warning("refusing to start %s: the arm is not ready to run programs", name)
+                self._refused(name, "the arm is not ready to run programs (safety stop or off)")
                 return False
             self.script = info
-            self.program_name = info.name or "<unnamed>"
-            if not info.is_rtde_control:
-                # Any other URScript: accepted and "run" as a no-op (the fake only emulates
-                # ur_rtde's control script).
-                log.info("program %s is not ur_rtde's control script: not emulated", info.name)
+            self.program_name = name
+            self.runner = None
+            self.run = urscript.RunState(started_s=self.t_s)
+            if compile_error is not None:
+                message = f"Compile error: {compile_error}"
+                log.warning("program %s not started: %s", name, message)
+                self.messages.append(message)
+                self.run.state, self.run.line = "error", compile_error.line
+                self.run.message, self.run.ended_s = compile_error.message, self.t_s
+                return False
+            self.trace = Trace()
+            self._trace_until = None
+            if program is not None:
+                self.runner = urscript.Runner(program, self, status=self.run)
+                self.runtime_state = RUNTIME_PLAYING
+                log.info(
+                    "running URScript program %s (%d statements)", name, len(program.statements)
+                )
                 return True
             self.runtime_state = RUNTIME_PLAYING
             # A controller takes a while to compile and start a program; ur_rtde clears its
@@ -324,22 +453,67 @@ class FakeController:
             )
             return True
 
-    def stop_program(self) -> None:
+    def _refused(self, name: str, reason: str) -> None:
+        log.warning("program %s refused: %s", name, reason)
+        self.run = urscript.RunState(
+            state="refused", message=reason, started_s=self.t_s, ended_s=self.t_s
+        )
+
+    def restart_program(self) -> bool:
+        """The dashboard's ``play``: run the last standalone program again from its start, or
+        resume ur_rtde's control script loop. False if there is none or the arm cannot move."""
+        with self.lock:
+            if self.script is None or not self.can_move or not self.remote_control:
+                return False
+            if self.script.is_rtde_control:
+                self.runtime_state = RUNTIME_PLAYING
+                return True
+            program = self.runner.program if self.runner is not None else None
+            if program is None:
+                return False
+            self.stop_program("restarted")
+            self.run = urscript.RunState(started_s=self.t_s)
+            self.runner = urscript.Runner(program, self, status=self.run)
+            self.trace = Trace()
+            self._trace_until = None
+            self.runtime_state = RUNTIME_PLAYING
+            return True
+
+    def stop_program(self, reason: str = "stopped") -> None:
+        """Stop the running program (the arm brakes); ``reason`` is what ``program_status``
+        reports for a program stopped while running."""
         with self.lock:
             if self.runtime_state == RUNTIME_PLAYING:
-                log.info("program %s stopped", self.program_name)
+                log.info("program %s stopped (%s)", self.program_name, reason)
+                if self.run is not None and self.run.state == "running":
+                    self.run.state, self.run.message = "stopped", reason
+                    self.run.line = self._control_line() or None
+                    self.run.ended_s = self.t_s
+                self._trace_until = self.t_s + TRACE_TAIL_S
             self.runtime_state = RUNTIME_STOPPED
             self._waiting_sync = None
             if self.motion is not None:
                 self.motion = _Motion("brake", iter(()))
             self.servo_target = None
 
-    def runtime_error(self, message: str) -> None:
+    def runtime_error(self, message: str, line: int | None = None) -> None:
         """Stop the program as a URScript runtime error does (the arm brakes)."""
         with self.lock:
+            if self.run is not None and self.run.state == "running":
+                line = line if line is not None else (self._control_line() or None)
+                self.run.state, self.run.message, self.run.line = "error", message, line
+                self.run.ended_s = self.t_s
+            if self.runner is not None and line is not None:
+                message = f"line {line}: {message}"
             log.warning("runtime error, program stopped: %s", message)
             self.messages.append(message)
-            self.stop_program()
+            self.stop_program("runtime error")
+
+    def _control_line(self) -> int:
+        """The line the standalone program executes (0 when none runs)."""
+        if self.runner is None or self.runtime_state != RUNTIME_PLAYING:
+            return 0
+        return self.runner.current_line() or 0
 
     def _i(self, index: int) -> int:
         return index + (self.script.int_offset if self.script else 0)
@@ -357,14 +531,20 @@ class FakeController:
             log.warning("protective stop: %s", reason)
             self.safety_mode = SAFETY_PROTECTIVE_STOP
             self.protective_stop_s = self.t_s
-            self._halt()
+            self._halt(f"protective stop: {reason}")
 
-    def emergency_stop(self) -> None:
+    def emergency_stop(self, source: str = "robot") -> None:
+        """An emergency stop: ``source`` "robot" (the pendant's button: ROBOT_EMERGENCY_STOP)
+        or "system" (an external e-stop input: SYSTEM_EMERGENCY_STOP). The arm powers off."""
+        if source not in ("robot", "system"):
+            raise ValueError(f"emergency stop source is 'robot' or 'system', not {source!r}")
         with self.lock:
-            log.warning("emergency stop")
-            self.safety_mode = SAFETY_ROBOT_EMERGENCY_STOP
+            log.warning("emergency stop (%s)", source)
+            self.safety_mode = (
+                SAFETY_ROBOT_EMERGENCY_STOP if source == "robot" else SAFETY_SYSTEM_EMERGENCY_STOP
+            )
             self.robot_mode = ROBOT_MODE_POWER_OFF
-            self._halt()
+            self._halt(f"{source} emergency stop")
 
     def release_emergency_stop(self) -> None:
         with self.lock:
@@ -386,23 +566,55 @@ class FakeController:
             self.safety_mode = SAFETY_NORMAL
             return True
 
-    def _halt(self) -> None:
+    def _halt(self, reason: str) -> None:
         """The arm stops hard and the program stops, as a safety stop does."""
         self.sim._qd[:] = 0.0
         self.motion = None
         self.servo_target = None
-        self.stop_program()
+        self.stop_program(reason)
 
     # -- one control period --------------------------------------------------------------------
 
     def step(self) -> None:
-        """Advance by one control period: the script loop, then the physics."""
+        """Advance by one control period: the script loop (ur_rtde's or a standalone
+        program's), then the physics, then the program's trace."""
         with self.lock:
             self.t_s += self.dt_s
             script = self.script
-            if self.runtime_state == RUNTIME_PLAYING and script and script.is_rtde_control:
+            playing = self.runtime_state == RUNTIME_PLAYING
+            if playing and script and script.is_rtde_control:
                 self._script_loop()
+            elif playing and self.runner is not None:
+                self._program_step(self.runner)
             self._physics()
+            self._record()
+
+    def _program_step(self, runner: urscript.Runner) -> None:
+        try:
+            runner.step()
+        except ScriptRuntimeError as error:
+            self.runtime_error(str(error), getattr(error, "line", None) or runner.status.line)
+            return
+        except Exception:
+            # A bug in the fake: stopped like a runtime error, so the program never hangs.
+            log.exception("program %s failed inside the fake controller", self.program_name)
+            self.runtime_error("internal error of the fake controller", runner.status.line)
+            return
+        if runner.finished:
+            log.info("program %s finished", self.program_name)
+            self.messages.append(f"Program {self.program_name} finished")
+            self.runtime_state = RUNTIME_STOPPED
+            self._trace_until = self.t_s + TRACE_TAIL_S
+
+    def _record(self) -> None:
+        if self.run is None or self.script is None:
+            return
+        if self.runtime_state != RUNTIME_PLAYING:
+            if self._trace_until is None or self.t_s > self._trace_until:
+                return
+            if float(np.abs(self.qd).max()) < SETTLED_RAD_S:
+                self._trace_until = None  # at rest after the program: the trace is complete
+        self.trace.append(self.t_s, self.q, self.tcp_pose(), self._control_line())
 
     def _script_loop(self) -> None:
         """One pass of the control script's main loop."""
@@ -423,7 +635,7 @@ class FakeController:
                 self.command_log.append((self.t_s, cmd))
                 if cmd == cs.CMD_STOP_SCRIPT:
                     self.messages.append("Received stop script!")
-                    self.stop_program()
+                    self.stop_program("stopScript")
                     return
                 if not self._process(cmd):
                     self.out_int[self._i(0)] = 2
@@ -475,10 +687,28 @@ class FakeController:
             return self._move(cmd)
         if cmd == cs.CMD_MOVE_PATH:
             return self._move_path()
-        if cmd in (cs.CMD_GET_FORWARD_KIN_DEFAULT, cs.CMD_GET_FORWARD_KIN_ARGS):
-            q = self.q if cmd == cs.CMD_GET_FORWARD_KIN_DEFAULT else self._float_regs(0)
-            for k, v in enumerate(self.tcp_pose(q)):
-                self.out_double[self._f(k)] = float(v)
+        if cmd == cs.CMD_GET_FORWARD_KIN_DEFAULT:  # get_forward_kin(): now, the active TCP
+            self._write_pose(self.tcp_pose())
+            return False
+        if cmd == cs.CMD_GET_FORWARD_KIN_ARGS:
+            # get_forward_kin(q, tcp_offset): the script reads the TCP from float registers
+            # 6-11 whether or not the client wrote them -- ur_rtde's getForwardKinematics(q)
+            # without a TCP sends q only, so a real controller uses whatever the registers
+            # held last (a quirk of the client, emulated as such).
+            self._write_pose(self.tcp_pose(self._float_regs(0), tcp=self._float_regs(6)))
+            return False
+        if cmd == cs.CMD_SET_TCP:
+            self.set_tcp(self._float_regs(0))
+            return False
+        if cmd == cs.CMD_GET_TCP_OFFSET:
+            self._write_pose(self.tcp_offset)
+            return False
+        if cmd in (cs.CMD_SET_PAYLOAD, cs.CMD_SET_TARGET_PAYLOAD):
+            mass = float(self.in_double[self._f(0)])
+            cog = self._float_regs(1, 3)
+            inertia = self._float_regs(4, 6) if cmd == cs.CMD_SET_TARGET_PAYLOAD else None
+            # The script keeps the current centre of gravity when the client sends zeros.
+            self.set_payload(mass, cog if np.any(cog) else None, inertia)
             return False
         if cmd in (cs.CMD_GET_INVERSE_KIN_ARGS, cs.CMD_GET_INVERSE_KIN_DEFAULT):
             near = self._float_regs(6) if cmd == cs.CMD_GET_INVERSE_KIN_ARGS else self.q
@@ -511,11 +741,17 @@ class FakeController:
             self._write_async_progress(-1)
             self.motion = None
 
-    def _brake(self, name: str, linear: bool, *, sync: bool, is_async: bool) -> _Motion:
-        """A stop at the deceleration in float register 0: ``stopj(a)`` (rad/s^2, the fastest
-        joint) or, ``linear``, ``stopl(a)`` (m/s^2 of the tool). All joints slow down in
-        proportion, so the arm stops on the line it was moving along."""
-        rate = float(self.in_double[self._f(0)])
+    def _write_pose(self, pose) -> None:
+        for k, v in enumerate(pose):
+            self.out_double[self._f(k)] = float(v)
+
+    def _brake(
+        self, name: str, linear: bool, *, sync: bool, is_async: bool, rate: float | None = None
+    ) -> _Motion:
+        """A stop at ``rate`` (default: the deceleration in float register 0): ``stopj(a)``
+        (rad/s^2, the fastest joint) or, ``linear``, ``stopl(a)`` (m/s^2 of the TCP). All joints
+        slow down in proportion, so the arm stops on the line it was moving along."""
+        rate = float(self.in_double[self._f(0)]) if rate is None else float(rate)
         if not rate > 0:
             raise ScriptRuntimeError(f"{'stopl' if linear else 'stopj'}: deceleration must be > 0")
         qd = np.abs(self.qd)
@@ -640,14 +876,18 @@ class FakeController:
             q = q + qd * self.dt_s
             yield q.copy()
 
-    def _ik(self, pose, q_near) -> np.ndarray | None:
-        """The IK solution of a flange pose nearest ``q_near`` (None if unreachable)."""
-        return self._ik_many(np.asarray(pose, dtype=np.float64)[None], q_near)[0]
+    def _ik(self, pose, q_near, tcp=None) -> np.ndarray | None:
+        """The IK solution of a TCP pose (``tcp``, default the active TCP) nearest ``q_near``
+        (None if unreachable)."""
+        return self._ik_many(np.asarray(pose, dtype=np.float64)[None], q_near, tcp)[0]
 
-    def _ik_many(self, poses: np.ndarray, q_near) -> list[np.ndarray | None]:
-        """IK of poses (N, 6) in order, each solution nearest the previous one (the first
+    def _ik_many(self, poses: np.ndarray, q_near, tcp=None) -> list[np.ndarray | None]:
+        """IK of TCP poses (N, 6) in order, each solution nearest the previous one (the first
         nearest ``q_near``); None where a pose is unreachable."""
         T = transform_from_pose(poses[:, :6])
+        offset = self.tcp_offset if tcp is None else np.asarray(tcp, dtype=np.float64)
+        if np.any(offset):
+            T = T @ invert_transform(transform_from_pose(offset))  # T_base_flange
         solutions = kinematics.inverse(self.arm, T)
         near = np.asarray(q_near, dtype=np.float64)
         out: list[np.ndarray | None] = []
@@ -662,34 +902,175 @@ class FakeController:
             out.append(near)
         return out
 
-    def _line_targets(self, q0, pose, speed, acceleration):
-        """Fractions (K,) of a straight TCP line to ``pose`` (trapezoidal in distance) and its
-        joint targets, solved lazily :data:`IK_CHUNK` at a time as the motion consumes them --
-        solving a long line at once would stall the control tick for seconds.
+    def _line_targets(self, q0, pose, speed, acceleration, time_s: float = 0.0):
+        """Fractions (K,) of a straight TCP line to ``pose`` (trapezoidal in distance; lasting
+        ``time_s`` if > 0) and its joint targets, solved lazily :data:`IK_CHUNK` at a time as
+        the motion consumes them -- solving a long line at once would stall the control tick
+        for seconds.
 
         Raises ScriptRuntimeError from the iterator when a point of the line has no IK
         solution (movel fails mid-way on a real controller too)."""
         start = np.asarray(self.tcp_pose(q0))
         distance = float(np.linalg.norm(pose[:3] - start[:3]))
+        if time_s > 0:
+            speed, acceleration = urscript.timed_profile(distance, acceleration, time_s)
         fractions = trapezoid_fractions(max(distance, 1e-9), speed, acceleration, self.dt_s)
         slerp = Slerp([0.0, 1.0], Rotation.from_rotvec([start[3:6], pose[3:6]]))
 
+        def poses(first: int, last: int) -> np.ndarray:
+            s = fractions[first:last]
+            return np.hstack(
+                [start[:3] + s[:, None] * (pose[:3] - start[:3]), slerp(s).as_rotvec()]
+            )
+
+        return fractions, self._solve_stream(q0, len(fractions), poses, "movel")
+
+    def _solve_stream(self, q0, count: int, poses, what: str) -> Iterator[np.ndarray]:
+        """Joint targets for ``count`` TCP poses (``poses(first, last)`` gives rows first ..
+        last - 1), each nearest the previous, solved :data:`IK_CHUNK` at a time with the TCP
+        active when the move started."""
+        tcp = self.tcp_offset.copy()
+
         def solve() -> Iterator[np.ndarray]:
             q = np.asarray(q0, dtype=np.float64)
-            for first in range(0, len(fractions), IK_CHUNK):
-                s = fractions[first : first + IK_CHUNK]
-                points = np.hstack(
-                    [start[:3] + s[:, None] * (pose[:3] - start[:3]), slerp(s).as_rotvec()]
-                )
-                for q_next in self._ik_many(points, q):
+            for first in range(0, count, IK_CHUNK):
+                for q_next in self._ik_many(poses(first, first + IK_CHUNK), q, tcp):
                     if q_next is None:
                         raise ScriptRuntimeError(
-                            "movel: no inverse kinematics solution on the line"
+                            f"{what}: no inverse kinematics solution on the line"
                         )
                     q = q_next
                     yield q
 
-        return fractions, solve()
+        return solve()
+
+    # -- the host of a standalone program (urscript.Runner) -------------------------------------
+
+    def message(self, text: str) -> None:
+        """textmsg: the program's log line."""
+        log.info("textmsg: %s", text)
+        self.messages.append(text)
+
+    def set_tcp(self, pose) -> None:
+        pose = np.asarray(pose, dtype=np.float64)
+        if pose.shape != (6,) or not np.all(np.isfinite(pose)):
+            raise ScriptRuntimeError("set_tcp: the TCP must be a pose of 6 finite numbers")
+        self.tcp_offset = pose.copy()
+        log.info("active TCP set to %s", np.round(pose, 6).tolist())
+
+    def set_payload(self, mass, cog=None, inertia=None) -> None:
+        """The active payload (mass None / cog None: kept as it is)."""
+        if mass is not None:
+            if not (np.isfinite(mass) and mass >= 0):
+                raise ScriptRuntimeError(f"set_payload: the mass must be >= 0, got {mass}")
+            self.payload_kg = float(mass)
+        if cog is not None:
+            self.payload_cog_m = np.asarray(cog, dtype=np.float64).copy()
+        if inertia is not None:
+            self.payload_inertia = np.asarray(inertia, dtype=np.float64).copy()
+        log.info("payload set to %.3f kg at %s", self.payload_kg, self.payload_cog_m.tolist())
+
+    def motion_running(self, motion) -> bool:
+        return self.motion is motion
+
+    def servo(self, q, t: float, lookahead_s: float, gain: float) -> int:
+        """servoj: approach ``q`` over ``t`` through the lookahead model; its length in control
+        periods (the time the call takes)."""
+        self.servo_target = np.asarray(q, dtype=np.float64)
+        self.servo_time_s = max(float(t), self.dt_s)
+        self.sim._delay = max(1, int(round(lookahead_s / self.dt_s)))
+        self.sim._omega = float(np.sqrt(gain))
+        if self.motion is None or self.motion.name != "servoj":
+            self.motion = _Motion("servoj", self._servo_targets(), started_s=self.t_s)
+        return max(1, int(round(self.servo_time_s / self.dt_s)))
+
+    def settle_servo(self) -> _Motion | None:
+        """End a servoj stream: hold its last target until the arm rests on it."""
+        motion = self.motion
+        target = self.servo_target
+        self.servo_target = None
+        if motion is None or motion.name != "servoj" or target is None:
+            return None
+        settle = _Motion("move", iter(()), started_s=self.t_s, expected_s=SETTLE_MAX_S)
+        settle.last = target
+        self.motion = settle
+        return settle
+
+    def brake(self, linear: bool, rate: float) -> _Motion:
+        """stopj(a) / stopl(a): brake at ``rate``."""
+        self.servo_target = None
+        motion = self._brake("stop", linear, sync=False, is_async=False, rate=rate)
+        motion.started_s = self.t_s
+        self.motion = motion
+        return motion
+
+    def start_moves(self, moves) -> tuple[_Motion, np.ndarray]:
+        """Start one move or a run of blended moves (``urscript._MoveArgs``, one space); the
+        motion and the tick at which each move after the first starts."""
+        q0 = self.q.copy()
+        if moves[0].kind == "movej":
+            goals = [q0]
+            for move in moves:
+                goal = self._ik(move.target, goals[-1]) if move.is_pose else move.target
+                if goal is None:
+                    raise _at(move, "movej: no inverse kinematics solution for the pose")
+                goals.append(np.asarray(goal, dtype=np.float64))
+            if len(moves) == 1:
+                move = moves[0]
+                distance = float(np.abs(goals[1] - q0).max())
+                speed, acceleration = move.v, move.a
+                if move.t > 0:
+                    speed, acceleration = urscript.timed_profile(distance, move.a, move.t)
+                fractions = trapezoid_fractions(distance, speed, acceleration, self.dt_s)
+                targets = iter(q0 + (goals[1] - q0) * fractions[:, None])
+                return self._begin(targets, len(fractions)), np.zeros(0, int)
+            q = np.array(goals)
+            lengths = np.abs(np.diff(q, axis=0)).max(axis=1)
+            speeds, acceleration = _run_limits(moves, lengths)
+            path = CoarsePath(
+                sample_index=np.arange(len(q)),
+                q_rad=q,
+                speed_rad_s=np.array([speeds[0], *speeds]),
+                acceleration_rad_s2=acceleration,
+                blend_m=np.array([0.0] + [m.r for m in moves[:-1]] + [0.0]),
+                deviation_max_m=0.0,
+            )
+            targets, s_at, knots = _path_samples(path, self.dt_s)
+            ticks = np.searchsorted(s_at, knots[1:-1] - 1e-9)
+            return self._begin(iter(targets), len(targets)), ticks
+        # Tool space: movel / movep (joint targets mean their TCP pose).
+        poses = []
+        near = q0
+        for move in moves:
+            pose = move.target if move.is_pose else np.asarray(self.tcp_pose(move.target))
+            solution = self._ik(pose, near)
+            if solution is None:
+                raise _at(move, f"{move.kind}: no inverse kinematics solution for the pose")
+            poses.append(np.asarray(pose, dtype=np.float64))
+            near = solution
+        if len(moves) == 1 and moves[0].kind == "movel":
+            move = moves[0]
+            fractions, targets = self._line_targets(q0, poses[0], move.v, move.a, move.t)
+            return self._begin(targets, len(fractions)), np.zeros(0, int)
+        start = np.asarray(self.tcp_pose(q0))
+        points = np.array([start[:3], *[p[:3] for p in poses]])
+        speeds, acceleration = _run_limits(moves, np.linalg.norm(np.diff(points, axis=0), axis=1))
+        path = urscript.tool_path(
+            start,
+            poses,
+            speeds=speeds,
+            accelerations=[acceleration],
+            blends_m=[m.r for m in moves],
+            dt=self.dt_s,
+        )
+        samples = path.poses
+        targets = self._solve_stream(q0, len(samples), lambda a, b: samples[a:b], moves[0].kind)
+        return self._begin(targets, len(samples)), path.move_ticks
+
+    def _begin(self, targets: Iterator[np.ndarray], count: int) -> _Motion:
+        motion = _Motion("move", targets, started_s=self.t_s, expected_s=count * self.dt_s)
+        self.motion = motion
+        return motion
 
     # -- physics and async progress ------------------------------------------------------------
 
@@ -789,3 +1170,20 @@ class FakeController:
         if motion is None:
             return None
         return motion.name, self.t_s - motion.started_s, motion.expected_s
+
+
+def _at(move, message: str) -> ScriptRuntimeError:
+    """A runtime error at the line of ``move`` (within a run of blended moves)."""
+    error = ScriptRuntimeError(message)
+    error.line = move.line  # type: ignore[attr-defined]
+    return error
+
+
+def _run_limits(moves, lengths) -> tuple[list[float], float]:
+    """Speed caps of a run of blended moves (a move's ``t`` becomes the speed that covers its
+    length in ``t``) and the run's acceleration (the lowest ``a`` of its moves)."""
+    speeds = [
+        m.v if m.t == 0 else max(float(d) / m.t, 1e-6) for m, d in zip(moves, lengths, strict=True)
+    ]
+    untimed = [m.a for m in moves if m.t == 0]
+    return speeds, float(min(untimed) if untimed else 4 * max(speeds))

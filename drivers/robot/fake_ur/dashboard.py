@@ -45,16 +45,16 @@ def reply(c: ctl.FakeController, line: str, *, polyscope: str, serial: str, mode
         if lower == "get loaded program":
             return f"Loaded program: {c.program_name}"
         if lower == "play":
-            if c.script is None or not c.can_move:
+            # A standalone program starts again from its first line; ur_rtde's script
+            # resumes its loop. Refused in local control, as on an e-series controller.
+            if not c.restart_program():
                 return "Failed to execute: play"
-            if c.script.is_rtde_control:
-                c.runtime_state = ctl.RUNTIME_PLAYING
             return "Starting program"
         if lower == "stop":
             # "Stopped" also when nothing runs: ur_rtde stops its old script through the
             # registers and then on the dashboard when it reconnects, and fails on any other
             # reply -- which it could not do against a real controller.
-            c.stop_program()
+            c.stop_program("stopped from the dashboard")
             return "Stopped"
         if lower == "pause":
             return "Pausing program"
@@ -65,7 +65,7 @@ def reply(c: ctl.FakeController, line: str, *, polyscope: str, serial: str, mode
                 c.robot_mode = ctl.ROBOT_MODE_IDLE
             return "Powering on"
         if lower == "power off":
-            c.stop_program()
+            c.stop_program("powered off")
             c.robot_mode = ctl.ROBOT_MODE_POWER_OFF
             return "Powering off"
         if lower == "brake release":

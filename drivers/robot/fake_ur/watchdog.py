@@ -25,7 +25,13 @@ def watch(controller: FakeController, stop: threading.Event, *, period_s: float 
     while not stop.wait(period_s):
         with controller.lock:
             busy = controller.busy_command()
-            playing = controller.runtime_state == 2 and controller.script is not None
+            # Only ur_rtde's control script reads the command register (a standalone program
+            # leaves whatever a client wrote there last).
+            playing = (
+                controller.runtime_state == 2
+                and controller.script is not None
+                and controller.script.is_rtde_control
+            )
             offset = controller.script.int_offset if controller.script else 0
             cmd = controller.in_int[offset]
             # Done is the only answer to a command; "executing" is not one -- a command the
