@@ -946,6 +946,10 @@ class FakeController:
 
     # -- the host of a standalone program (urscript.Runner) -------------------------------------
 
+    def actual_q(self):
+        """The arm's joints now (for a program's start check)."""
+        return np.array(self.q, dtype=np.float64)
+
     def message(self, text: str) -> None:
         """textmsg: the program's log line."""
         log.info("textmsg: %s", text)

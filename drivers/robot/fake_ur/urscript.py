@@ -156,6 +156,9 @@ FUNCTIONS: dict[str, Signature] = {
     "sync": _sig(),
     "sleep": _sig("t"),
     "halt": _sig(),
+    "popup": _sig(
+        "s", ("title", "Popup"), ("warning", False), ("error", False), ("blocking", False)
+    ),
     "set_tcp": _sig("pose"),
     "set_payload": _sig("m", ("cog", None)),
     "set_payload_mass": _sig("m"),
@@ -197,6 +200,7 @@ class Statement:
     function: str
     args: tuple
     target: str | None = None
+    body: tuple[Statement, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -222,6 +226,13 @@ _FAST_CALL = re.compile(
 )
 _FAST_REST = re.compile(rf"\s*,\s*(?:([A-Za-z_]\w*)\s*=\s*)?({_NUMBER})")
 _DEF = re.compile(r"^def\s+([A-Za-z_]\w*)\s*\(\s*\)\s*:$")
+# The one conditional the subset has: a check that the arm stands where a program starts
+# (``teachpath export-urscript`` writes it): ``if norm(get_actual_joint_positions() - X) > D:``
+# opening a block of calls (a popup, halt) closed by ``end``.
+_JOINT_GUARD = re.compile(
+    rf"^if\s+norm\s*\(\s*get_actual_joint_positions\s*\(\s*\)\s*-\s*(?P<target>.+?)\s*\)"
+    rf"\s*>\s*(?P<limit>{_NUMBER})\s*:$"
+)
 _CALL_PROGRAM = re.compile(r"^([A-Za-z_]\w*)\s*\(\s*\)$")
 
 
@@ -408,10 +419,29 @@ def compile_program(text: str) -> Program:
     name = ""
     state = "bare"  # bare -> (def) body -> after
     called = False
+    guard: tuple[int, object, float, list[Statement]] | None = None  # an open joint guard
     lines = text.splitlines()
     for number, raw in enumerate(lines, start=1):
         code = _strip_comment(raw)
         if not code:
+            continue
+        if code == "halt":  # a statement in URScript, with or without parentheses here
+            code = "halt()"
+        if guard is not None:
+            if code == "end":
+                line, target, limit, body = guard
+                statements.append(Statement(line, "joint_guard", (target, limit), body=tuple(body)))
+                guard = None
+                continue
+            statement = _statement(code, number)
+            if statement.function not in ("popup", "textmsg", "halt"):
+                raise CompileError(number, "the start check may only hold popup, textmsg and halt")
+            guard[3].append(statement)
+            continue
+        match = _JOINT_GUARD.match(code)
+        if match is not None:
+            tokens = _Tokens(match.group("target"), number)
+            guard = (number, _expression(tokens), float(match.group("limit")), [])
             continue
         match = _DEF.match(code)
         if match is not None:
@@ -431,6 +461,8 @@ def compile_program(text: str) -> Program:
             called = True  # the program runs once either way
             continue
         statements.append(_statement(code, number))
+    if guard is not None:
+        raise CompileError(guard[0], "the start check (if ...:) has no 'end'")
     if state == "body":
         raise CompileError(len(lines), f"def {name}() has no 'end'")
     return Program(name=name or "<script>", statements=tuple(statements), lines=len(lines))
@@ -633,11 +665,12 @@ class Runner:
     period; ``stopj`` / ``stopl`` brake at their rate and return once the arm rests.
 
     The host (the fake controller) provides ``t_s``, ``dt_s``, ``message(text)``,
-    ``set_tcp(pose)``, ``set_payload(mass, cog, inertia)`` (None: kept),
-    ``start_moves(moves)`` (starts one move or a blended run; returns its motion and the tick
-    at which each move after the first starts), ``servo(q, t, lookahead, gain)`` (returns the
-    call's length in control periods), ``settle_servo()`` (a motion, or None when no servo
-    stream runs), ``brake(linear, a)`` (a motion) and ``motion_running(motion)``. Its methods
+    ``set_tcp(pose)``, ``set_payload(mass, cog, inertia)`` (None: kept), ``actual_q()`` (the
+    arm's joints now), ``start_moves(moves)`` (starts one move or a blended run; returns its
+    motion and the tick at which each move after the first starts), ``servo(q, t, lookahead,
+    gain)`` (returns the call's length in control periods), ``settle_servo()`` (a motion, or
+    None when no servo stream runs), ``brake(linear, a)`` (a motion) and
+    ``motion_running(motion)``. Its methods
     raise :class:`ScriptRuntimeError` (with a ``line`` attribute for a move within a run).
     """
 
@@ -747,8 +780,19 @@ class Runner:
             self._moves()
             return
         self.pc += 1
-        if function == "textmsg":
+        if function == "joint_guard":
+            target, _ = self._vector("norm", "the start joints", args[0], 6, pose=False)
+            if float(np.linalg.norm(self.host.actual_q() - target)) > args[1]:
+                resume = self.pc  # the body's statements are not the program's
+                for inner in statement.body:
+                    self._execute(inner)
+                    if self.finished:
+                        return
+                self.pc = resume
+        elif function == "textmsg":
             self.host.message("".join(_text(self._value(a)) for a in args))
+        elif function == "popup":
+            self.host.message(f"popup: {_text(self._value(args[0]))}")
         elif function == "sync":
             until = self.host.t_s + 0.5 * self.host.dt_s
             self._wait = lambda: self.host.t_s > until
