@@ -90,8 +90,8 @@ still meets the surface outside that tube, as a real 20 mm rod would (give a thi
 :class:`SphereTool` for steep tools). Wrist 3 is exempted too when the tool is so short that
 wrist 3's capsule reaches within the contact radius of the TCP; wrist 2 and the links above never
 are. Everywhere else, and always for the other links, the scan counts in full (the exempt
-points are found on the path's vertices, densified to a quarter of the contact radius, so the
-tube exempted is never wider than stated).
+points are found around points of the path a quarter of the contact radius apart, so the tube
+exempted is never wider than stated).
 
 What is not checked: self-collision between links (tool against base, forearm against upper arm),
 cables and dress packs, and the payload; the arm is assumed to follow its samples (no overshoot).
@@ -788,11 +788,12 @@ def _scan_clearance(
     ``d`` from the nearest point has clearance between ``d - w - r`` and ``d - r``. The whole
     segment around its midpoint first; where that is inside the horizon, stretches of about the
     radius; then, branch and bound, the stretches that may hold the capsule's minimum (their
-    lower bound below the smallest upper bound) and are below ``refine_below_m`` are halved
-    until ``w <= fine_m / 2``. Every value is a lower bound on the true clearance, below it by at
-    most ``fine_m / 2`` where the truth is between ``-_DEEP_M`` and ``refine_below_m``; stretches
-    certainly deeper inside are not refined (their depth is of no use, and queries from inside
-    a closed scanned surface are slow). Values at or beyond the horizon are ``horizon_m``.
+    lower bound more than ``fine_m / 2`` below the smallest upper bound) and are below
+    ``refine_below_m`` are halved until ``w <= fine_m / 2``. Every value is a lower bound on the
+    true clearance, below it by at most ``fine_m / 2`` where the truth is between ``-_DEEP_M``
+    and ``refine_below_m``; stretches certainly deeper inside are not refined (their depth is of
+    no use, and queries from inside a closed scanned surface are slow). Values at or beyond the
+    horizon are ``horizon_m``.
 
     Parameters
     ----------
@@ -838,10 +839,12 @@ def _scan_clearance(
     np.minimum.at(best_ub, leaf_row, d - radius)
     while True:
         lb = d - leaf_w - radius
+        # Branch and bound: a stretch whose lower bound is within fine/2 of the best upper bound
+        # cannot improve the answer by more than that; nor one above refine_below_m.
         split = (
             (leaf_w > fine_m / 2)
             & (lb < refine_below_m)
-            & (lb < best_ub[leaf_row])
+            & (lb < best_ub[leaf_row] - fine_m / 2)
             & (d - radius > -_DEEP_M)
         )
         if not split.any():
@@ -1094,15 +1097,16 @@ def _interpolate(q: FloatArray, u: FloatArray) -> FloatArray:
     return q[i0] + frac * (q[i0 + 1] - q[i0])
 
 
-def _densify(path: FloatArray, spacing_m: float) -> FloatArray:
+def _resample_polyline(path: FloatArray, spacing_m: float) -> FloatArray:
+    """Points on a polyline (N, 3), at most ``spacing_m`` apart along it, both ends included."""
     if len(path) == 1:
         return path
-    seg = np.diff(path, axis=0)
-    n = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / spacing_m).astype(np.int64))
-    owner = np.repeat(np.arange(len(seg)), n)
-    k = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-    pts = path[owner] + (k / n[owner])[:, None] * seg[owner]
-    return np.vstack([pts, path[-1:]])
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
+    if s[-1] == 0:
+        return path[:1]
+    n = int(np.ceil(s[-1] / spacing_m)) + 1
+    targets = np.linspace(0.0, s[-1], n)
+    return np.column_stack([np.interp(targets, s, path[:, k]) for k in range(3)])
 
 
 def _travel_windows(
@@ -1225,6 +1229,10 @@ def check_motion(
     v = np.interp(u, np.arange(M), C)
     ends = _place(joint_frames(arm, _interpolate(q, u)), frame_idx, local)  # (J, L, 2, 3)
     J = len(u)
+    # Each sample period [m, m + 1] is covered by the check intervals j0[m] .. j1[m].
+    m_all = np.arange(M - 1)
+    j0 = np.searchsorted(u, m_all, side="right") - 1
+    j1 = np.searchsorted(u, m_all + 1, side="left") - 1
 
     fine_m = motion_bound_fraction * margin_m / 2  # spacing of the fine scan queries
     refine_below = margin_m + 2 * step_m + _REFINE_EXTRA_M
@@ -1233,7 +1241,7 @@ def check_motion(
     exempt_cols = np.zeros(L, dtype=bool)
     exempt = np.zeros(M, dtype=bool)
     contact_radius = None
-    reduced: tuple[cKDTree, FloatArray] | None = None
+    reduced: tuple[cKDTree | None, FloatArray, NDArray[np.int64]] | None = None
     if contact_zone is not None:
         p_tcp = T_ft[:3, 3]
         if isinstance(tool, CapsuleTool):
@@ -1254,16 +1262,25 @@ def check_motion(
             exempt_cols[7] = True
         exempt = (phase == Phase.PROCESS) | _travel_windows(arm, q, phase, T_ft, contact_radius)
         if cell.has_scan and exempt.any():
-            dense = _densify(contact_zone.path_m, contact_radius / 4)
+            # Points on the path a quarter of the radius apart: what is within the radius of
+            # them is within the radius of the path (the tube exempted is never wider).
+            on_path = _resample_polyline(contact_zone.path_m, contact_radius / 4)
             pts = cell.scan_m
-            lo, hi = dense.min(axis=0) - contact_radius, dense.max(axis=0) + contact_radius
-            cand = np.flatnonzero(np.all((pts >= lo) & (pts <= hi), axis=1))
+            near = cell._tree.query_ball_point(on_path, contact_radius, workers=workers)
             touched = np.zeros(len(pts), dtype=bool)
-            if len(cand):
-                d, _ = cKDTree(dense).query(pts[cand], distance_upper_bound=contact_radius)
-                touched[cand[np.isfinite(d)]] = True
+            hits = [np.asarray(h, dtype=np.int64) for h in near if len(h)]
+            if hits:
+                touched[np.concatenate(hits)] = True
             rest = pts[~touched]
-            reduced = (cKDTree(rest), rest) if len(rest) else (None, rest)
+            tree = cKDTree(rest, balanced_tree=False, compact_nodes=False) if len(rest) else None
+            # Only the configurations that bound an exempt sample period need the exempt scan.
+            periods = np.flatnonzero(exempt[:-1] & exempt[1:])
+            count = np.zeros(J + 1, dtype=np.int64)
+            np.add.at(count, j0[periods], 1)
+            np.add.at(count, j1[periods] + 2, -1)
+            need = np.cumsum(count)[:J] > 0
+            need[-1] |= bool(exempt[-1])
+            reduced = (tree, rest, np.flatnonzero(need))
 
     # Clearances at the checked configurations: planes and boxes, then the scan.
     obstacle_names: list[str] = []
@@ -1303,17 +1320,20 @@ def check_motion(
     if cell.has_scan:
         scan_tol = cell.scan_resolution_m + fine_m / 2
         k_scan = add("scan", ObstacleKind.SCAN)
-        sources = [(cell._tree, cell.scan_m, c_full, o_full, p_full, np.ones(L, dtype=bool))]
+        all_rows = np.arange(J)
+        sources = [(cell._tree, cell.scan_m, all_rows, c_full, o_full, p_full, np.arange(L))]
         if reduced is not None:
-            sources.append((reduced[0], reduced[1], c_ex, o_ex, p_ex, exempt_cols))
-        for tree, pts, c_arr, o_arr, p_arr, cols in sources:
-            for j in np.flatnonzero(cols):
-                if tree is None:
-                    continue
+            tree_ex, pts_ex, rows_ex = reduced
+            cols_ex = np.flatnonzero(exempt_cols)
+            sources.append((tree_ex, pts_ex, rows_ex, c_ex, o_ex, p_ex, cols_ex))
+        for tree, pts, rows, c_arr, o_arr, p_arr, cols in sources:
+            if tree is None or len(rows) == 0:
+                continue
+            for j in cols:
                 c, p = _scan_clearance(
                     tree,
                     pts,
-                    ends[:, j],
+                    ends[rows, j],
                     float(radii[j]),
                     horizon_m=horizon_m,
                     refine_below_m=refine_below,
@@ -1321,7 +1341,10 @@ def check_motion(
                     workers=workers,
                 )
                 c = c - cell.scan_resolution_m
-                take(c[:, None], p[:, None], k_scan, c_arr, o_arr, p_arr, cols=slice(j, j + 1))
+                better = c < c_arr[rows, j]
+                c_arr[rows[better], j] = c[better]
+                o_arr[rows[better], j] = k_scan
+                p_arr[rows[better], j] = p[better]
         if reduced is None:  # no exemption: the same as the full scan
             c_ex, o_ex, p_ex = c_full, o_full, p_full
         else:  # columns not exempt see the full scan in every period
@@ -1335,9 +1358,7 @@ def check_motion(
     gov = np.empty((M, L), dtype=np.int64)
     use_ex = np.zeros((M, L), dtype=bool)
     if M > 1:
-        m = np.arange(M - 1)
-        j0 = np.searchsorted(u, m, side="right") - 1
-        j1 = np.searchsorted(u, m + 1, side="left") - 1
+        m = m_all
         n = j1 - j0 + 1
         starts = np.cumsum(n) - n
         pm = np.repeat(m, n)
