@@ -40,11 +40,14 @@ meshes (the real shape; the e-series collision meshes there are convex hulls of 
 would make the tubes as wide as the joint housings): with each link's mesh placed by the URDF chain
 (which reproduces :func:`recon.kinematics.forward` to 1e-9), every mesh vertex and surface sample
 (3 mm) lies inside the capsules of its link, for any joint angles; then lengths were rounded out
-and radii up to the next millimetre. UR's own specifications publish only the footprint (base
-diameter) and the reach; the base radii below are at or above the published footprints (e.g.
-UR5e 149 mm, UR10e 190 mm, UR20 245 mm; the CB3 bases are larger here because the meshes include
-the cable connector). Models without meshes of their own in that repository: the UR16e uses the
-UR10e's base, shoulder and wrists, the UR30 the UR20's (the same joints); their tubes have meshes.
+and radii up to the next millimetre. UR's own technical specifications give only the footprint
+(base diameter: UR3e 128, UR5e 149, UR10e and UR16e 190, UR20 and UR30 245, UR3 118, UR5 149,
+UR10 190 mm, as UR's spec sheets state them; not all of those sheets could be checked here) and
+the reach (:data:`PUBLISHED_REACH_M`); the base capsules are at least as wide as those footprints
+(the CB3 ones wider: their meshes include the cable connector) and the stretched-out arm's
+capsules reach at least as far as the published reach (tested). Models without meshes of their
+own in that repository: the UR16e uses the UR10e's base, shoulder and wrists, the UR30 the UR20's
+(the same joints); their tubes have meshes of their own.
 The numbers are in :data:`CAPSULES_MM`; :func:`capsule_model` gives them in metres.
 
 The tool is a capsule from the flange to the TCP (:class:`CapsuleTool`) or a set of spheres in the
@@ -65,8 +68,8 @@ between two checked configurations ``j`` and ``j + 1``, at ``C``-distances ``a``
 from them, the clearance is at least ``max(c_j - a, c_{j+1} - D_j + a)``, and its minimum over a
 sample period is what is reported. The reported clearance is therefore never larger than the true
 clearance during the continuous motion, and a thin obstacle between two checked configurations is
-still found; it is below the true one by at most ``2 f margin`` plus the distance tolerance (see
-:attr:`CollisionReport.tolerance_m`).
+still found; it is below the true minimum over the period by at most ``D`` plus the distance
+errors below (:attr:`CollisionReport.tolerance_m`).
 
 Scan distances are lower bounds from a k-d tree: the segment is covered with query points whose
 spacing ``h`` bounds the error (``h / 2``), refined to ``margin * f / 2`` wherever the clearance is
@@ -1172,7 +1175,9 @@ def check_motion(
         ``f``: configurations are checked often enough that no point moves more than
         ``f * margin_m`` from the nearest checked one (see the module docstring).
     horizon_m : float
-        Scan clearances beyond this are reported as this (a lower bound): it bounds the work.
+        Scan and box clearances beyond this are reported as this (a lower bound): it bounds the
+        work. At least ``margin_m * (1 + 8 f) + 10 mm`` is used, so that clearances near the
+        margin are always resolved.
     workers : int
         Threads for the k-d tree queries (-1: all cores).
 
@@ -1236,6 +1241,7 @@ def check_motion(
 
     fine_m = motion_bound_fraction * margin_m / 2  # spacing of the fine scan queries
     refine_below = margin_m + 2 * step_m + _REFINE_EXTRA_M
+    horizon_m = max(horizon_m, refine_below)  # exact up to exact_below_m, whatever the horizon
 
     # Contact exemption.
     exempt_cols = np.zeros(L, dtype=bool)

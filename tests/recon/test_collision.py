@@ -130,8 +130,24 @@ def test_wrist_3_capsule_ends_at_the_flange_and_the_tool_at_the_tcp(name):
     np.testing.assert_allclose(tool.ends_m[:, 0, 1], (flange @ T_ft)[:, :3, 3], atol=1e-12)
     spheres = tool_capsules(flange, T_ft, SphereTool([[0, 0, 0.1], [0, 0.05, 0.18]], [0.03, 0.0]))
     np.testing.assert_allclose(spheres.ends_m[:, 1, 0], (flange @ T_ft)[:, :3, 3], atol=1e-12)
-    # The base column stands on the mounting plane, on the base axis.
+    # The base column stands on the mounting plane, on the base axis, at least as wide as the
+    # footprint UR's specifications give.
     np.testing.assert_allclose(caps.ends_m[:, 0, 0], 0.0, atol=1e-15)
+    assert 2 * caps.radii_m[0] >= PUBLISHED_FOOTPRINT_M[name]
+
+
+#: Base diameter ("footprint") in UR's technical specifications, metres.
+PUBLISHED_FOOTPRINT_M = {
+    "ur3e": 0.128,
+    "ur5e": 0.149,
+    "ur10e": 0.190,
+    "ur16e": 0.190,
+    "ur20": 0.245,
+    "ur30": 0.245,
+    "ur3": 0.118,
+    "ur5": 0.149,
+    "ur10": 0.190,
+}
 
 
 #: shoulder_offset of config/<model>/physical_parameters.yaml (Universal_Robots_ROS2_Description),
@@ -559,3 +575,56 @@ def test_the_report_reads_in_words():
     x, y, z = scan[0] * 1000
     assert f"({x:.1f}, {y:.1f}, {z:.1f}) mm" in line
     assert any(line.startswith("checked ") for line in report.lines())
+
+
+def test_walls_and_the_floor_below_a_ceiling_mounted_arm_are_half_spaces():
+    """In the base frame the mounting surface is always z = 0; a ceiling-mounted arm's base z
+    points down, so the floor 0.9 m below the ceiling is z <= 0.9 (normal -z)."""
+    arm = model("ur5e")
+    n = 200
+    q = np.tile([0.0, -1.57, 0.0, -1.57, 0.0, 0.0], (n, 1))
+    q[:, 1] = np.linspace(-1.57, 0.3, n)  # the stretched arm swings down from straight up
+    floor = HalfSpace([0.0, 0.0, -1.0], -0.9, "floor")
+    wall = HalfSpace([1.0, 0.0, 0.0], -0.95, "wall")  # x >= -0.95
+    report = check_motion(
+        arm, q, np.zeros(n, int), Cell(planes=(floor, wall)), T_flange_tcp=_tcp_transform(0.1)
+    )
+    hit = report.first_collision
+    assert hit is not None and hit.kind == ObstacleKind.PLANE and hit.obstacle in ("floor", "wall")
+    caps = link_capsules(arm, q)
+    tool = tool_capsules(forward(arm, q), _tcp_transform(0.1), CapsuleTool())
+    ends = np.concatenate([caps.ends_m, tool.ends_m], axis=1)
+    radii = np.r_[caps.radii_m, tool.radii_m]
+    worst = np.minimum(
+        capsule_halfspace_clearance(ends, radii, floor)[0],
+        capsule_halfspace_clearance(ends, radii, wall)[0],
+    )
+    first_true = int(np.argmax(worst.min(axis=1) < 0.01))
+    assert hit.sample <= first_true
+    # Without a mounting plane and those surfaces the same swing is clear.
+    assert check_motion(
+        arm, q, np.zeros(n, int), Cell(mounting=None), T_flange_tcp=_tcp_transform(0.1)
+    ).clear
+
+
+def test_a_short_tool_exempts_wrist_3_and_a_single_sample_is_checked():
+    arm = model("ur5e")
+    q = np.array([[0.0, -1.2, 1.6, -2.0, -1.57, 0.0]])
+    flange = forward(arm, q)[0]
+    zone = ContactZone((flange @ _tcp_transform(0.01))[None, :3, 3], 0.005)
+    short = check_motion(
+        arm,
+        q,
+        [Phase.PROCESS],
+        Cell(),
+        T_flange_tcp=_tcp_transform(0.01),
+        tool=SphereTool([[0.0, 0.0, 0.01]], [0.004]),
+        contact_zone=zone,
+    )
+    assert short.exempt_links == ("wrist 3", "tool")
+    assert short.clearance_m.shape == (1,) and short.link_clearance_m.shape == (1, 9)
+    assert len(short.checked_samples) == 1 and short.clear
+    long_tool = check_motion(
+        arm, q, [Phase.PROCESS], Cell(), T_flange_tcp=_tcp_transform(0.25), contact_zone=zone
+    )
+    assert long_tool.exempt_links == ("tool",)
