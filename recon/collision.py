@@ -34,8 +34,9 @@ both links that meet at that joint whatever the joint angle.
 Where the numbers come from. The lateral offsets of the upper arm and forearm are Universal Robots'
 published ``shoulder_offset`` / ``elbow_offset`` (``config/<model>/physical_parameters.yaml`` of
 UniversalRobots/Universal_Robots_ROS2_Description, 2.4.5), checked against the tubes' centres in
-that repository's visual meshes (they agree to 0.5 mm, except the CB3 UR10, whose file says 220.9
-mm: its tube is at 176 mm, which is used). The extents and radii were fitted to the same visual
+that repository's visual meshes (they agree within 0.5 mm, the UR20's and UR30's upper arms within
+2.1 mm, except the CB3 UR10's upper arm: the file says 220.9 mm, the tube is at 176 mm; the
+measured values are used). The extents and radii were fitted to the same visual
 meshes (the real shape; the e-series collision meshes there are convex hulls of each link, which
 would make the tubes as wide as the joint housings): with each link's mesh placed by the URDF chain
 (which reproduces :func:`recon.kinematics.forward` to 1e-9), every mesh vertex and surface sample
@@ -634,8 +635,12 @@ class Cell:
     ----------
     mounting : HalfSpace or None
         The surface the base stands on (default: z = 0 of the base frame, see
-        :meth:`HalfSpace.mounting_surface`). The base capsule, which stands on it, is exempt from
-        it; every other link must stay ``margin_m`` above it.
+        :meth:`HalfSpace.mounting_surface`). The base capsule (the base and the joint-1 housing,
+        the first part of the shoulder) is exempt from it: it stands on it, and no joint can move
+        it relative to it (joint 1 turns about the surface's normal), so testing it would only
+        report the mounting itself. Every other link, the joint-2 housing ("shoulder") included,
+        must stay ``margin_m`` above it; the shoulder is ``d1`` minus its radius above it in any
+        configuration.
     planes : tuple of HalfSpace
         Other surfaces of the cell (walls, a floor below a wall-mounted arm): no link is exempt.
     boxes : tuple of Box
