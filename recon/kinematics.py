@@ -293,6 +293,34 @@ def forward(arm: URModel, q_rad: FloatArray) -> FloatArray:
     return T
 
 
+def joint_frames(arm: URModel, q_rad: FloatArray) -> FloatArray:
+    """The DH frames of the chain for joint vectors: base, after joint 1, …, flange.
+
+    Frame ``k`` (k = 1..6) is ``A_1 … A_k``; its z-axis is the axis of joint ``k + 1`` and frame 6
+    is the flange, so ``joint_frames(arm, q)[..., 6, :, :] == forward(arm, q)``.
+
+    Parameters
+    ----------
+    arm : URModel
+    q_rad : ndarray of shape (..., 6)
+
+    Returns
+    -------
+    ndarray of shape (..., 7, 4, 4)
+        ``T_base_k`` for k = 0 (identity) .. 6.
+    """
+    q = np.asarray(q_rad, dtype=np.float64)
+    d, a = arm.d, arm.a
+    frames = np.empty((*q.shape[:-1], 7, 4, 4))
+    frames[..., 0, :, :] = np.eye(4)
+    T = _dh(q[..., 0], d[0], a[0], ALPHA[0])
+    frames[..., 1, :, :] = T
+    for i in range(1, 6):
+        T = T @ _dh(q[..., i], d[i], a[i], ALPHA[i])
+        frames[..., i + 1, :, :] = T
+    return frames
+
+
 @dataclass(frozen=True)
 class IKSolutions:
     """All eight analytic solutions for a batch of poses.

@@ -116,3 +116,21 @@ def test_the_nearest_branch_to_the_current_joints_is_kept():
         diff = np.abs((path.q_rad[0] - near + np.pi) % (2 * np.pi) - np.pi).max()
         if path.branch == branch:
             assert diff < 1e-9
+
+
+@pytest.mark.parametrize("name", MODELS)
+def test_joint_frames_end_at_the_flange_and_put_each_joint_axis_on_z(name):
+    from recon.kinematics import joint_frames
+
+    arm = model(name)
+    q = np.random.default_rng(3).uniform(-np.pi, np.pi, (20, 6))
+    frames = joint_frames(arm, q)
+    assert frames.shape == (20, 7, 4, 4)
+    np.testing.assert_allclose(frames[:, 0], np.broadcast_to(np.eye(4), (20, 4, 4)))
+    np.testing.assert_allclose(frames[:, 6], forward(arm, q), atol=1e-12)
+    # Turning joint k + 1 leaves frame k where it is and turns the next about frame k's z-axis.
+    q2 = q.copy()
+    q2[:, 2] += 0.3
+    moved = joint_frames(arm, q2)
+    np.testing.assert_allclose(moved[:, :3], frames[:, :3], atol=1e-12)
+    np.testing.assert_allclose(moved[:, 3, :3, 2], frames[:, 3, :3, 2], atol=1e-12)
