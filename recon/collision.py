@@ -113,17 +113,7 @@ from scipy.spatial import cKDTree
 from recon.kinematics import URModel, joint_frames
 from recon.kinematics import model as ur_model
 from recon.transforms import check_rigid, invert_transform
-from recon.types import FloatArray
-
-
-class Phase(enum.IntEnum):
-    """The phase of the motion a sample belongs to."""
-
-    TRANSIT = 0
-    APPROACH = 1
-    PROCESS = 2
-    RETRACT = 3
-    RETURN = 4
+from recon.types import FloatArray, Phase
 
 
 class ObstacleKind(enum.IntEnum):

@@ -252,26 +252,6 @@ def _dh(theta: FloatArray, d: float, a: float, alpha: float) -> FloatArray:
     return T
 
 
-def joint_frames(arm: URModel, q_rad: FloatArray) -> FloatArray:
-    """Every DH frame along the chain, base first: ``T_base_i`` for i = 0 (base) to 6 (flange).
-
-    Parameters
-    ----------
-    arm : URModel
-    q_rad : ndarray of shape (..., 6)
-
-    Returns
-    -------
-    ndarray of shape (..., 7, 4, 4)
-    """
-    q = np.asarray(q_rad, dtype=np.float64)
-    d, a = arm.d, arm.a
-    frames = [np.broadcast_to(np.eye(4), (*q.shape[:-1], 4, 4))]
-    for i in range(6):
-        frames.append(frames[-1] @ _dh(q[..., i], d[i], a[i], ALPHA[i]))
-    return np.stack(frames, axis=-3)
-
-
 def forward(arm: URModel, q_rad: FloatArray) -> FloatArray:
     """Flange poses for joint vectors.
 
