@@ -189,7 +189,12 @@ def plan_path(
     heights = [params.approach_m * lift for lift in APPROACH_LIFTS]
     report = None
     for height in (h for h in heights if h <= max(MAX_APPROACH_M, params.approach_m)):
-        trajectory = _whole_motion(arm, process, joints.branch, q_start, height, params)
+        try:
+            trajectory = _whole_motion(arm, process, joints.branch, q_start, height, params)
+        except InfeasibleTrajectoryError:
+            if report is None:
+                raise  # the approach asked for itself cannot be followed
+            break  # lifted higher the approach leaves the arm's reach: report the collision
         if cell is not None:
             report = check_cell(arm, trajectory, cell, params)
         if report is None or report.first_collision is None:

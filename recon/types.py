@@ -230,6 +230,8 @@ class ReconParams:
 
 
 Orientation = Literal["auto", "scan", "pen", "fixed"]
+#: The TCP a plan assumes unless told: a straight tool 10 cm along the flange's z axis.
+DEFAULT_TCP_POSE = (0.0, 0.0, 0.1, 0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -253,10 +255,12 @@ class PlanParams:
         to face it.
     tcp_offset_m : tuple of 3 floats
         The TCP in the flange frame, position only (a tool of length L along the flange's z:
-        (0, 0, L)); ``tcp_pose`` also sets its orientation.
+        (0, 0, L)); when set it replaces ``tcp_pose``.
     tcp_pose : tuple of 6 floats
         The TCP in the flange frame as UR's pendant sets it: x, y, z (m), rx, ry, rz (rotation
-        vector, rad). All zero: use ``tcp_offset_m``.
+        vector, rad). Default :data:`DEFAULT_TCP_POSE`, a straight tool 10 cm long: a plan for
+        the bare flange (all zero) puts the flange itself on the workpiece, which the collision
+        check refuses; set your tool's.
     velocity_scale, acceleration_scale : float
         Fractions of the arm's joint limits to plan the path within.
     start_q_rad : tuple of 6 floats or None
@@ -301,7 +305,7 @@ class PlanParams:
         (0.0, 0.0, 0.0), ge=-1, le=1, unit="m", help="the TCP in the flange frame"
     )
     tcp_pose: tuple[float, float, float, float, float, float] = param(
-        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+        DEFAULT_TCP_POSE,
         ge=-2 * math.pi,
         le=2 * math.pi,
         help="the TCP in the flange frame as on UR's pendant: x,y,z (m), rx,ry,rz (rad)",
@@ -340,7 +344,7 @@ class PlanParams:
         (0.0, 0.0, 0.0), ge=-0.5, le=0.5, unit="m", help="the payload's centre of gravity"
     )
     tool_radius_m: float = param(
-        0.02, gt=0, le=0.2, unit="m", help="radius of the tool's body (collision check)"
+        0.01, gt=0, le=0.2, unit="m", help="radius of the tool's body (collision check)"
     )
     clearance_m: float = param(
         0.01, ge=0, le=0.1, unit="m", help="distance the arm and tool keep from obstacles"
@@ -353,7 +357,7 @@ class PlanParams:
         check_bounds(self)
         if np.linalg.norm(self.approach) < 1e-9:
             raise ValueError("approach must be a non-zero direction")
-        if any(self.tcp_pose) and any(self.tcp_offset_m):
+        if tuple(self.tcp_pose) != DEFAULT_TCP_POSE and any(self.tcp_offset_m):
             raise ValueError("give the TCP as tcp_pose or as tcp_offset_m, not both")
         if any(abs(v) > 1.0 for v in self.tcp_pose[:3]):
             raise ValueError(f"the TCP must be within 1 m of the flange, got {self.tcp_pose[:3]}")
@@ -368,10 +372,11 @@ class PlanParams:
 
     @property
     def tcp(self) -> tuple[float, float, float, float, float, float]:
-        """The TCP pose in the flange frame (x, y, z, rx, ry, rz), whichever way it was given."""
-        if any(self.tcp_pose):
-            return self.tcp_pose
-        return (*self.tcp_offset_m, 0.0, 0.0, 0.0)
+        """The TCP pose in the flange frame (x, y, z, rx, ry, rz), whichever way it was given
+        (``tcp_offset_m``, when set, moves the TCP without turning it)."""
+        if any(self.tcp_offset_m):
+            return (*self.tcp_offset_m, 0.0, 0.0, 0.0)
+        return tuple(self.tcp_pose)
 
     @property
     def T_flange_tcp(self) -> FloatArray:
