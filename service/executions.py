@@ -125,7 +125,7 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
             mode=request.mode,
             tolerance_m=request.tolerance_m,
             owner=arm_owner(services),
-            arm=services.robot.fresh(),
+            arm=services.robot.poll(),  # read now: the arm may have been jogged a moment ago
             q_start_rad=loaded.q_rad[0],
         )
         config = backend_config("ur_rtde", host=settings.ur_host, robot=settings.ur_robot)

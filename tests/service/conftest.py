@@ -52,9 +52,12 @@ def wait(client, job: dict, timeout_s: float = 120.0) -> dict:
     return job
 
 
-def planned_session(client, scene_files, speeds_m_s, name="arm") -> tuple[str, dict]:
+def planned_session(
+    client, scene_files, speeds_m_s, name="arm", *, start_q_rad=None
+) -> tuple[str, dict]:
     """A calibrated session with the box-corner trace and scan, reconstructed and planned at
-    each speed. Returns the session id and {speed: trajectory id}."""
+    each speed (from ``start_q_rad``, default: where the service's arm is). Returns the session
+    id and {speed: trajectory id}."""
     sid = client.post("/sessions", json={"name": name}).json()["id"]
     client.put(f"/sessions/{sid}/recording", files={"file": ("t.csv", scene_files["trace"])})
     client.put(f"/sessions/{sid}/scan", files={"file": ("s.ply", scene_files["scan"])})
@@ -63,6 +66,8 @@ def planned_session(client, scene_files, speeds_m_s, name="arm") -> tuple[str, d
     trajectories = {}
     for speed in speeds_m_s:
         body = {"reconstruction_id": recon["result"]["reconstruction_id"], "speed_m_s": speed}
+        if start_q_rad is not None:
+            body["start_q_rad"] = list(start_q_rad)
         job = wait(client, client.post(f"/sessions/{sid}/trajectories", json=body).json())
         trajectories[speed] = job["result"]["trajectory_id"]
     return sid, trajectories

@@ -269,7 +269,20 @@ def test_trajectory_has_its_feasibility_report(client, session, trajectory):
         "margins" in line for line in summary["report"]
     )
     csv_text = client.get(f"/sessions/{session}/trajectories/{trajectory}/csv").text
-    assert csv_text.splitlines()[0] == "t,q0,q1,q2,q3,q4,q5,x,y,z,rx,ry,rz"
+    lines = csv_text.splitlines()
+    # The file says what it is, then the contracted columns and each sample's phase.
+    assert lines[0].startswith("# teachpath: ")
+    meta = json.loads(lines[0][len("# teachpath: ") :])
+    assert meta["robot"] == "ur5e" and meta["rate_hz"] == pytest.approx(500)
+    assert meta["tcp_pose"] == summary["tcp_pose"] and meta["configuration"]
+    assert any("collision" in check for check in meta["checks"])
+    assert lines[1] == "t,q0,q1,q2,q3,q4,q5,x,y,z,rx,ry,rz,phase"
+    phases = [line.rsplit(",", 1)[1] for line in lines[2:]]
+    assert phases[0] == "transit" and phases[-1] == "retract"
+    assert list(dict.fromkeys(phases)) == ["transit", "approach", "process", "retract"]
+    # Summary: the phases' durations, where it starts, what it passed.
+    assert set(summary["phase_durations_s"]) == {"transit", "approach", "process", "retract"}
+    assert summary["start_from"] == "home" and summary["min_clearance_m"] > 0
 
 
 @pytest.mark.parametrize(
@@ -286,24 +299,41 @@ def test_bad_trajectory_requests(client, session, reconstruction, change, status
     assert_error(client.post(f"/sessions/{session}/trajectories", json=body), status, code)
 
 
-def test_an_unreachable_placement_fails_the_job_naming_the_waypoint(
-    client, session, reconstruction
-):
-    identity = np.eye(4).tolist()  # the path at the robot's base: out of reach
-    job = wait(
+def _plan_at(client, session, reconstruction, T_base_tracker) -> dict:
+    return wait(
         client,
         client.post(
             f"/sessions/{session}/trajectories",
             json={
                 "reconstruction_id": reconstruction,
                 "speed_m_s": 0.05,
-                "T_base_tracker": identity,
+                "T_base_tracker": T_base_tracker,
             },
         ).json(),
     )
+
+
+def test_an_unreachable_placement_fails_the_job_naming_the_waypoint(
+    client, session, reconstruction
+):
+    far = np.eye(4)
+    far[0, 3] = 2.0  # two metres in front of a UR5e: out of reach
+    job = _plan_at(client, session, reconstruction, far.tolist())
     assert job["state"] == "failed"
     assert job["error"]["code"] == "infeasible_trajectory"
     assert "waypoint" in job["error"]["message"]
+
+
+def test_a_workpiece_inside_the_arm_fails_the_job_naming_where_it_collides(
+    client, session, reconstruction
+):
+    identity = np.eye(4).tolist()  # the workpiece on the table where the arm's base stands
+    job = _plan_at(client, session, reconstruction, identity)
+    assert job["state"] == "failed" and job["error"]["code"] == "collision"
+    detail = job["error"]["detail"]
+    assert detail["link"] == "base" and detail["obstacle"] == "scan"
+    assert detail["phase"] == "transit" and detail["clearance_m"] < 0
+    assert "base touches the scan" in job["error"]["message"]
 
 
 @pytest.fixture(scope="module")

@@ -270,8 +270,9 @@ def test_plan_then_dry_run(inputs, reconstructed, tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert "tool axis from the scan" in result.stdout and "margins" in result.stdout
-    header = traj.read_text().splitlines()[0]
-    assert header == "t,q0,q1,q2,q3,q4,q5,x,y,z,rx,ry,rz"
+    meta, header = traj.read_text().splitlines()[:2]
+    assert meta.startswith("# teachpath: ") and '"robot": "ur5e"' in meta
+    assert header == "t,q0,q1,q2,q3,q4,q5,x,y,z,rx,ry,rz,phase"
     result = run("dry-run", traj, "--robot", "ur5e")
     assert result.returncode == 0, result.stderr
     assert "completed" in result.stdout and "off the path" in result.stdout

@@ -83,7 +83,8 @@ def cli_reconstruction(folder, out_dir, *options) -> tuple[bytes, bytes]:
 
 
 def trajectory_columns(content: bytes) -> np.ndarray:
-    return np.loadtxt(io.BytesIO(content), delimiter=",", skiprows=1)
+    """The numbers of a trajectory CSV (after its metadata and header lines; not the phase)."""
+    return np.loadtxt(io.BytesIO(content), delimiter=",", skiprows=2, usecols=range(13))
 
 
 def test_reconstruction_preview_and_plan_are_the_same(client, scene_folder, tmp_path):

@@ -34,7 +34,7 @@ def arm(tmp_path_factory, scene_files, fake_ur_process):
         dry = client.post(f"/sessions/{sid}/executions", json={"trajectory_id": trajectory_id})
         assert wait(client, dry.json())["result"]["completed"]
         csv = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}/csv").text
-        q_start = np.array(csv.splitlines()[1].split(",")[1:7], dtype=float)
+        q_start = np.array(csv.splitlines()[2].split(",")[1:7], dtype=float)
         yield client, sid, trajectory_id, q_start
 
 
@@ -57,10 +57,26 @@ def _execute_until(client, sid, trajectory_id, *, progress: float) -> dict:
     return job
 
 
+def test_an_arm_moved_away_from_the_plans_start_is_refused_with_the_distance(arm, fake_ur):
+    client, sid, trajectory_id, q_start = arm
+    # Jogged away after planning: nothing moves, the operator is told to plan again.
+    fake_ur.control("reset", q_rad=(q_start + [0.1, 0, 0, 0, 0, 0]).tolist())
+    response = client.post(
+        f"/sessions/{sid}/executions",
+        json={"trajectory_id": trajectory_id, "backend": "ur_rtde", "confirm": True},
+    )
+    assert response.status_code == 409 and response.json()["code"] == "start_moved"
+    detail = response.json()["detail"]
+    assert detail["max_joint_deg"] == pytest.approx(np.degrees(0.1), abs=0.05)
+    assert detail["flange_distance_m"] > 0.02
+    q_now = np.array(fake_ur.control("status")["q_rad"])
+    assert np.abs(q_now - (q_start + [0.1, 0, 0, 0, 0, 0])).max() < 1e-9
+
+
 def test_a_confirmed_execution_runs_on_the_controller(arm, fake_ur):
     client, sid, trajectory_id, q_start = arm
-    # Start a little away from the trajectory: the service moves the arm there first.
-    fake_ur.control("reset", q_rad=(q_start + [0.1, 0, 0, 0, 0, 0]).tolist())
+    # The arm stands where the plan starts (where it stood when it was planned).
+    fake_ur.control("reset", q_rad=q_start.tolist())
     job = wait(client, _execute(client, sid, trajectory_id), timeout_s=120)
     assert job["state"] == "succeeded", job
     execution_id = job["result"]["execution_id"]

@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import time
+
+import numpy as np
 import pytest
 
+from drivers.robot.monitor import ArmState
+from recon.kinematics import HOME_Q_RAD
 from service import gate
+from service.robot import Reading
 from service.settings import Settings
 from service.store import ArtifactRow
 
+START = HOME_Q_RAD
 TRAJECTORY_SUMMARY = {
     "robot": "ur5e",
     "requested_speed_m_s": 0.05,
@@ -55,9 +62,39 @@ def trajectory():
     return ArtifactRow(id="trj_1", kind="trajectory", inputs={}, summary=TRAJECTORY_SUMMARY)
 
 
-def check(settings, trajectory, dry_runs, *, confirm=True, mode="servoj", tolerance_m=5e-4):
+def arm_at(q, **state) -> Reading:
+    """A fresh reading of a healthy arm at joints ``q`` (fields of ArmState to change)."""
+    fields = {
+        "robot_mode": "RUNNING",
+        "safety_status": "NORMAL",
+        "remote_control": True,
+        "q_rad": tuple(q),
+        **state,
+    }
+    return Reading(ArmState(backend="ur_rtde", reachable=True, **fields), time.monotonic(), None)
+
+
+def check(
+    settings,
+    trajectory,
+    dry_runs,
+    *,
+    confirm=True,
+    mode="servoj",
+    tolerance_m=5e-4,
+    owner=None,
+    arm=None,
+):
     return gate.check_real_arm(
-        settings, trajectory, dry_runs, confirm=confirm, mode=mode, tolerance_m=tolerance_m
+        settings,
+        trajectory,
+        dry_runs,
+        confirm=confirm,
+        mode=mode,
+        tolerance_m=tolerance_m,
+        owner=owner,
+        arm=arm_at(START) if arm is None else arm,
+        q_start_rad=np.array(START),
     )
 
 
@@ -132,6 +169,45 @@ def test_a_trajectory_whose_summary_cannot_be_read_is_refused(settings):
         check(settings, broken, [row("exe_1", passed_dry_run())])
 
 
+def test_one_arm_owner(settings, trajectory):
+    with pytest.raises(gate.ArmBusy, match="exe_7") as refused:
+        check(settings, trajectory, [row("exe_1", passed_dry_run())], owner="exe_7")
+    assert refused.value.detail == {"execution_id": "exe_7"}
+
+
+def test_an_arm_away_from_the_start_is_refused_with_the_distance(settings, trajectory):
+    moved = np.array(START) + [0.0, 0.0, 0.05, 0.0, 0.0, 0.0]
+    with pytest.raises(gate.StartMoved, match="joint 3") as refused:
+        check(settings, trajectory, [row("exe_1", passed_dry_run())], arm=arm_at(moved))
+    assert refused.value.detail["max_joint_deg"] == pytest.approx(np.degrees(0.05))
+    assert refused.value.detail["flange_distance_m"] > 0.01
+    # Within the tolerance it runs.
+    close = np.array(START) + 0.5 * gate.START_TOLERANCE_RAD
+    assert check(settings, trajectory, [row("exe_1", passed_dry_run())], arm=arm_at(close))
+
+
+@pytest.mark.parametrize(
+    ("state", "refusal"),
+    [
+        ({"protective_stop": True, "safety_status": "PROTECTIVE_STOP"}, gate.ArmInProtectiveStop),
+        ({"emergency_stop": True}, gate.ArmInEmergencyStop),
+        ({"remote_control": False}, gate.RemoteControlOff),
+    ],
+)
+def test_an_arm_that_cannot_run_now_is_refused(settings, trajectory, state, refusal):
+    with pytest.raises(refusal):
+        check(settings, trajectory, [row("exe_1", passed_dry_run())], arm=arm_at(START, **state))
+
+
+def test_an_arm_whose_state_is_not_known_is_refused(settings, trajectory):
+    unreachable = Reading(ArmState.unreachable("ur_rtde", "127.0.0.9: no answer"), 0.0, None)
+    with pytest.raises(gate.RobotUnavailable, match="127.0.0.9"):
+        check(settings, trajectory, [row("exe_1", passed_dry_run())], arm=unreachable)
+    stale = Reading(arm_at(START).state, time.monotonic() - 60.0, None)
+    with pytest.raises(gate.RobotUnavailable, match="60"):
+        check(settings, trajectory, [row("exe_1", passed_dry_run())], arm=stale)
+
+
 def test_every_refusal_has_its_own_code():
     from service.errors import classify
 
@@ -142,6 +218,12 @@ def test_every_refusal_has_its_own_code():
         gate.SpeedCapExceeded,
         gate.DryRunRequired,
         gate.UnreadableTrajectory,
+        gate.ArmBusy,
+        gate.RobotUnavailable,
+        gate.ArmInProtectiveStop,
+        gate.ArmInEmergencyStop,
+        gate.RemoteControlOff,
+        gate.StartMoved,
     ]
     codes = [classify(cls("x")) for cls in refusals]
     assert all(status == 409 for status, _ in codes)
