@@ -114,6 +114,23 @@ class ExecutionRunner:
 
     def _run(self) -> None:
         self.store.update_job(self.job_id, state="running", progress=0.0, started_at=now())
+        try:
+            final = self._drive()
+        finally:
+            closing = time.monotonic()
+            try:
+                self.backend.close()
+            except Exception:
+                log.exception(
+                    "closing the robot after job %s took %.1f s and failed",
+                    self.job_id,
+                    time.monotonic() - closing,
+                )
+        # Only now is the arm released: a job that has ended owns the arm no more.
+        self.store.update_job(self.job_id, finished_at=now(), **final)
+
+    def _drive(self) -> dict:
+        """Run the execution; return the job's final fields (state, result, error, progress)."""
         record: ExecutionRecord | None = None
         started = time.monotonic()
         try:
@@ -137,12 +154,11 @@ class ExecutionRunner:
                 record = self.backend.execute(
                     self.trajectory, on_progress=self._progress, journal=self.journal
                 )
-            self._finish(record, [record.fault] if record.fault else [], started)
+            return self._ended(record, [record.fault] if record.fault else [], started)
         except Exception as error:  # every failure ends the job, with what was recorded
             record = record or getattr(self.backend, "last_record", None)
             if isinstance(error, MotionStoppedError) or self._stop.is_set():
-                self._finish(record, [str(error)], started)
-                return
+                return self._ended(record, [str(error)], started)
             log.warning("execution job %s failed: %s", self.job_id, error)
             try:
                 result = self.record(
@@ -151,44 +167,22 @@ class ExecutionRunner:
             except Exception:
                 log.exception("could not record the execution of job %s", self.job_id)
                 result = None
-            self.store.update_job(
-                self.job_id,
-                state="failed",
-                error=error_body(error),
-                result=result,
-                finished_at=now(),
-            )
-        finally:
-            closing = time.monotonic()
-            try:
-                self.backend.close()
-            except Exception:
-                log.exception(
-                    "closing the robot after job %s took %.1f s and failed",
-                    self.job_id,
-                    time.monotonic() - closing,
-                )
+            return {"state": "failed", "error": error_body(error), "result": result}
 
-    def _finish(self, record: ExecutionRecord | None, faults: list[str], started: float) -> None:
+    def _ended(self, record: ExecutionRecord | None, faults: list[str], started: float) -> dict:
         """Record the execution; the job succeeded, or was cancelled by a stop."""
         completed = record is not None and record.completed and not self._stop.is_set()
         stopped_in = None if completed else self.where(record)
         result = self.record(record, faults, time.monotonic() - started, stopped_in)
-        self.store.update_job(
-            self.job_id,
-            state="succeeded" if completed else "cancelled",
-            result=result,
-            finished_at=now(),
-            progress=1.0 if completed else self._last_progress,
-        )
+        return {
+            "state": "succeeded" if completed else "cancelled",
+            "result": result,
+            "progress": 1.0 if completed else self._last_progress,
+        }
 
     def where(self, record: ExecutionRecord | None) -> str:
         """Where the execution got to: a step before motion, or the phase of its last sample."""
         if record is None or len(record) == 0:
             return f"before moving ({self.step})"
-        index = int(
-            np.clip(
-                np.searchsorted(self.trajectory.t_s, record.t_s[-1]), 0, len(self.trajectory) - 1
-            )
-        )
+        index = int(np.clip(record.planned()[-1], 0, len(self.trajectory) - 1))
         return Phase(int(self.trajectory.phases[index])).label

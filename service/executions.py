@@ -272,6 +272,7 @@ def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
     t_s, q, tcp = read_journal(journal)
     index = np.clip(np.searchsorted(trajectory.t_s, t_s), 0, len(trajectory) - 1)
     record = ExecutionRecord(
+        planned_index=index,
         t_s=t_s,
         q_planned_rad=trajectory.q_rad[index],
         q_actual_rad=q,

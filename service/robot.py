@@ -80,6 +80,9 @@ class RobotWatch:
         self.monitor = monitor
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
+        # One reading at a time: the monitor's link serves one command at a time, and a
+        # reading asked for while another runs is the one after it (fresh for the asker).
+        self._reading_lock = threading.Lock()
         self._reading = Reading(ArmState.unreachable(self.backend, "not read yet"), 0.0, None)
         self._version = 0
         self._closing = threading.Event()
@@ -102,6 +105,10 @@ class RobotWatch:
 
     def poll(self) -> Reading:
         """Read the arm now (the thread does this every ``robot_poll_s``)."""
+        with self._reading_lock:
+            return self._poll()
+
+    def _poll(self) -> Reading:
         try:
             state = self.monitor.read()
         except Exception as exc:  # a monitor must not take the watch down; it reports why
@@ -137,7 +144,8 @@ class RobotWatch:
 
     def unlock_protective_stop(self) -> None:
         """Ask the arm to unlock its protective stop (see :meth:`RobotMonitor.unlock...`)."""
-        self.monitor.unlock_protective_stop()
+        with self._reading_lock:
+            self.monitor.unlock_protective_stop()
         self.poll()
 
     def view(self, owner: str | None) -> dict:

@@ -96,6 +96,9 @@ class ExecutionRecord:
     tcp_actual : ndarray of shape (K, 6), or None
         The controller's actual TCP pose at each sample (x, y, z, rx, ry, rz; base frame, with
         the TCP it was told), where the backend reads it.
+    planned_index : ndarray of shape (K,), int, or None
+        Which sample of the trajectory each one was sent as (servoJ streams sample k as record
+        k), or planned at that time (movePath); None: sample k was planned sample k.
     """
 
     t_s: FloatArray
@@ -104,6 +107,13 @@ class ExecutionRecord:
     completed: bool
     fault: str | None = None
     tcp_actual: FloatArray | None = None
+    planned_index: np.ndarray | None = None
+
+    def planned(self) -> np.ndarray:
+        """Which planned sample each recorded one belongs to (see ``planned_index``)."""
+        if self.planned_index is not None:
+            return np.asarray(self.planned_index)
+        return np.arange(len(self.t_s))
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -312,10 +322,13 @@ class RobotBackend(ABC):
         self.last_record = None
         try:
             t_s, q_actual, completed, fault = self._execute_path(path, on_progress, journal)
-            planned_index = np.searchsorted(trajectory.t_s - trajectory.t_s[0], t_s)
+            planned_index = np.minimum(
+                np.searchsorted(trajectory.t_s - trajectory.t_s[0], t_s), len(trajectory) - 1
+            )
             record = ExecutionRecord(
+                planned_index=planned_index,
                 t_s=np.asarray(t_s, dtype=np.float64),
-                q_planned_rad=trajectory.q_rad[np.minimum(planned_index, len(trajectory) - 1)],
+                q_planned_rad=trajectory.q_rad[planned_index],
                 q_actual_rad=np.asarray(q_actual, dtype=np.float64).reshape(-1, 6),
                 completed=completed,
                 fault=fault,

@@ -232,12 +232,10 @@ def execution_report(
         # The planned TCP may sit off the flange; the tracking error is the same rigid offset
         # either way, so it is measured on the flange, against the whole planned path.
         off_path = distance_to_curve(actual_flange[:, :3, 3], plan_flange)
-        # Which phase each recorded sample belongs to: servoJ runs the plan a lookahead behind.
-        index = np.clip(
-            np.searchsorted(trajectory.t_s, record.t_s - lookahead_s - 1e-9),
-            0,
-            len(trajectory) - 1,
-        )
+        # Which phase each recorded sample belongs to: the arm runs the plan a lookahead
+        # behind the sample sent with it.
+        lag = int(round(lookahead_s / trajectory.period_s))
+        index = np.clip(record.planned() - lag, 0, len(trajectory) - 1)
         recorded_phase = trajectory.phases[index]
         for value in dict.fromkeys(trajectory.phases.tolist()):
             mine = recorded_phase == value

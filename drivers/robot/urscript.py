@@ -9,7 +9,7 @@ header comment names the session, the plan and the checks it passed.
 
 The program starts with a joint move from wherever the arm stands: it is the plan's transit
 only if the arm is at the plan's start joints. The program therefore checks that first and
-halts with a popup when the arm is farther than :data:`START_TOLERANCE_RAD` from them.
+halts with a popup when any joint is farther than :data:`START_TOLERANCE_RAD` from its start.
 """
 
 from __future__ import annotations
@@ -21,7 +21,6 @@ import numpy as np
 from drivers.robot.base import START_TOLERANCE_RAD
 from recon import kinematics
 from recon.types import FloatArray, JointTrajectory, Phase
-from recon.waypoints import coarse_waypoints
 
 Mode = Literal["servoj", "movep"]
 #: servoJ's lookahead and gain in the program (as the ur_rtde backend streams).
@@ -124,16 +123,19 @@ def urscript_program(
         f"  set_tcp({_pose(tcp_pose)})",
         f"  set_payload({payload_kg:.4f}, {_list(payload_cog_m)})",
     ]
-    start = trajectory.q_rad[0]
-    lines += [
-        f"  start = {_list(start)}",
-        "  here = get_actual_joint_positions()",
-        f"  if norm(here - start) > {START_TOLERANCE_RAD:.4f}:",
-        '    popup("teachpath: the arm is not at the start of this program; plan again from '
-        'where it stands", "teachpath", error=True)',
-        "    halt",
-        "  end",
-    ]
+    # The start check, joint by joint (scalar arithmetic only: URScript has no list maths).
+    message = (
+        '"teachpath: the arm is not at the start of this program; plan again from where it '
+        'stands", "teachpath", error=True'
+    )
+    for joint, value in enumerate(trajectory.q_rad[0]):
+        lines += [
+            f"  if norm(get_actual_joint_positions()[{joint}] - ({float(value):.6f})) > "
+            f"{START_TOLERANCE_RAD:.4f}:",
+            f"    popup({message})",
+            "    halt",
+            "  end",
+        ]
     transit = _phase(trajectory, Phase.TRANSIT)
     if transit is not None and len(transit) > 1:
         v, a = _lead_rates(transit)
@@ -170,6 +172,74 @@ def urscript_program(
     return "\n".join(lines)
 
 
+#: movep waypoints turn the tool by at most this much from one to the next (the controller
+#: interpolates the orientation between them by itself).
+MAX_TURN_DEG = 5.0
+
+
+def tool_waypoints(
+    trajectory: JointTrajectory, *, tolerance_m: float, max_turn_deg: float = MAX_TURN_DEG
+) -> np.ndarray:
+    """Sample indices of waypoints such that straight TCP lines between them (what ``movep``
+    runs) stay within ``tolerance_m`` of every planned TCP sample, and the tool turns at most
+    ``max_turn_deg`` from one waypoint to the next. First and last samples included.
+
+    Returns
+    -------
+    ndarray of shape (K,), int
+    """
+    from scipy.spatial.transform import Rotation
+
+    p = trajectory.tcp_m
+    rotations = Rotation.from_rotvec(np.array(trajectory.tcp_rotvec))  # a writable copy
+    n = len(p)
+
+    def fits(i: int, j: int) -> bool:
+        if j - i < 2:
+            return True
+        turn = np.degrees((rotations[i].inv() * rotations[j]).magnitude())
+        if turn > max_turn_deg:
+            return False
+        chord = p[j] - p[i]
+        length2 = float(chord @ chord)
+        inner = p[i + 1 : j] - p[i]
+        u = np.clip(inner @ chord / length2, 0.0, 1.0) if length2 > 0 else np.zeros(len(inner))
+        return float(np.linalg.norm(inner - u[:, None] * chord, axis=1).max()) <= tolerance_m
+
+    index = [0]
+    i = 0
+    while i < n - 1:
+        good, span = i + 1, 2
+        bad = None
+        while good < n - 1:
+            j = min(i + span, n - 1)
+            if not fits(i, j):
+                bad = j
+                break
+            good, span = j, 2 * span
+        while bad is not None and bad - good > 1:
+            mid = (good + bad) // 2
+            good, bad = (mid, bad) if fits(i, mid) else (good, mid)
+        index.append(good)
+        i = good
+    return np.array(index)
+
+
+def continuous_rotvecs(rotvecs: FloatArray) -> FloatArray:
+    """The same orientations, each rotation vector written the way nearest the one before (at
+    half a turn two opposite vectors name one orientation; a controller told both in turn may
+    turn the tool a full half turn between them)."""
+    out = np.array(rotvecs, dtype=np.float64)
+    for k in range(1, len(out)):
+        angle = float(np.linalg.norm(out[k]))
+        if angle < 1e-9:
+            continue
+        other = out[k] / angle * (angle - 2.0 * np.pi)
+        if np.linalg.norm(other - out[k - 1]) < np.linalg.norm(out[k] - out[k - 1]):
+            out[k] = other
+    return out
+
+
 def _process_lines(arm, process: JointTrajectory, mode: Mode, tolerance_m: float) -> list[str]:
     if mode == "servoj":
         t = process.period_s
@@ -187,18 +257,23 @@ def _process_lines(arm, process: JointTrajectory, mode: Mode, tolerance_m: float
         ] * hold
         lines.append(f"  stopj({STOP_ACCELERATION_RAD_S2})")
         return lines
-    path = coarse_waypoints(arm, process, tolerance_m=tolerance_m)
-    speed = float(np.linalg.norm(np.diff(process.tcp_m, axis=0), axis=1).max() / process.period_s)
+    index = tool_waypoints(process, tolerance_m=tolerance_m)
     _, acceleration = _tool_rates(process)
     lines = [
-        f"  # process: {len(path)} movep waypoints within {tolerance_m * 1e3:.2f} mm of the "
+        f"  # process: {len(index)} movep waypoints within {tolerance_m * 1e3:.2f} mm of the "
         f"plan ({process.duration_s:.2f} s planned)"
     ]
     blend = min(tolerance_m, 0.001)
-    for k, i in enumerate(path.sample_index):
-        pose = np.r_[process.tcp_m[i], process.tcp_rotvec[i]]
-        r = 0.0 if k in (0, len(path) - 1) else blend  # stop on the path's ends
-        lines.append(
-            f"  movep({_pose(pose)}, a={acceleration:.4f}, v={max(speed, 1e-3):.4f}, r={r:.4f})"
-        )
+    rotvecs = continuous_rotvecs(process.tcp_rotvec[index])
+    # Each move at the plan's own mean speed over it: where the plan slows down (a tight
+    # curve, the tool turning fast) so does the program, and the joints stay within what the
+    # plan checked.
+    distance = np.linalg.norm(np.diff(process.tcp_m[index], axis=0), axis=1)
+    duration = np.diff(process.t_s[index])
+    speed = np.concatenate(([0.0], distance / np.maximum(duration, process.period_s)))
+    for k, i in enumerate(index):
+        pose = np.r_[process.tcp_m[i], rotvecs[k]]
+        r = 0.0 if k in (0, len(index) - 1) else blend  # stop on the path's ends
+        v = max(float(speed[max(k, 1)]), 1e-3)
+        lines.append(f"  movep({_pose(pose)}, a={acceleration:.4f}, v={v:.4f}, r={r:.4f})")
     return lines

@@ -157,3 +157,161 @@ def test_a_controller_that_stops_answering_fails_the_job_and_the_service_stays_r
     # ur_rtde's 300 s command wait); the bound is loose for a busy shared machine.
     assert slowest_s < 3.0
     fake_ur.control("unfreeze")
+
+
+# --- stop means stop; one owner; the exported program --------------------------------------------
+
+
+def _phase_window(client, sid, trajectory_id, phase: str) -> tuple[float, float]:
+    """The fraction of the samples (0..1) a phase spans, from the trajectory's summary."""
+    durations = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}").json()["summary"][
+        "phase_durations_s"
+    ]
+    total, start = sum(durations.values()), 0.0
+    for name, seconds in durations.items():
+        if name == phase:
+            return start / total, (start + seconds) / total
+        start += seconds
+    raise AssertionError(f"no {phase} phase")
+
+
+def _stop(client, execution_id: str) -> dict:
+    response = client.post(f"/executions/{execution_id}/stop")
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 0.005, 0.02])
+def test_a_stop_right_after_the_request_moves_nothing(arm, fake_ur, delay_s):
+    client, sid, trajectory_id, q_start = arm
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    job = _execute(client, sid, trajectory_id)
+    time.sleep(delay_s)
+    stopped = _stop(client, job["params"]["execution_id"])
+    assert stopped["already_ended"] is False
+    job = wait(client, job, timeout_s=60)
+    assert job["state"] == "cancelled", job
+    assert job["result"]["stopped_in"].startswith("before moving")
+    # The controller's own record of the arm: it never left the start.
+    time.sleep(0.3)
+    q_now = np.array(fake_ur.control("status")["q_rad"])
+    assert np.abs(q_now - q_start).max() < 1e-3
+    execution = client.get(f"/sessions/{sid}/executions/{job['result']['execution_id']}").json()
+    assert execution["summary"]["n_samples"] == 0 and not execution["summary"]["completed"]
+    # And nothing of it moves later: the job has ended, the arm is free again.
+    assert client.get("/robot").json()["owner_execution_id"] is None
+
+
+def test_a_stop_during_the_approach_ends_it_there_with_no_path_sample(arm, fake_ur):
+    client, sid, trajectory_id, q_start = arm
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    low, high = _phase_window(client, sid, trajectory_id, "approach")
+    job = _execute_until(client, sid, trajectory_id, progress=0.1 + 0.9 * (low + high) / 2)
+    _stop(client, job["params"]["execution_id"])
+    job = wait(client, job, timeout_s=60)
+    assert job["state"] == "cancelled" and job["result"]["stopped_in"] == "approach", job
+    summary = client.get(f"/sessions/{sid}/executions/{job['result']['execution_id']}").json()[
+        "summary"
+    ]
+    assert "process" not in summary["executed_phase_durations_s"]
+    assert summary["executed_phase_durations_s"]["approach"] > 0
+    # At rest where it stopped.
+    q_a = np.array(fake_ur.control("status")["q_rad"])
+    time.sleep(0.3)
+    q_b = np.array(fake_ur.control("status")["q_rad"])
+    assert np.abs(q_b - q_a).max() < 1e-4
+    # A stop after the end says so.
+    assert _stop(client, job["result"]["execution_id"])["already_ended"] is True
+
+
+def test_one_execution_owns_the_arm(arm, fake_ur):
+    client, sid, trajectory_id, q_start = arm
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    first = _execute_until(client, sid, trajectory_id, progress=0.15)
+    second = client.post(
+        f"/sessions/{sid}/executions",
+        json={"trajectory_id": trajectory_id, "backend": "ur_rtde", "confirm": True},
+    )
+    assert second.status_code == 409 and second.json()["code"] == "arm_busy"
+    assert first["params"]["execution_id"] in second.json()["message"]
+    assert client.get("/robot").json()["owner_execution_id"] == first["params"]["execution_id"]
+    # A dry run is not a use of the arm.
+    dry = client.post(f"/sessions/{sid}/executions", json={"trajectory_id": trajectory_id})
+    assert dry.status_code == 202
+    _stop(client, first["params"]["execution_id"])
+    assert wait(client, first, timeout_s=60)["state"] == "cancelled"
+    wait(client, dry.json())
+
+
+def test_confirm_takes_only_the_json_true(arm):
+    client, sid, trajectory_id, _ = arm
+    for value in ("yes", 1, "true"):
+        response = client.post(
+            f"/sessions/{sid}/executions",
+            json={"trajectory_id": trajectory_id, "backend": "ur_rtde", "confirm": value},
+        )
+        assert response.status_code == 422 and response.json()["code"] == "invalid_request"
+
+
+def test_the_robot_state_follows_the_controller(arm, fake_ur):
+    client, _, _, q_start = arm
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    time.sleep(0.5)
+    state = client.get("/robot").json()
+    assert state["backend"] == "ur_rtde" and state["real_arm"] and state["reachable"]
+    assert state["robot_mode"] == "RUNNING" and state["safety_status"] == "NORMAL"
+    assert state["remote_control"] is True and state["max_speed_m_s"] == pytest.approx(0.1)
+    assert np.abs(np.array(state["q_rad"]) - q_start).max() < 1e-6
+    fake_ur.control("protective_stop")
+    deadline = time.monotonic() + 5
+    while not client.get("/robot").json()["protective_stop"]:
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    stopped = client.get("/robot").json()
+    assert stopped["safety_status"] == "PROTECTIVE_STOP" and 0 < stopped["unlock_in_s"] <= 5
+    refused = client.post("/robot/unlock")  # within 5 s of the stop: the controller refuses
+    assert refused.status_code == 409 and refused.json()["code"] == "protective_stop"
+    fake_ur.control("configure", unlock_wait_s=0.0)
+    assert client.post("/robot/unlock").json()["protective_stop"] is False
+    fake_ur.control("configure", remote_control=False)
+    time.sleep(0.5)
+    assert client.get("/robot").json()["remote_control"] is False
+    fake_ur.control("reset", q_rad=q_start.tolist())
+
+
+@pytest.mark.parametrize("mode", ["servoj", "movep"])
+def test_the_exported_program_runs_on_the_controller_and_ends_where_the_plan_ends(
+    arm, fake_ur, mode
+):
+    client, sid, trajectory_id, q_start = arm
+    program = client.get(
+        f"/sessions/{sid}/trajectories/{trajectory_id}/urscript", params={"mode": mode}
+    )
+    assert program.status_code == 200 and "set_tcp(p[" in program.text
+    assert trajectory_id in program.text and "checked:" in program.text
+    # Away from the start, the program halts at its start check and moves nothing.
+    away = q_start + [0.05, 0, 0, 0, 0, 0]
+    fake_ur.control("reset", q_rad=away.tolist())
+    status = fake_ur.wait_program(fake_ur.send_program(program.text))
+    assert status["state"] == "finished"
+    assert np.abs(np.array(fake_ur.control("status")["q_rad"]) - away).max() < 1e-9
+    assert any("not at the start" in m for m in status["messages"])
+    # At the start it runs the whole motion and ends where the plan ends.
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    status = fake_ur.wait_program(fake_ur.send_program(program.text), timeout_s=120)
+    assert status["state"] == "finished", status
+    csv = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}/csv").text
+    end = csv.strip().splitlines()[-1].split(",")
+    q_end, tcp_end = np.array(end[1:7], dtype=float), np.array(end[7:10], dtype=float)
+    now = fake_ur.control("status")
+    assert np.abs(np.array(now["q_rad"]) - q_end).max() < 2e-3
+    assert np.linalg.norm(np.array(now["tcp_pose"][:3]) - tcp_end) < 1e-3
+    # Along the whole motion it stays on the plan.
+    trace = fake_ur.program_trace(every=5)
+    planned = np.array([r.split(",")[7:10] for r in csv.strip().splitlines()[2:]], dtype=float)
+    from recon.metrics import distance_to_curve
+
+    off = distance_to_curve(trace["tcp_pose"][:, :3], planned)
+    # servoj: the stream itself (measured 0.05 mm); movep: the tolerance, the blends, and the
+    # fake's servo lagging the joints where the tool turns at the box's corner (1.2 mm).
+    assert off.max() < (1e-3 if mode == "servoj" else 3e-3), off.max()

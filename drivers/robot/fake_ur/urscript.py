@@ -227,11 +227,12 @@ _FAST_CALL = re.compile(
 _FAST_REST = re.compile(rf"\s*,\s*(?:([A-Za-z_]\w*)\s*=\s*)?({_NUMBER})")
 _DEF = re.compile(r"^def\s+([A-Za-z_]\w*)\s*\(\s*\)\s*:$")
 # The one conditional the subset has: a check that the arm stands where a program starts
-# (``teachpath export-urscript`` writes it): ``if norm(get_actual_joint_positions() - X) > D:``
-# opening a block of calls (a popup, halt) closed by ``end``.
+# (``teachpath export-urscript`` writes one per joint):
+# ``if norm(get_actual_joint_positions()[J] - (X)) > D:`` opening a block of calls (a popup,
+# halt) closed by ``end``.
 _JOINT_GUARD = re.compile(
-    rf"^if\s+norm\s*\(\s*get_actual_joint_positions\s*\(\s*\)\s*-\s*(?P<target>.+?)\s*\)"
-    rf"\s*>\s*(?P<limit>{_NUMBER})\s*:$"
+    rf"^if\s+norm\s*\(\s*get_actual_joint_positions\s*\(\s*\)\s*\[\s*(?P<joint>[0-5])\s*\]"
+    rf"\s*-\s*\(?\s*(?P<target>{_NUMBER})\s*\)?\s*\)\s*>\s*(?P<limit>{_NUMBER})\s*:$"
 )
 _CALL_PROGRAM = re.compile(r"^([A-Za-z_]\w*)\s*\(\s*\)$")
 
@@ -419,7 +420,7 @@ def compile_program(text: str) -> Program:
     name = ""
     state = "bare"  # bare -> (def) body -> after
     called = False
-    guard: tuple[int, object, float, list[Statement]] | None = None  # an open joint guard
+    guard: tuple[int, tuple, float, list[Statement]] | None = None  # an open joint guard
     lines = text.splitlines()
     for number, raw in enumerate(lines, start=1):
         code = _strip_comment(raw)
@@ -440,8 +441,8 @@ def compile_program(text: str) -> Program:
             continue
         match = _JOINT_GUARD.match(code)
         if match is not None:
-            tokens = _Tokens(match.group("target"), number)
-            guard = (number, _expression(tokens), float(match.group("limit")), [])
+            target = (int(match.group("joint")), float(match.group("target")))
+            guard = (number, target, float(match.group("limit")), [])
             continue
         match = _DEF.match(code)
         if match is not None:
@@ -781,8 +782,8 @@ class Runner:
             return
         self.pc += 1
         if function == "joint_guard":
-            target, _ = self._vector("norm", "the start joints", args[0], 6, pose=False)
-            if float(np.linalg.norm(self.host.actual_q() - target)) > args[1]:
+            joint, target = args[0]
+            if abs(float(self.host.actual_q()[joint]) - target) > args[1]:
                 resume = self.pc  # the body's statements are not the program's
                 for inner in statement.body:
                     self._execute(inner)
