@@ -26,6 +26,14 @@ ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 HOME_Q_RAD = (0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0)
 DEG = np.pi / 180.0
 
+#: Joint position range, +- radians. Every joint is +-360 deg nominally, but the elbow cannot
+#: physically turn past about +-180 deg (the upper arm is in the way: UR's ROS description limits
+#: it to that for the same reason). An elbow unwrapped to 248 deg instead of -112 deg is the same
+#: pose, yet the move to it would fold the forearm through the upper arm.
+JOINT_RANGE_RAD = np.array([2 * np.pi, 2 * np.pi, np.pi, 2 * np.pi, 2 * np.pi, 2 * np.pi])
+JOINT_RANGE_RAD.setflags(write=False)
+_ENDLESS_WRIST_3_RANGE_RAD = np.append(JOINT_RANGE_RAD[:5], np.inf)
+
 
 @dataclass(frozen=True)
 class URModel:
@@ -69,7 +77,7 @@ class URModel:
         for name in ("qd_max_rad_s", "qdd_max_rad_s2", "q_min_rad", "q_max_rad"):
             value = getattr(self, name)
             if value is None:
-                value = np.full(6, -2 * np.pi if name == "q_min_rad" else 2 * np.pi)
+                value = -JOINT_RANGE_RAD if name == "q_min_rad" else JOINT_RANGE_RAD
             arr = np.array(value, dtype=np.float64)
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
@@ -95,7 +103,7 @@ def _e_series_rates(*values_deg_s: float) -> FloatArray:
 #: The supported arms, by lower-case name. DH parameters from UR's "DH parameters for
 #: calculations of kinematics and dynamics" (the same values as ur-analytic-ik's table); joint
 #: speeds (deg/s) from UR's ROS 2 description (config/<model>/joint_limits.yaml). Joint positions
-#: are +-360 deg, except wrist 3 of the UR3 and UR3e, which turns without limit.
+#: are ``JOINT_RANGE_RAD``, except wrist 3 of the UR3 and UR3e, which turns without limit.
 UR_MODELS: dict[str, URModel] = {
     m.name: m
     for m in (
@@ -111,8 +119,8 @@ UR_MODELS: dict[str, URModel] = {
             np.full(6, 6.0),
             500.0,
             3.0,
-            q_min_rad=[-2 * np.pi] * 5 + [-np.inf],
-            q_max_rad=[2 * np.pi] * 5 + [np.inf],
+            q_min_rad=-_ENDLESS_WRIST_3_RANGE_RAD,
+            q_max_rad=_ENDLESS_WRIST_3_RANGE_RAD,
         ),
         URModel(
             "ur5e",
@@ -191,8 +199,8 @@ UR_MODELS: dict[str, URModel] = {
             np.full(6, 6.0),
             125.0,
             3.0,
-            q_min_rad=[-2 * np.pi] * 5 + [-np.inf],
-            q_max_rad=[2 * np.pi] * 5 + [np.inf],
+            q_min_rad=-_ENDLESS_WRIST_3_RANGE_RAD,
+            q_max_rad=_ENDLESS_WRIST_3_RANGE_RAD,
         ),
         URModel(
             "ur5",

@@ -187,31 +187,37 @@ def plan_path(
     )
     process = time_parameterize(arm, joints, tool, limits, T_flange_tcp=T_flange_tcp)
     heights = [params.approach_m * lift for lift in APPROACH_LIFTS]
+    heights = [h for h in heights if h <= max(MAX_APPROACH_M, params.approach_m)]
     report = None
-    for height in (h for h in heights if h <= max(MAX_APPROACH_M, params.approach_m)):
-        try:
-            trajectory = _whole_motion(arm, process, joints.branch, q_start, height, params)
-        except InfeasibleTrajectoryError:
-            if report is None:
-                raise  # the approach asked for itself cannot be followed
-            break  # lifted higher the approach leaves the arm's reach: report the collision
-        if cell is not None:
-            report = check_cell(arm, trajectory, cell, params)
-        if report is None or report.first_collision is None:
-            return Plan(
-                tool=tool,
-                joints=joints,
-                trajectory=trajectory,
-                params=params,
-                T_scan_tracker=normals.T_scan_tracker if source == "scan" else None,
-                start_q_rad=q_start,
-                start_from=start_from,
-                configuration=kinematics.configuration_of(arm, joints.q_rad[0]),
-                approach_m=height,
-                collision=report,
-            )
-        if report.first_collision.phase not in (Phase.TRANSIT, Phase.APPROACH):
-            break  # coming in higher cannot help
+    # The ways onto the path, in order of preference: the direct joint move, the base's turn
+    # first, and both from higher up.
+    for height in heights:
+        for base_first in (False, True):
+            try:
+                trajectory = _whole_motion(
+                    arm, process, joints.branch, q_start, height, params, base_first=base_first
+                )
+            except InfeasibleTrajectoryError:
+                if report is None:
+                    raise  # the approach asked for itself cannot be followed
+                break  # lifted higher the approach leaves the arm's reach
+            if cell is not None:
+                report = check_cell(arm, trajectory, cell, params)
+            if report is None or report.first_collision is None:
+                return Plan(
+                    tool=tool,
+                    joints=joints,
+                    trajectory=trajectory,
+                    params=params,
+                    T_scan_tracker=normals.T_scan_tracker if source == "scan" else None,
+                    start_q_rad=q_start,
+                    start_from=start_from,
+                    configuration=kinematics.configuration_of(arm, joints.q_rad[0]),
+                    approach_m=height,
+                    collision=report,
+                )
+            if report.first_collision.phase not in (Phase.TRANSIT, Phase.APPROACH):
+                raise _collision_error(report)  # another way onto the path cannot help
     raise _collision_error(report)
 
 
@@ -290,8 +296,15 @@ def _process_tool_path(points_tracker_m, T_base_tracker, params, normals, pen_xy
     return tool, source
 
 
-def _whole_motion(arm, process, branch, q_start, approach_m, params) -> JointTrajectory:
-    """Transit, approach, the timed process path, retract and (if asked) return."""
+def _whole_motion(
+    arm, process, branch, q_start, approach_m, params, *, base_first: bool = False
+) -> JointTrajectory:
+    """Transit, approach, the timed process path, retract and (if asked) return.
+
+    ``base_first``: the transit turns the base alone first (the arm keeps the start's shape,
+    and its heights), then moves the other joints: a joint move that turns the base a long
+    way while it unfolds the arm may sweep low through the cell.
+    """
     T_flange_tcp = params.T_flange_tcp
     ends = kinematics.forward(arm, process.q_rad[[0, -1]]) @ T_flange_tcp
     line = {
@@ -321,8 +334,9 @@ def _whole_motion(arm, process, branch, q_start, approach_m, params) -> JointTra
         "speed_scale": params.transit_speed_scale,
         "acceleration_scale": params.transit_acceleration_scale,
     }
+    transit = _transit(arm, q_start, approach.q_rad[0], base_first, joint_move)
     phases = [
-        motion.joint_move(arm, q_start, approach.q_rad[0], **joint_move),
+        *transit,
         approach,
         motion.PhaseSamples.of(Phase.PROCESS, process),
         retract,
@@ -333,6 +347,18 @@ def _whole_motion(arm, process, branch, q_start, approach_m, params) -> JointTra
     return motion.assemble(
         arm, phases, T_flange_tcp=T_flange_tcp, requested_speed_m_s=params.speed_m_s
     )
+
+
+def _transit(arm, q_start, q_goal, base_first: bool, joint_move: dict) -> list:
+    """The joint moves from the start to the approach pose (one, or the base's turn first)."""
+    if not base_first or abs(q_goal[0] - q_start[0]) < 1e-6:
+        return [motion.joint_move(arm, q_start, q_goal, **joint_move)]
+    turned = np.array(q_start, dtype=np.float64)
+    turned[0] = q_goal[0]
+    return [
+        motion.joint_move(arm, q_start, turned, **joint_move),
+        motion.joint_move(arm, turned, q_goal, **joint_move),
+    ]
 
 
 def approach_in(T_base_tracker: FloatArray | None, approach_base) -> FloatArray:

@@ -189,5 +189,17 @@ def pose_from_transform(T: NDArray[np.float64]) -> NDArray[np.float64]:
     ndarray of shape (6,) or (N, 6)
     """
     T = np.asarray(T, dtype=np.float64)
-    rotvec = Rotation.from_matrix(T[..., :3, :3]).as_rotvec()
+    rotvec = _canonical_half_turns(Rotation.from_matrix(T[..., :3, :3]).as_rotvec())
     return np.concatenate([T[..., :3, 3], rotvec], axis=-1)
+
+
+def _canonical_half_turns(rotvec: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A half turn has two rotation vectors, r and -r; which one SciPy returns depends on the
+    last bits of the matrix. Pick the one whose largest component is positive, so the same pose
+    reads the same wherever it was computed. ``rotvec``: shape (3,) or (N, 3)."""
+    rotvec = np.array(rotvec, dtype=np.float64)
+    flat = rotvec.reshape(-1, 3)
+    half_turn = np.linalg.norm(flat, axis=1) > np.pi - 1e-9
+    largest = flat[np.arange(len(flat)), np.argmax(np.abs(flat), axis=1)]
+    flat[half_turn & (largest < 0)] *= -1.0
+    return flat.reshape(rotvec.shape)

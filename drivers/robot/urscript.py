@@ -14,6 +14,7 @@ halts with a popup when any joint is farther than :data:`START_TOLERANCE_RAD` fr
 
 from __future__ import annotations
 
+import itertools
 from typing import Literal
 
 import numpy as np
@@ -45,10 +46,43 @@ def _phase(trajectory: JointTrajectory, phase: Phase) -> JointTrajectory | None:
         return None
 
 
-def _lead_rates(part: JointTrajectory) -> tuple[float, float]:
-    """The leading joint's largest speed and acceleration in a joint move (movej's v and a)."""
-    speed = float(np.abs(part.qd_rad_s).max(initial=0.0))
-    acceleration = float(np.abs(part.qdd_rad_s2).max(initial=0.0))
+def joint_stops(part: JointTrajectory) -> list[int]:
+    """Indices of the samples where a joint-move phase comes to rest, its first and last included.
+
+    A phase made of several joint moves (the transit that turns the base first, then the rest of
+    the arm) rests between them; each move becomes its own ``movej``, so the controller follows
+    the planned (checked) way and not one straight joint move that cuts across it.
+    """
+    resting = np.flatnonzero(np.all(np.abs(part.qd_rad_s) < 1e-9, axis=1))
+    stops = [0]
+    for i in resting:
+        if np.abs(part.q_rad[i] - part.q_rad[stops[-1]]).max() > 1e-9:
+            stops.append(int(i))
+    if stops[-1] != len(part) - 1 and np.abs(part.q_rad[-1] - part.q_rad[stops[-1]]).max() > 1e-9:
+        stops.append(len(part) - 1)
+    return stops
+
+
+def _joint_move_lines(part: JointTrajectory | None, label: str, goal: str) -> list[str]:
+    """One ``movej`` per joint move of a transit or return phase, at the plan's rates."""
+    if part is None or len(part) < 2:
+        return []
+    stops = joint_stops(part)
+    lines = [f"  # {label}: joint moves to {goal} ({part.duration_s:.2f} s planned)"]
+    for begin, end in itertools.pairwise(stops):
+        rows = slice(begin, end + 1)
+        v, a = _lead_rates(part.qd_rad_s[rows], part.qdd_rad_s2[rows])
+        lines.append(f"  movej({_list(part.q_rad[end])}, a={a:.4f}, v={v:.4f})")
+    return lines
+
+
+def _lead_rates(qd_rad_s: FloatArray, qdd_rad_s2: FloatArray) -> tuple[float, float]:
+    """The leading joint's largest speed and acceleration in a joint move (movej's v and a).
+
+    ``qd_rad_s``, ``qdd_rad_s2``: arrays of shape (n, 6), the move's samples.
+    """
+    speed = float(np.abs(qd_rad_s).max(initial=0.0))
+    acceleration = float(np.abs(qdd_rad_s2).max(initial=0.0))
     return max(speed, 1e-3), max(acceleration, 1e-3)
 
 
@@ -136,13 +170,7 @@ def urscript_program(
             "    halt",
             "  end",
         ]
-    transit = _phase(trajectory, Phase.TRANSIT)
-    if transit is not None and len(transit) > 1:
-        v, a = _lead_rates(transit)
-        lines += [
-            f"  # transit: joint move to the approach pose ({transit.duration_s:.2f} s planned)",
-            f"  movej({_list(transit.q_rad[-1])}, a={a:.4f}, v={v:.4f})",
-        ]
+    lines += _joint_move_lines(_phase(trajectory, Phase.TRANSIT), "transit", "the approach pose")
     approach = _phase(trajectory, Phase.APPROACH)
     if approach is not None and len(approach) > 1:
         v, a = _tool_rates(approach)
@@ -151,8 +179,10 @@ def urscript_program(
             f"  # approach: straight down the tool axis ({approach.duration_s:.2f} s planned)",
             f"  movel({_pose(end)}, a={a:.4f}, v={v:.4f})",
         ]
-    process = _phase(trajectory, Phase.PROCESS) or trajectory
-    lines += _process_lines(arm, process, mode, tolerance_m)
+    # A trajectory without phases is a process path alone.
+    process = trajectory if trajectory.phase is None else _phase(trajectory, Phase.PROCESS)
+    if process is not None:
+        lines += _process_lines(arm, process, mode, tolerance_m)
     retract = _phase(trajectory, Phase.RETRACT)
     if retract is not None and len(retract) > 1:
         v, a = _tool_rates(retract)
@@ -161,13 +191,7 @@ def urscript_program(
             f"  # retract: straight up the tool axis ({retract.duration_s:.2f} s planned)",
             f"  movel({_pose(end)}, a={a:.4f}, v={v:.4f})",
         ]
-    back = _phase(trajectory, Phase.RETURN)
-    if back is not None and len(back) > 1:
-        v, a = _lead_rates(back)
-        lines += [
-            f"  # return: joint move back to the start ({back.duration_s:.2f} s planned)",
-            f"  movej({_list(back.q_rad[-1])}, a={a:.4f}, v={v:.4f})",
-        ]
+    lines += _joint_move_lines(_phase(trajectory, Phase.RETURN), "return", "the start")
     lines += ["end", f"{name}()", ""]
     return "\n".join(lines)
 

@@ -64,8 +64,9 @@ def test_every_sample_respects_the_limits_and_straight_speed_is_exact():
     # The whole motion starts and ends at rest.
     assert np.abs(whole.qd_rad_s[[0, -1]]).max() < 1e-9
     traj = whole.of_phase(Phase.PROCESS)
-    # TCP speed from the planned joints (forward kinematics, not the planner's own numbers).
-    tcp = forward(arm, traj.q_rad)[:, :3, 3]
+    # TCP speed from the planned joints (forward kinematics and the TCP, not the planner's own
+    # numbers).
+    tcp = (forward(arm, traj.q_rad) @ plan.params.T_flange_tcp)[:, :3, 3]
     speed = np.linalg.norm(np.diff(tcp, axis=0), axis=1) / np.diff(traj.t_s)
     cruise = speed[len(speed) // 3 : 2 * len(speed) // 3]
     assert np.abs(cruise / 0.1 - 1).max() < 0.01

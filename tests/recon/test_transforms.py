@@ -97,3 +97,19 @@ def test_ur_poses_round_trip_one_and_many():
     poses = pose_from_transform(many)
     assert poses.shape == (3, 6)
     np.testing.assert_allclose(transform_from_pose(poses), many, atol=1e-14)
+
+
+def test_a_half_turn_reads_the_same_whatever_its_last_bits():
+    """r and -r are the same half turn; the pose picks one, however the matrix was rounded."""
+    axis = np.array([1.0, 1.0, 0.0]) / np.sqrt(2)
+    poses = []
+    for wobble in (-1e-13, 0.0, 1e-13):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(axis * (np.pi + wobble)).as_matrix()
+        poses.append(pose_from_transform(T))
+        np.testing.assert_allclose(transform_from_pose(poses[-1]), T, atol=1e-12)
+    for pose in poses:
+        np.testing.assert_allclose(pose[3:], np.pi * axis, atol=1e-9)
+    # Away from the half turn a rotation vector is unique and kept as it is.
+    T = transform([0.0, 0.0, -170.0], [0, 0, 0])
+    assert pose_from_transform(T)[5] == pytest.approx(np.radians(-170.0))
