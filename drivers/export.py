@@ -26,6 +26,7 @@ from recon.types import (
     PointMode,
     ReconstructedPath,
     Reconstruction,
+    piece_labels,
 )
 
 QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw")
@@ -67,6 +68,8 @@ def reconstruction_csv_text(arrays: dict) -> str:
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(header)
     points = arrays["points_m"]
+    piece = arrays.get("piece")
+    piece = np.zeros(len(points), dtype=np.int64) if piece is None else piece
     for i in range(len(points)):
         row = [number(v) for v in points[i]]
         if t is not None:
@@ -82,6 +85,7 @@ def reconstruction_csv_text(arrays: dict) -> str:
             number(arrays["residual_path_m"][i]),
             number(arrays["residual_surface_m"][i]),
             number(arrays["alpha"][i]),
+            str(int(piece[i])),
         ]
         writer.writerow(row)
     return buffer.getvalue()
@@ -126,7 +130,18 @@ def read_reconstruction_csv(
     if all(c in header for c in QUATERNION_COLUMNS):
         q = _numbers(body, [header.index(c) for c in QUATERNION_COLUMNS], label)
         orientations = q / np.maximum(np.linalg.norm(q, axis=1), 1e-12)[:, None]
-    return ReconstructedPath(points_m=points, mode=modes, orientations_xyzw=orientations)
+    piece = None
+    if "piece" in header:
+        labels = _numbers(body, [header.index("piece")], label)[:, 0]
+        try:
+            if not np.all(labels == np.round(labels)):
+                raise ValueError("piece numbers must be whole")
+            piece = piece_labels(labels.astype(np.int64), len(labels))
+        except ValueError as exc:
+            raise InputFileError(f"{label}: column piece: {exc}") from None
+    return ReconstructedPath(
+        points_m=points, mode=modes, orientations_xyzw=orientations, piece=piece
+    )
 
 
 #: How a teachpath file's metadata line starts (a comment to CSV readers: pandas takes

@@ -750,12 +750,18 @@ class ContactZone:
     radius_m : float
         Tolerance of the contact around the path (the tool's tip radius and the margin are added,
         see the module docstring).
+    piece : ndarray of shape (N,), int, or None
+        The path's pieces (0, 1, ... in order; see :func:`recon.types.piece_labels`): the zone
+        follows each piece and never the untraced stretch between two. None: one piece.
     """
 
     path_m: FloatArray
     radius_m: float = 0.005
+    piece: NDArray | None = None
 
     def __post_init__(self) -> None:
+        from recon.types import piece_labels
+
         p = np.array(self.path_m, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0 or not np.all(np.isfinite(p)):
             raise ValueError(f"contact path_m must be finite with shape (N, 3), got {p.shape}")
@@ -763,6 +769,15 @@ class ContactZone:
             raise ValueError(f"contact radius_m must be >= 0, got {self.radius_m}")
         p.setflags(write=False)
         object.__setattr__(self, "path_m", p)
+        object.__setattr__(self, "piece", piece_labels(self.piece, len(p)))
+
+    def points(self, spacing_m: float) -> FloatArray:
+        """Points along each piece at most ``spacing_m`` apart, shape (K, 3)."""
+        from recon.types import piece_slices
+
+        return np.concatenate(
+            [_resample_polyline(self.path_m[rows], spacing_m) for rows in piece_slices(self.piece)]
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -1265,7 +1280,7 @@ def check_motion(
         if cell.has_scan and exempt.any():
             # Points on the path a quarter of the radius apart: what is within the radius of
             # them is within the radius of the path (the tube exempted is never wider).
-            on_path = _resample_polyline(contact_zone.path_m, contact_radius / 4)
+            on_path = contact_zone.points(contact_radius / 4)
             pts = cell.scan_m
             near = cell._tree.query_ball_point(on_path, contact_radius, workers=workers)
             touched = np.zeros(len(pts), dtype=bool)

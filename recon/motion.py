@@ -287,7 +287,7 @@ def assemble(
         label.append(np.full(len(part.t_s), int(part.phase), dtype=np.int8))
         offset += float(part.t_s[-1]) + dt
         if part.phase is Phase.PROCESS:
-            drops = part.speed_drops
+            drops += part.speed_drops
     q_all = np.concatenate(q)
     tcp = pose_from_transform(kinematics.forward(arm, q_all) @ np.asarray(T_flange_tcp))
     travel = np.linalg.norm(np.diff(tcp[:, :3], axis=0), axis=1)

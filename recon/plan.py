@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.typing import NDArray
 
 from recon import kinematics, motion
 from recon.errors import CollisionError, InfeasibleTrajectoryError
@@ -35,6 +36,8 @@ from recon.types import (
     ReconParams,
     Scan,
     ToolPath,
+    piece_labels,
+    piece_slices,
 )
 
 
@@ -64,6 +67,8 @@ class Plan:
         The approach height used (more than asked when the transit had to come in higher).
     collision : CollisionReport or None
         The check of the whole motion against the cell (None: no cell given).
+    n_pieces : int
+        Process runs: the trace's pieces, with a retract, a transit and an approach between two.
     """
 
     tool: ToolPath
@@ -76,6 +81,7 @@ class Plan:
     configuration: kinematics.Configuration | None = None
     approach_m: float = 0.0
     collision: object | None = None
+    n_pieces: int = 1
 
     def report_lines(self) -> list[str]:
         """The feasibility report for a terminal."""
@@ -85,7 +91,12 @@ class Plan:
         lines = [
             f"{self.params.robot}: {length * mm:.0f} mm of path in {process:.2f} s "
             f"({len(traj)} samples at {1 / traj.period_s:.0f} Hz in all), requested "
-            f"{traj.requested_speed_m_s * mm:.0f} mm/s, mean {length / process * mm:.1f}",
+            f"{traj.requested_speed_m_s * mm:.0f} mm/s, mean {length / process * mm:.1f}"
+            + (
+                f"; in {self.n_pieces} pieces, the arm lifts between them"
+                if self.n_pieces > 1
+                else ""
+            ),
             "phases: "
             + ", ".join(f"{name} {t:.2f} s" for name, t in traj.phase_durations_s().items())
             + f" ({traj.duration_s:.2f} s in all; approach {self.approach_m * mm:.0f} mm)",
@@ -130,6 +141,7 @@ def plan_path(
     normals: ScanNormals | None = None,
     pen_xyzw: FloatArray | None = None,
     cell=None,
+    piece: NDArray[np.int64] | None = None,
 ) -> Plan:
     """Plan the whole motion along a path given in the tracker frame.
 
@@ -148,6 +160,9 @@ def plan_path(
     cell : recon.collision.Cell, optional
         What the arm must not touch (mounting plane, keep-out boxes, the scan); without it no
         collision check is made.
+    piece : ndarray of shape (N,), int, optional
+        The trace's pieces (``Reconstruction.piece``): each is a process run of its own, and
+        between two the arm retracts, transits and approaches again. None: one piece.
 
     Raises
     ------
@@ -159,33 +174,40 @@ def plan_path(
     """
     arm = kinematics.model(params.robot)
     T = np.eye(4) if T_base_tracker is None else check_rigid(T_base_tracker, name="T_base_tracker")
-    tool, source = _process_tool_path(points_tracker_m, T, params, normals, pen_xyzw)
+    points = np.asarray(points_tracker_m, dtype=np.float64)
+    pieces = piece_slices(piece_labels(piece, len(points)))
+    source = _orientation_source(params, normals, pen_xyzw)
+    tools = [
+        _process_tool_path(points[rows], T, params, source, _rows(normals, rows), pen_xyzw, rows)
+        for rows in pieces
+    ]
     T_flange_tcp = params.T_flange_tcp
-    flange = tool.poses() @ invert_transform(T_flange_tcp)
     start_from = "given" if params.start_q_rad is not None else "home"
     q_start = np.asarray(params.start_q_rad or kinematics.HOME_Q_RAD, dtype=np.float64)
-    want = params.configuration
-    branches = kinematics.branches_for(arm, flange[0], want)
-    if not branches and kinematics.branches_for(
-        arm, flange[0], kinematics.Configuration(elbow=None)
-    ):
-        x, y, z = flange[0, :3, 3]
-        raise InfeasibleTrajectoryError(
-            f"no solution of the {arm.name} in the configuration asked for ({want.words()}) "
-            f"reaches the path's first point at ({x:.3f}, {y:.3f}, {z:.3f}) m: choose another "
-            "configuration (shoulder, elbow, wrist) or move the workpiece"
-        )
-    # Unreachable in every configuration: follow_path names the waypoint and why.
-    joints = kinematics.follow_path(
-        arm, flange, q_near_rad=q_start, allowed_branches=branches or None
-    )
+    flanges = [tool.poses() @ invert_transform(T_flange_tcp) for tool in tools]
+    allowed = _configuration_branches(arm, flanges[0][0], params.configuration)
     limits = limits_for(
         arm,
         params.speed_m_s,
         velocity_scale=params.velocity_scale,
         acceleration_scale=params.acceleration_scale,
     )
-    process = time_parameterize(arm, joints, tool, limits, T_flange_tcp=T_flange_tcp)
+    # One configuration for every piece: the first piece's branch is kept for the others.
+    joints_per_piece, processes, q_near = [], [], q_start
+    for k, (tool, flange) in enumerate(zip(tools, flanges, strict=True)):
+        try:
+            joints = kinematics.follow_path(
+                arm, flange, q_near_rad=q_near, allowed_branches=allowed
+            )
+        except InfeasibleTrajectoryError as error:
+            if len(tools) == 1:
+                raise
+            raise InfeasibleTrajectoryError(f"piece {k} of the path: {error}") from error
+        allowed, q_near = (joints.branch,), joints.q_rad[-1]
+        joints_per_piece.append(joints)
+        processes.append(time_parameterize(arm, joints, tool, limits, T_flange_tcp=T_flange_tcp))
+    tool, joints = _joined_tools(tools), _joined_joints(joints_per_piece)
+    offsets_m = tool.arc_length_m[[rows.start for rows in pieces]]
     heights = [params.approach_m * lift for lift in APPROACH_LIFTS]
     heights = [h for h in heights if h <= max(MAX_APPROACH_M, params.approach_m)]
     report = None
@@ -195,7 +217,14 @@ def plan_path(
         for base_first in (False, True):
             try:
                 trajectory = _whole_motion(
-                    arm, process, joints.branch, q_start, height, params, base_first=base_first
+                    arm,
+                    processes,
+                    offsets_m,
+                    joints.branch,
+                    q_start,
+                    height,
+                    params,
+                    base_first=base_first,
                 )
             except InfeasibleTrajectoryError:
                 if report is None:
@@ -215,10 +244,72 @@ def plan_path(
                     configuration=kinematics.configuration_of(arm, joints.q_rad[0]),
                     approach_m=height,
                     collision=report,
+                    n_pieces=len(pieces),
                 )
             if report.first_collision.phase not in (Phase.TRANSIT, Phase.APPROACH):
                 raise _collision_error(report)  # another way onto the path cannot help
     raise _collision_error(report)
+
+
+def _configuration_branches(arm, T_flange, want) -> tuple[int, ...] | None:
+    """The IK branches of the configuration asked for at the path's first pose (None: let
+    :func:`kinematics.follow_path` name why the pose is out of reach in any configuration).
+
+    Raises
+    ------
+    InfeasibleTrajectoryError
+        The pose is reachable, but not in that configuration.
+    """
+    branches = kinematics.branches_for(arm, T_flange, want)
+    if not branches and kinematics.branches_for(
+        arm, T_flange, kinematics.Configuration(elbow=None)
+    ):
+        x, y, z = T_flange[:3, 3]
+        raise InfeasibleTrajectoryError(
+            f"no solution of the {arm.name} in the configuration asked for ({want.words()}) "
+            f"reaches the path's first point at ({x:.3f}, {y:.3f}, {z:.3f}) m: choose another "
+            "configuration (shoulder, elbow, wrist) or move the workpiece"
+        )
+    return tuple(branches) or None
+
+
+def _rows(normals: ScanNormals | None, rows: slice) -> ScanNormals | None:
+    if normals is None:
+        return None
+    return replace(normals, normals=normals.normals[rows], known=normals.known[rows])
+
+
+def _joined_tools(tools: list[ToolPath]) -> ToolPath:
+    """The pieces' tool paths end to end; arc length runs on along the traced path only."""
+    if len(tools) == 1:
+        return tools[0]
+    offsets = np.cumsum([0.0] + [t.arc_length_m[-1] for t in tools[:-1]])
+    return ToolPath(
+        points_m=np.concatenate([t.points_m for t in tools]),
+        orientations_xyzw=np.concatenate([t.orientations_xyzw for t in tools]),
+        arc_length_m=np.concatenate(
+            [t.arc_length_m + o for t, o in zip(tools, offsets, strict=True)]
+        ),
+        source=tools[0].source,
+    )
+
+
+def _joined_joints(paths: list[JointPath]) -> JointPath:
+    if len(paths) == 1:
+        return paths[0]
+    return JointPath(
+        q_rad=np.concatenate([p.q_rad for p in paths]),
+        branch=paths[0].branch,
+        **{
+            name: np.concatenate([getattr(p, name) for p in paths])
+            for name in (
+                "limit_margin_rad",
+                "wrist_singularity",
+                "elbow_singularity",
+                "shoulder_margin_m",
+            )
+        },
+    )
 
 
 def check_cell(arm, trajectory: JointTrajectory, cell, params: PlanParams):
@@ -228,6 +319,7 @@ def check_cell(arm, trajectory: JointTrajectory, cell, params: PlanParams):
     from recon.collision import CapsuleTool, ContactZone, check_motion
 
     process = trajectory.phases == int(Phase.PROCESS)
+    run = np.cumsum(np.r_[True, np.diff(process.astype(np.int8)) != 0])  # 1, 2, ... per run
     return check_motion(
         arm,
         trajectory.q_rad,
@@ -236,7 +328,9 @@ def check_cell(arm, trajectory: JointTrajectory, cell, params: PlanParams):
         T_flange_tcp=params.T_flange_tcp,
         tool=CapsuleTool(radius_m=params.tool_radius_m),
         margin_m=params.clearance_m,
-        contact_zone=ContactZone(path_m=trajectory.tcp_m[process]),
+        contact_zone=ContactZone(
+            path_m=trajectory.tcp_m[process], piece=np.unique(run[process], return_inverse=True)[1]
+        ),
         t_s=trajectory.t_s,
     )
 
@@ -259,24 +353,26 @@ def _collision_error(report) -> CollisionError:
     )
 
 
-def _process_tool_path(points_tracker_m, T_base_tracker, params, normals, pen_xyzw):
-    """The process path's TCP poses in the base frame, and where the tool axis came from."""
+def _orientation_source(params: PlanParams, normals, pen_xyzw) -> str:
+    """Where the tool axis comes from: the one asked for, or for "auto" the best there is."""
+    if params.orientation != "auto":
+        return params.orientation
+    if normals is not None and normals.known.any():
+        return "scan"
+    return "pen" if pen_xyzw is not None else "fixed"
+
+
+def _process_tool_path(points_tracker_m, T_base_tracker, params, source, normals, pen_xyzw, rows):
+    """One piece's TCP poses in the base frame (``pen_xyzw`` is the whole path's, cut to
+    ``rows`` here)."""
     R = T_base_tracker[:3, :3]
-    points = apply_transform(T_base_tracker, np.asarray(points_tracker_m, dtype=np.float64))
-    source = params.orientation
-    if source == "auto":
-        source = (
-            "scan"
-            if normals is not None and normals.known.any()
-            else "pen"
-            if pen_xyzw is not None
-            else "fixed"
-        )
+    points = apply_transform(T_base_tracker, points_tracker_m)
     kwargs = {}
     if source == "scan":
         if normals is None or not normals.known.any():
             raise ValueError(
                 "orientation 'scan' needs a scan with surfaces or edges along the path"
+                + ("" if rows.start == 0 and normals is not None else " (along every piece)")
             )
         kwargs["normals"] = fill_along_path(normals.normals, normals.known) @ R.T
     elif source == "pen":
@@ -284,8 +380,10 @@ def _process_tool_path(points_tracker_m, T_base_tracker, params, normals, pen_xy
             raise ValueError("orientation 'pen' needs a trace with pen orientations (qx..qw)")
         from scipy.spatial.transform import Rotation
 
-        kwargs["pen_xyzw"] = (Rotation.from_matrix(R) * Rotation.from_quat(pen_xyzw)).as_quat()
-    tool = tool_path(
+        kwargs["pen_xyzw"] = (
+            Rotation.from_matrix(R) * Rotation.from_quat(np.asarray(pen_xyzw)[rows])
+        ).as_quat()
+    return tool_path(
         points,
         approach=params.approach,
         lead_deg=params.lead_deg,
@@ -293,18 +391,48 @@ def _process_tool_path(points_tracker_m, T_base_tracker, params, normals, pen_xy
         smooth_m=params.smooth_m,
         **kwargs,
     )
-    return tool, source
 
 
 def _whole_motion(
-    arm, process, branch, q_start, approach_m, params, *, base_first: bool = False
+    arm, processes, offsets_m, branch, q_start, approach_m, params, *, base_first: bool = False
 ) -> JointTrajectory:
-    """Transit, approach, the timed process path, retract and (if asked) return.
+    """Transit, approach, the timed process path, retract, for each piece in turn, and (if
+    asked) the return.
 
-    ``base_first``: the transit turns the base alone first (the arm keeps the start's shape,
-    and its heights), then moves the other joints: a joint move that turns the base a long
-    way while it unfolds the arm may sweep low through the cell.
+    ``offsets_m``: where each piece starts along the traced path (its speed drops are placed
+    there). ``base_first``: each transit turns the base alone first (the arm keeps its shape,
+    and its heights), then moves the other joints: a joint move that turns the base a long way
+    while it unfolds the arm may sweep low through the cell.
     """
+    joint_move = {
+        "speed_scale": params.transit_speed_scale,
+        "acceleration_scale": params.transit_acceleration_scale,
+    }
+    phases: list[motion.PhaseSamples] = []
+    q_here = q_start
+    for process, offset_m in zip(processes, offsets_m, strict=True):
+        approach, retract = _approach_and_retract(arm, process, branch, approach_m, params)
+        drops = tuple(
+            replace(d, start_m=d.start_m + offset_m, end_m=d.end_m + offset_m)
+            for d in process.speed_drops
+        )
+        phases += _transit(arm, q_here, approach.q_rad[0], base_first, joint_move)
+        phases += [
+            approach,
+            replace(motion.PhaseSamples.of(Phase.PROCESS, process), speed_drops=drops),
+            retract,
+        ]
+        q_here = retract.q_rad[-1]
+    if params.return_to_start:
+        back = motion.joint_move(arm, q_here, q_start, **joint_move)
+        phases.append(replace(back, phase=Phase.RETURN))
+    return motion.assemble(
+        arm, phases, T_flange_tcp=params.T_flange_tcp, requested_speed_m_s=params.speed_m_s
+    )
+
+
+def _approach_and_retract(arm, process, branch, approach_m, params):
+    """The straight moves along the tool axis onto a process run's first pose and off its last."""
     T_flange_tcp = params.T_flange_tcp
     ends = kinematics.forward(arm, process.q_rad[[0, -1]]) @ T_flange_tcp
     line = {
@@ -330,23 +458,7 @@ def _whole_motion(
         phase=Phase.RETRACT,
         **line,
     )
-    joint_move = {
-        "speed_scale": params.transit_speed_scale,
-        "acceleration_scale": params.transit_acceleration_scale,
-    }
-    transit = _transit(arm, q_start, approach.q_rad[0], base_first, joint_move)
-    phases = [
-        *transit,
-        approach,
-        motion.PhaseSamples.of(Phase.PROCESS, process),
-        retract,
-    ]
-    if params.return_to_start:
-        back = motion.joint_move(arm, retract.q_rad[-1], q_start, **joint_move)
-        phases.append(replace(back, phase=Phase.RETURN))
-    return motion.assemble(
-        arm, phases, T_flange_tcp=T_flange_tcp, requested_speed_m_s=params.speed_m_s
-    )
+    return approach, retract
 
 
 def _transit(arm, q_start, q_goal, base_first: bool, joint_move: dict) -> list:

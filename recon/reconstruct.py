@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from recon.classify import PATH_ONLY, SegmentKind, classify_segments
 from recon.errors import DegenerateInputError, UnitsMismatchError
@@ -76,45 +77,84 @@ def check_scales(path_m: FloatArray, scan_m: FloatArray | None) -> None:
 
 @dataclass(frozen=True)
 class SegmentPlan:
-    """The resampled path, its segments (``[start, stop)``, sharing corners) and N_P's half-width
-    in points."""
+    """The resampled path, its segments (``[start, stop)``, sharing corners, never spanning two
+    pieces of the trace), N_P's half-width in points, and the piece of each resampled point."""
 
     resampled: ResampledPath
     bounds: list[tuple[int, int]]
     half_width: int
+    piece: NDArray[np.int64]
 
 
 def plan_segments(recording: Recording, params: ReconParams) -> SegmentPlan:
-    """Algorithm 1's path part: resample equidistantly and split at corners.
+    """Algorithm 1's path part: resample equidistantly and split at corners, piece by piece
+    (the stretch between two pieces was not traced: nothing is resampled across it).
 
     Raises
     ------
     DegenerateInputError
         Too few points after resampling for a fit of ``params.degree``.
     """
+    pieces = recording.pieces()
+    parts = [
+        _resample(piece, params, "the path" if len(pieces) == 1 else f"piece {k} of the path")
+        for k, piece in enumerate(pieces)
+    ]
+    bounds: list[tuple[int, int]] = []
+    offset = 0
+    for part in parts:
+        corners = find_corners(
+            part.points_m,
+            spacing_m=part.spacing_m,
+            angle_deg=params.corner_angle_deg,
+            scale_m=params.corner_scale_m,
+        )
+        bounds += [(offset + a, offset + b) for a, b in split_at(len(part.points_m), corners)]
+        offset += len(part.points_m)
+    resampled = parts[0] if len(parts) == 1 else _joined(parts)
+    return SegmentPlan(
+        resampled=resampled,
+        bounds=bounds,
+        half_width=max(1, int(round(params.radius_m / resampled.spacing_m))),
+        piece=np.repeat(np.arange(len(parts)), [len(p.points_m) for p in parts]),
+    )
+
+
+def _resample(recording: Recording, params: ReconParams, label: str) -> ResampledPath:
     resampled = resample_equidistant(
         recording.points_m,
         spacing_m=params.spacing_m,
         t_s=recording.t_s,
         orientations_xyzw=recording.orientations_xyzw,
     )
-    points = resampled.points_m
-    if len(points) < params.degree + 2:
+    n = len(resampled.points_m)
+    if n < params.degree + 2:
         raise DegenerateInputError(
-            f"the path has only {len(points)} points after resampling at "
+            f"{label} has only {n} points after resampling at "
             f"{params.spacing_m * 1000:.2f} mm; a degree-{params.degree} fit needs at least "
             f"{params.degree + 2}: record a longer trace or lower the spacing"
         )
-    corners = find_corners(
-        points,
-        spacing_m=resampled.spacing_m,
-        angle_deg=params.corner_angle_deg,
-        scale_m=params.corner_scale_m,
-    )
-    return SegmentPlan(
-        resampled=resampled,
-        bounds=split_at(len(points), corners),
-        half_width=max(1, int(round(params.radius_m / resampled.spacing_m))),
+    return resampled
+
+
+def _joined(parts: list[ResampledPath]) -> ResampledPath:
+    """Resampled pieces end to end; arc length runs on across the untraced gaps (it measures the
+    traced path only)."""
+
+    def stacked(name: str):
+        values = [getattr(p, name) for p in parts]
+        return None if any(v is None for v in values) else np.concatenate(values)
+
+    lengths = np.cumsum([0.0] + [p.arc_length_m[-1] for p in parts[:-1]])
+    return ResampledPath(
+        points_m=np.concatenate([p.points_m for p in parts]),
+        arc_length_m=np.concatenate(
+            [p.arc_length_m + s for p, s in zip(parts, lengths, strict=True)]
+        ),
+        spacing_m=min(p.spacing_m for p in parts),
+        t_s=stacked("t_s"),
+        n_duplicates=sum(p.n_duplicates for p in parts),
+        orientations_xyzw=stacked("orientations_xyzw"),
     )
 
 
@@ -130,7 +170,8 @@ def reconstruct(
     Parameters
     ----------
     path : Recording or ndarray of shape (N, 3), metres
-        The trace, tracker frame.
+        The trace, tracker frame. A recording in pieces (``Recording.piece``) is resampled and
+        fitted piece by piece (no segment spans two), with one registration for all of them.
     scan : Scan, optional
         The workpiece, scan frame. Without it (or with ``alpha=1``) only the path is used, as in
         the paper's Fig. 8.
@@ -206,6 +247,7 @@ def reconstruct(
         notes,
         T_scan_tracker=T_scan_tracker,
         scan_model=model,
+        piece=plan.piece,
     )
 
 
@@ -289,6 +331,7 @@ def _assemble(
     *,
     T_scan_tracker: FloatArray | None,
     scan_model: ScanModel | None,
+    piece: NDArray[np.int64],
 ) -> Reconstruction:
     """Concatenate segment results; a corner point shared by two segments takes the later one."""
     n = len(resampled.points_m)
@@ -329,4 +372,5 @@ def _assemble(
         notes=tuple(notes),
         T_scan_tracker=T_scan_tracker,
         scan_model=scan_model,
+        piece=piece,
     )

@@ -59,6 +59,41 @@ def frozen_array(
     return arr
 
 
+def piece_labels(values, n: int, *, name: str = "piece") -> NDArray[np.int64]:
+    """Check per-point piece labels: 0, 1, ... in order, each piece at least two points long.
+
+    Parameters
+    ----------
+    values : array_like of shape (n,), or None
+        None: one piece (all zeros).
+    n : int
+        Number of points.
+
+    Raises
+    ------
+    ValueError
+        Wrong length, labels that do not start at 0 and step by 0 or 1, a piece of one point.
+    """
+    if values is None:
+        arr = np.zeros(n, dtype=np.int64)
+        arr.setflags(write=False)
+        return arr
+    arr = frozen_array(values, dtype=np.int64, name=name)
+    if len(arr) != n:
+        raise ValueError(f"{name} has {len(arr)} values for {n} points")
+    if n and (arr[0] != 0 or np.any((np.diff(arr) != 0) & (np.diff(arr) != 1))):
+        raise ValueError(f"{name} must count pieces in order: 0, 0, ..., 1, 1, ...")
+    if n and np.min(np.bincount(arr)) < 2:
+        raise ValueError(f"every {name} needs at least two points")
+    return arr
+
+
+def piece_slices(piece: NDArray[np.int64]) -> list[slice]:
+    """The index range of each piece, in order (``piece`` as checked by :func:`piece_labels`)."""
+    starts = np.r_[0, np.flatnonzero(np.diff(piece)) + 1, len(piece)]
+    return [slice(int(a), int(b)) for a, b in zip(starts[:-1], starts[1:], strict=True)]
+
+
 @dataclass(frozen=True)
 class Recording:
     """A traced path as the tracker delivered it, in the tracker frame.
@@ -71,15 +106,20 @@ class Recording:
         Sample times, strictly increasing when given.
     orientations_xyzw : ndarray of shape (N, 4), or None
         Pen orientations as unit quaternions, scalar last.
+    piece : ndarray of shape (N,), int
+        Which continuous piece each sample belongs to (0, 1, ... in order): a trace split by
+        long dropouts or lift-offs, kept whole. All zeros (one piece) when not given.
     """
 
     points_m: FloatArray
     t_s: FloatArray | None = None
     orientations_xyzw: FloatArray | None = None
+    piece: NDArray[np.int64] | None = None
 
     def __post_init__(self) -> None:
         pts = frozen_array(self.points_m, shape_tail=(3,), name="points_m")
         object.__setattr__(self, "points_m", pts)
+        object.__setattr__(self, "piece", piece_labels(self.piece, len(pts)))
         if self.t_s is not None:
             t = frozen_array(self.t_s, name="t_s")
             if len(t) != len(pts):
@@ -98,6 +138,40 @@ class Recording:
 
     def __len__(self) -> int:
         return len(self.points_m)
+
+    @property
+    def n_pieces(self) -> int:
+        return int(self.piece[-1]) + 1 if len(self.piece) else 0
+
+    @classmethod
+    def joined(cls, pieces: list[Recording]) -> Recording:
+        """Pieces (in time order) as one recording that keeps them apart (``piece``)."""
+        if not pieces:
+            raise ValueError("no piece to join")
+
+        def stacked(name: str):
+            values = [getattr(p, name) for p in pieces]
+            return None if any(v is None for v in values) else np.concatenate(values)
+
+        return cls(
+            points_m=np.concatenate([p.points_m for p in pieces]),
+            t_s=stacked("t_s"),
+            orientations_xyzw=stacked("orientations_xyzw"),
+            piece=np.repeat(np.arange(len(pieces)), [len(p) for p in pieces]),
+        )
+
+    def pieces(self) -> list[Recording]:
+        """Each piece as a recording of its own."""
+        return [
+            Recording(
+                points_m=self.points_m[rows],
+                t_s=None if self.t_s is None else self.t_s[rows],
+                orientations_xyzw=None
+                if self.orientations_xyzw is None
+                else self.orientations_xyzw[rows],
+            )
+            for rows in piece_slices(self.piece)
+        ]
 
 
 @dataclass(frozen=True)
@@ -493,6 +567,7 @@ PER_POINT_FIELDS = (
     "residual_path_m",
     "residual_surface_m",
     "alpha",
+    "piece",
 )
 
 
@@ -522,6 +597,8 @@ class Reconstruction:
         RMS residual of the path and scan fits (NaN where there was no such fit).
     alpha : ndarray of shape (N,)
         The path weight used at each point (1 where only the path was used).
+    piece : ndarray of shape (N,), int
+        The trace's piece each point belongs to (see :class:`Recording`); no segment spans two.
     segments : tuple of Segment
     registration : Registration or None
         None when no scan was used or registration was switched off.
@@ -555,8 +632,10 @@ class Reconstruction:
     orientations_xyzw: FloatArray | None = None
     T_scan_tracker: FloatArray | None = None
     scan_model: ScanModel | None = field(default=None, compare=False, repr=False)
+    piece: NDArray[np.int64] | None = None
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "piece", piece_labels(self.piece, len(self.points_m)))
         if self.T_scan_tracker is not None:
             T = np.array(self.T_scan_tracker, dtype=np.float64)
             if T.shape != (4, 4):
@@ -597,12 +676,18 @@ class ReconstructedPath:
     T_scan_tracker : ndarray of shape (4, 4), or None
         The transform the reconstruction used between tracker and scan (None: no scan, or not
         recorded).
+    piece : ndarray of shape (N,), int
+        The trace's piece of each point (all zeros: one piece); the arm lifts between pieces.
     """
 
     points_m: FloatArray
     mode: NDArray[np.int8]
     orientations_xyzw: FloatArray | None = None
     T_scan_tracker: FloatArray | None = None
+    piece: NDArray[np.int64] | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "piece", piece_labels(self.piece, len(self.points_m)))
 
 
 @dataclass(frozen=True)
@@ -778,25 +863,46 @@ class JointTrajectory:
         Raises
         ------
         ValueError
-            The trajectory has no sample of that phase.
+            The trajectory has no sample of that phase, or several runs of it (a trace in
+            pieces: see :meth:`runs` and :meth:`part`).
         """
-        keep = np.flatnonzero(self.phases == int(phase))
-        if len(keep) == 0:
+        rows = [r for p, r in self.runs() if p is phase]
+        if not rows:
             raise ValueError(f"the trajectory has no {phase.label} phase")
-        rows = slice(keep[0], keep[-1] + 1)  # a phase is one contiguous run
+        if len(rows) > 1:
+            raise ValueError(
+                f"the trajectory has {len(rows)} {phase.label} runs (a trace in pieces); "
+                "take them one by one with runs() and part()"
+            )
+        return self.part(rows[0])
+
+    def part(self, rows: slice) -> JointTrajectory:
+        """Consecutive samples as a trajectory of their own (times and arc length from 0)."""
+        first = rows.start or 0
+        process = bool(np.all(self.phases[rows] == int(Phase.PROCESS)))
         return JointTrajectory(
             robot=self.robot,
-            t_s=self.t_s[rows] - self.t_s[keep[0]],
+            t_s=self.t_s[rows] - self.t_s[first],
             q_rad=self.q_rad[rows],
             qd_rad_s=self.qd_rad_s[rows],
             qdd_rad_s2=self.qdd_rad_s2[rows],
             tcp_m=self.tcp_m[rows],
             tcp_rotvec=self.tcp_rotvec[rows],
-            arc_length_m=self.arc_length_m[rows] - self.arc_length_m[keep[0]],
+            arc_length_m=self.arc_length_m[rows] - self.arc_length_m[first],
             requested_speed_m_s=self.requested_speed_m_s,
-            speed_drops=self.speed_drops if phase is Phase.PROCESS else (),
+            speed_drops=self.speed_drops if process else (),
             phase=self.phases[rows],
         )
+
+    def runs(self) -> list[tuple[Phase, slice]]:
+        """The phases in the order they run, each contiguous run with its samples: a motion over
+        a trace in two pieces has two approach, process and retract runs."""
+        phases = self.phases
+        starts = np.r_[0, np.flatnonzero(np.diff(phases)) + 1, len(phases)]
+        return [
+            (Phase(int(phases[a])), slice(int(a), int(b)))
+            for a, b in zip(starts[:-1], starts[1:], strict=True)
+        ]
 
     def phase_durations_s(self) -> dict[str, float]:
         """Seconds spent in each phase present, in the order they run."""

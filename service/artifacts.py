@@ -65,6 +65,7 @@ class RecordingCodec:
                 "points_m": np.asarray(recording.points_m),
                 "t_s": recording.t_s,
                 "orientations_xyzw": recording.orientations_xyzw,
+                "piece": recording.piece if recording.n_pieces > 1 else None,
             }
         )
 
@@ -74,6 +75,7 @@ class RecordingCodec:
             points_m=arrays["points_m"],
             t_s=arrays.get("t_s"),
             orientations_xyzw=arrays.get("orientations_xyzw"),
+            piece=arrays.get("piece"),
         )
 
 
@@ -134,6 +136,7 @@ class ReconstructionCodec:
             mode=arrays["mode"],
             orientations_xyzw=arrays.get("orientations_xyzw"),
             T_scan_tracker=None if T is None or T.shape != (4, 4) else T,
+            piece=arrays.get("piece"),
         )
 
     @staticmethod
@@ -258,7 +261,9 @@ class RecordingSummary(_Summary):
     has_orientations: bool = False
     bounds_m: list[Vector3] | None = Field(None, description="lower and upper corner, metres")
     rate_hz: float | None = None
-    piece: int | None = None
+    piece: int | Literal["all"] | None = Field(
+        None, description="the piece kept of a trace split by long dropouts, or all of them"
+    )
     n_pieces: int | None = None
     gaps: dict[str, Any] | None = None
     gap_report: list[str] = Field(default_factory=list)
@@ -297,6 +302,7 @@ class ReconstructionSummary(_Summary):
     mean_displacement_m: float
     max_displacement_m: float
     segments: list[SegmentSummary]
+    n_pieces: int = Field(1, description="the trace's pieces, reconstructed apart")
     T_scan_tracker: Matrix4 | None = Field(
         None, description="the transform used: registered, else the given one; null: no scan"
     )
@@ -317,7 +323,8 @@ class TrajectorySummary(_Summary):
     duration_s: float
     n_samples: int
     rate_hz: float
-    path_length_m: float
+    path_length_m: float = Field(..., description="traced length (not the lifts between pieces)")
+    n_pieces: int = Field(1, description="process runs: the arm lifts between the trace's pieces")
     tool_axis_from: str
     ik_branch: int
     min_limit_margin_rad: float
@@ -355,6 +362,7 @@ class TrajectorySummary(_Summary):
         "start_from",
         "configuration",
         "approach_m",
+        "n_pieces",
         "tcp_pose",
         "payload_kg",
         "payload_cog_m",

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from starlette.concurrency import run_in_threadpool
 
@@ -38,7 +39,7 @@ class TraceOptions:
     units: str | None = None
     rigid_body: str | None = None
     marker: str | None = None
-    piece: int | None = None
+    piece: int | Literal["all"] | None = None
 
 
 def _tip_for(session: SessionRow, marker: str | None):

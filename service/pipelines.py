@@ -170,6 +170,7 @@ class ReconstructOutcome:
             "mean_displacement_m": float(recon.displacement_m.mean()),
             "max_displacement_m": float(recon.displacement_m.max()),
             "segments": [asdict(s) for s in recon.segments],
+            "n_pieces": int(recon.piece[-1]) + 1,
             "T_scan_tracker": None if T is None else np.asarray(T).tolist(),
             "registration": None
             if reg is None
@@ -281,7 +282,7 @@ def place_scan(scan, path, *, recon_params=None) -> PlacedScan:
         T = np.asarray(path.T_scan_tracker, dtype=np.float64)
         model = scan_model_for_path(scan, path.points_m, T_scan_tracker=T, recon_params=params)
         return PlacedScan(model=model, T_scan_tracker=T, registration=None)
-    segments = plan_segments(Recording(points_m=path.points_m), params)
+    segments = plan_segments(Recording(points_m=path.points_m, piece=path.piece), params)
     prepared = prepare_scan_model(
         segments.resampled.points_m, scan, segments.bounds, params, T_scan_tracker_init=None
     )
@@ -359,6 +360,7 @@ class PlanOutcome:
             "n_samples": len(traj),
             "rate_hz": 1.0 / traj.period_s,
             "path_length_m": float(plan.tool.arc_length_m[-1]),
+            "n_pieces": plan.n_pieces,
             "tool_axis_from": plan.tool.source,
             "ik_branch": joints.branch,
             "min_limit_margin_rad": float(joints.limit_margin_rad.min()),
@@ -443,6 +445,7 @@ def plan(
         normals=normals,
         pen_xyzw=path.orientations_xyzw,
         cell=cell_for(scan, path.T_scan_tracker, T_base, keep_out_boxes),
+        piece=path.piece,
     )
     return PlanOutcome(
         plan=result, T_scan_tracker=T_scan_tracker, T_base_tracker=T_base, start_from=start_from
@@ -453,7 +456,6 @@ def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=()):
     """The cell a plan is checked against (base frame): the mounting surface (the base's z = 0
     plane), the keep-out boxes and, when the scan's place is known, the scanned workpiece."""
     from recon.collision import Box, Cell
-
     from recon.transforms import apply_transform, invert_transform
 
     boxes = tuple(

@@ -19,6 +19,16 @@ from recon.types import FloatArray, Reconstruction  # noqa: E402
 MAX_SCAN_POINTS = 20000
 
 
+def _piece_breaks(piece: np.ndarray):
+    """A function that puts a NaN row between pieces of (N, 3) points, so lines break there."""
+    starts = np.flatnonzero(np.diff(piece)) + 1
+
+    def broken(points: np.ndarray) -> np.ndarray:
+        return np.insert(np.asarray(points, dtype=np.float64), starts, np.nan, axis=0)
+
+    return broken
+
+
 def plot_reconstruction(
     path: str | Path,
     recon: Reconstruction,
@@ -53,8 +63,11 @@ def plot_reconstruction(
             pick = np.random.default_rng(seed).choice(len(scan_m), MAX_SCAN_POINTS, replace=False)
             shown = scan_m[pick]
         ax3d.scatter(*(shown.T * mm), s=0.6, c="0.45", alpha=0.35, linewidths=0, label="scan")
-    ax3d.plot(*(recon.input_points_m.T * mm), c="tab:blue", lw=0.8, label="input (resampled)")
-    ax3d.plot(*(recon.points_m.T * mm), c="tab:green", lw=1.4, label="reconstruction")
+    breaks = _piece_breaks(recon.piece)
+    ax3d.plot(
+        *(breaks(recon.input_points_m).T * mm), c="tab:blue", lw=0.8, label="input (resampled)"
+    )
+    ax3d.plot(*(breaks(recon.points_m).T * mm), c="tab:green", lw=1.4, label="reconstruction")
     if truth_m is not None:
         ax3d.plot(*(truth_m.T * mm), c="k", lw=0.8, ls="--", label="ground truth")
     ax3d.set_xlabel("x [mm]")
@@ -64,12 +77,10 @@ def plot_reconstruction(
     _equal_axes(ax3d, recon.points_m * mm)
 
     ax = fig.add_subplot(1, 2, 2)
-    arc = (
-        np.concatenate(
-            ([0.0], np.cumsum(np.linalg.norm(np.diff(recon.input_points_m, axis=0), axis=1)))
-        )
-        * mm
-    )
+    # Arc length along the traced path: the stretch between two pieces was not traced.
+    steps = np.linalg.norm(np.diff(recon.input_points_m, axis=0), axis=1)
+    steps[np.diff(recon.piece) != 0] = 0.0
+    arc = np.concatenate(([0.0], np.cumsum(steps))) * mm
     if truth_m is not None:
         ax.plot(
             arc,
@@ -91,6 +102,8 @@ def plot_reconstruction(
         ax.set_ylabel("distance moved [mm]")
     for segment in recon.segments[1:]:
         ax.axvline(arc[segment.start], c="0.6", lw=0.6, ls=":")
+    for start in np.flatnonzero(np.diff(recon.piece)) + 1:
+        ax.axvline(arc[start], c="tab:red", lw=0.8, ls="--")  # the arm lifts here
     ax.set_xlabel("arc length along the path [mm]")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -41,10 +42,12 @@ def recording_summary(recording, fmt: str) -> dict:
     """Size and extent of a recording (see :class:`service.artifacts.RecordingSummary`)."""
     points = np.asarray(recording.points_m)
     t = recording.t_s
+    # Traced length only: the stretch between two pieces kept apart was not traced.
+    steps = np.linalg.norm(np.diff(points, axis=0), axis=1)[np.diff(recording.piece) == 0]
     return {
         "format": fmt,
         "n_samples": int(len(points)),
-        "length_m": float(np.sum(np.linalg.norm(np.diff(points, axis=0), axis=1))),
+        "length_m": float(np.sum(steps)),
         "duration_s": None if t is None else float(t[-1] - t[0]),
         "has_orientations": recording.orientations_xyzw is not None,
         "bounds_m": [points.min(axis=0).tolist(), points.max(axis=0).tolist()],
@@ -78,7 +81,7 @@ class ParseRecording:
     rigid_body: str | None = None
     marker: str | None = None
     tip_offset_m: tuple[float, float, float] | None = None
-    piece: int | None = None
+    piece: int | Literal["all"] | None = None
 
     def run(self) -> tuple[Arrays, dict]:
         from drivers.tracking.readers import read_trace

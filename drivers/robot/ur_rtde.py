@@ -86,6 +86,13 @@ class URRtdeConfig(BackendConfig):
         gt=0,
         description="motion may take this much longer than planned before it counts as hung",
     )
+    motion_slack: float = Field(
+        0.25,
+        ge=0,
+        le=10,
+        description="and this fraction of the planned time on top (a client that falls behind "
+        "the controller's clock stretches a long stream)",
+    )
     power_on: bool = Field(False, description="enable() powers on and releases the brakes")
     upper_range_registers: bool = Field(False, description="use RTDE registers 24-47")
     stop_deceleration_rad_s2: float = Field(4.0, gt=0, le=40.0)
@@ -255,6 +262,10 @@ class URRtdeBackend(RobotBackend):
             self._worker.close(grace_s=CLOSE_GRACE_S)
         self._kill_worker()
 
+    def _motion_bound_s(self, planned_s: float) -> float:
+        """How long a motion planned to take ``planned_s`` may run before it counts as hung."""
+        return planned_s * (1.0 + self.config.motion_slack) + self.config.motion_margin_s
+
     def _read_q(self) -> FloatArray:
         return np.array(self._call(ReadQ()), dtype=np.float64)
 
@@ -263,7 +274,7 @@ class URRtdeBackend(RobotBackend):
         expected = distance / speed + speed / acceleration
         self._call(
             MoveJ(list(map(float, q)), speed, acceleration),
-            timeout_s=expected + self.config.motion_margin_s,
+            timeout_s=self._motion_bound_s(expected),
         )
 
     def _set_tool(self, tcp_pose: FloatArray, payload_kg: float, cog_m: FloatArray) -> None:
@@ -283,7 +294,7 @@ class URRtdeBackend(RobotBackend):
                     trajectory.period_s,
                     None if journal is None else str(journal),
                 ),
-                timeout_s=trajectory.duration_s + self.config.motion_margin_s,
+                timeout_s=self._motion_bound_s(trajectory.duration_s),
                 on_progress=(None if on_progress is None else (lambda i: on_progress(i / n))),
             )
         except RobotError:
@@ -319,7 +330,7 @@ class URRtdeBackend(RobotBackend):
                     path.blend_m.tolist(),
                     None if journal is None else str(journal),
                 ),
-                timeout_s=expected_s + self.config.motion_margin_s,
+                timeout_s=self._motion_bound_s(expected_s),
                 on_progress=(
                     None if on_progress is None else (lambda i: on_progress(i / len(path)))
                 ),

@@ -39,13 +39,6 @@ def _pose(values) -> str:
     return "p" + _list(values)
 
 
-def _phase(trajectory: JointTrajectory, phase: Phase) -> JointTrajectory | None:
-    try:
-        return trajectory.of_phase(phase)
-    except ValueError:
-        return None
-
-
 def joint_stops(part: JointTrajectory) -> list[int]:
     """Indices of the samples where a joint-move phase comes to rest, its first and last included.
 
@@ -74,6 +67,18 @@ def _joint_move_lines(part: JointTrajectory | None, label: str, goal: str) -> li
         v, a = _lead_rates(part.qd_rad_s[rows], part.qdd_rad_s2[rows])
         lines.append(f"  movej({_list(part.q_rad[end])}, a={a:.4f}, v={v:.4f})")
     return lines
+
+
+def _line_lines(part: JointTrajectory, what: str) -> list[str]:
+    """A straight TCP move (approach or retract) as one ``movel`` at the plan's rates."""
+    if len(part) < 2:
+        return []
+    v, a = _tool_rates(part)
+    end = np.r_[part.tcp_m[-1], part.tcp_rotvec[-1]]
+    return [
+        f"  # {what} ({part.duration_s:.2f} s planned)",
+        f"  movel({_pose(end)}, a={a:.4f}, v={v:.4f})",
+    ]
 
 
 def _lead_rates(qd_rad_s: FloatArray, qdd_rad_s2: FloatArray) -> tuple[float, float]:
@@ -170,28 +175,20 @@ def urscript_program(
             "    halt",
             "  end",
         ]
-    lines += _joint_move_lines(_phase(trajectory, Phase.TRANSIT), "transit", "the approach pose")
-    approach = _phase(trajectory, Phase.APPROACH)
-    if approach is not None and len(approach) > 1:
-        v, a = _tool_rates(approach)
-        end = np.r_[approach.tcp_m[-1], approach.tcp_rotvec[-1]]
-        lines += [
-            f"  # approach: straight down the tool axis ({approach.duration_s:.2f} s planned)",
-            f"  movel({_pose(end)}, a={a:.4f}, v={v:.4f})",
-        ]
-    # A trajectory without phases is a process path alone.
-    process = trajectory if trajectory.phase is None else _phase(trajectory, Phase.PROCESS)
-    if process is not None:
-        lines += _process_lines(arm, process, mode, tolerance_m)
-    retract = _phase(trajectory, Phase.RETRACT)
-    if retract is not None and len(retract) > 1:
-        v, a = _tool_rates(retract)
-        end = np.r_[retract.tcp_m[-1], retract.tcp_rotvec[-1]]
-        lines += [
-            f"  # retract: straight up the tool axis ({retract.duration_s:.2f} s planned)",
-            f"  movel({_pose(end)}, a={a:.4f}, v={v:.4f})",
-        ]
-    lines += _joint_move_lines(_phase(trajectory, Phase.RETURN), "return", "the start")
+    if trajectory.phase is None:  # a trajectory without phases is a process path alone
+        lines += _process_lines(arm, trajectory, mode, tolerance_m)
+    for phase, rows in () if trajectory.phase is None else trajectory.runs():
+        part = trajectory.part(rows)
+        if phase is Phase.TRANSIT:
+            lines += _joint_move_lines(part, "transit", "the approach pose")
+        elif phase is Phase.RETURN:
+            lines += _joint_move_lines(part, "return", "the start")
+        elif phase is Phase.APPROACH:
+            lines += _line_lines(part, "approach: straight down the tool axis")
+        elif phase is Phase.RETRACT:
+            lines += _line_lines(part, "retract: straight up the tool axis")
+        else:
+            lines += _process_lines(arm, part, mode, tolerance_m)
     lines += ["end", f"{name}()", ""]
     return "\n".join(lines)
 

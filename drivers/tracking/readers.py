@@ -17,6 +17,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -25,6 +26,10 @@ from drivers.registry import Registry
 from drivers.tracking.base import SampleBatch
 from drivers.tracking.gaps import CleanTrace, GapParams, apply_tip_offset, clean_trace
 from recon.types import FloatArray, Recording
+
+#: Which piece of a trace split by long dropouts: an index, "all" (kept apart), None (the
+#: longest).
+Piece = int | Literal["all"] | None
 
 
 @dataclass(frozen=True)
@@ -55,12 +60,12 @@ class TraceFile:
     Attributes
     ----------
     recording : Recording
-        The chosen piece (pen tip, tracker frame).
+        The chosen piece (pen tip, tracker frame), or every piece kept apart (``piece`` "all").
     raw : RawTrace
     clean : CleanTrace
         Every piece and the gap report.
-    piece : int
-        Index of ``recording`` in ``clean.pieces``.
+    piece : int or "all"
+        Index of ``recording`` in ``clean.pieces``, or "all".
     tip_offset_applied : bool
         Whether the samples were moved to the pen's tip.
     """
@@ -68,7 +73,7 @@ class TraceFile:
     recording: Recording
     raw: RawTrace
     clean: CleanTrace
-    piece: int
+    piece: int | Literal["all"]
     tip_offset_applied: bool = False
 
     @property
@@ -169,7 +174,7 @@ def read_trace(
     marker: str | None = None,
     tip_offset_m: FloatArray | None = None,
     gaps: GapParams | None = None,
-    piece: int | None = None,
+    piece: Piece = None,
     tip_needs_orientations: bool = True,
 ) -> TraceFile:
     """Read a trace file, move it to the pen's tip, clean it and pick a piece.
@@ -183,9 +188,9 @@ def read_trace(
         point is used as it is (the rigid body's pivot as set in the tracker's software).
     gaps : GapParams, optional
         How dropouts and outliers are handled.
-    piece : int, optional
-        Which piece to return when long dropouts split the recording (0-based, time order);
-        default the longest.
+    piece : int or "all", optional
+        Which piece to return when long dropouts split the recording (0-based, time order), or
+        "all": every piece, kept apart (the arm lifts between them); default the longest.
     tip_needs_orientations : bool
         True: a tip offset with a position-only trace is an error (the user asked for the
         offset). False: such a trace is used as it is and ``tip_offset_applied`` says so (a
@@ -213,7 +218,7 @@ def trace_from_raw(
     *,
     tip_offset_m: FloatArray | None = None,
     gaps: GapParams | None = None,
-    piece: int | None = None,
+    piece: Piece = None,
     tip_needs_orientations: bool = True,
 ) -> TraceFile:
     """Raw samples (from a file or a capture) moved to the pen's tip, cleaned, a piece picked.
@@ -227,14 +232,22 @@ def trace_from_raw(
     if apply_tip:
         batch = apply_tip_offset(batch, tip_offset_m)
     clean = _clean(batch, gaps)
+    if piece == "all":
+        return TraceFile(
+            recording=Recording.joined(list(clean.pieces)),
+            raw=raw,
+            clean=clean,
+            piece="all",
+            tip_offset_applied=apply_tip,
+        )
     if piece is None:
         index = clean.longest()
-    elif 0 <= piece < len(clean.pieces):
+    elif isinstance(piece, int) and 0 <= piece < len(clean.pieces):
         index = piece
     else:
         raise ValueError(
             f"piece {piece} does not exist: the recording has {len(clean.pieces)} piece(s) "
-            f"(0 to {len(clean.pieces) - 1})"
+            f"(0 to {len(clean.pieces) - 1}, or all)"
         )
     return TraceFile(
         recording=clean.pieces[index],

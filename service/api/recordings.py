@@ -26,15 +26,23 @@ async def upload_recording(
     units: Literal["m", "mm"] | None = Form(None, description="if the file states none (m)"),
     rigid_body: str | None = Form(None, description="Motive: the pen's rigid body"),
     marker: str | None = Form(None, description="Motive or C3D: a single marker as the pen"),
-    piece: int | None = Form(
-        None, ge=0, description="after long dropouts: which piece (default the longest)"
+    piece: str | None = Form(
+        None,
+        max_length=12,
+        pattern=r"^(all|[0-9]{1,6})$",
+        description="after long dropouts: which piece (0-based), or `all` of them (the arm "
+        "lifts between pieces); default the longest",
     ),
 ):
     """Upload a trace; it becomes the session's recording. The session's tip offset is applied,
     short dropouts are bridged and long ones split it (the summary says what was done). A bad
     file is a 422 and changes nothing."""
     options = inputs.TraceOptions(
-        format=format, units=units, rigid_body=rigid_body, marker=marker, piece=piece
+        format=format,
+        units=units,
+        rigid_body=rigid_body,
+        marker=marker,
+        piece=piece if piece in (None, "all") else int(piece),
     )
     upload = await read_upload(file, services)
     return await inputs.add_recording(services, session_id, upload, options)

@@ -20,14 +20,17 @@ def add_parser(commands) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from recon.transforms import apply_transform, invert_transform
+    import numpy as np
 
+    from drivers.calibration import write_calibration
     from drivers.scanning.pointcloud import write_scan
     from drivers.tracking.canonical_csv import write_trace_csv
     from recon import scenes
     from recon.evaluation import default_variants, evaluate, format_table
     from recon.reconstruct import reconstruct
+    from recon.transforms import apply_transform, invert_transform
     from service.cli import main
+    from service.demo import DEMO_T_BASE_TRACKER
     from service.plots import plot_reconstruction
 
     out_dir = Path(args.out_dir)
@@ -68,8 +71,11 @@ def run(args: argparse.Namespace) -> int:
     )
     print()
     print(table)
+    # Where the demo stands the workpiece in front of the arm: the input of `teachpath plan`.
+    placement = out_dir / "T_base_tracker.json"
+    write_calibration(placement, "T_base_tracker", np.array(DEMO_T_BASE_TRACKER))
     print(
         f"\nwrote {out_dir / 'reconstruction.csv'}, {out_dir / 'reconstruction.png'}, "
-        f"{out_dir / 'accuracy.md'}, {out_dir / 'accuracy.png'}"
+        f"{out_dir / 'accuracy.md'}, {out_dir / 'accuracy.png'}, {placement}"
     )
     return 0

@@ -87,9 +87,26 @@ def add_trace_options(parser: argparse.ArgumentParser, *, tip: bool = True) -> N
         )
         parser.add_argument(
             "--piece",
-            type=int,
-            help="when long dropouts split the trace: which piece (0-based; default the longest)",
+            type=piece_choice,
+            metavar="N|all",
+            help="when long dropouts split the trace: which piece (0-based), or all of them "
+            "(the arm lifts between pieces); default the longest",
         )
+
+
+def piece_choice(text: str) -> int | str:
+    """``--piece``: a piece index or "all"."""
+    if text.strip().lower() == "all":
+        return "all"
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a piece number or 'all', got {text!r}"
+        ) from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"a piece number is 0 or more, got {value}")
+    return value
 
 
 def add_units_option(parser: argparse.ArgumentParser, help: str) -> None:
@@ -127,11 +144,13 @@ def read_trace_for(args: argparse.Namespace):
     if report.events or len(trace.clean.pieces) > 1:
         for line in report.lines():
             note(line)
-        if len(trace.clean.pieces) > 1:
+        if len(trace.clean.pieces) > 1 and trace.piece == "all":
+            note(f"using all {len(trace.clean.pieces)} pieces; the arm lifts between them")
+        elif len(trace.clean.pieces) > 1:
             start, end = report.pieces[trace.piece]
             note(
                 f"using piece {trace.piece} ({start:.2f}-{end:.2f} s) of "
-                f"{len(trace.clean.pieces)}; choose another with --piece"
+                f"{len(trace.clean.pieces)}; choose another with --piece (or all)"
             )
     return trace.recording
 

@@ -642,7 +642,7 @@ def test_a_dropped_connection_is_reported_and_reconnecting_works(fake_ur, robot)
     started = time.monotonic()
     with pytest.raises((ConnectionLostError, RobotTimeoutError)):
         robot.execute(trajectory, on_progress=drop)
-    assert time.monotonic() - started < trajectory.duration_s + robot.config.motion_margin_s + 2
+    assert time.monotonic() - started < robot._motion_bound_s(trajectory.duration_s) + 2
     assert robot.state is RobotState.DISCONNECTED
     time.sleep(2.0)
     robot.connect()

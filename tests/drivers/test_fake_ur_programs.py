@@ -594,3 +594,33 @@ def _off_segment(q: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Joint-space distance (rad) of each row of ``q`` (n, 6) from the segment a-b."""
     u = np.clip((q - a) @ (b - a) / ((b - a) @ (b - a)), 0.0, 1.0)
     return np.linalg.norm(q - (a + u[:, None] * (b - a)), axis=1)
+
+
+def test_an_exported_motion_over_two_pieces_runs_both_with_the_lift_between():
+    from drivers.robot.urscript import urscript_program
+    from recon.metrics import distance_to_curve
+    from recon.plan import PlanParams, plan_path
+
+    s = np.linspace(0.0, 0.08, 81)
+    first = np.column_stack([0.4 + 0 * s, -0.12 + s, np.full_like(s, 0.1)])
+    second = np.column_stack([0.4 + 0 * s, 0.04 + s, np.full_like(s, 0.1)])
+    plan = plan_path(
+        np.vstack([first, second]),
+        params=PlanParams(speed_m_s=0.05, tcp_pose=tuple(TCP)),
+        piece=np.repeat([0, 1], 81),
+    )
+    traj = plan.trajectory
+    text = urscript_program(traj, tcp_pose=TCP, mode="movep")
+    assert text.count("movel(") == 4 and text.count("# transit") == 2
+    c = ctl.FakeController("ur5e")
+    c.reset_arm(traj.q_rad[0])
+    assert c.load_program(text), c.run
+    assert run(c, max_s=120).state == "finished"
+    rows = c.trace.rows()
+    tcp_run = rows[:, 7:10]
+    assert np.abs(rows[-1, 1:7] - traj.q_rad[-1]).max() < 2e-3
+    # On the plan throughout (movep: its tolerance and blends), both pieces traced.
+    off = distance_to_curve(tcp_run, traj.tcp_m)
+    assert off.max() < 3e-3, off.max()
+    for piece in (first, second):
+        assert distance_to_curve(piece, tcp_run).max() < 1e-3

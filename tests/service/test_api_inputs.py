@@ -12,6 +12,7 @@ from fastapi.testclient import TestClient
 from scipy.spatial.transform import Rotation
 
 from drivers.errors import InputFileError
+from recon import scenes
 from recon.types import Recording
 from service.app import create_app
 from service.capture_runner import HEADER, read_capture_file
@@ -244,6 +245,78 @@ def test_a_trace_with_a_long_dropout_is_split_and_a_piece_can_be_chosen(client, 
     )
     assert response.status_code == 422 and "piece 5 does not exist" in response.json()["message"]
     assert client.get(f"/sessions/{sid}").json()["recording_id"] == chosen["id"]
+    for bad in ("-1", "first", "1.5", "9" * 40, "all; drop"):
+        response = client.put(
+            f"/sessions/{sid}/recording", files={"file": ("t.csv", content)}, data={"piece": bad}
+        )
+        assert response.status_code == 422 and response.json()["code"] == "invalid_request", bad
+    assert client.get(f"/sessions/{sid}").json()["recording_id"] == chosen["id"]
+    both = client.put(
+        f"/sessions/{sid}/recording", files={"file": ("t.csv", content)}, data={"piece": "all"}
+    ).json()
+    assert both["summary"]["piece"] == "all" and both["summary"]["n_pieces"] == 2
+    assert both["summary"]["n_samples"] == 720
+    # The traced length, not the untraced half second between the pieces.
+    assert both["summary"]["length_m"] == pytest.approx(0.05 * (239 + 479) / 240.0, rel=1e-6)
+
+
+def test_a_trace_in_two_pieces_is_reconstructed_planned_and_dry_run_with_a_lift_between(
+    client, scene_files
+):
+    """The box-corner trace with 0.4 s lost at 30 %, uploaded whole (piece=all)."""
+    from tests.service.conftest import T_BASE_TRACKER, wait
+
+    scene = scenes.box_corner(0)
+    rec = scene.recording
+    cut = rec.t_s[int(0.3 * len(rec))]
+    keep = (rec.t_s < cut - 0.2) | (rec.t_s > cut + 0.2)
+    content = _csv(Recording(points_m=rec.points_m[keep], t_s=rec.t_s[keep]))
+    sid = client.post("/sessions", json={"name": "two pieces"}).json()["id"]
+    recording = client.put(
+        f"/sessions/{sid}/recording", files={"file": ("t.csv", content)}, data={"piece": "all"}
+    ).json()
+    assert recording["summary"]["n_pieces"] == 2
+    client.put(f"/sessions/{sid}/scan", files={"file": ("scan.ply", scene_files["scan"])})
+    client.put(f"/sessions/{sid}/calibration", json={"T_base_tracker": T_BASE_TRACKER})
+    job = wait(client, client.post(f"/sessions/{sid}/reconstructions", json={}).json())
+    assert job["state"] == "succeeded", job
+    rid = job["result"]["reconstruction_id"]
+    summary = client.get(f"/sessions/{sid}/reconstructions/{rid}").json()["summary"]
+    assert summary["n_pieces"] == 2
+    csv = client.get(f"/sessions/{sid}/reconstructions/{rid}/csv").text.splitlines()
+    assert csv[0].endswith(",piece") and csv[1].endswith(",0") and csv[-1].endswith(",1")
+    job = wait(
+        client,
+        client.post(
+            f"/sessions/{sid}/trajectories", json={"reconstruction_id": rid, "speed_m_s": 0.05}
+        ).json(),
+    )
+    assert job["state"] == "succeeded", job
+    tid = job["result"]["trajectory_id"]
+    planned = client.get(f"/sessions/{sid}/trajectories/{tid}").json()["summary"]
+    assert planned["n_pieces"] == 2 and "in 2 pieces" in planned["report"][0]
+    phases = [
+        row.split(",")[-1]
+        for row in client.get(f"/sessions/{sid}/trajectories/{tid}/csv").text.splitlines()[2:]
+    ]
+    runs = [p for i, p in enumerate(phases) if i == 0 or phases[i - 1] != p]
+    assert runs == ["transit", "approach", "process", "retract"] * 2
+    program = client.get(f"/sessions/{sid}/trajectories/{tid}/urscript").text
+    assert program.count("movel(") == 4 and program.count("# transit") == 2
+    job = wait(
+        client, client.post(f"/sessions/{sid}/executions", json={"trajectory_id": tid}).json()
+    )
+    assert job["state"] == "succeeded", job
+    dry = client.get(f"/sessions/{sid}/executions/{job['result']['execution_id']}").json()
+    assert dry["summary"]["completed"]
+    # Both transits executed (servoJ's lookahead, 0.1 s, counts as transit: the arm waits at
+    # the start for it).
+    assert dry["summary"]["executed_phase_durations_s"]["transit"] == pytest.approx(
+        planned["phase_durations_s"]["transit"] + 0.1, abs=0.02
+    )
+    assert dry["summary"]["executed_phase_durations_s"]["process"] == pytest.approx(
+        planned["phase_durations_s"]["process"], abs=0.02
+    )
 
 
 def test_reconstruction_starts_from_the_sessions_scan_calibration(client, scene_files):

@@ -146,6 +146,18 @@ def test_reconstruct_with_tip_calibration_pieces_and_a_stored_scan_pose(scene, t
     assert "using piece 0" in result.stderr
     result = run(*args[:-2], "--piece", "7", "--out", tmp_path / "p7.csv")
     assert result.returncode == 1 and "piece 7 does not exist" in result.stderr
+    for bad in ("-1", "some"):
+        result = run(*args[:-2], "--piece", bad, "--out", tmp_path / "bad.csv")
+        assert result.returncode == 2 and "piece number" in result.stderr
+        assert not (tmp_path / "bad.csv").exists()
+    result = run(*args[:-2], "--piece", "all", "--out", tmp_path / "all.csv")
+    assert result.returncode == 0, result.stderr
+    assert "using all 2 pieces" in result.stderr
+    header = (tmp_path / "all.csv").read_text().splitlines()[0].split(",")
+    pieces = np.loadtxt(
+        tmp_path / "all.csv", delimiter=",", skiprows=1, usecols=header.index("piece")
+    )
+    assert pieces[0] == 0 and pieces[-1] == 1 and np.all(np.diff(pieces) >= 0)
     wrong = run(
         "reconstruct",
         tmp_path / "body.csv",
