@@ -8,7 +8,7 @@ from drivers.robot.dryrun import dry_run
 from recon import scenes
 from recon.collision import Cell
 from recon.errors import CollisionError
-from recon.kinematics import HOME_Q_RAD, joint_frames, model
+from recon.kinematics import joint_frames, model
 from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path
 from recon.reconstruct import reconstruct
 from recon.transforms import apply_transform, invert_transform
@@ -121,7 +121,8 @@ def test_a_far_start_is_planned_shown_and_dry_run_with_its_duration(cylinder):
     report = dry_run(traj)
     assert report.completed
     assert report.executed_phase_durations_s["transit"] == pytest.approx(
-        planned["transit"] + 0.1, abs=0.02  # servoJ's lookahead: the arm waits at the start
+        planned["transit"] + 0.1,
+        abs=0.02,  # servoJ's lookahead: the arm waits at the start
     )
     # The simulated arm follows the planned transit: nothing outside the plan.
     assert report.max_deviation_by_phase_m["transit"] < 2e-3
