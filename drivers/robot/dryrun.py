@@ -40,8 +40,10 @@ class ExecutionReport:
     min_limit_margin_rad : float
         Closest approach of any joint to its position limit (planned).
     min_wrist_singularity, min_elbow_singularity : float
-        Smallest |sin q5| and |sin q3| along the plan (0 at the singularity).
+        Smallest |sin q5| and |sin q3| where the tool moves straight or along the path (0 at the
+        singularity; a joint move may pass one harmlessly).
     requested_speed_m_s, mean_speed_m_s : float
+        The path's speed: asked for, and the process phase's length over its duration.
     speed_drops : tuple of SpeedDrop
         Where the plan is slower than requested, and why.
     faults : tuple of str
@@ -86,7 +88,7 @@ class ExecutionReport:
             f"{'dry run' if self.dry_run else 'run'} on {where} ({self.mode}): "
             + ("completed" if self.completed else "DID NOT COMPLETE"),
             f"duration {self.duration_s:.2f} s (planned {self.planned_duration_s:.2f} s); "
-            f"mean TCP speed {self.mean_speed_m_s * mm:.1f} mm/s of "
+            f"mean TCP speed along the path {self.mean_speed_m_s * mm:.1f} mm/s of "
             f"{self.requested_speed_m_s * mm:.1f} requested",
         ]
         if self.max_path_deviation_m is None or self.max_lag_m is None:
@@ -117,9 +119,9 @@ class ExecutionReport:
                 )
             )
         out.append(
-            f"margins: joint limits {np.degrees(self.min_limit_margin_rad):.1f} deg, wrist "
-            f"|sin q5| {self.min_wrist_singularity:.2f}, elbow |sin q3| "
-            f"{self.min_elbow_singularity:.2f}"
+            f"margins: joint limits {np.degrees(self.min_limit_margin_rad):.1f} deg; where the "
+            f"tool moves straight, wrist |sin q5| {self.min_wrist_singularity:.2f}, elbow "
+            f"|sin q3| {self.min_elbow_singularity:.2f}"
         )
         for drop in self.speed_drops:
             out.append(
@@ -256,7 +258,16 @@ def execution_report(
         completed = record.completed
     q = trajectory.q_rad
     margin = float(np.min(np.minimum(q - arm.q_min_rad, arm.q_max_rad - q)))
-    path_length = float(np.sum(np.linalg.norm(np.diff(planned_tcp, axis=0), axis=1)))
+    # Singularities matter where the tool moves in straight lines and along the path; a joint
+    # move (transit, return) may pass through one (the elbow stretched) harmlessly.
+    phases = trajectory.phases
+    tool_moves = ~np.isin(phases, [int(Phase.TRANSIT), int(Phase.RETURN)])
+    q_tool = q[tool_moves] if tool_moves.any() else q
+    # The mean speed is the path's: the process phase's length over its duration.
+    process = phases == int(Phase.PROCESS)
+    along = process[1:] & process[:-1]
+    path_length = float(np.sum(np.linalg.norm(np.diff(planned_tcp, axis=0), axis=1)[along]))
+    process_s = float(np.count_nonzero(along) * trajectory.period_s)
     return ExecutionReport(
         robot=trajectory.robot,
         completed=completed,
@@ -267,10 +278,10 @@ def execution_report(
         max_lag_m=lag,
         max_joint_error_rad=joint_error,
         min_limit_margin_rad=margin,
-        min_wrist_singularity=float(kinematics.wrist_singularity(q).min()),
-        min_elbow_singularity=float(kinematics.elbow_singularity(q).min()),
+        min_wrist_singularity=float(kinematics.wrist_singularity(q_tool).min()),
+        min_elbow_singularity=float(kinematics.elbow_singularity(q_tool).min()),
         requested_speed_m_s=trajectory.requested_speed_m_s,
-        mean_speed_m_s=path_length / max(trajectory.duration_s, 1e-12),
+        mean_speed_m_s=path_length / process_s if process_s > 0 else 0.0,
         speed_drops=trajectory.speed_drops,
         faults=tuple(faults),
         n_samples=0 if record is None else len(record),

@@ -302,6 +302,8 @@ def add_param_options(
 def _metavar(hint) -> str | None:
     import typing
 
+    if hint is bool:
+        return "true|false"
     for a in (hint, *typing.get_args(hint)):
         if typing.get_origin(a) is tuple:
             count = len(typing.get_args(a))

@@ -124,5 +124,11 @@ def test_a_far_start_is_planned_shown_and_dry_run_with_its_duration(cylinder):
         planned["transit"] + 0.1,
         abs=0.02,  # servoJ's lookahead: the arm waits at the start
     )
+    # The speed reported is the path's, however long the transit took.
+    path_speed = far.tool.arc_length_m[-1] / planned["process"]
+    assert report.mean_speed_m_s == pytest.approx(path_speed, rel=0.01)
+    assert report.min_elbow_singularity == pytest.approx(
+        far.joints.elbow_singularity.min(), abs=0.05
+    )
     # The simulated arm follows the planned transit: nothing outside the plan.
     assert report.max_deviation_by_phase_m["transit"] < 2e-3
