@@ -72,6 +72,8 @@ CLOSE_GRACE_S = 2.0
 #: The arm rests on a target when within this (rad) and slower than this (rad/s).
 SETTLED_RAD = 1e-4
 SETTLED_RAD_S = 1e-3
+#: Attempts at reading joints and pose from one packet (a packet lands every 2-8 ms).
+SAMPLE_READS = 3
 
 
 class URRtdeConfig(BackendConfig):
@@ -607,8 +609,9 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
                     "the controller refused servoJ (the control script stopped); reconnect",
                 )
             times.append(time.monotonic() - start)
-            actual.append(list(self.receive.getActualQ()))
-            tcp.append(list(self.receive.getActualTCPPose()))
+            q_now, tcp_now = self._sample()
+            actual.append(q_now)
+            tcp.append(tcp_now)
             if writer is not None:
                 writer.add(times[-1], actual[-1], tcp[-1])
             self._check_fresh()
@@ -631,6 +634,22 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         if fault == "protective stop":
             raise ProtectiveStopError("protective stop during execution")
         return times, actual, tcp, completed, fault
+
+    def _sample(self) -> tuple[list[float], list[float]]:
+        """The actual joints and TCP pose from one RTDE packet.
+
+        The receive interface updates in its own thread between two getter calls; a journal
+        line whose pose belongs to the next packet contradicts its joints (seen: 0.2 mm at
+        speed). Re-read until the joints are the same on both sides of the pose read.
+        """
+        q_before = list(self.receive.getActualQ())
+        for _ in range(SAMPLE_READS):
+            tcp = list(self.receive.getActualTCPPose())
+            q_after = list(self.receive.getActualQ())
+            if q_after == q_before:
+                break
+            q_before = q_after
+        return q_after, tcp
 
     def _hold(self, q, period_s) -> None:
         """Keep servoing the last sample until the arm rests on it.
@@ -687,8 +706,9 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         while True:
             status = self.control.getAsyncOperationProgressEx()
             times.append(time.monotonic() - start)
-            actual.append(list(self.receive.getActualQ()))
-            tcp.append(list(self.receive.getActualTCPPose()))
+            q_now, tcp_now = self._sample()
+            actual.append(q_now)
+            tcp.append(tcp_now)
             if writer is not None:
                 writer.add(times[-1], actual[-1], tcp[-1])
             self._check_fresh()
