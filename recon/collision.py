@@ -708,6 +708,14 @@ class Cell:
     def has_scan(self) -> bool:
         return self._tree is not None
 
+    def obstacle_names(self) -> tuple[str, ...]:
+        """What a motion is checked against, by the names collisions report."""
+        names = ("mounting plane",) if self.mounting is not None else ()
+        names += tuple(p.name for p in self.planes) + tuple(b.name for b in self.boxes)
+        if self.has_scan:
+            names += (f"scan ({len(self.scan_m)} points)",)
+        return names
+
 
 def _voxel_downsample(points: FloatArray, voxel_m: float) -> tuple[FloatArray, float]:
     """One real point per voxel (the nearest to the voxel's centre) and the largest distance of
@@ -992,6 +1000,8 @@ class CollisionReport:
         The (fractional) sample indices whose configurations were checked.
     phase : ndarray of shape (M,), int8
     t_s : ndarray of shape (M,), or None
+    obstacles : tuple of str
+        What the motion was checked against (:meth:`Cell.obstacle_names`).
     """
 
     names: tuple[str, ...]
@@ -1010,6 +1020,7 @@ class CollisionReport:
     checked_samples: FloatArray
     phase: NDArray[np.int8]
     t_s: FloatArray | None = None
+    obstacles: tuple[str, ...] = ()
 
     @property
     def clear(self) -> bool:
@@ -1041,6 +1052,8 @@ class CollisionReport:
                 f"({self.names[int(self.nearest_link[i])]} to {kind}, "
                 f"{Phase(int(self.phase[i])).name.lower()} at {when})"
             )
+        if self.obstacles:
+            out.append("against: " + ", ".join(self.obstacles))
         out.append(
             f"checked {len(self.checked_samples)} configurations for {m} samples; motion "
             f"between checks <= {self.motion_bound_m * 1000:.2f} mm, clearances conservative "
@@ -1449,4 +1462,5 @@ def check_motion(
         checked_samples=u,
         phase=phase,
         t_s=t_s,
+        obstacles=cell.obstacle_names(),
     )

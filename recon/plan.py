@@ -339,7 +339,8 @@ def _collision_error(report) -> CollisionError:
     first = report.first_collision
     return CollisionError(
         f"the motion collides: {first.describe()}. Change the tool orientation (lead, tilt), "
-        "the configuration, the start pose or the cell (keep-out boxes), or move the workpiece",
+        "the configuration, the start pose or the cell (keep-out boxes, cell planes), or move the "
+        "workpiece",
         detail={
             "phase": Phase(int(first.phase)).label,
             "t_s": first.t_s,

@@ -318,8 +318,8 @@ class PlanOutcome:
         if report is not None:
             smallest = float(np.min(report.clearance_m)) if len(report.clearance_m) else np.inf
             passed.append(
-                "no collision of the arm or the tool with the mounting plane, the keep-out "
-                f"boxes or the scan (smallest clearance {smallest * 1e3:.1f} mm, margin "
+                f"no collision of the arm or the tool with the {', '.join(report.obstacles)} "
+                f"(smallest clearance {smallest * 1e3:.1f} mm, margin "
                 f"{report.margin_m * 1e3:.1f} mm)"
             )
         return passed
@@ -387,6 +387,7 @@ def plan(
     recon_params=None,
     scan=None,
     keep_out_boxes=(),
+    cell_planes=(),
     start_from: str = "given",
 ) -> PlanOutcome:
     """The whole motion along a reconstructed path, checked against the cell.
@@ -408,6 +409,9 @@ def plan(
         ``T_base_tracker``).
     keep_out_boxes : sequence of 6 floats each
         ``x_min, y_min, z_min, x_max, y_max, z_max`` in the base frame (m).
+    cell_planes : sequence of 4 floats each
+        ``nx, ny, nz, d``: surfaces besides the mounting one, base frame; the arm keeps to
+        ``n . p >= d`` (m).
     start_from : str
         Where ``params.start_q_rad`` came from ("arm", "home", "given"), for the record.
 
@@ -444,7 +448,7 @@ def plan(
         T_base_tracker=T_base,
         normals=normals,
         pen_xyzw=path.orientations_xyzw,
-        cell=cell_for(scan, path.T_scan_tracker, T_base, keep_out_boxes),
+        cell=cell_for(scan, path.T_scan_tracker, T_base, keep_out_boxes, cell_planes),
         piece=path.piece,
     )
     return PlanOutcome(
@@ -452,10 +456,11 @@ def plan(
     )
 
 
-def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=()):
+def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=(), cell_planes=()):
     """The cell a plan is checked against (base frame): the mounting surface (the base's z = 0
-    plane), the keep-out boxes and, when the scan's place is known, the scanned workpiece."""
-    from recon.collision import Box, Cell
+    plane), other planes of the cell, the keep-out boxes and, when the scan's place is known,
+    the scanned workpiece."""
+    from recon.collision import Box, Cell, HalfSpace
     from recon.transforms import apply_transform, invert_transform
 
     boxes = tuple(
@@ -467,7 +472,11 @@ def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=()):
         T_base = np.eye(4) if T_base_tracker is None else np.asarray(T_base_tracker)
         T_base_scan = T_base @ invert_transform(np.asarray(T_scan_tracker, dtype=np.float64))
         points = apply_transform(T_base_scan, np.asarray(scan.points_m))
-    return Cell(boxes=boxes, scan_points_m=points)
+    planes = tuple(
+        HalfSpace(normal=plane[:3], offset_m=plane[3], name=f"cell plane {index + 1}")
+        for index, plane in enumerate(cell_planes)
+    )
+    return Cell(planes=planes, boxes=boxes, scan_points_m=points)
 
 
 # -- execution -------------------------------------------------------------------------------------

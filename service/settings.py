@@ -56,7 +56,33 @@ class Settings(BaseSettings):
         description="boxes the arm and tool must keep out of, base frame: "
         "x_min, y_min, z_min, x_max, y_max, z_max (m)",
     )
+    cell_planes: list[tuple[float, float, float, float]] = Field(
+        default_factory=list,
+        description="surfaces of the cell besides the one the base stands on (a wall, the floor "
+        "below a wall- or ceiling-mounted arm), base frame: nx, ny, nz, d; the arm keeps to "
+        "n . p >= d",
+    )
     demo: bool = Field(False, description="create the demo session on start if missing")
+
+    @field_validator("keep_out_boxes")
+    @classmethod
+    def _boxes(cls, value: list) -> list:
+        if value:
+            from recon.collision import Box
+
+            for box in value:  # the planner's own checks, raised at start-up, not at planning
+                Box(min_m=box[:3], max_m=box[3:])
+        return value
+
+    @field_validator("cell_planes")
+    @classmethod
+    def _planes(cls, value: list) -> list:
+        if value:
+            from recon.collision import HalfSpace
+
+            for plane in value:
+                HalfSpace(normal=plane[:3], offset_m=plane[3])
+        return value
 
     @field_validator("data_dir")
     @classmethod

@@ -208,6 +208,7 @@ class Plan:
     out_path: str
     scan_path: str | None = None
     keep_out_boxes: list = ()
+    cell_planes: list = ()
     start_from: str = "given"
 
     def run(self) -> dict:
@@ -222,6 +223,7 @@ class Plan:
             recon_params=ReconParams(**self.recon_params),
             scan=ScanCodec.decode(load_arrays(self.scan_path)) if self.scan_path else None,
             keep_out_boxes=self.keep_out_boxes,
+            cell_planes=self.cell_planes,
             start_from=self.start_from,
         )
         report = outcome.plan.collision

@@ -60,6 +60,7 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
         out_path=services.array_path(out_id),
         scan_path=None if scan is None else str(services.store.path_of(scan)),
         keep_out_boxes=[list(box) for box in services.settings.keep_out_boxes],
+        cell_planes=[list(plane) for plane in services.settings.cell_planes],
         start_from=start_from,
     )
     return services.jobs.submit(session_id, "trajectory", {**stored_params, **inputs}, task, done)

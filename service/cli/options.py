@@ -55,7 +55,32 @@ def numbers(count: int, what: str):
 
 
 vector3 = numbers(3, "X,Y,Z")
-box6 = numbers(6, "X0,Y0,Z0,X1,Y1,Z1")
+_six = numbers(6, "X0,Y0,Z0,X1,Y1,Z1")
+_four = numbers(4, "NX,NY,NZ,D")
+
+
+def box6(value: str) -> tuple[float, ...]:
+    """An argparse type for a keep-out box, checked as the planner checks it."""
+    from recon.collision import Box
+
+    box = _six(value)
+    try:
+        Box(min_m=box[:3], max_m=box[3:])
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return box
+
+
+def cell_plane(value: str) -> tuple[float, ...]:
+    """An argparse type for a plane of the cell, checked as the planner checks it."""
+    from recon.collision import HalfSpace
+
+    plane = _four(value)
+    try:
+        HalfSpace(normal=plane[:3], offset_m=plane[3])
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return plane
 
 
 def check_output(path: str, suffix: str) -> Path:

@@ -12,6 +12,7 @@ from service.cli.options import (
     add_scan_options,
     add_units_option,
     box6,
+    cell_plane,
     check_output,
     note,
     params_from_args,
@@ -66,7 +67,18 @@ def add_parser(commands) -> None:
         default=[],
         type=box6,
         metavar="X0,Y0,Z0,X1,Y1,Z1",
-        help="a box the arm and tool must keep out of, base frame, metres (repeatable)",
+        help="a box the arm and tool must keep out of, base frame, metres (repeatable; "
+        "write --keep-out-box=-1,... when the first number is negative)",
+    )
+    plan.add_argument(
+        "--cell-plane",
+        action="append",
+        default=[],
+        type=cell_plane,
+        metavar="NX,NY,NZ,D",
+        help="a surface of the cell besides the one the base stands on (a wall, the floor "
+        "below a wall-mounted arm), base frame: the arm keeps to n . p >= D (repeatable; "
+        "write --cell-plane=-1,... when the first number is negative)",
     )
     plan.add_argument("--out", required=True, metavar="TRAJ.csv")
     plan.set_defaults(handler=run)
@@ -136,6 +148,7 @@ def run(args: argparse.Namespace) -> int:
         recon_params=recon_params,
         scan=scan,
         keep_out_boxes=args.keep_out_box,
+        cell_planes=args.cell_plane,
         start_from="given" if args.start_q_rad is not None else "home",
     )
     meta = TrajectorySummary.model_validate(outcome.summary()).file_meta()

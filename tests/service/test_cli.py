@@ -285,6 +285,84 @@ def test_plan_then_dry_run(inputs, reconstructed, tmp_path):
     assert off_path_mm < 2.0
 
 
+def _plan_in_cell(inputs, reconstructed, out, *cell):
+    return run(
+        "plan",
+        reconstructed / "recon.csv",
+        "--scan",
+        inputs / "scan.ply",
+        "--speed-m-s",
+        "0.05",
+        "--base-from-tracker",
+        reconstructed / "T.json",
+        *cell,
+        "--out",
+        out,
+    )
+
+
+@pytest.mark.parametrize(
+    "cell, obstacle",
+    [
+        # A wall at x = 0.42 m: the path runs from x = 0.37 to 0.45 m in the base frame.
+        (["--cell-plane=-1,0,0,-0.42"], "cell plane 1"),
+        # The same wall behind a harmless one: named by its place on the command line.
+        (["--cell-plane=-1,0,0,-1.5", "--cell-plane=-1,0,0,-0.42"], "cell plane 2"),
+        # A box around the path's end (0.45, 0.01, 0.10).
+        (["--keep-out-box", "0.44,0.0,0.09,0.46,0.02,0.11"], "keep-out box 1"),
+    ],
+    ids=["wall", "second-wall", "box"],
+)
+def test_a_plan_through_the_cell_is_refused_naming_the_obstacle(
+    inputs, reconstructed, tmp_path, cell, obstacle
+):
+    out = tmp_path / "traj.csv"
+    result = _plan_in_cell(inputs, reconstructed, out, *cell)
+    assert result.returncode != 0
+    assert "the motion collides" in result.stderr and obstacle in result.stderr, result.stderr
+    assert not out.exists()
+
+
+def test_cell_surfaces_the_motion_keeps_clear_of_are_planned_and_recorded(
+    inputs, reconstructed, tmp_path
+):
+    out = tmp_path / "traj.csv"
+    # A wall 1.5 m in front and a box behind the base, both far from the whole motion.
+    result = _plan_in_cell(
+        inputs,
+        reconstructed,
+        out,
+        # Values that start with a minus go after "=" (argparse reads them as options otherwise).
+        "--cell-plane=-1,0,0,-1.5",
+        "--keep-out-box=-2,1.2,0,-1,2,1",
+    )
+    assert result.returncode == 0, result.stderr
+    checked = "against: mounting plane, cell plane 1, keep-out box 1, scan ("
+    assert checked in result.stdout and "clear: no part comes within" in result.stdout
+    assert out.exists()
+
+
+@pytest.mark.parametrize(
+    "cell, message",
+    [
+        (["--cell-plane", "0,0,0,1"], "non-zero"),
+        (["--cell-plane", "1,0,0"], "4 finite numbers"),
+        (["--cell-plane", "1,0,0,inf"], "4 finite numbers"),
+        (["--keep-out-box", "1,1,1,0,0,0"], "must be >= min_m"),
+        (["--keep-out-box", "0,0,0,1,1,nan"], "6 finite numbers"),
+    ],
+    ids=["zero-normal", "three-numbers", "infinite-offset", "inverted-box", "nan-box"],
+)
+def test_bad_cell_surfaces_are_refused_before_any_work(
+    inputs, reconstructed, tmp_path, cell, message
+):
+    out = tmp_path / "traj.csv"
+    result = _plan_in_cell(inputs, reconstructed, out, *cell)
+    assert result.returncode == 2
+    assert message in result.stderr, result.stderr
+    assert not out.exists()
+
+
 @pytest.mark.parametrize(
     "make_args, message",
     [
