@@ -27,6 +27,10 @@ from recon.types import FloatArray
 MIN_PIVOT_ROTATION_DEG = 15.0
 #: Point pairs whose spread across their second principal axis is below this are collinear.
 MIN_PAIR_SPREAD_M = 1e-3
+#: Pairs are touched in one robot cell: a coordinate beyond this is a unit mix-up (m).
+MAX_PAIR_COORDINATE_M = 50.0
+#: A hand-held pen's tip lies within this of its rigid body (m).
+MAX_TIP_OFFSET_M = 0.5
 
 
 @dataclass(frozen=True)
@@ -57,6 +61,22 @@ class PivotCalibration:
     rotation_spread_deg: float
     n_used: int
     n_rejected: int
+
+    def poor_fit(self, tolerance_m: float) -> str | None:
+        """Why this pivot is not to be trusted at ``tolerance_m`` (RMS), or None."""
+        length_m = float(np.linalg.norm(self.tip_offset_m))
+        if length_m > MAX_TIP_OFFSET_M:
+            return (
+                f"the tip is {length_m * 1e3:.0f} mm from the rigid body, more than a pen's "
+                f"{MAX_TIP_OFFSET_M * 1e3:.0f} mm: the tip slipped, or the units are wrong"
+            )
+        if self.residual_rms_m > tolerance_m:
+            return (
+                f"the tip stayed within {self.residual_rms_m * 1e3:.2f} mm RMS of one point, "
+                f"worse than the {tolerance_m * 1e3:.2f} mm tolerance: hold the tip still in a "
+                "dimple and pivot again"
+            )
+        return None
 
 
 def pivot_calibration(
@@ -189,6 +209,23 @@ class PointPairCalibration:
     used: np.ndarray
     tolerance_m: float
 
+    def poor_fit(self) -> str | None:
+        """Why this fit is worse than its tolerance, or None: a pair it used disagrees with the
+        others by more than the tolerance, or its RMS residual exceeds it."""
+        used_suspects = np.flatnonzero(self.suspect & self.used)
+        if self.residual_rms_m > self.tolerance_m:
+            return (
+                f"the pairs agree to {self.residual_rms_m * 1e3:.2f} mm RMS, worse than the "
+                f"{self.tolerance_m * 1e3:.2f} mm tolerance"
+            )
+        if len(used_suspects):
+            pairs = ", ".join(str(i + 1) for i in used_suspects)
+            return (
+                f"pair(s) {pairs} disagree with the others by more than the "
+                f"{self.tolerance_m * 1e3:.2f} mm tolerance and could not be left out"
+            )
+        return None
+
     def lines(self) -> list[str]:
         """A short report for a terminal."""
         used = self.residuals_m[self.used]
@@ -241,6 +278,13 @@ def fit_point_pairs(
         raise ValueError(f"point pairs must be two (N, 3) arrays, got {a.shape} and {b.shape}")
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
         raise ValueError("point pairs contain NaN or infinite values")
+    for name, pts in (("first", a), ("second", b)):
+        farthest = float(np.abs(pts).max()) if pts.size else 0.0
+        if farthest > MAX_PAIR_COORDINATE_M:
+            raise ValueError(
+                f"a point of the {name} frame lies {farthest:.3g} m from its origin, beyond "
+                f"{MAX_PAIR_COORDINATE_M:.0f} m: check the units (m or mm) of the pairs"
+            )
     if not tolerance_m > 0:
         raise ValueError(f"tolerance_m must be positive, got {tolerance_m}")
     if len(a) < 3:

@@ -29,6 +29,15 @@ class RegistrationError(ReconError):
     """Registration (ICP) of the path to the scan did not produce a trustworthy transform."""
 
 
+class PoorFitError(ReconError):
+    """A calibration fit is worse than its tolerance (pairs that disagree, a pivot that
+    wandered). Refused unless the caller accepts a poor fit; ``detail`` holds the figures."""
+
+    def __init__(self, message: str, *, detail: dict | None = None) -> None:
+        super().__init__(message)
+        self.detail = detail
+
+
 class InfeasibleTrajectoryError(ReconError):
     """The robot cannot follow the path within its limits (reach, joint limits, singularities)."""
 

@@ -26,6 +26,10 @@ from typing import Any
 #: Key of a field's :class:`Spec` in its ``dataclasses.field`` metadata.
 SPEC_KEY = "teachpath.param"
 
+#: A pen pivoted in a dimple keeps its tip within about 0.1-0.5 mm RMS of one point: a pivot
+#: calibration worse than this (m) is refused unless accepted.
+PIVOT_TOLERANCE_M = 1e-3
+
 
 @dataclass(frozen=True)
 class Spec:

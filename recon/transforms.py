@@ -133,6 +133,29 @@ def check_rigid(T: NDArray[np.float64], *, name: str = "transform") -> NDArray[n
     return T
 
 
+#: The frames of one robot cell (tracker, scanner, robot base) are this close at most (m): a
+#: calibration that puts them farther apart is a unit mix-up or a typing error.
+MAX_CELL_TRANSLATION_M = 10.0
+
+
+def check_cell_transform(T: NDArray[np.float64], *, name: str = "transform") -> NDArray[np.float64]:
+    """:func:`check_rigid`, and a translation within :data:`MAX_CELL_TRANSLATION_M`.
+
+    Raises
+    ------
+    ValueError
+        As :func:`check_rigid`, or a translation beyond the cell.
+    """
+    T = check_rigid(T, name=name)
+    distance_m = float(np.linalg.norm(T[:3, 3]))
+    if distance_m > MAX_CELL_TRANSLATION_M:
+        raise ValueError(
+            f"{name} moves points by {distance_m:.3g} m, beyond the "
+            f"{MAX_CELL_TRANSLATION_M:.0f} m of a robot cell: check its units (metres) and values"
+        )
+    return T
+
+
 def rotation_angle_deg(T: NDArray[np.float64]) -> float:
     """Angle of a transform's rotation part, degrees in [0, 180].
 

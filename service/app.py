@@ -103,6 +103,9 @@ def _recover(services: Services) -> None:
     failed = services.store.fail_interrupted_jobs()
     if failed:
         log.warning("marked %d interrupted job(s) failed", failed)
+    removed = services.store.remove_unnamed_files()
+    if removed:
+        log.warning("removed %d file(s) no artifact names: %s", len(removed), ", ".join(removed))
     capture_workflow.recover(services)
     execution_workflow.recover(services)
 

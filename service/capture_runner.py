@@ -58,7 +58,8 @@ class CaptureRunner:
         count, state, error = 0, "stopped", None
         last_sync = time.monotonic()
         try:
-            with path.open("w", buffering=1) as handle:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)  # private
+            with os.fdopen(fd, "w", buffering=1) as handle:
                 handle.write(HEADER)
                 for batch in self.source.batches():
                     q = batch.orientation_xyzw

@@ -17,7 +17,7 @@ from service.capture_runner import CaptureRunner, read_capture_file
 from service.core import Services
 from service.errors import not_found
 from service.schemas import CaptureCreate
-from service.store import CaptureRow, new_id
+from service.store import CaptureRow, SessionDeletedError, new_id
 
 
 def _source_for(services: Services, session_id: str, source_request):
@@ -76,9 +76,11 @@ def finish(services: Services, capture_id: str, state: str, error: str | None) -
     store = services.store
     row = store.capture(capture_id)
     session = store.session(row.session_id)
-    recording_id = None
+    recording_id, n_samples = None, row.n_samples
     try:
         raw = RawTrace(read_capture_file(store.data_dir / row.path), "capture")
+        # What the file holds, not the last count the runner wrote (a crash leaves it behind).
+        n_samples = len(raw.batch)
         # A live feed tracks the rigid body: move it to the tip (when it has orientations).
         # A replayed recording is stored at the tip already.
         live = row.source.get("kind") == "natnet"
@@ -110,10 +112,15 @@ def finish(services: Services, capture_id: str, state: str, error: str | None) -
         recording_id = None
         reason = f"nothing usable was received: {exc}"
         state, error = "failed", (reason if error is None else f"{error}; {reason}")[:500]
+    except SessionDeletedError:
+        recording_id = None
+        state, error = "cancelled", "the session was deleted; the samples were not kept"
     except (OSError, ValueError) as exc:
         recording_id = None
         state, error = "failed", f"the capture file could not be read: {exc}"
-    store.update_capture(capture_id, state=state, recording_id=recording_id, error=error)
+    store.update_capture(
+        capture_id, state=state, recording_id=recording_id, error=error, n_samples=n_samples
+    )
     with services.live.lock:
         services.live.captures.pop(capture_id, None)
 

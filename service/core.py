@@ -86,6 +86,34 @@ class Services:
             raise not_found(kind, artifact_id)
         return row
 
+    def delete_session(self, session_id: str) -> None:
+        """Soft-delete a session: it disappears from the API, its data stays on disk. Its
+        queued jobs are cancelled, its running ones discard their results, its captures stop
+        (their samples are not kept) and an arm moving for it stops."""
+        from service.store import now
+
+        self.session(session_id)
+        self.store.update_session(session_id, deleted_at=now())
+        self.jobs.cancel_session(session_id)
+        with self.live.lock:
+            executions = [
+                runner
+                for execution_id, runner in self.live.executions.items()
+                if self._job_session(self.live.execution_jobs.get(execution_id)) == session_id
+            ]
+            captures = [
+                runner
+                for capture_id, runner in self.live.captures.items()
+                if (row := self.store.capture(capture_id)) is not None
+                and row.session_id == session_id
+            ]
+        for runner in executions + captures:
+            runner.stop()
+
+    def _job_session(self, job_id: str | None) -> str | None:
+        job = None if job_id is None else self.store.job(job_id)
+        return None if job is None else job.session_id
+
     def array_path(self, artifact_id: str, suffix: str = "npz") -> str:
         """Where a worker writes the file of a new artifact (absolute)."""
         return str(self.store.data_dir / "arrays" / f"{artifact_id}.{suffix}")

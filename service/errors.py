@@ -18,7 +18,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from drivers import errors as driver_errors
 from recon import errors as recon_errors
 from service import gate
-from service.store import StorageError
+from service.store import SessionDeletedError, StorageError
 
 log = logging.getLogger("teachpath.service")
 
@@ -55,6 +55,7 @@ ERROR_MAP: list[tuple[type[Exception], int, str]] = [
     (recon_errors.NoOverlapError, 422, "no_overlap"),
     (recon_errors.DegenerateInputError, 422, "degenerate_input"),
     (recon_errors.RegistrationError, 422, "registration_failed"),
+    (recon_errors.PoorFitError, 422, "poor_fit"),
     (recon_errors.CollisionError, 422, "collision"),
     (recon_errors.InfeasibleTrajectoryError, 422, "infeasible_trajectory"),
     (recon_errors.ReconError, 422, "reconstruction_failed"),
@@ -77,6 +78,7 @@ ERROR_MAP: list[tuple[type[Exception], int, str]] = [
     (driver_errors.TrackerError, 502, "tracker_error"),
     (driver_errors.RobotError, 502, "robot_error"),
     (driver_errors.DriverError, 422, "driver_error"),
+    (SessionDeletedError, 409, "session_deleted"),
     (StorageError, 500, "storage_corrupt"),
     (ValueError, 422, "invalid_value"),
 ]
@@ -153,6 +155,18 @@ def install(app: FastAPI) -> None:
     # catch-all handler below after answering (it is for server errors).
     for cls, _status, _code in ERROR_MAP:
         app.add_exception_handler(cls, _domain)
+
+    @app.exception_handler(RecursionError)
+    async def _too_deep(request: Request, error: RecursionError):
+        # A JSON document nested thousands deep exhausts any recursive reader or validator.
+        return respond(
+            422,
+            {
+                "code": "invalid_request",
+                "message": "the request is nested too deeply; send a flatter document",
+                "detail": None,
+            },
+        )
 
     @app.exception_handler(Exception)
     async def _any(request: Request, error: Exception):

@@ -93,7 +93,12 @@ def _dry_run(services, session_id, trajectory, request, out_id) -> JobRow:
         tolerance_m=request.tolerance_m,
     )
     return services.jobs.submit(
-        session_id, "execution", _job_params(request, trajectory, out_id), task, done
+        session_id,
+        "execution",
+        _job_params(request, trajectory, out_id),
+        task,
+        done,
+        outputs=(task.out_path,),
     )
 
 

@@ -16,6 +16,7 @@ from typing import Literal
 
 from starlette.concurrency import run_in_threadpool
 
+from recon.params import PIVOT_TOLERANCE_M
 from service import pipelines, tasks
 from service.artifacts import ID_PREFIX
 from service.core import Services
@@ -153,9 +154,16 @@ def set_calibration(services: Services, session_id: str, request: CalibrationIn)
 
 
 async def pivot_calibration(
-    services: Services, session_id: str, upload: Upload, options: TraceOptions
+    services: Services,
+    session_id: str,
+    upload: Upload,
+    options: TraceOptions,
+    *,
+    tolerance_m: float = PIVOT_TOLERANCE_M,
+    accept_poor_fit: bool = False,
 ) -> tuple[SessionRow, dict]:
-    """The tip offset from a pivoting recording; sets the session's ``tip_offset_m``."""
+    """The tip offset from a pivoting recording; sets the session's ``tip_offset_m`` (a fit
+    worse than ``tolerance_m`` RMS is refused unless ``accept_poor_fit``)."""
     await run_in_threadpool(services.session, session_id)
     result = await services.jobs.run(
         tasks.ParsePivot(
@@ -164,6 +172,8 @@ async def pivot_calibration(
             format=options.format,
             units=options.units,
             rigid_body=options.rigid_body,
+            tolerance_m=tolerance_m,
+            accept_poor_fit=accept_poor_fit,
         )
     )
     row = await run_in_threadpool(
@@ -186,6 +196,7 @@ def base_calibration(
         [[v * scale for v in pair.base] for pair in request.pairs],
         [[v * scale for v in pair.tracker] for pair in request.pairs],
         tolerance_m=request.tolerance_m,
+        accept_poor_fit=request.accept_poor_fit,
     )
     result = outcome.as_json()
     row = services.store.record_calibration(

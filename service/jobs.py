@@ -6,6 +6,12 @@ hold the GIL for long stretches, and a separate process keeps the event loop ans
 main process records each finished job's result. A job that was queued or running when the
 service stopped is marked failed on the next start (``Store.fail_interrupted_jobs``).
 
+A worker that dies (``kill -9``, the kernel's OOM killer) breaks the whole pool: the pool is
+replaced at once, the jobs that were running fail with ``worker_died``, the jobs still queued
+are handed to the new pool, and ``degraded`` is true until a new worker has answered. Workers
+end themselves when the server process is gone (:func:`_watch_parent`), so a killed server
+leaves no worker computing into its data folder.
+
 CPU jobs report coarse progress (0 queued, 0.1 running, 1 done): the worker processes do not
 talk back while they compute. Executions on a real arm report progress as samples are sent.
 """
@@ -14,9 +20,12 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 from service.errors import ApiError, error_body
@@ -27,6 +36,14 @@ log = logging.getLogger("teachpath.jobs")
 #: Called in the main process with the task's return value; returns the job's result (the
 #: ids of what it made) after recording the artifact.
 OnSuccess = Callable[[Any], dict]
+
+#: The error of a job whose worker process died under it.
+WORKER_DIED = {
+    "code": "worker_died",
+    "message": "the worker process running this job died (killed, or out of memory); nothing "
+    "was stored; run the job again, with a smaller input if it was the memory",
+    "detail": None,
+}
 
 
 class Task(Protocol):
@@ -39,6 +56,23 @@ class Task(Protocol):
 def _run(task: Task) -> Any:
     """Runs in the worker process."""
     return task.run()
+
+
+def _ready() -> int:
+    """Runs in a new worker process: it is up."""
+    return os.getpid()
+
+
+@dataclass
+class _Pending:
+    """A submitted job this process still owns."""
+
+    session_id: str
+    task: Task
+    on_success: OnSuccess
+    future: Future
+    generation: int  # of the pool it was handed to
+    outputs: tuple[str, ...]  # the files its worker writes, removed when nothing records them
 
 
 class JobManager:
@@ -54,14 +88,19 @@ class JobManager:
     def __init__(self, store: Store, workers: int) -> None:
         self.store = store
         self.workers = workers
-        self._pool = ProcessPoolExecutor(
-            max_workers=workers,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=_worker_init,
-        )
         self._lock = threading.Lock()
-        self._futures: dict[str, Future] = {}
+        self._pending: dict[str, _Pending] = {}
         self._order: list[str] = []  # unfinished jobs, oldest first
+        self._generation = 0
+        self._lost: set[str] = set()  # jobs that were running in a pool that broke
+        self._degraded = False
+        self._closed = False
+        self._pool = self._new_pool()
+
+    @property
+    def degraded(self) -> bool:
+        """True from a worker's death until a worker of the new pool has answered."""
+        return self._degraded
 
     def submit(
         self,
@@ -70,15 +109,32 @@ class JobManager:
         params: dict,
         task: Task,
         on_success: OnSuccess,
+        *,
+        outputs: tuple[str, ...] = (),
     ) -> JobRow:
-        """Queue ``task`` in a worker process as a new job."""
+        """Queue ``task`` in a worker process as a new job.
+
+        ``outputs`` name the files the task writes, removed again if the job's result is not
+        recorded (it failed, was cancelled, or its session was deleted).
+
+        Raises
+        ------
+        ApiError
+            503 ``workers_unavailable`` when no worker pool takes the work; no job row stays.
+        """
         job = self.store.create_job(session_id, kind, params)
-        with self._lock:
-            future = self._pool.submit(_run, task)
-            self._futures[job.id] = future
-            self._order.append(job.id)
-            self._promote()
-        future.add_done_callback(lambda f: self._finish(job.id, f, on_success))
+        try:
+            with self._lock:
+                future = self._dispatch(task)
+                self._pending[job.id] = _Pending(
+                    session_id, task, on_success, future, self._generation, tuple(outputs)
+                )
+                self._order.append(job.id)
+                self._promote()
+        except Exception:
+            self.store.delete_job(job.id)  # nothing was submitted: no row for it
+            raise
+        future.add_done_callback(lambda f: self._finish(job.id, f))
         return self.store.job(job.id)
 
     def cancel(self, job_id: str) -> JobRow:
@@ -90,11 +146,11 @@ class JobManager:
             409 if it is running or finished.
         """
         with self._lock:
-            future = self._futures.get(job_id)
+            pending = self._pending.get(job_id)
         job = self.store.job(job_id)
-        if future is None or job is None or job.state in FINISHED:
+        if pending is None or job is None or job.state in FINISHED:
             raise ApiError(409, "job_finished", f"job {job_id} has already finished")
-        if not future.cancel():
+        if not pending.future.cancel():
             raise ApiError(
                 409,
                 "job_running",
@@ -103,17 +159,103 @@ class JobManager:
             )
         return self.store.job(job_id)
 
+    def cancel_session(self, session_id: str) -> int:
+        """Cancel the session's queued jobs; its running ones end ``cancelled`` when they
+        return, with nothing recorded (:meth:`_finish` checks the session). Returns how many
+        jobs the session had unfinished."""
+        with self._lock:
+            mine = [p for p in self._pending.values() if p.session_id == session_id]
+        for pending in mine:
+            pending.future.cancel()
+        return len(mine)
+
     async def run(self, task: Task):
         """Await ``task`` in a worker process (for work a request waits on, such as parsing an
-        upload: Open3D's readers hold the GIL)."""
+        upload: Open3D's readers hold the GIL).
+
+        Raises
+        ------
+        ApiError
+            503 ``worker_died`` when the worker died under the task (the pool is replaced).
+        """
         import asyncio
 
-        return await asyncio.get_running_loop().run_in_executor(self._pool, _run, task)
+        with self._lock:
+            future = self._dispatch(task)
+            generation = self._generation
+        try:
+            return await asyncio.wrap_future(future)
+        except BrokenProcessPool:
+            self._replace(generation)
+            raise ApiError(
+                503,
+                "worker_died",
+                "the worker process reading the upload died (killed, or out of memory); "
+                "nothing was stored; send it again",
+            ) from None
 
     def shutdown(self) -> None:
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        with self._lock:
+            self._closed = True
+            self._pool.shutdown(wait=False, cancel_futures=True)
 
     # -- internals ---------------------------------------------------------------------------
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(
+            max_workers=self.workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_worker_init,
+            initargs=(os.getpid(),),
+        )
+
+    def _dispatch(self, task: Task) -> Future:
+        """Hand ``task`` to the pool (the lock held); a pool found broken is replaced once."""
+        if self._closed:
+            raise ApiError(503, "shutting_down", "the service is stopping; try again shortly")
+        try:
+            return self._pool.submit(_run, task)
+        except BrokenProcessPool:
+            self._replace_locked(self._generation)
+        try:
+            return self._pool.submit(_run, task)
+        except BrokenProcessPool:
+            raise ApiError(
+                503,
+                "workers_unavailable",
+                "the worker processes cannot be started; see the server's log",
+            ) from None
+
+    def _replace(self, generation: int) -> None:
+        with self._lock:
+            self._replace_locked(generation)
+
+    def _replace_locked(self, generation: int) -> None:
+        """Replace the pool of ``generation`` if it is still the current one (many futures of
+        one broken pool report the same death)."""
+        if generation != self._generation or self._closed:
+            return
+        log.error("a worker process died; replacing the worker pool")
+        # The jobs the dead pool was running (the oldest, one per worker) are lost; the others
+        # had not started and go to the new pool.
+        self._lost.update(
+            job_id
+            for job_id in self._order[: self.workers]
+            if self._pending[job_id].generation == generation
+        )
+        old = self._pool
+        self._generation += 1
+        self._degraded = True
+        self._pool = self._new_pool()
+        old.shutdown(wait=False, cancel_futures=True)
+        generation_now = self._generation
+
+        def answered(future: Future) -> None:
+            if future.exception() is None and generation_now == self._generation:
+                self._degraded = False
+                log.info("worker pool replaced")
+
+        self._pool.submit(_ready).add_done_callback(answered)
 
     def _promote(self) -> None:
         """Mark as many of the oldest unfinished jobs running as there are workers."""
@@ -122,10 +264,31 @@ class JobManager:
             if row is not None and row.state == "queued":
                 self.store.update_job(job_id, state="running", progress=0.1, started_at=now())
 
-    def _finish(self, job_id: str, future: Future, on_success: OnSuccess) -> None:
+    def _finish(self, job_id: str, future: Future) -> None:
+        with self._lock:
+            pending = self._pending.get(job_id)
+        if pending is None or pending.future is not future:
+            return  # a future of a pool this job has left
+        recorded = False
         try:
-            if future.cancelled():
+            if isinstance(_exception(future), BrokenProcessPool) and self._requeue(job_id):
+                return
+            if self.store.session(pending.session_id) is None:
+                # Deleted while the job was pending or running: nothing lands in it.
+                self.store.update_job(
+                    job_id,
+                    state="cancelled",
+                    finished_at=now(),
+                    error={
+                        "code": "session_deleted",
+                        "message": "the session was deleted; the job's result was discarded",
+                        "detail": None,
+                    },
+                )
+            elif future.cancelled():
                 self.store.update_job(job_id, state="cancelled", finished_at=now())
+            elif isinstance(future.exception(), BrokenProcessPool):
+                self.store.update_job(job_id, state="failed", error=WORKER_DIED, finished_at=now())
             elif future.exception() is not None:
                 error = future.exception()
                 body = error_body(error)
@@ -133,7 +296,8 @@ class JobManager:
                     log.error("job %s failed", job_id, exc_info=error)
                 self.store.update_job(job_id, state="failed", error=body, finished_at=now())
             else:
-                result = on_success(future.result())
+                result = pending.on_success(future.result())
+                recorded = True
                 self.store.update_job(
                     job_id, state="succeeded", progress=1.0, result=result, finished_at=now()
                 )
@@ -142,12 +306,43 @@ class JobManager:
             self.store.update_job(
                 job_id, state="failed", error=error_body(error), finished_at=now()
             )
-        finally:
-            with self._lock:
-                self._futures.pop(job_id, None)
-                if job_id in self._order:
-                    self._order.remove(job_id)
-                self._promote()
+        with self._lock:
+            self._pending.pop(job_id, None)
+            self._lost.discard(job_id)
+            if job_id in self._order:
+                self._order.remove(job_id)
+            self._promote()
+        if not recorded:
+            for path in pending.outputs:
+                _remove(path)
+
+    def _requeue(self, job_id: str) -> bool:
+        """After a worker's death: hand a job that had not started to the new pool. Returns
+        False for a job that was running (it fails)."""
+        with self._lock:
+            pending = self._pending[job_id]
+            self._replace_locked(pending.generation)
+            if job_id in self._lost or self._closed:
+                return False
+            if self.store.session(pending.session_id) is None:
+                return False
+            future = self._dispatch(pending.task)
+            pending.future, pending.generation = future, self._generation
+        future.add_done_callback(lambda f: self._finish(job_id, f))
+        return True
+
+
+def _exception(future: Future) -> BaseException | None:
+    return None if future.cancelled() else future.exception()
+
+
+def _remove(path: str) -> None:
+    try:
+        os.remove(path)
+    except FileNotFoundError:
+        pass
+    except OSError as exc:
+        log.warning("could not remove %s: %s", path, exc)
 
 
 #: Niceness of the worker processes where the idle scheduling class is not available: CPU work
@@ -156,16 +351,16 @@ class JobManager:
 WORKER_NICENESS = 10
 
 
-def _worker_init() -> None:
-    """Runs first in each worker process: lower its priority below the server's.
+def _worker_init(server_pid: int) -> None:
+    """Runs first in each worker process: end with the server, and lower its priority below
+    the server's.
 
     Linux's SCHED_IDLE runs the worker (and the threads it starts later, which inherit it) only
     on CPU time nothing else wants: with 50 clients polling every 0.5 s during a 1M-point
     reconstruction, p99 status latency was 19-34 ms with niceness 10 alone and 10-16 ms with
     the idle class (tests/bench/test_bench_api.py, two and four runs).
     """
-    import os
-
+    _watch_parent(server_pid)
     try:
         os.nice(WORKER_NICENESS)
     except OSError:  # not permitted here: run at normal priority
@@ -174,3 +369,26 @@ def _worker_init() -> None:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     except (AttributeError, OSError):  # not Linux, or not permitted: the niceness stays
         pass
+
+
+#: How often a worker looks whether the server is still there (s).
+PARENT_POLL_S = 0.5
+
+
+def _watch_parent(server_pid: int) -> None:
+    """End this worker as soon as the server process is gone.
+
+    A server killed with ``kill -9`` cannot tell its workers; an orphan went on computing and
+    wrote files no artifact names. Linux's PR_SET_PDEATHSIG would fire when the *thread* that
+    started the worker ends (any of the web server's pool threads), so a thread polls the parent
+    instead. ``os._exit``: nothing of the unfinished work is flushed.
+    """
+    import time
+
+    def watch() -> None:
+        while True:
+            time.sleep(PARENT_POLL_S)
+            if os.getppid() != server_pid:
+                os._exit(0)
+
+    threading.Thread(target=watch, name="teachpath-parent-watch", daemon=True).start()

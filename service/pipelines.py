@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.params import PIVOT_TOLERANCE_M
 from recon.types import FloatArray
 
 
@@ -62,7 +63,21 @@ class PivotOutcome:
         )
 
 
-def pivot(raw) -> PivotOutcome:
+def _refuse_poor_fit(what: str, reason: str | None, accept: bool, detail: dict) -> None:
+    """Raise :class:`PoorFitError` for a fit worse than its tolerance, unless accepted."""
+    from recon.errors import PoorFitError
+
+    if reason is not None and not accept:
+        raise PoorFitError(
+            f"the {what} was not stored: {reason}. Re-measure, or accept it explicitly "
+            "(accept_poor_fit: true, --accept-poor-fit)",
+            detail=detail,
+        )
+
+
+def pivot(
+    raw, *, tolerance_m: float = PIVOT_TOLERANCE_M, accept_poor_fit: bool = False
+) -> PivotOutcome:
     """The pen's tip offset from a pivoting recording.
 
     Parameters
@@ -76,6 +91,9 @@ def pivot(raw) -> PivotOutcome:
         The recording has no orientations.
     DegenerateInputError
         Too few samples, or the pen did not pivot about two axes.
+    PoorFitError
+        The tip wandered more than ``tolerance_m`` RMS, or lies implausibly far from the rigid
+        body, and ``accept_poor_fit`` is false.
     """
     from drivers.tracking.readers import require_orientations
     from recon.calibrate import pivot_calibration
@@ -90,12 +108,19 @@ def pivot(raw) -> PivotOutcome:
     )
     q = q[good] / np.linalg.norm(q[good], axis=1)[:, None]
     calibration = pivot_calibration(np.asarray(batch.position_m)[good], q)
-    return PivotOutcome(
+    outcome = PivotOutcome(
         calibration=calibration,
         n_lost=int(np.count_nonzero(~good)),
         rigid_body=raw.meta.get("rigid_body"),
         format=raw.format,
     )
+    _refuse_poor_fit(
+        "pivot calibration",
+        calibration.poor_fit(tolerance_m),
+        accept_poor_fit,
+        {**outcome.as_json(), "tolerance_m": tolerance_m},
+    )
+    return outcome
 
 
 @dataclass(frozen=True)
@@ -121,22 +146,32 @@ class PointPairOutcome:
         return self.fit.lines()
 
 
-def point_pairs(base_m: FloatArray, tracker_m: FloatArray, *, tolerance_m: float):
+def point_pairs(
+    base_m: FloatArray, tracker_m: FloatArray, *, tolerance_m: float, accept_poor_fit=False
+):
     """Fit ``T_base_tracker`` to the same points measured in both frames (metres).
 
     Raises
     ------
+    ValueError
+        Coordinates beyond a cell (a unit mix-up), or a transform beyond it.
     DegenerateInputError
         Fewer than 3 pairs, or collinear points.
+    PoorFitError
+        Pairs that disagree by more than ``tolerance_m``, unless ``accept_poor_fit``.
     """
     from recon.calibrate import fit_point_pairs
+    from recon.transforms import check_cell_transform
 
     fit = fit_point_pairs(
         np.asarray(base_m, dtype=np.float64),
         np.asarray(tracker_m, dtype=np.float64),
         tolerance_m=tolerance_m,
     )
-    return PointPairOutcome(fit)
+    outcome = PointPairOutcome(fit)
+    _refuse_poor_fit("base calibration", fit.poor_fit(), accept_poor_fit, outcome.as_json())
+    check_cell_transform(fit.T_a_b, name="the fitted T_base_tracker")
+    return outcome
 
 
 # -- reconstruction --------------------------------------------------------------------------------

@@ -70,5 +70,10 @@ def start(services: Services, session_id: str, request: ReconstructionCreate) ->
         T_scan_tracker_init=T_init if scan else None,
     )
     return services.jobs.submit(
-        session_id, "reconstruction", {**stored_params, **inputs}, task, done
+        session_id,
+        "reconstruction",
+        {**stored_params, **inputs},
+        task,
+        done,
+        outputs=(task.out_path, task.preview_path),
     )

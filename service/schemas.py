@@ -53,9 +53,9 @@ def _check_matrix(value: Matrix4 | None) -> Matrix4 | None:
         raise ValueError("must be a 4x4 matrix (a list of 4 rows of 4 numbers)")
     if not all(math.isfinite(v) for row in value for v in row):
         raise ValueError("must hold finite numbers")
-    from recon.transforms import check_rigid
+    from recon.transforms import check_cell_transform
 
-    check_rigid(value, name="the matrix")
+    check_cell_transform(value, name="the matrix")
     return value
 
 
@@ -66,7 +66,9 @@ class ErrorBody(BaseModel):
 
 
 class Health(BaseModel):
-    status: Literal["ok"]
+    status: Literal["ok", "degraded"] = Field(
+        ..., description="degraded: a worker process died and its pool is being replaced"
+    )
     version: str
     versions: dict[str, str]
     robot_backends: dict[str, str]
@@ -121,6 +123,11 @@ class BaseCalibrationIn(Strict):
     pairs: list[PointPair] = Field(..., min_length=3, max_length=100)
     units: Literal["m", "mm"] = "m"
     tolerance_m: float = Field(1e-3, gt=0, le=0.1)
+    accept_poor_fit: StrictBool = Field(
+        False,
+        description="store the fit even when the pairs disagree by more than the tolerance "
+        "(default: refused with 422 poor_fit and the figures)",
+    )
 
 
 class FromRow(BaseModel):

@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import secrets
+import shutil
 import threading
 from datetime import UTC, datetime
 from pathlib import Path
@@ -32,6 +34,7 @@ from sqlalchemy import (
     event,
     select,
 )
+from sqlalchemy.engine import make_url
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
 from drivers.files import atomic_path
@@ -124,6 +127,16 @@ class StorageError(Exception):
     """A stored file is missing or does not match its checksum."""
 
 
+#: The folders of a data folder; the service's own user alone may enter them or read a file.
+FOLDERS = ("arrays", "uploads", "captures", "journals")
+PRIVATE_DIR = 0o700
+PRIVATE_FILE = 0o600
+
+
+class SessionDeletedError(Exception):
+    """Work finished for a session that was deleted meanwhile: nothing is added to it."""
+
+
 class Store:
     """The database and the array files of one data folder.
 
@@ -136,11 +149,19 @@ class Store:
 
     def __init__(self, data_dir: Path, url: str) -> None:
         self.data_dir = Path(data_dir)
-        self.data_dir.mkdir(parents=True, exist_ok=True)
-        (self.data_dir / "arrays").mkdir(exist_ok=True)
-        (self.data_dir / "uploads").mkdir(exist_ok=True)
-        (self.data_dir / "captures").mkdir(exist_ok=True)
+        # Uploads, calibrations and the token are the site's: only the service's user reads them.
+        for folder in (self.data_dir, *(self.data_dir / name for name in FOLDERS)):
+            folder.mkdir(mode=PRIVATE_DIR, parents=True, exist_ok=True)
+            os.chmod(folder, PRIVATE_DIR)
         sqlite = url.startswith("sqlite")
+        database = make_url(url).database if sqlite else None
+        if database not in (None, "", ":memory:"):
+            # Made private before SQLite opens it: its -wal and -shm files take its mode.
+            os.close(os.open(database, os.O_CREAT | os.O_WRONLY, PRIVATE_FILE))
+            os.chmod(database, PRIVATE_FILE)
+            for suffix in ("-wal", "-shm"):
+                if os.path.exists(database + suffix):
+                    os.chmod(database + suffix, PRIVATE_FILE)
         self.engine = create_engine(
             url, connect_args={"check_same_thread": False, "timeout": 30} if sqlite else {}
         )
@@ -168,13 +189,15 @@ class Store:
         with atomic_path(target) as tmp:
             with tmp.open("wb") as handle:
                 np.savez(handle, **{k: v for k, v in arrays.items() if v is not None})
+            os.chmod(tmp, PRIVATE_FILE)
         return relative, *self._digest(target)
 
     def write_bytes(self, relative: str, content: bytes) -> tuple[str, int]:
         target = self.data_dir / relative
-        target.parent.mkdir(parents=True, exist_ok=True)
+        target.parent.mkdir(mode=PRIVATE_DIR, parents=True, exist_ok=True)
         with atomic_path(target) as tmp:
             tmp.write_bytes(content)
+            os.chmod(tmp, PRIVATE_FILE)
         return self._digest(target)
 
     def read_arrays(self, artifact: ArtifactRow) -> dict[str, np.ndarray]:
@@ -198,6 +221,27 @@ class Store:
             for block in iter(lambda: handle.read(1 << 20), b""):
                 digest.update(block)
         return digest.hexdigest(), path.stat().st_size
+
+    def remove_unnamed_files(self) -> list[str]:
+        """Remove files of ``arrays/`` and ``uploads/`` that no artifact names (called on start,
+        when no job runs): the output of a job whose server died before it recorded it, or the
+        temporary file of a write cut short. Returns what was removed (relative paths)."""
+        with self.db() as db:
+            named = set(db.scalars(select(ArtifactRow.id)))
+        removed = []
+        folders = (self.data_dir / "arrays", self.data_dir / "uploads")
+        for entry in [path for folder in folders for path in folder.iterdir()]:
+            # arrays/<id>.npz, arrays/<id>.png (a preview), uploads/<id>/<name>; temporary
+            # files start with a dot.
+            artifact_id = entry.name.split(".", 1)[0]
+            if artifact_id in named and not entry.name.startswith("."):
+                continue
+            if entry.is_dir():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+            removed.append(str(entry.relative_to(self.data_dir)))
+        return removed
 
     # -- sessions --------------------------------------------------------------------------------
 
@@ -266,6 +310,12 @@ class Store:
             source_name=source_name,
         )
         with self.db.begin() as db:
+            # In the transaction that adds the row: a delete that lands first wins.
+            session = db.get(SessionRow, session_id)
+            if session is None or session.deleted_at is not None:
+                raise SessionDeletedError(
+                    f"session {session_id} was deleted; its new {kind} was discarded"
+                )
             db.add(row)
         return row
 
@@ -275,20 +325,25 @@ class Store:
         """Write ``arrays`` and record them as a new artifact (fields: inputs, params, summary,
         source_name)."""
         path, sha, size = self.write_arrays(artifact_id, arrays)
-        return self.add_artifact(
-            artifact_id=artifact_id,
-            session_id=session_id,
-            kind=kind,
-            path=path,
-            sha256=sha,
-            size=size,
-            **fields,
-        )
+        try:
+            return self.add_artifact(
+                artifact_id=artifact_id,
+                session_id=session_id,
+                kind=kind,
+                path=path,
+                sha256=sha,
+                size=size,
+                **fields,
+            )
+        except BaseException:
+            (self.data_dir / path).unlink(missing_ok=True)  # no file that no artifact names
+            raise
 
     def add_file_artifact(
         self, *, artifact_id: str, session_id: str, kind: str, path: str, **fields
     ) -> ArtifactRow:
         """Record an artifact whose file a worker already wrote at ``path`` (relative)."""
+        os.chmod(self.data_dir / path, PRIVATE_FILE)
         sha, size = self._digest(self.data_dir / path)
         return self.add_artifact(
             artifact_id=artifact_id,
@@ -336,6 +391,13 @@ class Store:
         with self.db.begin() as db:
             db.add(row)
         return row
+
+    def delete_job(self, job_id: str) -> None:
+        """Remove a job row (for work that was never submitted)."""
+        with self.db.begin() as db:
+            row = db.get(JobRow, job_id)
+            if row is not None:
+                db.delete(row)
 
     def job(self, job_id: str) -> JobRow | None:
         with self.db() as db:

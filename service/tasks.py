@@ -15,6 +15,7 @@ from typing import Literal
 import numpy as np
 
 from drivers.files import atomic_path
+from recon.params import PIVOT_TOLERANCE_M
 from service import pipelines
 from service.artifacts import (
     Arrays,
@@ -121,6 +122,8 @@ class ParsePivot:
     format: str | None = None
     units: str | None = None
     rigid_body: str | None = None
+    tolerance_m: float = PIVOT_TOLERANCE_M
+    accept_poor_fit: bool = False
 
     def run(self) -> dict:
         from drivers.tracking.readers import read_raw_trace
@@ -132,7 +135,10 @@ class ParsePivot:
             units=self.units,
             rigid_body=self.rigid_body,
         )
-        return pipelines.pivot(raw).as_json()
+        outcome = pipelines.pivot(
+            raw, tolerance_m=self.tolerance_m, accept_poor_fit=self.accept_poor_fit
+        )
+        return outcome.as_json()
 
 
 @dataclass(frozen=True)

@@ -63,4 +63,6 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
         cell_planes=[list(plane) for plane in services.settings.cell_planes],
         start_from=start_from,
     )
-    return services.jobs.submit(session_id, "trajectory", {**stored_params, **inputs}, task, done)
+    return services.jobs.submit(
+        session_id, "trajectory", {**stored_params, **inputs}, task, done, outputs=(task.out_path,)
+    )

@@ -10,6 +10,7 @@ mid-line) is dropped on reading.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +30,9 @@ class JournalWriter:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = self.path.open("w", buffering=1 << 16)
+        # Private (0600) from the start: what the arm did is the site's record.
+        fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        self._file = os.fdopen(fd, "w", buffering=1 << 16)
         self._file.write(HEADER)
         self._pending = 0
 

@@ -226,6 +226,7 @@ def trace_from_raw(
     Parameters and errors as :func:`read_trace` from ``tip_offset_m`` on.
     """
     batch = raw.batch
+    check_trace_units(batch.position_m[np.asarray(batch.valid, dtype=bool)], raw.meta.get("units"))
     apply_tip = tip_offset_m is not None and (
         tip_needs_orientations or batch.orientation_xyzw is not None
     )
@@ -256,6 +257,53 @@ def trace_from_raw(
         piece=index,
         tip_offset_applied=apply_tip,
     )
+
+
+#: A traced path fits in a robot's reach; one wider than this (m) is a unit mix-up.
+MAX_TRACE_EXTENT_M = 10.0
+#: Motion-capture volumes are tens of metres at most: a sample farther from the tracker's
+#: origin (m) is a unit mix-up.
+MAX_TRACKER_DISTANCE_M = 100.0
+#: A trace narrower than this (m) in millimetres would be a plausible path in metres.
+MIN_TRACE_EXTENT_M = 1e-3
+
+
+def check_trace_units(points_m: FloatArray, units: str | None) -> None:
+    """Refuse a trace whose size says its numbers are in the other unit.
+
+    Parameters
+    ----------
+    points_m : ndarray of shape (N, 3), metres
+        The valid samples, as read.
+    units : str or None
+        The unit the numbers were read in ("m", "mm", or what the file declared).
+
+    Raises
+    ------
+    UnitsMismatchError
+        Millimetres read as metres (a path wider than a robot's reach or samples beyond any
+        tracking volume), or metres read as millimetres (a path of a fraction of a millimetre
+        that would be a plausible one in metres).
+    """
+    from recon.errors import UnitsMismatchError
+
+    if len(points_m) == 0:
+        return
+    extent_m = float(np.linalg.norm(np.ptp(points_m, axis=0)))
+    farthest_m = float(np.abs(points_m).max())
+    stated = f"read as {units}" if units else "read as metres"
+    if extent_m > MAX_TRACE_EXTENT_M or farthest_m > MAX_TRACKER_DISTANCE_M:
+        raise UnitsMismatchError(
+            f"the trace, {stated}, spans {extent_m:.3g} m and reaches {farthest_m:.3g} m from "
+            "the tracker's origin, beyond any robot cell: its numbers look like millimetres; "
+            "upload it with units=mm (--units mm)"
+        )
+    if units == "mm" and 0 < extent_m < MIN_TRACE_EXTENT_M and farthest_m * 1e3 < 100.0:
+        raise UnitsMismatchError(
+            f"the trace, read as millimetres, spans only {extent_m * 1e3:.3g} mm: if its "
+            f"numbers are metres it would span {extent_m * 1e3:.3g} m; upload it with units=m "
+            "(--units m). Otherwise the pen did not move: record the trace again"
+        )
 
 
 def _clean(batch: SampleBatch, gaps: GapParams | None) -> CleanTrace:

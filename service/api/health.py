@@ -23,10 +23,11 @@ def _version(name: str) -> str:
 
 @router.get("", response_model=Health)
 def health(services: ServicesDep) -> dict:
-    """Liveness, versions and the robot backends' state."""
+    """Liveness, versions and the robot backends' state. ``degraded`` while the worker pool is
+    being replaced after a worker died (jobs queue and run once it is back)."""
     settings = services.settings
     return {
-        "status": "ok",
+        "status": "degraded" if services.jobs.degraded else "ok",
         "version": _version("teachpath"),
         "versions": {
             name: _version(name)

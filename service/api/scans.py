@@ -19,12 +19,22 @@ from service.schemas import ScanOut
 router = APIRouter(prefix="/sessions/{session_id}", tags=["scans"])
 
 
+#: A reader's options are a handful of numbers and names.
+MAX_OPTIONS_CHARS = 4096
+
+
 def _reader_options(options: str | None) -> dict | None:
     if not options:
         return None
+    if len(options) > MAX_OPTIONS_CHARS:
+        raise ApiError(
+            422, "invalid_request", f"options is longer than {MAX_OPTIONS_CHARS} characters"
+        )
     try:
         parsed = json.loads(options)
-    except json.JSONDecodeError as exc:
+    except RecursionError:
+        raise ApiError(422, "invalid_request", "options is nested too deeply") from None
+    except ValueError as exc:  # JSONDecodeError, and integers beyond Python's digit limit
         raise ApiError(422, "invalid_request", f"options is not valid JSON: {exc}") from None
     if not isinstance(parsed, dict):
         raise ApiError(422, "invalid_request", "options must be a JSON object")

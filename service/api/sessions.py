@@ -6,6 +6,7 @@ from typing import Literal
 
 from fastapi import APIRouter, File, Form, Response, UploadFile
 
+from recon.params import PIVOT_TOLERANCE_M
 from service import inputs
 from service.api.common import read_upload
 from service.api.deps import ServicesDep
@@ -17,7 +18,6 @@ from service.schemas import (
     SessionCreate,
     SessionOut,
 )
-from service.store import now
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
 
@@ -40,9 +40,10 @@ def get_session(session_id: str, services: ServicesDep):
 
 @router.delete("/{session_id}", status_code=204)
 def delete_session(session_id: str, services: ServicesDep) -> Response:
-    """Soft delete: the session disappears from the API, its data stays on disk."""
-    services.session(session_id)
-    services.store.update_session(session_id, deleted_at=now())
+    """Soft delete: the session disappears from the API, its data stays on disk. Its jobs are
+    cancelled (a running one's result is discarded), its captures and an arm moving for it
+    stop."""
+    services.delete_session(session_id)
     return Response(status_code=204)
 
 
@@ -71,14 +72,23 @@ async def pivot_calibration(
     format: str | None = Form(None, description="csv, motive or c3d; default from the name"),
     units: Literal["m", "mm"] | None = Form(None, description="if the file states none"),
     rigid_body: str | None = Form(None, description="Motive: the pen's rigid body"),
+    tolerance_m: float = Form(
+        PIVOT_TOLERANCE_M, gt=0, le=0.01, description="largest acceptable RMS of the tip (m)"
+    ),
+    accept_poor_fit: Literal["true", "false"] = Form(
+        "false", description="store a fit worse than the tolerance (default: refused, 422)"
+    ),
 ) -> dict:
     """Pivot calibration: the tip offset from a recording where the tip stays on one point
-    while the pen tilts in every direction. Sets the session's tip_offset_m."""
+    while the pen tilts in every direction. Sets the session's tip_offset_m; a fit worse than
+    the tolerance is refused (422 poor_fit with its figures) unless accepted."""
     row, result = await inputs.pivot_calibration(
         services,
         session_id,
         await read_upload(file, services),
         inputs.TraceOptions(format=format, units=units, rigid_body=rigid_body),
+        tolerance_m=tolerance_m,
+        accept_poor_fit=accept_poor_fit == "true",
     )
     return {"session": row, "result": result}
 

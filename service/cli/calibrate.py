@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from recon.params import PIVOT_TOLERANCE_M
 from service.cli.options import OneLineParser, add_trace_options, check_output, positive
 
 
@@ -25,6 +26,13 @@ def add_parser(commands) -> None:
     pivot.add_argument("recording", metavar="REC", help="recording with orientations")
     add_trace_options(pivot, tip=False)
     pivot.add_argument("--units", choices=("m", "mm"), help="unit if the file states none")
+    pivot.add_argument(
+        "--tolerance-m",
+        type=positive,
+        default=PIVOT_TOLERANCE_M,
+        help="largest acceptable RMS of the tip about its point (default %(default)s)",
+    )
+    _accept_poor_fit(pivot)
     pivot.add_argument("--out", required=True, metavar="TIP.json")
     pivot.set_defaults(handler=run_pivot)
     base = kinds.add_parser(
@@ -40,8 +48,18 @@ def add_parser(commands) -> None:
     base.add_argument(
         "--tolerance-m", type=positive, default=1e-3, help="largest acceptable pair error"
     )
+    _accept_poor_fit(base)
     base.add_argument("--out", required=True, metavar="T_base_tracker.json")
     base.set_defaults(handler=run_base)
+
+
+def _accept_poor_fit(parser) -> None:
+    parser.add_argument(
+        "--accept-poor-fit",
+        action="store_true",
+        help="write the calibration even when it is worse than the tolerance (default: "
+        "refused, exit 1)",
+    )
 
 
 def run_pivot(args: argparse.Namespace) -> int:
@@ -57,7 +75,9 @@ def run_pivot(args: argparse.Namespace) -> int:
         rigid_body=args.rigid_body,
         marker=args.marker,
     )
-    outcome = pipelines.pivot(raw)
+    outcome = pipelines.pivot(
+        raw, tolerance_m=args.tolerance_m, accept_poor_fit=args.accept_poor_fit
+    )
     print(outcome.line())
     result = outcome.as_json()
     write_tip_calibration(
@@ -87,7 +107,9 @@ def run_base(args: argparse.Namespace) -> int:
 
     out = check_output(args.out, ".json")
     base_m, tracker_m = read_point_pairs(args.pairs, units=args.units)
-    outcome = pipelines.point_pairs(base_m, tracker_m, tolerance_m=args.tolerance_m)
+    outcome = pipelines.point_pairs(
+        base_m, tracker_m, tolerance_m=args.tolerance_m, accept_poor_fit=args.accept_poor_fit
+    )
     print("\n".join(outcome.lines()))
     result = outcome.as_json()
     write_calibration(

@@ -1,0 +1,34 @@
+"""Tasks for the job-manager tests, imported by name in the worker processes."""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class Sleep:
+    """Write the worker's pid to ``pid_file`` (when given), sleep, write ``marker`` (when
+    given) after the sleep, return the worker's pid."""
+
+    seconds: float
+    marker: str | None = None
+    pid_file: str | None = None
+
+    def run(self) -> dict:
+        if self.pid_file:
+            Path(self.pid_file).write_text(str(os.getpid()))
+        time.sleep(self.seconds)
+        if self.marker:
+            Path(self.marker).write_text("written after the sleep")
+        return {"pid": os.getpid()}
+
+
+@dataclass(frozen=True)
+class Pid:
+    """The worker's pid, at once."""
+
+    def run(self) -> dict:
+        return {"pid": os.getpid()}
