@@ -73,6 +73,34 @@ def increasing_times(t_s: FloatArray) -> np.ndarray:
     return keep
 
 
+#: Names a message quotes at most: a recorder's header can hold hundreds of columns (an RTDE
+#: recording's is 2.7 KB), and a message that echoes it all hides what it says.
+EXCERPT_NAMES = 8
+
+
+def name_excerpt(names, limit: int = EXCERPT_NAMES, *, quote: bool = True) -> str:
+    """The first ``limit`` of ``names``, comma-separated, and how many more there are.
+
+    Parameters
+    ----------
+    names : iterable of str
+    limit : int
+    quote : bool
+        Quote each name (``repr``), as messages quote names taken from a file.
+
+    Returns
+    -------
+    str
+        ``"'a', 'b', 'c' … and 12 more"``; "none" for no names.
+    """
+    names = list(names)
+    if not names:
+        return "none"
+    shown = [repr(n) if quote else str(n) for n in names[:limit]]
+    more = len(names) - len(shown)
+    return ", ".join(shown) + (f" … and {more} more" if more else "")
+
+
 class Pacer:
     """Releases samples no faster than their timestamps allow, scaled by ``speed``.
 

@@ -12,6 +12,10 @@ Two things the reader checks that ezc3d does not say:
 
 * A truncated file: ezc3d returns the frames it could read and adjusts its frame count to match,
   so the count is compared with the file's own header and with the bytes present.
+* A header whose last-frame word disagrees with ``POINT:FRAMES`` (NDI's Optotrak software writes
+  frames 1-1149 in the header of a 29-frame file with ``POINT:FRAMES`` 29): the count that the
+  data section holds exactly is trusted, so such a file is read and a truncated one still
+  refused.
 * Takes over 65535 frames: the header's frame numbers are 16-bit, so long files declare their
   length in ``POINT:LONG_FRAMES`` or ``TRIAL:ACTUAL_START_FIELD`` / ``ACTUAL_END_FIELD``. ezc3d
   1.7 stops at frame 65535 regardless; the remaining frames of a float-format (Intel) file are
@@ -29,7 +33,7 @@ import numpy as np
 
 from drivers.errors import InputFileError, ReaderCrashError, ResourceLimitError
 from drivers.isolation import Limits, run_isolated
-from drivers.tracking.base import SampleBatch
+from drivers.tracking.base import SampleBatch, name_excerpt
 from drivers.units import metres_per
 from recon.types import FloatArray, Recording
 
@@ -206,7 +210,7 @@ def read_c3d(
 
 
 def _no_marker(name: str, marker: str | None, labels: tuple[str, ...]) -> InputFileError:
-    listed = ", ".join(repr(label) for label in labels)
+    listed = name_excerpt(labels)
     if not labels:
         return InputFileError(f"{name} has no markers (POINT:LABELS is empty)")
     if marker is None:
@@ -354,17 +358,23 @@ def _check_frame_count(
     if layout is None:
         return points, residuals  # leading zero bytes (a Vicon quirk): trust ezc3d
     long_frames = float(parsed["long_frames"])
+    available = layout.frames_in(size)
+    # The data section ends on a 512-byte block: the padding may look like a few frames.
+    padding = 511 // (layout.frame_bytes or 1)
     declared = None
     if long_frames > 0:
         declared = int(round(long_frames))
     elif "trial_frames" in parsed and int(parsed["trial_frames"]) > 0:
         declared = int(parsed["trial_frames"])
     elif layout.last_frame != 0xFFFF:
-        declared = layout.header_frames
-    available = layout.frames_in(size)
+        declared = _header_or_parameter(
+            layout.header_frames,
+            _raw_point_frames(head),
+            n_read if available is None else available,
+            0 if available is None else padding,
+            name,
+        )
     if declared is None:
-        # The data section ends on a 512-byte block: the padding may look like a few frames.
-        padding = 511 // (layout.frame_bytes or 1)
         if n_read >= _EZC3D_MAX_FRAMES and available is not None and available > n_read + padding:
             raise InputFileError(
                 f"{name} holds more than {_EZC3D_MAX_FRAMES} frames but does not say how many "
@@ -385,6 +395,78 @@ def _check_frame_count(
             "could be read; copy or export the take again"
         )
     return _read_long_take(path, layout, parsed, points, residuals, declared, name)
+
+
+def _raw_point_frames(head: bytes) -> int:
+    """``POINT:FRAMES`` as the file's parameter section has it, or -1 if it cannot be found.
+
+    Read here rather than taken from ezc3d, which rewrites it to the frames it could read.
+    """
+    start = (head[0] - 1) * 512 if head else -1
+    if start < 0 or start + 4 > len(head) or head[start + 3] not in (84, 85, 86):
+        return -1
+    processor = head[start + 3]
+    order = ">" if processor == 86 else "<"  # MIPS is big-endian; Intel and DEC little
+    groups: dict[int, str] = {}
+    frames = []
+    pos = start + 4
+    # Entries: name length and group id (signed bytes; a negative id is a group's own entry),
+    # the name, then the offset of the next entry from this word, then a parameter's contents.
+    while pos + 2 <= len(head):
+        size, group = struct.unpack("bb", head[pos : pos + 2])
+        end = pos + 2 + abs(size)
+        if size == 0 or end + 2 > len(head):
+            break
+        label = head[pos + 2 : end].decode("ascii", errors="replace").strip().upper()
+        (offset,) = struct.unpack(order + "h", head[end : end + 2])
+        if group < 0:
+            groups[-group] = label
+        elif label == "FRAMES":
+            frames.append((group, end + 2))
+        if offset <= 0:
+            break
+        pos = end + offset
+    for group, at in frames:
+        if groups.get(group) == "POINT":
+            return _first_int(head, at, processor)
+    return -1
+
+
+def _first_int(head: bytes, at: int, processor: int) -> int:
+    """The first value of the parameter whose type byte is at ``at``: an INT or an IEEE REAL."""
+    if at + 2 > len(head):
+        return -1
+    order = ">" if processor == 86 else "<"
+    kind, dims = struct.unpack("bB", head[at : at + 2])
+    value_at = at + 2 + dims
+    if kind == 2 and value_at + 2 <= len(head):
+        # A signed 16-bit INT: 32768-65535 frames are written as negative numbers.
+        return struct.unpack(order + "h", head[value_at : value_at + 2])[0] & 0xFFFF
+    if kind == 4 and processor != 85 and value_at + 4 <= len(head):
+        return int(round(struct.unpack(order + "f", head[value_at : value_at + 4])[0]))
+    return -1  # DEC floats, bytes, text: not read here
+
+
+def _header_or_parameter(
+    header_frames: int, point_frames: int, held: int, padding: int, name: str
+) -> int:
+    """The frame count to check the data against, when the header and ``POINT:FRAMES`` disagree.
+
+    Some writers (NDI's Optotrak software) put the take's frame range in the header and the
+    exported frames in ``POINT:FRAMES``; whichever the data section holds exactly is the file's.
+    ``held`` is the frames the bytes hold, up to ``padding`` more from the last block's filler.
+    """
+    if point_frames <= 0 or point_frames == header_frames:
+        return header_frames
+    for count in (point_frames, header_frames):
+        if count <= held <= count + padding:
+            return count
+    if held < min(point_frames, header_frames):
+        raise InputFileError(
+            f"{name} is truncated: it declares {point_frames} frames (POINT:FRAMES; its header "
+            f"says {header_frames}) but holds {held}; copy or export the take again"
+        )
+    return header_frames  # neither fits: checked against the header, as before
 
 
 @dataclass(frozen=True)

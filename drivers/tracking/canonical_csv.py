@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.errors import InputFileError
+from drivers.tracking.base import name_excerpt
 from drivers.units import metres_per
 from recon.types import Recording
 
@@ -56,9 +57,11 @@ def read_trace_csv(
     header = [cell.strip().lower() for cell in rows[0]]
     missing = [c for c in POSITION_COLUMNS if c not in header]
     if missing:
+        # A header is quoted in part: a recorder's can run to kilobytes.
         raise InputFileError(
-            f"{name} has no column {', '.join(missing)} in its header {rows[0]!r}; the first row "
-            "must name the columns, at least x,y,z (optionally t and qx,qy,qz,qw)"
+            f"{name} has no column {', '.join(missing)} in its header "
+            f"({name_excerpt(cell.strip() for cell in rows[0])}); the first row must name the "
+            "columns, at least x,y,z (optionally t and qx,qy,qz,qw)"
         )
     body = rows[1:]
     if len(body) < 2:

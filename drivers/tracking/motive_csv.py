@@ -1,4 +1,4 @@
-"""OptiTrack Motive CSV exports (Motive 2.x and 3.x, "Data Export: CSV" with the header on).
+"""OptiTrack Motive CSV exports (Motive 1.x to 3.x, "Data Export: CSV" with the header on).
 
 The layout, as Motive writes it::
 
@@ -18,6 +18,20 @@ body's own (moved) axes -- Motive's "relative" convention, SciPy's upper-case (i
 sequences. Positions are in the header's ``Length Units``. A body or marker that was not tracked
 in a frame leaves its cells empty. A rigid body's position is its pivot point, which the operator
 places at the pen tip in Motive.
+
+Variants read as well:
+
+* Motive 1.x (format 1.21, 1.22): the Type, Name and ID rows have no labels (``,,Rigid Body,...``),
+  the time column is ``Time``, and the quality statistics are ``Error Per Marker`` (the rigid
+  body's mean marker error) and ``Marker Quality`` (after each rigid body marker).
+* Files re-saved by a spreadsheet: ``120`` for ``120.000000``, rows padded with commas, blank rows
+  of commas only.
+* Skeletons (``Bone`` and ``Bone Marker`` columns, Motive 3's ``Parent`` row): a bone is chosen
+  like a rigid body, a bone marker like a marker.
+
+The legacy OptiTrack CSV of Tracking Tools and early Motive (format 1.1: ``comment``, ``info`` and
+``frame`` rows, or the still older "trackable" rows) is recognised and refused: its rows vary in
+length with what was seen in each frame and it does not state its length unit.
 """
 
 from __future__ import annotations
@@ -33,7 +47,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from drivers.errors import InputFileError
-from drivers.tracking.base import SampleBatch
+from drivers.tracking.base import SampleBatch, name_excerpt
 from drivers.units import metres_per
 from recon.types import FloatArray, Recording
 
@@ -51,6 +65,15 @@ _HEADERLESS_HINT = (
     "export the take again with the CSV export option 'Header information' checked (the header "
     "names the rigid bodies and gives the length unit)"
 )
+#: Asset types of the Type row. Motive 1.x writes the Type, Name and ID rows without their labels;
+#: a row of these is how its Type row is known.
+_ASSET_TYPES = {"Rigid Body", "Rigid Body Marker", "Marker", "Bone", "Bone Marker"}
+#: The rigid body's mean marker error, by the names Motive 2+ and Motive 1.x give it.
+_ERROR_COMPONENTS = ("Mean Marker Error", "Error Per Marker")
+#: First cells of the legacy OptiTrack CSV (Tracking Tools, Motive before format 1.2).
+_LEGACY_FIRST_CELLS = {"comment", "info", "righthanded", "lefthanded", "trackable"}
+#: The options that give the length unit a file does not state, as messages name them.
+_UNITS_OPTION = "--units mm (or m) on the command line, units='mm' (or 'm') in an upload"
 
 
 @dataclass(frozen=True)
@@ -139,10 +162,11 @@ def read_motive_csv(
     source : path or bytes
         The file, or its content (an upload).
     rigid_body : str, optional
-        The rigid body to read; needed when the file has several.
+        The rigid body to read; needed when the file has several. A skeleton's bone is named the
+        same way (a file of skeletons only always needs the name).
     marker : str, optional
         Read this marker's position instead of a rigid body (no orientation). A physical marker
-        is preferred to a rigid body marker of the same name.
+        is preferred to a rigid body or bone marker of the same name.
     units : {"m", "mm"}, optional
         Length unit of the positions, used only when the header does not declare one.
     name : str, optional
@@ -158,9 +182,10 @@ def read_motive_csv(
     Raises
     ------
     InputFileError
-        Missing, empty or binary file; an export without its header; no rigid body or marker of
-        that name (or several and none named); columns missing; a row cut short; cells that are not
-        numbers or spell out NaN or infinity; times that do not increase; no length unit.
+        Missing, empty or binary file; an export without its header; a legacy OptiTrack CSV; no
+        rigid body, bone or marker of that name (or several and none named, or none at all);
+        columns missing; a row cut short; cells that are not numbers or spell out NaN or infinity;
+        times that do not increase; no length unit; Euler angles of an undeclared order.
     ValueError
         Both ``rigid_body`` and ``marker`` given, an unknown ``units`` or a negative
         ``max_marker_error_m``.
@@ -182,53 +207,13 @@ def read_motive_csv(
     scale, length_units = _length_scale(meta, fallback_scale, units, name)
     table = header.columns
 
-    rigid_bodies = _unique(
-        n for t, n in zip(table.types, table.names, strict=True) if t == "Rigid Body"
-    )
-    markers = _unique(
-        n
-        for t, n in zip(table.types, table.names, strict=True)
-        if t in ("Marker", "Rigid Body Marker")
-    )
-    if marker is None and rigid_body is None:
-        if len(rigid_bodies) == 1:
-            rigid_body = rigid_bodies[0]
-        elif not rigid_bodies and len(markers) == 1:
-            marker = markers[0]
-        elif rigid_bodies:
-            raise InputFileError(
-                f"{name} has several rigid bodies ({', '.join(rigid_bodies)}); say which one "
-                "traced the path (rigid_body=...)"
-            )
-        else:
-            raise InputFileError(
-                f"{name} has no rigid body and {len(markers)} markers"
-                + (f" ({', '.join(markers)})" if markers else "")
-                + "; export the pen's rigid body (CSV option 'Rigid Bodies') or name the pen-tip "
-                "marker (marker=...)"
-            )
-
+    assets = _Assets.of(table)
+    rigid_body, marker, kind = _choose(assets, rigid_body, marker, name)
+    cols = _columns_of(table, (kind,), rigid_body or marker, name)
     rotation_type = None
     if rigid_body is not None:
-        if rigid_body not in rigid_bodies:
-            raise InputFileError(
-                f"{name} has no rigid body named {rigid_body!r}; it has "
-                + (", ".join(repr(b) for b in rigid_bodies) if rigid_bodies else "none")
-            )
-        cols = _columns_of(table, ("Rigid Body",), rigid_body, name)
         rotation_type = _rotation_type(meta, cols, rigid_body, name)
-    else:
-        if marker not in markers:
-            raise InputFileError(
-                f"{name} has no marker named {marker!r}; it has "
-                + (", ".join(repr(m) for m in markers) if markers else "none")
-            )
-        physical = any(
-            t == "Marker" and n == marker for t, n in zip(table.types, table.names, strict=True)
-        )
-        kind = "Marker" if physical else "Rigid Body Marker"
-        cols = _columns_of(table, (kind,), marker, name)
-    what = f"rigid body {rigid_body!r}" if rigid_body is not None else f"marker {marker!r}"
+    what = f"{_KIND_NAMES[kind]} {rigid_body or marker!r}"
     position_cols = [cols.get(("Position", axis)) for axis in "XYZ"]
     missing = [f"Position {a}" for a, c in zip("XYZ", position_cols, strict=True) if c is None]
     if missing:
@@ -241,7 +226,7 @@ def read_motive_csv(
         axes = "XYZW" if rotation_type == "Quaternion" else "XYZ"
         rotation_cols = [cols[("Rotation", a)] for a in axes]
     # The error column has no axis label (some exports may give it one).
-    error_col = next((j for (kind, _), j in cols.items() if kind == "Mean Marker Error"), None)
+    error_col = next((j for (part, _), j in cols.items() if part in _ERROR_COMPONENTS), None)
 
     wanted = [1, *position_cols, *rotation_cols] + ([error_col] if error_col is not None else [])
     data = _parse_body(raw, header.body_start, header.body_line, wanted, table, name)
@@ -259,12 +244,12 @@ def read_motive_csv(
     t = data[:, 0]
     if not np.all(np.isfinite(t)):
         line = header.body_line + int(np.flatnonzero(~np.isfinite(t))[0])
-        raise InputFileError(f"{name} line {line} has no time; every row needs its Time (Seconds)")
+        raise InputFileError(f"{name} line {line} has no time; every row needs its {table.axes[1]}")
     steps = np.diff(t)
     if np.any(steps <= 0):
         line = header.body_line + 1 + int(np.flatnonzero(steps <= 0)[0])
         raise InputFileError(
-            f"{name}: the times in column 'Time (Seconds)' do not increase (line {line}); export "
+            f"{name}: the times in column {table.axes[1]!r} do not increase (line {line}); export "
             "the take again, or sort the rows by time and remove repeated ones"
         )
 
@@ -296,8 +281,8 @@ def read_motive_csv(
         take_name=meta.get("Take Name", ""),
         rigid_body=rigid_body,
         marker=marker,
-        available=tuple(rigid_bodies),
-        available_markers=tuple(markers),
+        available=tuple(assets.rigid_bodies),
+        available_markers=tuple(assets.markers),
         mean_marker_error_m=error_m,
         metadata=dict(meta),
     )
@@ -355,6 +340,55 @@ def _is_number(text: str) -> bool:
 
 
 def _parse_header(raw: bytes, name: str) -> _Header:
+    lines = _header_lines(raw)
+    first_row = _cells(lines[0])
+    label = first_row[0].strip() if first_row else ""
+    if label != "Format Version":
+        raise _not_motive(first_row, lines, name)
+    metadata = {
+        first_row[i].strip(): first_row[i + 1].strip() for i in range(0, len(first_row) - 1, 2)
+    }
+    metadata.pop("", None)  # the padding of a spreadsheet's re-save
+    rows = [_cells(line) for line in lines[1:]]
+    axis_index = next(
+        (i for i, row in enumerate(rows) if row and row[0].strip().lower() == "frame"), None
+    )
+    if axis_index is None:
+        raise InputFileError(
+            f"{name} has no 'Frame,Time (Seconds),...' row after its first row; the column header "
+            f"is incomplete or missing: {_HEADERLESS_HINT}"
+        )
+    axis_row = rows[axis_index]
+    if len(axis_row) < 2 or not axis_row[1].strip().lower().startswith("time"):
+        raise InputFileError(
+            f"{name}: the second column should be 'Time (Seconds)', not "
+            f"{(axis_row[1][:40] if len(axis_row) > 1 else '')!r}; export the take again"
+        )
+    if not any(cell.strip() for cell in axis_row[2:]):
+        raise InputFileError(
+            f"{name} holds no rigid body or marker: its only columns are Frame and Time, so the "
+            "take exported no assets; check 'Rigid Bodies' (or 'Markers') in Motive's CSV export "
+            "options, with the pen's rigid body defined in the take, and export again"
+        )
+    width = len(axis_row)
+
+    def padded(row: list[str]) -> list[str]:
+        cells = [cell.strip() for cell in row[:width]]
+        return cells + [""] * (width - len(cells))
+
+    types, names, components = _asset_rows(rows[:axis_index], name)
+    columns = _Columns(
+        types=padded(types),
+        names=padded(names),
+        components=padded(components),
+        axes=padded(axis_row),
+    )
+    body_start = sum(len(line) for line in lines[: axis_index + 2])
+    return _Header(metadata, columns, body_start, body_line=axis_index + 3)
+
+
+def _header_lines(raw: bytes) -> list[bytes]:
+    """The lines up to the ``Frame,Time`` row (or as many as a header may have)."""
     pos = 0
     lines: list[bytes] = []
     # Only the header is split here; the body is parsed in bulk.
@@ -367,72 +401,80 @@ def _parse_header(raw: bytes, name: str) -> _Header:
             cells = _cells(lines[-1])
             if cells and cells[0].strip().lower() == "frame":
                 break
-    first_row = _cells(lines[0])
+    return lines
+
+
+def _not_motive(first_row: list[str], lines: list[bytes], name: str) -> InputFileError:
+    """Why a file whose first row is not Motive's metadata row is refused."""
     label = first_row[0].strip() if first_row else ""
-    if label != "Format Version":
-        if label and _is_number(label):
-            raise InputFileError(
-                f"{name} has no header (its first row is data); {_HEADERLESS_HINT}"
-            )
-        second = first_row[1].strip() if len(first_row) > 1 else ""
-        if not label and second in ("Type", "Name", "ID"):
-            raise InputFileError(
-                f"{name} lacks the metadata row (Format Version, Length Units, Rotation Type) "
-                f"above its {second!r} row, so its units are unknown; {_HEADERLESS_HINT}"
-            )
-        raise InputFileError(
-            f"{name} is not a Motive CSV export: its first row should start with 'Format "
-            f"Version', not {label[:40]!r}"
+    if label.lower() in _LEGACY_FIRST_CELLS:
+        return _legacy(lines, name)
+    if label and _is_number(label):
+        return InputFileError(f"{name} has no header (its first row is data); {_HEADERLESS_HINT}")
+    second = first_row[1].strip() if len(first_row) > 1 else ""
+    if not label and second in ("Type", "Name", "ID"):
+        return InputFileError(
+            f"{name} lacks the metadata row (Format Version, Length Units, Rotation Type) "
+            f"above its {second!r} row, so its units are unknown; {_HEADERLESS_HINT}"
         )
-    metadata = {
-        first_row[i].strip(): first_row[i + 1].strip() for i in range(0, len(first_row) - 1, 2)
-    }
-    rows = [_cells(line) for line in lines[1:]]
-    axis_index = next(
-        (i for i, row in enumerate(rows) if row and row[0].strip().lower() == "frame"), None
+    return InputFileError(
+        f"{name} is not a Motive CSV export: its first row should start with 'Format "
+        f"Version', not {label[:40]!r}"
     )
-    if axis_index is None:
-        raise InputFileError(
-            f"{name} has no 'Frame,Time (Seconds),...' row after its first row; the column header "
-            f"is incomplete or missing: {_HEADERLESS_HINT}"
-        )
-    axis_row = rows[axis_index]
+
+
+def _legacy(lines: list[bytes], name: str) -> InputFileError:
+    """The refusal of the legacy OptiTrack CSV (Tracking Tools, early Motive)."""
+    version = next(
+        (
+            cells[2].strip()
+            for cells in map(_cells, lines)
+            if len(cells) > 2 and [c.strip().lower() for c in cells[:2]] == ["info", "version"]
+        ),
+        None,
+    )
+    what = f"format {version[:10]}" if version else "'comment', 'info' and 'frame' rows"
+    # Each frame row holds the bodies and markers seen in that frame, so columns shift from row to
+    # row, and nothing in the file says whether positions are in metres or millimetres.
+    return InputFileError(
+        f"{name} is a legacy OptiTrack CSV (Tracking Tools or early Motive, {what}), which is not "
+        "read: its rows change layout with what was seen in each frame and it does not state its "
+        "length unit; export the take from Motive as CSV with 'Header information' checked, or "
+        "convert it to the canonical t,x,y,z,qx,qy,qz,qw CSV"
+    )
+
+
+def _asset_rows(rows: list[list[str]], name: str) -> tuple[list[str], list[str], list[str]]:
+    """The Type, Name and component rows of the header (between the metadata and Frame rows).
+
+    Motive 2+ labels the Type and Name rows in their second cell; Motive 1.x leaves both first
+    cells empty, so its rows are told by their order (Type, Name, ID, components) and the Type row
+    by its content. The component row is the unlabelled row just above the Frame row in both.
+    """
+    rows = [row for row in rows if any(cell.strip() for cell in row)]
     labelled = {}
-    component_row = None
-    for row in rows[:axis_index]:
-        if not any(cell.strip() for cell in row):
-            continue
+    unlabelled = []
+    for row in rows:
+        first = row[0].strip()
         key = row[1].strip() if len(row) > 1 else ""
-        if row[0].strip() == "" and key == "":
-            component_row = row
-        elif row[0].strip() == "":
+        if first == "" and key == "":
+            unlabelled.append(row)
+        elif first == "":
             labelled[key] = row
-    if len(axis_row) < 2 or not axis_row[1].strip().lower().startswith("time"):
-        raise InputFileError(
-            f"{name}: the second column should be 'Time (Seconds)', not "
-            f"{(axis_row[1] if len(axis_row) > 1 else '')!r}; export the take again"
-        )
+    components = unlabelled[-1] if unlabelled else None
+    if "Type" not in labelled and len(unlabelled) >= 3:
+        types = {cell.strip() for cell in unlabelled[0][2:]} - {""}
+        if types and types <= _ASSET_TYPES:
+            labelled.setdefault("Type", unlabelled[0])
+            labelled.setdefault("Name", unlabelled[1])
     missing = [r for r in ("Type", "Name") if r not in labelled]
-    if component_row is None:
+    if components is None:
         missing.append("the Rotation/Position row")
     if missing:
         raise InputFileError(
             f"{name} lacks the header rows {', '.join(missing)}; {_HEADERLESS_HINT}"
         )
-    width = len(axis_row)
-
-    def padded(row: list[str]) -> list[str]:
-        cells = [cell.strip() for cell in row[:width]]
-        return cells + [""] * (width - len(cells))
-
-    columns = _Columns(
-        types=padded(labelled["Type"]),
-        names=padded(labelled["Name"]),
-        components=padded(component_row),
-        axes=padded(axis_row),
-    )
-    body_start = sum(len(line) for line in lines[: axis_index + 2])
-    return _Header(metadata, columns, body_start, body_line=axis_index + 3)
+    return labelled["Type"], labelled["Name"], components
 
 
 def _length_scale(
@@ -448,15 +490,110 @@ def _length_scale(
             )
         return scale, declared
     if fallback is None:
+        # Both go missing together when a spreadsheet or a script rewrites the first row.
+        also = (
+            ""
+            if meta.get("Rotation Type")
+            else "; 'Rotation Type' is missing too, which is no matter for quaternions (their W "
+            "column tells them) but is for Euler angles"
+        )
         raise InputFileError(
-            f"{name} does not say its length unit (no 'Length Units' in its first row); pass the "
-            "unit the positions are in (units='mm' or 'm')"
+            f"{name} does not say its length unit (no 'Length Units' in its first row); give the "
+            f"unit the positions are in: {_UNITS_OPTION}{also}"
         )
     return fallback, str(units)
 
 
 def _unique(names) -> list[str]:
     return list(dict.fromkeys(n for n in names if n))
+
+
+#: How messages call each kind of column the trace can come from.
+_KIND_NAMES = {
+    "Rigid Body": "rigid body",
+    "Bone": "bone",
+    "Marker": "marker",
+    "Rigid Body Marker": "marker",
+    "Bone Marker": "marker",
+}
+
+
+@dataclass(frozen=True)
+class _Assets:
+    """The names of what the file holds, in column order."""
+
+    rigid_bodies: list[str]
+    bones: list[str]
+    markers: list[str]  # physical, rigid body and bone markers
+    kinds: dict[str, list[str]]  # marker name -> its column types
+
+    @classmethod
+    def of(cls, table: _Columns) -> _Assets:
+        pairs = list(zip(table.types, table.names, strict=True))
+        kinds: dict[str, list[str]] = {}
+        for t, n in pairs:
+            if n and t.endswith("Marker") and t not in kinds.setdefault(n, []):
+                kinds[n].append(t)
+        return cls(
+            rigid_bodies=_unique(n for t, n in pairs if t == "Rigid Body"),
+            bones=_unique(n for t, n in pairs if t == "Bone"),
+            markers=list(kinds),
+            kinds=kinds,
+        )
+
+
+def _choose(
+    assets: _Assets, rigid_body: str | None, marker: str | None, name: str
+) -> tuple[str | None, str | None, str]:
+    """Which rigid body (or bone) or marker is the pen, and its column type."""
+    if rigid_body is None and marker is None:
+        if len(assets.rigid_bodies) == 1:
+            rigid_body = assets.rigid_bodies[0]
+        elif not assets.rigid_bodies and not assets.bones and len(assets.markers) == 1:
+            marker = assets.markers[0]
+        else:
+            raise _which_one(assets, name)
+    if rigid_body is not None:
+        if rigid_body in assets.rigid_bodies:
+            return rigid_body, None, "Rigid Body"
+        if rigid_body in assets.bones:
+            return rigid_body, None, "Bone"
+        bones = f"; bones {name_excerpt(assets.bones)}" if assets.bones else ""
+        raise InputFileError(
+            f"{name} has no rigid body named {rigid_body!r}; it has "
+            f"{name_excerpt(assets.rigid_bodies)}{bones}"
+        )
+    if marker not in assets.kinds:
+        raise InputFileError(
+            f"{name} has no marker named {marker!r}; it has {name_excerpt(assets.markers)}"
+        )
+    # A physical marker is what the cameras saw; the others are where a solver expects one.
+    kinds = assets.kinds[marker]
+    kind = next(k for k in ("Marker", "Rigid Body Marker", "Bone Marker") if k in kinds)
+    return None, marker, kind
+
+
+def _which_one(assets: _Assets, name: str) -> InputFileError:
+    """The refusal of a file whose pen cannot be told without a name."""
+    if assets.rigid_bodies:
+        return InputFileError(
+            f"{name} has several rigid bodies ({name_excerpt(assets.rigid_bodies, quote=False)}); "
+            "say which one traced the path (rigid_body=... or --rigid-body)"
+        )
+    if assets.bones:
+        skeletons = _unique(bone.split(":")[0] for bone in assets.bones if ":" in bone)
+        held = f" ({name_excerpt(skeletons, quote=False)})" if skeletons else ""
+        return InputFileError(
+            f"{name} holds a skeleton{held} and no rigid body; name the bone that traced the path "
+            "(rigid_body=... or --rigid-body) or one marker (marker=... or --marker): bones "
+            f"{name_excerpt(assets.bones)}; markers {name_excerpt(assets.markers)}"
+        )
+    listed = f" ({name_excerpt(assets.markers, quote=False)})" if assets.markers else ""
+    return InputFileError(
+        f"{name} has no rigid body and {len(assets.markers)} markers{listed}; export the pen's "
+        "rigid body (CSV option 'Rigid Bodies') or name the pen-tip marker (marker=... or "
+        "--marker)"
+    )
 
 
 def _columns_of(
@@ -484,11 +621,14 @@ def _rotation_type(
         return None  # positions only: exported without rotations
     declared = meta.get("Rotation Type", "").strip()
     if not declared:
+        # Motive writes a W column for quaternions only: four components need no declaration.
         if present == list("XYZW"):
             return "Quaternion"
         raise InputFileError(
-            f"{name} does not say its rotation type (no 'Rotation Type' in its first row); "
-            "export the take again"
+            f"{name} does not say its rotation type (no 'Rotation Type' in its first row), and "
+            f"the rotation columns of {body!r} ({', '.join(present)}, no W) are Euler angles of an "
+            "unknown order; no option supplies it: export the take again with its header, or with "
+            "the rotation type Quaternion"
         )
     if declared.lower() == "quaternion":
         needed = "XYZW"
@@ -520,7 +660,8 @@ def _parse_body(
     except UnicodeDecodeError:
         text = body.decode("latin-1")  # only to report the offending cell
     lines = text.splitlines()
-    while lines and not lines[-1].strip():
+    # A spreadsheet's re-save writes the blank rows at the end as rows of commas.
+    while lines and not lines[-1].strip(" ,\t"):
         lines.pop()
     n = len(lines)
     if n == 0:
@@ -594,7 +735,7 @@ def _parse_cells(
 
 def _column_label(table: _Columns, j: int) -> str:
     if j == 1:
-        return "Time (Seconds)"
+        return table.axes[1]
     parts = [table.names[j], table.components[j], table.axes[j]] if j < len(table.names) else []
     return f"{j + 1} ({' '.join(p for p in parts if p)})" if parts else str(j + 1)
 

@@ -6,10 +6,14 @@ calibration), cleans dropouts and outliers (:mod:`drivers.tracking.gaps`) and pi
 
 Formats are registered by name in :data:`TRACE_READERS` (a :class:`~drivers.registry.Registry`)
 and imported lazily: ``csv`` (the canonical ``t,x,y,z,qx,qy,qz,qw``), ``motive`` (OptiTrack
-Motive CSV exports, which share the ``.csv`` suffix and are told apart by their first line) and
-``c3d`` (marker files). Packages add formats through the entry-point group
-``teachpath.trace_readers``: a function taking ``(source, *, name, units, **options)`` and
-returning a :class:`RawTrace`, chosen explicitly or by a suffix equal to its name.
+Motive CSV exports), ``rtde`` (a Universal Robots arm's TCP pose recorded over RTDE), both of
+which share the ``.csv`` suffix and are told apart by their first line, and ``c3d`` (marker
+files). Packages add formats through the entry-point group ``teachpath.trace_readers``: a
+function taking ``(source, *, name, units, **options)`` and returning a :class:`RawTrace`, chosen
+explicitly or by a suffix equal to its name.
+
+Every trace is checked to move (:data:`MIN_TRACE_EXTENT_M`) once cleaned, in
+:func:`trace_from_raw`, where the files and the live captures meet.
 """
 
 from __future__ import annotations
@@ -101,17 +105,29 @@ TRACE_READERS: Registry[Callable[..., RawTrace]] = Registry(
     {
         "csv": "drivers.tracking.readers:read_canonical_raw",
         "motive": "drivers.tracking.readers:read_motive_raw",
+        "rtde": "drivers.tracking.readers:read_rtde_raw",
         "c3d": "drivers.tracking.readers:read_c3d_raw",
     },
     group="teachpath.trace_readers",
     unknown_error=UnknownFormatError,
 )
-#: File suffix -> format name (".csv" is sniffed: canonical or Motive).
+#: File suffix -> format name (".csv" is sniffed: canonical, Motive or RTDE).
 TRACE_SUFFIXES: dict[str, str] = {".csv": "csv", ".c3d": "c3d"}
 #: The first cells of a Motive export's first line (with or without its metadata header).
 _MOTIVE_FIRST_CELLS = {"format version", "type", "name", "id", "frame"}
 #: Row labels that Motive writes after empty leading cells.
 _MOTIVE_ROW_LABELS = {"type", "name", "id"}
+#: First cells of the legacy OptiTrack CSV (Tracking Tools, early Motive), which the Motive reader
+#: recognises and refuses with advice.
+_LEGACY_OPTITRACK_FIRST_CELLS = {"comment", "info", "righthanded", "lefthanded", "trackable"}
+#: How RTDE's output names start (actual_TCP_pose, target_q...), after the header's "timestamp".
+_RTDE_NAME_PREFIXES = ("actual_", "target_")
+#: A trace whose cleaned samples span less than this (the diagonal of their bounding box) is a pen
+#: that did not move. 3 mm is well above what a still pen spans: an optical tracker's jitter is
+#: a tenth of a millimetre or less (a still take of the issue spanned 0.04 mm) and a hand held
+#: still drifts about a millimetre; yet it is below the 8 mm neighbourhood over which the
+#: reconstruction fits the scan, so no feature can be traced within it.
+MIN_TRACE_EXTENT_M = 3e-3
 #: t,x,y,z,qx,qy,qz,qw: a longer row of bare numbers is no canonical trace.
 _CANONICAL_MAX_COLUMNS = 8
 
@@ -234,8 +250,10 @@ def trace_from_raw(
         batch = apply_tip_offset(batch, tip_offset_m)
     clean = _clean(batch, gaps)
     if piece == "all":
+        recording = Recording.joined(list(clean.pieces))
+        require_motion(recording)
         return TraceFile(
-            recording=Recording.joined(list(clean.pieces)),
+            recording=recording,
             raw=raw,
             clean=clean,
             piece="all",
@@ -250,6 +268,7 @@ def trace_from_raw(
             f"piece {piece} does not exist: the recording has {len(clean.pieces)} piece(s) "
             f"(0 to {len(clean.pieces) - 1}, or all)"
         )
+    require_motion(clean.pieces[index], None if len(clean.pieces) == 1 else index)
     return TraceFile(
         recording=clean.pieces[index],
         raw=raw,
@@ -264,8 +283,6 @@ MAX_TRACE_EXTENT_M = 10.0
 #: Motion-capture volumes are tens of metres at most: a sample farther from the tracker's
 #: origin (m) is a unit mix-up.
 MAX_TRACKER_DISTANCE_M = 100.0
-#: A trace narrower than this (m) in millimetres would be a plausible path in metres.
-MIN_TRACE_EXTENT_M = 1e-3
 
 
 def check_trace_units(points_m: FloatArray, units: str | None) -> None:
@@ -283,7 +300,7 @@ def check_trace_units(points_m: FloatArray, units: str | None) -> None:
     UnitsMismatchError
         Millimetres read as metres (a path wider than a robot's reach or samples beyond any
         tracking volume), or metres read as millimetres (a path of a fraction of a millimetre
-        that would be a plausible one in metres).
+        narrower than :data:`MIN_TRACE_EXTENT_M`, which would be a plausible path in metres).
     """
     from recon.errors import UnitsMismatchError
 
@@ -298,12 +315,45 @@ def check_trace_units(points_m: FloatArray, units: str | None) -> None:
             "the tracker's origin, beyond any robot cell: its numbers look like millimetres; "
             "upload it with units=mm (--units mm)"
         )
-    if units == "mm" and 0 < extent_m < MIN_TRACE_EXTENT_M and farthest_m * 1e3 < 100.0:
+    as_metres_m = extent_m * 1e3
+    plausible = MIN_TRACE_EXTENT_M <= as_metres_m <= MAX_TRACE_EXTENT_M
+    if units == "mm" and extent_m < MIN_TRACE_EXTENT_M and plausible:
         raise UnitsMismatchError(
             f"the trace, read as millimetres, spans only {extent_m * 1e3:.3g} mm: if its "
-            f"numbers are metres it would span {extent_m * 1e3:.3g} m; upload it with units=m "
+            f"numbers are metres it would span {as_metres_m:.3g} m; upload it with units=m "
             "(--units m). Otherwise the pen did not move: record the trace again"
         )
+
+
+def require_motion(recording: Recording, piece: int | None = None) -> None:
+    """Refuse a trace of a pen that did not move (see :data:`MIN_TRACE_EXTENT_M`).
+
+    Reconstructing a still pen gives a few points of jitter cut into segments, which look like a
+    result; this says what happened instead.
+
+    Parameters
+    ----------
+    recording : Recording
+        The cleaned trace (pen tip, metres).
+    piece : int, optional
+        Which piece of a split recording it is, for the message.
+
+    Raises
+    ------
+    InputFileError
+        Its samples span less than :data:`MIN_TRACE_EXTENT_M`.
+    """
+    points = recording.points_m
+    if len(points) == 0:
+        return  # the readers refuse empty traces with their own reasons
+    extent = float(np.linalg.norm(np.ptp(points, axis=0)))
+    if extent >= MIN_TRACE_EXTENT_M:
+        return
+    where = "" if piece is None else f" in piece {piece} of the recording"
+    raise InputFileError(
+        f"the pen did not move{where} (extent {extent * 1e3:.2f} mm); record a trace that "
+        f"follows the feature, at least {MIN_TRACE_EXTENT_M * 1e3:.0f} mm of motion"
+    )
 
 
 def _clean(batch: SampleBatch, gaps: GapParams | None) -> CleanTrace:
@@ -359,6 +409,25 @@ def read_motive_raw(
     return RawTrace(batch=trace.batch, format="motive", rate_hz=trace.rate_hz, meta=meta)
 
 
+def read_rtde_raw(
+    source: str | Path | bytes,
+    *,
+    name: str | None = None,
+    units: str | None = None,
+) -> RawTrace:
+    """A Universal Robots RTDE recording's TCP pose as raw samples (robot base frame)."""
+    from drivers.tracking.rtde_csv import read_rtde_csv
+
+    trace = read_rtde_csv(source, units=units, name=name)
+    meta = {
+        "units": "m",
+        "frame": "robot base",
+        "pose": trace.pose,
+        "torn_last_line_dropped": trace.torn_last_line,
+    }
+    return RawTrace(batch=trace.batch, format="rtde", rate_hz=trace.rate_hz, meta=meta)
+
+
 def read_c3d_raw(
     source: str | Path | bytes,
     *,
@@ -390,17 +459,13 @@ def _format_for(source: str | Path | bytes, label: str, fmt: str | None) -> str:
             f"{', '.join(sorted(TRACE_SUFFIXES))} or give the format "
             f"({', '.join(TRACE_READERS.names())})"
         )
-    if fmt == "csv" and _looks_like_motive(source):
-        return "motive"
+    if fmt == "csv":
+        return _sniff_csv(source)
     return fmt
 
 
-def _looks_like_motive(source: str | Path | bytes) -> bool:
-    """Motive exports start with their metadata line (``Format Version,...``) or, exported
-    without it, with the ``Type``/``Name``/``Frame`` rows (the first cells of the Type, Name
-    and ID rows are empty), or with bare data rows (a whole frame number, then more numbers
-    than a canonical row can hold); canonical files start with column names. Routing the
-    header-less exports to the Motive reader gets them its message about the export option."""
+def _sniff_csv(source: str | Path | bytes) -> str:
+    """Which reader a ``.csv`` file is for, from its first line that is not blank."""
     try:
         if isinstance(source, bytes):
             head = source[:4096]
@@ -408,15 +473,41 @@ def _looks_like_motive(source: str | Path | bytes) -> bool:
             with open(source, "rb") as handle:
                 head = handle.read(4096)
     except OSError:
-        return False  # the reader reports the missing file
+        return "csv"  # the reader reports the missing file
     for line in head.decode("utf-8-sig", errors="replace").splitlines():
         if line.strip(" ,\t"):
-            cells = [cell.strip().strip('"').lower() for cell in line.split(",")]
-            label = next(cell for cell in cells if cell)
-            if label in _MOTIVE_FIRST_CELLS and (cells[0] or label in _MOTIVE_ROW_LABELS):
-                return True
-            return cells[0].isdigit() and len(cells) > _CANONICAL_MAX_COLUMNS
-    return False
+            if _looks_like_rtde(line):
+                return "rtde"
+            return "motive" if _looks_like_motive(line) else "csv"
+    return "csv"
+
+
+def _looks_like_motive(line: str) -> bool:
+    """Motive exports start with their metadata line (``Format Version,...``) or, exported
+    without it, with the ``Type``/``Name``/``Frame`` rows (the first cells of the Type, Name
+    and ID rows are empty), or with bare data rows (a whole frame number, then more numbers
+    than a canonical row can hold); canonical files start with column names. Routing the
+    header-less exports, and the legacy OptiTrack CSV, to the Motive reader gets them its
+    message about what to export instead."""
+    cells = [cell.strip().strip('"').lower() for cell in line.split(",")]
+    label = next((cell for cell in cells if cell), "")
+    if label in _MOTIVE_FIRST_CELLS and (cells[0] or label in _MOTIVE_ROW_LABELS):
+        return True
+    if cells[0] in _LEGACY_OPTITRACK_FIRST_CELLS:
+        return True
+    return cells[0].isdigit() and len(cells) > _CANONICAL_MAX_COLUMNS
+
+
+def _looks_like_rtde(line: str) -> bool:
+    """RTDE recordings name their columns after the recipe, time first: ``timestamp`` then
+    ``actual_q_0``, ``actual_TCP_pose_0``..., separated by spaces (UR's ``record.py``) or
+    commas (ur_rtde)."""
+    names = line.replace(",", " ").split()
+    return (
+        len(names) > 1
+        and names[0] == "timestamp"
+        and any(n.startswith(_RTDE_NAME_PREFIXES) for n in names[1:])
+    )
 
 
 def _jsonable(value) -> bool:

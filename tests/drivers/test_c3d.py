@@ -1,6 +1,8 @@
 """C3D marker files: known trajectories in and out, long takes, and every kind of bad file --
 including files that crash or hang ezc3d, which must not take the process down."""
 
+import struct
+
 import numpy as np
 import pytest
 
@@ -169,3 +171,32 @@ def test_to_recording_needs_two_valid_samples(tmp_path):
     trace = read_c3d(write_c3d(tmp_path / "r.c3d", ["tip"], pos[:, :1], 100.0, lost=lost))
     with pytest.raises(InputFileError, match="seen in 1 of 5 frames"):
         trace.to_recording()
+
+
+def _header_frames(content: bytes, first: int, last: int) -> bytes:
+    # Words 4 and 5 of the 512-byte header (bytes 6-9, little-endian for Intel files): the
+    # first and last frame numbers.
+    return content[:6] + struct.pack("<2H", first, last) + content[10:]
+
+
+def test_a_header_frame_range_that_disagrees_with_point_frames(tmp_path):
+    # NDI's Optotrak software writes the take's range (1-1149) in the header of a 29-frame file
+    # whose POINT:FRAMES is 29 and whose data section holds 29 frames.
+    t, pos = markers(29, 100.0)
+    content = write_c3d(tmp_path / "ndi.c3d", ["tip"], pos[:, :1], 100.0).read_bytes()
+    assert struct.unpack("<2H", content[6:10]) == (1, 29)
+    ndi = _header_frames(content, 1, 1149)
+    trace = read_c3d(ndi, name="ndi.c3d")
+    assert len(trace) == 29 and trace.batch.valid.all()
+    np.testing.assert_allclose(trace.batch.position_m, pos[:, 0], atol=ATOL_M)
+    np.testing.assert_allclose(trace.batch.t_s, t, atol=1e-12)
+    # Real truncation stays detected: 20 of the 29 frames (16 bytes each) left.
+    data_start = (struct.unpack("<H", content[16:18])[0] - 1) * 512
+    with pytest.raises(
+        InputFileError,
+        match=r"ndi.c3d is truncated: it declares 29 frames \(POINT:FRAMES; its header says "
+        r"1149\) but holds 20",
+    ):
+        read_c3d(ndi[: data_start + 20 * 16], name="ndi.c3d")
+    with pytest.raises(InputFileError, match="truncated: it declares 29 frames but holds 20"):
+        read_c3d(content[: data_start + 20 * 16], name="ndi.c3d")

@@ -1,5 +1,7 @@
 """Motive CSV exports: known trajectories in and out, and every kind of bad file."""
 
+import re
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -218,8 +220,12 @@ BODY = 7  # index of the first data row among the lines of a written file
         (lambda s: _drop_column(s, 8), "no Position Z column for rigid body 'Pen'"),
         (lambda s: _drop_column(s, 5), "no 'Rotation W' column .*rotation type is Quaternion"),
         (
-            lambda s: _edit_line(s, 3, lambda c: "Bone" if c == "Rigid Body" else c),
+            lambda s: _edit_line(s, 3, lambda c: "" if c == "Rigid Body" else c),
             r"no rigid body and 4 markers \(Pen:Marker1, Pen:Marker2",
+        ),
+        (
+            lambda s: _edit_line(s, 3, lambda c: "Bone" if c == "Rigid Body" else c),
+            r"holds a skeleton and no rigid body.*bones 'Pen'; markers 'Pen:Marker1', 'Pen:Mar",
         ),
         (lambda s: _edit_line(s, 4, lambda c: "Species" if c == "Name" else c), "rows Name"),
         (
@@ -298,3 +304,270 @@ def test_to_recording_needs_two_valid_samples(tmp_path):
     trace = read_motive_csv(write_motive_csv(tmp_path / "r.csv", t, p, q, lost=lost))
     with pytest.raises(InputFileError, match="tracked in 1 of 5 frames"):
         trace.to_recording()
+
+
+# --- real exports that were refused or misread (issue "Robustness", point 7) -----------------
+
+
+@pytest.mark.parametrize("version", ["1.21", "1.22"])
+@pytest.mark.parametrize("units, rotation", [("m", "quaternion"), ("mm", "XYZ"), ("cm", "ZYX")])
+def test_motive_1x_exports_without_row_labels_are_read(tmp_path, pen, version, units, rotation):
+    t, p, q = pen
+    error = np.linspace(1e-4, 3e-4, len(t))
+    path = write_motive_csv(
+        tmp_path / "take.csv",
+        t,
+        p,
+        q,
+        units=units,
+        rotation=rotation,
+        format_version=version,
+        marker_error_m=error,
+    )
+    lines = _lines(path.read_bytes().decode())
+    # The layout of Motive 1.x: no Type/Name/ID labels, "Time", the 1.x quality columns.
+    assert lines[0].startswith(f"Format Version,{version},")
+    assert lines[2].startswith(",,Rigid Body,Rigid Body,") and lines[3].startswith(",,Pen,Pen,")
+    assert lines[4].startswith(",,1,1,")
+    assert "Error Per Marker" in lines[5] and "Marker Quality" in lines[5]
+    assert lines[6].startswith("Frame,Time,X,Y,Z,")
+    trace = read_motive_csv(path)
+    np.testing.assert_allclose(trace.batch.t_s, t, atol=5e-7)
+    np.testing.assert_allclose(trace.batch.position_m, p, atol=POSITION_ATOL[units])
+    assert same_rotation(trace.batch.orientation_xyzw, q) < 1e-5
+    assert trace.rigid_body == "Pen" and trace.available_markers[0] == "Pen:Marker1"
+    assert trace.rotation_type == ("Quaternion" if rotation == "quaternion" else rotation)
+    assert trace.length_units == {"mm": "Millimeters", "cm": "Centimeters", "m": "Meters"}[units]
+    np.testing.assert_allclose(trace.mean_marker_error_m, error, atol=POSITION_ATOL[units])
+    marker = read_motive_csv(path, marker="Pen:Marker2")
+    expected = p + Rotation.from_quat(q).apply(PEN_MARKERS_M[1])
+    np.testing.assert_allclose(marker.batch.position_m, expected, atol=1e-5)
+
+
+def test_a_motive_1_21_export_as_written():
+    # Byte for byte the shape of a Motive 1.9 export with quality statistics: no row labels,
+    # "Time", "Error Per Marker" after the body and "Marker Quality" after its marker.
+    content = (
+        b"Format Version,1.21,Take Name,Take 2016-03-02 02.12.36 PM,Capture Frame Rate,"
+        b"120.000000,Export Frame Rate,120.000000,Capture Start Time,2016-03-02 02.12.36 PM,"
+        b"Total Frames in Take,3,Total Exported Frames,3,Rotation Type,Quaternion,"
+        b"Length Units,Meters,Coordinate Space,Global\r\n\r\n"
+        b",,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,Rigid Body,"
+        b"Rigid Body,Rigid Body Marker,Rigid Body Marker,Rigid Body Marker,Rigid Body Marker\r\n"
+        b",,Pen,Pen,Pen,Pen,Pen,Pen,Pen,Pen,Pen:Marker1,Pen:Marker1,Pen:Marker1,Pen:Marker1\r\n"
+        b",,1,1,1,1,1,1,1,1,1,1,1,1\r\n"
+        b",,Rotation,Rotation,Rotation,Rotation,Position,Position,Position,Error Per Marker,"
+        b"Position,Position,Position,Marker Quality\r\n"
+        b"Frame,Time,X,Y,Z,W,X,Y,Z,,X,Y,Z,\r\n"
+        b"0,0.000000,0.000000,0.000000,0.000000,1.000000,0.412000,0.087000,-0.153000,0.000210,"
+        b"0.412000,0.087000,-0.033000,1.000000\r\n"
+        b"1,0.008333,,,,,,,,,,,,\r\n"
+        b"2,0.016667,0.000000,0.707107,0.000000,0.707107,0.416000,0.087500,-0.151000,0.000190,"
+        b"0.536000,0.087500,-0.151000,0.990000\r\n"
+    )
+    trace = read_motive_csv(content, name="take.csv")
+    np.testing.assert_allclose(trace.batch.t_s, [0.0, 0.008333, 0.016667])
+    np.testing.assert_array_equal(trace.batch.valid, [True, False, True])
+    np.testing.assert_allclose(
+        trace.batch.position_m[[0, 2]], [[0.412, 0.087, -0.153], [0.416, 0.0875, -0.151]]
+    )
+    np.testing.assert_allclose(
+        trace.batch.orientation_xyzw[2], [0, np.sqrt(0.5), 0, np.sqrt(0.5)], atol=1e-6
+    )
+    np.testing.assert_allclose(trace.mean_marker_error_m[[0, 2]], [0.00021, 0.00019])
+    assert trace.rate_hz == 120.0 and trace.length_units == "Meters"
+    # A lost frame's empty time column would be named as the file names it.
+    with pytest.raises(InputFileError, match="line 9 has no time; every row needs its Time$"):
+        read_motive_csv(content.replace(b"1,0.008333,", b"1,,"), name="take.csv")
+
+
+def _spreadsheet_resave(text, drop=()):
+    """What a spreadsheet writes back: numbers as it shows them (120 for 120.000000), every row
+    padded with commas to the widest, blank rows as commas only (two at the end)."""
+    for key in drop:
+        text = re.sub(rf",{key},[^,\r\n]*", "", text)
+    rows = [
+        [
+            re.sub(r"^(-?\d+)\.(\d*?)0+$", lambda m: m[1] + ("." + m[2] if m[2] else ""), c)
+            for c in line.split(",")
+        ]
+        for line in _lines(text.rstrip("\r\n")) + ["", ""]
+    ]
+    width = max(len(row) for row in rows)
+    return "\r\n".join(",".join(row + [""] * (width - len(row))) for row in rows) + "\r\n"
+
+
+def test_a_spreadsheet_resave_is_read(tmp_path, pen):
+    t, p, q = pen
+    text = write_motive_csv(tmp_path / "s.csv", t, p, q).read_bytes().decode()
+    resaved = _spreadsheet_resave(text)
+    lines = _lines(resaved)
+    assert ",Export Frame Rate,240," in lines[0] and set(lines[1]) == {","}
+    assert lines[-2] and set(lines[-2]) == {","} and lines[7].startswith("0,0,")
+    trace = read_motive_csv(resaved.encode(), name="s.csv")
+    np.testing.assert_allclose(trace.batch.position_m, p, atol=1e-9)
+    assert same_rotation(trace.batch.orientation_xyzw, q) < 1e-5 and trace.rate_hz == 240.0
+    assert len(trace) == len(t)
+
+
+def test_a_spreadsheet_resave_without_units_or_rotation_type_says_what_is_missing(tmp_path, pen):
+    t, p, q = pen
+    text = write_motive_csv(tmp_path / "s.csv", t, p, q).read_bytes().decode()
+    resaved = _spreadsheet_resave(text, drop=("Rotation Type", "Length Units")).encode()
+    with pytest.raises(InputFileError) as error:
+        read_motive_csv(resaved, name="s.csv")
+    message = str(error.value)
+    assert "no 'Length Units' in its first row" in message
+    assert "--units mm (or m) on the command line, units='mm' (or 'm') in an upload" in message
+    assert "'Rotation Type' is missing too" in message and "quaternions" in message
+    # Given the unit, the quaternions are read as such: their W column says what they are.
+    trace = read_motive_csv(resaved, name="s.csv", units="mm")
+    np.testing.assert_allclose(trace.batch.position_m, p, atol=1e-9)
+    assert (
+        trace.rotation_type == "Quaternion"
+        and same_rotation(trace.batch.orientation_xyzw, q) < 1e-5
+    )
+    # Euler angles of an unknown order cannot be read, and no option gives the order.
+    euler = write_motive_csv(tmp_path / "e.csv", t, p, q, rotation="ZXY").read_bytes().decode()
+    resaved = _spreadsheet_resave(euler, drop=("Rotation Type",)).encode()
+    with pytest.raises(
+        InputFileError,
+        match=r"no 'Rotation Type' in its first row\), and the rotation columns of 'Pen' "
+        r"\(X, Y, Z, no W\) are Euler angles of an unknown order; no option supplies it",
+    ):
+        read_motive_csv(resaved, name="e.csv")
+
+
+NO_ASSET_HEADER = (
+    b"Format Version,1.23,Take Name,empty,Take Notes,,Capture Frame Rate,120.000000,"
+    b"Export Frame Rate,120.000000,Capture Start Time,2024-05-14 10.21.07.512 AM,"
+    b"Capture Start Frame,0,Total Frames in Take,3,Total Exported Frames,3,"
+    b"Rotation Type,Quaternion,Length Units,Millimeters,Coordinate Space,Global\r\n\r\n"
+)
+
+
+@pytest.mark.parametrize(
+    "rows", [b",Type\r\n,Name\r\n,ID\r\n,\r\n", b""], ids=["empty-rows", "no-rows"]
+)
+def test_an_export_without_assets_says_so(rows):
+    content = NO_ASSET_HEADER + rows + b"Frame,Time (Seconds)\r\n0,0.000000\r\n1,0.008333\r\n"
+    with pytest.raises(InputFileError) as error:
+        read_motive_csv(content, name="take.csv")
+    message = str(error.value)
+    assert "holds no rigid body or marker: its only columns are Frame and Time" in message
+    assert "the take exported no assets" in message and "'Rigid Bodies'" in message
+    assert "Header information" not in message
+
+
+def _skeleton_export(n_bones=3, n=60):
+    """A Motive 3 export of a skeleton only: Bone and Bone Marker columns, a Parent row; each
+    bone's position is a known helix shifted by its index."""
+    t, p, q = helix(n, 120.0)
+    bones = ["Skel:Hip", "Skel:Ab", "Skel:Chest"] + [f"Skel:Bone{k}" for k in range(3, n_bones)]
+    bones = bones[:n_bones]
+    markers = ["Skel:WaistLFront", "Skel:WaistRFront", "Skel:BackTop"]
+    types, names, parents, kinds, axes, columns = [], [], [], [], [], []
+    for b, bone in enumerate(bones):
+        for kind, axis, values in [("Rotation", a, q[:, i] * 1.0) for i, a in enumerate("XYZW")] + [
+            ("Position", a, (p[:, i] + 0.1 * b) * 1e3) for i, a in enumerate("XYZ")
+        ]:
+            types.append("Bone"), names.append(bone), parents.append("Skel:Hip" if b else "")
+            kinds.append(kind), axes.append(axis), columns.append(values)
+    for k, marker in enumerate(markers):
+        for i, axis in enumerate("XYZ"):
+            types.append("Bone Marker"), names.append(marker), parents.append("Skel:Hip")
+            kinds.append("Position"), axes.append(axis), columns.append((p[:, i] - 0.01 * k) * 1e3)
+    data = np.column_stack(columns)
+    lines = [
+        "Format Version,1.24,Take Name,walk,Take Notes,,Capture Frame Rate,120.000000,Export "
+        "Frame Rate,120.000000,Capture Start Time,2024-05-14 10.21.07.512 AM,Capture Start "
+        f"Frame,0,Total Frames in Take,{n},Total Exported Frames,{n},Rotation Type,Quaternion,"
+        "Length Units,Millimeters,Coordinate Space,Global",
+        "",
+        ",Type," + ",".join(types),
+        ",Name," + ",".join(names),
+        ",ID," + ",".join(["1"] * len(types)),
+        ",Parent," + ",".join(parents),
+        ",," + ",".join(kinds),
+        "Frame,Time (Seconds)," + ",".join(axes),
+    ]
+    lines += [f"{i},{t[i]:.6f}," + ",".join(f"{v:.6f}" for v in data[i]) for i in range(n)]
+    return ("\r\n".join(lines) + "\r\n").encode(), t, p, q
+
+
+def test_a_skeleton_only_export_lists_bones_and_markers_and_a_bone_can_be_read():
+    content, t, p, q = _skeleton_export()
+    with pytest.raises(InputFileError) as error:
+        read_motive_csv(content, name="walk.csv")
+    message = str(error.value)
+    assert "walk.csv holds a skeleton (Skel) and no rigid body" in message
+    assert "(rigid_body=... or --rigid-body)" in message and "(marker=... or --marker)" in message
+    assert "bones 'Skel:Hip', 'Skel:Ab', 'Skel:Chest'" in message
+    assert "markers 'Skel:WaistLFront', 'Skel:WaistRFront', 'Skel:BackTop'" in message
+    bone = read_motive_csv(content, rigid_body="Skel:Ab")
+    np.testing.assert_allclose(bone.batch.position_m, p + 0.1, atol=1e-9)
+    assert same_rotation(bone.batch.orientation_xyzw, q) < 1e-5 and bone.rigid_body == "Skel:Ab"
+    marker = read_motive_csv(content, marker="Skel:BackTop")
+    np.testing.assert_allclose(marker.batch.position_m, p - 0.02, atol=1e-9)
+    with pytest.raises(InputFileError, match="no rigid body named 'Pen'; it has none; bones 'Skel"):
+        read_motive_csv(content, rigid_body="Pen")
+    # A full skeleton has dozens of bones: the message names a few and counts the rest.
+    many, *_ = _skeleton_export(n_bones=21, n=5)
+    with pytest.raises(InputFileError, match=r"'Skel:Bone7' … and 13 more; markers") as error:
+        read_motive_csv(many, name="walk.csv")
+    assert len(str(error.value)) < 600
+
+
+LEGACY_1_1 = (
+    b"comment,Tracking Tools 2.3.2 Exported Data\r\n"
+    b"info,version,1.1\r\n"
+    b"info,framecount,2\r\n"
+    b"info,rigidbodycount,1\r\n"
+    b"rigidbody,Pen,1,3,0.000000,0.000000,0.120000,0.030000,0.000000,0.100000,-0.020000,"
+    b"0.025000,0.090000\r\n"
+    b"righthanded\r\n"
+    b"frame,0,0.000000,1,1,0.412000,0.087000,-0.153000,0.000000,0.000000,0.000000,1.000000,"
+    b"0.000000,0.000000,0.000000,1,0.412000,0.087000,-0.033000,1,Pen-1\r\n"
+    b"frame,1,0.008333,1,1,0.413000,0.087000,-0.153000,0.000000,0.000000,0.000000,1.000000,"
+    b"0.000000,0.000000,0.000000,0\r\n"
+)
+TRACKABLE_EXPORT = (
+    b"comment,Trackable Export Data\r\n"
+    b"info,framecount,2\r\n"
+    b"info,trackablecount,1\r\n"
+    b"trackable,Pen,1,3,0.000000,0.000000,0.120000,0.030000,0.000000,0.100000,-0.020000,"
+    b"0.025000,0.090000\r\n"
+    b"frame,0,0.000000,1,1,0.412000,0.087000,-0.153000,0.000000,0.000000,0.000000,1.000000,"
+    b"0.000000,0.000000,0.000000,0\r\n"
+)
+
+
+@pytest.mark.parametrize(
+    "content, what",
+    [(LEGACY_1_1, "format 1.1"), (TRACKABLE_EXPORT, "'comment', 'info' and 'frame' rows")],
+    ids=["format-1.1", "trackable-export"],
+)
+def test_legacy_optitrack_csv_is_named_with_what_to_export_instead(content, what):
+    with pytest.raises(InputFileError) as error:
+        read_motive_csv(content, name="take.csv")
+    message = str(error.value)
+    assert f"take.csv is a legacy OptiTrack CSV (Tracking Tools or early Motive, {what})" in message
+    assert "export the take from Motive as CSV with 'Header information' checked" in message
+    assert "canonical t,x,y,z,qx,qy,qz,qw CSV" in message
+
+
+def test_several_rigid_bodies_are_listed_in_part(tmp_path):
+    t, p, q = helix(5, 100.0)
+    bodies = [f"Body {k}" for k in range(12)]
+    path = write_motive_csv(
+        tmp_path / "m.csv",
+        t,
+        np.stack([p] * 12),
+        np.stack([q] * 12),
+        rigid_bodies=bodies,
+        markers_per_body=0,
+    )
+    with pytest.raises(
+        InputFileError, match=r"several rigid bodies \(Body 0, .*Body 7 … and 4 more\); say"
+    ):
+        read_motive_csv(path)

@@ -204,3 +204,69 @@ def test_read_trace_reads_a_c3d_marker(tmp_path):
     np.testing.assert_allclose(trace.recording.points_m, position, atol=1e-6)
     with pytest.raises(InputFileError, match="tip"):
         read_trace(tmp_path / "take.c3d")  # two markers: which one?
+
+
+# --- exports that were refused or misreported, and a pen that did not move --------------------
+
+
+def _still_pen(n=2400, extent_m=4e-5, seed=3):
+    """A rigid body that never moved: samples jittering in a box whose diagonal is extent_m."""
+    rng = np.random.default_rng(seed)
+    jitter = rng.uniform(-1.0, 1.0, (n, 3))
+    jitter -= jitter.min(axis=0)
+    jitter *= extent_m / np.linalg.norm(np.ptp(jitter, axis=0))
+    quat = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+    return np.arange(n) / 240.0, np.array([0.41, 0.12, 0.05]) + jitter, quat
+
+
+def test_a_still_pen_is_refused_from_a_file_and_from_a_capture(tmp_path):
+    from drivers.tracking.readers import MIN_TRACE_EXTENT_M, RawTrace, read_trace, trace_from_raw
+    from tests.drivers.tracking_fixtures import write_motive_csv
+
+    t, position, quat = _still_pen()
+    path = write_motive_csv(tmp_path / "still.csv", t, position, quat)
+    message = r"the pen did not move \(extent 0\.04 mm\); record a trace .* at least 3 mm"
+    with pytest.raises(InputFileError, match=message):
+        read_trace(path)
+    from drivers.tracking.base import SampleBatch
+
+    batch = SampleBatch(t, position, quat, np.ones(len(t), dtype=bool))
+    for piece in (None, "all"):
+        with pytest.raises(InputFileError, match=message):
+            trace_from_raw(RawTrace(batch, "capture"), piece=piece)
+    # Just above the threshold it is a (short) trace.
+    stroke = SampleBatch(
+        t,
+        np.outer(np.linspace(0, 1.2 * MIN_TRACE_EXTENT_M, len(t)), [1.0, 0, 0]),
+        quat,
+        batch.valid,
+    )
+    assert len(trace_from_raw(RawTrace(stroke, "capture")).recording) == len(t)
+    assert 2e-3 < MIN_TRACE_EXTENT_M < 1e-2
+
+
+def test_exports_of_other_layouts_reach_their_reader_through_the_suffix(tmp_path):
+    from drivers.tracking.readers import read_trace
+    from tests.drivers.tracking_fixtures import helix, write_motive_csv
+
+    t, position, quat = helix(240)
+    old = write_motive_csv(tmp_path / "v121.csv", t, position, quat, format_version="1.21")
+    trace = read_trace(old)
+    assert trace.format == "motive" and trace.raw.meta["rigid_body"] == "Pen"
+    np.testing.assert_allclose(trace.recording.points_m, position, atol=1e-9)
+    legacy = b"comment,Tracking Tools 2.3.2 Exported Data\r\ninfo,version,1.1\r\n"
+    legacy += b"frame,0,0.000000,0,0\r\nframe,1,0.008333,0,0\r\n"
+    with pytest.raises(InputFileError, match=r"legacy OptiTrack CSV .*format 1\.1"):
+        read_trace(legacy, name="old.csv")
+
+
+def test_a_long_header_is_quoted_in_part():
+    from drivers.tracking.readers import read_trace
+
+    names = [f"channel_{k}" for k in range(300)]
+    content = (",".join(names) + "\n" + ",".join(["0"] * 300) + "\n").encode()
+    with pytest.raises(InputFileError) as error:
+        read_trace(content, name="log.csv")
+    message = str(error.value)
+    assert "in its header ('channel_0', 'channel_1'" in message
+    assert "'channel_7' … and 292 more)" in message and len(message) < 300

@@ -210,7 +210,7 @@ def test_a_broken_built_in_entry_is_a_bug_not_a_missing_package():
 def test_the_four_registries_and_their_helpers():
     assert BACKENDS.names() == ["sim", "ur_rtde"]
     assert SOURCES.names() == ["natnet", "replay"]
-    assert TRACE_READERS.names() == ["c3d", "csv", "motive"]
+    assert TRACE_READERS.names() == ["c3d", "csv", "motive", "rtde"]
     assert "ply" in SCAN_READERS and "bag" in SCAN_READERS and "las" not in SCAN_READERS
     assert sorted(SCAN_READERS) == SCAN_READERS.names()  # what the CLI's choices use
     assert source_class("replay") is ReplaySource and source_class("natnet") is NatNetSource

@@ -6,7 +6,9 @@ of Motive 2.x and 3.x): the metadata row, a blank row, the Type / Name / ID rows
 Rotation / Position / Mean Marker Error / Marker Quality, the ``Frame,Time (Seconds),X,Y,Z,...``
 row, then one row per frame with empty cells where a body or marker was lost. Each rigid body is
 followed by its rigid body markers (the solved marker positions) and the file ends with the
-physical markers, named ``<body>:Marker<k>`` as Motive names them.
+physical markers, named ``<body>:Marker<k>`` as Motive names them. With ``format_version`` 1.21
+or 1.22 it writes Motive 1.x's layout instead: the Type / Name / ID rows without their labels
+(``,,Rigid Body,...``), ``Frame,Time,...``, and ``Error Per Marker`` for the rigid body's error.
 
 :func:`write_c3d` writes a C3D file with ezc3d; a take longer than 65535 frames also declares its
 length in ``POINT:LONG_FRAMES`` and ``TRIAL:ACTUAL_START_FIELD`` / ``ACTUAL_END_FIELD``, as Vicon
@@ -71,6 +73,7 @@ def write_motive_csv(
     quality: bool = True,
     markers_per_body: int = 4,
     take_name: str = "Take 2024-05-14 10.21.07 AM",
+    format_version: str = "1.23",
 ) -> Path:
     """Write a Motive CSV export.
 
@@ -101,6 +104,8 @@ def write_motive_csv(
     markers_per_body : int
         Rigid body markers (and physical markers) per body, at most 4.
     take_name : str
+    format_version : {"1.23", "1.22", "1.21"}
+        1.23: Motive 2.x and 3.x; 1.21 and 1.22: Motive 1.x.
 
     Returns
     -------
@@ -126,6 +131,8 @@ def write_motive_csv(
     if euler is not None and euler not in EULER_ORDERS:
         raise ValueError(f"unknown rotation {rotation!r}")
     offsets = PEN_MARKERS_M[:markers_per_body]
+    motive_1 = format_version in ("1.21", "1.22")
+    error_name = "Error Per Marker" if motive_1 else "Mean Marker Error"
 
     types, labels, ids, kinds, axes, columns = [], [], [], [], [], []
 
@@ -152,7 +159,7 @@ def write_motive_csv(
         for i, axis in enumerate("XYZ"):
             add("Rigid Body", name, b + 1, "Position", axis, pos[b][:, i] / scale, gone)
         if quality:
-            add("Rigid Body", name, b + 1, "Mean Marker Error", "", error[b] / scale, gone)
+            add("Rigid Body", name, b + 1, error_name, "", error[b] / scale, gone)
         for k, offset in enumerate(offsets):
             marker = pos[b] + rot.apply(offset)
             label, ident = f"{name}:Marker{k + 1}", f"{b + 1}:{k + 1}"
@@ -172,9 +179,9 @@ def write_motive_csv(
         rate = rate_hz if rate_hz is not None else 1.0 / float(np.median(np.diff(t)))
         rotation_name = "Quaternion" if euler is None else euler
         meta = [
-            ("Format Version", "1.23"),
+            ("Format Version", format_version),
             ("Take Name", take_name),
-            ("Take Notes", ""),
+            *([] if motive_1 else [("Take Notes", "")]),
             ("Capture Frame Rate", f"{rate:.6f}"),
             ("Export Frame Rate", f"{rate:.6f}"),
             ("Capture Start Time", "2024-05-14 10.21.07.512 AM"),
@@ -187,11 +194,13 @@ def write_motive_csv(
         ]
         lines.append(",".join(f"{k},{v}" for k, v in meta))
         lines.append("")
-        lines.append(",Type," + ",".join(types))
-        lines.append(",Name," + ",".join(labels))
-        lines.append(",ID," + ",".join(str(i) for i in ids))
+        # Motive 1.x leaves the row labels out and calls the time column "Time".
+        label = {row: ",," if motive_1 else f",{row}," for row in ("Type", "Name", "ID")}
+        lines.append(label["Type"] + ",".join(types))
+        lines.append(label["Name"] + ",".join(labels))
+        lines.append(label["ID"] + ",".join(str(i) for i in ids))
         lines.append(",," + ",".join(kinds))
-        lines.append("Frame,Time (Seconds)," + ",".join(axes))
+        lines.append(("Frame,Time," if motive_1 else "Frame,Time (Seconds),") + ",".join(axes))
     # Motive writes six decimals and leaves the cells of lost bodies and markers empty.
     row_format = "%d,%.6f," + ",".join(["%.6f"] * data.shape[1])
     for i in range(n):

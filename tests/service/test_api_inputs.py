@@ -403,6 +403,28 @@ def test_motive_and_c3d_uploads_with_their_options(client, sid, tmp_path):
     assert response.status_code == 201 and response.json()["summary"]["format"] == "c3d"
 
 
+def test_a_still_pen_and_an_rtde_recording_uploaded(client, sid, tmp_path):
+    from tests.drivers.test_readers import _still_pen
+    from tests.drivers.test_rtde_csv import rtde_recording
+    from tests.drivers.tracking_fixtures import helix, write_motive_csv
+
+    before = client.get(f"/sessions/{sid}").json()
+    t, position, quat = _still_pen()
+    content = write_motive_csv(tmp_path / "still.csv", t, position, quat).read_bytes()
+    response = client.put(f"/sessions/{sid}/recording", files={"file": ("still.csv", content)})
+    assert response.status_code == 422 and response.json()["code"] == "invalid_file"
+    assert "the pen did not move (extent 0.04 mm)" in response.json()["message"]
+    assert client.get(f"/sessions/{sid}").json() == before
+    t, position, quat = helix(500, 125.0)
+    rotvec = Rotation.from_quat(quat).as_rotvec()
+    content = rtde_recording(t, position, rotvec, ",")
+    response = client.put(f"/sessions/{sid}/recording", files={"file": ("arm.csv", content)})
+    assert response.status_code == 201, response.text
+    summary = response.json()["summary"]
+    assert summary["format"] == "rtde" and summary["has_orientations"]
+    assert summary["frame"] == "robot base"
+
+
 def _wait_capture(client, sid, cid, timeout_s=60.0):
     import time
 
