@@ -145,6 +145,8 @@ def register_icp(
             "traced feature and that both are in the same units, or give a better initial "
             "calibration"
         )
+    init = check_rigid(init_T_target_source, name="initial T_scan_tracker")
+    moved_m = np.linalg.norm(apply_transform(T, source_m) - apply_transform(init, source_m), axis=1)
     return Registration(
         T_scan_tracker=T,
         rmse_m=final.rmse_m,
@@ -152,6 +154,8 @@ def register_icp(
         n_pairs=final.n_inliers,
         target=target_label,
         constrained_dof=final.constrained_dof,
+        path_moved_mean_m=float(moved_m.mean()),
+        path_moved_max_m=float(moved_m.max()),
     )
 
 

@@ -526,6 +526,11 @@ class Registration:
     constrained_dof : int
         How many of the six rigid degrees of freedom the scan's feature fixed (6 for a corner,
         5 for a circle, 4 for a straight edge, 3 for a plane); the others kept the initial guess.
+    path_moved_mean_m, path_moved_max_m : float
+        How far the path's points moved from where the initial guess put them (mean, max; NaN
+        if unknown). What a user means by "registration moved the path": the transform's own
+        translation also holds the scanner's placement, metres away for a scanner whose origin
+        is far from the tracker's.
     """
 
     T_scan_tracker: FloatArray
@@ -534,6 +539,8 @@ class Registration:
     n_pairs: int
     target: str
     constrained_dof: int = 6
+    path_moved_mean_m: float = float("nan")
+    path_moved_max_m: float = float("nan")
 
     def __post_init__(self) -> None:
         T = np.array(self.T_scan_tracker, dtype=np.float64)

@@ -294,6 +294,10 @@ class RegistrationSummary(BaseModel):
     n_pairs: int
     target: Literal["edge", "surface"]
     constrained_dof: int
+    path_moved_mean_m: float | None = Field(
+        None, description="how far the path's points moved from the initial placement (mean)"
+    )
+    path_moved_max_m: float | None = Field(None, description="the same, at most")
 
 
 class ReconstructionSummary(_Summary):

@@ -216,6 +216,8 @@ class ReconstructOutcome:
                 "n_pairs": reg.n_pairs,
                 "target": str(reg.target),
                 "constrained_dof": reg.constrained_dof,
+                "path_moved_mean_m": _jsonable_or_none(reg.path_moved_mean_m),
+                "path_moved_max_m": _jsonable_or_none(reg.path_moved_max_m),
             },
             "notes": list(recon.notes),
         }
@@ -236,8 +238,9 @@ class ReconstructOutcome:
         reg = recon.registration
         if reg is not None:
             lines.append(
-                f"registered to the scan's {reg.target}: moved "
-                f"{np.linalg.norm(reg.translation_m) * mm:.2f} mm and {reg.rotation_deg:.2f} deg, "
+                f"registered to the scan's {reg.target}: the path moved "
+                f"{reg.path_moved_mean_m * mm:.2f} mm on average, "
+                f"{reg.path_moved_max_m * mm:.2f} mm at most from the initial placement, "
                 f"residual {reg.rmse_m * mm:.2f} mm RMS, "
                 f"{reg.fitness * 100:.0f} % of the path paired, {reg.constrained_dof}/6 motions "
                 "fixed"

@@ -152,3 +152,31 @@ def test_no_overlap_is_an_error():
             target_directions=directions,
             target_label="edge",
         )
+
+
+def test_registration_reports_how_far_the_path_moved_not_where_the_scanner_stands():
+    """A scanner 4 m from the tracker's origin: the transform's translation is metres, the
+    path itself moved by about the misalignment (issue: "moved 326.05 mm" for a 1.2 mm move)."""
+    from recon import scenes
+    from recon.reconstruct import reconstruct
+    from recon.transforms import apply_transform, translation_m
+    from recon.types import Scan
+
+    scene = scenes.cylinder_edge(0)
+    far = np.eye(4)
+    far[:3, :3] = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    far[:3, 3] = [4.0, -1.0, 0.5]
+    T_true = far @ scene.T_scan_tracker  # tracker -> scan, with the scanner far away
+    scan = Scan(points_m=apply_transform(far, scene.scan.points_m))
+    result = reconstruct(scene.recording, scan, T_scan_tracker_init=far)
+    reg = result.registration
+    assert np.linalg.norm(translation_m(reg.T_scan_tracker)) > 3.5
+    # How far the path moved from the initial placement: about the scene's misalignment.
+    expected = np.linalg.norm(
+        apply_transform(T_true, scene.recording.points_m)
+        - apply_transform(far, scene.recording.points_m),
+        axis=1,
+    )
+    print(f"path moved {reg.path_moved_mean_m * 1e3:.2f} mm (true {expected.mean() * 1e3:.2f})")
+    assert abs(reg.path_moved_mean_m - expected.mean()) < 1e-3
+    assert reg.path_moved_max_m < expected.max() + 1e-3
