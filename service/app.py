@@ -28,6 +28,7 @@ from service.api import (
     trajectories,
 )
 from service.api.deps import require_token
+from service.api.links import add_links
 from service.core import Services
 from service.demo import create_demo_session
 from service.jobs import JobManager
@@ -174,6 +175,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         captures.router,
     ):
         app.include_router(router, dependencies=protected, responses=documented)
+
+    def openapi() -> dict:
+        """FastAPI's spec with the links between operations (service/api/links.py)."""
+        if app.openapi_schema is None:
+            spec = FastAPI.openapi(app)  # caches it in app.openapi_schema
+            try:
+                add_links(spec)
+            except ValueError:
+                app.openapi_schema = None  # not served without its links
+                raise
+        return app.openapi_schema
+
+    app.openapi = openapi
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def ui() -> HTMLResponse:

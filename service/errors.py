@@ -107,6 +107,30 @@ def error_body(error: Exception) -> dict:
     return {"code": code, "message": str(error), "detail": detail}
 
 
+#: What FastAPI says of a body it could not read, whatever the reason.
+_FASTAPI_PARSE_ERROR = "There was an error parsing the body"
+
+
+def unparsable(error: StarletteHTTPException) -> str:
+    """Why the body of a request refused with the framework's 400 could not be read.
+
+    FastAPI answers 400 when a JSON body is not UTF-8, nests deeper than the parser recurses or
+    holds an integer beyond Python's digit limit, and Starlette when a multipart body is
+    malformed; a JSON syntax error is a 422 ``invalid_request``, and so are these.
+    """
+    cause = error.__cause__
+    if isinstance(cause, RecursionError):
+        return "the request is nested too deeply; send a flatter document"
+    if isinstance(cause, UnicodeError):
+        return "the request body is not valid UTF-8"
+    if isinstance(cause, ValueError):
+        # Not Python's advice on raising its limit.
+        return f"the request body is not valid JSON: {str(cause).split(';')[0]}"
+    if error.detail and error.detail != _FASTAPI_PARSE_ERROR:
+        return f"the request body could not be read: {error.detail}"
+    return "the request body could not be read"
+
+
 def install(app: FastAPI) -> None:
     """Register the handlers on ``app``."""
 
@@ -140,6 +164,11 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, error: StarletteHTTPException):
+        if error.status_code == 400:
+            # The framework's "error parsing the body": a malformed request like any other.
+            return respond(
+                422, {"code": "invalid_request", "message": unparsable(error), "detail": None}
+            )
         code = {404: "not_found", 405: "method_not_allowed"}.get(error.status_code, "http_error")
         return respond(
             error.status_code, {"code": code, "message": str(error.detail), "detail": None}

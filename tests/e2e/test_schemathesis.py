@@ -1,46 +1,186 @@
-"""Schemathesis fuzzes the running server from its OpenAPI spec: no request may cause a 5xx."""
+"""Schemathesis against the running server, from its OpenAPI spec.
+
+Two runs on one server; in both no request may cause a 5xx, and every status code and content
+type must be one the spec documents for the operation:
+
+- the stateless phases (examples, coverage, fuzzing), with a real session id set through a
+  config file, so the routes below /sessions/{session_id} are reached and not just 404ed;
+- the stateful phase, which follows the spec's links (service/api/links.py): ids from responses
+  (a session created, the session listed first, a job's result, an artifact listed) go into the
+  next requests. The first session is seeded with a recording, a scan, a reconstruction, a
+  trajectory and a dry run, so the chains reach real artifacts and finished jobs.
+"""
 
 from __future__ import annotations
 
+import collections
+import json
+import re
 import subprocess
 import sys
 from pathlib import Path
 
+from service.api.links import LINKS
 from tests.e2e.test_server_flow import TOKEN, Server
+from tests.service.conftest import T_BASE_TRACKER
 
-#: Time budget of the fuzzing run (the full suite should stay within minutes).
-BUDGET_S = 60
+#: Time budgets of the two runs (the whole test stays within about two minutes).
+STATELESS_BUDGET_S = 45
+STATEFUL_BUDGET_S = 60
+
+#: status_code_conformance and content_type_conformance hold for this API; the schema checks
+#: are left to the unit tests (response models are FastAPI's own).
+CHECKS = "not_a_server_error,status_code_conformance,content_type_conformance"
+
+#: Links the stateful run must follow at least (it followed 56 of the 108 in 60 s, on a machine
+#: busy with other work).
+MIN_LINKS_COVERED = 25
+
+#: The stateful run uses the spec's links only: schemathesis would otherwise infer hundreds
+#: more from field names (any `id` into any `{..._id}`), and the budget would go to those.
+STATEFUL_CONFIG = "[phases.stateful.inference]\nalgorithms = []\n"
+
+#: The stateful run starts real reconstructions and plans on the seeded session, and an upload
+#: is parsed by the same worker after every job queued before it: with a backlog it can take
+#: longer than schemathesis's default 10 s. Slow is not wrong here; 60 s still catches a hang.
+STATEFUL_REQUEST_TIMEOUT_S = 60
 
 
-def test_no_server_errors(tmp_path):
+def _schemathesis(
+    server: Server, config: Path, phases: str, budget_s: int, report: Path, *extra: str
+):
+    st = Path(sys.executable).parent / "schemathesis"
+    return subprocess.run(
+        [
+            str(st),
+            "--config-file",
+            str(config),
+            "run",
+            f"{server.url}/openapi.json",
+            "-H",
+            f"Authorization: Bearer {TOKEN}",
+            "--checks",
+            CHECKS,
+            "--phases",
+            phases,
+            "--max-time",
+            str(budget_s),
+            "--seed",
+            "1",
+            "--report",
+            "ndjson",
+            "--report-ndjson-path",
+            str(report),
+            *extra,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=budget_s + 180,
+    )
+
+
+def _seed(server: Server, scene_files) -> str:
+    """A session with one artifact of every kind and finished jobs."""
+    client = server.client
+    sid = client.post("/sessions", json={"name": "seed"}).json()["id"]
+    for route, name, content in (
+        ("recording", "trace.csv", scene_files["trace"]),
+        ("scan", "scan.ply", scene_files["scan"]),
+    ):
+        response = client.put(f"/sessions/{sid}/{route}", files={"file": (name, content)})
+        assert response.status_code == 201, response.text
+    client.put(f"/sessions/{sid}/calibration", json={"T_base_tracker": T_BASE_TRACKER})
+    job = server.wait(client.post(f"/sessions/{sid}/reconstructions", json={}).json())
+    assert job["state"] == "succeeded", job
+    job = server.wait(
+        client.post(
+            f"/sessions/{sid}/trajectories",
+            json={"reconstruction_id": job["result"]["reconstruction_id"], "speed_m_s": 0.05},
+        ).json()
+    )
+    assert job["state"] == "succeeded", job
+    trajectory = job["result"]["trajectory_id"]
+    job = server.wait(
+        client.post(f"/sessions/{sid}/executions", json={"trajectory_id": trajectory}).json()
+    )
+    assert job["state"] == "succeeded", job
+    return sid
+
+
+def _followed_links(report: Path) -> dict[str, collections.Counter]:
+    """Link -> the statuses of the requests the stateful run made by following it."""
+    followed: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
+    for line in report.read_text().splitlines():
+        event = json.loads(line)
+        recorder = (event.get("ScenarioFinished") or {}).get("recorder") or {}
+        for case_id, case in (recorder.get("cases") or {}).items():
+            transition = case.get("transition")
+            if not (transition and case.get("is_transition_applied")):
+                continue
+            response = (recorder.get("interactions", {}).get(case_id) or {}).get("response")
+            followed[transition["id"]][(response or {}).get("status_code")] += 1
+    return followed
+
+
+def _output(result) -> str:
+    return result.stdout[-6000:] + result.stderr[-2000:]
+
+
+def test_no_server_errors_and_documented_responses(tmp_path, scene_files):
     server = Server(tmp_path / "data")
     try:
-        session = server.client.post("/sessions", json={"name": "fuzz"}).json()["id"]
-        config = tmp_path / "schemathesis.toml"
+        # First, so it is the one `GET /sessions` lists first (its link's `0/id`).
+        _seed(server, scene_files)
+        fuzz = server.client.post("/sessions", json={"name": "fuzz"}).json()["id"]
+
+        config = tmp_path / "stateless.toml"
         # Real ids, so the routes below /sessions/{session_id} are reached and not just 404ed.
-        config.write_text(f'[parameters]\n"path.session_id" = "{session}"\n')
-        st = Path(sys.executable).parent / "schemathesis"
-        result = subprocess.run(
-            [
-                str(st),
-                "--config-file",
-                str(config),
-                "run",
-                f"{server.url}/openapi.json",
-                "-H",
-                f"Authorization: Bearer {TOKEN}",
-                "--checks",
-                "not_a_server_error",
-                "--max-time",
-                str(BUDGET_S),
-                "--seed",
-                "1",
-            ],
-            capture_output=True,
-            text=True,
-            timeout=BUDGET_S + 120,
+        config.write_text(f'[parameters]\n"path.session_id" = "{fuzz}"\n')
+        report = tmp_path / "stateless.ndjson"
+        result = _schemathesis(
+            server, config, "examples,coverage,fuzzing", STATELESS_BUDGET_S, report
         )
-        assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-2000:]
+        assert result.returncode == 0, _output(result)
         assert "passed" in result.stdout
+
+        # No fixed session id here: it would override the ids the links carry.
+        config = tmp_path / "stateful.toml"
+        config.write_text(STATEFUL_CONFIG)
+        report = tmp_path / "stateful.ndjson"
+        result = _schemathesis(
+            server,
+            config,
+            "stateful",
+            STATEFUL_BUDGET_S,
+            report,
+            "--request-timeout",
+            str(STATEFUL_REQUEST_TIMEOUT_S),
+        )
+        assert result.returncode == 0, _output(result)
+        links = re.search(
+            r"API Links:\s+(\d+) covered / (\d+) selected / (\d+) total", result.stdout
+        )
+        scenarios = re.search(r"Scenarios:\s+(\d+)", result.stdout)
+        assert links and scenarios, _output(result)
+        covered, selected, total = map(int, links.groups())
+        declared = sum(len(entries) for entries in LINKS.values())
+        # Every declared link was loaded (none refused as invalid) and none was inferred.
+        assert selected == total == declared, _output(result)
+        assert covered >= MIN_LINKS_COVERED, _output(result)
+        assert int(scenarios.group(1)) > 0
+
+        # The links carried real ids: the seeded artifacts were found by them, not only 404s.
+        followed = _followed_links(report)
+        found = {
+            link
+            for link, statuses in followed.items()
+            if any(status and 200 <= status < 300 for status in statuses)
+            and "{artifact_id}" in link.rsplit(" -> ", 1)[-1]
+        }
+        assert found, (dict(followed), _output(result))
+        # Shown with `pytest -s`: what the stateful run reached.
+        print(f"stateful: {scenarios.group(1)} scenarios, links {covered}/{declared} covered")
+        for link in sorted(followed):
+            print(f"  {dict(followed[link])} {link}")
     finally:
         server.stop()
