@@ -17,6 +17,9 @@ cp "$SRC"/three/examples/jsm/controls/OrbitControls.js "$DEST.tmp/three/addons/c
 cp "$SRC"/swagger-ui-dist/swagger-ui-bundle.js "$SRC"/swagger-ui-dist/swagger-ui.css \
    "$SRC"/swagger-ui-dist/favicon-32x32.png "$SRC"/swagger-ui-dist/LICENSE "$DEST.tmp/swagger-ui/"
 cp "$SRC"/redoc/bundles/redoc.standalone.js "$SRC"/redoc/LICENSE "$DEST.tmp/redoc/"
+# ReDoc's "powered by" badge loads its logo from a CDN: a blank image instead (offline docs).
+sed -i 's#https://cdn.redoc.ly/redoc/logo-mini.svg#data:image/gif;base64,R0lGODlhAQABAIAAAAAAAP///yH5BAEAAAAALAAAAAABAAEAAAIBRAA7#g' \
+    "$DEST.tmp/redoc/redoc.standalone.js"
 # What was copied, and from which versions (setup.sh compares it with package-lock.json).
 sha256sum package-lock.json 2>/dev/null | cut -d' ' -f1 > "$DEST.tmp/.lock-sha256" || true
 rm -rf "$DEST"

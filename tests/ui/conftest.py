@@ -25,6 +25,8 @@ from urllib.parse import urlsplit
 import httpx
 import pytest
 
+from tests.service.conftest import scene_files  # noqa: F401 - shared fixture
+
 TOKEN = "ui-token-abcdefghijklmnopqrstuv"
 SETUP = "run scripts/setup.sh (make setup)"
 #: Debian's chromium: headless, as root, WebGL through SwiftShader, nothing fetched by itself.
@@ -118,6 +120,10 @@ def server(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def browser():
+    from playwright.sync_api import expect
+
+    # Two shared cores: a page may take a while to render while a job runs beside it.
+    expect.set_options(timeout=15_000)
     executable = chromium_path()
     try:
         from playwright.sync_api import sync_playwright
@@ -153,6 +159,7 @@ class Guard:
         self.console_errors: list[str] = []
         self.page_errors: list[str] = []
         self.requests: list[str] = []
+        self.allowed: list[tuple[int, str]] = []
         context.route("**/*", self._route)
         page.on("console", self._console)
         page.on("pageerror", lambda error: self.page_errors.append(str(error)))
@@ -173,9 +180,20 @@ class Guard:
             self.external.append(url)
             route.abort()
 
+    def allow(self, status: int, url_part: str) -> None:
+        """An error answer the test provokes (Chrome logs each on the console)."""
+        self.allowed.append((status, url_part))
+
     def _console(self, message) -> None:
-        if message.type == "error":
-            self.console_errors.append(f"{message.text} ({message.location})")
+        if message.type != "error":
+            return
+        answered = re.match(r"Failed to load resource: .* status of (\d+)", message.text)
+        url = message.location.get("url", "")
+        if answered and any(
+            int(answered.group(1)) == status and part in url for status, part in self.allowed
+        ):
+            return
+        self.console_errors.append(f"{message.text} ({message.location})")
 
     def csp_violations(self) -> list[str]:
         try:

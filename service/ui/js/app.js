@@ -573,12 +573,9 @@ function wire() {
   $("#dryrun-form").addEventListener("submit", (event) => {
     event.preventDefault();
     const body = { trajectory_id: trajectory().id, backend: "sim", mode: mode() };
-    runJob("dryrun", event.currentTarget, async () => {
-      const job = await api(`/sessions/${state.session.id}/executions`, { method: "POST", json: body });
-      state.moving = { executionId: job.params.execution_id, jobId: job.id };
-      updateStop();
-      return job;
-    });
+    // A dry run moves no arm (and runs to its end): no Stop for it.
+    runJob("dryrun", event.currentTarget, () =>
+      api(`/sessions/${state.session.id}/executions`, { method: "POST", json: body }));
   });
 
   $("#run-form").addEventListener("submit", async (event) => {
