@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
 # One-time set-up of a fresh machine for teachpath; safe to re-run (it only does what is missing).
 #   1. Debian's libusb-1.0-0, which the Open3D wheel links against, installed with apt-get if absent;
-#   2. a virtual environment in .venv with the project installed editable, with its dev extra.
+#   2. a virtual environment in .venv with the project installed editable, with its dev extra;
+#   3. the pendant's browser libraries (three.js, Swagger UI, ReDoc; package-lock.json) with
+#      `npm ci --ignore-scripts`, copied into service/ui/vendor/ (scripts/vendor-ui.sh);
+#   4. Debian's chromium, which the pendant's browser tests (tests/ui, Playwright) drive.
 # The stamp file .venv/.installed records the pyproject.toml it was installed from, so a changed
 # dependency list triggers a re-install and an unchanged one costs nothing.
 set -euo pipefail
@@ -35,6 +38,24 @@ if ! have_libusb; then
     echo "setup: installing Debian package libusb-1.0-0 (needed by Open3D)"
     apt_install libusb-1.0-0
     have_libusb || { echo "setup: libusb-1.0-0 still not found after apt-get" >&2; exit 1; }
+fi
+
+# The pendant's libraries: again only when package-lock.json changed since the last copy.
+lock=$(sha256sum package-lock.json | cut -d' ' -f1)
+if [ "$(cat service/ui/vendor/.lock-sha256 2>/dev/null)" != "$lock" ]; then
+    if ! command -v npm >/dev/null; then
+        echo "setup: installing Debian packages nodejs and npm (for the pendant's libraries)"
+        apt_install nodejs npm
+    fi
+    echo "setup: installing the pendant's browser libraries (npm ci) into service/ui/vendor"
+    npm ci --ignore-scripts --omit=peer --no-audit --no-fund --loglevel=error >/dev/null
+    scripts/vendor-ui.sh node_modules service/ui/vendor
+fi
+
+# The browser the UI tests drive (Playwright, never its own downloaded browsers).
+if ! command -v chromium >/dev/null; then
+    echo "setup: installing Debian package chromium (for the pendant's browser tests)"
+    apt_install --no-install-recommends chromium fonts-liberation
 fi
 
 want=$(sha256sum pyproject.toml | cut -d' ' -f1)

@@ -6,11 +6,9 @@ import json
 import logging
 from contextlib import asynccontextmanager
 from importlib import metadata
-from pathlib import Path
 
 from fastapi import Depends, FastAPI
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import HTMLResponse
 
 from service import captures as capture_workflow
 from service import errors
@@ -26,6 +24,7 @@ from service.api import (
     scans,
     sessions,
     trajectories,
+    ui,
 )
 from service.api.deps import require_token
 from service.api.links import add_links
@@ -38,7 +37,6 @@ from service.settings import Settings
 from service.store import Store
 
 log = logging.getLogger("teachpath.service")
-UI_PAGE = Path(__file__).parent / "ui" / "index.html"
 
 
 class BodyLimit:
@@ -146,6 +144,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         "scan of the workpiece, plan it for a Universal Robots arm, dry-run and execute it. "
         "Every route but /health needs `Authorization: Bearer TOKEN`.",
         lifespan=lifespan,
+        # Served by service.api.ui from local copies of the libraries (no CDN).
+        docs_url=None,
+        redoc_url=None,
     )
     errors.install(app)
     if settings.cors_origins:
@@ -189,9 +190,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.openapi = openapi
 
-    @app.get("/", response_class=HTMLResponse, include_in_schema=False)
-    def ui() -> HTMLResponse:
-        """The teach-pendant page (static; it calls the API with the token from the URL)."""
-        return HTMLResponse(UI_PAGE.read_text())
+    ui.install(app)
 
     return app

@@ -7,7 +7,7 @@ import tempfile
 from pathlib import Path
 from typing import Literal
 
-from fastapi import APIRouter, File, Form, Response, UploadFile
+from fastapi import APIRouter, File, Form, Query, Response, UploadFile
 
 from service import inputs
 from service.api.common import BINARY, add_artifact_routes, download, read_upload
@@ -80,3 +80,43 @@ def scan_ply(session_id: str, artifact_id: str, services: ServicesDep):
         write_scan(path, ScanCodec.decode(services.store.read_arrays(row)))
         content = path.read_bytes()
     return download(content, media_type="application/octet-stream", filename=f"{artifact_id}.ply")
+
+
+#: The most points :func:`scan_points` sends (a pendant draws this many without trouble).
+MAX_VIEW_POINTS = 1_000_000
+
+
+@router.get(
+    "/scans/{artifact_id}/points",
+    response_class=Response,
+    responses={200: {"content": {"application/octet-stream": {}}}},
+)
+def scan_points(
+    session_id: str,
+    artifact_id: str,
+    services: ServicesDep,
+    max_points: int = Query(
+        200_000, ge=1, le=MAX_VIEW_POINTS, description="at most this many points (every k-th)"
+    ),
+):
+    """The scan's points for drawing: every k-th point so that at most ``max_points`` remain,
+    as little-endian float32 x, y, z triples (scan frame, metres), gzip-compressed
+    (``Content-Encoding: gzip``). ``X-Point-Count``: the points sent; ``X-Point-Total``: the
+    scan's."""
+    import gzip
+
+    import numpy as np
+
+    row = services.artifact(session_id, "scan", artifact_id)
+    points = np.asarray(ScanCodec.decode(services.store.read_arrays(row)).points_m)
+    step = max(1, -(-len(points) // max_points))
+    sent = np.ascontiguousarray(points[::step], dtype="<f4")
+    return Response(
+        gzip.compress(sent.tobytes(), compresslevel=5, mtime=0),
+        media_type="application/octet-stream",
+        headers={
+            "Content-Encoding": "gzip",
+            "X-Point-Count": str(len(sent)),
+            "X-Point-Total": str(len(points)),
+        },
+    )

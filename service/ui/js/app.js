@@ -1,0 +1,637 @@
+// The teach pendant: the safety bar, sessions and the steps of one session, on the REST API.
+// Nothing here resends a request that moves or computes by itself: every POST comes from one
+// click, and the button stays disabled until its job has finished.
+
+import { api, events, explain, followJob, FINISHED, setToken, takeToken } from "./api.js";
+
+const $ = (selector, root = document) => root.querySelector(selector);
+const el = (tag, attrs = {}, ...children) => {
+  const node = document.createElement(tag);
+  for (const [key, value] of Object.entries(attrs)) {
+    if (key === "class") node.className = value;
+    else if (key === "text") node.textContent = value;
+    else node.setAttribute(key, value);
+  }
+  node.append(...children);
+  return node;
+};
+const mm = (metres, digits = 2) => (metres == null ? "–" : `${(metres * 1000).toFixed(digits)} mm`);
+const mmps = (m_s) => `${Math.round(m_s * 1000)} mm/s`;
+const seconds = (s) => (s == null ? "–" : `${s.toFixed(1)} s`);
+
+const state = {
+  robot: null,
+  session: null,
+  recordings: [],
+  scans: [],
+  reconstructions: [],
+  trajectories: [],
+  executions: [],
+  busy: null, // the step whose job runs now
+  moving: null, // {executionId, jobId} of an execution that may move the arm
+  schema: null,
+  workspace: null,
+};
+
+// -- errors shown as instructions ---------------------------------------------------------------
+
+function showError(box, err) {
+  const { code, instruction, message } = explain(err);
+  box.replaceChildren(
+    el("p", { class: "instruction", text: instruction || message }),
+    el("p", { class: "server-message" }, el("code", { text: code }), ` ${message}`),
+  );
+  box.className = "message error";
+  box.dataset.code = code;
+}
+const clearMessage = (box) => {
+  box.replaceChildren();
+  box.className = "message";
+  delete box.dataset.code;
+};
+function banner(text) {
+  const node = $("#banner");
+  node.textContent = text || "";
+  node.hidden = !text;
+}
+
+// -- the safety bar -------------------------------------------------------------------------------
+
+function showRobot(robot) {
+  state.robot = robot;
+  const kind = $("#arm-kind");
+  kind.textContent = robot.real_arm ? "REAL ARM" : "SIM";
+  kind.className = `badge ${robot.real_arm ? "real" : "sim"}`;
+  $("#robot-model").textContent = robot.robot + (robot.host ? ` @ ${robot.host}` : "");
+  $("#robot-mode").textContent = robot.reachable ? robot.robot_mode : "unreachable";
+  $("#safety-status").textContent = robot.emergency_stop ? "EMERGENCY STOP" : robot.safety_status;
+  const stopped = robot.protective_stop;
+  $("#protective-stop").textContent = stopped
+    ? robot.unlock_in_s > 0 ? `YES (unlock in ${robot.unlock_in_s.toFixed(0)} s)` : "YES"
+    : "no";
+  const unlock = $("#unlock");
+  unlock.hidden = !stopped;
+  unlock.disabled = !stopped || robot.unlock_in_s > 0;
+  $("#remote-control").textContent =
+    robot.remote_control == null ? "–" : robot.remote_control ? "on" : "OFF (local)";
+  $("#arm-owner").textContent = robot.owner_execution_id || "none";
+  $("#speed-cap").textContent = mmps(robot.max_speed_m_s);
+  $("#safety-bar").classList.toggle("alarm", stopped || robot.emergency_stop || !robot.reachable);
+  updateStop();
+  updatePlanSpeed();
+  renderSteps();
+}
+
+async function followRobot() {
+  const link = $("#link-state");
+  for (;;) {
+    try {
+      showRobot(await api("/robot"));
+      link.textContent = "live";
+      for await (const { data } of events("/robot/events")) {
+        showRobot(data);
+        link.textContent = "live";
+      }
+    } catch (err) {
+      link.textContent = `no robot state: ${explain(err).message}`;
+      if (err.status === 401) return banner(explain(err).instruction);
+    }
+    link.textContent = "reconnecting…";
+    await new Promise((resolve) => setTimeout(resolve, 1000));
+  }
+}
+
+function canMove() {
+  const robot = state.robot;
+  return Boolean(state.moving || robot?.program_running || robot?.owner_execution_id);
+}
+
+function updateStop() {
+  const show = canMove();
+  $("#stop").hidden = !show;
+  $("#stop-hint").hidden = !show;
+  document.body.classList.toggle("moving", show);
+}
+
+async function stop() {
+  const id = state.moving?.executionId || state.robot?.owner_execution_id;
+  if (!id) return;
+  try {
+    await api(`/executions/${id}/stop`, { method: "POST" });
+    banner("");
+  } catch (err) {
+    banner(`Stop: ${explain(err).message}`);
+  }
+}
+
+// -- sessions -------------------------------------------------------------------------------------
+
+async function loadSessions() {
+  const list = $("#session-list");
+  const sessions = await api("/sessions");
+  list.replaceChildren(
+    ...sessions.map((s) => {
+      const open = el("button", { type: "button", class: "open", text: s.name });
+      open.addEventListener("click", () => openSession(s.id));
+      const remove = el("button", { type: "button", class: "delete", text: "Delete" });
+      remove.setAttribute("aria-label", `Delete ${s.name}`);
+      remove.addEventListener("click", async () => {
+        if (!window.confirm(`Delete the session “${s.name}”?`)) return;
+        await api(`/sessions/${s.id}`, { method: "DELETE" });
+        if (state.session?.id === s.id) closeSession();
+        await loadSessions();
+      });
+      const item = el("li", { "data-session": s.id }, open, " ", remove);
+      item.classList.toggle("selected", state.session?.id === s.id);
+      return item;
+    }),
+  );
+  if (!sessions.length) list.append(el("li", { class: "muted", text: "no sessions yet" }));
+}
+
+function closeSession() {
+  state.session = null;
+  $("#session-view").hidden = true;
+}
+
+async function openSession(id) {
+  state.session = await api(`/sessions/${id}`);
+  $("#session-view").hidden = false;
+  $("#session-title").textContent = `Session ${state.session.name}`;
+  for (const box of document.querySelectorAll("#session-view .message")) clearMessage(box);
+  await refresh();
+  for (const item of document.querySelectorAll("#session-list li")) {
+    item.classList.toggle("selected", item.dataset.session === id);
+  }
+}
+
+async function refresh() {
+  const sid = state.session.id;
+  const [session, recordings, scans, reconstructions, trajectories, executions] = await Promise.all([
+    api(`/sessions/${sid}`),
+    api(`/sessions/${sid}/recordings`),
+    api(`/sessions/${sid}/scans`),
+    api(`/sessions/${sid}/reconstructions`),
+    api(`/sessions/${sid}/trajectories`),
+    api(`/sessions/${sid}/executions`),
+  ]);
+  Object.assign(state, { session, recordings, scans, reconstructions, trajectories, executions });
+  renderSteps();
+  state.workspace?.show(sid, state).catch((err) => {
+    $("#workspace-note").textContent = `workspace: ${err.message}`;
+  });
+}
+
+// -- what each step needs and has -----------------------------------------------------------------
+
+const last = (list) => list[list.length - 1] || null;
+const recording = () => state.recordings.find((r) => r.id === state.session?.recording_id) || null;
+const scan = () => state.scans.find((s) => s.id === state.session?.scan_id) || null;
+const reconstruction = () => last(state.reconstructions);
+const trajectory = () => {
+  const rec = reconstruction();
+  return last(state.trajectories.filter((t) => t.inputs.reconstruction_id === rec?.id));
+};
+const mode = () => $("#exec-mode").value;
+const passed = (e) => e.summary.completed === true && e.summary.faults.length === 0;
+function dryRun(traj = trajectory(), m = mode()) {
+  if (!traj) return null;
+  return last(
+    state.executions.filter(
+      (e) => e.inputs.trajectory_id === traj.id && e.params.dry_run === true && e.params.mode === m,
+    ),
+  );
+}
+function lastRun(traj = trajectory()) {
+  if (!traj) return null;
+  return last(state.executions.filter((e) => e.inputs.trajectory_id === traj.id && !e.params.dry_run));
+}
+
+function stepStates() {
+  const s = state.session;
+  const rec = reconstruction();
+  const traj = trajectory();
+  const dry = dryRun();
+  const haveInputs = Boolean(s.recording_id && s.scan_id);
+  return {
+    inputs: haveInputs
+      ? { done: true, needs: "" }
+      : { done: false, needs: `Needs ${[!s.recording_id && "a recording", !s.scan_id && "a scan"].filter(Boolean).join(" and ")}.` },
+    calibration: s.T_base_tracker
+      ? { done: true, needs: "" }
+      : { done: false, needs: "Needs the tracker-to-base calibration (T_base_tracker) before planning." },
+    reconstruct: rec
+      ? { done: true, needs: "" }
+      : { done: false, needs: s.recording_id ? "Ready: choose the parameters and press Reconstruct." : "Needs a recording." },
+    plan: traj
+      ? { done: true, needs: "" }
+      : { done: false, needs: !rec ? "Needs a reconstruction." : !s.T_base_tracker ? "Needs the calibration." : "Ready: choose the speed and press Plan." },
+    dryrun: dry && passed(dry)
+      ? { done: true, needs: "" }
+      : { done: false, needs: !traj ? "Needs a plan." : dry ? "The last dry run did not pass: read its report, plan again or dry-run again." : `Ready: press “Dry run” (mode ${mode()}).` },
+    run: lastRun()?.summary.completed
+      ? { done: true, needs: "" }
+      : { done: false, needs: dry && passed(dry) ? "Ready: press “Run on arm” and confirm." : "Needs a passed dry run of this plan in this mode." },
+  };
+}
+
+const STEPS = [
+  ["inputs", "Inputs"],
+  ["calibration", "Calibration"],
+  ["reconstruct", "Reconstruct"],
+  ["plan", "Plan"],
+  ["dryrun", "Dry run"],
+  ["run", "Run"],
+];
+
+function renderSteps() {
+  if (!state.session) return;
+  const states = stepStates();
+  $("#steps").replaceChildren(
+    ...STEPS.map(([key, label]) => {
+      const st = states[key];
+      const item = el("li", { "data-step": key, class: st.done ? "done" : "todo" },
+        el("a", { href: `#step-${key}`, text: label }),
+        el("span", { class: "mark", text: st.done ? " ✓" : "" }));
+      if (state.busy === key) item.classList.add("running");
+      return item;
+    }),
+  );
+  for (const [key] of STEPS) {
+    const card = $(`#step-${key}`);
+    card.classList.toggle("done", states[key].done);
+    $(".state", card).textContent = state.busy === key ? "running…" : states[key].done ? "done" : "";
+    $(".needs", card).textContent = states[key].needs;
+  }
+  renderInputs();
+  renderCalibration();
+  renderReconstruction();
+  renderPlan();
+  renderDryRun();
+  renderRun();
+  updateButtons();
+}
+
+function updateButtons() {
+  const s = state.session;
+  const busy = Boolean(state.busy);
+  const traj = trajectory();
+  const dry = dryRun();
+  const set = (selector, enabled) => { $(selector).disabled = !enabled; };
+  set("#recording-form button[type=submit]", !busy);
+  set("#scan-form button[type=submit]", !busy);
+  set("#reconstruct-form button[type=submit]", !busy && Boolean(s?.recording_id) && Boolean(state.schema));
+  set("#plan-form button[type=submit]", !busy && Boolean(reconstruction()) && Boolean(s?.T_base_tracker));
+  set("#dryrun-form button[type=submit]", !busy && Boolean(traj));
+  set("#run-form button[type=submit]", !busy && Boolean(dry && passed(dry)) && !canMove());
+}
+
+function table(rows) {
+  return el("table", {}, ...rows.map(([k, v]) => el("tr", {}, el("th", { text: k }), el("td", { text: v }))));
+}
+const report = (lines) => el("pre", { class: "report", text: (lines || []).join("\n") });
+
+function renderInputs() {
+  const rec = recording();
+  const sc = scan();
+  $("#recording-current").textContent = rec
+    ? `${rec.source_name || rec.id}: ${rec.summary.n_samples} samples, ${mm(rec.summary.length_m, 0)} long`
+    : "none yet";
+  $("#scan-current").textContent = sc
+    ? `${sc.source_name || sc.id}: ${sc.summary.n_points} points`
+    : "none yet";
+}
+
+function renderCalibration() {
+  const s = state.session;
+  const T = s.T_base_tracker;
+  $("#calibration-current").textContent = T
+    ? `tracker → base set: translation ${T.map((row) => mm(row[3], 1)).slice(0, 3).join(", ")}` +
+      (s.tip_offset_m ? `; tip offset ${s.tip_offset_m.map((v) => mm(v, 1)).join(", ")}` : "")
+    : "not calibrated";
+}
+
+function renderReconstruction() {
+  const rec = reconstruction();
+  const box = $("#reconstruct-summary");
+  if (!rec) return box.replaceChildren();
+  const sm = rec.summary;
+  const modes = Object.entries(sm.modes).filter(([, n]) => n).map(([m, n]) => `${m} ${n}`).join(", ");
+  const rows = [
+    ["reconstruction", rec.id],
+    ["points", String(sm.n_points)],
+    ["modes", modes],
+    ["mean displacement", mm(sm.mean_displacement_m)],
+    ["max displacement", mm(sm.max_displacement_m)],
+  ];
+  if (sm.registration) rows.push(["registration", `rmse ${mm(sm.registration.rmse_m, 3)}, fitness ${sm.registration.fitness.toFixed(2)}`]);
+  box.replaceChildren(table(rows), ...(sm.notes.length ? [report(sm.notes)] : []));
+}
+
+function renderPlan() {
+  const traj = trajectory();
+  const box = $("#plan-summary");
+  if (!traj) return box.replaceChildren();
+  const sm = traj.summary;
+  const feasible = sm.checks.length ? `passed: ${sm.checks.join(", ")}` : "";
+  box.replaceChildren(
+    table([
+      ["trajectory", traj.id],
+      ["robot", sm.robot],
+      ["speed", mmps(sm.requested_speed_m_s)],
+      ["duration", seconds(sm.duration_s)],
+      ["configuration", sm.configuration || "–"],
+      ["starts from", sm.start_from || "–"],
+      ["approach", mm(sm.approach_m, 0)],
+      ["closest to the cell", mm(sm.min_clearance_m, 1)],
+    ]),
+    el("h4", { text: "Duration per phase" }),
+    el("table", { class: "phases" }, ...Object.entries(sm.phase_durations_s).map(([phase, s]) =>
+      el("tr", { "data-phase": phase }, el("th", { text: phase }), el("td", { text: seconds(s) })))),
+    el("h4", { text: "Feasibility" }),
+    el("p", { class: "small", text: feasible }),
+    report(sm.report),
+  );
+}
+
+function execSummary(ex) {
+  const sm = ex.summary;
+  return [
+    table([
+      ["execution", ex.id],
+      ["result", passed(ex) ? "passed" : sm.completed ? `completed with faults` : `not completed${sm.stopped_in ? ` (stopped in ${sm.stopped_in})` : ""}`],
+      ["mode", sm.mode],
+      ["duration", `${seconds(sm.duration_s)} of ${seconds(sm.planned_duration_s)} planned`],
+      ["largest deviation from the plan", mm(sm.max_path_deviation_m, 3)],
+      ["faults", sm.faults.join("; ") || "none"],
+    ]),
+    report(sm.report),
+  ];
+}
+
+function renderDryRun() {
+  const dry = dryRun();
+  $("#dryrun-summary").replaceChildren(...(dry ? execSummary(dry) : []));
+}
+
+function renderRun() {
+  const run = lastRun();
+  $("#run-summary").replaceChildren(...(run ? execSummary(run) : []));
+}
+
+// -- jobs: one click, one POST, followed to the end -----------------------------------------------
+
+async function runJob(step, form, start, onDone) {
+  if (state.busy) return;
+  const box = $(".message", form);
+  const bar = $("progress", form);
+  const label = $(".job-state", form);
+  clearMessage(box);
+  state.busy = step;
+  renderSteps();
+  try {
+    const job = await start();
+    bar.hidden = false;
+    const finished = await followJob(job, (j) => {
+      bar.value = j.progress;
+      label.textContent = `${j.state} ${Math.round(j.progress * 100)} %`;
+    });
+    if (finished.state !== "succeeded") {
+      showError(box, { code: finished.error?.code || finished.state, message: finished.error?.message || finished.state });
+    }
+    await onDone?.(finished);
+  } catch (err) {
+    showError(box, err);
+  } finally {
+    state.busy = null;
+    state.moving = null;
+    bar.hidden = true;
+    updateStop();
+    await refresh().catch(() => {});
+  }
+}
+
+// -- inputs ---------------------------------------------------------------------------------------
+
+function upload(kind, form) {
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const box = $(".message", form);
+    clearMessage(box);
+    const data = new FormData();
+    const file = form.elements.file.files[0];
+    if (!file) return;
+    data.append("file", file, file.name);
+    for (const name of ["format", "units"]) {
+      if (form.elements[name].value) data.append(name, form.elements[name].value);
+    }
+    const button = $("button[type=submit]", form);
+    button.disabled = true;
+    try {
+      await api(`/sessions/${state.session.id}/${kind}`, { method: "PUT", form: data });
+      box.replaceChildren(el("p", { text: `${file.name} uploaded.` }));
+      box.className = "message ok";
+      form.elements.file.value = "";
+    } catch (err) {
+      showError(box, err);
+    } finally {
+      await refresh();
+    }
+  });
+}
+
+// -- reconstruct: the parameters from the API's own schema ----------------------------------------
+
+const RECONSTRUCTION_FIELDS = ["radius_m", "alpha", "beta", "degree", "method", "spacing_m", "use_scan", "registration"];
+
+function numberField(name, spec) {
+  const input = el("input", { name, type: "number", step: "any" });
+  if (spec.type === "integer") input.step = "1";
+  if (spec.minimum !== undefined) input.min = spec.minimum;
+  if (spec.maximum !== undefined) input.max = spec.maximum;
+  if (spec.default !== undefined) input.value = spec.default;
+  return input;
+}
+
+function buildReconstructForm(schema) {
+  const props = schema.components.schemas.ReconstructionCreate.properties;
+  const box = $("#reconstruct-params");
+  box.replaceChildren();
+  for (const name of RECONSTRUCTION_FIELDS) {
+    const spec = props[name];
+    if (!spec) continue;
+    let input;
+    if (spec.type === "boolean") {
+      input = el("input", { name, type: "checkbox" });
+      input.checked = spec.default !== false;
+    } else if (spec.enum) {
+      input = el("select", { name }, ...spec.enum.map((v) => el("option", { value: v, text: v })));
+      input.value = spec.default;
+    } else if (spec.anyOf) {
+      // A number or a word ("auto"): typed as text, checked against both.
+      const number = spec.anyOf.find((s) => s.type === "number");
+      const word = spec.anyOf.find((s) => s.const);
+      input = el("input", { name, type: "text", inputmode: "decimal" });
+      input.value = spec.default;
+      input.dataset.word = word?.const || "";
+      input.dataset.min = number?.minimum ?? "";
+      input.dataset.max = number?.maximum ?? "";
+      input.pattern = `${word ? `${word.const}|` : ""}[0-9]*\\.?[0-9]+`;
+    } else {
+      input = numberField(name, spec);
+    }
+    input.id = `recon-${name}`;
+    input.dataset.kind = spec.type || (spec.anyOf ? "mixed" : "string");
+    box.append(el("label", { for: input.id }, el("span", { class: "name", text: name }), input,
+      el("span", { class: "hint", text: spec.description || "" })));
+  }
+}
+
+function reconstructBody(form) {
+  const body = {};
+  for (const name of RECONSTRUCTION_FIELDS) {
+    const input = form.elements[name];
+    if (!input) continue;
+    if (input.type === "checkbox") body[name] = input.checked;
+    else if (input.dataset.kind === "number" || input.dataset.kind === "integer") body[name] = Number(input.value);
+    else if (input.dataset.kind === "mixed") body[name] = input.value === input.dataset.word ? input.value : Number(input.value);
+    else body[name] = input.value;
+  }
+  return body;
+}
+
+// -- plan -----------------------------------------------------------------------------------------
+
+function updatePlanSpeed() {
+  const slider = $("#plan-speed");
+  const specMax = state.schema?.components.schemas.TrajectoryCreate.properties.speed_m_s.maximum ?? 2;
+  const cap = Math.min(specMax, state.robot?.max_speed_m_s ?? specMax);
+  slider.max = cap;
+  if (Number(slider.value) > cap) slider.value = cap;
+  $("#plan-speed-value").textContent = mmps(Number(slider.value));
+  $("#plan-speed-cap").textContent = `at most ${mmps(cap)} (the server's cap)`;
+}
+
+// -- run on the arm: behind a confirmation ---------------------------------------------------------
+
+function confirmRun(traj) {
+  const sm = traj.summary;
+  const robot = state.robot;
+  const rows = [
+    ["robot", `${robot.real_arm ? "REAL ARM" : "SIM (no real arm configured)"} ${sm.robot}${robot.host ? ` @ ${robot.host}` : ""}`],
+    ["speed", mmps(sm.requested_speed_m_s)],
+    ["mode", mode()],
+    ["duration", seconds(sm.duration_s)],
+    ...Object.entries(sm.phase_durations_s).map(([phase, s]) => [`  ${phase}`, seconds(s)]),
+    ["approach", `${mm(sm.approach_m, 0)} along the tool axis, from ${sm.start_from || "the arm's position"}`],
+    ["configuration", sm.configuration || "–"],
+  ];
+  $("#confirm-table").replaceChildren(...rows.map(([k, v]) => el("tr", {}, el("th", { text: k }), el("td", { text: v }))));
+  const dialog = $("#confirm-dialog");
+  dialog.returnValue = "";
+  dialog.showModal();
+  return new Promise((resolve) => {
+    dialog.addEventListener("close", () => resolve(dialog.returnValue === "confirm"), { once: true });
+  });
+}
+
+// -- wiring ---------------------------------------------------------------------------------------
+
+function wire() {
+  $("#new-session").addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const name = $("#new-session-name").value.trim() || "session";
+    const created = await api("/sessions", { method: "POST", json: { name } });
+    await loadSessions();
+    await openSession(created.id);
+  });
+  upload("recording", $("#recording-form"));
+  upload("scan", $("#scan-form"));
+
+  $("#reconstruct-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    const form = event.currentTarget;
+    if (!form.reportValidity()) return;
+    const body = reconstructBody(form);
+    runJob("reconstruct", form, () =>
+      api(`/sessions/${state.session.id}/reconstructions`, { method: "POST", json: body }));
+  });
+
+  $("#plan-speed").addEventListener("input", updatePlanSpeed);
+  $("#plan-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    const form = event.currentTarget;
+    const body = {
+      reconstruction_id: reconstruction().id,
+      robot: state.robot?.robot || "ur5e",
+      speed_m_s: Number($("#plan-speed").value),
+    };
+    runJob("plan", form, () => api(`/sessions/${state.session.id}/trajectories`, { method: "POST", json: body }));
+  });
+
+  $("#exec-mode").addEventListener("change", renderSteps);
+  $("#dryrun-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    const body = { trajectory_id: trajectory().id, backend: "sim", mode: mode() };
+    // A dry run moves no arm (and runs to its end): no Stop for it.
+    runJob("dryrun", event.currentTarget, () =>
+      api(`/sessions/${state.session.id}/executions`, { method: "POST", json: body }));
+  });
+
+  $("#run-form").addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const form = event.currentTarget;
+    const traj = trajectory();
+    const dry = dryRun(traj);
+    if (!traj || !dry || !passed(dry) || state.busy) return;
+    if (!(await confirmRun(traj))) return;
+    const body = { trajectory_id: traj.id, backend: "ur_rtde", mode: mode(), confirm: true };
+    runJob("run", form, async () => {
+      const job = await api(`/sessions/${state.session.id}/executions`, { method: "POST", json: body });
+      state.moving = { executionId: job.params.execution_id, jobId: job.id };
+      updateStop();
+      return job;
+    });
+  });
+
+  $("#stop").addEventListener("click", stop);
+  document.addEventListener("keydown", (event) => {
+    if (event.key === "Escape" && canMove()) {
+      event.preventDefault();
+      stop();
+    }
+  });
+  $("#unlock").addEventListener("click", async () => {
+    try {
+      showRobot(await api("/robot/unlock", { method: "POST" }));
+    } catch (err) {
+      banner(`${explain(err).instruction} ${explain(err).message}`);
+    }
+  });
+}
+
+async function main() {
+  setToken(takeToken());
+  wire();
+  followRobot();
+  try {
+    state.schema = await api("/openapi.json");
+    buildReconstructForm(state.schema);
+    updatePlanSpeed();
+    await loadSessions();
+  } catch (err) {
+    const { instruction, message } = explain(err);
+    banner(`${instruction} (${message})`);
+  }
+  try {
+    const { Workspace } = await import("./workspace.js");
+    state.workspace = new Workspace($("#workspace"), $("#layers"), $("#legend"));
+    if (state.session) await refresh();
+  } catch (err) {
+    $("#workspace-note").textContent = `The 3-D view is unavailable: ${err.message}`;
+  }
+  document.body.dataset.ready = "true";
+}
+
+main();
+export { state, FINISHED };

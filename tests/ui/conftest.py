@@ -1,0 +1,250 @@
+"""The pendant in a real browser: Debian's chromium driven by Playwright, against the real server
+(``teachpath serve --demo`` on 127.0.0.1 with a temporary data dir).
+
+Every page a test opens goes through :class:`Guard`: each request is intercepted and refused
+unless it goes to a loopback address, and at the end the test fails on any such request, any
+console error, uncaught exception or Content-Security-Policy violation.
+A missing browser or Playwright fails the tests (never skips them): ``scripts/setup.sh``
+installs both.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import httpx
+import pytest
+
+from tests.service.conftest import scene_files  # noqa: F401 - shared fixture
+
+TOKEN = "ui-token-abcdefghijklmnopqrstuv"
+SETUP = "run scripts/setup.sh (make setup)"
+#: Debian's chromium: headless, as root, WebGL through SwiftShader, nothing fetched by itself.
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--headless=new",
+    "--enable-unsafe-swiftshader",
+    "--use-angle=swiftshader",
+    "--use-gl=angle",
+    "--ignore-gpu-blocklist",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-default-apps",
+    "--disable-domain-reliability",
+    "--disable-sync",
+    "--disable-extensions",
+    "--no-first-run",
+    "--no-default-browser-check",
+    "--metrics-recording-only",
+    "--disable-features=Translate,OptimizationHints,MediaRouter,AutofillServerCommunication",
+    "--no-pings",
+    "--dns-prefetch-disable",
+]
+
+
+def chromium_path() -> str:
+    path = os.environ.get("TEACHPATH_CHROMIUM") or shutil.which("chromium")
+    if not path:
+        pytest.fail(
+            f"Debian's chromium is missing: {SETUP}, which installs it with apt-get "
+            "(or set TEACHPATH_CHROMIUM to a Chromium binary)"
+        )
+    return path
+
+
+class Server:
+    """``teachpath serve --demo`` on a free port of 127.0.0.1."""
+
+    def __init__(self, data_dir: Path) -> None:
+        env = {**os.environ, "TEACHPATH_TOKEN": TOKEN}
+        env.pop("TEACHPATH_UR_HOST", None)
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "serve", "--port", "0", "--demo"]
+            + ["--data-dir", str(data_dir)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
+        )
+        deadline = time.monotonic() + 60
+        self.url = None
+        while self.url is None:
+            assert time.monotonic() < deadline, "the server did not print its URL"
+            line = self.process.stdout.readline()
+            assert line or self.process.poll() is None, "the server exited"
+            match = re.search(r"open (http://127\.0\.0\.1:\d+)/\?token=(\S+)", line)
+            if match:
+                self.url = match.group(1)
+        self.client = httpx.Client(
+            base_url=self.url, timeout=30, headers={"Authorization": f"Bearer {TOKEN}"}
+        )
+        for _ in range(100):
+            try:
+                if self.client.get("/health").status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        raise AssertionError("the server did not answer /health")
+
+    @property
+    def start_url(self) -> str:
+        return f"{self.url}/?token={TOKEN}"
+
+    def stop(self) -> None:
+        self.client.close()
+        self.process.send_signal(signal.SIGINT)
+        try:
+            self.process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+
+
+@pytest.fixture(scope="session")
+def server(tmp_path_factory):
+    server = Server(tmp_path_factory.mktemp("ui-data"))
+    yield server
+    server.stop()
+
+
+@pytest.fixture(scope="session")
+def browser():
+    from playwright.sync_api import expect
+
+    # Two shared cores: a page may take a while to render while a job runs beside it.
+    expect.set_options(timeout=15_000)
+    executable = chromium_path()
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        pytest.fail(f"Playwright for Python is missing: {SETUP} (it is in the dev extra)")
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(
+            executable_path=executable, args=CHROMIUM_ARGS, headless=True
+        )
+        yield browser
+        browser.close()
+
+
+def loopback(url: str) -> bool:
+    parts = urlsplit(url)
+    if parts.scheme in ("data", "blob", "about"):
+        return True
+    host = parts.hostname or ""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class Guard:
+    """What a page did that it must not: requests off this machine, console errors, exceptions,
+    CSP violations."""
+
+    def __init__(self, context, page) -> None:
+        self.external: list[str] = []
+        self.console_errors: list[str] = []
+        self.page_errors: list[str] = []
+        self.requests: list[str] = []
+        self.allowed: list[tuple[int, str]] = []
+        context.route("**/*", self._route)
+        page.on("console", self._console)
+        page.on("pageerror", lambda error: self.page_errors.append(str(error)))
+        # Runs before the page's scripts, outside its CSP: collects the violations it reports.
+        page.add_init_script(
+            "window.__csp = [];"
+            "document.addEventListener('securitypolicyviolation', (e) => window.__csp.push("
+            "e.violatedDirective + ' ' + e.blockedURI + ' ' + e.sourceFile + ':' + e.lineNumber));"
+        )
+        self.page = page
+
+    def _route(self, route) -> None:
+        url = route.request.url
+        self.requests.append(url)
+        if loopback(url):
+            route.continue_()
+        else:
+            self.external.append(url)
+            route.abort()
+
+    def allow(self, status: int, url_part: str) -> None:
+        """An error answer the test provokes (Chrome logs each on the console)."""
+        self.allowed.append((status, url_part))
+
+    def _console(self, message) -> None:
+        if message.type != "error":
+            return
+        answered = re.match(r"Failed to load resource: .* status of (\d+)", message.text)
+        url = message.location.get("url", "")
+        if answered and any(
+            int(answered.group(1)) == status and part in url for status, part in self.allowed
+        ):
+            return
+        self.console_errors.append(f"{message.text} ({message.location})")
+
+    def csp_violations(self) -> list[str]:
+        try:
+            return self.page.evaluate("window.__csp || []")
+        except Exception:  # the page is gone: its violations were reported on the console too
+            return []
+
+    def check(self) -> None:
+        assert not self.external, f"requests off this machine: {self.external}"
+        assert not self.page_errors, f"uncaught exceptions: {self.page_errors}"
+        violations = self.csp_violations()
+        assert not violations, f"Content-Security-Policy violations: {violations}"
+        assert not self.console_errors, f"console errors: {self.console_errors}"
+
+
+@dataclass
+class Pendant:
+    page: object
+    guard: Guard
+    server: Server
+    shot: object
+
+    def open(self) -> None:
+        """Open the start-up URL (with the token) and wait until the page has loaded."""
+        self.page.goto(self.server.start_url)
+        self.page.wait_for_selector("body[data-ready=true]")
+
+
+@pytest.fixture(scope="session")
+def screens(tmp_path_factory) -> Path:
+    """Where the tests write their screenshots (one per step)."""
+    folder = tmp_path_factory.mktemp("screens")
+    print(f"\nscreenshots: {folder}")
+    return folder
+
+
+@pytest.fixture
+def pendant(browser, server, screens, request):
+    """A fresh browser context and page, guarded; ``pendant.shot(name)`` saves a screenshot."""
+    context = browser.new_context(viewport={"width": 1500, "height": 1100})
+    context.set_default_timeout(30_000)
+    page = context.new_page()
+    guard = Guard(context, page)
+
+    def shot(name: str) -> Path:
+        path = screens / f"{request.node.name}-{name}.png"
+        page.screenshot(path=str(path), full_page=True)
+        return path
+
+    yield Pendant(page=page, guard=guard, server=server, shot=shot)
+    try:
+        guard.check()
+    finally:
+        context.close()

@@ -1,0 +1,227 @@
+"""The teach pendant driven as an operator would, in Debian's chromium (see conftest.py)."""
+
+from __future__ import annotations
+
+import re
+
+from playwright.sync_api import expect
+
+from tests.ui.conftest import TOKEN
+
+
+def test_token_leaves_the_url_and_the_safety_bar_shows_the_sim_arm(pendant):
+    page = pendant.page
+    pendant.open()
+    assert "token" not in page.url
+    assert page.evaluate("sessionStorage.getItem('teachpath.token')") == TOKEN
+    bar = page.locator("#safety-bar")
+    expect(page.locator("#arm-kind")).to_have_text("SIM")
+    expect(page.locator("#robot-model")).to_have_text("ur5e")
+    expect(page.locator("#robot-mode")).to_have_text("SIMULATED")
+    expect(page.locator("#safety-status")).to_have_text("NORMAL")
+    expect(page.locator("#protective-stop")).to_have_text("no")
+    expect(page.locator("#remote-control")).to_have_text("on")
+    expect(page.locator("#arm-owner")).to_have_text("none")
+    expect(page.locator("#speed-cap")).to_have_text("250 mm/s")
+    expect(page.locator("#link-state")).to_have_text("live")
+    expect(bar).to_be_visible()
+    # Nothing moves: no Stop button.
+    expect(page.get_by_role("button", name="Stop")).to_be_hidden()
+    pendant.shot("safety-bar")
+
+
+def test_docs_render_offline_from_local_assets(pendant):
+    page = pendant.page
+    response = page.goto(f"{pendant.server.url}/docs")
+    assert "default-src 'self'" in response.headers["content-security-policy"]
+    assert response.headers["referrer-policy"] == "no-referrer"
+    expect(page.locator(".swagger-ui .info .title")).to_contain_text("teachpath")
+    expect(page.locator(".opblock-summary-path", has_text="/robot/events")).to_be_visible()
+    pendant.shot("docs")
+    page.goto(f"{pendant.server.url}/redoc")
+    expect(page.get_by_role("heading", name=re.compile("^teachpath"), level=1)).to_be_visible()
+    assert all(url.startswith(pendant.server.url) for url in pendant.guard.requests)
+    assert any("/ui/vendor/swagger-ui/" in url for url in pendant.guard.requests)
+
+
+def test_sessions_create_open_delete(pendant):
+    page = pendant.page
+    pendant.open()
+    expect(page.locator("#session-list li", has_text="demo")).to_be_visible()
+    page.get_by_label("Session name").fill("door frame")
+    page.get_by_role("button", name="Create").click()
+    expect(page.locator("#session-title")).to_have_text("Session door frame")
+    expect(page.locator("#step-inputs .needs")).to_have_text("Needs a recording and a scan.")
+    expect(page.locator("#steps li")).to_have_text(
+        ["Inputs", "Calibration", "Reconstruct", "Plan", "Dry run", "Run"]
+    )
+    expect(page.get_by_role("button", name="Reconstruct")).to_be_disabled()
+    expect(page.get_by_role("button", name="Dry run")).to_be_disabled()
+    expect(page.get_by_role("button", name="Run on arm")).to_be_disabled()
+    pendant.shot("new-session")
+    page.on("dialog", lambda dialog: dialog.accept())
+    page.get_by_role("button", name="Delete door frame").click()
+    expect(page.locator("#session-list li", has_text="door frame")).to_have_count(0)
+    expect(page.locator("#session-view")).to_be_hidden()
+
+
+def test_uploads_show_the_422_inline_and_then_take_good_files(pendant, scene_files):
+    page = pendant.page
+    pendant.guard.allow(422, "/recording")
+    pendant.open()
+    page.get_by_label("Session name").fill("uploads")
+    page.get_by_role("button", name="Create").click()
+    expect(page.locator("#session-title")).to_have_text("Session uploads")
+    recording = page.locator("#recording-form")
+    recording.get_by_label("File", exact=True).set_input_files(
+        {"name": "trace.csv", "mimeType": "text/csv", "buffer": b"t,x,y\nnot,a,trace\n"}
+    )
+    recording.get_by_role("button", name="Upload recording").click()
+    message = recording.locator(".message")
+    expect(message).to_have_attribute("data-code", re.compile(r"invalid_file|invalid_request"))
+    expect(message).to_contain_text("check its format and units")
+    expect(page.locator("#recording-current")).to_have_text("none yet")
+    pendant.shot("upload-refused")
+
+    recording.get_by_label("File", exact=True).set_input_files(
+        {"name": "trace.csv", "mimeType": "text/csv", "buffer": scene_files["trace"]}
+    )
+    recording.get_by_label(re.compile("^Units")).select_option("m")
+    recording.get_by_role("button", name="Upload recording").click()
+    expect(message).to_have_text("trace.csv uploaded.")
+    expect(page.locator("#recording-current")).to_contain_text("samples")
+    scan = page.locator("#scan-form")
+    scan.get_by_label("File", exact=True).set_input_files(
+        {"name": "scan.ply", "mimeType": "application/octet-stream", "buffer": scene_files["scan"]}
+    )
+    scan.get_by_label(re.compile("^Format")).select_option("ply")
+    scan.get_by_role("button", name="Upload scan").click()
+    expect(page.locator("#scan-current")).to_contain_text("points")
+    expect(page.locator("#steps li[data-step=inputs]")).to_have_class("done")
+    expect(page.locator("#step-calibration .needs")).to_contain_text("T_base_tracker")
+    expect(page.get_by_role("button", name="Reconstruct")).to_be_enabled()
+    expect(page.get_by_role("button", name="Plan")).to_be_disabled()
+    pendant.shot("uploaded")
+
+
+def canvas_pixels(page) -> dict:
+    """What the WebGL canvas shows: its size, the distinct colours and the non-background share."""
+    return page.evaluate(
+        """() => {
+        const source = document.querySelector('#workspace canvas');
+        const copy = document.createElement('canvas');
+        copy.width = source.width; copy.height = source.height;
+        const ctx = copy.getContext('2d');
+        ctx.drawImage(source, 0, 0);
+        const data = ctx.getImageData(0, 0, copy.width, copy.height).data;
+        const colours = new Set(); let drawn = 0;
+        for (let i = 0; i < data.length; i += 4) {
+          const c = (data[i] << 16) | (data[i + 1] << 8) | data[i + 2];
+          colours.add(c);
+          if (c !== 0xf6f7f9) drawn++;
+        }
+        return {width: copy.width, height: copy.height, colours: colours.size,
+                drawn: drawn / (data.length / 4)};
+    }"""
+    )
+
+
+def test_demo_session_from_reconstruction_to_the_run_refusal(pendant):
+    page = pendant.page
+    pendant.guard.allow(409, "/executions")
+    posts = []
+    page.on(
+        "request",
+        lambda r: posts.append(r.url.split("/")[-1]) if r.method == "POST" else None,
+    )
+    pendant.open()
+    page.get_by_role("button", name="demo", exact=True).click()
+    expect(page.locator("#session-title")).to_have_text("Session demo")
+    expect(page.locator("#steps li[data-step=inputs]")).to_have_class("done")
+    expect(page.locator("#steps li[data-step=calibration]")).to_have_class("done")
+    expect(page.locator("#step-reconstruct .needs")).to_contain_text("press Reconstruct")
+
+    # Reconstruct: the parameters come from the API's schema, with their units and ranges.
+    radius = page.locator("#recon-radius_m")
+    expect(radius).to_have_value("0.008")
+    expect(radius).to_have_attribute("max", "0.2")
+    expect(page.locator("label[for=recon-radius_m] .hint")).to_contain_text("m")
+    expect(page.locator("#recon-method")).to_have_value("anchored")
+    expect(page.locator("#recon-alpha")).to_have_value("auto")
+    radius.fill("0.01")
+    pendant.shot("reconstruct-params")
+    button = page.get_by_role("button", name="Reconstruct")
+    button.click()
+    expect(button).to_be_disabled()
+    expect(page.locator("#reconstruct-form .job-state")).to_contain_text("running")
+    expect(page.locator("#steps li[data-step=reconstruct]")).to_have_class(re.compile("running"))
+    pendant.shot("reconstructing")
+    expect(page.locator("#reconstruct-summary")).to_contain_text("max displacement", timeout=90_000)
+    expect(button).to_be_enabled()
+    assert posts.count("reconstructions") == 1
+    expect(page.locator("#reconstruct-form .job-state")).to_have_text("succeeded 100 %")
+    pendant.shot("reconstructed")
+
+    # Plan: the speed slider stops at the server's cap.
+    speed = page.locator("#plan-speed")
+    expect(speed).to_have_attribute("max", "0.25")
+    speed.fill("0.08")
+    expect(page.locator("#plan-speed-value")).to_have_text("80 mm/s")
+    expect(page.locator("#plan-speed-cap")).to_contain_text("250 mm/s")
+    page.get_by_role("button", name="Plan").click()
+    summary = page.locator("#plan-summary")
+    expect(summary.locator("tr[data-phase=process]")).to_be_visible(timeout=60_000)
+    expect(summary).to_contain_text("80 mm/s")
+    expect(summary.locator(".report")).not_to_be_empty()
+    assert posts.count("trajectories") == 1
+    expect(page.get_by_role("button", name="Run on arm")).to_be_disabled()
+    expect(page.locator("#step-run .needs")).to_contain_text("passed dry run")
+    pendant.shot("planned")
+
+    # A dry run moves no arm: no Stop button (the simulated run cannot be stopped either).
+    stop = page.get_by_role("button", name="Stop")
+    dry = page.get_by_role("button", name="Dry run")
+    # A full dry run: passed, and only now may the run be asked for.
+    dry.click()
+    expect(dry).to_be_disabled()
+    expect(page.locator("#dryrun-form .job-state")).to_contain_text("running")
+    expect(stop).to_be_hidden()
+    pendant.shot("dry-running")
+    expect(page.locator("#dryrun-summary")).to_contain_text("passed", timeout=60_000)
+    assert posts.count("executions") == 1
+    expect(page.locator("#steps li[data-step=dryrun]")).to_have_class("done")
+    run = page.get_by_role("button", name="Run on arm")
+    expect(run).to_be_enabled()
+    # Another mode has no dry run of its own.
+    page.get_by_label(re.compile("^Mode")).select_option("movepath")
+    expect(run).to_be_disabled()
+    page.get_by_label(re.compile("^Mode")).select_option("servoj")
+    expect(run).to_be_enabled()
+    pendant.shot("dry-run-passed")
+
+    # The workspace draws the scan, trace, reconstruction and path.
+    page.wait_for_function("document.querySelector('#legend-max').textContent.endsWith('mm')")
+    pixels = canvas_pixels(page)
+    assert pixels["width"] > 300 and pixels["colours"] > 5 and pixels["drawn"] > 0.002, pixels
+
+    # Run on arm: a confirmation first; cancelling sends nothing.
+    run.click()
+    dialog = page.locator("#confirm-dialog")
+    expect(dialog).to_be_visible()
+    expect(dialog).to_contain_text("ur5e")
+    expect(dialog).to_contain_text("80 mm/s")
+    expect(dialog).to_contain_text("process")
+    expect(dialog).to_contain_text("approach")
+    pendant.shot("confirm")
+    dialog.get_by_role("button", name="Cancel").click()
+    expect(dialog).to_be_hidden()
+    assert posts.count("executions") == 1
+    run.click()
+    dialog.get_by_role("button", name="Confirm: run on arm").click()
+    # This server has no real arm: the refusal is shown as what to do about it.
+    message = page.locator("#run-form .message")
+    expect(message).to_have_attribute("data-code", "no_robot")
+    expect(message).to_contain_text("TEACHPATH_UR_HOST")
+    assert posts.count("executions") == 2
+    expect(page.locator("#step-run .needs")).to_contain_text("Run on arm")
+    pendant.shot("run-refused")
