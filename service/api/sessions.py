@@ -7,7 +7,7 @@ from typing import Literal
 from fastapi import APIRouter, File, Form, Response, UploadFile
 
 from service import inputs
-from service.api.common import read_upload
+from service.api.common import received
 from service.api.deps import ServicesDep
 from service.schemas import (
     ArtifactOut,
@@ -74,12 +74,13 @@ async def pivot_calibration(
 ) -> dict:
     """Pivot calibration: the tip offset from a recording where the tip stays on one point
     while the pen tilts in every direction. Sets the session's tip_offset_m."""
-    row, result = await inputs.pivot_calibration(
-        services,
-        session_id,
-        await read_upload(file, services),
-        inputs.TraceOptions(format=format, units=units, rigid_body=rigid_body),
-    )
+    async with received(file, services) as upload:
+        row, result = await inputs.pivot_calibration(
+            services,
+            session_id,
+            upload,
+            inputs.TraceOptions(format=format, units=units, rigid_body=rigid_body),
+        )
     return {"session": row, "result": result}
 
 
