@@ -130,6 +130,30 @@ class ResourceLimitError(InputFileError):
         self.value = value
         self.setting = setting
 
+    @property
+    def detail(self) -> dict | None:
+        """The limit as data (the ``detail`` of an error response), or None if unknown (an error
+        that crossed from a child process keeps its message only)."""
+        if self.limit is None and self.setting is None:
+            return None
+        return {"limit": self.limit, "value": self.value, "setting": self.setting}
+
+
+class InputTooLargeError(ResourceLimitError):
+    """An input that needs more than a limit someone configured allows: pixels, memory or time.
+
+    Unlike a plain :class:`ResourceLimitError` (a limit scaled to the file, which only a damaged
+    file reaches), the input may be sound and the limit a choice: the message names the limit and
+    the setting or option that sets it. The service answers 413.
+
+    Attributes
+    ----------
+    limit : {"time", "memory", "pixels", "unpacked"} or None
+    value : float or None
+        The limit (seconds, bytes of address space, pixels, or bytes unpacked from a zip).
+    setting : str or None
+    """
+
 
 class ReaderCrashError(InputFileError):
     """A reader's child process died without an answer (a signal, or an exit of native code).
@@ -188,6 +212,7 @@ WIRE_ERRORS: dict[str, type[Exception]] = {
         DriverError,
         InputFileError,
         ResourceLimitError,
+        InputTooLargeError,
         ReaderCrashError,
         UnknownFormatError,
         UnknownBackendError,

@@ -14,7 +14,13 @@ without rewriting ``PYTHONPATH``), and
   terminal or log; the last lines are kept on the error when the child crashes;
 * hands its result back as an ``.npz`` file read with ``allow_pickle=False``, and its errors as a
   class name and a message (:func:`drivers.errors.error_from_wire`): nothing the child sends is
-  unpickled, so even a child taken over through a parser bug cannot run code in the parent.
+  unpickled, so even a child taken over through a parser bug cannot run code in the parent;
+* reports what it used (:class:`Usage`: its peak resident memory and address space) to a caller
+  that asks (``on_usage``), so a test can show that a parse stayed within its bound.
+
+A child started from a process that is itself under a lower address-space limit (a parse that
+runs the bag reader, which isolates itself again) cannot raise it: it runs under the lower one,
+and the memory error names that one.
 
 Why not ``multiprocessing``'s spawn method: its children run the parent's ``__main__`` module
 again, so a script without an ``if __name__ == "__main__":`` guard could not read a C3D file any
@@ -49,7 +55,8 @@ import signal
 import subprocess
 import sys
 import tempfile
-from collections.abc import Mapping
+import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -102,6 +109,31 @@ class Limits:
             raise ValueError(f"memory_bytes must be positive or None, got {self.memory_bytes}")
 
 
+@dataclass(frozen=True)
+class Usage:
+    """What a child used, as it reported it before it ended.
+
+    Attributes
+    ----------
+    wall_s : float
+        From its start to its end (or its kill), measured by the parent.
+    peak_rss_bytes : int or None
+        Its largest resident set (``getrusage``; its own children included); None when it wrote
+        no report (killed, crashed).
+    peak_address_space_bytes : int or None
+        Its largest address space (``VmPeak``, what ``RLIMIT_AS`` bounds); None where the
+        platform does not say, or without a report.
+    memory_limit_bytes : int or None
+        The address-space limit it ran under (lower than asked for if its parent had a lower
+        one); None: no limit.
+    """
+
+    wall_s: float
+    peak_rss_bytes: int | None = None
+    peak_address_space_bytes: int | None = None
+    memory_limit_bytes: int | None = None
+
+
 def run_isolated(
     target: str,
     args: tuple = (),
@@ -109,6 +141,7 @@ def run_isolated(
     *,
     limits: Limits | None = None,
     what: str | None = None,
+    on_usage: Callable[[Usage], None] | None = None,
 ) -> dict[str, Any]:
     """Call ``target(*args, **kwargs)`` in a fresh child process and return its arrays.
 
@@ -122,6 +155,9 @@ def run_isolated(
         Time and memory bounds; default :class:`Limits` ().
     what : str, optional
         What runs, for messages ("the C3D reader"); default ``target``.
+    on_usage : callable, optional
+        Called with the child's :class:`Usage` once it has ended, whatever the outcome (before
+        an error is raised).
 
     Returns
     -------
@@ -163,6 +199,7 @@ def run_isolated(
         )
         output_path = Path(tmp) / _OUTPUT
         env = {**os.environ, **{var: "1" for var in _ONE_THREAD}}
+        started = time.monotonic()
         with output_path.open("wb") as output:
             process = subprocess.Popen(
                 [sys.executable, "-I", "-c", _BOOTSTRAP],
@@ -182,6 +219,9 @@ def run_isolated(
                 process.kill()
                 process.wait()
         status = _read_status(Path(tmp) / _STATUS)
+        if on_usage is not None:
+            on_usage(_usage(status, time.monotonic() - started, limits.memory_bytes))
+        memory_limit = (status or {}).get("limit_bytes", limits.memory_bytes)
         if status is None and timed_out:
             raise ResourceLimitError(
                 f"{what} did not finish within {limits.time_s:g} s, its time limit "
@@ -200,18 +240,35 @@ def run_isolated(
                 fallback=lambda text: InputFileError(f"{what} failed unexpectedly ({text})"),
             )
         if status.get("memory"):
-            mb = (limits.memory_bytes or 0) / 2**20
+            mb = (memory_limit or 0) / 2**20
             raise ResourceLimitError(
                 f"{what} needed more memory than its limit of {mb:.0f} MB "
                 f"({limits.memory_setting})",
                 limit="memory",
-                value=limits.memory_bytes,
+                value=memory_limit,
                 setting=limits.memory_setting,
             )
         if not (Path(tmp) / _RESULT).is_file():
             return {}
         with np.load(Path(tmp) / _RESULT, allow_pickle=False) as data:
             return {key: data[key] for key in data.files}
+
+
+def _usage(status: dict | None, wall_s: float, asked_bytes: int | None) -> Usage:
+    """The child's report (in its status) as a :class:`Usage`."""
+    report = (status or {}).get("usage") or {}
+
+    def number(key: str) -> int | None:
+        value = report.get(key)
+        return int(value) if isinstance(value, (int, float)) else None
+
+    limit = (status or {}).get("limit_bytes", asked_bytes)
+    return Usage(
+        wall_s=wall_s,
+        peak_rss_bytes=number("rss"),
+        peak_address_space_bytes=number("vm"),
+        memory_limit_bytes=int(limit) if isinstance(limit, (int, float)) else None,
+    )
 
 
 def _read_status(path: Path) -> dict | None:
@@ -273,16 +330,16 @@ _BOOTSTRAP = (
     "from drivers.isolation import _child_main; _child_main(spec)"
 )
 
-#: Written when the child ran out of memory; made before the limit is set, as there may be no
-#: memory left to make it then.
-_MEMORY_STATUS = json.dumps({"memory": True}).encode()
-_OK_STATUS = json.dumps({"ok": True}).encode()
+#: Statuses made in advance: a child out of memory may have none left to make them.
+_OK, _MEMORY = {"ok": True}, {"memory": True}
+_OK_STATUS = json.dumps(_OK).encode()
 
 
 def _child_main(spec: dict) -> None:  # pragma: no cover - runs in the child process
     """Set the limits, run the call, write its arrays and its status (see the module docstring)."""
     folder = Path(spec["dir"])
-    _confine(spec["memory_bytes"], spec["parent_pid"])
+    limit = _confine(spec["memory_bytes"], spec["parent_pid"])
+    memory_status = json.dumps({**_MEMORY, "limit_bytes": limit}).encode()
     try:
         target, args, kwargs = pickle.loads(spec["call"])
         from drivers.registry import import_target
@@ -290,17 +347,22 @@ def _child_main(spec: dict) -> None:  # pragma: no cover - runs in the child pro
         function = import_target(target)
         result = function(*args, **kwargs)
         _save(result, folder / _RESULT)
-        status = _OK_STATUS
+        status = _OK
     except MemoryError:
-        status = _MEMORY_STATUS
+        status = _MEMORY
     except BaseException as exc:  # noqa: BLE001 - every failure is reported, by class name
         try:
-            status = json.dumps({"error": error_to_wire(_named(exc, spec["what"]))}).encode()
+            status = {"error": error_to_wire(_named(exc, spec["what"]))}
         except MemoryError:
-            status = _MEMORY_STATUS
+            status = _MEMORY
+    try:
+        # The failed allocation was not made, so there is memory for the report again.
+        encoded = json.dumps({**status, "limit_bytes": limit, "usage": _own_usage()}).encode()
+    except MemoryError:
+        encoded = _OK_STATUS if status.get("ok") else memory_status
     # Written whole and then renamed: the parent reads a status or none, never half of one.
     partial = folder / (_STATUS + ".partial")
-    partial.write_bytes(status)
+    partial.write_bytes(encoded)
     partial.rename(folder / _STATUS)
 
 
@@ -314,8 +376,41 @@ def _named(error: BaseException, what: str) -> BaseException:  # pragma: no cove
     return error
 
 
-def _confine(memory_bytes: int | None, parent_pid: int) -> None:  # pragma: no cover - child
-    """Signals and limits of the child, set before the call is unpickled and its module loaded."""
+def _own_usage() -> dict:  # pragma: no cover - runs in the child process
+    """Peak resident set (its own children's included) and peak address space, bytes.
+
+    The process's own peak is ``VmHWM``, not ``getrusage``: Linux carries ``ru_maxrss`` across
+    ``exec``, so it would include the parent's size at the fork.
+    """
+    usage: dict = {}
+    try:
+        with open("/proc/self/status") as handle:
+            for line in handle:
+                key, _, value = line.partition(":")
+                if key in ("VmHWM", "VmPeak"):
+                    usage["rss" if key == "VmHWM" else "vm"] = int(value.split()[0]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        import resource
+
+        # ru_maxrss is in KiB on Linux, bytes on macOS.
+        scale = 1 if sys.platform == "darwin" else 1024
+        if "rss" not in usage:
+            usage["rss"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale
+        children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * scale
+        usage["rss"] = max(usage["rss"], children)
+    except (ImportError, OSError):
+        pass
+    return usage
+
+
+def _confine(memory_bytes: int | None, parent_pid: int) -> int | None:  # pragma: no cover - child
+    """Signals and limits of the child, set before the call is unpickled and its module loaded.
+
+    Returns the address-space limit in force: ``memory_bytes``, or the lower one this process
+    inherited (which it cannot raise), or None.
+    """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the group; the parent decides
     if sys.platform.startswith("linux"):
         try:
@@ -329,14 +424,37 @@ def _confine(memory_bytes: int | None, parent_pid: int) -> None:  # pragma: no c
             os._exit(1)
     try:
         import resource
-
+    except ImportError:
+        return None  # no limit where the platform does not offer one
+    try:
         resource.setrlimit(resource.RLIMIT_CORE, (0, 0))  # a crash leaves no core file behind
-        if memory_bytes is not None:
-            resource.setrlimit(resource.RLIMIT_AS, (memory_bytes, memory_bytes))
-            # Nor can it fill the disk: what it writes (its arrays) fits in its memory.
-            resource.setrlimit(resource.RLIMIT_FSIZE, (memory_bytes, memory_bytes))
-    except (ImportError, ValueError, OSError):
-        pass  # no limit where the platform does not offer one
+    except (ValueError, OSError):
+        pass
+    inherited = _hard_limit(resource, resource.RLIMIT_AS)
+    if memory_bytes is None:
+        return inherited
+    memory_bytes = memory_bytes if inherited is None else min(memory_bytes, inherited)
+    try:
+        resource.setrlimit(resource.RLIMIT_AS, (memory_bytes, memory_bytes))
+    except (ValueError, OSError):
+        return inherited
+    try:
+        # Nor can it fill the disk: what it writes (its arrays) fits in its memory.
+        written = _hard_limit(resource, resource.RLIMIT_FSIZE)
+        cap = memory_bytes if written is None else min(memory_bytes, written)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (cap, cap))
+    except (ValueError, OSError):
+        pass
+    return memory_bytes
+
+
+def _hard_limit(resource, which: int) -> int | None:  # pragma: no cover - child
+    """The hard limit ``which`` of this process, None if unlimited."""
+    try:
+        hard = resource.getrlimit(which)[1]
+    except (ValueError, OSError):
+        return None
+    return None if hard == resource.RLIM_INFINITY else int(hard)
 
 
 def _save(result, path: Path) -> None:  # pragma: no cover - runs in the child process

@@ -64,19 +64,27 @@ class PivotCalibration:
 
     def poor_fit(self, tolerance_m: float) -> str | None:
         """Why this pivot is not to be trusted at ``tolerance_m`` (RMS), or None."""
-        length_m = float(np.linalg.norm(self.tip_offset_m))
-        if length_m > MAX_TIP_OFFSET_M:
-            return (
-                f"the tip is {length_m * 1e3:.0f} mm from the rigid body, more than a pen's "
-                f"{MAX_TIP_OFFSET_M * 1e3:.0f} mm: the tip slipped, or the units are wrong"
-            )
-        if self.residual_rms_m > tolerance_m:
-            return (
-                f"the tip stayed within {self.residual_rms_m * 1e3:.2f} mm RMS of one point, "
-                f"worse than the {tolerance_m * 1e3:.2f} mm tolerance: hold the tip still in a "
-                "dimple and pivot again"
-            )
-        return None
+        return pivot_fit_problem(self.tip_offset_m, self.residual_rms_m, tolerance_m)
+
+
+def pivot_fit_problem(
+    tip_offset_m: FloatArray, residual_rms_m: float, tolerance_m: float
+) -> str | None:
+    """Why a pivot with this tip offset (3,) and RMS residual (m) is not to be trusted at
+    ``tolerance_m``, or None."""
+    length_m = float(np.linalg.norm(tip_offset_m))
+    if length_m > MAX_TIP_OFFSET_M:
+        return (
+            f"the tip is {length_m * 1e3:.0f} mm from the rigid body, more than a pen's "
+            f"{MAX_TIP_OFFSET_M * 1e3:.0f} mm: the tip slipped, or the units are wrong"
+        )
+    if residual_rms_m > tolerance_m:
+        return (
+            f"the tip stayed within {residual_rms_m * 1e3:.2f} mm RMS of one point, worse than "
+            f"the {tolerance_m * 1e3:.2f} mm tolerance: hold the tip still in a dimple and "
+            "pivot again"
+        )
+    return None
 
 
 def pivot_calibration(

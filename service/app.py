@@ -161,7 +161,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.include_router(health.router)
     protected = [Depends(require_token)]
-    documented = {status: {"model": ErrorBody} for status in (401, 404, 409, 413, 422)}
+    documented = {status: {"model": ErrorBody} for status in (401, 404, 409, 413, 422, 503)}
     for router in (
         robot.router,
         sessions.router,

@@ -30,7 +30,8 @@ FSYNC_EVERY_S = 0.5
 class CaptureRunner:
     """Pulls batches from ``source`` in a thread until stopped or exhausted.
 
-    ``finalize(capture_id, state, error)`` is called once at the end (in the runner's thread).
+    ``finalize(capture_id, state, error)`` is called once at the end (in the runner's thread);
+    ``kind`` is the source's kind ("replay", "natnet"), by which live captures are counted.
     """
 
     def __init__(
@@ -39,9 +40,12 @@ class CaptureRunner:
         capture_id: str,
         source: TrackerSource,
         finalize: Callable[[str, str, str | None], None],
+        *,
+        kind: str = "replay",
     ) -> None:
         self.store, self.capture_id, self.source = store, capture_id, source
         self.finalize = finalize
+        self.kind = kind
         self.thread = threading.Thread(target=self._run, name=f"capture {capture_id}", daemon=True)
 
     def start(self) -> None:

@@ -3,9 +3,16 @@
 The samples go to a file as they arrive (:mod:`service.capture_runner`); when the capture stops,
 the source ends or the service restarts after a crash, the file is cleaned into an immutable
 recording that becomes the session's current one.
+
+A live capture (NatNet) runs a receiver process of its own, so at most ``max_live_captures``
+run at once (ten had the service at twelve processes): one more is a 409 ``too_many_captures``
+until one stops. Its ``local`` address must be one of this machine's interfaces, checked by
+binding to it before the capture starts (the wildcard 0.0.0.0 is refused by the schema).
 """
 
 from __future__ import annotations
+
+import socket
 
 import numpy as np
 
@@ -15,9 +22,12 @@ from service import tasks
 from service.artifacts import ID_PREFIX, RecordingCodec
 from service.capture_runner import CaptureRunner, read_capture_file
 from service.core import Services
-from service.errors import not_found
+from service.errors import ApiError, not_found
 from service.schemas import CaptureCreate
 from service.store import CaptureRow, SessionDeletedError, new_id
+
+#: Source kinds that run a receiver process of their own (counted against max_live_captures).
+LIVE_KINDS = frozenset({"natnet"})
 
 
 def _source_for(services: Services, session_id: str, source_request):
@@ -36,18 +46,64 @@ def _source_for(services: Services, session_id: str, source_request):
     return create_source(source_request.source_config())
 
 
+def check_local_interface(address: str) -> None:
+    """Refuse a ``local`` address that is not one of this machine's (a socket cannot bind it).
+
+    Raises
+    ------
+    ApiError
+        422 ``invalid_request``, naming the address and what to give instead.
+    """
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind((address, 0))
+        except OSError as exc:
+            raise ApiError(
+                422,
+                "invalid_request",
+                f"source.local: {address!r} is not an address of this machine ({exc.strerror}); "
+                "give the address of its interface on the tracker's network (or 127.0.0.1 for a "
+                "server on this machine)",
+            ) from None
+
+
 def start(services: Services, session_id: str, request: CaptureCreate) -> CaptureRow:
-    """Start capturing from the request's source."""
+    """Start capturing from the request's source.
+
+    Raises
+    ------
+    ApiError
+        404 for an unknown session or recording, 422 for a ``local`` address that is not this
+        machine's, 409 ``too_many_captures`` when ``max_live_captures`` live ones run already.
+    """
     services.session(session_id)
+    kind = request.source.kind
+    if kind in LIVE_KINDS:
+        check_local_interface(request.source.local)
     source = _source_for(services, session_id, request.source)
-    row = services.store.create_capture(session_id, request.source.model_dump())
-    runner = CaptureRunner(
-        services.store,
-        row.id,
-        source,
-        lambda capture_id, state, error: finish(services, capture_id, state, error),
-    )
+    cap = services.settings.max_live_captures
     with services.live.lock:
+        # Counted and registered under one lock: two requests at once cannot both take the
+        # last place.
+        running = sum(1 for r in services.live.captures.values() if r.kind in LIVE_KINDS)
+        if kind in LIVE_KINDS and running >= cap:
+            source.close()
+            raise ApiError(
+                409,
+                "too_many_captures",
+                f"{running} live capture(s) are running, the most allowed at once "
+                f"(TEACHPATH_MAX_LIVE_CAPTURES = {cap}); stop one (POST "
+                f"/sessions/{session_id}/captures/{{capture_id}}/stop) before starting another",
+                detail={"running": running, "limit": cap},
+            )
+        row = services.store.create_capture(session_id, request.source.model_dump())
+        runner = CaptureRunner(
+            services.store,
+            row.id,
+            source,
+            lambda capture_id, state, error: finish(services, capture_id, state, error),
+            kind=kind,
+        )
         services.live.captures[row.id] = runner
     runner.start()
     return row

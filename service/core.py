@@ -17,6 +17,7 @@ from service.jobs import JobManager
 from service.robot import RobotWatch
 from service.settings import Settings
 from service.store import ArtifactRow, SessionRow, Store
+from service.uploads import UploadBudget
 
 
 @dataclass
@@ -62,6 +63,8 @@ class Services:
     robot : RobotWatch
         The arm's state, read all the time.
     live : LiveRunners
+    uploads : UploadBudget
+        The bytes of uploads in flight (default: capped at ``settings.max_uploads_in_flight_mb``).
     """
 
     settings: Settings
@@ -70,6 +73,11 @@ class Services:
     token: str
     robot: RobotWatch
     live: LiveRunners = field(default_factory=LiveRunners)
+    uploads: UploadBudget | None = None
+
+    def __post_init__(self) -> None:
+        if self.uploads is None:
+            self.uploads = UploadBudget(self.settings.max_uploads_in_flight_mb)
 
     def session(self, session_id: str) -> SessionRow:
         """The session, or a 404."""

@@ -24,11 +24,17 @@ log = logging.getLogger("teachpath.service")
 
 
 class ApiError(Exception):
-    """An error of the API itself (not found, conflict, refused), with its status and code."""
+    """An error of the API itself (not found, conflict, refused), with its status and code.
 
-    def __init__(self, status: int, code: str, message: str, detail=None) -> None:
+    ``headers`` go on the response (``Retry-After`` on a 503).
+    """
+
+    def __init__(
+        self, status: int, code: str, message: str, detail=None, headers: dict | None = None
+    ) -> None:
         super().__init__(message)
         self.status, self.code, self.message, self.detail = status, code, message, detail
+        self.headers = dict(headers or {})
 
 
 def not_found(what: str, ident: str) -> ApiError:
@@ -62,6 +68,9 @@ ERROR_MAP: list[tuple[type[Exception], int, str]] = [
     # Before UnknownFormatError and UnknownBackendError, which it subclasses: a package missing
     # on the server is the server's fault, not the request's.
     (driver_errors.MissingDependencyError, 501, "missing_dependency"),
+    # Before InputFileError: the input may be sound, but it needs more than a configured limit
+    # allows (pixels, or the memory or time of its parse); the message names the setting.
+    (driver_errors.InputTooLargeError, 413, "input_too_large"),
     (driver_errors.InputFileError, 422, "invalid_file"),
     (driver_errors.UnknownFormatError, 422, "unknown_format"),
     (driver_errors.TrajectoryMismatchError, 409, "trajectory_mismatch"),
@@ -139,7 +148,8 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(ApiError)
     async def _api(request: Request, error: ApiError):
-        headers = {"WWW-Authenticate": "Bearer"} if error.status == 401 else None
+        headers = {"WWW-Authenticate": "Bearer"} if error.status == 401 else {}
+        headers.update(error.headers)
         return respond(
             error.status,
             {"code": error.code, "message": error.message, "detail": error.detail},

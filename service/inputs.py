@@ -1,11 +1,16 @@
 """Inputs of a session: uploaded recordings and scans, and its calibrations.
 
-Uploads are parsed in a worker process (Open3D's readers hold the GIL); a file that cannot be
-read is a 422 that changes nothing. The upload workflows are coroutines (they await the parse),
+Uploads are parsed in a worker process (Open3D's readers hold the GIL), which hands each to a
+child process of its own under the memory and time limits of the settings
+(``max_parse_memory_mb``, ``max_scan_decode_s``, ``max_trace_parse_s``; see
+:func:`service.tasks.parse_in_child`); a file that cannot be read is a 422, one past a limit a
+413, and neither changes anything. The upload workflows are coroutines (they await the parse),
 so their database and file work runs in the thread pool, never on the event loop. Each upload
-becomes an immutable artifact and the session's current recording or scan; the original bytes
-are kept beside it. Calibrations are fields of the session, and how each was obtained (the
-residuals of its fit) goes into its calibration report.
+becomes an immutable artifact and the session's current recording or scan, with the original
+bytes kept beside it, in one step: the artifact is recorded only once its arrays and the bytes
+are on disk, together with the session's update, and nothing is left behind if any of that
+fails. Calibrations are fields of the session, and how each was obtained (the residuals of its
+fit) goes into its calibration report.
 """
 
 from __future__ import annotations
@@ -21,15 +26,47 @@ from service import pipelines, tasks
 from service.artifacts import ID_PREFIX
 from service.core import Services
 from service.schemas import BaseCalibrationIn, CalibrationIn
+from service.settings import Settings
 from service.store import ArtifactRow, SessionRow, new_id, now
+from service.uploads import storage_name
 
 
 @dataclass(frozen=True)
 class Upload:
-    """A file as it arrived: its bytes and the name the client gave it."""
+    """A file as it arrived: its bytes and its name (cleaned, see
+    :func:`service.uploads.clean_filename`)."""
 
     content: bytes
     filename: str
+
+
+def trace_parse_limits(settings: Settings) -> tasks.ParseLimits:
+    """The bounds of a trace upload's parse, from the settings."""
+    return tasks.ParseLimits(
+        time_s=settings.max_trace_parse_s,
+        memory_mb=settings.max_parse_memory_mb,
+        time_setting="TEACHPATH_MAX_TRACE_PARSE_S",
+        memory_setting="TEACHPATH_MAX_PARSE_MEMORY_MB",
+    )
+
+
+def scan_parse_limits(settings: Settings) -> tasks.ParseLimits:
+    """The bounds of a scan upload's parse, from the settings."""
+    return tasks.ParseLimits(
+        time_s=settings.max_scan_decode_s,
+        memory_mb=settings.max_parse_memory_mb,
+        time_setting="TEACHPATH_MAX_SCAN_DECODE_S",
+        memory_setting="TEACHPATH_MAX_PARSE_MEMORY_MB",
+    )
+
+
+#: Scan reader options bounded by the settings, and the settings (named in messages).
+SCAN_LIMIT_SETTINGS = {
+    "max_unpacked_mb": ("max_scan_unpacked_mb", "TEACHPATH_MAX_SCAN_UNPACKED_MB"),
+    "timeout_s": ("max_scan_decode_s", "TEACHPATH_MAX_SCAN_DECODE_S"),
+    "max_frame_pixels": ("max_scan_frame_pixels", "TEACHPATH_MAX_SCAN_FRAME_PIXELS"),
+    "max_pixels": ("max_scan_pixels", "TEACHPATH_MAX_SCAN_PIXELS"),
+}
 
 
 @dataclass(frozen=True)
@@ -51,19 +88,16 @@ def _tip_for(session: SessionRow, marker: str | None):
     return tuple(session.tip_offset_m)
 
 
-def _keep_upload(services: Services, artifact_id: str, upload: Upload) -> None:
-    """The original bytes too: raw inputs are kept as they came."""
-    safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in Path(upload.filename).name)
-    services.store.write_bytes(f"uploads/{artifact_id}/{safe or 'upload'}", upload.content)
-
-
 async def add_recording(
     services: Services, session_id: str, upload: Upload, options: TraceOptions
 ) -> ArtifactRow:
     """Parse an uploaded trace and make it the session's recording."""
     session = await run_in_threadpool(services.session, session_id)
     tip = _tip_for(session, options.marker)
-    arrays, summary = await services.jobs.run(
+    artifact_id = new_id(ID_PREFIX["recording"])
+    summary = await _parsed(
+        services,
+        artifact_id,
         tasks.ParseRecording(
             content=upload.content,
             filename=upload.filename,
@@ -73,7 +107,9 @@ async def add_recording(
             marker=options.marker,
             tip_offset_m=tip,
             piece=options.piece,
-        )
+            parse_limits=trace_parse_limits(services.settings),
+            out_path=services.array_path(artifact_id),
+        ),
     )
     params = {
         "format": summary["format"],
@@ -84,33 +120,48 @@ async def add_recording(
         "tip_offset_m": list(tip) if tip and summary["tip_offset_applied"] else None,
     }
     return await run_in_threadpool(
-        _store_upload, services, session_id, "recording", upload, arrays, params, summary
+        _store_upload, services, session_id, "recording", artifact_id, upload, params, summary
     )
+
+
+async def _parsed(services: Services, artifact_id: str, task) -> dict:
+    """Run an upload's parse task, whose child writes the arrays at the artifact's path; its
+    summary. The arrays never pass through this process (a 24 MB float PLY is 48 MB of points),
+    and a parse that fails leaves no file (nor the partial one of a child ended mid-write)."""
+    try:
+        _, summary = await services.jobs.run(task)
+    except BaseException:
+        final = Path(services.array_path(artifact_id))
+        for path in (final, *final.parent.glob(f".{final.name}.*")):  # see drivers.files
+            path.unlink(missing_ok=True)
+        raise
+    return summary
 
 
 def _store_upload(
     services: Services,
     session_id: str,
     kind: str,
+    artifact_id: str,
     upload: Upload,
-    arrays: dict,
     params: dict,
     summary: dict,
 ) -> ArtifactRow:
-    """Record a parsed upload as the session's current recording or scan, with its bytes."""
-    artifact_id = new_id(ID_PREFIX[kind])
-    row = services.store.add_arrays_artifact(
+    """Record a parsed upload, whose arrays its parse wrote, as the session's current recording
+    or scan, with its bytes (the original bytes too: raw inputs are kept as they came), all or
+    nothing."""
+    return services.store.add_upload_artifact(
         artifact_id=artifact_id,
         session_id=session_id,
         kind=kind,
-        arrays=arrays,
+        arrays=None,
+        upload_path=f"uploads/{artifact_id}/{storage_name(upload.filename)}",
+        content=upload.content,
+        session_fields={f"{kind}_id": artifact_id},
         params=params,
         summary=summary,
         source_name=upload.filename,
     )
-    _keep_upload(services, artifact_id, upload)
-    services.store.update_session(session_id, **{f"{kind}_id": artifact_id})
-    return row
 
 
 async def add_scan(
@@ -126,11 +177,11 @@ async def add_scan(
     await run_in_threadpool(services.session, session_id)
     settings = services.settings
     # A client may lower the reader's resource limits, not raise them past the server's.
-    limits = {
-        "max_unpacked_mb": settings.max_scan_unpacked_mb,
-        "timeout_s": settings.max_scan_decode_s,
-    }
-    arrays, summary = await services.jobs.run(
+    limits = {option: getattr(settings, name) for option, (name, _) in SCAN_LIMIT_SETTINGS.items()}
+    artifact_id = new_id(ID_PREFIX["scan"])
+    summary = await _parsed(
+        services,
+        artifact_id,
         tasks.ParseScan(
             content=upload.content,
             filename=upload.filename,
@@ -138,11 +189,14 @@ async def add_scan(
             units=units,
             options=options,
             limits=limits,
-        )
+            limit_names={option: env for option, (_, env) in SCAN_LIMIT_SETTINGS.items()},
+            parse_limits=scan_parse_limits(settings),
+            out_path=services.array_path(artifact_id),
+        ),
     )
     params = {"format": summary["format"], "units": units, "options": options}
     return await run_in_threadpool(
-        _store_upload, services, session_id, "scan", upload, arrays, params, summary
+        _store_upload, services, session_id, "scan", artifact_id, upload, params, summary
     )
 
 
@@ -172,6 +226,7 @@ async def pivot_calibration(
             format=options.format,
             units=options.units,
             rigid_body=options.rigid_body,
+            parse_limits=trace_parse_limits(services.settings),
             tolerance_m=tolerance_m,
             accept_poor_fit=accept_poor_fit,
         )

@@ -114,13 +114,21 @@ def pivot(
         rigid_body=raw.meta.get("rigid_body"),
         format=raw.format,
     )
-    _refuse_poor_fit(
-        "pivot calibration",
-        calibration.poor_fit(tolerance_m),
-        accept_poor_fit,
-        {**outcome.as_json(), "tolerance_m": tolerance_m},
-    )
+    refuse_poor_pivot(outcome.as_json(), tolerance_m, accept_poor_fit)
     return outcome
+
+
+def refuse_poor_pivot(result: dict, tolerance_m: float, accept_poor_fit: bool) -> None:
+    """Raise :class:`PoorFitError` for a pivot result (:meth:`PivotOutcome.as_json`) worse than
+    ``tolerance_m``, unless ``accept_poor_fit``."""
+    from recon.calibrate import pivot_fit_problem
+
+    problem = pivot_fit_problem(
+        np.asarray(result["tip_offset_m"]), float(result["residual_rms_m"]), tolerance_m
+    )
+    _refuse_poor_fit(
+        "pivot calibration", problem, accept_poor_fit, {**result, "tolerance_m": tolerance_m}
+    )
 
 
 @dataclass(frozen=True)

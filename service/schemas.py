@@ -317,12 +317,31 @@ class NatNetSourceIn(Strict):
     kind: Literal["natnet"]
     server: str = Field(..., min_length=1, max_length=255, description="Motive's address")
     rigid_body: str = Field(..., min_length=1, max_length=200, description="the pen in Motive")
-    local: str = Field("127.0.0.1", description="this machine's address on Motive's network")
+    local: str = Field(
+        "127.0.0.1",
+        max_length=15,
+        description="this machine's address on Motive's network: one of its interfaces "
+        "(loopback included), not the wildcard 0.0.0.0",
+    )
     multicast: bool = False
     command_port: int = Field(1510, ge=1, le=65535)
     data_port: int = Field(1511, ge=1, le=65535)
     units: Literal["m", "mm"] = "m"
     timeout_s: float = Field(5.0, gt=0, le=60)
+
+    @field_validator("local")
+    @classmethod
+    def _local(cls, value: str) -> str:
+        from drivers.tracking.natnet_source import check_interface_address
+
+        return check_interface_address(value)
+
+    @field_validator("server")
+    @classmethod
+    def _server(cls, value: str) -> str:
+        from drivers.tracking.natnet_source import check_server_address
+
+        return check_server_address(value)
 
     def source_config(self):
         """The NatNet source's configuration: a capture waits for the operator as long as it

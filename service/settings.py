@@ -7,8 +7,10 @@ import os
 import secrets
 from pathlib import Path
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from drivers.scanning.limits import DEFAULT_MAX_FRAME_PIXELS, DEFAULT_MAX_PIXELS
 
 
 class Settings(BaseSettings):
@@ -29,12 +31,55 @@ class Settings(BaseSettings):
         "start and kept in data_dir/token (mode 0600)",
     )
     max_upload_mb: float = Field(200.0, gt=0, description="largest accepted upload")
+    # Two uploads of the largest size at once. Each byte in flight costs this process a little
+    # more than a byte (the upload, and its copy on the way to the parse's worker; the parsed
+    # arrays stay out of it): 20 uploads of 24 MB at once took it from 135 MB to 742 MB without
+    # a cap, to 556 MB at 400 (16 taken, 4 refused) and to 265 MB at 100.
+    max_uploads_in_flight_mb: float = Field(
+        400.0,
+        gt=0,
+        description="uploads being received, parsed and stored at once, in MB; one more is "
+        "refused with 503 and Retry-After (at least max_upload_mb)",
+    )
     max_speed_m_s: float = Field(0.25, gt=0, description="TCP speed cap for real-arm execution")
     max_scan_unpacked_mb: float = Field(
         2048.0, gt=0, description="largest size a zipped RGB-D scan upload may unpack to"
     )
     max_scan_decode_s: float = Field(
-        300.0, gt=0, description="longest a scan upload (a RealSense bag) may take to decode"
+        300.0,
+        gt=0,
+        description="longest the parse of a scan upload may take (its process is ended then), "
+        "a RealSense bag's decoding included",
+    )
+    max_scan_frame_pixels: int = Field(
+        DEFAULT_MAX_FRAME_PIXELS,
+        gt=0,
+        description="largest RGB-D depth image (width x height), refused before decoding; "
+        "depth cameras stay well below 4096 x 4096",
+    )
+    max_scan_pixels: int = Field(
+        DEFAULT_MAX_PIXELS,
+        gt=0,
+        description="most pixels over all frames of an RGB-D scan upload, refused before decoding",
+    )
+    # Twice what the largest upload needs: the parse's interpreter with Open3D maps 0.5 GB of
+    # address space; a 200 MB binary PLY (17.5 M points) peaked at 2.0 GB (1.6 GB resident), a
+    # 4096 x 4096 depth frame at 1.4 GB (measured through service.tasks.ParseScan).
+    max_parse_memory_mb: float = Field(
+        4096.0,
+        gt=0,
+        description="address space of the process an upload (trace or scan) is parsed in, MB; "
+        "more is a 413",
+    )
+    max_trace_parse_s: float = Field(
+        300.0,
+        gt=0,
+        description="longest the parse of a trace upload may take (its process is ended then)",
+    )
+    # Each NatNet capture runs a receiver process of its own (ten captures had the service at
+    # twelve processes); one pen needs one capture, two leave room for a second session.
+    max_live_captures: int = Field(
+        2, ge=0, description="live (NatNet) captures running at once; one more is a 409"
     )
     cpu_workers: int = Field(
         1,
@@ -83,6 +128,16 @@ class Settings(BaseSettings):
             for plane in value:
                 HalfSpace(normal=plane[:3], offset_m=plane[3])
         return value
+
+    @model_validator(mode="after")
+    def _in_flight_holds_an_upload(self) -> Settings:
+        if self.max_uploads_in_flight_mb < self.max_upload_mb:
+            raise ValueError(
+                f"max_uploads_in_flight_mb ({self.max_uploads_in_flight_mb:g}) is below "
+                f"max_upload_mb ({self.max_upload_mb:g}): an upload of the largest size could "
+                "never be accepted; raise it to at least max_upload_mb"
+            )
+        return self
 
     @field_validator("data_dir")
     @classmethod

@@ -12,6 +12,7 @@ files only.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -317,6 +318,80 @@ class Store:
                     f"session {session_id} was deleted; its new {kind} was discarded"
                 )
             db.add(row)
+        return row
+
+    def add_upload_artifact(
+        self,
+        *,
+        artifact_id: str,
+        session_id: str,
+        kind: str,
+        arrays: dict | None,
+        upload_path: str,
+        content: bytes,
+        session_fields: dict,
+        inputs: dict | None = None,
+        params: dict | None = None,
+        summary: dict | None = None,
+        source_name: str | None = None,
+    ) -> ArtifactRow:
+        """Record a parsed upload, all or nothing: its arrays (unless its parse wrote them at
+        ``arrays/<id>.npz`` already) and its original bytes are written first, then the artifact
+        and the session's update are committed in one transaction.
+
+        If anything fails (a full disk, the database), nothing is recorded and the files written
+        are removed, so a failed upload leaves no artifact behind.
+
+        Parameters
+        ----------
+        artifact_id, session_id, kind : str
+        arrays : dict of arrays, or None
+            None: the parse wrote them at ``arrays/<id>.npz``.
+        upload_path : str
+            Where the bytes go, relative to the data folder (``uploads/<id>/<name>``).
+        content : bytes
+        session_fields : dict
+            Fields of the session set in the same transaction (``recording_id``, ...).
+        inputs, params, summary, source_name
+            As for :meth:`add_artifact`.
+        """
+        written: list[Path] = []
+        try:
+            path = f"arrays/{artifact_id}.npz"
+            written.append(self.data_dir / path)
+            if arrays is None:
+                sha, size = self._digest(self.data_dir / path)
+            else:
+                path, sha, size = self.write_arrays(artifact_id, arrays)
+            written.append(self.data_dir / upload_path)
+            self.write_bytes(upload_path, content)
+            row = ArtifactRow(
+                id=artifact_id,
+                session_id=session_id,
+                kind=kind,
+                created_at=now(),
+                inputs=inputs or {},
+                params=_jsonable(params or {}),
+                summary=_jsonable(summary or {}),
+                path=path,
+                sha256=sha,
+                size=size,
+                source_name=source_name,
+            )
+            with self.db.begin() as db:
+                db.add(row)
+                session = db.get(SessionRow, session_id)
+                if session is None:
+                    raise StorageError(f"session {session_id} vanished while its upload was stored")
+                for key, value in session_fields.items():
+                    setattr(session, key, value)
+        except BaseException:
+            for file in written:
+                file.unlink(missing_ok=True)
+            folder = (self.data_dir / upload_path).parent
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only if empty: it is this artifact's own folder
+            raise
         return row
 
     def add_arrays_artifact(

@@ -4,17 +4,30 @@ Each task is a frozen dataclass of its arguments whose ``run()`` reads its input
 files, calls the pipeline the command line calls too (:mod:`service.pipelines`), writes its
 output with an atomic rename and returns a JSON-able summary. A task never touches the database:
 the main process records what it made. Domain errors propagate to the job that ran it.
+
+An upload is parsed one step further away: the worker hands it to a child process of its own
+under a memory and a time limit (:func:`parse_in_child`, through
+:func:`drivers.isolation.run_isolated`), so that a file that makes its reader allocate without
+bound or run forever (a header declaring 10^9 points, a bomb nobody has thought of yet) costs
+that child, never the worker or the machine: it is an :class:`~drivers.errors.InputTooLargeError`
+naming the limit and its setting. The child runs the ``parse_*`` functions of
+:mod:`service.parsing`, a module that imports little (a child pays for its imports at every
+upload); what is checked after the read (a trace's units) is checked here, in the worker.
 """
 
 from __future__ import annotations
 
+import json
+import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
-from drivers.files import atomic_path
+from drivers.errors import InputTooLargeError, ResourceLimitError
+from drivers.isolation import Limits, Usage, run_isolated
 from recon.params import PIVOT_TOLERANCE_M
 from service import pipelines
 from service.artifacts import (
@@ -26,12 +39,9 @@ from service.artifacts import (
     TrajectoryCodec,
     TrajectorySummary,
 )
-
-
-def save_arrays(path: str | Path, arrays: Arrays) -> None:
-    """Write arrays as an ``.npz`` that appears only when complete."""
-    with atomic_path(Path(path)) as tmp, tmp.open("wb") as handle:
-        np.savez(handle, **arrays)
+from service.parsing import SUMMARY_KEY, save_arrays
+from service.parsing import recording_summary as recording_summary  # used by captures, the demo
+from service.parsing import scan_summary as scan_summary
 
 
 def load_arrays(path: str | Path) -> Arrays:
@@ -39,40 +49,129 @@ def load_arrays(path: str | Path) -> Arrays:
         return {key: data[key] for key in data.files}
 
 
-def recording_summary(recording, fmt: str) -> dict:
-    """Size and extent of a recording (see :class:`service.artifacts.RecordingSummary`)."""
-    points = np.asarray(recording.points_m)
-    t = recording.t_s
-    # Traced length only: the stretch between two pieces kept apart was not traced.
-    steps = np.linalg.norm(np.diff(points, axis=0), axis=1)[np.diff(recording.piece) == 0]
-    return {
-        "format": fmt,
-        "n_samples": int(len(points)),
-        "length_m": float(np.sum(steps)),
-        "duration_s": None if t is None else float(t[-1] - t[0]),
-        "has_orientations": recording.orientations_xyzw is not None,
-        "bounds_m": [points.min(axis=0).tolist(), points.max(axis=0).tolist()],
-    }
+# -- uploads, parsed in a child process of their own -----------------------------------------------
 
 
-def scan_summary(scan, fmt: str, *, n_dropped: int = 0, notes=()) -> dict:
-    """Size and extent of a scan (see :class:`service.artifacts.ScanSummary`)."""
-    points = np.asarray(scan.points_m)
-    return {
-        "format": fmt,
-        "n_points": int(len(points)),
-        "n_dropped": int(n_dropped),
-        "has_normals": scan.normals is not None,
-        "notes": list(notes),
-        "bounds_m": [points.min(axis=0).tolist(), points.max(axis=0).tolist()],
-    }
+@dataclass(frozen=True)
+class ParseLimits:
+    """Bounds of the child process an upload is parsed in, and the settings that set them.
+
+    The defaults are the service's (:class:`service.settings.Settings`); the setting names
+    appear in the message of an upload refused at a bound.
+
+    Attributes
+    ----------
+    time_s : float
+        Wall time of the child, interpreter start included.
+    memory_mb : float
+        Its address space (MiB).
+    time_setting, memory_setting : str
+    """
+
+    time_s: float = 300.0
+    memory_mb: float = 4096.0
+    time_setting: str = "TEACHPATH_MAX_SCAN_DECODE_S"
+    memory_setting: str = "TEACHPATH_MAX_PARSE_MEMORY_MB"
+
+    def isolation(self) -> Limits:
+        """The :class:`drivers.isolation.Limits` of these bounds."""
+        return Limits(
+            time_s=self.time_s,
+            memory_bytes=int(self.memory_mb * 2**20),
+            time_setting=self.time_setting,
+            memory_setting=self.memory_setting,
+        )
+
+
+def parse_in_child(
+    target: str,
+    content: bytes,
+    filename: str,
+    kwargs: dict[str, Any],
+    limits: ParseLimits,
+    *,
+    out_path: str | None = None,
+    on_usage: Callable[[Usage], None] | None = None,
+) -> tuple[Arrays, dict]:
+    """Run the parse function ``target`` of :mod:`service.parsing` on ``content`` in a child
+    process.
+
+    The content goes to a temporary file the child reads (not through its stdin); the child
+    returns its summary as JSON under :data:`SUMMARY_KEY`, and its arrays, or writes them to
+    ``out_path`` itself (then they never pass through this process nor the caller's: a 24 MB
+    float PLY is 48 MB of points).
+
+    Parameters
+    ----------
+    target : str
+        Name of a ``parse_*`` function of :mod:`service.parsing`, called as
+        ``f(path, filename, **kwargs, out_path=out_path)``.
+    content : bytes
+    filename : str
+        The upload's (sanitised) name: its suffix picks the format, and messages name it.
+    kwargs : dict
+        The reader's arguments (plain values).
+    limits : ParseLimits
+    out_path : str, optional
+        Where the child writes the artifact's arrays (an ``.npz``, complete or absent).
+    on_usage : callable, optional
+        Given the child's :class:`~drivers.isolation.Usage` (peak memory, time) when it ends.
+
+    Returns
+    -------
+    tuple of (dict of arrays, dict)
+        The arrays of the artifact (empty if written to ``out_path``) and its summary.
+
+    Raises
+    ------
+    InputTooLargeError
+        The child needed more memory or time than ``limits`` allow.
+    InputFileError, ValueError, ...
+        What the reader raised (an unreadable file, wrong options), or a crash of the child
+        (:class:`~drivers.errors.ReaderCrashError`).
+    """
+    bounds = limits.isolation()
+    with tempfile.TemporaryDirectory(prefix="teachpath-upload-") as tmp:
+        path = Path(tmp) / "upload"
+        path.write_bytes(content)
+        try:
+            arrays = run_isolated(
+                f"service.parsing:{target}",
+                (str(path), filename),
+                {**kwargs, "out_path": out_path},
+                limits=bounds,
+                what=f"reading {filename}",
+                on_usage=on_usage,
+            )
+        except ResourceLimitError as exc:
+            # The child's own bounds (an error from a reader's inner child names no setting).
+            if type(exc) is not ResourceLimitError or exc.setting not in (
+                bounds.time_setting,
+                bounds.memory_setting,
+            ):
+                raise
+            raise InputTooLargeError(
+                f"{exc}; send a smaller or simpler file, or raise {exc.setting} on the server",
+                limit=exc.limit,
+                value=exc.value,
+                setting=exc.setting,
+            ) from None
+    summary = json.loads(str(arrays.pop(SUMMARY_KEY)))
+    return arrays, summary
 
 
 @dataclass(frozen=True)
 class ParseRecording:
     """An uploaded trace: read, moved to the tip, cleaned, a piece picked.
 
-    ``run()`` returns (arrays, summary).
+    ``run()`` returns (arrays, summary); the parse runs in a child
+    (:func:`service.parsing.parse_recording`), which writes the arrays to ``out_path`` if given
+    (then ``run()`` returns no arrays). The units are checked here, from the recording's bounds.
+
+    Raises
+    ------
+    UnitsMismatchError
+        A path too large to be in metres (then ``out_path`` is removed).
     """
 
     content: bytes
@@ -83,67 +182,72 @@ class ParseRecording:
     marker: str | None = None
     tip_offset_m: tuple[float, float, float] | None = None
     piece: int | Literal["all"] | None = None
+    parse_limits: ParseLimits = ParseLimits(time_setting="TEACHPATH_MAX_TRACE_PARSE_S")
+    out_path: str | None = None
 
-    def run(self) -> tuple[Arrays, dict]:
-        from drivers.tracking.readers import read_trace
+    def run(self, on_usage: Callable[[Usage], None] | None = None) -> tuple[Arrays, dict]:
+        kwargs = {
+            "format": self.format,
+            "units": self.units,
+            "rigid_body": self.rigid_body,
+            "marker": self.marker,
+            "tip_offset_m": self.tip_offset_m,
+            "piece": self.piece,
+        }
+        arrays, summary = parse_in_child(
+            "parse_recording",
+            self.content,
+            self.filename,
+            kwargs,
+            self.parse_limits,
+            out_path=self.out_path,
+            on_usage=on_usage,
+        )
         from recon.reconstruct import check_scales
 
-        trace = read_trace(
-            self.content,
-            name=self.filename,
-            fmt=self.format,
-            units=self.units,
-            rigid_body=self.rigid_body,
-            marker=self.marker,
-            tip_offset_m=None if self.tip_offset_m is None else np.array(self.tip_offset_m),
-            piece=self.piece,
-            # The session's offset is for rigid-body recordings; a position-only file holds tip
-            # positions already (the summary says the offset was not applied).
-            tip_needs_orientations=False,
-        )
-        recording = trace.recording
-        check_scales(recording.points_m, None)
-        summary = recording_summary(recording, trace.format)
-        summary.update(trace.summary())
-        if self.tip_offset_m is not None and not trace.tip_offset_applied:
-            summary.setdefault("notes", []).append(
-                "the session's tip offset was not applied: the file has positions only (taken "
-                "as the pen's tip)"
-            )
-        return RecordingCodec.encode(recording), summary
+        try:
+            # The extent between the corners of the bounds is the extent of the points.
+            check_scales(np.array(summary["bounds_m"]), None)
+        except Exception:
+            if self.out_path is not None:
+                Path(self.out_path).unlink(missing_ok=True)
+            raise
+        return arrays, summary
 
 
 @dataclass(frozen=True)
 class ParsePivot:
-    """A pivot calibration from an uploaded recording. ``run()`` returns its JSON result."""
+    """A pivot calibration from an uploaded recording. ``run()`` returns its JSON result; the
+    parse runs in a child (:func:`service.parsing.parse_pivot`)."""
 
     content: bytes
     filename: str
     format: str | None = None
     units: str | None = None
     rigid_body: str | None = None
+    parse_limits: ParseLimits = ParseLimits(time_setting="TEACHPATH_MAX_TRACE_PARSE_S")
     tolerance_m: float = PIVOT_TOLERANCE_M
     accept_poor_fit: bool = False
 
-    def run(self) -> dict:
-        from drivers.tracking.readers import read_raw_trace
-
-        raw = read_raw_trace(
-            self.content,
-            name=self.filename,
-            fmt=self.format,
-            units=self.units,
-            rigid_body=self.rigid_body,
+    def run(self, on_usage: Callable[[Usage], None] | None = None) -> dict:
+        kwargs = {"format": self.format, "units": self.units, "rigid_body": self.rigid_body}
+        _, result = parse_in_child(
+            "parse_pivot", self.content, self.filename, kwargs, self.parse_limits, on_usage=on_usage
         )
-        outcome = pipelines.pivot(
-            raw, tolerance_m=self.tolerance_m, accept_poor_fit=self.accept_poor_fit
-        )
-        return outcome.as_json()
+        # Judged here, not in the child: the refusal's figures (its detail) stay with it.
+        pipelines.refuse_poor_pivot(result, self.tolerance_m, self.accept_poor_fit)
+        return result
 
 
 @dataclass(frozen=True)
 class ParseScan:
-    """An uploaded scan. ``run()`` returns (arrays, summary)."""
+    """An uploaded scan. ``run()`` returns (arrays, summary); the parse runs in a child
+    (:func:`service.parsing.parse_scan`).
+
+    ``limits`` bound the reader's resource options (``max_unpacked_mb``, ``max_pixels``, ...)
+    and ``limit_names`` name the settings behind them; ``parse_limits`` bound the child, which
+    writes the arrays to ``out_path`` if given (then ``run()`` returns no arrays).
+    """
 
     content: bytes
     filename: str
@@ -151,22 +255,27 @@ class ParseScan:
     units: str
     options: dict | None = None
     limits: dict | None = None
+    limit_names: dict | None = None
+    parse_limits: ParseLimits = ParseLimits()
+    out_path: str | None = None
 
-    def run(self) -> tuple[Arrays, dict]:
-        from drivers.scanning.pointcloud import read_scan
-
-        scan_file = read_scan(
+    def run(self, on_usage: Callable[[Usage], None] | None = None) -> tuple[Arrays, dict]:
+        kwargs = {
+            "format": self.format,
+            "units": self.units,
+            "options": self.options,
+            "limits": self.limits,
+            "limit_names": self.limit_names,
+        }
+        return parse_in_child(
+            "parse_scan",
             self.content,
-            name=self.filename,
-            fmt=self.format,
-            units=self.units,
-            options=self.options,
-            limits=self.limits,
+            self.filename,
+            kwargs,
+            self.parse_limits,
+            out_path=self.out_path,
+            on_usage=on_usage,
         )
-        summary = scan_summary(
-            scan_file.scan, scan_file.format, n_dropped=scan_file.n_dropped, notes=scan_file.notes
-        )
-        return ScanCodec.encode(scan_file.scan), summary
 
 
 @dataclass(frozen=True)

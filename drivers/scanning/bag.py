@@ -130,8 +130,10 @@ class RealSenseBagReader(ScanReader):
                     "(n_frames) or raise timeout_s"
                 )
             else:
+                # The limit in force: lower than asked when this runs under a parse's own.
+                limit_bytes = exc.value or limits.memory_bytes
                 message = (
-                    f"reading {label} needed more than {limits.memory_bytes / 2**20:.0f} MB of "
+                    f"reading {label} needed more than {limit_bytes / 2**20:.0f} MB of "
                     f"memory for {opts.n_frames} frames; read fewer frames (n_frames)"
                 )
             raise ResourceLimitError(

@@ -121,6 +121,20 @@ class ScanReader(ABC):
                 f"{type(options).__name__} (kind {getattr(options, 'kind', '?')!r})"
             )
         self.options = options
+        #: Bounds set by whoever runs the reader (see :func:`make_reader`), and the names of the
+        #: settings behind them, for messages.
+        self.limits: dict[str, float] = {}
+        self.limit_names: dict[str, str] = {}
+
+    def limit_source(self, name: str) -> str:
+        """What sets the resource option ``name`` here, for a message saying what to change.
+
+        The setting behind the caller's bound when the option is at that bound, else the option.
+        """
+        setting = self.limit_names.get(name)
+        if setting is not None and getattr(self.options, name, None) == self.limits.get(name):
+            return setting
+        return f"the reader option {name}"
 
     def read(
         self,
@@ -269,6 +283,7 @@ def make_reader(
     fmt: str,
     options: ReaderOptions | Mapping[str, Any] | None = None,
     limits: Mapping[str, float] | None = None,
+    limit_names: Mapping[str, str] | None = None,
 ) -> ScanReader:
     """A reader for ``fmt`` with ``options`` (a model instance, or a mapping validated into one).
 
@@ -281,6 +296,9 @@ def make_reader(
         300}``), set by whoever runs the reader for someone else (the service): a default above
         a bound is lowered to it, a value asked for above it is refused. Options the reader
         does not have are ignored.
+    limit_names : mapping, optional
+        The setting behind each bound (e.g. ``{"max_pixels": "TEACHPATH_MAX_SCAN_PIXELS"}``),
+        named in the messages of a reader refusing an input past it.
 
     Raises
     ------
@@ -307,23 +325,30 @@ def make_reader(
                 for err in exc.errors()
             )
             raise ValueError(f"invalid {cls.kind} reader options: {problems}") from None
+    names = dict(limit_names or {})
     if limits:
-        options = _within_limits(options or cls.options_class(), limits)
-    return cls(options)
+        options = _within_limits(options or cls.options_class(), limits, names)
+    reader = cls(options)
+    reader.limits, reader.limit_names = dict(limits or {}), names
+    return reader
 
 
-def _within_limits(options: ReaderOptions, limits: Mapping[str, float]) -> ReaderOptions:
+def _within_limits(
+    options: ReaderOptions, limits: Mapping[str, float], names: Mapping[str, str]
+) -> ReaderOptions:
     lowered = {}
     for name, limit in limits.items():
         value = getattr(options, name, None)
         if value is None or value <= limit:
             continue
         if name in options.model_fields_set:
+            setting = f" ({names[name]})" if name in names else ""
             raise ValueError(
-                f"option {name}={value:g} exceeds the limit of {limit:g} here; ask for at most "
-                f"{limit:g} (send a smaller scan, or fewer frames)"
+                f"option {name}={value:g} exceeds the limit of {limit:g} here{setting}; ask for "
+                f"at most {limit:g} (send a smaller scan, or fewer frames)"
             )
-        lowered[name] = limit
+        # The option's type: a bound given as a float lowers an integer option to an integer.
+        lowered[name] = type(value)(limit)
     return options.model_copy(update=lowered) if lowered else options
 
 
@@ -335,6 +360,7 @@ def read_scan(
     name: str | None = None,
     options: ReaderOptions | Mapping[str, Any] | None = None,
     limits: Mapping[str, float] | None = None,
+    limit_names: Mapping[str, str] | None = None,
 ) -> ScanFile:
     """Read a scan in any registered format.
 
@@ -354,6 +380,8 @@ def read_scan(
         Reader options (e.g. ``{"depth_trunc_m": 1.5}`` for RGB-D); default options if omitted.
     limits : mapping, optional
         Upper bounds for resource options (see :func:`make_reader`).
+    limit_names : mapping, optional
+        The settings behind those bounds, for messages (see :func:`make_reader`).
 
     Returns
     -------
@@ -363,6 +391,9 @@ def read_scan(
     ------
     InputFileError
         Missing, unreadable, empty or inconsistent input; the message says what to change.
+    InputTooLargeError
+        An input past a resource bound (an RGB-D frame with more pixels than allowed); the
+        message names the bound and what sets it.
     UnknownFormatError
         Unknown format or suffix, or a reader whose dependency is missing.
     ValueError
@@ -371,4 +402,5 @@ def read_scan(
     if fmt is None and name is None and not isinstance(source, bytes) and Path(source).is_dir():
         fmt = FOLDER_FORMAT
     fmt = format_for(name or ("" if isinstance(source, bytes) else str(source)), fmt)
-    return make_reader(fmt, options, limits).read(source, fmt=fmt, units=units, name=name)
+    reader = make_reader(fmt, options, limits, limit_names)
+    return reader.read(source, fmt=fmt, units=units, name=name)

@@ -2,8 +2,9 @@
 
 Open3D's readers fail silently: a missing or corrupt file gives an empty cloud and a warning on
 the console. Every read here is checked and turned into an :class:`InputFileError` that says
-what is wrong. Uploads arrive as bytes and are written to a temporary file first, since Open3D
-reads only XYZ text from memory.
+what is wrong; the counts a header declares are checked against the file's size before Open3D
+allocates for them (:mod:`drivers.scanning.declared`). Uploads arrive as bytes and are written
+to a temporary file first, since Open3D reads only XYZ text from memory.
 
 :func:`read_scan` here is the entry point the service and the CLI use: it dispatches to every
 registered reader (:mod:`drivers.scanning.base`), point clouds being one kind among several.
@@ -21,6 +22,7 @@ from drivers.errors import InputFileError, UnknownFormatError
 from drivers.scanning import base
 from drivers.scanning._native import captured_native_stderr, quiet_open3d
 from drivers.scanning.base import ReaderOptions, ScanFile, ScanReader
+from drivers.scanning.declared import check_declared_counts
 from recon.types import Scan
 
 __all__ = [
@@ -101,6 +103,7 @@ def read_scan(
     name: str | None = None,
     options: ReaderOptions | dict[str, Any] | None = None,
     limits: dict[str, float] | None = None,
+    limit_names: dict[str, str] | None = None,
 ) -> ScanFile:
     """Read a scan: a point cloud, an E57 file, RGB-D frames or a RealSense bag.
 
@@ -119,6 +122,8 @@ def read_scan(
         Options of the format's reader (e.g. ``{"depth_trunc_m": 1.5}`` for RGB-D frames).
     limits : dict, optional
         Upper bounds for resource options (see :func:`drivers.scanning.base.make_reader`).
+    limit_names : dict, optional
+        The settings behind those bounds, named in messages.
 
     Returns
     -------
@@ -127,12 +132,23 @@ def read_scan(
     Raises
     ------
     InputFileError
-        Missing, unreadable or empty file, or one with no finite point.
+        Missing, unreadable or empty file, one with no finite point, or a header that declares
+        more points than the file holds.
+    InputTooLargeError
+        An input past a resource bound (see :func:`drivers.scanning.base.read_scan`).
     UnknownFormatError
     ValueError
         An unknown unit, or options that do not fit the reader.
     """
-    return base.read_scan(source, units=units, fmt=fmt, name=name, options=options, limits=limits)
+    return base.read_scan(
+        source,
+        units=units,
+        fmt=fmt,
+        name=name,
+        options=options,
+        limits=limits,
+        limit_names=limit_names,
+    )
 
 
 def write_scan(path: Path, scan: Scan) -> None:
@@ -176,59 +192,10 @@ def _check_signature(path: Path, fmt: str, label: str) -> None:
             ) from None
 
 
-def _declared_count(path: Path, fmt: str) -> int | None:
-    """Number of points a PLY or PCD header declares, or None for other formats."""
-    if fmt not in ("ply", "pcd"):
-        return None
-    with path.open("rb") as handle:
-        for raw in handle:
-            line = raw.decode("ascii", errors="replace").strip()
-            if fmt == "ply" and line.startswith("element vertex"):
-                return int(line.split()[2])
-            if fmt == "pcd" and line.startswith("POINTS"):
-                return int(line.split()[1])
-            if line in ("end_header",) or line.startswith("DATA"):
-                return None
-    return None
-
-
-def _pcd_body_complete(path: Path, declared: int) -> bool:
-    """Whether a PCD file's body holds the points its header declares.
-
-    Open3D pads a short PCD body with made-up points without a word, so the body is measured:
-    data lines for ASCII, bytes for binary (SIZE x COUNT per point). Compressed bodies are left
-    to Open3D.
-    """
-    data = path.read_bytes()
-    sizes, counts, offset, kind = [], [], None, None
-    position = 0
-    for raw in data.split(b"\n"):
-        position += len(raw) + 1
-        line = raw.decode("ascii", errors="replace").strip()
-        if line.startswith("SIZE"):
-            sizes = [int(v) for v in line.split()[1:]]
-        elif line.startswith("COUNT"):
-            counts = [int(v) for v in line.split()[1:]]
-        elif line.startswith("DATA"):
-            kind, offset = line.split()[1], position
-            break
-    if offset is None:
-        return False
-    body = data[offset:]
-    if kind == "ascii":
-        return sum(1 for row in body.split(b"\n") if row.strip()) >= declared
-    if kind == "binary":
-        point_size = sum(s * c for s, c in zip(sizes, counts or [1] * len(sizes), strict=False))
-        return len(body) >= declared * point_size
-    return True
-
-
 def _read(path: Path, fmt: str, label: str) -> o3d.geometry.PointCloud:
     _check_signature(path, fmt, label)
-    try:
-        declared = _declared_count(path, fmt)
-    except (ValueError, IndexError):
-        raise InputFileError(f"{label} has a malformed {fmt.upper()} header") from None
+    # Open3D sizes its arrays from the header: what it declares must fit in the file first.
+    declared = check_declared_counts(path, fmt, label)
     # Open3D reports failures as console messages only; capture them for the error message and
     # judge the result instead.
     with (
@@ -242,9 +209,7 @@ def _read(path: Path, fmt: str, label: str) -> o3d.geometry.PointCloud:
         except RuntimeError as exc:  # raised by some readers on malformed headers
             raise InputFileError(f"{label} is not a readable {fmt.upper()} file: {exc}") from None
     detail = " ".join(native[0].split()) if native and native[0] else ""
-    if declared is not None and (
-        len(cloud.points) < declared or (fmt == "pcd" and not _pcd_body_complete(path, declared))
-    ):
+    if declared is not None and len(cloud.points) < declared:
         raise InputFileError(
             f"{label} is truncated or corrupt: it holds fewer points than the {declared} its "
             "header declares; export the scan again" + (f" ({detail})" if detail else "")

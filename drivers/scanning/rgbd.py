@@ -46,6 +46,12 @@ and with depth noise of 1 mm at 0.5 m it gave 0.34 mm RMS error on the workpiece
 (concatenation keeps every noisy point and flying pixel). Without noise concatenation is exact to
 the depth quantisation (0.19 mm RMS against 0.33 mm), so ``fusion="points"`` stays available, e.g.
 for thin structures that a TSDF's truncation band would erase.
+
+The pixels to decode are bounded before any image is decoded: the intrinsics' width x height per
+frame (every depth PNG's header must match it, and is read without decoding) and that times the
+number of frames, against ``max_frame_pixels`` and ``max_pixels``. A zip's size says nothing of
+them: a 1.7 KB zip of one constant 8000 x 8000 PNG took 21 s and 3.4 GB to read, one of
+30000 x 30000 failed after 46 s at 6 GB.
 """
 
 from __future__ import annotations
@@ -65,9 +71,10 @@ import open3d as o3d
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from scipy.spatial.transform import Rotation
 
-from drivers.errors import InputFileError
+from drivers.errors import InputFileError, InputTooLargeError
 from drivers.scanning._native import check_image_file, quiet_open3d, read_image
 from drivers.scanning.base import ReaderOptions, ScanFile, ScanReader
+from drivers.scanning.limits import DEFAULT_MAX_FRAME_PIXELS, DEFAULT_MAX_PIXELS
 from recon.transforms import RIGID_TOLERANCE, is_proper_rotation
 from recon.types import FloatArray, Scan
 
@@ -109,6 +116,11 @@ class RGBDOptions(ReaderOptions):
         frames), which removes one-off outliers.
     max_unpacked_mb : float
         Largest total size a zip may unpack to (a guard against zip bombs).
+    max_frame_pixels : int
+        Largest depth image (width x height, from the intrinsics and each PNG's header), checked
+        before anything is decoded.
+    max_pixels : int
+        Largest number of pixels over all frames, checked before anything is decoded.
     """
 
     kind: Literal["rgbd"] = "rgbd"
@@ -120,6 +132,8 @@ class RGBDOptions(ReaderOptions):
     sdf_trunc_voxels: float = Field(4.0, ge=1.0, le=32.0)
     min_observations: int = Field(3, ge=1)
     max_unpacked_mb: float = Field(4096.0, gt=0)
+    max_frame_pixels: int = Field(DEFAULT_MAX_FRAME_PIXELS, gt=0)
+    max_pixels: int = Field(DEFAULT_MAX_PIXELS, gt=0)
 
 
 @dataclass(frozen=True)
@@ -578,13 +592,33 @@ def _attach_poses(frames: list[Frame], pose_file: Path) -> list[Frame]:
     ]
 
 
-def extract_zip(path: Path, dest: Path, label: str, *, max_unpacked_mb: float) -> Path:
+def extract_zip(
+    path: Path,
+    dest: Path,
+    label: str,
+    *,
+    max_unpacked_mb: float,
+    limit_source: str = "the reader option max_unpacked_mb",
+) -> Path:
     """Unpack a zip of an RGB-D folder safely; return the folder holding the layout.
+
+    Parameters
+    ----------
+    path, dest : Path
+        The zip, and the folder to unpack it into.
+    label : str
+        The zip's name in messages.
+    max_unpacked_mb : float
+        Largest total size of its members (as its directory states; reading stops there too).
+    limit_source : str
+        What sets ``max_unpacked_mb``, named in the message refusing a larger zip.
 
     Raises
     ------
     InputFileError
-        Not a zip, truncated or corrupt, unsafe member names, too large unpacked, or no layout.
+        Not a zip, truncated or corrupt, unsafe member names, or no layout.
+    InputTooLargeError
+        Members larger than ``max_unpacked_mb`` in all.
     """
     try:
         archive = zipfile.ZipFile(path)
@@ -600,9 +634,12 @@ def extract_zip(path: Path, dest: Path, label: str, *, max_unpacked_mb: float) -
             raise InputFileError(f"{label} is an empty zip archive")
         total = sum(info.file_size for info in members)
         if total > max_unpacked_mb * 2**20:
-            raise InputFileError(
+            raise InputTooLargeError(
                 f"{label} unpacks to {total / 2**20:.0f} MiB, more than the "
-                f"{max_unpacked_mb:.0f} MiB allowed; send fewer frames"
+                f"{max_unpacked_mb:.0f} MiB allowed ({limit_source}); send fewer frames",
+                limit="unpacked",
+                value=max_unpacked_mb * 2**20,
+                setting=limit_source,
             )
         for info in members:
             parts = PurePosixPath(info.filename.replace("\\", "/"))
@@ -864,7 +901,11 @@ class RGBDReader(ScanReader):
         elif path.name.lower().endswith(".zip") or _is_zip(path):
             with tempfile.TemporaryDirectory(prefix="teachpath-rgbd-") as tmp:
                 root = extract_zip(
-                    path, Path(tmp), label, max_unpacked_mb=self.options.max_unpacked_mb
+                    path,
+                    Path(tmp),
+                    label,
+                    max_unpacked_mb=self.options.max_unpacked_mb,
+                    limit_source=self.limit_source("max_unpacked_mb"),
                 )
                 yield load_folder(root, label)
         else:
@@ -884,6 +925,7 @@ class RGBDReader(ScanReader):
         notes = list(frames.notes)
         notes.append(f"depth_scale {scale:g} raw units per metre, from {scale_from}")
         n = len(frames.frames)
+        self._check_pixels(intr, n, frames.layout)
         for frame in frames.frames:
             if frame.color is not None:
                 # Named colour must exist and fit; a Scan has no colour channel, so no more.
@@ -900,6 +942,41 @@ class RGBDReader(ScanReader):
         if n == 1:
             return self._single(frames.frames[0], intr, scale, fmt, notes)
         return self._fused(frames.frames, intr, scale, fmt, notes)
+
+    def _check_pixels(self, intr: Intrinsics, n_frames: int, layout: str) -> None:
+        """Refuse more pixels than the options allow, before an image is decoded.
+
+        The intrinsics give every frame's size: each depth PNG's header is checked against them
+        before it is decoded (:func:`read_depth`), and colour images are not decoded at all.
+
+        Raises
+        ------
+        InputTooLargeError
+        """
+        opts = self.options
+        frame = intr.width * intr.height
+        if frame > opts.max_frame_pixels:
+            setting = self.limit_source("max_frame_pixels")
+            raise InputTooLargeError(
+                f"{layout}: the depth images are {intr.width} x {intr.height} = {frame:,} pixels "
+                f"(by the intrinsics), more than the {opts.max_frame_pixels:,} allowed per image "
+                f"({setting}); send the images at the depth camera's own resolution (or scale "
+                "them and the intrinsics down)",
+                limit="pixels",
+                value=opts.max_frame_pixels,
+                setting=setting,
+            )
+        if frame * n_frames > opts.max_pixels:
+            setting = self.limit_source("max_pixels")
+            raise InputTooLargeError(
+                f"{layout}: the {n_frames} depth images of {intr.width} x {intr.height} hold "
+                f"{frame * n_frames:,} pixels, more than the {opts.max_pixels:,} allowed in all "
+                f"({setting}); send at most {opts.max_pixels // frame} frames (every second or "
+                "third frame of a slow sweep fuses as well)",
+                limit="pixels",
+                value=opts.max_pixels,
+                setting=setting,
+            )
 
     def _single(self, frame: Frame, intr: Intrinsics, scale: float, fmt: str, notes) -> ScanFile:
         opts = self.options

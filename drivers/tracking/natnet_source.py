@@ -111,14 +111,80 @@ class NatNetConfig(SourceConfig):
     units: Literal["m", "mm"] = Field("m", description="length unit the server streams")
     batch_s: float = Field(0.02, gt=0, le=1.0, description="how often the child sends samples")
 
-    @field_validator("local", "multicast_group")
+    @field_validator("local")
     @classmethod
-    def _ipv4(cls, value: str) -> str:
-        try:
-            ipaddress.IPv4Address(value)
-        except ValueError:
-            raise ValueError(f"{value!r} is not an IPv4 address") from None
+    def _interface(cls, value: str) -> str:
+        return check_interface_address(value)
+
+    @field_validator("multicast_group")
+    @classmethod
+    def _group(cls, value: str) -> str:
+        if not _ipv4(value).is_multicast:
+            raise ValueError(
+                f"{value!r} is not a multicast address (224.0.0.0 to 239.255.255.255); Motive's "
+                "default is 239.255.42.99"
+            )
         return value
+
+    @field_validator("server")
+    @classmethod
+    def _server(cls, value: str) -> str:
+        return check_server_address(value)
+
+
+def _ipv4(value: str) -> ipaddress.IPv4Address:
+    try:
+        return ipaddress.IPv4Address(value)
+    except ValueError:
+        raise ValueError(f"{value!r} is not an IPv4 address") from None
+
+
+def check_interface_address(value: str) -> str:
+    """``value`` if it can name one interface of this machine: an IPv4 address that is not the
+    wildcard 0.0.0.0 (sockets bound there listen on every interface), a multicast or the
+    broadcast address.
+
+    Raises
+    ------
+    ValueError
+        Saying which address to give instead.
+    """
+    address = _ipv4(value)
+    if address.is_unspecified:
+        raise ValueError(
+            f"{value!r} is the wildcard address, which binds every interface; give the address "
+            "of this machine on the tracker's network (or 127.0.0.1 for a server on this machine)"
+        )
+    if address.is_multicast or address == ipaddress.IPv4Address("255.255.255.255"):
+        raise ValueError(
+            f"{value!r} is a multicast or broadcast address, not an interface's; give the "
+            "address of this machine on the tracker's network (the multicast group is separate)"
+        )
+    return value
+
+
+def check_server_address(value: str) -> str:
+    """``value`` unless it is an IP address no server can have (the wildcard, multicast,
+    broadcast); host names are left to the resolver.
+
+    Raises
+    ------
+    ValueError
+    """
+    try:
+        address = ipaddress.ip_address(value)
+    except ValueError:
+        return value
+    if (
+        address.is_unspecified
+        or address.is_multicast
+        or address == ipaddress.IPv4Address("255.255.255.255")
+    ):
+        raise ValueError(
+            f"{value!r} cannot be a NatNet server's address (a wildcard, multicast or broadcast "
+            "address); give the address of the PC that runs Motive"
+        )
+    return value
 
 
 @dataclass(frozen=True)

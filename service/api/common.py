@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import AsyncIterator
+
 from fastapi import APIRouter, UploadFile
 from fastapi.responses import Response
 
 from service.api.deps import ServicesDep
 from service.errors import ApiError
 from service.inputs import Upload
+from service.uploads import clean_filename
 
 
 def add_artifact_routes(router: APIRouter, kind: str, plural: str, model: type) -> None:
@@ -38,16 +42,31 @@ def add_artifact_routes(router: APIRouter, kind: str, plural: str, model: type) 
     )
 
 
-async def read_upload(file: UploadFile, services) -> Upload:
-    """The uploaded file's bytes, refused above the server's limit or when empty."""
+@contextlib.asynccontextmanager
+async def received(file: UploadFile, services) -> AsyncIterator[Upload]:
+    """The uploaded file, counted as in flight until the block ends (parsed and stored).
+
+    Its size is known before its bytes are read (the form parser spooled it to disk), so an
+    upload past the server's size limit, or one the in-flight cap has no room for, is refused
+    before it takes any memory. Its name is cleaned (:func:`service.uploads.clean_filename`).
+
+    Raises
+    ------
+    ApiError
+        413 ``upload_too_large``, 503 ``uploads_busy`` (with ``Retry-After``), or 422
+        ``invalid_file`` for an empty file.
+    """
     limit_mb = services.settings.max_upload_mb
     limit = int(limit_mb * 1024 * 1024)
-    content = await file.read(limit + 1)
-    if len(content) > limit:
+    if file.size is not None and file.size > limit:
         raise ApiError(413, "upload_too_large", f"the upload exceeds {limit_mb:g} MB")
-    if not content:
-        raise ApiError(422, "invalid_file", "the uploaded file is empty")
-    return Upload(content=content, filename=file.filename or "upload")
+    with services.uploads.hold(min(file.size if file.size is not None else limit, limit)):
+        content = await file.read(limit + 1)
+        if len(content) > limit:
+            raise ApiError(413, "upload_too_large", f"the upload exceeds {limit_mb:g} MB")
+        if not content:
+            raise ApiError(422, "invalid_file", "the uploaded file is empty")
+        yield Upload(content=content, filename=clean_filename(file.filename))
 
 
 def download(content: bytes | str, *, media_type: str, filename: str) -> Response:

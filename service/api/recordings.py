@@ -9,7 +9,7 @@ from typing import Literal
 from fastapi import APIRouter, File, Form, Response, UploadFile
 
 from service import inputs
-from service.api.common import CSV, add_artifact_routes, download, read_upload
+from service.api.common import CSV, add_artifact_routes, download, received
 from service.api.deps import ServicesDep
 from service.artifacts import RecordingCodec
 from service.schemas import RecordingOut
@@ -44,8 +44,8 @@ async def upload_recording(
         marker=marker,
         piece=piece if piece in (None, "all") else int(piece),
     )
-    upload = await read_upload(file, services)
-    return await inputs.add_recording(services, session_id, upload, options)
+    async with received(file, services) as upload:
+        return await inputs.add_recording(services, session_id, upload, options)
 
 
 add_artifact_routes(router, "recording", "recordings", RecordingOut)

@@ -10,7 +10,7 @@ from typing import Literal
 from fastapi import APIRouter, File, Form, Query, Response, UploadFile
 
 from service import inputs
-from service.api.common import BINARY, add_artifact_routes, download, read_upload
+from service.api.common import BINARY, add_artifact_routes, download, received
 from service.api.deps import ServicesDep
 from service.artifacts import ScanCodec
 from service.errors import ApiError
@@ -60,10 +60,10 @@ async def upload_scan(
 ):
     """Upload a scan; it becomes the session's scan. A bad file is a 422 and changes nothing."""
     reader_options = _reader_options(options)
-    upload = await read_upload(file, services)
-    return await inputs.add_scan(
-        services, session_id, upload, format=format, units=units, options=reader_options
-    )
+    async with received(file, services) as upload:
+        return await inputs.add_scan(
+            services, session_id, upload, format=format, units=units, options=reader_options
+        )
 
 
 add_artifact_routes(router, "scan", "scans", ScanOut)

@@ -8,7 +8,7 @@ from fastapi import APIRouter, File, Form, Response, UploadFile
 
 from recon.params import PIVOT_TOLERANCE_M
 from service import inputs
-from service.api.common import read_upload
+from service.api.common import received
 from service.api.deps import ServicesDep
 from service.schemas import (
     ArtifactOut,
@@ -82,14 +82,15 @@ async def pivot_calibration(
     """Pivot calibration: the tip offset from a recording where the tip stays on one point
     while the pen tilts in every direction. Sets the session's tip_offset_m; a fit worse than
     the tolerance is refused (422 poor_fit with its figures) unless accepted."""
-    row, result = await inputs.pivot_calibration(
-        services,
-        session_id,
-        await read_upload(file, services),
-        inputs.TraceOptions(format=format, units=units, rigid_body=rigid_body),
-        tolerance_m=tolerance_m,
-        accept_poor_fit=accept_poor_fit == "true",
-    )
+    async with received(file, services) as upload:
+        row, result = await inputs.pivot_calibration(
+            services,
+            session_id,
+            upload,
+            inputs.TraceOptions(format=format, units=units, rigid_body=rigid_body),
+            tolerance_m=tolerance_m,
+            accept_poor_fit=accept_poor_fit == "true",
+        )
     return {"session": row, "result": result}
 
 

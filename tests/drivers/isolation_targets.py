@@ -73,6 +73,16 @@ def allocate(n_bytes: int) -> dict:
     return {"sum": block.sum()}
 
 
+def allocate_in_a_child(n_bytes: int, memory_bytes: int) -> dict:
+    """``allocate`` in a child of this (isolated) process that asks for ``memory_bytes``."""
+    from drivers.isolation import Limits, run_isolated
+
+    limits = Limits(memory_bytes=memory_bytes, memory_setting="inner")
+    return run_isolated(
+        "tests.drivers.isolation_targets:allocate", (n_bytes,), limits=limits, what="the inner"
+    )
+
+
 def sleep(seconds: float) -> None:
     time.sleep(seconds)
 

@@ -89,6 +89,29 @@ def test_a_child_over_its_memory_limit_is_the_memory_limit_error():
     assert run_isolated(T + "allocate", (1 << 20,), limits=limits)["sum"] == 1 << 20
 
 
+def test_the_child_reports_its_peak_memory_within_its_limit():
+    limits = Limits(memory_bytes=600 << 20)
+    seen = []
+    assert run_isolated(T + "allocate", (200 << 20,), limits=limits, on_usage=seen.append)
+    (usage,) = seen
+    # The 200 MB it filled, and not the caller's own size (Linux keeps ru_maxrss across exec).
+    assert 200 << 20 <= usage.peak_rss_bytes <= usage.peak_address_space_bytes <= 600 << 20
+    assert usage.memory_limit_bytes == 600 << 20 and usage.wall_s > 0
+    # Over its limit, the report still comes, and stays within the limit.
+    with pytest.raises(ResourceLimitError):
+        run_isolated(T + "allocate", (2 << 30,), limits=limits, on_usage=seen.append)
+    assert seen[1].peak_address_space_bytes <= 600 << 20
+
+
+def test_a_child_under_a_lower_inherited_limit_names_that_limit():
+    """A child of an isolated process cannot raise the limit it inherited: the error says the
+    limit it ran under, not the one asked for."""
+    outer = Limits(memory_bytes=700 << 20)
+    with pytest.raises(ResourceLimitError) as raised:
+        run_isolated(T + "allocate_in_a_child", (1 << 30, 4 << 30), limits=outer)
+    assert "the inner needed more memory than its limit of 700 MB (inner)" == str(raised.value)
+
+
 def test_a_child_over_its_time_limit_is_the_time_limit_error():
     started = time.monotonic()
     expected = r"did not finish within 1 s, its time limit \(t\)"

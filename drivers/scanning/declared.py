@@ -1,0 +1,307 @@
+"""What a point-cloud file's header declares, bounded by the bytes the file holds.
+
+Open3D sizes its arrays from the header before it reads the body: a 257-byte PLY whose header
+declares 10^9 vertices had it allocate 24 GB (and 12 s, 2.4 GB for 10^8) before it found the body
+short, and a PTS file declaring 10^8 points was read as 10^8 points at the origin (7.4 GB, 42 s).
+So the header is read here first and every count it declares is checked against what the rest of
+the file can hold, before Open3D sees the file:
+
+* PLY, binary: each element's records have a fixed size (a list property at least its count),
+  and the counts times those sizes must fit in the bytes after the header.
+* PLY, ASCII: RPly reads tokens, not lines, so each record needs at least one character and one
+  separator per value: ``count * 2 * values - 1`` bytes at least.
+* PCD: ``POINTS`` and ``WIDTH x HEIGHT``, against ``SIZE x COUNT`` bytes per point (binary), the
+  lines of an ASCII body (Open3D reads one point per line), or the sizes a compressed body
+  states (which must agree with the bytes present and with LZF's largest expansion).
+* PTS: the count on its first line, against the lines that follow.
+
+A count that does not fit is an :class:`~drivers.errors.InputFileError` that names the count and
+what the file holds.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+from drivers.errors import InputFileError
+
+#: Bytes of each PLY property type (the PLY format's names and their sized aliases).
+PLY_TYPE_BYTES = {
+    "char": 1,
+    "int8": 1,
+    "uchar": 1,
+    "uint8": 1,
+    "short": 2,
+    "int16": 2,
+    "ushort": 2,
+    "uint16": 2,
+    "int": 4,
+    "int32": 4,
+    "uint": 4,
+    "uint32": 4,
+    "float": 4,
+    "float32": 4,
+    "double": 8,
+    "float64": 8,
+}
+PLY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
+#: Longest header read: real headers are a few hundred bytes; comments may make them longer, but
+#: a file with no end of header within this much is not a point cloud.
+MAX_HEADER_BYTES = 1 << 20
+#: Most bytes an LZF stream (PCD's binary_compressed) expands one byte to: its longest back
+#: reference is 3 bytes long and copies 264 bytes.
+LZF_MAX_EXPANSION = 88
+#: Text needs one character and one separator per value at least.
+_MIN_TEXT_BYTES_PER_VALUE = 2
+
+
+def check_declared_counts(path: Path, fmt: str, label: str) -> int | None:
+    """Refuse a header that declares more than the file holds.
+
+    Parameters
+    ----------
+    path : Path
+        The file (its signature already checked).
+    fmt : str
+        Its format name; only ``ply``, ``pcd`` and ``pts`` declare counts.
+    label : str
+        The file's name in messages.
+
+    Returns
+    -------
+    int or None
+        The number of points the header declares (PLY vertices, PCD ``POINTS``, the PTS count),
+        or None for formats without one (or a PLY without a vertex element).
+
+    Raises
+    ------
+    InputFileError
+        A malformed header, or a count the rest of the file cannot hold (the message names
+        both).
+    """
+    if fmt == "ply":
+        return _check_ply(path, label)
+    if fmt == "pcd":
+        return _check_pcd(path, label)
+    if fmt == "pts":
+        return _check_pts(path, label)
+    return None
+
+
+def _header(path: Path, label: str, fmt: str, last) -> tuple[list[str], int]:
+    """The header's lines (decoded, stripped) up to and including the one ``last`` accepts, and
+    the offset of the body after it."""
+    with path.open("rb") as handle:
+        head = handle.read(MAX_HEADER_BYTES)
+    lines: list[str] = []
+    position = 0
+    while True:
+        end = head.find(b"\n", position)
+        if end < 0:
+            raise InputFileError(
+                f"{label} has no complete {fmt.upper()} header (it ends before its last header "
+                "line): the file is truncated or not a point cloud; export the scan again"
+            )
+        line = head[position:end].decode("ascii", errors="replace").strip()
+        position = end + 1
+        lines.append(line)
+        if last(line):
+            return lines, position
+
+
+def _malformed(label: str, fmt: str, line: str) -> InputFileError:
+    shown = line if len(line) <= 80 else line[:77] + "..."
+    return InputFileError(
+        f"{label} has a malformed {fmt.upper()} header (at {shown!r}); export the scan again"
+    )
+
+
+def _count(text: str, label: str, fmt: str, line: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise _malformed(label, fmt, line) from None
+    if value < 0:
+        raise _malformed(label, fmt, line)
+    return value
+
+
+def _too_many(label: str, declared: str, count: int, body: int, room: int, each: str):
+    return InputFileError(
+        f"{label}: its header declares {count:,} {declared}, but the {body:,} bytes after the "
+        f"header hold at most {room:,} ({each}): the file is truncated or its header is wrong; "
+        "export the scan again"
+    )
+
+
+# --------------------------------------------------------------------------- PLY
+
+
+@dataclass
+class _PlyElement:
+    name: str
+    count: int
+    fixed_bytes: int = 0  # binary bytes of the scalar properties, plus the lists' counts
+    values: int = 0  # values of a record at least (a list: its count)
+
+
+def _check_ply(path: Path, label: str) -> int | None:
+    lines, offset = _header(path, label, "ply", lambda line: line == "end_header")
+    body = path.stat().st_size - offset
+    fmt = None
+    elements: list[_PlyElement] = []
+    for line in lines[1:-1]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format" and len(words) >= 2:
+            fmt = words[1]
+            if fmt not in PLY_FORMATS:
+                raise _malformed(label, "ply", line)
+        elif words[0] == "element" and len(words) == 3:
+            elements.append(_PlyElement(words[1], _count(words[2], label, "ply", line)))
+        elif words[0] == "property" and elements:
+            element = elements[-1]
+            if len(words) == 5 and words[1] == "list":
+                if words[2] not in PLY_TYPE_BYTES or words[3] not in PLY_TYPE_BYTES:
+                    raise _malformed(label, "ply", line)
+                element.fixed_bytes += PLY_TYPE_BYTES[words[2]]  # an empty list: its count only
+            elif len(words) == 3 and words[1] in PLY_TYPE_BYTES:
+                element.fixed_bytes += PLY_TYPE_BYTES[words[1]]
+            else:
+                raise _malformed(label, "ply", line)
+            element.values += 1
+        else:
+            raise _malformed(label, "ply", line)
+    if fmt is None:
+        raise InputFileError(f"{label} has a malformed PLY header (no format line)")
+    used = 0
+    for element in elements:
+        declared = "vertices" if element.name == "vertex" else f"{element.name!r} elements"
+        left = max(body - used, 0)
+        if fmt == "ascii":
+            # At least one character and a separator per value; the last one needs no separator.
+            each = _MIN_TEXT_BYTES_PER_VALUE * max(element.values, 1)
+            room = (left + 1) // each
+            how = f"at least {each} bytes each as text"
+        else:
+            each = max(element.fixed_bytes, 1)
+            room = left // each
+            how = f"{each} bytes each in {fmt}"
+        if element.count > room:
+            raise _too_many(label, declared, element.count, body, room, how)
+        used += element.count * each
+    vertex = next((e for e in elements if e.name == "vertex"), None)
+    return None if vertex is None else vertex.count
+
+
+# --------------------------------------------------------------------------- PCD
+
+
+def _check_pcd(path: Path, label: str) -> int:
+    lines, offset = _header(path, label, "pcd", lambda line: line.upper().startswith("DATA"))
+    body = path.stat().st_size - offset
+    fields: dict[str, list[str]] = {}
+    for line in lines:
+        words = line.split()
+        if words and not words[0].startswith("#"):
+            fields[words[0].upper()] = words[1:]
+    data = (fields.get("DATA") or [""])[0].lower()
+    if data not in ("ascii", "binary", "binary_compressed"):
+        raise _malformed(label, "pcd", lines[-1])
+
+    def number(key: str) -> int | None:
+        values = fields.get(key)
+        if values is None:
+            return None
+        if len(values) != 1:
+            raise _malformed(label, "pcd", f"{key} {' '.join(values)}")
+        return _count(values[0], label, "pcd", f"{key} {values[0]}")
+
+    names = fields.get("FIELDS") or []
+    try:
+        sizes = [int(v) for v in fields.get("SIZE", [])]
+        counts = [int(v) for v in fields.get("COUNT", [])] or [1] * len(sizes)
+    except ValueError:
+        raise InputFileError(f"{label} has a malformed PCD header (SIZE or COUNT)") from None
+    if not names or len(sizes) != len(names) or len(counts) != len(names):
+        raise InputFileError(
+            f"{label} has a malformed PCD header: FIELDS, SIZE and COUNT must give one entry per "
+            f"field (got {len(names)}, {len(sizes)} and {len(counts)}); export the scan again"
+        )
+    if any(size <= 0 for size in sizes) or any(count <= 0 for count in counts):
+        raise InputFileError(f"{label} has a malformed PCD header (a SIZE or COUNT below 1)")
+    points = number("POINTS")
+    width, height = number("WIDTH"), number("HEIGHT")
+    declared = []  # (what, count) the header states
+    if points is not None:
+        declared.append(("points (POINTS)", points))
+    if width is not None and height is not None:
+        declared.append((f"points (WIDTH x HEIGHT = {width:,} x {height:,})", width * height))
+    point_bytes = sum(size * count for size, count in zip(sizes, counts, strict=True))
+    if data == "binary":
+        room, how = body // point_bytes, f"{point_bytes} bytes each"
+    elif data == "ascii":
+        room, how = _text_rows(path, offset), "one per line of text"
+    else:
+        room, how = _compressed_room(path, offset, body, point_bytes, label)
+    for what, count in declared:
+        if count > room:
+            raise _too_many(label, what, count, body, room, how)
+    # Open3D reads POINTS; without it, it finds no points (and says so).
+    return points if points is not None else 0
+
+
+def _compressed_room(path: Path, offset: int, body: int, point_bytes: int, label: str):
+    """Points a binary_compressed body can hold: its stated uncompressed size, checked."""
+    with path.open("rb") as handle:
+        handle.seek(offset)
+        sizes = handle.read(8)
+    if len(sizes) < 8:
+        raise InputFileError(
+            f"{label} is truncated: its binary_compressed body lacks the sizes it starts with; "
+            "export the scan again"
+        )
+    compressed, uncompressed = struct.unpack("<II", sizes)
+    if compressed > body - 8:
+        raise InputFileError(
+            f"{label}: its compressed body declares {compressed:,} bytes, but {body - 8:,} "
+            "follow: the file is truncated; export the scan again"
+        )
+    if uncompressed > compressed * LZF_MAX_EXPANSION:
+        raise InputFileError(
+            f"{label}: its compressed body declares {uncompressed:,} bytes unpacked from "
+            f"{compressed:,}, more than LZF compression can give ({LZF_MAX_EXPANSION} times): "
+            "the header is wrong; export the scan again"
+        )
+    return uncompressed // point_bytes, f"{point_bytes} bytes each, {uncompressed:,} unpacked"
+
+
+def _text_rows(path: Path, offset: int) -> int:
+    """Non-empty lines after ``offset`` (read in blocks, not held)."""
+    rows = 0
+    with path.open("rb") as handle:
+        handle.seek(offset)
+        for line in handle:
+            if line.strip():
+                rows += 1
+    return rows
+
+
+# --------------------------------------------------------------------------- PTS
+
+
+def _check_pts(path: Path, label: str) -> int | None:
+    """The count on a PTS file's first line, against the lines that follow."""
+    lines, offset = _header(path, label, "pts", lambda line: bool(line))
+    words = lines[-1].split()
+    if len(words) != 1:
+        return None  # no count line: Open3D reads the lines as points
+    count = _count(words[0], label, "pts", lines[-1])
+    rows = _text_rows(path, offset)
+    if count > rows:
+        body = path.stat().st_size - offset
+        raise _too_many(label, "points", count, body, rows, "one per line of text")
+    return count
