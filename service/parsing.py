@@ -13,6 +13,7 @@ else a parse checks afterwards (the units of a trace, from its bounds) is done b
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -28,9 +29,12 @@ Arrays = dict[str, np.ndarray]
 
 
 def save_arrays(path: str | Path, arrays: Arrays) -> None:
-    """Write arrays as an ``.npz`` that appears only when complete."""
-    with atomic_path(Path(path)) as tmp, tmp.open("wb") as handle:
-        np.savez(handle, **arrays)
+    """Write arrays as an ``.npz`` that appears only when complete, readable by its owner only
+    (it lands in the data folder)."""
+    with atomic_path(Path(path)) as tmp:
+        with tmp.open("wb") as handle:
+            np.savez(handle, **arrays)
+        os.chmod(tmp, 0o600)
 
 
 def recording_summary(recording, fmt: str) -> dict:
