@@ -275,6 +275,7 @@ class ScanSummary(_Summary):
     format: str
     n_points: int
     n_dropped: int = 0
+    dropped_because: str | None = Field(None, description="why the reader left them out")
     has_normals: bool = False
     notes: list[str] = Field(default_factory=list)
     bounds_m: list[Vector3] | None = None

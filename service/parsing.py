@@ -53,13 +53,16 @@ def recording_summary(recording, fmt: str) -> dict:
     }
 
 
-def scan_summary(scan, fmt: str, *, n_dropped: int = 0, notes=()) -> dict:
+def scan_summary(
+    scan, fmt: str, *, n_dropped: int = 0, notes=(), dropped_because: str | None = None
+) -> dict:
     """Size and extent of a scan (see :class:`service.artifacts.ScanSummary`)."""
     points = np.asarray(scan.points_m)
     return {
         "format": fmt,
         "n_points": int(len(points)),
         "n_dropped": int(n_dropped),
+        "dropped_because": dropped_because if n_dropped else None,
         "has_normals": scan.normals is not None,
         "notes": list(notes),
         "bounds_m": [points.min(axis=0).tolist(), points.max(axis=0).tolist()],
@@ -173,6 +176,10 @@ def parse_scan(
         limit_names=limit_names,
     )
     summary = scan_summary(
-        scan_file.scan, scan_file.format, n_dropped=scan_file.n_dropped, notes=scan_file.notes
+        scan_file.scan,
+        scan_file.format,
+        n_dropped=scan_file.n_dropped,
+        notes=scan_file.notes,
+        dropped_because=scan_file.dropped_because,
     )
     return _handed_back(ScanCodec.encode(scan_file.scan), summary, out_path)

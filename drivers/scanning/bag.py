@@ -26,7 +26,7 @@ from pydantic import Field
 
 from drivers.errors import InputFileError, ReaderCrashError, ResourceLimitError
 from drivers.isolation import Limits, run_isolated
-from drivers.scanning.base import ReaderOptions, ScanFile, ScanReader
+from drivers.scanning.base import DROPPED_DEPTH, ReaderOptions, ScanFile, ScanReader
 from drivers.scanning.rgbd import (
     DEFAULT_DEPTH_SCALE,
     Intrinsics,
@@ -230,7 +230,13 @@ def frames_to_scan(
         notes.append(f"{dropped} depths beyond depth_trunc_m {options.depth_trunc_m:g} m left out")
     if not len(points):
         raise InputFileError(f"{label} has no depth within {options.depth_trunc_m:g} m")
-    return ScanFile(Scan(points_m=points), format=fmt, n_dropped=dropped, notes=tuple(notes))
+    return ScanFile(
+        Scan(points_m=points),
+        format=fmt,
+        n_dropped=dropped,
+        notes=tuple(notes),
+        dropped_because=DROPPED_DEPTH,
+    )
 
 
 class BagReadError(Exception):

@@ -57,6 +57,12 @@ SCAN_SUFFIXES: dict[str, str] = {
 FOLDER_FORMAT = "rgbd"
 
 
+#: Why a point cloud's reader leaves points out.
+DROPPED_NOT_FINITE = "without finite coordinates"
+#: Why depth-image readers leave measurements out.
+DROPPED_DEPTH = "with no depth or a depth beyond depth_trunc_m"
+
+
 @dataclass(frozen=True)
 class ScanFile:
     """A scan read from a file.
@@ -72,12 +78,15 @@ class ScanFile:
         depth measurements outside the accepted range.
     notes : tuple of str
         What the reader did that a user may want to know (frames fused, depth scale used).
+    dropped_because : str
+        Why the reader left the ``n_dropped`` points out, in words that follow "left out".
     """
 
     scan: Scan
     format: str
     n_dropped: int
     notes: tuple[str, ...] = ()
+    dropped_because: str = DROPPED_NOT_FINITE
 
 
 class ReaderOptions(BaseModel):

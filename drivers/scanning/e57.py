@@ -85,7 +85,11 @@ class E57Reader(ScanReader):
             notes.append(f"merged {len(clouds)} of {n_scans} E57 scans, each moved by its pose")
         points = np.concatenate(clouds)
         return ScanFile(
-            scan=Scan(points_m=points), format=fmt, n_dropped=n_dropped, notes=tuple(notes)
+            scan=Scan(points_m=points),
+            format=fmt,
+            n_dropped=n_dropped,
+            notes=tuple(notes),
+            dropped_because="flagged invalid by the scanner or without finite coordinates",
         )
 
 

@@ -73,7 +73,7 @@ from scipy.spatial.transform import Rotation
 
 from drivers.errors import InputFileError, InputTooLargeError
 from drivers.scanning._native import check_image_file, quiet_open3d, read_image
-from drivers.scanning.base import ReaderOptions, ScanFile, ScanReader
+from drivers.scanning.base import DROPPED_DEPTH, ReaderOptions, ScanFile, ScanReader
 from drivers.scanning.limits import DEFAULT_MAX_FRAME_PIXELS, DEFAULT_MAX_PIXELS
 from recon.transforms import RIGID_TOLERANCE, is_proper_rotation
 from recon.types import FloatArray, Scan
@@ -995,7 +995,13 @@ class RGBDReader(ScanReader):
             notes.append("one frame without a pose: the scan is in the camera frame")
         if not len(points):
             raise InputFileError(f"{frame.name} has no depth within {opts.depth_trunc_m:g} m")
-        return ScanFile(Scan(points_m=points), format=fmt, n_dropped=dropped, notes=tuple(notes))
+        return ScanFile(
+            Scan(points_m=points),
+            format=fmt,
+            n_dropped=dropped,
+            notes=tuple(notes),
+            dropped_because=DROPPED_DEPTH,
+        )
 
     def _fused(
         self, frames: tuple[Frame, ...], intr: Intrinsics, scale: float, fmt: str, notes
@@ -1066,6 +1072,7 @@ class RGBDReader(ScanReader):
             Scan(points_m=points, normals=normals),
             format=fmt,
             n_dropped=n_dropped,
+            dropped_because=DROPPED_DEPTH,
             notes=tuple(notes),
         )
 

@@ -225,7 +225,7 @@ def read_scan_for(args: argparse.Namespace):
     for line in scan_file.notes:
         note(line)
     if scan_file.n_dropped:
-        note(f"{scan_file.n_dropped} scan points without finite coordinates were left out")
+        note(f"{scan_file.n_dropped} scan points {scan_file.dropped_because} were left out")
     return scan_file.scan
 
 

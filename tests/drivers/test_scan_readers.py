@@ -357,6 +357,7 @@ def test_e57_points_flagged_invalid_are_dropped_and_counted(tmp_path):
     write_e57(tmp_path / "s.e57", [(points, [1, 0, 0, 0], [0, 0, 0], invalid)])
     result = read_scan(tmp_path / "s.e57")
     assert len(result.scan) == 90 and result.n_dropped == 10
+    assert "flagged invalid" in result.dropped_because
     np.testing.assert_allclose(result.scan.points_m, points[~invalid], atol=1e-6)
 
 
@@ -464,6 +465,8 @@ def test_depth_beyond_the_truncation_is_left_out_and_counted(tmp_path):
     result = read_scan(folder, options={"depth_trunc_m": 1.0})
     far = int(np.count_nonzero(raw > 1000))
     assert far > 0 and result.n_dropped == far
+    # The reader's reason, not "without finite coordinates" (the finding).
+    assert "depth_trunc_m" in result.dropped_because
     assert len(result.scan) == np.count_nonzero(raw) - far
     assert np.all(result.scan.points_m[:, 2] <= 1.0 + 1e-9)
 
