@@ -28,6 +28,9 @@ READ_TIMEOUT_S = 2.0
 CONNECT_TIMEOUT_S = 10.0
 #: Without a new data package for this long the receive link counts as lost (s).
 STALE_AFTER_S = 0.5
+#: After the dashboard accepts an unlock, how long the controller may take to report the stop
+#: cleared on the receive link (s); the dashboard answers "releasing" before it is done.
+UNLOCK_CLEAR_TIMEOUT_S = 3.0
 
 
 @dataclass(frozen=True)
@@ -159,6 +162,18 @@ class URStateServer(WorkerServer):  # pragma: no cover - runs in the worker proc
                 f"the controller refused to unlock the protective stop ({exc}); inspect its "
                 "cause, wait at least 5 s after the stop, and unlock again"
             ) from None
+        # Answer only once the receive link shows the stop cleared, so the state the caller
+        # reads next is the unlocked one (not the last sample from before the release).
+        deadline = time.monotonic() + UNLOCK_CLEAR_TIMEOUT_S
+        while self.receive.isProtectiveStopped():
+            if time.monotonic() > deadline:
+                raise ProtectiveStopError(
+                    "the controller accepted the unlock but still reports a protective stop "
+                    f"after {UNLOCK_CLEAR_TIMEOUT_S:g} s: remove its cause and unlock it at the "
+                    "teach pendant"
+                )
+            time.sleep(0.01)
+        self._wait_fresh()
 
     def shutdown(self) -> None:
         for client in (self.receive, self.dashboard):
