@@ -15,6 +15,11 @@ the file can hold, before Open3D sees the file:
   states (which must agree with the bytes present and with LZF's largest expansion).
 * PTS: the count on its first line, against the lines that follow.
 
+Headers Open3D's native readers cannot take without crashing the process are refused too: PLY
+header lines over :data:`MAX_PLY_LINE_BYTES`, PCD headers with some but not all of a field set
+(:data:`PCD_FIELD_SETS`), field types or sizes PCD does not have, and PCD headers without
+``WIDTH``, ``HEIGHT`` and ``POINTS`` (or where they disagree).
+
 A count that does not fit is an :class:`~drivers.errors.InputFileError` that names the count and
 what the file holds.
 """
@@ -53,6 +58,16 @@ MAX_HEADER_BYTES = 1 << 20
 #: Most bytes an LZF stream (PCD's binary_compressed) expands one byte to: its longest back
 #: reference is 3 bytes long and copies 264 bytes.
 LZF_MAX_EXPANSION = 88
+#: Longest PLY header line Open3D's reader (RPly) takes: it keeps a line in a 1024-byte buffer
+#: and aborts the process on a longer comment or obj_info line (seen: a 2000-byte comment).
+MAX_PLY_LINE_BYTES = 1000
+#: Longest word of a PLY header (RPly's word buffer is 256 bytes).
+MAX_PLY_WORD_BYTES = 255
+#: PCD field types and the sizes each may have (bytes).
+PCD_TYPE_SIZES = {"F": (4, 8), "I": (1, 2, 4, 8), "U": (1, 2, 4, 8)}
+#: Fields that come as a set: Open3D reads normals when it finds normal_x and then reads the
+#: other two without checking they exist (a PCD with normal_x alone crashed it).
+PCD_FIELD_SETS = (("x", "y", "z"), ("normal_x", "normal_y", "normal_z"))
 #: Text needs one character and one separator per value at least.
 _MIN_TEXT_BYTES_PER_VALUE = 2
 
@@ -153,9 +168,20 @@ def _check_ply(path: Path, label: str) -> int | None:
     fmt = None
     elements: list[_PlyElement] = []
     for line in lines[1:-1]:
+        if len(line) > MAX_PLY_LINE_BYTES:
+            raise InputFileError(
+                f"{label} has a PLY header line of {len(line):,} bytes, longer than the "
+                f"{MAX_PLY_LINE_BYTES} the PLY reader takes (at {line[:40]!r}...); shorten its "
+                "comments and export the scan again"
+            )
         words = line.split()
         if not words or words[0] in ("comment", "obj_info"):
             continue
+        if any(len(word) > MAX_PLY_WORD_BYTES for word in words):
+            raise InputFileError(
+                f"{label} has a name longer than {MAX_PLY_WORD_BYTES} characters in its PLY "
+                f"header (at {line[:40]!r}...); export the scan again"
+            )
         if words[0] == "format" and len(words) >= 2:
             fmt = words[1]
             if fmt not in PLY_FORMATS:
@@ -176,7 +202,9 @@ def _check_ply(path: Path, label: str) -> int | None:
         else:
             raise _malformed(label, "ply", line)
     if fmt is None:
-        raise InputFileError(f"{label} has a malformed PLY header (no format line)")
+        raise InputFileError(
+            f"{label} has a malformed PLY header (no format line); export the scan again"
+        )
     used = 0
     for element in elements:
         declared = "vertices" if element.name == "vertex" else f"{element.name!r} elements"
@@ -225,21 +253,33 @@ def _check_pcd(path: Path, label: str) -> int:
         sizes = [int(v) for v in fields.get("SIZE", [])]
         counts = [int(v) for v in fields.get("COUNT", [])] or [1] * len(sizes)
     except ValueError:
-        raise InputFileError(f"{label} has a malformed PCD header (SIZE or COUNT)") from None
+        raise InputFileError(
+            f"{label} has a malformed PCD header (SIZE or COUNT); export the scan again"
+        ) from None
     if not names or len(sizes) != len(names) or len(counts) != len(names):
         raise InputFileError(
             f"{label} has a malformed PCD header: FIELDS, SIZE and COUNT must give one entry per "
             f"field (got {len(names)}, {len(sizes)} and {len(counts)}); export the scan again"
         )
     if any(size <= 0 for size in sizes) or any(count <= 0 for count in counts):
-        raise InputFileError(f"{label} has a malformed PCD header (a SIZE or COUNT below 1)")
+        raise InputFileError(
+            f"{label} has a malformed PCD header (a SIZE or COUNT below 1); export the scan again"
+        )
+    _check_pcd_fields(names, sizes, fields.get("TYPE"), label)
     points = number("POINTS")
     width, height = number("WIDTH"), number("HEIGHT")
-    declared = []  # (what, count) the header states
-    if points is not None:
-        declared.append(("points (POINTS)", points))
-    if width is not None and height is not None:
-        declared.append((f"points (WIDTH x HEIGHT = {width:,} x {height:,})", width * height))
+    absent = [key for key, value in (("WIDTH", width), ("HEIGHT", height), ("POINTS", points))
+              if value is None]  # fmt: skip
+    if absent:
+        # Open3D reads such a header with sizes it never set (different points on every read).
+        raise InputFileError(
+            f"{label} has a PCD header without {' and '.join(absent)}; a PCD file states WIDTH, "
+            "HEIGHT and POINTS: export the scan again"
+        )
+    declared = [  # (what, count) the header states
+        ("points (POINTS)", points),
+        (f"points (WIDTH x HEIGHT = {width:,} x {height:,})", width * height),
+    ]
     point_bytes = sum(size * count for size, count in zip(sizes, counts, strict=True))
     if data == "binary":
         room, how = body // point_bytes, f"{point_bytes} bytes each"
@@ -250,8 +290,42 @@ def _check_pcd(path: Path, label: str) -> int:
     for what, count in declared:
         if count > room:
             raise _too_many(label, what, count, body, room, how)
-    # Open3D reads POINTS; without it, it finds no points (and says so).
-    return points if points is not None else 0
+    if points != width * height:
+        raise InputFileError(
+            f"{label}: its PCD header declares POINTS {points:,} but WIDTH x HEIGHT = {width:,} x "
+            f"{height:,}; the header is inconsistent: export the scan again"
+        )
+    return points
+
+
+def _check_pcd_fields(names: list[str], sizes: list[int], types: list[str] | None, label: str):
+    """Field sets complete, x, y and z among them, and each field's TYPE and SIZE a PCD pair."""
+    present = set(names)
+    for field_set in PCD_FIELD_SETS:
+        have = [name for name in field_set if name in present]
+        if have and len(have) < len(field_set):
+            missing = [name for name in field_set if name not in present]
+            raise InputFileError(
+                f"{label}: its PCD header has {', '.join(have)} but not {', '.join(missing)}; "
+                "export the scan again with all of them or none"
+            )
+    if "x" not in present:
+        raise InputFileError(
+            f"{label}: its PCD header has no x, y and z fields (FIELDS {' '.join(names[:8])}); "
+            "export the scan with point coordinates"
+        )
+    types = [t.upper() for t in (types or [])]
+    if len(types) != len(names):
+        raise InputFileError(
+            f"{label} has a malformed PCD header: TYPE must give one entry per field (got "
+            f"{len(types)} for {len(names)} fields); export the scan again"
+        )
+    for name, kind, size in zip(names, types, sizes, strict=True):
+        if size not in PCD_TYPE_SIZES.get(kind, ()):
+            raise InputFileError(
+                f"{label}: field {name[:40]!r} has TYPE {kind[:10]!r} and SIZE {size}, which PCD "
+                "does not have (F: 4 or 8 bytes; I and U: 1, 2, 4 or 8); export the scan again"
+            )
 
 
 def _compressed_room(path: Path, offset: int, body: int, point_bytes: int, label: str):

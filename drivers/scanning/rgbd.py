@@ -61,6 +61,7 @@ import json
 import re
 import tempfile
 import zipfile
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
@@ -91,6 +92,16 @@ MANIFEST_SUFFIX = ".rgbd.json"
 INTRINSICS_NAMES = ("intrinsics.json", "intrinsic.json")
 POSE_FILES = ("trajectory.log", "poses.txt", "poses.json")
 _ZIP_JUNK = ("__MACOSX/", ".DS_Store")
+#: Most members a frames zip may hold (a depth and a colour image per frame, 50k frames).
+MAX_ZIP_MEMBERS = 100_000
+#: Longest name of one folder or file inside a zip, in bytes (what Linux file systems allow).
+MAX_ZIP_NAME_BYTES = 255
+#: Largest focal length accepted (pixels): real depth cameras have 200-5000; beyond this the
+#: intrinsics are in other units or corrupt.
+MAX_FOCAL_PX = 1e6
+#: Largest camera distance from the world origin accepted (m): frames of one workpiece lie
+#: within metres of each other; beyond this a pose is in other units or corrupt.
+MAX_CAMERA_DISTANCE_M = 1e3
 
 
 class RGBDOptions(ReaderOptions):
@@ -235,8 +246,11 @@ def parse_intrinsics(value: Any, label: str) -> Intrinsics:
             f"{label}: width and height must be positive whole pixels, got {width} x {height}"
         )
     width, height = int(width), int(height)
-    if not (fx > 0 and fy > 0):
-        raise InputFileError(f"{label}: focal lengths must be positive pixels, got {fx}, {fy}")
+    if not (0 < fx <= MAX_FOCAL_PX and 0 < fy <= MAX_FOCAL_PX):
+        raise InputFileError(
+            f"{label}: focal lengths must be positive pixels up to {MAX_FOCAL_PX:g}, got {fx:g}, "
+            f"{fy:g}; check that the intrinsics are in pixels"
+        )
     if not (0 <= cx <= width and 0 <= cy <= height):
         raise InputFileError(
             f"{label}: the principal point ({cx}, {cy}) lies outside the {width} x {height} "
@@ -253,10 +267,17 @@ def parse_intrinsics(value: Any, label: str) -> Intrinsics:
 
 def _number(value: Any, label: str, key: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputFileError(f"{label}: {key} must be a number, got {value!r}")
-    if not np.isfinite(value):
-        raise InputFileError(f"{label}: {key} is {value}; give a finite number")
-    return float(value)
+        shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:37] + "..."
+        raise InputFileError(f"{label}: {key} must be a number, got {shown}")
+    try:
+        number = float(value)  # JSON integers may have thousands of digits
+    except OverflowError:
+        raise InputFileError(
+            f"{label}: {key} is a number too large for a float; give a finite number"
+        ) from None
+    if not np.isfinite(number):
+        raise InputFileError(f"{label}: {key} is {number}; give a finite number")
+    return number
 
 
 def _numbers(value: Any, label: str, key: str, count: int) -> list[float]:
@@ -282,6 +303,11 @@ def check_pose(value: Any, label: str) -> FloatArray:
         raise InputFileError(f"{label} must be a 4x4 matrix, got shape {T.shape}")
     if not np.all(np.isfinite(T)):
         raise InputFileError(f"{label} has NaN or infinite values")
+    if np.linalg.norm(T[:3, 3]) > MAX_CAMERA_DISTANCE_M:
+        raise InputFileError(
+            f"{label} puts the camera {np.linalg.norm(T[:3, 3]):.3g} m from the world origin, "
+            f"more than {MAX_CAMERA_DISTANCE_M:g} m: give the translation in metres"
+        )
     if not np.allclose(T[3], [0, 0, 0, 1], rtol=0.0, atol=RIGID_TOLERANCE):
         raise InputFileError(f"{label} has last row {T[3].tolist()}, not [0, 0, 0, 1]")
     # The project's one rigidity tolerance (see recon.transforms.RIGID_TOLERANCE).
@@ -641,20 +667,16 @@ def extract_zip(
                 value=max_unpacked_mb * 2**20,
                 setting=limit_source,
             )
+        if len(members) > MAX_ZIP_MEMBERS:
+            raise InputTooLargeError(
+                f"{label} holds {len(members):,} files, more than the {MAX_ZIP_MEMBERS:,} a "
+                "frames zip may hold; send fewer frames",
+                limit="members",
+                value=MAX_ZIP_MEMBERS,
+                setting="drivers.scanning.rgbd.MAX_ZIP_MEMBERS",
+            )
         for info in members:
-            parts = PurePosixPath(info.filename.replace("\\", "/"))
-            if parts.is_absolute() or ".." in parts.parts:
-                raise InputFileError(f"{label} holds an unsafe member name {info.filename!r}")
-            target = dest.joinpath(*parts.parts)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            try:
-                with archive.open(info) as src, target.open("wb") as out:
-                    while chunk := src.read(1 << 20):
-                        out.write(chunk)
-            except (zipfile.BadZipFile, OSError, EOFError) as exc:
-                raise InputFileError(
-                    f"{label} is corrupt: {info.filename} cannot be unpacked ({exc})"
-                ) from None
+            _unpack_member(archive, info, dest, label)
     root = dest
     for _ in range(3):  # "zip the folder" usually nests the layout one level down
         if _has_layout(root):
@@ -670,6 +692,38 @@ def extract_zip(
         f"{label} holds no RGB-D frames: expected intrinsics.json with depth.png or depth/*.png "
         "(or a rgbd.json manifest) at its top or in its single folder"
     )
+
+
+def _unpack_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo, dest: Path, label: str):
+    """Unpack one member under ``dest``; every way it can fail is an :class:`InputFileError`."""
+    shown = info.filename if len(info.filename) <= 80 else info.filename[:77] + "..."
+    parts = PurePosixPath(info.filename.replace("\\", "/"))
+    if parts.is_absolute() or ".." in parts.parts:
+        raise InputFileError(f"{label} holds an unsafe member name {shown!r}")
+    if any(
+        len(part.encode("utf-8", "surrogateescape")) > MAX_ZIP_NAME_BYTES for part in parts.parts
+    ):
+        raise InputFileError(
+            f"{label} holds a member whose name has a part longer than {MAX_ZIP_NAME_BYTES} "
+            f"bytes ({shown!r}); rename it and zip the folder again"
+        )
+    target = dest.joinpath(*parts.parts)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with archive.open(info) as src, target.open("wb") as out:
+            while chunk := src.read(1 << 20):
+                out.write(chunk)
+    except NotImplementedError:  # a compression method zipfile does not know
+        raise InputFileError(
+            f"{label}: {shown} is compressed with a method this reader does not support "
+            f"(method {info.compress_type}); zip the folder again with deflate or no compression"
+        ) from None
+    except RuntimeError as exc:  # encrypted members need a password
+        raise InputFileError(
+            f"{label}: {shown} cannot be unpacked ({exc}); zip it without a password"
+        ) from None
+    except (zipfile.BadZipFile, zlib.error, OSError, EOFError) as exc:
+        raise InputFileError(f"{label} is corrupt: {shown} cannot be unpacked ({exc})") from None
 
 
 def _has_layout(root: Path) -> bool:
@@ -804,6 +858,20 @@ def backproject(
     return np.asarray(cloud.points, dtype=np.float64)
 
 
+@contextlib.contextmanager
+def _open3d_refusal(doing: str) -> Iterator[None]:
+    """Open3D's fusion raises RuntimeError on input it cannot use (poses far out, frames that
+    observe no voxel); that is a property of the frames, said as such."""
+    try:
+        yield
+    except RuntimeError as exc:
+        detail = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).split())[:200]
+        raise InputFileError(
+            f"the TSDF fusion failed {doing} ({detail}): check that the poses are T_world_camera "
+            "in metres and that the frames see the workpiece, or use fusion 'points'"
+        ) from None
+
+
 class _TSDF:
     """Open3D's tensor VoxelBlockGrid on the CPU (the legacy ScalableTSDFVolume extracted
     nothing from our synthetic frames in open3d 0.20)."""
@@ -831,7 +899,7 @@ class _TSDF:
         opts = self.options
         # Everything left in ``raw`` is to be integrated: the limit lies one unit above it.
         trunc = opts.depth_trunc_m + 1.0 / depth_scale
-        with quiet_open3d():
+        with quiet_open3d(), _open3d_refusal("integrating a depth frame"):
             blocks = self.grid.compute_unique_block_coordinates(
                 depth, self.K, extrinsic, depth_scale, trunc,
                 trunc_voxel_multiplier=opts.sdf_trunc_voxels,
@@ -845,7 +913,12 @@ class _TSDF:
     def extract(self) -> tuple[FloatArray, FloatArray]:
         threshold = float(min(self.options.min_observations, self.n_frames))
         with quiet_open3d():
-            cloud = self.grid.extract_point_cloud(weight_threshold=threshold)
+            try:
+                cloud = self.grid.extract_point_cloud(weight_threshold=threshold)
+            except RuntimeError:
+                # Open3D 0.19 fails while attaching colours when no voxel was seen by enough
+                # frames (frames that do not overlap): that is an empty surface.
+                return np.empty((0, 3)), np.empty((0, 3))
         if "positions" not in cloud.point or len(cloud.point.positions) == 0:
             return np.empty((0, 3)), np.empty((0, 3))
         points = cloud.point.positions.numpy().astype(np.float64)
