@@ -67,7 +67,7 @@ def read_calibration(
         scale = metres_per(str(data.get("units", "m")))
         matrix = np.array(data["matrix"], dtype=np.float64)
         matrix = check_rigid(matrix, name=f"the matrix in {label}").copy()
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, OverflowError) as exc:  # a JSON integer of 400 digits
         raise InputFileError(f"{label}: {exc}") from None
     matrix[:3, 3] *= scale
     return Calibration(
@@ -154,7 +154,7 @@ def read_tip_calibration(source: str | Path | bytes, *, label: str | None = None
     try:
         scale = metres_per(str(data.get("units", "m")))
         offset = np.array(data["offset"], dtype=np.float64) * scale
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, OverflowError) as exc:  # a JSON integer of 400 digits
         raise InputFileError(f"{label}: {exc}") from None
     if offset.shape != (3,) or not np.all(np.isfinite(offset)):
         raise InputFileError(f'{label}: "offset" must be 3 finite numbers')
@@ -176,11 +176,16 @@ def _residual(data: dict, label: str) -> float | None:
     value = data.get("residual_rms_m")
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, int | float) or not value >= 0:
+    try:
+        residual = float(value) if not isinstance(value, bool) else None
+    except (TypeError, ValueError, OverflowError):
+        residual = None
+    if residual is None or not isinstance(value, int | float) or not 0 <= residual < np.inf:
+        shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:37] + "..."
         raise InputFileError(
-            f'{label}: "residual_rms_m" must be a non-negative number of metres, got {value!r}'
+            f'{label}: "residual_rms_m" must be a non-negative number of metres, got {shown}'
         )
-    return float(value)
+    return residual
 
 
 def _load_json(source: str | Path | bytes, label: str) -> dict:

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.errors import InputFileError, TrajectoryMismatchError
-from drivers.files import atomic_path
+from drivers.files import atomic_path, csv_rows
 from recon.types import (
     PER_POINT_FIELDS,
     FloatArray,
@@ -316,7 +316,7 @@ def _read_rows(source, name):
         if not isinstance(meta, dict):
             raise InputFileError(f"{label}: its teachpath header is not a JSON object")
         lines = lines[1:]
-    rows = [r for r in csv.reader(lines) if any(c.strip() for c in r)]
+    rows = [r for r in csv_rows(lines, label) if any(c.strip() for c in r)]
     if not rows:
         raise InputFileError(f"{label} is empty")
     return meta, rows, label

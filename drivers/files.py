@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+import csv
 import os
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+
+from drivers.errors import InputFileError
 
 
 @contextlib.contextmanager
@@ -50,3 +53,22 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+
+
+def csv_rows(lines: Iterable[str], label: str) -> list[list[str]]:
+    """Every row of CSV text (``lines``: a text stream or a list of lines).
+
+    Raises
+    ------
+    InputFileError
+        Text the csv module cannot parse (a carriage return inside an unquoted field, a field
+        past its size limit): the message names the line.
+    """
+    reader = csv.reader(lines)
+    try:
+        return list(reader)
+    except csv.Error as exc:
+        raise InputFileError(
+            f"{label} is not a CSV file that can be parsed (line {reader.line_num}: {exc}); "
+            "export it again, or save it as plain CSV"
+        ) from None

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 from service.errors import not_found
 from service.jobs import JobManager
+from service.parse_lane import ParseLane
 from service.robot import RobotWatch
 from service.settings import Settings
 from service.store import ArtifactRow, SessionRow, Store
@@ -65,6 +66,8 @@ class Services:
     live : LiveRunners
     uploads : UploadBudget
         The bytes of uploads in flight (default: capped at ``settings.max_uploads_in_flight_mb``).
+    parses : ParseLane
+        Where uploads are parsed (default: ``settings.max_parallel_parses`` at once).
     """
 
     settings: Settings
@@ -74,10 +77,13 @@ class Services:
     robot: RobotWatch
     live: LiveRunners = field(default_factory=LiveRunners)
     uploads: UploadBudget | None = None
+    parses: ParseLane | None = None
 
     def __post_init__(self) -> None:
         if self.uploads is None:
             self.uploads = UploadBudget(self.settings.max_uploads_in_flight_mb)
+        if self.parses is None:
+            self.parses = ParseLane(self.settings.max_parallel_parses)
 
     def session(self, session_id: str) -> SessionRow:
         """The session, or a 404."""

@@ -129,7 +129,7 @@ async def _parsed(services: Services, artifact_id: str, task) -> dict:
     summary. The arrays never pass through this process (a 24 MB float PLY is 48 MB of points),
     and a parse that fails leaves no file (nor the partial one of a child ended mid-write)."""
     try:
-        _, summary = await services.jobs.run(task)
+        _, summary = await services.parses.run(task)
     except BaseException:
         final = Path(services.array_path(artifact_id))
         for path in (final, *final.parent.glob(f".{final.name}.*")):  # see drivers.files
@@ -219,7 +219,7 @@ async def pivot_calibration(
     """The tip offset from a pivoting recording; sets the session's ``tip_offset_m`` (a fit
     worse than ``tolerance_m`` RMS is refused unless ``accept_poor_fit``)."""
     await run_in_threadpool(services.session, session_id)
-    result = await services.jobs.run(
+    result = await services.parses.run(
         tasks.ParsePivot(
             content=upload.content,
             filename=upload.filename,

@@ -169,31 +169,6 @@ class JobManager:
             pending.future.cancel()
         return len(mine)
 
-    async def run(self, task: Task):
-        """Await ``task`` in a worker process (for work a request waits on, such as parsing an
-        upload: Open3D's readers hold the GIL).
-
-        Raises
-        ------
-        ApiError
-            503 ``worker_died`` when the worker died under the task (the pool is replaced).
-        """
-        import asyncio
-
-        with self._lock:
-            future = self._dispatch(task)
-            generation = self._generation
-        try:
-            return await asyncio.wrap_future(future)
-        except BrokenProcessPool:
-            self._replace(generation)
-            raise ApiError(
-                503,
-                "worker_died",
-                "the worker process reading the upload died (killed, or out of memory); "
-                "nothing was stored; send it again",
-            ) from None
-
     def shutdown(self) -> None:
         with self._lock:
             self._closed = True

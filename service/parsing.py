@@ -101,9 +101,15 @@ def parse_recording(
     piece: int | Literal["all"] | None,
     out_path: str | None = None,
 ) -> Arrays:
-    """The trace at ``path`` as a recording's arrays and summary (its units are checked by the
-    worker, from the summary's bounds)."""
+    """The trace at ``path`` as a recording's arrays and summary.
+
+    Raises
+    ------
+    UnitsMismatchError
+        A path too large to be in metres (nothing is written to ``out_path``).
+    """
     from drivers.tracking.readers import read_trace
+    from recon.reconstruct import check_scales
     from service.artifacts import RecordingCodec
 
     trace = read_trace(
@@ -120,6 +126,7 @@ def parse_recording(
         tip_needs_orientations=False,
     )
     recording = trace.recording
+    check_scales(recording.points_m, None)
     summary = recording_summary(recording, trace.format)
     summary.update(trace.summary())
     if tip_offset_m is not None and not trace.tip_offset_applied:

@@ -71,6 +71,14 @@ class Settings(BaseSettings):
         description="address space of the process an upload (trace or scan) is parsed in, MB; "
         "more is a 413",
     )
+    # Each parse is a child process of up to max_parse_memory_mb: two at once fit this machine
+    # twice over and keep a core for the event loop's other requests.
+    max_parallel_parses: int = Field(
+        2,
+        ge=1,
+        le=16,
+        description="uploads parsed at once (each in a process of its own); more wait their turn",
+    )
     max_trace_parse_s: float = Field(
         300.0,
         gt=0,

@@ -165,13 +165,13 @@ class ParseRecording:
     """An uploaded trace: read, moved to the tip, cleaned, a piece picked.
 
     ``run()`` returns (arrays, summary); the parse runs in a child
-    (:func:`service.parsing.parse_recording`), which writes the arrays to ``out_path`` if given
-    (then ``run()`` returns no arrays). The units are checked here, from the recording's bounds.
+    (:func:`service.parsing.parse_recording`), which checks the units and writes the arrays to
+    ``out_path`` if given (then ``run()`` returns no arrays).
 
     Raises
     ------
     UnitsMismatchError
-        A path too large to be in metres (then ``out_path`` is removed).
+        A path too large to be in metres (nothing is written).
     """
 
     content: bytes
@@ -194,7 +194,7 @@ class ParseRecording:
             "tip_offset_m": self.tip_offset_m,
             "piece": self.piece,
         }
-        arrays, summary = parse_in_child(
+        return parse_in_child(
             "parse_recording",
             self.content,
             self.filename,
@@ -203,16 +203,6 @@ class ParseRecording:
             out_path=self.out_path,
             on_usage=on_usage,
         )
-        from recon.reconstruct import check_scales
-
-        try:
-            # The extent between the corners of the bounds is the extent of the points.
-            check_scales(np.array(summary["bounds_m"]), None)
-        except Exception:
-            if self.out_path is not None:
-                Path(self.out_path).unlink(missing_ok=True)
-            raise
-        return arrays, summary
 
 
 @dataclass(frozen=True)

@@ -3,13 +3,13 @@
 
 from __future__ import annotations
 
-import csv
 import io
 from pathlib import Path
 
 import numpy as np
 
 from drivers.errors import InputFileError
+from drivers.files import csv_rows
 from drivers.tracking.base import name_excerpt
 from drivers.units import metres_per
 from recon.types import Recording
@@ -50,7 +50,7 @@ def read_trace_csv(
     scale = metres_per(units)
     name = name or ("upload" if isinstance(source, bytes) else str(source))
     text = _read_text(source, name)
-    rows = list(csv.reader(io.StringIO(text)))
+    rows = csv_rows(io.StringIO(text), name)
     rows = [row for row in rows if any(cell.strip() for cell in row)]
     if not rows:
         raise InputFileError(f"{name} is empty; expected a CSV with a header row x,y,z")

@@ -36,7 +36,6 @@ length with what was seen in each frame and it does not state its length unit.
 
 from __future__ import annotations
 
-import csv
 import io
 import math
 from dataclasses import dataclass, field
@@ -47,6 +46,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from drivers.errors import InputFileError
+from drivers.files import csv_rows
 from drivers.tracking.base import SampleBatch, name_excerpt
 from drivers.units import metres_per
 from recon.types import FloatArray, Recording
@@ -328,7 +328,8 @@ def _decode(line: bytes) -> str:
 
 
 def _cells(line: bytes) -> list[str]:
-    return next(csv.reader(io.StringIO(_decode(line).rstrip("\r\n"))), [])
+    rows = csv_rows(io.StringIO(_decode(line).rstrip("\r\n")), "a Motive export's header line")
+    return rows[0] if rows else []
 
 
 def _is_number(text: str) -> bool:

@@ -75,6 +75,10 @@ MODELDEF_RETRY_S = 0.5
 POLL_S = 0.1
 #: How long close() lets the receiver flush its last frames to a running batches() loop.
 DRAIN_S = 3.0
+#: How long a stopping receiver may take to flush and exit before it is killed (s).
+FLUSH_S = 5.0
+#: How long a receiver that never connected gets to exit by itself before it is killed (s).
+UNCONNECTED_GRACE_S = 0.2
 
 #: After a frame number this many frames below the last one, the stream counts as restarted
 #: (Motive looping a take, or restarted), not as a late packet.
@@ -466,8 +470,10 @@ class NatNetSource(TrackerSource):
             return
         self._stop.set()
         # Drain while the child flushes and exits: its queue feeder must not block on a pipe
-        # nobody reads.
-        deadline = time.monotonic() + 5.0
+        # nobody reads. A receiver that never connected holds no frames, and it may sit in
+        # its connect (up to timeout_s, deaf to the stop): end it at once.
+        connected = self._server is not None
+        deadline = time.monotonic() + (FLUSH_S if connected else UNCONNECTED_GRACE_S)
         while process.is_alive() and time.monotonic() < deadline:
             try:
                 q.get(timeout=0.05)

@@ -6,13 +6,13 @@ columns such as a label are ignored); one row per touched point.
 
 from __future__ import annotations
 
-import csv
 import io
 from pathlib import Path
 
 import numpy as np
 
 from drivers.errors import InputFileError
+from drivers.files import csv_rows
 from drivers.units import metres_per
 from recon.types import FloatArray
 
@@ -52,7 +52,7 @@ def read_point_pairs(
         raise InputFileError(f"{label} does not exist") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputFileError(f"cannot read {label} as a text CSV: {exc}") from None
-    rows = [row for row in csv.reader(io.StringIO(text)) if any(c.strip() for c in row)]
+    rows = [row for row in csv_rows(io.StringIO(text), label) if any(c.strip() for c in row)]
     if not rows:
         raise InputFileError(
             f"{label} is empty; expected a header {','.join(BASE_COLUMNS + TRACKER_COLUMNS)}"

@@ -274,14 +274,14 @@ def test_uploads_past_the_in_flight_cap_get_503_with_retry_after(
     assert services.uploads.cap_mb == IN_FLIGHT_MB == services.settings.max_uploads_in_flight_mb
     content = _binary_ply(UPLOAD_MB)
     gate = threading.Event()
-    real_run = services.jobs.run
+    real_run = services.parses.run
 
     async def held_until_the_gate_opens(task):
         while not gate.is_set():
             await asyncio.sleep(0.02)
         return await real_run(task)
 
-    monkeypatch.setattr(services.jobs, "run", held_until_the_gate_opens)
+    monkeypatch.setattr(services.parses, "run", held_until_the_gate_opens)
     scans_before = client.get(f"/sessions/{sid}/scans").json()
     responses: dict[str, object] = {}
 

@@ -81,26 +81,67 @@ def test_a_killed_worker_fails_its_job_and_the_queued_jobs_run_on_a_new_pool(man
     assert [job.state for job in store.jobs()].count("queued") == 0
 
 
-def test_a_parse_whose_worker_dies_is_a_503_and_the_next_parse_works(manager, tmp_path):
-    import asyncio
+def _parse_child(timeout_s: float = 60.0) -> psutil.Process:
+    """The child process this (test) process parses an upload in (see drivers.isolation)."""
 
-    from service.errors import ApiError
+    def find():
+        for child in psutil.Process().children(recursive=True):
+            try:
+                if "drivers.isolation" in " ".join(child.cmdline()):
+                    return child
+            except psutil.NoSuchProcess:
+                continue
+        return None
 
-    store, jobs, session_id = manager
-    pid_file = tmp_path / "pid"
+    return _until(find, timeout_s, what="the parse child starting")
 
-    async def parse_and_kill():
-        waiting = asyncio.ensure_future(jobs.run(Sleep(30.0, pid_file=str(pid_file))))
-        worker = await asyncio.to_thread(_started, pid_file)
-        worker.send_signal(signal.SIGKILL)
-        with pytest.raises(ApiError) as refused:
-            await waiting
-        return refused.value
 
-    error = asyncio.run(parse_and_kill())
-    assert error.status == 503 and error.code == "worker_died"
-    assert "nothing was stored" in error.message
-    assert asyncio.run(jobs.run(Pid()))["pid"] > 0
+def test_an_upload_whose_parse_child_is_killed_is_refused_and_the_next_upload_works(
+    tmp_path, scene_files
+):
+    from concurrent.futures import ThreadPoolExecutor
+
+    app = create_app(make_settings(tmp_path))
+    with TestClient(app, headers=AUTH) as client, ThreadPoolExecutor(1) as pool:
+        sid = client.post("/sessions", json={"name": "killed parse"}).json()["id"]
+        upload = pool.submit(
+            client.put,
+            f"/sessions/{sid}/recording",
+            files={"file": ("trace.csv", scene_files["trace"])},
+        )
+        _parse_child().send_signal(signal.SIGKILL)  # what the out-of-memory killer does
+        refused = upload.result(timeout=60)
+        assert refused.status_code == 422, refused.text
+        body = refused.json()
+        assert body["code"] == "invalid_file"
+        assert "crashed (SIGKILL" in body["message"] and "out-of-memory" in body["message"]
+        assert client.get(f"/sessions/{sid}/recordings").json() == []
+        assert app.state.services.store.remove_unnamed_files() == []  # no file left behind
+        stored = client.put(
+            f"/sessions/{sid}/recording", files={"file": ("trace.csv", scene_files["trace"])}
+        )
+        assert stored.status_code == 201, stored.text
+        assert client.get("/health").json()["status"] == "ok"  # the job pool was never touched
+
+
+def test_an_upload_is_parsed_while_the_job_pool_is_busy(tmp_path, scene_files):
+    app = create_app(make_settings(tmp_path))
+    with TestClient(app, headers=AUTH) as client:
+        jobs = app.state.services.jobs
+        sid = client.post("/sessions", json={"name": "busy pool"}).json()["id"]
+        pid_file = tmp_path / "pid"
+        busy = [jobs.submit(sid, "test", {}, Sleep(60.0, pid_file=str(pid_file)), lambda v: v)]
+        busy += [jobs.submit(sid, "test", {}, Sleep(60.0), lambda v: v) for _ in range(3)]
+        _started(pid_file)
+        stored = client.put(
+            f"/sessions/{sid}/recording", files={"file": ("trace.csv", scene_files["trace"])}
+        )
+        assert stored.status_code == 201, stored.text
+        # Answered while the pool's one worker still sleeps and three jobs wait behind it.
+        states = [client.get(f"/jobs/{job.id}").json()["state"] for job in busy]
+        assert states == ["running", "queued", "queued", "queued"]
+        for job in busy[1:]:
+            client.post(f"/jobs/{job.id}/cancel")
 
 
 def test_health_says_degraded_until_a_new_worker_answers(tmp_path, monkeypatch):
