@@ -296,7 +296,16 @@ class Store:
         params: dict | None = None,
         summary: dict | None = None,
         source_name: str | None = None,
+        session_fields: dict | None = None,
     ) -> ArtifactRow:
+        """Record an artifact whose file is written; ``session_fields`` (``recording_id``, ...)
+        are set on its session in the same transaction.
+
+        Raises
+        ------
+        SessionDeletedError
+            The session is gone or deleted (then nothing is recorded).
+        """
         row = ArtifactRow(
             id=artifact_id,
             session_id=session_id,
@@ -318,6 +327,8 @@ class Store:
                     f"session {session_id} was deleted; its new {kind} was discarded"
                 )
             db.add(row)
+            for key, value in (session_fields or {}).items():
+                setattr(session, key, value)
         return row
 
     def add_upload_artifact(
@@ -354,6 +365,11 @@ class Store:
             Fields of the session set in the same transaction (``recording_id``, ...).
         inputs, params, summary, source_name
             As for :meth:`add_artifact`.
+
+        Raises
+        ------
+        SessionDeletedError
+            The session was deleted while the upload was parsed (its files are removed).
         """
         written: list[Path] = []
         try:
@@ -365,26 +381,19 @@ class Store:
                 path, sha, size = self.write_arrays(artifact_id, arrays)
             written.append(self.data_dir / upload_path)
             self.write_bytes(upload_path, content)
-            row = ArtifactRow(
-                id=artifact_id,
+            row = self.add_artifact(
+                artifact_id=artifact_id,
                 session_id=session_id,
                 kind=kind,
-                created_at=now(),
-                inputs=inputs or {},
-                params=_jsonable(params or {}),
-                summary=_jsonable(summary or {}),
                 path=path,
                 sha256=sha,
                 size=size,
+                inputs=inputs,
+                params=params,
+                summary=summary,
                 source_name=source_name,
+                session_fields=session_fields,
             )
-            with self.db.begin() as db:
-                db.add(row)
-                session = db.get(SessionRow, session_id)
-                if session is None:
-                    raise StorageError(f"session {session_id} vanished while its upload was stored")
-                for key, value in session_fields.items():
-                    setattr(session, key, value)
         except BaseException:
             for file in written:
                 file.unlink(missing_ok=True)

@@ -21,7 +21,8 @@ import sys
 from pathlib import Path
 
 from service.api.links import LINKS
-from tests.e2e.test_server_flow import TOKEN, Server
+from tests.e2e.test_server_flow import TOKEN
+from tests.server_process import Server
 from tests.service.conftest import T_BASE_TRACKER
 
 #: Time budgets of the two runs (the whole test stays within about two minutes).
@@ -129,7 +130,7 @@ def _output(result) -> str:
 
 
 def test_no_server_errors_and_documented_responses(tmp_path, scene_files):
-    server = Server(tmp_path / "data")
+    server = Server(tmp_path / "data", token=TOKEN)
     try:
         # First, so it is the one `GET /sessions` lists first (its link's `0/id`).
         _seed(server, scene_files)

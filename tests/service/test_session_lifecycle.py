@@ -108,6 +108,20 @@ def test_nothing_is_added_to_a_deleted_session(app_client):
             arrays={"points_m": np.zeros((3, 3))},
         )
     assert not (services.store.data_dir / "arrays" / "rec_0123456789ab.npz").exists()
+    # An upload parsed while its session was deleted: refused, its files removed again.
+    with pytest.raises(SessionDeletedError):
+        services.store.add_upload_artifact(
+            artifact_id="rec_0123456789ac",
+            session_id=sid,
+            kind="recording",
+            arrays={"points_m": np.zeros((3, 3))},
+            upload_path="uploads/rec_0123456789ac/trace.csv",
+            content=b"x,y,z\n0,0,0\n",
+            session_fields={"recording_id": "rec_0123456789ac"},
+        )
+    assert not (services.store.data_dir / "arrays" / "rec_0123456789ac.npz").exists()
+    assert not (services.store.data_dir / "uploads" / "rec_0123456789ac").exists()
+    assert services.store.artifact("rec_0123456789ac") is None
 
 
 def test_a_capture_interrupted_by_a_crash_counts_what_its_file_holds(tmp_path):

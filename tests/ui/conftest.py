@@ -14,17 +14,13 @@ import ipaddress
 import os
 import re
 import shutil
-import signal
-import subprocess
-import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlsplit
 
-import httpx
 import pytest
 
+from tests.server_process import Server
 from tests.service.conftest import scene_files  # noqa: F401 - shared fixture
 
 TOKEN = "ui-token-abcdefghijklmnopqrstuv"
@@ -62,58 +58,9 @@ def chromium_path() -> str:
     return path
 
 
-class Server:
-    """``teachpath serve --demo`` on a free port of 127.0.0.1."""
-
-    def __init__(self, data_dir: Path) -> None:
-        env = {**os.environ, "TEACHPATH_TOKEN": TOKEN}
-        env.pop("TEACHPATH_UR_HOST", None)
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--port", "0", "--demo"]
-            + ["--data-dir", str(data_dir)],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            env=env,
-        )
-        deadline = time.monotonic() + 60
-        self.url = None
-        while self.url is None:
-            assert time.monotonic() < deadline, "the server did not print its URL"
-            line = self.process.stdout.readline()
-            assert line or self.process.poll() is None, "the server exited"
-            match = re.search(r"open (http://127\.0\.0\.1:\d+)/\?token=(\S+)", line)
-            if match:
-                self.url = match.group(1)
-        self.client = httpx.Client(
-            base_url=self.url, timeout=30, headers={"Authorization": f"Bearer {TOKEN}"}
-        )
-        for _ in range(100):
-            try:
-                if self.client.get("/health").status_code == 200:
-                    return
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
-        raise AssertionError("the server did not answer /health")
-
-    @property
-    def start_url(self) -> str:
-        return f"{self.url}/?token={TOKEN}"
-
-    def stop(self) -> None:
-        self.client.close()
-        self.process.send_signal(signal.SIGINT)
-        try:
-            self.process.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
-
-
 @pytest.fixture(scope="session")
 def server(tmp_path_factory):
-    server = Server(tmp_path_factory.mktemp("ui-data"))
+    server = Server(tmp_path_factory.mktemp("ui-data"), token=TOKEN, demo=True, timeout_s=30)
     yield server
     server.stop()
 

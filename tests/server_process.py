@@ -1,0 +1,85 @@
+"""The real server (``teachpath serve``, uvicorn) in a child process on a free port of
+127.0.0.1, for the end-to-end, schemathesis and browser tests."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+
+class Server:
+    """``teachpath serve`` on a free loopback port with ``token``, answering ``/health``.
+
+    Parameters
+    ----------
+    data_dir : Path
+    token : str
+    demo : bool
+        Seed the demo session (``--demo``).
+    timeout_s : float
+        Bound on each request of :attr:`client`.
+    """
+
+    def __init__(
+        self, data_dir: Path, *, token: str, demo: bool = False, timeout_s: float = 60.0
+    ) -> None:
+        self.token = token
+        env = {**os.environ, "TEACHPATH_TOKEN": token}
+        env.pop("TEACHPATH_UR_HOST", None)  # never a real controller from a test
+        command = [sys.executable, "-m", "service.cli", "serve", "--port", "0"]
+        command += ["--data-dir", str(data_dir)] + (["--demo"] if demo else [])
+        self.process = subprocess.Popen(
+            command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+        )
+        deadline = time.monotonic() + 60
+        self.url = None
+        while self.url is None:
+            assert time.monotonic() < deadline, "the server did not print its URL"
+            line = self.process.stdout.readline()
+            assert line or self.process.poll() is None, "the server exited"
+            match = re.search(r"open (http://127\.0\.0\.1:\d+)/\?token=(\S+)", line)
+            if match:
+                self.url = match.group(1)
+                assert match.group(2) == token
+        self.client = httpx.Client(
+            base_url=self.url, timeout=timeout_s, headers={"Authorization": f"Bearer {token}"}
+        )
+        for _ in range(100):
+            try:
+                if self.client.get("/health").status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        raise AssertionError("the server did not answer /health")
+
+    @property
+    def start_url(self) -> str:
+        """The page's address with the token, as the server prints it."""
+        return f"{self.url}/?token={self.token}"
+
+    def wait(self, job: dict, timeout_s: float = 120.0) -> dict:
+        """Poll a job until it has finished."""
+        deadline = time.monotonic() + timeout_s
+        while job["state"] not in ("succeeded", "failed", "cancelled"):
+            assert time.monotonic() < deadline, f"job {job['id']} did not finish"
+            time.sleep(0.2)
+            job = self.client.get(f"/jobs/{job['id']}").json()
+        return job
+
+    def stop(self) -> None:
+        """Interrupt it as Ctrl-C does; kill it if it has not ended within 30 s."""
+        self.client.close()
+        self.process.send_signal(signal.SIGINT)
+        try:
+            self.process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
