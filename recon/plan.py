@@ -142,6 +142,7 @@ def plan_path(
     pen_xyzw: FloatArray | None = None,
     cell=None,
     piece: NDArray[np.int64] | None = None,
+    start_from: str | None = None,
 ) -> Plan:
     """Plan the whole motion along a path given in the tracker frame.
 
@@ -163,6 +164,9 @@ def plan_path(
     piece : ndarray of shape (N,), int, optional
         The trace's pieces (``Reconstruction.piece``): each is a process run of its own, and
         between two the arm retracts, transits and approaches again. None: one piece.
+    start_from : str, optional
+        Where ``params.start_q_rad`` came from, for the report ("arm": read from the arm at
+        planning time); default "given", or "home" without start joints.
 
     Raises
     ------
@@ -182,7 +186,8 @@ def plan_path(
         for rows in pieces
     ]
     T_flange_tcp = params.T_flange_tcp
-    start_from = "given" if params.start_q_rad is not None else "home"
+    if start_from is None or params.start_q_rad is None:
+        start_from = "given" if params.start_q_rad is not None else "home"
     q_start = np.asarray(params.start_q_rad or kinematics.HOME_Q_RAD, dtype=np.float64)
     flanges = [tool.poses() @ invert_transform(T_flange_tcp) for tool in tools]
     allowed = _configuration_branches(arm, flanges[0][0], params.configuration)

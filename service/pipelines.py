@@ -496,6 +496,7 @@ def plan(
         pen_xyzw=path.orientations_xyzw,
         cell=cell_for(scan, path.T_scan_tracker, T_base, keep_out_boxes, cell_planes),
         piece=path.piece,
+        start_from=start_from,
     )
     return PlanOutcome(
         plan=result, T_scan_tracker=T_scan_tracker, T_base_tracker=T_base, start_from=start_from

@@ -25,14 +25,24 @@ class Server:
         Seed the demo session (``--demo``).
     timeout_s : float
         Bound on each request of :attr:`client`.
+    settings : dict, optional
+        More ``TEACHPATH_*`` settings (e.g. ``{"TEACHPATH_UR_HOST": fake.host}``, a fake
+        controller on loopback); without one, no controller of the environment is used.
     """
 
     def __init__(
-        self, data_dir: Path, *, token: str, demo: bool = False, timeout_s: float = 60.0
+        self,
+        data_dir: Path,
+        *,
+        token: str,
+        demo: bool = False,
+        timeout_s: float = 60.0,
+        settings: dict[str, str] | None = None,
     ) -> None:
         self.token = token
         env = {**os.environ, "TEACHPATH_TOKEN": token}
         env.pop("TEACHPATH_UR_HOST", None)  # never a real controller from a test
+        env.update(settings or {})
         command = [sys.executable, "-m", "service.cli", "serve", "--port", "0"]
         command += ["--data-dir", str(data_dir)] + (["--demo"] if demo else [])
         self.process = subprocess.Popen(

@@ -10,10 +10,12 @@ installs both.
 
 from __future__ import annotations
 
+import contextlib
 import ipaddress
 import os
 import re
 import shutil
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -177,21 +179,29 @@ def screens(tmp_path_factory) -> Path:
     return folder
 
 
-@pytest.fixture
-def pendant(browser, server, screens, request):
-    """A fresh browser context and page, guarded; ``pendant.shot(name)`` saves a screenshot."""
+@contextlib.contextmanager
+def pendant_for(browser, server: Server, screens: Path, name: str) -> Iterator[Pendant]:
+    """A fresh browser context and page on ``server``, guarded (checked when it closes);
+    ``pendant.shot(step)`` saves a screenshot named after ``name``."""
     context = browser.new_context(viewport={"width": 1500, "height": 1100})
     context.set_default_timeout(30_000)
     page = context.new_page()
     guard = Guard(context, page)
 
-    def shot(name: str) -> Path:
-        path = screens / f"{request.node.name}-{name}.png"
+    def shot(step: str) -> Path:
+        path = screens / f"{name}-{step}.png"
         page.screenshot(path=str(path), full_page=True)
         return path
 
-    yield Pendant(page=page, guard=guard, server=server, shot=shot)
     try:
+        yield Pendant(page=page, guard=guard, server=server, shot=shot)
         guard.check()
     finally:
         context.close()
+
+
+@pytest.fixture
+def pendant(browser, server, screens, request):
+    """The pendant on the simulated arm's server (see :func:`pendant_for`)."""
+    with pendant_for(browser, server, screens, request.node.name) as opened:
+        yield opened

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 
+import pytest
 from playwright.sync_api import expect
 
 from tests.ui.conftest import TOKEN
@@ -203,6 +204,16 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant):
     page.wait_for_function("document.querySelector('#legend-max').textContent.endsWith('mm')")
     pixels = canvas_pixels(page)
     assert pixels["width"] > 300 and pixels["colours"] > 5 and pixels["drawn"] > 0.002, pixels
+    # Framed on the workpiece: the scan fills a good part of the view; "Whole motion" takes in
+    # the transit from the arm's pose too, and the workpiece shrinks.
+    assert pixels["drawn"] > 0.05, pixels
+    page.get_by_role("button", name="Whole motion").click()
+    whole = canvas_pixels(page)
+    assert whole["drawn"] < 0.5 * pixels["drawn"], (whole, pixels)
+    pendant.shot("whole-motion")
+    page.get_by_role("button", name="Workpiece").click()
+    assert canvas_pixels(page)["drawn"] == pytest.approx(pixels["drawn"], rel=0.05)
+    pendant.shot("workpiece")
 
     # Run on arm: a confirmation first; cancelling sends nothing.
     run.click()

@@ -17,6 +17,13 @@ const el = (tag, attrs = {}, ...children) => {
 };
 const mm = (metres, digits = 2) => (metres == null ? "–" : `${(metres * 1000).toFixed(digits)} mm`);
 const mmps = (m_s) => `${Math.round(m_s * 1000)} mm/s`;
+// Where a plan starts (the trajectory summary's start_from), in the operator's words.
+const START_FROM = {
+  arm: "the arm's joints when it was planned (the run refuses if the arm has moved since)",
+  home: "the simulated arm's home pose",
+  given: "the joints given with the request",
+};
+const startFrom = (key) => START_FROM[key] || key || "–";
 const seconds = (s) => (s == null ? "–" : `${s.toFixed(1)} s`);
 
 const state = {
@@ -229,10 +236,18 @@ function stepStates() {
     dryrun: dry && passed(dry)
       ? { done: true, needs: "" }
       : { done: false, needs: !traj ? "Needs a plan." : dry ? "The last dry run did not pass: read its report, plan again or dry-run again." : `Ready: press “Dry run” (mode ${mode()}).` },
-    run: lastRun()?.summary.completed
-      ? { done: true, needs: "" }
-      : { done: false, needs: dry && passed(dry) ? "Ready: press “Run on arm” and confirm." : "Needs a passed dry run of this plan in this mode." },
+    run: runState(dry),
   };
+}
+
+function runState(dry) {
+  const owner = state.robot?.owner_execution_id;
+  if (owner && owner !== state.moving?.executionId) {
+    return { done: false, needs: `The arm is busy: execution ${owner} owns it. Wait until it ends, or press Stop.` };
+  }
+  if (state.moving) return { done: false, needs: "The arm is moving: press Stop (or Esc) to stop it at once." };
+  if (lastRun()?.summary.completed) return { done: true, needs: "" };
+  return { done: false, needs: dry && passed(dry) ? "Ready: press “Run on arm” and confirm." : "Needs a passed dry run of this plan in this mode." };
 }
 
 const STEPS = [
@@ -341,7 +356,7 @@ function renderPlan() {
       ["speed", mmps(sm.requested_speed_m_s)],
       ["duration", seconds(sm.duration_s)],
       ["configuration", sm.configuration || "–"],
-      ["starts from", sm.start_from || "–"],
+      ["starts from", startFrom(sm.start_from)],
       ["approach", mm(sm.approach_m, 0)],
       ["closest to the cell", mm(sm.min_clearance_m, 1)],
     ]),
@@ -523,7 +538,8 @@ function confirmRun(traj) {
     ["mode", mode()],
     ["duration", seconds(sm.duration_s)],
     ...Object.entries(sm.phase_durations_s).map(([phase, s]) => [`  ${phase}`, seconds(s)]),
-    ["approach", `${mm(sm.approach_m, 0)} along the tool axis, from ${sm.start_from || "the arm's position"}`],
+    ["starts from", startFrom(sm.start_from)],
+    ["approach", `${mm(sm.approach_m, 0)} along the tool axis`],
     ["configuration", sm.configuration || "–"],
   ];
   $("#confirm-table").replaceChildren(...rows.map(([k, v]) => el("tr", {}, el("th", { text: k }), el("td", { text: v }))));

@@ -7,6 +7,8 @@ import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { api } from "./api.js";
 
+/** The layers that show the workpiece (framed by default). */
+const WORKPIECE = ["scan", "trace", "reconstruction"];
 const COLOURS = { scan: 0x8a8f98, trace: 0xff8c00, path: 0x1f77ff };
 /** Displacement colour ramp: blue (none) -> green -> yellow -> red (the largest). */
 const RAMP = [[0.0, [0.15, 0.3, 0.9]], [0.33, [0.1, 0.75, 0.35]], [0.66, [0.95, 0.85, 0.1]], [1.0, [0.9, 0.1, 0.1]]];
@@ -70,6 +72,10 @@ export class Workspace {
         if (layer) layer.visible = box.checked;
         this.render();
       });
+    }
+    this.view = "workpiece";
+    for (const button of layers.querySelectorAll("button[data-view]")) {
+      button.addEventListener("click", () => this.frame(button.dataset.view));
     }
     this.visibility = (name) => layers.querySelector(`input[name=${name}]`)?.checked ?? true;
     layers.querySelector("#point-size").addEventListener("input", (event) => {
@@ -199,10 +205,14 @@ export class Workspace {
     this.frame();
   }
 
-  /** Aim the camera at everything shown. */
-  frame() {
+  /** Aim the camera at the workpiece (scan, trace, reconstruction: what the operator checks
+   * first; the planned motion's transit from the arm's pose spans metres and would shrink it
+   * to a few pixels), or at everything shown (`view` "all"). */
+  frame(view = this.view) {
+    this.view = view;
+    const names = view === "all" ? Object.keys(this.layers) : WORKPIECE.filter((n) => this.layers[n]);
     const box = new THREE.Box3();
-    for (const object of Object.values(this.layers)) box.expandByObject(object);
+    for (const name of names.length ? names : Object.keys(this.layers)) box.expandByObject(this.layers[name]);
     if (box.isEmpty()) return this.render();
     const centre = box.getCenter(new THREE.Vector3());
     const size = Math.max(box.getSize(new THREE.Vector3()).length(), 0.05);

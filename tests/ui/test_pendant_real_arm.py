@@ -1,0 +1,167 @@
+"""The pendant with a real arm: the server drives the fake UR controller
+(``drivers.robot.fake_ur``) on loopback, and the operator runs a plan on it from the browser,
+stops it mid-path with the Escape key, watches a second pendant see the arm owned (its Run on
+arm disabled, its Stop shown), and clears a protective stop with Unlock.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+
+import numpy as np
+import pytest
+from playwright.sync_api import expect
+
+from tests.drivers import fake_ur_fixture
+from tests.server_process import Server
+from tests.ui.conftest import TOKEN, pendant_for
+
+fake_ur_process = fake_ur_fixture.fake_ur_process
+
+pytestmark = pytest.mark.timeout(600)
+
+#: The server's speed cap for the real arm (m/s): the slider stops there.
+CAP_M_S = 0.1
+
+
+@pytest.fixture(scope="module")
+def arm_server(tmp_path_factory, fake_ur_process):
+    server = Server(
+        tmp_path_factory.mktemp("ui-real-arm"),
+        token=TOKEN,
+        demo=True,
+        timeout_s=30,
+        settings={
+            "TEACHPATH_UR_HOST": fake_ur_process.host,
+            "TEACHPATH_UR_ROBOT": "ur5e",
+            "TEACHPATH_MAX_SPEED_M_S": str(CAP_M_S),
+        },
+    )
+    yield server
+    server.stop()
+
+
+def _joints(fake) -> np.ndarray:
+    return np.array(fake.control("status")["q_rad"])
+
+
+def _progress(page, form: str) -> float:
+    return float(page.locator(f"{form} progress").evaluate("bar => bar.value"))
+
+
+def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pendant(
+    browser, arm_server, fake_ur_process, screens
+):
+    fake = fake_ur_process
+    fake.control("reset")
+    with pendant_for(browser, arm_server, screens, "real-arm") as pendant:
+        page = pendant.page
+        pendant.open()
+        expect(page.locator("#arm-kind")).to_have_text("REAL ARM")
+        expect(page.locator("#robot-model")).to_have_text(f"ur5e @ {fake.host}")
+        expect(page.locator("#robot-mode")).to_have_text("RUNNING")
+        expect(page.locator("#remote-control")).to_have_text("on")
+        expect(page.locator("#speed-cap")).to_have_text("100 mm/s")
+        page.get_by_role("button", name="demo", exact=True).click()
+        page.get_by_role("button", name="Reconstruct").click()
+        expect(page.locator("#reconstruct-summary")).to_contain_text(
+            "max displacement", timeout=90_000
+        )
+        # The plan starts where the arm is (the service reads its joints), at a slow speed so
+        # that the run lasts long enough to be stopped in the middle.
+        expect(page.locator("#plan-speed")).to_have_attribute("max", str(CAP_M_S))
+        page.locator("#plan-speed").fill("0.02")
+        page.get_by_role("button", name="Plan").click()
+        summary = page.locator("#plan-summary")
+        expect(summary.locator("tr[data-phase=process]")).to_be_visible(timeout=60_000)
+        expect(summary).to_contain_text("the arm's joints")
+        expect(summary.locator(".report")).to_contain_text("starts from arm [0.0, -90.0")
+        page.get_by_role("button", name="Dry run").click()
+        expect(page.locator("#dryrun-summary")).to_contain_text("passed", timeout=120_000)
+
+        # Run on arm: behind a confirmation that names the real arm, the speed and the phases.
+        run = page.get_by_role("button", name="Run on arm")
+        expect(run).to_be_enabled()
+        run.click()
+        dialog = page.locator("#confirm-dialog")
+        expect(dialog).to_be_visible()
+        expect(dialog).to_contain_text(f"REAL ARM ur5e @ {fake.host}")
+        expect(dialog).to_contain_text("20 mm/s")
+        expect(dialog.locator("th", has_text="approach").first).to_be_visible()
+        pendant.shot("confirm")
+        q_before = _joints(fake)
+        page.get_by_role("button", name="Confirm: run on arm").click()
+        stop = page.get_by_role("button", name="Stop")
+        expect(stop).to_be_visible()
+        expect(page.locator("#stop-hint")).to_have_text("Esc = Stop")
+        expect(page.locator("#step-run .needs")).to_have_text(
+            "The arm is moving: press Stop (or Esc) to stop it at once."
+        )
+        expect(run).to_be_disabled()
+        expect(page.locator("#arm-owner")).to_have_text(re.compile(r"^exe_"))
+        owner = page.locator("#arm-owner").inner_text()
+
+        # A second pendant on the same session sees the arm owned: it can stop it, not run.
+        with pendant_for(browser, arm_server, screens, "real-arm-second") as second:
+            other = second.page
+            second.open()
+            other.get_by_role("button", name="demo", exact=True).click()
+            expect(other.locator("#arm-owner")).to_have_text(owner)
+            expect(other.get_by_role("button", name="Stop")).to_be_visible()
+            expect(other.get_by_role("button", name="Run on arm")).to_be_disabled()
+            expect(other.locator("#step-run .needs")).to_contain_text(
+                f"The arm is busy: execution {owner} owns it"
+            )
+            second.shot("arm-owned")
+
+        # Mid-path (half of the job's progress), Escape stops the arm.
+        deadline = time.monotonic() + 120
+        while _progress(page, "#run-form") < 0.5:
+            assert time.monotonic() < deadline, "the run did not get half way"
+            time.sleep(0.05)
+        assert np.abs(_joints(fake) - q_before).max() > 1e-3  # the arm has moved
+        pendant.shot("running")
+        page.keyboard.press("Escape")
+        result = page.locator("#run-summary")
+        expect(result).to_contain_text("stopped in", timeout=30_000)
+        expect(result).to_contain_text("not completed")
+        expect(page.locator("#run-form .message")).to_contain_text("cancelled")
+        expect(stop).to_be_hidden()
+        expect(page.locator("#arm-owner")).to_have_text("none")
+        # The arm stands where it stopped: no motion after the stop.
+        q_stopped = _joints(fake)
+        time.sleep(0.5)
+        assert np.abs(_joints(fake) - q_stopped).max() < 1e-6
+        assert fake.control("program_status")["state"] != "running"
+        expect(run).to_be_enabled()  # the dry run still holds; the operator may run again
+        pendant.shot("stopped")
+
+
+def test_a_protective_stop_is_shown_and_unlocked_when_the_controller_allows(
+    browser, arm_server, fake_ur_process, screens
+):
+    fake = fake_ur_process
+    fake.control("reset")
+    with pendant_for(browser, arm_server, screens, "protective-stop") as pendant:
+        page = pendant.page
+        pendant.open()
+        expect(page.locator("#protective-stop")).to_have_text("no")
+        unlock = page.get_by_role("button", name="Unlock")
+        expect(unlock).to_be_hidden()
+        fake.control("protective_stop")
+        expect(page.locator("#protective-stop")).to_have_text(
+            re.compile(r"^YES \(unlock in \d s\)")
+        )
+        expect(page.locator("#safety-status")).to_have_text("PROTECTIVE_STOP")
+        expect(page.locator("#safety-bar")).to_have_class(re.compile("alarm"))
+        expect(unlock).to_be_visible()
+        expect(unlock).to_be_disabled()  # the controller refuses within 5 s of the stop
+        pendant.shot("protective-stop")
+        expect(unlock).to_be_enabled(timeout=10_000)
+        unlock.click()
+        expect(page.locator("#protective-stop")).to_have_text("no")
+        expect(page.locator("#safety-status")).to_have_text("NORMAL")
+        expect(page.locator("#safety-bar")).not_to_have_class(re.compile("alarm"))
+        expect(unlock).to_be_hidden()
+        pendant.shot("unlocked")
