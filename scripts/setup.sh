@@ -4,7 +4,8 @@
 #   2. a virtual environment in .venv with the project installed editable, with its dev extra;
 #   3. the pendant's browser libraries (three.js, Swagger UI, ReDoc; package-lock.json) with
 #      `npm ci --ignore-scripts`, copied into service/ui/vendor/ (scripts/vendor-ui.sh);
-#   4. Debian's chromium, which the pendant's browser tests (tests/ui, Playwright) drive.
+#   4. Debian's curl and jq, for the README's REST walk-through (a test runs it);
+#   5. Debian's chromium, which the pendant's browser tests (tests/ui, Playwright) drive.
 # The stamp file .venv/.installed records the pyproject.toml it was installed from, so a changed
 # dependency list triggers a re-install and an unchanged one costs nothing.
 set -euo pipefail
@@ -50,6 +51,15 @@ if [ "$(cat service/ui/vendor/.lock-sha256 2>/dev/null)" != "$lock" ]; then
     echo "setup: installing the pendant's browser libraries (npm ci) into service/ui/vendor"
     npm ci --ignore-scripts --omit=peer --no-audit --no-fund --loglevel=error >/dev/null
     scripts/vendor-ui.sh node_modules service/ui/vendor
+fi
+
+# curl and jq: the README's REST walk-through uses them, and a test runs it.
+missing=""
+for tool in curl jq; do command -v "$tool" >/dev/null || missing="$missing $tool"; done
+if [ -n "$missing" ]; then
+    echo "setup: installing Debian package(s)$missing (for the README's REST walk-through)"
+    # shellcheck disable=SC2086 - one word per package
+    apt_install $missing
 fi
 
 # The browser the UI tests drive (Playwright, never its own downloaded browsers).

@@ -20,7 +20,8 @@ class Server:
     Parameters
     ----------
     data_dir : Path
-    token : str
+    token : str or None
+        None: the server's own (generated on first start in ``data_dir/token``).
     demo : bool
         Seed the demo session (``--demo``).
     timeout_s : float
@@ -34,13 +35,14 @@ class Server:
         self,
         data_dir: Path,
         *,
-        token: str,
+        token: str | None,
         demo: bool = False,
         timeout_s: float = 60.0,
         settings: dict[str, str] | None = None,
     ) -> None:
-        self.token = token
-        env = {**os.environ, "TEACHPATH_TOKEN": token}
+        env = {**os.environ, "TEACHPATH_TOKEN": token or ""}
+        if token is None:
+            env.pop("TEACHPATH_TOKEN")
         env.pop("TEACHPATH_UR_HOST", None)  # never a real controller from a test
         env.update(settings or {})
         command = [sys.executable, "-m", "service.cli", "serve", "--port", "0"]
@@ -57,7 +59,9 @@ class Server:
             match = re.search(r"open (http://127\.0\.0\.1:\d+)/\?token=(\S+)", line)
             if match:
                 self.url = match.group(1)
-                assert match.group(2) == token
+                assert token is None or match.group(2) == token
+                token = match.group(2)
+        self.token = token
         self.client = httpx.Client(
             base_url=self.url, timeout=timeout_s, headers={"Authorization": f"Bearer {token}"}
         )
