@@ -236,3 +236,35 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant):
     assert posts.count("executions") == 2
     expect(page.locator("#step-run .needs")).to_contain_text("Run on arm")
     pendant.shot("run-refused")
+
+
+def test_a_reload_finds_the_running_dry_run_again_and_sends_nothing(pendant):
+    page = pendant.page
+    posts = []
+    page.on("request", lambda r: posts.append(r.url) if r.method == "POST" else None)
+    pendant.open()
+    page.get_by_role("button", name="demo", exact=True).click()
+    page.get_by_role("button", name="Reconstruct").click()
+    expect(page.locator("#reconstruct-form .job-state")).to_have_text(
+        "succeeded 100 %", timeout=90_000
+    )
+    # Slow, so that the dry run (simulated in real time) outlasts the reload by far.
+    page.locator("#plan-speed").fill("0.01")
+    page.get_by_role("button", name="Plan").click()
+    expect(page.locator("#plan-form .job-state")).to_have_text("succeeded 100 %", timeout=60_000)
+    dry = page.get_by_role("button", name="Dry run")
+    dry.click()
+    expect(page.locator("#dryrun-form .job-state")).to_contain_text("running")
+    sent = len(posts)
+    page.reload()
+    page.wait_for_selector("body[data-ready=true]")
+    # The session is open again and its dry run followed to its end, its button held meanwhile.
+    expect(page.locator("#session-title")).to_have_text("Session demo")
+    expect(page.locator("#dryrun-form .job-state")).to_contain_text("running")
+    expect(dry).to_be_disabled()
+    expect(page.locator("#steps li[data-step=dryrun]")).to_have_class(re.compile("running"))
+    pendant.shot("reloaded-while-running")
+    expect(page.locator("#dryrun-form .job-state")).to_have_text("succeeded 100 %", timeout=60_000)
+    expect(page.locator("#dryrun-summary")).to_contain_text("passed")
+    expect(dry).to_be_enabled()
+    assert len(posts) == sent, posts[sent:]  # nothing was sent again

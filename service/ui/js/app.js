@@ -158,11 +158,15 @@ async function loadSessions() {
 
 function closeSession() {
   state.session = null;
+  sessionStorage.removeItem(SESSION_KEY);
   $("#session-view").hidden = true;
 }
 
+const SESSION_KEY = "teachpath.session";
+
 async function openSession(id) {
   state.session = await api(`/sessions/${id}`);
+  sessionStorage.setItem(SESSION_KEY, id);
   $("#session-view").hidden = false;
   $("#session-title").textContent = `Session ${state.session.name}`;
   for (const box of document.querySelectorAll("#session-view .message")) clearMessage(box);
@@ -170,6 +174,30 @@ async function openSession(id) {
   for (const item of document.querySelectorAll("#session-list li")) {
     item.classList.toggle("selected", item.dataset.session === id);
   }
+  await resumeJobs(id);
+}
+
+// After a reload (or on a second pendant), the session's unfinished job is followed again, its
+// button disabled until it ends: nothing is sent again.
+const JOB_STEPS = { reconstruction: "reconstruct", trajectory: "plan" };
+function stepOfJob(job) {
+  if (job.kind === "execution") return job.params.backend === "sim" ? "dryrun" : "run";
+  return JOB_STEPS[job.kind] || null;
+}
+
+async function resumeJobs(sid) {
+  if (state.busy) return;
+  const jobs = await api(`/sessions/${sid}/jobs`);
+  const job = jobs.find((j) => !FINISHED.includes(j.state) && stepOfJob(j));
+  if (!job) return;
+  const step = stepOfJob(job);
+  runJob(step, $(`#step-${step} form`), async () => {
+    if (step === "run") {
+      state.moving = { executionId: job.params.execution_id, jobId: job.id };
+      updateStop();
+    }
+    return job;
+  });
 }
 
 async function refresh() {
@@ -635,6 +663,10 @@ async function main() {
     buildReconstructForm(state.schema);
     updatePlanSpeed();
     await loadSessions();
+    const last = sessionStorage.getItem(SESSION_KEY);
+    if (last && document.querySelector(`#session-list li[data-session="${CSS.escape(last)}"]`)) {
+      await openSession(last);
+    }
   } catch (err) {
     const { instruction, message } = explain(err);
     banner(`${instruction} (${message})`);
