@@ -268,3 +268,23 @@ def test_a_reload_finds_the_running_dry_run_again_and_sends_nothing(pendant):
     expect(page.locator("#dryrun-summary")).to_contain_text("passed")
     expect(dry).to_be_enabled()
     assert len(posts) == sent, posts[sent:]  # nothing was sent again
+
+
+def test_the_high_contrast_theme_is_switched_on_and_kept(pendant):
+    page = pendant.page
+    pendant.open()
+    body = page.locator("body")
+    background = "getComputedStyle(document.body).backgroundColor"
+    assert page.evaluate(background) == "rgb(255, 255, 255)"
+    page.get_by_label("High contrast").check()
+    expect(body).to_have_class(re.compile("contrast"))
+    assert page.evaluate(background) == "rgb(0, 0, 0)"
+    assert page.evaluate("getComputedStyle(document.body).color") == "rgb(255, 255, 255)"
+    page.get_by_role("button", name="demo", exact=True).click()
+    pendant.shot("high-contrast")
+    page.reload()
+    page.wait_for_selector("body[data-ready=true]")
+    expect(body).to_have_class(re.compile("contrast"))
+    expect(page.get_by_label("High contrast")).to_be_checked()
+    page.get_by_label("High contrast").uncheck()
+    assert page.evaluate(background) == "rgb(255, 255, 255)"

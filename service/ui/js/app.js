@@ -638,6 +638,15 @@ function wire() {
     });
   });
 
+  const contrast = $("#contrast");
+  const theme = (on) => {
+    document.body.classList.toggle("contrast", on);
+    localStorage.setItem("teachpath.contrast", on ? "1" : "");
+  };
+  contrast.checked = localStorage.getItem("teachpath.contrast") === "1";
+  theme(contrast.checked);
+  contrast.addEventListener("change", () => theme(contrast.checked));
+
   $("#stop").addEventListener("click", stop);
   document.addEventListener("keydown", (event) => {
     if (event.key === "Escape" && canMove()) {
