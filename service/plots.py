@@ -121,3 +121,116 @@ def _equal_axes(ax, points: FloatArray) -> None:
     ax.set_xlim(centre[0] - half, centre[0] + half)
     ax.set_ylim(centre[1] - half, centre[1] + half)
     ax.set_zlim(centre[2] - half, centre[2] + half)
+
+
+#: Colours of the motion's phases in the plan picture.
+_PHASE_COLOURS = {
+    "transit": "0.85",
+    "approach": "#cfe3ff",
+    "process": "white",
+    "retract": "#ffe2c6",
+    "return": "0.85",
+}
+
+
+def plot_plan(path: str | Path, trajectory, *, title: str = "") -> None:
+    """Write the plan's picture: TCP speed along the motion against the requested speed, with
+    each slow-down and its cause; joint angles against their limits; joint speeds as a share of
+    their limits. The phases (transit, approach, process, retract) are shaded.
+
+    Parameters
+    ----------
+    path : str or Path
+        The PNG to write (written whole or not at all).
+    trajectory : recon.types.JointTrajectory
+        ``t_s`` (M,), ``q_rad`` and ``qd_rad_s`` (M, 6), ``tcp_m`` (M, 3), its phases and
+        ``speed_drops`` (metres of process path).
+    title : str
+    """
+    from recon import kinematics
+    from recon.types import Phase
+
+    arm = kinematics.model(trajectory.robot)
+    t = trajectory.t_s
+    phases = trajectory.phases
+    speed_mm_s = np.linalg.norm(np.gradient(trajectory.tcp_m, t, axis=0), axis=1) * 1e3
+    fig, (ax_speed, ax_q, ax_qd) = plt.subplots(3, 1, figsize=(10, 9), sharex=True)
+    for ax in (ax_speed, ax_q, ax_qd):
+        _shade_phases(ax, t, phases)
+        ax.grid(alpha=0.3)
+    ax_speed.plot(t, speed_mm_s, c="tab:blue", lw=1.2, label="TCP speed")
+    ax_speed.axhline(
+        trajectory.requested_speed_m_s * 1e3, c="tab:green", ls="--", lw=1, label="requested"
+    )
+    process = np.flatnonzero(phases == int(Phase.PROCESS))
+    if len(process):
+        arc = trajectory.arc_length_m[process] - trajectory.arc_length_m[process[0]]
+        for drop in trajectory.speed_drops:
+            inside = process[(arc >= drop.start_m) & (arc <= drop.end_m)]
+            if not len(inside):
+                continue
+            ax_speed.axvspan(t[inside[0]], t[inside[-1]], color="tab:red", alpha=0.15)
+            ax_speed.annotate(
+                f"{drop.min_speed_m_s * 1e3:.0f} mm/s: {drop.cause}",
+                (t[inside[len(inside) // 2]], drop.min_speed_m_s * 1e3),
+                fontsize=7,
+                color="tab:red",
+                xytext=(0, -14),
+                textcoords="offset points",
+                ha="center",
+            )
+    # The scale of the process path: the joint moves of the transit are much faster at the TCP
+    # (half a metre a second) and would flatten it; their peak is named instead.
+    requested_mm_s = trajectory.requested_speed_m_s * 1e3
+    process_top = speed_mm_s[process].max() if len(process) else requested_mm_s
+    top = 1.6 * max(requested_mm_s, process_top)
+    ax_speed.set_ylim(0, top)
+    if speed_mm_s.max() > top:
+        ax_speed.text(
+            t[int(np.argmax(speed_mm_s))], top * 0.93, f"peak {speed_mm_s.max():.0f} mm/s",
+            fontsize=7, ha="center", va="top",
+        )  # fmt: skip
+    _name_phases(ax_speed, t, phases, top)
+    ax_speed.set_ylabel("TCP speed [mm/s]")
+    ax_speed.legend(fontsize=8, loc="lower right")
+    degrees = np.degrees(trajectory.q_rad)
+    for j in range(6):
+        (line,) = ax_q.plot(t, degrees[:, j], lw=1, label=f"q{j}")
+        for limit in (arm.q_min_rad[j], arm.q_max_rad[j]):
+            if np.isfinite(limit) and abs(limit) < 2 * np.pi + 1e-9:
+                ax_q.axhline(np.degrees(limit), c=line.get_color(), lw=0.5, ls=":")
+    ax_q.set_ylabel("joint angle [deg] (limits dotted)")
+    ax_q.legend(fontsize=7, ncol=6, loc="upper right")
+    share = np.abs(trajectory.qd_rad_s) / arm.qd_max_rad_s
+    for j in range(6):
+        ax_qd.plot(t, share[:, j] * 100, lw=1, label=f"q{j}")
+    ax_qd.axhline(100, c="tab:red", lw=1, ls="--")
+    ax_qd.set_ylabel("joint speed [% of limit]")
+    ax_qd.set_xlabel("time [s]")
+    ax_qd.legend(fontsize=7, ncol=6, loc="upper right")
+    fig.suptitle(title or f"teachpath plan ({trajectory.robot})")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+
+
+def _phase_spans(phases):
+    """(first, last sample, label) of each run of one phase."""
+    from recon.types import Phase
+
+    changes = np.flatnonzero(np.diff(phases)) + 1
+    for start, stop in zip(np.r_[0, changes], np.r_[changes, len(phases)], strict=True):
+        yield int(start), int(stop) - 1, Phase(int(phases[start])).label
+
+
+def _shade_phases(ax, t: FloatArray, phases) -> None:
+    """Shade each phase's time span."""
+    for first, last, label in _phase_spans(phases):
+        ax.axvspan(t[first], t[last], color=_PHASE_COLOURS.get(label, "white"), lw=0)
+
+
+def _name_phases(ax, t: FloatArray, phases, top: float) -> None:
+    """Name each phase at the top of its span."""
+    for first, last, label in _phase_spans(phases):
+        ax.text((t[first] + t[last]) / 2, top * 0.99, label, fontsize=7, ha="center", va="top")

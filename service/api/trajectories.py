@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 from fastapi import APIRouter, Query, Response
@@ -39,6 +40,28 @@ def trajectory_csv(session_id: str, artifact_id: str, services: ServicesDep):
         media_type="text/csv",
         filename=f"{artifact_id}.csv",
     )
+
+
+@router.get(
+    "/trajectories/{artifact_id}/plot.png",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}}}},
+)
+def trajectory_plot(session_id: str, artifact_id: str, services: ServicesDep):
+    """The plan preview as a picture: TCP speed against the requested speed with the causes of
+    slow-downs, joint angles and speeds against their limits, the phases shaded (what
+    `teachpath plan --plot` writes)."""
+    import tempfile
+
+    from service.plots import plot_plan
+
+    row = services.artifact(session_id, "trajectory", artifact_id)
+    trajectory = tasks.load_trajectory(services.store.path_of(row), row.summary)
+    with tempfile.TemporaryDirectory(prefix="teachpath-plot-") as tmp:
+        path = Path(tmp) / "plan.png"
+        plot_plan(path, trajectory, title=f"{row.id} ({trajectory.robot})")
+        content = path.read_bytes()
+    return Response(content, media_type="image/png", headers={"Cache-Control": "no-store"})
 
 
 @router.get(

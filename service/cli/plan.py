@@ -81,6 +81,12 @@ def add_parser(commands) -> None:
         "write --cell-plane=-1,... when the first number is negative)",
     )
     plan.add_argument("--out", required=True, metavar="TRAJ.csv")
+    plan.add_argument(
+        "--plot",
+        metavar="OUT.png",
+        help="also write a picture: TCP speed against the requested one with the causes of "
+        "slow-downs, joints against their limits, joint speeds against theirs",
+    )
     plan.set_defaults(handler=run)
 
 
@@ -118,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     from service.schemas import TRAJECTORY_PARAMS
 
     out = check_output(args.out, ".csv")
+    plot = check_output(args.plot, ".png") if args.plot else None  # refused before any work
     params = params_from_args(PlanParams, args, TRAJECTORY_PARAMS)
     path, scan_model, recon_params = _reconstruction(args.recon_file)
     T_base_tracker = read_matrix(args.base_from_tracker, "T_base_tracker")
@@ -155,5 +162,9 @@ def run(args: argparse.Namespace) -> int:
     write_trajectory_csv(
         out, outcome.trajectory, meta={**meta, "source": Path(args.recon_file).name}
     )
+    if plot is not None:
+        from service.plots import plot_plan
+
+        plot_plan(plot, outcome.trajectory, title=Path(out).name)
     print("\n".join(outcome.lines()))
     return 0

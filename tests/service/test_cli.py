@@ -5,6 +5,7 @@ import re
 import subprocess
 import sys
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
@@ -267,9 +268,13 @@ def test_plan_then_dry_run(inputs, reconstructed, tmp_path):
         reconstructed / "T.json",
         "--out",
         traj,
+        "--plot",
+        tmp_path / "plan.png",
     )
     assert result.returncode == 0, result.stderr
     assert "tool axis from the scan" in result.stdout and "margins" in result.stdout
+    picture = plt.imread(tmp_path / "plan.png")
+    assert picture.shape[:2] == (900, 1000) and picture[..., :3].std() > 0.05
     meta, header = traj.read_text().splitlines()[:2]
     assert meta.startswith("# teachpath: ") and '"robot": "ur5e"' in meta
     assert header == "t,q0,q1,q2,q3,q4,q5,x,y,z,rx,ry,rz,phase"

@@ -46,6 +46,7 @@ def test_the_worked_example_runs_as_written(tmp_path):
         "reconstruction.npz",
         "T_base_tracker.json",
         "traj.csv",
+        "plan.png",
         "program.script",
     ):
         assert (tmp_path / "demo_out" / name).is_file(), name
