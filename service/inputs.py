@@ -1,7 +1,8 @@
 """Inputs of a session: uploaded recordings and scans, and its calibrations.
 
-Uploads are parsed in a worker process (Open3D's readers hold the GIL), which hands each to a
-child process of its own under the memory and time limits of the settings
+Uploads are parsed each in a child process of its own (Open3D's readers hold the GIL), waited
+on from a thread beside the job pool (:class:`service.parse_lane.ParseLane`), under the memory
+and time limits of the settings
 (``max_parse_memory_mb``, ``max_scan_decode_s``, ``max_trace_parse_s``; see
 :func:`service.tasks.parse_in_child`); a file that cannot be read is a 422, one past a limit a
 413, and neither changes anything. The upload workflows are coroutines (they await the parse),

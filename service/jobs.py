@@ -28,6 +28,7 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from drivers.isolation import lower_priority
 from service.errors import ApiError, error_body
 from service.store import FINISHED, JobRow, Store, now
 
@@ -320,30 +321,11 @@ def _remove(path: str) -> None:
         log.warning("could not remove %s: %s", path, exc)
 
 
-#: Niceness of the worker processes where the idle scheduling class is not available: CPU work
-#: yields to the API (50 pollers during a 1M-point reconstruction on 2 cores: without it, p99
-#: status latency was over a second).
-WORKER_NICENESS = 10
-
-
 def _worker_init(server_pid: int) -> None:
     """Runs first in each worker process: end with the server, and lower its priority below
-    the server's.
-
-    Linux's SCHED_IDLE runs the worker (and the threads it starts later, which inherit it) only
-    on CPU time nothing else wants: with 50 clients polling every 0.5 s during a 1M-point
-    reconstruction, p99 status latency was 19-34 ms with niceness 10 alone and 10-16 ms with
-    the idle class (tests/bench/test_bench_api.py, two and four runs).
-    """
+    the server's (:func:`drivers.isolation.lower_priority`)."""
     _watch_parent(server_pid)
-    try:
-        os.nice(WORKER_NICENESS)
-    except OSError:  # not permitted here: run at normal priority
-        pass
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError):  # not Linux, or not permitted: the niceness stays
-        pass
+    lower_priority()
 
 
 #: How often a worker looks whether the server is still there (s).

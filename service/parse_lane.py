@@ -10,10 +10,10 @@ of it: 8.8 s behind six.
 
 from __future__ import annotations
 
-import threading
 from typing import Any, Protocol
 
-from starlette.concurrency import run_in_threadpool
+import anyio
+import anyio.to_thread
 
 
 class ParseTask(Protocol):
@@ -22,7 +22,9 @@ class ParseTask(Protocol):
 
 class ParseLane:
     """Runs parse tasks, at most ``concurrency`` at once (each holds a child process of up to
-    ``max_parse_memory_mb``); more wait their turn in a thread.
+    ``max_parse_memory_mb``); more wait their turn in the event loop, holding no thread (the
+    web server's thread pool serves every plain route, a Stop among them: uploads waiting in it
+    could take all its threads).
 
     Parameters
     ----------
@@ -34,13 +36,12 @@ class ParseLane:
         if concurrency < 1:
             raise ValueError(f"concurrency must be at least 1, got {concurrency}")
         self.concurrency = concurrency
-        self._slots = threading.BoundedSemaphore(concurrency)
+        self._limiter: anyio.CapacityLimiter | None = None
 
     async def run(self, task: ParseTask) -> Any:
         """``task.run()``'s result, or what it raised (the child's errors, see
-        :func:`service.tasks.parse_in_child`)."""
-        return await run_in_threadpool(self._run, task)
-
-    def _run(self, task: ParseTask) -> Any:
-        with self._slots:
-            return task.run()
+        :func:`service.tasks.parse_in_child`). A request cancelled meanwhile still waits for
+        its parse to end, so that the caller's clean-up comes after the child's last write."""
+        if self._limiter is None:  # made in the event loop that uses it
+            self._limiter = anyio.CapacityLimiter(self.concurrency)
+        return await anyio.to_thread.run_sync(task.run, limiter=self._limiter)

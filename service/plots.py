@@ -10,6 +10,8 @@ matplotlib.use("Agg")  # files only; never a window
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 
 from drivers.files import atomic_path  # noqa: E402
 from recon.metrics import distance_to_curve  # noqa: E402
@@ -154,7 +156,9 @@ def plot_plan(path: str | Path, trajectory, *, title: str = "") -> None:
     t = trajectory.t_s
     phases = trajectory.phases
     speed_mm_s = np.linalg.norm(np.gradient(trajectory.tcp_m, t, axis=0), axis=1) * 1e3
-    fig, (ax_speed, ax_q, ax_qd) = plt.subplots(3, 1, figsize=(10, 9), sharex=True)
+    # A Figure of its own, not pyplot's global state: the service draws it in request threads.
+    fig = Figure(figsize=(10, 9))
+    ax_speed, ax_q, ax_qd = fig.subplots(3, 1, sharex=True)
     for ax in (ax_speed, ax_q, ax_qd):
         _shade_phases(ax, t, phases)
         ax.grid(alpha=0.3)
@@ -164,7 +168,10 @@ def plot_plan(path: str | Path, trajectory, *, title: str = "") -> None:
     )
     process = np.flatnonzero(phases == int(Phase.PROCESS))
     if len(process):
-        arc = trajectory.arc_length_m[process] - trajectory.arc_length_m[process[0]]
+        # Metres of process path, as the drops count them: the moves between pieces left out.
+        step = np.linalg.norm(np.diff(trajectory.tcp_m[process], axis=0), axis=1)
+        step[np.diff(process) != 1] = 0.0
+        arc = np.r_[0.0, np.cumsum(step)]
         for drop in trajectory.speed_drops:
             inside = process[(arc >= drop.start_m) & (arc <= drop.end_m)]
             if not len(inside):
@@ -210,9 +217,9 @@ def plot_plan(path: str | Path, trajectory, *, title: str = "") -> None:
     ax_qd.legend(fontsize=7, ncol=6, loc="upper right")
     fig.suptitle(title or f"teachpath plan ({trajectory.robot})")
     fig.tight_layout()
+    FigureCanvasAgg(fig)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
 
 
 def _phase_spans(phases):

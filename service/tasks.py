@@ -80,6 +80,7 @@ class ParseLimits:
             memory_bytes=int(self.memory_mb * 2**20),
             time_setting=self.time_setting,
             memory_setting=self.memory_setting,
+            background=True,  # below the server, as the job pool's workers are
         )
 
 

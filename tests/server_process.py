@@ -8,6 +8,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -50,6 +51,21 @@ class Server:
         self.process = subprocess.Popen(
             command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
         )
+        try:
+            self._start(token, timeout_s)
+        except BaseException:
+            self.process.kill()  # a server that did not come up is not left behind
+            self.process.wait()
+            raise
+        # Keep reading its output, so that a chatty server never blocks on a full pipe.
+        self.output: list[str] = []
+        threading.Thread(target=self._drain, name="server output", daemon=True).start()
+
+    def _drain(self) -> None:
+        for line in self.process.stdout:
+            self.output.append(line)
+
+    def _start(self, token: str | None, timeout_s: float) -> None:
         deadline = time.monotonic() + 60
         self.url = None
         while self.url is None:

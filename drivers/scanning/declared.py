@@ -105,9 +105,12 @@ def check_declared_counts(path: Path, fmt: str, label: str) -> int | None:
     return None
 
 
-def _header(path: Path, label: str, fmt: str, last) -> tuple[list[str], int]:
+def _header(
+    path: Path, label: str, fmt: str, last, max_line_bytes: int | None = None
+) -> tuple[list[str], int]:
     """The header's lines (decoded, stripped) up to and including the one ``last`` accepts, and
-    the offset of the body after it."""
+    the offset of the body after it; a line longer than ``max_line_bytes`` as stored (blanks
+    and line end included) is refused."""
     with path.open("rb") as handle:
         head = handle.read(MAX_HEADER_BYTES)
     lines: list[str] = []
@@ -118,6 +121,13 @@ def _header(path: Path, label: str, fmt: str, last) -> tuple[list[str], int]:
             raise InputFileError(
                 f"{label} has no complete {fmt.upper()} header (it ends before its last header "
                 "line): the file is truncated or not a point cloud; export the scan again"
+            )
+        if max_line_bytes is not None and end - position > max_line_bytes:
+            shown = head[position : position + 40].decode("ascii", errors="replace")
+            raise InputFileError(
+                f"{label} has a {fmt.upper()} header line of {end - position:,} bytes, longer "
+                f"than the {max_line_bytes} the {fmt.upper()} reader takes (at {shown!r}...); "
+                "shorten its comments and export the scan again"
             )
         line = head[position:end].decode("ascii", errors="replace").strip()
         position = end + 1
@@ -163,17 +173,13 @@ class _PlyElement:
 
 
 def _check_ply(path: Path, label: str) -> int | None:
-    lines, offset = _header(path, label, "ply", lambda line: line == "end_header")
+    lines, offset = _header(
+        path, label, "ply", lambda line: line == "end_header", max_line_bytes=MAX_PLY_LINE_BYTES
+    )
     body = path.stat().st_size - offset
     fmt = None
     elements: list[_PlyElement] = []
     for line in lines[1:-1]:
-        if len(line) > MAX_PLY_LINE_BYTES:
-            raise InputFileError(
-                f"{label} has a PLY header line of {len(line):,} bytes, longer than the "
-                f"{MAX_PLY_LINE_BYTES} the PLY reader takes (at {line[:40]!r}...); shorten its "
-                "comments and export the scan again"
-            )
         words = line.split()
         if not words or words[0] in ("comment", "obj_info"):
             continue

@@ -45,8 +45,10 @@ POINT_CLOUD_FORMATS: dict[str, str] = {
     ".pts": "pts",
 }
 
-#: Bytes read to recognise a file (a PCD header may open with long comments).
+#: Bytes read to recognise a PCD file (its header may open with long comments).
 SIGNATURE_BYTES = 1 << 16
+#: Bytes of a text format (XYZ, PTS, ...) checked for binary data.
+TEXT_CHECK_BYTES = 512
 
 # Kept under its old name for callers of the module's private helper.
 _captured_native_stderr = captured_native_stderr
@@ -179,7 +181,7 @@ def _check_signature(path: Path, fmt: str, label: str) -> None:
     "Wrong magic number"), which Python cannot catch, so obvious mismatches are caught here.
     """
     with path.open("rb") as handle:
-        head = handle.read(SIGNATURE_BYTES)
+        head = handle.read(SIGNATURE_BYTES if fmt == "pcd" else TEXT_CHECK_BYTES)
     if not head.strip():
         raise InputFileError(f"{label} is empty")
     if fmt == "ply" and not head.startswith(b"ply"):

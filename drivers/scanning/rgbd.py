@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import lzma
 import re
 import tempfile
 import zipfile
@@ -713,16 +714,18 @@ def _unpack_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo, dest: Path, 
         with archive.open(info) as src, target.open("wb") as out:
             while chunk := src.read(1 << 20):
                 out.write(chunk)
-    except NotImplementedError:  # a compression method zipfile does not know
+    except (NotImplementedError, RuntimeError) as exc:
+        if info.flag_bits & 0x1:  # encrypted members need a password
+            raise InputFileError(
+                f"{label}: {shown} is encrypted; zip the folder again without a password"
+            ) from None
+        # A compression method zipfile does not know, or whose module is missing.
         raise InputFileError(
-            f"{label}: {shown} is compressed with a method this reader does not support "
-            f"(method {info.compress_type}); zip the folder again with deflate or no compression"
+            f"{label}: {shown} is compressed with a method this reader cannot unpack "
+            f"(method {info.compress_type}: {exc}); zip the folder again with deflate or no "
+            "compression"
         ) from None
-    except RuntimeError as exc:  # encrypted members need a password
-        raise InputFileError(
-            f"{label}: {shown} cannot be unpacked ({exc}); zip it without a password"
-        ) from None
-    except (zipfile.BadZipFile, zlib.error, OSError, EOFError) as exc:
+    except (zipfile.BadZipFile, zlib.error, lzma.LZMAError, OSError, EOFError) as exc:
         raise InputFileError(f"{label} is corrupt: {shown} cannot be unpacked ({exc})") from None
 
 

@@ -109,7 +109,10 @@ def test_an_upload_whose_parse_child_is_killed_is_refused_and_the_next_upload_wo
             f"/sessions/{sid}/recording",
             files={"file": ("trace.csv", scene_files["trace"])},
         )
-        _parse_child().send_signal(signal.SIGKILL)  # what the out-of-memory killer does
+        child = _parse_child()
+        # Below the server, as the pool's workers are: requests (a Stop) come first.
+        assert _until(lambda: child.nice() >= 10, 10.0, what="the parse child niced")
+        child.send_signal(signal.SIGKILL)  # what the out-of-memory killer does
         refused = upload.result(timeout=60)
         assert refused.status_code == 422, refused.text
         body = refused.json()
@@ -142,6 +145,7 @@ def test_an_upload_is_parsed_while_the_job_pool_is_busy(tmp_path, scene_files):
         assert states == ["running", "queued", "queued", "queued"]
         for job in busy[1:]:
             client.post(f"/jobs/{job.id}/cancel")
+        _started(pid_file).kill()  # the sleeping one: it would outlive the test by a minute
 
 
 def test_health_says_degraded_until_a_new_worker_answers(tmp_path, monkeypatch):

@@ -102,18 +102,26 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         expect(page.locator("#arm-owner")).to_have_text(re.compile(r"^exe_"))
         owner = page.locator("#arm-owner").inner_text()
 
-        # A second pendant on the same session sees the arm owned: it can stop it, not run.
+        # A second pendant sees the arm owned: in another session it cannot run, and says why;
+        # on this session it follows the run too. Both can stop it.
         with pendant_for(browser, arm_server, screens, "real-arm-second") as second:
             other = second.page
             second.open()
-            other.get_by_role("button", name="demo", exact=True).click()
+            other.get_by_label("Session name").fill("other cell job")
+            other.get_by_role("button", name="Create").click()
             expect(other.locator("#arm-owner")).to_have_text(owner)
             expect(other.get_by_role("button", name="Stop")).to_be_visible()
             expect(other.get_by_role("button", name="Run on arm")).to_be_disabled()
-            expect(other.locator("#step-run .needs")).to_contain_text(
-                f"The arm is busy: execution {owner} owns it"
+            expect(other.locator("#step-run .needs")).to_have_text(
+                f"The arm is busy: execution {owner} owns it. Wait until it ends, or press Stop."
             )
             second.shot("arm-owned")
+            other.get_by_role("button", name="demo", exact=True).click()
+            expect(other.locator("#step-run .needs")).to_have_text(
+                "The arm is moving: press Stop (or Esc) to stop it at once."
+            )
+            expect(other.locator("#run-form .job-state")).to_contain_text("running")
+            expect(other.get_by_role("button", name="Run on arm")).to_be_disabled()
 
         # Mid-path (half of the job's progress), Escape stops the arm.
         deadline = time.monotonic() + 120

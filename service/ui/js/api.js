@@ -8,12 +8,18 @@ const TOKEN_KEY = "teachpath.token";
 export function takeToken() {
   const url = new URL(window.location.href);
   const fromUrl = url.searchParams.get("token");
+  let stored = null;
+  try {
+    if (fromUrl) sessionStorage.setItem(TOKEN_KEY, fromUrl);
+    stored = sessionStorage.getItem(TOKEN_KEY);
+  } catch {
+    // Storage refused (site data blocked): the token lives in this page only.
+  }
   if (fromUrl) {
-    sessionStorage.setItem(TOKEN_KEY, fromUrl);
     url.searchParams.delete("token");
     history.replaceState(history.state, "", url.pathname + url.search + url.hash);
   }
-  return sessionStorage.getItem(TOKEN_KEY) || "";
+  return fromUrl || stored || "";
 }
 
 let token = "";

@@ -158,15 +158,31 @@ async function loadSessions() {
 
 function closeSession() {
   state.session = null;
-  sessionStorage.removeItem(SESSION_KEY);
+  remember(sessionStorage, SESSION_KEY, null);
   $("#session-view").hidden = true;
 }
 
 const SESSION_KEY = "teachpath.session";
+// Storage may be refused (site data blocked): the pendant works on without remembering.
+function remember(storage, key, value) {
+  try {
+    if (value) storage.setItem(key, value);
+    else storage.removeItem(key);
+  } catch {
+    /* nothing remembered */
+  }
+}
+function recall(storage, key) {
+  try {
+    return storage.getItem(key);
+  } catch {
+    return null;
+  }
+}
 
 async function openSession(id) {
   state.session = await api(`/sessions/${id}`);
-  sessionStorage.setItem(SESSION_KEY, id);
+  remember(sessionStorage, SESSION_KEY, id);
   $("#session-view").hidden = false;
   $("#session-title").textContent = `Session ${state.session.name}`;
   for (const box of document.querySelectorAll("#session-view .message")) clearMessage(box);
@@ -270,10 +286,11 @@ function stepStates() {
 
 function runState(dry) {
   const owner = state.robot?.owner_execution_id;
-  if (owner && owner !== state.moving?.executionId) {
+  // This session's run (started here, or found again after a reload or on a second pendant).
+  if (state.moving) return { done: false, needs: "The arm is moving: press Stop (or Esc) to stop it at once." };
+  if (owner) {
     return { done: false, needs: `The arm is busy: execution ${owner} owns it. Wait until it ends, or press Stop.` };
   }
-  if (state.moving) return { done: false, needs: "The arm is moving: press Stop (or Esc) to stop it at once." };
   if (lastRun()?.summary.completed) return { done: true, needs: "" };
   return { done: false, needs: dry && passed(dry) ? "Ready: press “Run on arm” and confirm." : "Needs a passed dry run of this plan in this mode." };
 }
@@ -581,6 +598,17 @@ function confirmRun(traj) {
 
 // -- wiring ---------------------------------------------------------------------------------------
 
+// Stop first: whatever fails later in the start-up, Stop and Escape work.
+function wireStop() {
+  $("#stop").addEventListener("click", stop);
+  document.addEventListener("keydown", (event) => {
+    if (event.key === "Escape" && canMove()) {
+      event.preventDefault();
+      stop();
+    }
+  });
+}
+
 function wire() {
   $("#new-session").addEventListener("submit", async (event) => {
     event.preventDefault();
@@ -641,19 +669,11 @@ function wire() {
   const contrast = $("#contrast");
   const theme = (on) => {
     document.body.classList.toggle("contrast", on);
-    localStorage.setItem("teachpath.contrast", on ? "1" : "");
+    remember(localStorage, "teachpath.contrast", on ? "1" : null);
   };
-  contrast.checked = localStorage.getItem("teachpath.contrast") === "1";
+  contrast.checked = recall(localStorage, "teachpath.contrast") === "1";
   theme(contrast.checked);
   contrast.addEventListener("change", () => theme(contrast.checked));
-
-  $("#stop").addEventListener("click", stop);
-  document.addEventListener("keydown", (event) => {
-    if (event.key === "Escape" && canMove()) {
-      event.preventDefault();
-      stop();
-    }
-  });
   $("#unlock").addEventListener("click", async () => {
     try {
       showRobot(await api("/robot/unlock", { method: "POST" }));
@@ -664,6 +684,7 @@ function wire() {
 }
 
 async function main() {
+  wireStop();
   setToken(takeToken());
   wire();
   followRobot();
@@ -672,7 +693,7 @@ async function main() {
     buildReconstructForm(state.schema);
     updatePlanSpeed();
     await loadSessions();
-    const last = sessionStorage.getItem(SESSION_KEY);
+    const last = recall(sessionStorage, SESSION_KEY);
     if (last && document.querySelector(`#session-list li[data-session="${CSS.escape(last)}"]`)) {
       await openSession(last);
     }
