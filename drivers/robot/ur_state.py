@@ -165,6 +165,7 @@ class URStateServer(WorkerServer):  # pragma: no cover - runs in the worker proc
         # Answer only once the receive link shows the stop cleared, so the state the caller
         # reads next is the unlocked one (not the last sample from before the release).
         deadline = time.monotonic() + UNLOCK_CLEAR_TIMEOUT_S
+        self._wait_fresh()  # a stale link would hold the last (stopped) sample
         while self.receive.isProtectiveStopped():
             if time.monotonic() > deadline:
                 raise ProtectiveStopError(
@@ -172,8 +173,7 @@ class URStateServer(WorkerServer):  # pragma: no cover - runs in the worker proc
                     f"after {UNLOCK_CLEAR_TIMEOUT_S:g} s: remove its cause and unlock it at the "
                     "teach pendant"
                 )
-            time.sleep(0.01)
-        self._wait_fresh()
+            self._wait_fresh()  # each look at a new sample; a link gone quiet is lost
 
     def shutdown(self) -> None:
         for client in (self.receive, self.dashboard):
