@@ -288,3 +288,85 @@ def test_the_high_contrast_theme_is_switched_on_and_kept(pendant):
     expect(page.get_by_label("High contrast")).to_be_checked()
     page.get_by_label("High contrast").uncheck()
     assert page.evaluate(background) == "rgb(255, 255, 255)"
+
+
+def test_the_calibration_panel_fits_pairs_and_the_tip_and_refuses_poor_fits(pendant, tmp_path):
+    import numpy as np
+
+    from recon.types import Recording
+    from tests.recon.test_calibrate import pivot_recording
+    from tests.service.test_api_inputs import _csv
+
+    page = pendant.page
+    pendant.guard.allow(422, "/calibration/")
+    pendant.open()
+    page.get_by_label("Session name").fill("calibration bench")
+    page.get_by_role("button", name="Create").click()
+    expect(page.locator("#calibration-current")).to_have_text("not calibrated")
+
+    # Five points touched with the robot (base) and the pen (tracker), in mm; the tracker
+    # sits 450, 100, 50 mm from the base, axes aligned.
+    base_mm = np.array([[400, 0, 0], [500, 0, 0], [450, 80, 0], [450, 0, 90], [520, 60, 40]])
+    lines = [
+        f"{b[0]} {b[1]} {b[2]}, {t[0]} {t[1]} {t[2]}"
+        for b, t in zip(base_mm, base_mm - [450, 100, 50], strict=True)
+    ]
+    pairs = page.get_by_label("Pairs, one per line")
+    pairs.fill("1 2 3, 4 5\n" + "\n".join(lines))
+    page.get_by_role("button", name="Fit tracker → base").click()
+    message = page.locator("#pairs-form .message")
+    expect(message).to_contain_text("line 1: “1 2 3, 4 5” is not six numbers")
+    pairs.fill("\n".join(lines))
+    page.get_by_role("button", name="Fit tracker → base").click()
+    summary = page.locator("#pairs-summary")
+    expect(summary.locator("table.pairs tr")).to_have_count(6)  # a header and five pairs
+    expect(summary).to_contain_text("RMS of the pairs used0.000 mm")
+    expect(page.locator("#calibration-current")).to_have_text(
+        "tracker → base set: translation 450.0 mm, 100.0 mm, 50.0 mm"
+    )
+    expect(page.locator("#steps li[data-step=calibration]")).to_have_class("done")
+    pendant.shot("pairs-fitted")
+
+    # Tracker points at twice the scale (a units slip): refused with the figures, nothing stored.
+    scaled = [
+        f"{b[0]} {b[1]} {b[2]}, {2 * t[0]} {2 * t[1]} {2 * t[2]}"
+        for b, t in zip(base_mm, base_mm - [450, 100, 50], strict=True)
+    ]
+    pairs.fill("\n".join(scaled))
+    page.get_by_role("button", name="Fit tracker → base").click()
+    expect(message).to_have_attribute("data-code", "poor_fit")
+    expect(message).to_contain_text("was not stored")
+    expect(summary.locator("tr.suspect")).to_have_count(5)
+    expect(page.locator("#calibration-current")).to_contain_text("450.0 mm, 100.0 mm, 50.0 mm")
+    pendant.shot("pairs-refused")
+
+    # The pen's tip from a pivoting recording; a pivot whose tip slid is refused with its RMS.
+    position, quat = pivot_recording(0)
+    good = tmp_path / "pivot.csv"
+    good.write_bytes(
+        _csv(
+            Recording(
+                points_m=position, t_s=np.arange(len(position)) / 240.0, orientations_xyzw=quat
+            )
+        )
+    )
+    page.locator("#pivot-form input[type=file]").set_input_files(str(good))
+    page.get_by_role("button", name="Calibrate tip").click()
+    pivot = page.locator("#pivot-summary")
+    expect(pivot).to_contain_text("tip offset")
+    expect(pivot).to_contain_text("RMS")
+    expect(page.locator("#calibration-current")).to_contain_text("tip offset")
+    position, quat = pivot_recording(0, position_noise_m=3e-3)
+    slid = tmp_path / "slid.csv"
+    slid.write_bytes(
+        _csv(
+            Recording(
+                points_m=position, t_s=np.arange(len(position)) / 240.0, orientations_xyzw=quat
+            )
+        )
+    )
+    page.locator("#pivot-form input[type=file]").set_input_files(str(slid))
+    page.get_by_role("button", name="Calibrate tip").click()
+    expect(page.locator("#pivot-form .message")).to_have_attribute("data-code", "poor_fit")
+    expect(pivot).to_contain_text("RMS (tolerance 1.000 mm)")
+    pendant.shot("pivot-refused")

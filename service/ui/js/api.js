@@ -157,6 +157,9 @@ export const INSTRUCTIONS = {
   registration_failed: "The trace could not be matched to the scan: check the calibration.",
   no_overlap: "The trace and the scan do not overlap: check the calibration and the units.",
   units_mismatch: "The trace and the scan look like different units: check the units.",
+  poor_fit:
+    "The fit is worse than its tolerance and was not stored: measure again (touch the points " +
+    "again, pivot again), or tick “store it even if the fit is poor”.",
 };
 
 /** The instruction for an error, and the server's own message. */

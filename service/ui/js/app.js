@@ -500,6 +500,103 @@ function upload(kind, form) {
   });
 }
 
+// -- calibration: the pen's tip and tracker -> base, with their figures -----------------------------
+
+/** Point pairs typed one per line ("bx by bz, tx ty tz"; commas or blanks) -> [{base, tracker}];
+ * throws naming the line that is not six numbers. */
+function parsePairs(text, scale) {
+  const pairs = [];
+  text.split("\n").forEach((line, i) => {
+    if (!line.trim()) return;
+    const numbers = line.split(/[\s,;]+/).filter(Boolean).map(Number);
+    if (numbers.length !== 6 || numbers.some((v) => !Number.isFinite(v))) {
+      throw { code: "invalid_request", message: `line ${i + 1}: “${line.trim()}” is not six numbers (base x y z, tracker x y z)` };
+    }
+    pairs.push({ base: numbers.slice(0, 3).map((v) => v * scale), tracker: numbers.slice(3).map((v) => v * scale) });
+  });
+  if (pairs.length < 3) throw { code: "invalid_request", message: `${pairs.length} pair(s): at least 3 are needed` };
+  return pairs;
+}
+
+function pairsTable(fit) {
+  const rows = fit.residuals_m.map((r, i) => el("tr", { class: fit.suspect[i] ? "suspect" : "" },
+    el("td", { text: String(i + 1) }),
+    el("td", { text: mm(r, 3) }),
+    el("td", { text: mm(fit.leave_one_out_m[i], 3) }),
+    el("td", { text: fit.suspect[i] ? "suspect" : "ok" }),
+    el("td", { text: fit.used[i] ? "used" : "left out" })));
+  return [
+    table([["RMS of the pairs used", mm(fit.residual_rms_m, 3)], ["tolerance", mm(fit.tolerance_m, 3)]]),
+    el("table", { class: "pairs" },
+      el("tr", {}, ...["pair", "residual", "left out, residual", "", "in the fit"].map((h) => el("th", { text: h }))),
+      ...rows),
+  ];
+}
+
+function wireCalibration() {
+  $("#pivot-form").addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const form = event.currentTarget;
+    const box = $(".message", form);
+    const summary = $("#pivot-summary");
+    clearMessage(box);
+    summary.replaceChildren();
+    const file = form.elements.file.files[0];
+    if (!file || !form.reportValidity()) return;
+    const data = new FormData();
+    data.append("file", file, file.name);
+    data.append("tolerance_m", String(Number(form.elements.tolerance_mm.value) / 1000));
+    data.append("accept_poor_fit", form.elements.accept_poor_fit.checked ? "true" : "false");
+    const button = $("button[type=submit]", form);
+    button.disabled = true;
+    try {
+      const { result } = await api(`/sessions/${state.session.id}/calibration/pivot`, { method: "POST", form: data });
+      summary.replaceChildren(table([
+        ["tip offset", result.tip_offset_m.map((v) => mm(v, 2)).join(", ")],
+        ["residual", `${mm(result.residual_rms_m, 3)} RMS, ${mm(result.residual_max_m, 3)} max`],
+        ["pen turned", `${result.rotation_spread_deg.toFixed(0)} deg`],
+        ["samples", `${result.n_used} used, ${result.n_rejected} rejected, ${result.n_lost} lost`],
+      ]));
+    } catch (err) {
+      showError(box, err);
+      if (err.detail?.residual_rms_m != null) {
+        summary.replaceChildren(table([["residual", `${mm(err.detail.residual_rms_m, 3)} RMS (tolerance ${mm(err.detail.tolerance_m, 3)})`]]));
+      }
+    } finally {
+      button.disabled = false;
+      await refresh();
+    }
+  });
+
+  $("#pairs-form").addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const form = event.currentTarget;
+    const box = $(".message", form);
+    const summary = $("#pairs-summary");
+    clearMessage(box);
+    summary.replaceChildren();
+    if (!form.reportValidity()) return;
+    const scale = form.elements.units.value === "mm" ? 1e-3 : 1;
+    const button = $("button[type=submit]", form);
+    try {
+      const body = {
+        pairs: parsePairs(form.elements.pairs.value, scale),
+        tolerance_m: Number(form.elements.tolerance_mm.value) / 1000,
+        accept_poor_fit: form.elements.accept_poor_fit.checked,
+      };
+      button.disabled = true;
+      const { result } = await api(`/sessions/${state.session.id}/calibration/base`, { method: "POST", json: body });
+      summary.replaceChildren(...pairsTable(result));
+    } catch (err) {
+      showError(box, err);
+      if (err.detail?.residuals_m) summary.replaceChildren(...pairsTable(err.detail));
+    } finally {
+      button.disabled = false;
+      if (state.session) await refresh();
+    }
+  });
+}
+
 // -- reconstruct: the parameters from the API's own schema ----------------------------------------
 
 const RECONSTRUCTION_FIELDS = ["radius_m", "alpha", "beta", "degree", "method", "spacing_m", "use_scan", "registration"];
@@ -619,6 +716,7 @@ function wire() {
   });
   upload("recording", $("#recording-form"));
   upload("scan", $("#scan-form"));
+  wireCalibration();
 
   $("#reconstruct-form").addEventListener("submit", (event) => {
     event.preventDefault();
