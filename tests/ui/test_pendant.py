@@ -370,3 +370,40 @@ def test_the_calibration_panel_fits_pairs_and_the_tip_and_refuses_poor_fits(pend
     expect(page.locator("#pivot-form .message")).to_have_attribute("data-code", "poor_fit")
     expect(pivot).to_contain_text("RMS (tolerance 1.000 mm)")
     pendant.shot("pivot-refused")
+
+
+def test_provenance_and_downloads_of_the_stored_files(pendant, scene_files, tmp_path):
+    import hashlib
+
+    page = pendant.page
+    pendant.open()
+    page.get_by_label("Session name").fill("files")
+    page.get_by_role("button", name="Create").click()
+    trace = tmp_path / "trace.csv"
+    trace.write_bytes(scene_files["trace"])
+    page.locator("#recording-form input[type=file]").set_input_files(str(trace))
+    page.get_by_role("button", name="Upload recording").click()
+    details = page.locator("#recording-files details.provenance")
+    expect(details).to_be_visible()
+    details.locator("summary").click()
+    expect(details).to_contain_text("uploaded astrace.csv")
+    expect(details).to_contain_text('"units"')
+    artifact_id = details.get_attribute("data-artifact")
+    sid = page.evaluate("sessionStorage.getItem('teachpath.session')")
+    row = pendant.server.client.get(f"/sessions/{sid}/recordings/{artifact_id}").json()
+    expect(details).to_contain_text(row["sha256"])
+    with page.expect_download() as info:
+        details.get_by_role("button", name="Download trace CSV").click()
+    download = info.value
+    assert download.suggested_filename == f"{artifact_id}.csv"
+    saved = tmp_path / "downloaded.csv"
+    download.save_as(saved)
+    served = pendant.server.client.get(
+        f"/sessions/{row['session_id']}/recordings/{artifact_id}/csv"
+    )
+    assert saved.read_bytes() == served.content and served.content.startswith(b"t,x,y,z")
+    assert (
+        hashlib.sha256(saved.read_bytes()).hexdigest() == hashlib.sha256(served.content).hexdigest()
+    )
+    expect(details).to_have_attribute("open", "")  # still open after the page redrew its steps
+    pendant.shot("provenance")

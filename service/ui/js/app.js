@@ -346,6 +346,66 @@ function updateButtons() {
   set("#run-form button[type=submit]", !busy && Boolean(dry && passed(dry)) && !canMove());
 }
 
+// -- provenance and downloads of an artifact --------------------------------------------------------
+
+/** What each kind of artifact can be downloaded as: [label, path suffix, file suffix]. */
+const DOWNLOADS = {
+  recording: [["trace CSV", "csv", ".csv"]],
+  scan: [["scan PLY", "ply", ".ply"]],
+  reconstruction: [["path CSV", "csv", ".csv"]],
+  trajectory: [["trajectory CSV", "csv", ".csv"], ["URScript", "urscript", ".script"], ["plan picture", "plot.png", ".png"]],
+  execution: [["record CSV", "csv", ".csv"]],
+};
+
+/** Fetch with the token and hand the bytes to the browser as a file (a plain link cannot send
+ * the Authorization header). */
+async function download(path, filename, box) {
+  try {
+    const response = await api(path, { raw: true });
+    const url = URL.createObjectURL(await response.blob());
+    const link = el("a", { href: url, download: filename });
+    document.body.append(link);
+    link.click();
+    link.remove();
+    setTimeout(() => URL.revokeObjectURL(url), 10_000);
+  } catch (err) {
+    showError(box, err);
+  }
+}
+
+function provenance(kind, artifact) {
+  if (!artifact) return [];
+  const sid = state.session.id;
+  const box = el("div", { class: "message", role: "alert" });
+  const json = (value) => el("pre", { class: "report", text: JSON.stringify(value, null, 1) });
+  const buttons = (DOWNLOADS[kind] || []).map(([label, suffix, extension]) => {
+    const button = el("button", { type: "button", class: "download", text: `Download ${label}` });
+    button.addEventListener("click", () =>
+      download(`/sessions/${sid}/${kind}s/${artifact.id}/${suffix}`, `${artifact.id}${extension}`, box));
+    return button;
+  });
+  const details = el("details", { class: "provenance", "data-artifact": artifact.id },
+    el("summary", { text: `Provenance and files of ${artifact.id}` }),
+    table([
+      ["id", artifact.id],
+      ["created", artifact.created_at],
+      ["checksum (sha256)", artifact.sha256],
+      ["size", `${(artifact.size / 1024).toFixed(1)} KiB`],
+      ...(artifact.source_name ? [["uploaded as", artifact.source_name]] : []),
+    ]),
+    el("h4", { text: "Inputs" }), json(artifact.inputs),
+    el("h4", { text: "Parameters" }), json(artifact.params),
+    el("p", {}, ...buttons), box);
+  // The steps are drawn again on every change of the arm's state: an opened box stays open.
+  details.open = openProvenance.has(artifact.id);
+  details.addEventListener("toggle", () => {
+    if (details.open) openProvenance.add(artifact.id);
+    else openProvenance.delete(artifact.id);
+  });
+  return [details];
+}
+const openProvenance = new Set();
+
 function table(rows) {
   return el("table", {}, ...rows.map(([k, v]) => el("tr", {}, el("th", { text: k }), el("td", { text: v }))));
 }
@@ -360,6 +420,8 @@ function renderInputs() {
   $("#scan-current").textContent = sc
     ? `${sc.source_name || sc.id}: ${sc.summary.n_points} points`
     : "none yet";
+  $("#recording-files").replaceChildren(...provenance("recording", rec));
+  $("#scan-files").replaceChildren(...provenance("scan", sc));
 }
 
 function renderCalibration() {
@@ -385,7 +447,7 @@ function renderReconstruction() {
     ["max displacement", mm(sm.max_displacement_m)],
   ];
   if (sm.registration) rows.push(["registration", `rmse ${mm(sm.registration.rmse_m, 3)}, fitness ${sm.registration.fitness.toFixed(2)}`]);
-  box.replaceChildren(table(rows), ...(sm.notes.length ? [report(sm.notes)] : []));
+  box.replaceChildren(table(rows), ...(sm.notes.length ? [report(sm.notes)] : []), ...provenance("reconstruction", rec));
 }
 
 function renderPlan() {
@@ -411,6 +473,7 @@ function renderPlan() {
     el("h4", { text: "Feasibility" }),
     el("p", { class: "small", text: feasible }),
     report(sm.report),
+    ...provenance("trajectory", traj),
   );
 }
 
@@ -426,6 +489,7 @@ function execSummary(ex) {
       ["faults", sm.faults.join("; ") || "none"],
     ]),
     report(sm.report),
+    ...provenance("execution", ex),
   ];
 }
 
