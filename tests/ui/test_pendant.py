@@ -269,6 +269,19 @@ def test_a_reload_finds_the_running_dry_run_again_and_sends_nothing(pendant):
     expect(dry).to_be_enabled()
     assert len(posts) == sent, posts[sent:]  # nothing was sent again
 
+    # A second reconstruction with another radius: the two side by side, the newest in bold.
+    page.locator("#recon-radius_m").fill("0.012")
+    page.get_by_role("button", name="Reconstruct").click()
+    expect(page.locator("#reconstruct-form .job-state")).to_have_text(
+        "succeeded 100 %", timeout=90_000
+    )
+    compared = page.locator("table.comparison tr[data-reconstruction]")
+    expect(compared.last).to_contain_text("12.0 mm")
+    expect(compared.last).to_have_class("current")
+    assert compared.count() >= 2
+    expect(page.locator("table.comparison")).to_contain_text("8.0 mm")
+    pendant.shot("comparison")
+
 
 def test_the_high_contrast_theme_is_switched_on_and_kept(pendant):
     page = pendant.page

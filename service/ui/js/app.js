@@ -447,7 +447,27 @@ function renderReconstruction() {
     ["max displacement", mm(sm.max_displacement_m)],
   ];
   if (sm.registration) rows.push(["registration", `rmse ${mm(sm.registration.rmse_m, 3)}, fitness ${sm.registration.fitness.toFixed(2)}`]);
-  box.replaceChildren(table(rows), ...(sm.notes.length ? [report(sm.notes)] : []), ...provenance("reconstruction", rec));
+  box.replaceChildren(table(rows), ...(sm.notes.length ? [report(sm.notes)] : []), ...provenance("reconstruction", rec),
+    ...comparison());
+}
+
+/** All reconstructions of the session side by side: parameters and figures (the newest is the
+ * one planned from and drawn). */
+function comparison() {
+  if (state.reconstructions.length < 2) return [];
+  const heads = ["reconstruction", "method", "radius", "alpha", "beta", "points", "mean displacement", "max displacement", "registration rmse"];
+  const rows = state.reconstructions.map((r, i) => {
+    const p = r.params;
+    const sm = r.summary;
+    const cells = [r.id, p.method ?? "–", mm(p.radius_m, 1), String(p.alpha ?? "–"), String(p.beta ?? "–"),
+      String(sm.n_points), mm(sm.mean_displacement_m), mm(sm.max_displacement_m),
+      sm.registration ? mm(sm.registration.rmse_m, 3) : "–"];
+    const row = el("tr", { "data-reconstruction": r.id }, ...cells.map((c) => el("td", { text: c })));
+    if (i === state.reconstructions.length - 1) row.classList.add("current");
+    return row;
+  });
+  return [el("h4", { text: `All ${state.reconstructions.length} reconstructions of this session` }),
+    el("table", { class: "comparison" }, el("tr", {}, ...heads.map((h) => el("th", { text: h }))), ...rows)];
 }
 
 function renderPlan() {
