@@ -420,3 +420,21 @@ def test_provenance_and_downloads_of_the_stored_files(pendant, scene_files, tmp_
     )
     expect(details).to_have_attribute("open", "")  # still open after the page redrew its steps
     pendant.shot("provenance")
+
+
+def test_the_pendant_works_where_the_browser_refuses_site_storage(pendant):
+    page = pendant.page
+    # As a browser with site data blocked: reading either storage throws.
+    page.add_init_script(
+        """for (const name of ['sessionStorage', 'localStorage']) {
+             Object.defineProperty(window, name, {get() {
+               throw new DOMException('The operation is insecure.', 'SecurityError'); }});
+           }"""
+    )
+    pendant.open()
+    assert "token" not in page.url  # still taken out of the address bar, kept in the page
+    expect(page.locator("#link-state")).to_have_text("live")
+    page.get_by_role("button", name="demo", exact=True).click()
+    expect(page.locator("#session-title")).to_have_text("Session demo")
+    page.get_by_label("High contrast").check()
+    expect(page.locator("body")).to_have_class(re.compile("contrast"))

@@ -158,23 +158,24 @@ async function loadSessions() {
 
 function closeSession() {
   state.session = null;
-  remember(sessionStorage, SESSION_KEY, null);
+  remember("sessionStorage", SESSION_KEY, null);
   $("#session-view").hidden = true;
 }
 
 const SESSION_KEY = "teachpath.session";
-// Storage may be refused (site data blocked): the pendant works on without remembering.
-function remember(storage, key, value) {
+// Storage may be refused (site data blocked; then even reading window.sessionStorage throws):
+// the pendant works on without remembering. `kind`: "sessionStorage" or "localStorage".
+function remember(kind, key, value) {
   try {
-    if (value) storage.setItem(key, value);
-    else storage.removeItem(key);
+    if (value) window[kind].setItem(key, value);
+    else window[kind].removeItem(key);
   } catch {
     /* nothing remembered */
   }
 }
-function recall(storage, key) {
+function recall(kind, key) {
   try {
-    return storage.getItem(key);
+    return window[kind].getItem(key);
   } catch {
     return null;
   }
@@ -182,7 +183,7 @@ function recall(storage, key) {
 
 async function openSession(id) {
   state.session = await api(`/sessions/${id}`);
-  remember(sessionStorage, SESSION_KEY, id);
+  remember("sessionStorage", SESSION_KEY, id);
   $("#session-view").hidden = false;
   $("#session-title").textContent = `Session ${state.session.name}`;
   for (const box of document.querySelectorAll("#session-view .message")) clearMessage(box);
@@ -851,9 +852,9 @@ function wire() {
   const contrast = $("#contrast");
   const theme = (on) => {
     document.body.classList.toggle("contrast", on);
-    remember(localStorage, "teachpath.contrast", on ? "1" : null);
+    remember("localStorage", "teachpath.contrast", on ? "1" : null);
   };
-  contrast.checked = recall(localStorage, "teachpath.contrast") === "1";
+  contrast.checked = recall("localStorage", "teachpath.contrast") === "1";
   theme(contrast.checked);
   contrast.addEventListener("change", () => theme(contrast.checked));
   $("#unlock").addEventListener("click", async () => {
@@ -875,7 +876,7 @@ async function main() {
     buildReconstructForm(state.schema);
     updatePlanSpeed();
     await loadSessions();
-    const last = recall(sessionStorage, SESSION_KEY);
+    const last = recall("sessionStorage", SESSION_KEY);
     if (last && document.querySelector(`#session-list li[data-session="${CSS.escape(last)}"]`)) {
       await openSession(last);
     }
