@@ -370,15 +370,17 @@ async function download(path, filename, box) {
     link.remove();
     setTimeout(() => URL.revokeObjectURL(url), 10_000);
   } catch (err) {
-    showError(box, err);
+    const { instruction, message } = explain(err);
+    box.textContent = `Download failed: ${instruction || ""} ${message}`.replace(/\s+/g, " ");
   }
 }
 
 function provenance(kind, artifact) {
   if (!artifact) return [];
   const sid = state.session.id;
-  const box = el("div", { class: "message", role: "alert" });
-  const json = (value) => el("pre", { class: "report", text: JSON.stringify(value, null, 1) });
+  // Not a step's ".message" box (each form has one of its own) nor a ".report".
+  const box = el("p", { class: "download-error", role: "alert" });
+  const json = (value) => el("pre", { class: "json", text: JSON.stringify(value, null, 1) });
   const buttons = (DOWNLOADS[kind] || []).map(([label, suffix, extension]) => {
     const button = el("button", { type: "button", class: "download", text: `Download ${label}` });
     button.addEventListener("click", () =>
