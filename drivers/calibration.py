@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.errors import InputFileError
+from drivers.errors import InputFileError, clipped
 from drivers.files import atomic_path
 from drivers.units import metres_per
 from recon.transforms import check_rigid
@@ -181,9 +181,9 @@ def _residual(data: dict, label: str) -> float | None:
     except (TypeError, ValueError, OverflowError):
         residual = None
     if residual is None or not isinstance(value, int | float) or not 0 <= residual < np.inf:
-        shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:37] + "..."
         raise InputFileError(
-            f'{label}: "residual_rms_m" must be a non-negative number of metres, got {shown}'
+            f'{label}: "residual_rms_m" must be a non-negative number of metres, got '
+            f"{clipped(repr(value), 40)}"
         )
     return residual
 

@@ -16,6 +16,12 @@ from collections.abc import Callable
 from recon import errors as _recon_errors
 
 
+def clipped(text: str, limit: int = 80) -> str:
+    """``text`` for a message: whole up to ``limit`` characters, else cut to that with "..." (a
+    damaged file's line or value may be megabytes long)."""
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 class DriverError(Exception):
     """Base class of every failure to talk to the outside world."""
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import struct
 import tempfile
 import threading
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import open3d as o3d
 
-from drivers.errors import InputFileError
+from drivers.errors import InputFileError, clipped
 
 _NATIVE_STDERR_LOCK = threading.Lock()
 
@@ -41,6 +42,16 @@ def captured_native_stderr():
             os.close(saved)
             sink.seek(0)
             captured.append(sink.read().decode("utf-8", errors="replace").strip())
+
+
+#: The colour codes Open3D puts around its error messages.
+_ANSI_ESCAPE = re.compile(r"\x1b\[[0-9;]*m")
+
+
+def open3d_message(error: Exception, limit: int = 200) -> str:
+    """An exception Open3D raised, as one line of plain text for a message (no colour codes,
+    no line breaks, at most ``limit`` characters)."""
+    return clipped(" ".join(_ANSI_ESCAPE.sub("", str(error)).split()), limit)
 
 
 def quiet_open3d():

@@ -30,7 +30,7 @@ import struct
 from dataclasses import dataclass
 from pathlib import Path
 
-from drivers.errors import InputFileError
+from drivers.errors import InputFileError, clipped
 
 #: Bytes of each PLY property type (the PLY format's names and their sized aliases).
 PLY_TYPE_BYTES = {
@@ -137,9 +137,9 @@ def _header(
 
 
 def _malformed(label: str, fmt: str, line: str) -> InputFileError:
-    shown = line if len(line) <= 80 else line[:77] + "..."
     return InputFileError(
-        f"{label} has a malformed {fmt.upper()} header (at {shown!r}); export the scan again"
+        f"{label} has a malformed {fmt.upper()} header (at {clipped(line)!r}); export the scan "
+        "again"
     )
 
 

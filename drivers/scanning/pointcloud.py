@@ -20,7 +20,7 @@ import open3d as o3d
 
 from drivers.errors import InputFileError, UnknownFormatError
 from drivers.scanning import base
-from drivers.scanning._native import captured_native_stderr, quiet_open3d
+from drivers.scanning._native import captured_native_stderr, open3d_message, quiet_open3d
 from drivers.scanning.base import ReaderOptions, ScanFile, ScanReader
 from drivers.scanning.declared import check_declared_counts
 from recon.types import Scan
@@ -212,7 +212,9 @@ def _read(path: Path, fmt: str, label: str) -> o3d.geometry.PointCloud:
                 str(path), format=fmt, remove_nan_points=False, remove_infinite_points=False
             )
         except RuntimeError as exc:  # raised by some readers on malformed headers
-            raise InputFileError(f"{label} is not a readable {fmt.upper()} file: {exc}") from None
+            raise InputFileError(
+                f"{label} is not a readable {fmt.upper()} file: {open3d_message(exc)}"
+            ) from None
     detail = " ".join(native[0].split()) if native and native[0] else ""
     if declared is not None and len(cloud.points) < declared:
         raise InputFileError(

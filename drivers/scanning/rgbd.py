@@ -73,8 +73,8 @@ import open3d as o3d
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from scipy.spatial.transform import Rotation
 
-from drivers.errors import InputFileError, InputTooLargeError
-from drivers.scanning._native import check_image_file, quiet_open3d, read_image
+from drivers.errors import InputFileError, InputTooLargeError, clipped
+from drivers.scanning._native import check_image_file, open3d_message, quiet_open3d, read_image
 from drivers.scanning.base import DROPPED_DEPTH, ReaderOptions, ScanFile, ScanReader
 from drivers.scanning.limits import DEFAULT_MAX_FRAME_PIXELS, DEFAULT_MAX_PIXELS
 from recon.transforms import RIGID_TOLERANCE, is_proper_rotation
@@ -268,8 +268,7 @@ def parse_intrinsics(value: Any, label: str) -> Intrinsics:
 
 def _number(value: Any, label: str, key: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:37] + "..."
-        raise InputFileError(f"{label}: {key} must be a number, got {shown}")
+        raise InputFileError(f"{label}: {key} must be a number, got {clipped(repr(value), 40)}")
     try:
         number = float(value)  # JSON integers may have thousands of digits
     except OverflowError:
@@ -697,7 +696,7 @@ def extract_zip(
 
 def _unpack_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo, dest: Path, label: str):
     """Unpack one member under ``dest``; every way it can fail is an :class:`InputFileError`."""
-    shown = info.filename if len(info.filename) <= 80 else info.filename[:77] + "..."
+    shown = clipped(info.filename)
     parts = PurePosixPath(info.filename.replace("\\", "/"))
     if parts.is_absolute() or ".." in parts.parts:
         raise InputFileError(f"{label} holds an unsafe member name {shown!r}")
@@ -868,10 +867,9 @@ def _open3d_refusal(doing: str) -> Iterator[None]:
     try:
         yield
     except RuntimeError as exc:
-        detail = " ".join(re.sub(r"\x1b\[[0-9;]*m", "", str(exc)).split())[:200]
         raise InputFileError(
-            f"the TSDF fusion failed {doing} ({detail}): check that the poses are T_world_camera "
-            "in metres and that the frames see the workpiece, or use fusion 'points'"
+            f"the TSDF fusion failed {doing} ({open3d_message(exc)}): check that the poses are "
+            "T_world_camera in metres and that the frames see the workpiece, or use fusion 'points'"
         ) from None
 
 
