@@ -170,6 +170,11 @@ class Pendant:
         self.page.goto(self.server.start_url)
         self.page.wait_for_selector("body[data-ready=true]")
 
+    def create_session(self, name: str) -> None:
+        """Type a session's name and press Create, as an operator does (it opens the session)."""
+        self.page.get_by_label("Session name").fill(name)
+        self.page.get_by_role("button", name="Create").click()
+
 
 @pytest.fixture(scope="session")
 def screens(tmp_path_factory) -> Path:

@@ -49,8 +49,7 @@ def test_sessions_create_open_delete(pendant):
     page = pendant.page
     pendant.open()
     expect(page.locator("#session-list li", has_text="demo")).to_be_visible()
-    page.get_by_label("Session name").fill("door frame")
-    page.get_by_role("button", name="Create").click()
+    pendant.create_session("door frame")
     expect(page.locator("#session-title")).to_have_text("Session door frame")
     expect(page.locator("#step-inputs .needs")).to_have_text("Needs a recording and a scan.")
     expect(page.locator("#steps li")).to_have_text(
@@ -70,8 +69,7 @@ def test_uploads_show_the_422_inline_and_then_take_good_files(pendant, scene_fil
     page = pendant.page
     pendant.guard.allow(422, "/recording")
     pendant.open()
-    page.get_by_label("Session name").fill("uploads")
-    page.get_by_role("button", name="Create").click()
+    pendant.create_session("uploads")
     expect(page.locator("#session-title")).to_have_text("Session uploads")
     recording = page.locator("#recording-form")
     recording.get_by_label("File", exact=True).set_input_files(
@@ -313,8 +311,7 @@ def test_the_calibration_panel_fits_pairs_and_the_tip_and_refuses_poor_fits(pend
     page = pendant.page
     pendant.guard.allow(422, "/calibration/")
     pendant.open()
-    page.get_by_label("Session name").fill("calibration bench")
-    page.get_by_role("button", name="Create").click()
+    pendant.create_session("calibration bench")
     expect(page.locator("#calibration-current")).to_have_text("not calibrated")
 
     # Five points touched with the robot (base) and the pen (tracker), in mm; the tracker
@@ -390,8 +387,7 @@ def test_provenance_and_downloads_of_the_stored_files(pendant, scene_files, tmp_
 
     page = pendant.page
     pendant.open()
-    page.get_by_label("Session name").fill("files")
-    page.get_by_role("button", name="Create").click()
+    pendant.create_session("files")
     trace = tmp_path / "trace.csv"
     trace.write_bytes(scene_files["trace"])
     page.locator("#recording-form input[type=file]").set_input_files(str(trace))

@@ -107,8 +107,7 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         with pendant_for(browser, arm_server, screens, "real-arm-second") as second:
             other = second.page
             second.open()
-            other.get_by_label("Session name").fill("other cell job")
-            other.get_by_role("button", name="Create").click()
+            second.create_session("other cell job")
             expect(other.locator("#arm-owner")).to_have_text(owner)
             expect(other.get_by_role("button", name="Stop")).to_be_visible()
             expect(other.get_by_role("button", name="Run on arm")).to_be_disabled()

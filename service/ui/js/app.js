@@ -620,68 +620,60 @@ function pairsTable(fit) {
   ];
 }
 
-function wireCalibration() {
-  $("#pivot-form").addEventListener("submit", async (event) => {
+/** A calibration form: on submit, `send(form)` makes the request (it may throw before sending,
+ * naming what to correct); its result, or the figures of a refused fit (the error's detail), are
+ * drawn into `summary` by `show`. One click, one request; the button is held meanwhile. */
+function fitForm(form, summary, send, show) {
+  form.addEventListener("submit", async (event) => {
     event.preventDefault();
-    const form = event.currentTarget;
     const box = $(".message", form);
-    const summary = $("#pivot-summary");
-    clearMessage(box);
-    summary.replaceChildren();
-    const file = form.elements.file.files[0];
-    if (!file || !form.reportValidity()) return;
-    const data = new FormData();
-    data.append("file", file, file.name);
-    data.append("tolerance_m", String(Number(form.elements.tolerance_mm.value) / 1000));
-    data.append("accept_poor_fit", form.elements.accept_poor_fit.checked ? "true" : "false");
     const button = $("button[type=submit]", form);
-    button.disabled = true;
-    try {
-      const { result } = await api(`/sessions/${state.session.id}/calibration/pivot`, { method: "POST", form: data });
-      summary.replaceChildren(table([
-        ["tip offset", result.tip_offset_m.map((v) => mm(v, 2)).join(", ")],
-        ["residual", `${mm(result.residual_rms_m, 3)} RMS, ${mm(result.residual_max_m, 3)} max`],
-        ["pen turned", `${result.rotation_spread_deg.toFixed(0)} deg`],
-        ["samples", `${result.n_used} used, ${result.n_rejected} rejected, ${result.n_lost} lost`],
-      ]));
-    } catch (err) {
-      showError(box, err);
-      if (err.detail?.residual_rms_m != null) {
-        summary.replaceChildren(table([["residual", `${mm(err.detail.residual_rms_m, 3)} RMS (tolerance ${mm(err.detail.tolerance_m, 3)})`]]));
-      }
-    } finally {
-      button.disabled = false;
-      await refresh();
-    }
-  });
-
-  $("#pairs-form").addEventListener("submit", async (event) => {
-    event.preventDefault();
-    const form = event.currentTarget;
-    const box = $(".message", form);
-    const summary = $("#pairs-summary");
     clearMessage(box);
     summary.replaceChildren();
     if (!form.reportValidity()) return;
-    const scale = form.elements.units.value === "mm" ? 1e-3 : 1;
-    const button = $("button[type=submit]", form);
+    button.disabled = true;
     try {
-      const body = {
-        pairs: parsePairs(form.elements.pairs.value, scale),
-        tolerance_m: Number(form.elements.tolerance_mm.value) / 1000,
-        accept_poor_fit: form.elements.accept_poor_fit.checked,
-      };
-      button.disabled = true;
-      const { result } = await api(`/sessions/${state.session.id}/calibration/base`, { method: "POST", json: body });
-      summary.replaceChildren(...pairsTable(result));
+      summary.replaceChildren(...show((await send(form)).result));
     } catch (err) {
       showError(box, err);
-      if (err.detail?.residuals_m) summary.replaceChildren(...pairsTable(err.detail));
+      if (err.detail) summary.replaceChildren(...show(err.detail, true));
     } finally {
       button.disabled = false;
       if (state.session) await refresh();
     }
   });
+}
+
+function wireCalibration() {
+  fitForm($("#pivot-form"), $("#pivot-summary"), (form) => {
+    const data = new FormData();
+    const file = form.elements.file.files[0];
+    data.append("file", file, file.name);
+    data.append("tolerance_m", String(Number(form.elements.tolerance_mm.value) / 1000));
+    data.append("accept_poor_fit", form.elements.accept_poor_fit.checked ? "true" : "false");
+    return api(`/sessions/${state.session.id}/calibration/pivot`, { method: "POST", form: data });
+  }, (result, refused) => {
+    if (refused) {
+      return result.residual_rms_m == null ? []
+        : [table([["residual", `${mm(result.residual_rms_m, 3)} RMS (tolerance ${mm(result.tolerance_m, 3)})`]])];
+    }
+    return [table([
+      ["tip offset", result.tip_offset_m.map((v) => mm(v, 2)).join(", ")],
+      ["residual", `${mm(result.residual_rms_m, 3)} RMS, ${mm(result.residual_max_m, 3)} max`],
+      ["pen turned", `${result.rotation_spread_deg.toFixed(0)} deg`],
+      ["samples", `${result.n_used} used, ${result.n_rejected} rejected, ${result.n_lost} lost`],
+    ])];
+  });
+
+  fitForm($("#pairs-form"), $("#pairs-summary"), (form) => {
+    const scale = form.elements.units.value === "mm" ? 1e-3 : 1;
+    const body = {
+      pairs: parsePairs(form.elements.pairs.value, scale),
+      tolerance_m: Number(form.elements.tolerance_mm.value) / 1000,
+      accept_poor_fit: form.elements.accept_poor_fit.checked,
+    };
+    return api(`/sessions/${state.session.id}/calibration/base`, { method: "POST", json: body });
+  }, (fit) => (fit.residuals_m ? pairsTable(fit) : []));
 }
 
 // -- reconstruct: the parameters from the API's own schema ----------------------------------------
