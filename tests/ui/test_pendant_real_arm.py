@@ -134,6 +134,10 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         expect(result).to_contain_text("stopped in", timeout=30_000)
         expect(result).to_contain_text("not completed")
         expect(page.locator("#run-form .message")).to_contain_text("cancelled")
+        expect(page.locator("#run-form .message")).to_contain_text(
+            "Stopped at your request: the arm stands where it stopped"
+        )
+        expect(page.locator("#run-form .message")).to_contain_text("the arm stopped in ")
         expect(stop).to_be_hidden()
         expect(page.locator("#arm-owner")).to_have_text("none")
         # The arm stands where it stopped: no motion after the stop.

@@ -146,6 +146,9 @@ export const INSTRUCTIONS = {
   trajectory_unreadable: "The plan's record cannot be read: plan again.",
   real_arm_refused: "The server refused to move the arm: read its message below.",
   stopped: "The motion was stopped.",
+  cancelled:
+    "Stopped at your request: the arm stands where it stopped. Check the cell before you run " +
+    "again (the plan starts where the arm stood when it was planned).",
   invalid_file: "The file could not be read: check its format and units, then upload it again.",
   unknown_format: "The file's format is not known: choose the format in the list.",
   upload_too_large: "The file is larger than the server accepts.",

@@ -543,7 +543,11 @@ async function runJob(step, form, start, onDone) {
       bar.value = j.progress;
       label.textContent = `${j.state} ${Math.round(j.progress * 100)} %`;
     });
-    if (finished.state !== "succeeded") {
+    if (finished.state === "cancelled") {
+      // A Stop (or a cancel): say where it ended, not just the state twice.
+      const where = finished.result?.stopped_in;
+      showError(box, { code: "cancelled", message: where ? `cancelled by Stop: the arm stopped in ${where}` : "cancelled before it started" });
+    } else if (finished.state !== "succeeded") {
       showError(box, { code: finished.error?.code || finished.state, message: finished.error?.message || finished.state });
     }
     await onDone?.(finished);
