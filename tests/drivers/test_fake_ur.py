@@ -558,6 +558,12 @@ def test_ur_rtde_commands_fail_or_succeed_as_on_a_controller(fake_ur):
         before = time.monotonic()
         control.speedStop(1.0)
         took = time.monotonic() - before
+        # The receive interface holds the last 2 ms sample: read one from after the answer (one
+        # taken while the last millisecond of braking ran showed 0.0015 rad/s once).
+        stamp, deadline = receive.getTimestamp(), time.monotonic() + 1.0
+        while receive.getTimestamp() == stamp:
+            assert time.monotonic() < deadline, "no new sample from the controller"
+            time.sleep(0.001)
         assert abs(receive.getActualQd()[0]) < 1e-3
         assert 0.2 < took < 1.5  # 0.3 s of braking from 0.3 rad/s, plus the round trips
         # stopL ends an async moveL early.
