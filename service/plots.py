@@ -151,11 +151,12 @@ def plot_plan(path: str | Path, trajectory, *, title: str = "") -> None:
     """
     from recon import kinematics
     from recon.types import Phase
+    from service.preview import speed_drop_times, tcp_speed_m_s
 
     arm = kinematics.model(trajectory.robot)
     t = trajectory.t_s
     phases = trajectory.phases
-    speed_mm_s = np.linalg.norm(np.gradient(trajectory.tcp_m, t, axis=0), axis=1) * 1e3
+    speed_mm_s = tcp_speed_m_s(trajectory) * 1e3
     # A Figure of its own, not pyplot's global state: the service draws it in request threads.
     fig = Figure(figsize=(10, 9))
     ax_speed, ax_q, ax_qd = fig.subplots(3, 1, sharex=True)
@@ -166,26 +167,18 @@ def plot_plan(path: str | Path, trajectory, *, title: str = "") -> None:
     ax_speed.axhline(
         trajectory.requested_speed_m_s * 1e3, c="tab:green", ls="--", lw=1, label="requested"
     )
+    for drop in speed_drop_times(trajectory):
+        ax_speed.axvspan(drop["start_s"], drop["end_s"], color="tab:red", alpha=0.15)
+        ax_speed.annotate(
+            f"{drop['min_speed_m_s'] * 1e3:.0f} mm/s: {drop['cause']}",
+            ((drop["start_s"] + drop["end_s"]) / 2, drop["min_speed_m_s"] * 1e3),
+            fontsize=7,
+            color="tab:red",
+            xytext=(0, -14),
+            textcoords="offset points",
+            ha="center",
+        )
     process = np.flatnonzero(phases == int(Phase.PROCESS))
-    if len(process):
-        # Metres of process path, as the drops count them: the moves between pieces left out.
-        step = np.linalg.norm(np.diff(trajectory.tcp_m[process], axis=0), axis=1)
-        step[np.diff(process) != 1] = 0.0
-        arc = np.r_[0.0, np.cumsum(step)]
-        for drop in trajectory.speed_drops:
-            inside = process[(arc >= drop.start_m) & (arc <= drop.end_m)]
-            if not len(inside):
-                continue
-            ax_speed.axvspan(t[inside[0]], t[inside[-1]], color="tab:red", alpha=0.15)
-            ax_speed.annotate(
-                f"{drop.min_speed_m_s * 1e3:.0f} mm/s: {drop.cause}",
-                (t[inside[len(inside) // 2]], drop.min_speed_m_s * 1e3),
-                fontsize=7,
-                color="tab:red",
-                xytext=(0, -14),
-                textcoords="offset points",
-                ha="center",
-            )
     # The scale of the process path: the joint moves of the transit are much faster at the TCP
     # (half a metre a second) and would flatten it; their peak is named instead.
     requested_mm_s = trajectory.requested_speed_m_s * 1e3

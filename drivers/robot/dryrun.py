@@ -13,7 +13,7 @@ from drivers.robot.clock import FakeClock
 from drivers.robot.sim import SimBackend, SimConfig
 from recon import kinematics
 from recon.metrics import distance_to_curve
-from recon.types import JointTrajectory, Phase, SpeedDrop
+from recon.types import FloatArray, JointTrajectory, Phase, SpeedDrop
 
 
 @dataclass(frozen=True)
@@ -195,6 +195,28 @@ def dry_run(
     )
 
 
+def off_path_m(arm, actual_flange: FloatArray, plan_q_rad: FloatArray) -> FloatArray:
+    """How far the arm was from its planned path at each recorded sample.
+
+    The planned TCP may sit off the flange; the tracking error is the same rigid offset either
+    way, so it is measured on the flange, against the whole planned path.
+
+    Parameters
+    ----------
+    arm : recon.kinematics.URModel
+    actual_flange : ndarray of shape (S, 4, 4)
+        Where the flange was (forward kinematics of the recorded joints).
+    plan_q_rad : ndarray of shape (M, 6)
+        The plan's joints.
+
+    Returns
+    -------
+    ndarray of shape (S,), metres
+    """
+    plan_flange = kinematics.forward(arm, plan_q_rad)[:, :3, 3]
+    return distance_to_curve(actual_flange[:, :3, 3], plan_flange)
+
+
 def execution_report(
     trajectory: JointTrajectory,
     record: ExecutionRecord | None,
@@ -230,10 +252,7 @@ def execution_report(
     if record is not None and len(record):
         actual_flange = kinematics.forward(arm, record.q_actual_rad)
         planned_flange = kinematics.forward(arm, record.q_planned_rad)
-        plan_flange = kinematics.forward(arm, trajectory.q_rad)[:, :3, 3]
-        # The planned TCP may sit off the flange; the tracking error is the same rigid offset
-        # either way, so it is measured on the flange, against the whole planned path.
-        off_path = distance_to_curve(actual_flange[:, :3, 3], plan_flange)
+        off_path = off_path_m(arm, actual_flange, trajectory.q_rad)
         # Which phase each recorded sample belongs to: the arm runs the plan a lookahead
         # behind the sample sent with it.
         lag = int(round(lookahead_s / trajectory.period_s))

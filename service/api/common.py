@@ -78,6 +78,19 @@ def download(content: bytes | str, *, media_type: str, filename: str) -> Respons
     )
 
 
+def gzip_json(content) -> Response:
+    """JSON, gzip-compressed (``Content-Encoding: gzip``): the pendant's drawing data."""
+    import gzip
+    import json
+
+    body = json.dumps(content, separators=(",", ":"), allow_nan=False).encode()
+    return Response(
+        gzip.compress(body, compresslevel=5, mtime=0),
+        media_type="application/json",
+        headers={"Content-Encoding": "gzip", "Cache-Control": "no-store"},
+    )
+
+
 #: OpenAPI entries of the download routes.
 CSV = {200: {"content": {"text/csv": {}}}}
 BINARY = {200: {"content": {"application/octet-stream": {}}}}

@@ -6,10 +6,10 @@ import csv
 import io
 
 import numpy as np
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Query, Response
 
-from service import executions
-from service.api.common import CSV, add_artifact_routes, download
+from service import executions, tasks
+from service.api.common import CSV, add_artifact_routes, download, gzip_json
 from service.api.deps import ServicesDep
 from service.artifacts import ExecutionCodec
 from service.errors import ApiError
@@ -44,6 +44,26 @@ def execution_csv(session_id: str, artifact_id: str, services: ServicesDep):
     for row_values in np.column_stack([samples.t_s, samples.q_planned_rad, samples.q_actual_rad]):
         writer.writerow(["" if not np.isfinite(v) else f"{v:.10g}" for v in row_values])
     return download(buffer.getvalue(), media_type="text/csv", filename=f"{artifact_id}.csv")
+
+
+@router.get("/executions/{artifact_id}/review", response_class=Response)
+def execution_review(
+    session_id: str,
+    artifact_id: str,
+    services: ServicesDep,
+    max_samples: int = Query(1500, ge=10, le=20_000, description="about this many samples"),
+):
+    """Planned against actual (gzip JSON): where the TCP was (base frame, m) and how far the
+    arm was from the planned path along the execution, with the largest deviation and when."""
+    from service.preview import execution_review as review
+
+    row = services.artifact(session_id, "execution", artifact_id)
+    samples = ExecutionCodec.decode(services.store.read_arrays(row))
+    if samples is None:
+        raise ApiError(404, "not_found", f"execution {artifact_id} recorded no samples")
+    plan = services.artifact(session_id, "trajectory", row.inputs["trajectory_id"])
+    trajectory = tasks.load_trajectory(services.store.path_of(plan), plan.summary)
+    return gzip_json(review(trajectory, samples, max_samples=max_samples))
 
 
 @stop_router.post("/{execution_id}/stop", response_model=StopOut)

@@ -8,7 +8,7 @@ from typing import Literal
 from fastapi import APIRouter, Query, Response
 
 from service import tasks, trajectories
-from service.api.common import CSV, add_artifact_routes, download
+from service.api.common import CSV, add_artifact_routes, download, gzip_json
 from service.api.deps import ServicesDep
 from service.artifacts import TrajectorySummary
 from service.schemas import JobOut, TrajectoryCreate, TrajectoryOut
@@ -40,6 +40,27 @@ def trajectory_csv(session_id: str, artifact_id: str, services: ServicesDep):
         media_type="text/csv",
         filename=f"{artifact_id}.csv",
     )
+
+
+@router.get("/trajectories/{artifact_id}/preview", response_class=Response)
+def trajectory_preview(
+    session_id: str,
+    artifact_id: str,
+    services: ServicesDep,
+    max_samples: int = Query(1500, ge=10, le=20_000, description="about this many samples"),
+):
+    """The plan as the pendant animates it (gzip JSON): per kept sample the time, phase, the
+    arm's joint positions from its DH chain and the TCP (base frame, m), TCP speed, joint
+    angles, and each margin as the smallest since the previous sample sent (joint limits,
+    wrist and elbow singularity, clearance to the cell); the slow-downs with their causes."""
+    from service.preview import trajectory_preview as preview
+    from service.tasks import load_arrays
+
+    row = services.artifact(session_id, "trajectory", artifact_id)
+    path = services.store.path_of(row)
+    trajectory = tasks.load_trajectory(path, row.summary)
+    clearance = load_arrays(path).get("clearance_m")
+    return gzip_json(preview(trajectory, clearance, max_samples=max_samples))
 
 
 @router.get(

@@ -15,7 +15,7 @@ const el = (tag, attrs = {}, ...children) => {
   node.append(...children);
   return node;
 };
-const mm = (metres, digits = 2) => (metres == null ? "–" : `${(metres * 1000).toFixed(digits)} mm`);
+const mm = (metres, digits = 2) => (metres == null || !Number.isFinite(metres) ? "–" : `${(metres * 1000).toFixed(digits)} mm`);
 const mmps = (m_s) => `${Math.round(m_s * 1000)} mm/s`;
 // Where a plan starts (the trajectory summary's start_from), in the operator's words.
 const START_FROM = {
@@ -526,6 +526,41 @@ function renderRun() {
   $("#run-summary").replaceChildren(...(run ? execSummary(run) : []));
 }
 
+// -- the workspace's readouts: a picked point, an execution against its plan -------------------
+
+const MODE_WORDS = { path: "the trace alone", surface: "a surface of the scan", edge: "an edge of the scan", unchanged: "unchanged (too few points for a fit)" };
+
+function showPick(picked) {
+  const box = $("#pick-readout");
+  if (!picked) return (box.textContent = "Nothing under the cursor: click on a point of a shown layer.");
+  const at = `(${[picked.point.x, picked.point.y, picked.point.z].map((v) => (v * 1000).toFixed(1)).join(", ")}) mm`;
+  const words = { reconstruction: "reconstruction point", trace: "trace point", scan: "scan point", path: "planned waypoint" };
+  const parts = [`${words[picked.layer] || picked.layer} ${picked.index} at ${at}`];
+  const d = picked.diagnostics;
+  if (d) {
+    parts.push(`displacement ${mm(d.displacement_m, 3)}`, `mode: ${MODE_WORDS[d.mode] || d.mode}`, `segment ${d.segment}`,
+      `fit residuals: path ${mm(d.residual_path_m, 3)}, surface ${mm(d.residual_surface_m, 3)}`,
+      `neighbours: ${d.n_path} path, ${d.n_surface} scan`, `alpha ${Number.isFinite(d.alpha) ? d.alpha.toFixed(2) : "–"}`);
+  }
+  if (picked.time_s != null) parts.push(`at ${picked.time_s.toFixed(2)} s of the plan`);
+  if (picked.distance_m != null) parts.push(`distance from the previous point: ${mm(picked.distance_m, 2)}`);
+  box.replaceChildren(...parts.map((text, i) => el("span", { class: i === parts.length - 1 && picked.distance_m != null ? "distance" : "", text: `${text}${i < parts.length - 1 ? "; " : ""}` })));
+}
+
+function showReview(review, execution) {
+  const panel = $("#review");
+  panel.hidden = !review?.t_s.length;
+  if (panel.hidden) return;
+  const kind = execution.summary.dry_run ? "dry run" : "run on the arm";
+  $("#review-summary").textContent = `${execution.id} (${kind}): the arm was at most ${mm(review.max_off_path_m, 3)} `
+    + `from the planned path, at ${review.at_s.toFixed(2)} s; the executed path is drawn in red.`;
+  import("./timeline.js").then(({ Plot }) => {
+    $("#review-plot").replaceChildren();
+    new Plot($("#review-plot"), { title: "distance from the planned path", unit: "mm", t: review.t_s,
+      series: [{ values: review.off_path_m.map((v) => v * 1000), colour: "#d62728" }], phases: [], phaseOf: null });
+  });
+}
+
 // -- jobs: one click, one POST, followed to the end -----------------------------------------------
 
 async function runJob(step, form, start, onDone) {
@@ -883,8 +918,19 @@ async function main() {
     banner(`${instruction} (${message})`);
   }
   try {
-    const { Workspace } = await import("./workspace.js");
-    state.workspace = new Workspace($("#workspace"), $("#layers"), $("#legend"));
+    const [{ Workspace }, { Timeline }] = await Promise.all([import("./workspace.js"), import("./timeline.js")]);
+    let timeline = null;
+    state.workspace = new Workspace($("#workspace"), $("#layers"), $("#legend"), {
+      onPlan: (preview, review, execution, trajectoryId) => {
+        timeline.load(preview, trajectoryId);
+        showReview(review, execution);
+      },
+      onPick: (picked) => {
+        showPick(picked);
+        if (picked?.time_s != null) timeline.seek(picked.time_s);
+      },
+    });
+    timeline = new Timeline($("#timeline"), (joints) => state.workspace.pose(joints));
     if (state.session) await refresh();
   } catch (err) {
     $("#workspace-note").textContent = `The 3-D view is unavailable: ${err.message}`;

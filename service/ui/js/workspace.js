@@ -25,19 +25,55 @@ function ramp(t) {
   return RAMP[RAMP.length - 1][1];
 }
 
-/** CSV text -> {columns: name -> Float64Array}; lines starting with # are skipped. */
-function parseCsv(text, wanted, every = 1) {
+/** CSV text -> {n, name -> Float64Array (or Array of strings for `text` columns)}; lines
+ * starting with # are skipped; empty cells are NaN. */
+function parseCsv(text, wanted, every = 1, textColumns = []) {
   const lines = text.split("\n").filter((line) => line && !line.startsWith("#"));
   const header = lines[0].split(",");
   const index = wanted.map((name) => header.indexOf(name));
   if (index.some((i) => i < 0)) throw new Error(`the CSV lacks ${wanted.join(", ")}`);
   const rows = lines.slice(1).filter((_, i) => i % every === 0);
-  const out = Object.fromEntries(wanted.map((name) => [name, new Float64Array(rows.length)]));
+  const out = Object.fromEntries(wanted.map((name) => [name, textColumns.includes(name) ? new Array(rows.length) : new Float64Array(rows.length)]));
   rows.forEach((line, r) => {
     const cells = line.split(",");
-    wanted.forEach((name, k) => { out[name][r] = Number(cells[index[k]]); });
+    wanted.forEach((name, k) => {
+      const cell = cells[index[k]];
+      out[name][r] = textColumns.includes(name) ? cell : cell === "" ? NaN : Number(cell);
+    });
   });
   return { n: rows.length, ...out };
+}
+
+/** The reconstruction's per-point diagnostics the pendant shows on a click. */
+const DIAGNOSTICS = ["displacement_m", "mode", "segment", "n_path", "n_surface", "residual_path_m", "residual_surface_m", "alpha"];
+const MODE_COLOURS = { edge: [0.85, 0.1, 0.1], surface: [0.1, 0.55, 0.2], path: [0.15, 0.3, 0.9], unchanged: [0.5, 0.5, 0.5] };
+const PHASE_COLOURS = { transit: [0.55, 0.6, 0.75], approach: [0.95, 0.55, 0.1], process: [0.12, 0.47, 1.0], retract: [0.95, 0.55, 0.1], return: [0.55, 0.6, 0.75] };
+
+/** How the planned path is coloured: per waypoint, 0 (fine, blue) .. 1 (the limit, red). */
+const PATH_COLOURING = {
+  phase: { legend: "path by phase: blue process, orange approach and retract, grey transit" },
+  speed: { legend: "path by speed: blue at the requested speed, red slowed to a stop",
+    risk: (p, i) => 1 - Math.min(1, p.speed_m_s[i] / p.requested_speed_m_s) },
+  clearance: { legend: "path by clearance: blue 50 mm or more from the cell, red touching",
+    risk: (p, i) => (p.clearance_m ? 1 - Math.min(1, Math.max(0, p.clearance_m[i]) / 0.05) : 0) },
+  limits: { legend: "path by joint-limit margin: blue 30° or more, red at a limit",
+    risk: (p, i) => 1 - Math.min(1, Math.max(0, p.limit_margin_deg[i]) / 30) },
+  singularity: { legend: "path by singularity: blue |sin q| ≥ 0.2 at wrist and elbow, red singular",
+    risk: (p, i) => 1 - Math.min(1, Math.min(p.wrist_singularity[i], p.elbow_singularity[i]) / 0.2) },
+};
+
+/** A text label drawn into a sprite (for the frames' names). */
+function label(text, colour = "#111") {
+  const canvas = document.createElement("canvas");
+  canvas.width = 256; canvas.height = 64;
+  const context = canvas.getContext("2d");
+  context.font = "bold 36px sans-serif";
+  context.fillStyle = colour;
+  context.fillText(text, 4, 44);
+  const texture = new THREE.CanvasTexture(canvas);
+  const sprite = new THREE.Sprite(new THREE.SpriteMaterial({ map: texture, depthTest: false, sizeAttenuation: false }));
+  sprite.scale.set(0.12, 0.03, 1);
+  return sprite;
 }
 
 function matrix(rows) {
@@ -47,14 +83,23 @@ function matrix(rows) {
 }
 
 export class Workspace {
-  constructor(container, layers, legend) {
+  /**
+   * @param {HTMLElement} container  where the canvas goes
+   * @param {HTMLElement} layers  the layer toggles, point size, colourings and views
+   * @param {HTMLElement} legend  the colour legend
+   * @param {{onPlan?: Function, onPick?: Function}} hooks  called with the plan's preview and
+   *   the execution's review when they change, and with a picked point's description
+   */
+  constructor(container, layers, legend, hooks = {}) {
     this.container = container;
     this.legend = legend;
+    this.hooks = hooks;
     this.renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
     this.renderer.setPixelRatio(window.devicePixelRatio || 1);
     this.renderer.setClearColor(0xf6f7f9);
     container.append(this.renderer.domElement);
     this.renderer.domElement.setAttribute("aria-label", "3-D workspace");
+    container.workspace = this; // for the browser tests: where a point is on the screen
     this.scene = new THREE.Scene();
     this.scene.up = new THREE.Vector3(0, 0, 1);
     this.camera = new THREE.PerspectiveCamera(45, 1, 0.001, 100);
@@ -62,14 +107,15 @@ export class Workspace {
     this.camera.position.set(1, -1, 1);
     this.controls = new OrbitControls(this.camera, this.renderer.domElement);
     this.controls.addEventListener("change", () => this.render());
-    this.scene.add(new THREE.AxesHelper(0.1));
     this.pointSize = 2;
     this.layers = {};
     this.shown = null; // what the layers were filled from (ids), so nothing is fetched twice
+    this.preview = null;
+    this.reconstruction = null; // the shown reconstruction's CSV columns (for picking)
+    this.picks = [];
     for (const box of layers.querySelectorAll("input[type=checkbox]")) {
       box.addEventListener("change", () => {
-        const layer = this.layers[box.name];
-        if (layer) layer.visible = box.checked;
+        for (const name of this.members(box.name)) if (this.layers[name]) this.layers[name].visible = box.checked;
         this.render();
       });
     }
@@ -77,7 +123,7 @@ export class Workspace {
     for (const button of layers.querySelectorAll("button[data-view]")) {
       button.addEventListener("click", () => this.frame(button.dataset.view));
     }
-    this.visibility = (name) => layers.querySelector(`input[name=${name}]`)?.checked ?? true;
+    this.visibility = (name) => layers.querySelector(`input[name=${this.toggleOf(name)}]`)?.checked ?? true;
     layers.querySelector("#point-size").addEventListener("input", (event) => {
       this.pointSize = Number(event.target.value);
       for (const name of ["scan", "reconstruction"]) {
@@ -85,8 +131,28 @@ export class Workspace {
       }
       this.render();
     });
+    this.pathColour = layers.querySelector("#path-colour");
+    this.pathColour.addEventListener("change", () => { this.colourPath(); this.render(); });
+    this.reconColour = layers.querySelector("#recon-colour");
+    this.reconColour.addEventListener("change", () => { this.colourReconstruction(); this.render(); });
+    this.measure = layers.querySelector("#measure");
+    this.measure.addEventListener("change", () => { this.picks = []; this.clear("measure"); this.render(); });
+    this.renderer.domElement.addEventListener("pointerdown", (event) => { this.down = [event.clientX, event.clientY]; });
+    this.renderer.domElement.addEventListener("pointerup", (event) => {
+      // A click, not the end of an orbit drag.
+      if (this.down && Math.hypot(event.clientX - this.down[0], event.clientY - this.down[1]) < 5) this.pick(event);
+    });
     new ResizeObserver(() => this.resize()).observe(container);
     this.resize();
+  }
+
+  /** The objects a layer toggle switches (the arm figure is two; the frames three). */
+  members(toggle) {
+    return { arm: ["arm", "arm-joints"], frames: ["frames"] }[toggle] || [toggle];
+  }
+
+  toggleOf(name) {
+    return { "arm-joints": "arm" }[name] || name;
   }
 
   resize() {
@@ -102,14 +168,13 @@ export class Workspace {
     this.renderer.render(this.scene, this.camera);
   }
 
-  /** A layer of `count` points or a line, made once per kind and refilled after. */
-  layer(name, kind, positions, colours) {
+  /** A layer of points or a line, made once per kind and refilled after. */
+  layer(name, kind, positions, colours, colour = COLOURS[name]) {
     let object = this.layers[name];
     const n = positions.length / 3;
-    if (object && object.geometry.attributes.position.array.length < positions.length) {
-      this.scene.remove(object);
-      object.geometry.dispose();
-      object.material.dispose();
+    if (object && (object.geometry.attributes.position.array.length < positions.length
+        || Boolean(object.geometry.attributes.color) !== Boolean(colours))) {
+      this.clear(name);
       object = null;
     }
     if (!object) {
@@ -117,8 +182,8 @@ export class Workspace {
       geometry.setAttribute("position", new THREE.BufferAttribute(new Float32Array(positions.length), 3));
       if (colours) geometry.setAttribute("color", new THREE.BufferAttribute(new Float32Array(colours.length), 3));
       const material = kind === "points"
-        ? new THREE.PointsMaterial({ size: this.pointSize, sizeAttenuation: false, vertexColors: Boolean(colours), color: colours ? 0xffffff : COLOURS[name] })
-        : new THREE.LineBasicMaterial({ color: COLOURS[name] });
+        ? new THREE.PointsMaterial({ size: name === "arm-joints" ? 8 : this.pointSize, sizeAttenuation: false, vertexColors: Boolean(colours), color: colours ? 0xffffff : colour })
+        : new THREE.LineBasicMaterial({ color: colours ? 0xffffff : colour, vertexColors: Boolean(colours) });
       object = kind === "points" ? new THREE.Points(geometry, material) : new THREE.Line(geometry, material);
       object.name = name;
       this.layers[name] = object;
@@ -131,30 +196,39 @@ export class Workspace {
       position.array.copyWithin(i, positions.length - 3, positions.length);
     }
     position.needsUpdate = true;
-    if (colours) {
-      object.geometry.attributes.color.array.set(colours);
-      object.geometry.attributes.color.needsUpdate = true;
-    }
+    if (colours) this.recolour(name, colours);
     object.geometry.setDrawRange(0, n);
     object.geometry.computeBoundingSphere();
     object.visible = this.visibility(name);
     return object;
   }
 
+  recolour(name, colours) {
+    const attribute = this.layers[name]?.geometry.attributes.color;
+    if (!attribute) return;
+    attribute.array.set(colours);
+    attribute.needsUpdate = true;
+  }
+
   clear(name) {
     const object = this.layers[name];
     if (!object) return;
     this.scene.remove(object);
-    object.geometry.dispose();
-    object.material.dispose();
+    object.traverse((child) => {
+      child.geometry?.dispose();
+      child.material?.map?.dispose();
+      child.material?.dispose();
+    });
     delete this.layers[name];
   }
 
   /** Fill the layers from a session's artifacts (each fetched only when it changed). */
-  async show(sid, { session, reconstructions, trajectories }) {
+  async show(sid, { session, reconstructions, trajectories, executions = [] }) {
     const rec = reconstructions[reconstructions.length - 1] || null;
     const traj = rec ? [...trajectories].reverse().find((t) => t.inputs.reconstruction_id === rec.id) : null;
-    const key = [sid, session.recording_id, session.scan_id, rec?.id, traj?.id].join("/");
+    const exec = traj ? [...executions].reverse().find((e) => e.inputs.trajectory_id === traj.id && e.summary.n_samples > 0) : null;
+    const calibration = JSON.stringify([session.T_base_tracker, session.T_scan_tracker, rec?.summary.T_scan_tracker]);
+    const key = [sid, session.recording_id, session.scan_id, rec?.id, traj?.id, exec?.id, calibration].join("/");
     if (key === this.shown) return;
     this.shown = key;
     // The base frame when calibrated; the scan through the registration the reconstruction found.
@@ -175,6 +249,9 @@ export class Workspace {
       for (let i = 0; i < c.n; i++) { out[3 * i] = c.x[i]; out[3 * i + 1] = c.y[i]; out[3 * i + 2] = c.z[i]; }
       return out;
     };
+    this.picks = [];
+    this.clear("measure");
+    this.clear("pick");
 
     if (session.scan_id) {
       const response = await api(`/sessions/${sid}/scans/${session.scan_id}/points?max_points=200000`, { raw: true });
@@ -187,22 +264,131 @@ export class Workspace {
     } else this.clear("trace");
 
     if (rec) {
-      const csv = parseCsv(await api(`/sessions/${sid}/reconstructions/${rec.id}/csv`), ["x", "y", "z", "displacement_m"]);
-      const top = Math.max(...csv.displacement_m, 1e-9);
-      const colours = new Float32Array(csv.n * 3);
-      for (let i = 0; i < csv.n; i++) colours.set(ramp(csv.displacement_m[i] / top), 3 * i);
-      this.layer("reconstruction", "points", transformed(interleave(csv), baseTracker), colours);
-      this.legend.querySelector("#legend-max").textContent = `${(top * 1000).toFixed(2)} mm`;
-    } else this.clear("reconstruction");
+      const csv = parseCsv(await api(`/sessions/${sid}/reconstructions/${rec.id}/csv`), ["x", "y", "z", ...DIAGNOSTICS], 1, ["mode"]);
+      this.reconstruction = { id: rec.id, ...csv };
+      this.layer("reconstruction", "points", transformed(interleave(csv), baseTracker), new Float32Array(csv.n * 3));
+      this.colourReconstruction();
+    } else {
+      this.reconstruction = null;
+      this.clear("reconstruction");
+    }
 
-    if (traj) {
-      const text = await api(`/sessions/${sid}/trajectories/${traj.id}/csv`);
-      const rows = text.split("\n").length;
-      const csv = parseCsv(text, ["x", "y", "z"], Math.max(1, Math.floor(rows / 5000)));
-      this.layer("path", "line", interleave(csv));
-    } else this.clear("path");
+    this.showFrames(session.T_base_tracker ? baseTracker : null, baseTracker, session.scan_id ? baseScan : null);
 
+    this.preview = traj ? await api(`/sessions/${sid}/trajectories/${traj.id}/preview?max_samples=2000`) : null;
+    if (this.preview) {
+      const p = this.preview;
+      this.layer("path", "line", Float32Array.from(p.tcp_m.flat()), new Float32Array(p.tcp_m.length * 3));
+      this.colourPath();
+      this.pose(p.joints_m[0]);
+    } else {
+      for (const name of ["path", "arm", "arm-joints"]) this.clear(name);
+    }
+    const review = exec ? await api(`/sessions/${sid}/executions/${exec.id}/review?max_samples=2000`) : null;
+    if (review?.actual_tcp_m.length) this.layer("executed", "line", Float32Array.from(review.actual_tcp_m.flat()), null, 0xd62728);
+    else this.clear("executed");
+    this.hooks.onPlan?.(this.preview, review, exec, traj?.id ?? null);
     this.frame();
+  }
+
+  /** The base (when calibrated), tracker and scan frames as labelled axes. */
+  showFrames(base, tracker, scan) {
+    this.clear("frames");
+    const group = new THREE.Group();
+    group.name = "frames";
+    const add = (name, m, size) => {
+      const axes = new THREE.AxesHelper(size);
+      axes.applyMatrix4(m);
+      const tag = label(name);
+      tag.position.copy(new THREE.Vector3().setFromMatrixPosition(m));
+      group.add(axes, tag);
+    };
+    add(base ? "base" : "tracker (no calibration)", base ? new THREE.Matrix4() : tracker, 0.1);
+    if (base) add("tracker", tracker, 0.05);
+    if (scan) add("scan", scan, 0.05);
+    this.layers.frames = group;
+    this.scene.add(group);
+    group.visible = this.visibility("frames");
+  }
+
+  /** Colour the reconstruction by its displacement from the trace or by its mode. */
+  colourReconstruction() {
+    const c = this.reconstruction;
+    if (!c) return;
+    const colours = new Float32Array(c.n * 3);
+    const byMode = this.reconColour.value === "mode";
+    const top = Math.max(...c.displacement_m.filter(Number.isFinite), 1e-9);
+    for (let i = 0; i < c.n; i++) {
+      colours.set(byMode ? MODE_COLOURS[c.mode[i]] || MODE_COLOURS.unchanged : ramp(c.displacement_m[i] / top), 3 * i);
+    }
+    this.recolour("reconstruction", colours);
+    this.legend.querySelector("#legend-displacement").hidden = byMode;
+    this.legend.querySelector("#legend-modes").hidden = !byMode;
+    this.legend.querySelector("#legend-max").textContent = `${(top * 1000).toFixed(2)} mm`;
+  }
+
+  /** Colour the planned path per waypoint by the chosen feasibility margin. */
+  colourPath() {
+    const p = this.preview;
+    if (!p) return;
+    const how = PATH_COLOURING[this.pathColour.value] || PATH_COLOURING.phase;
+    const colours = new Float32Array(p.t_s.length * 3);
+    for (let i = 0; i < p.t_s.length; i++) {
+      colours.set(how.risk ? ramp(how.risk(p, i)) : PHASE_COLOURS[p.phases[p.phase[i]]], 3 * i);
+    }
+    this.recolour("path", colours);
+    this.legend.querySelector("#legend-path").textContent = how.legend;
+  }
+
+  /** Draw the arm's stick figure: base, the DH frames' origins, the flange and the TCP. */
+  pose(joints) {
+    const flat = Float32Array.from(joints.flat());
+    this.layer("arm", "line", flat, null, 0x30343b);
+    this.layer("arm-joints", "points", flat, null, 0x30343b);
+    this.render();
+  }
+
+  /** Where point `index` of a layer is drawn, in page (client) pixels. */
+  screenOf(name, index) {
+    const object = this.layers[name];
+    const point = new THREE.Vector3().fromBufferAttribute(object.geometry.attributes.position, index).project(this.camera);
+    const box = this.renderer.domElement.getBoundingClientRect();
+    return { x: box.left + ((point.x + 1) / 2) * box.width, y: box.top + ((1 - point.y) / 2) * box.height };
+  }
+
+  /** A click: the nearest shown point under the cursor; its diagnostics, or a distance. */
+  pick(event) {
+    const box = this.renderer.domElement.getBoundingClientRect();
+    const pointer = new THREE.Vector2(((event.clientX - box.left) / box.width) * 2 - 1, -((event.clientY - box.top) / box.height) * 2 + 1);
+    const caster = new THREE.Raycaster();
+    caster.setFromCamera(pointer, this.camera);
+    // About 6 pixels at the target's distance.
+    const distance = this.camera.position.distanceTo(this.controls.target);
+    caster.params.Points.threshold = (6 / box.height) * 2 * distance * Math.tan(THREE.MathUtils.degToRad(this.camera.fov / 2));
+    caster.params.Line.threshold = caster.params.Points.threshold;
+    const targets = ["reconstruction", "trace", "scan", "path"].map((n) => this.layers[n]).filter((o) => o?.visible);
+    const hit = caster.intersectObjects(targets, false).filter((h) => h.index < h.object.geometry.drawRange.count)
+      .sort((a, b) => a.distanceToRay - b.distanceToRay)[0];
+    if (!hit) return this.hooks.onPick?.(null);
+    const position = hit.object.geometry.attributes.position;
+    const point = new THREE.Vector3().fromBufferAttribute(position, hit.index);
+    const picked = { layer: hit.object.name, index: hit.index, point };
+    if (hit.object.name === "reconstruction" && this.reconstruction) {
+      picked.diagnostics = Object.fromEntries(DIAGNOSTICS.map((k) => [k, this.reconstruction[k][hit.index]]));
+    }
+    if (hit.object.name === "path" && this.preview) picked.time_s = this.preview.t_s[hit.index];
+    this.layer("pick", "points", Float32Array.of(point.x, point.y, point.z), null, 0x000000);
+    this.layers.pick.material.size = 12;
+    if (this.measure.checked) {
+      this.picks = [...this.picks, point].slice(-2);
+      if (this.picks.length === 2) {
+        const [a, b] = this.picks;
+        picked.distance_m = a.distanceTo(b);
+        this.layer("measure", "line", Float32Array.of(a.x, a.y, a.z, b.x, b.y, b.z), null, 0x000000);
+      }
+    }
+    this.render();
+    this.hooks.onPick?.(picked);
   }
 
   /** Aim the camera at the workpiece (scan, trace, reconstruction: what the operator checks
@@ -212,7 +398,9 @@ export class Workspace {
     this.view = view;
     const names = view === "all" ? Object.keys(this.layers) : WORKPIECE.filter((n) => this.layers[n]);
     const box = new THREE.Box3();
-    for (const name of names.length ? names : Object.keys(this.layers)) box.expandByObject(this.layers[name]);
+    for (const name of names.length ? names : Object.keys(this.layers)) {
+      if (name !== "frames") box.expandByObject(this.layers[name]);
+    }
     if (box.isEmpty()) return this.render();
     const centre = box.getCenter(new THREE.Vector3());
     const size = Math.max(box.getSize(new THREE.Vector3()).length(), 0.05);

@@ -1,0 +1,143 @@
+"""The pendant's plan timeline, feasibility on the path, point diagnostics, the distance measure
+and the execution review, in a real browser on the demo session (planned through the REST API:
+the clicks that reconstruct and plan are tested in test_pendant.py)."""
+
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+from playwright.sync_api import expect
+
+from tests.ui.test_pendant import canvas_pixels
+
+
+def _plan_demo(server) -> tuple[str, str]:
+    """The demo session reconstructed and planned at 50 mm/s; (session id, reconstruction id)."""
+    client = server.client
+    sid = next(s["id"] for s in client.get("/sessions").json() if s["name"] == "demo")
+    job = server.wait(client.post(f"/sessions/{sid}/reconstructions", json={}).json())
+    rid = job["result"]["reconstruction_id"]
+    body = {"reconstruction_id": rid, "speed_m_s": 0.05}
+    job = server.wait(client.post(f"/sessions/{sid}/trajectories", json=body).json())
+    assert job["state"] == "succeeded", job
+    return sid, rid
+
+
+def _readout(page, key: str):
+    return page.locator(f"#waypoint-readout td[data-key='{key}']")
+
+
+def _click_point(page, layer: str, index: int) -> None:
+    at = page.evaluate(
+        "([layer, index]) => document.querySelector('#workspace').workspace.screenOf(layer, index)",
+        [layer, index],
+    )
+    page.mouse.click(at["x"], at["y"])
+
+
+def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
+    page = pendant.page
+    sid, rid = _plan_demo(pendant.server)
+    pendant.open()
+    page.get_by_role("button", name="demo", exact=True).click()
+
+    # The timeline: at the start of the transit, with the plots of speed, joints and clearance.
+    timeline = page.get_by_role("region", name="Plan timeline")
+    expect(timeline).to_be_visible()
+    expect(timeline.locator("svg.plot")).to_have_count(4)
+    expect(page.locator("#timeline-now")).to_have_text(re.compile(r"^0\.00 s / \d+\.\d\d s$"))
+    expect(_readout(page, "phase")).to_have_text("transit")
+    total_s = float(page.locator("#timeline-now").text_content().split("/ ")[1].split(" ")[0])
+    page.get_by_label("arm", exact=True).uncheck()
+    without_arm = canvas_pixels(page)
+    page.get_by_label("arm", exact=True).check()
+    page.get_by_role("button", name="Whole motion").click()
+    at_start = canvas_pixels(page)
+    assert at_start["drawn"] > without_arm["drawn"] * 0  # drawn at all
+    pendant.shot("timeline-start")
+
+    # A click on the speed plot inside the process phase moves the time there: the arm is
+    # drawn elsewhere and the waypoint's margins are read out.
+    process = timeline.locator("svg.plot").first.locator("rect[data-phase=process]")
+    box = process.bounding_box()
+    page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+    expect(_readout(page, "phase")).to_have_text("process")
+    expect(_readout(page, "TCP speed")).to_have_text(re.compile(r"^(4[5-9]|5[0-5]) mm/s of 50$"))
+    expect(_readout(page, "closest to the cell")).to_have_text(re.compile(r"^-?\d+\.\d mm$"))
+    expect(_readout(page, "joint-limit margin")).to_have_text(re.compile(r"^\d+\.\d°$"))
+    now_s = float(page.locator("#timeline-now").text_content().split(" s")[0])
+    assert 0 < now_s < total_s
+    assert canvas_pixels(page) != at_start  # the arm moved
+    pendant.shot("timeline-process")
+
+    # Play at 4x: the time runs on, then Pause holds it.
+    page.get_by_label("playback").select_option("4")
+    play = page.locator("#timeline-play")
+    play.click()
+    expect(play).to_have_text("Pause")
+    page.wait_for_timeout(1000)
+    play.click()
+    expect(play).to_have_text("Play")
+    later_s = float(page.locator("#timeline-now").text_content().split(" s")[0])
+    assert later_s > now_s + 1.5 or math.isclose(later_s, total_s, abs_tol=0.01), (now_s, later_s)
+    held = page.locator("#timeline-now").text_content()
+    page.wait_for_timeout(300)
+    expect(page.locator("#timeline-now")).to_have_text(held)
+
+    # Feasibility on the path: coloured per waypoint by the chosen margin, the legend says how.
+    page.get_by_role("button", name="Workpiece").click()
+    path_colour = page.get_by_label("path by")
+    before = canvas_pixels(page)
+    path_colour.select_option("speed")
+    expect(page.locator("#legend-path")).to_contain_text("red slowed to a stop")
+    path_colour.select_option("clearance")
+    expect(page.locator("#legend-path")).to_contain_text("50 mm or more from the cell")
+    assert canvas_pixels(page)["colours"] != before["colours"] or canvas_pixels(page) != before
+    pendant.shot("path-by-clearance")
+    page.get_by_label("reconstruction by").select_option("mode")
+    expect(page.locator("#legend-modes")).to_be_visible()
+    expect(page.locator("#legend-displacement")).to_be_hidden()
+
+    # Click a reconstruction point: its diagnostics. Then measure between the path's ends; the
+    # distance is the one between the CSV's first and last points.
+    for name in ("scan", "raw trace", "planned TCP path", "arm", "frames"):
+        page.get_by_label(name, exact=True).uncheck()
+    csv = pendant.server.client.get(f"/sessions/{sid}/reconstructions/{rid}/csv").text
+    rows = [line.split(",") for line in csv.splitlines() if line and not line.startswith("#")]
+    header, body = rows[0], rows[1:]
+    xyz = np.array([[float(r[header.index(c)]) for c in "xyz"] for r in body])
+    middle = len(xyz) // 2
+    _click_point(page, "reconstruction", middle)
+    readout = page.locator("#pick-readout")
+    expect(readout).to_contain_text(f"reconstruction point {middle} at")
+    expect(readout).to_contain_text("displacement")
+    expect(readout).to_contain_text("mode: an edge of the scan")
+    expect(readout).to_contain_text("fit residuals")
+    pendant.shot("picked")
+    page.get_by_label("measure (click two points)").check()
+    _click_point(page, "reconstruction", 0)
+    _click_point(page, "reconstruction", len(xyz) - 1)
+    expected_mm = float(np.linalg.norm(xyz[-1] - xyz[0])) * 1000
+    distance = readout.locator(".distance")
+    expect(distance).to_contain_text("distance from the previous point")
+    shown_mm = float(re.search(r"([\d.]+) mm", distance.text_content()).group(1))
+    assert shown_mm == pytest_approx(expected_mm), (shown_mm, expected_mm)
+    pendant.shot("measured")
+
+    # The dry run's review: where the arm went against the plan.
+    page.get_by_role("button", name="Dry run").click()
+    expect(page.locator("#dryrun-summary")).to_contain_text("passed", timeout=60_000)
+    review = page.get_by_role("region", name="Execution review")
+    expect(review).to_be_visible()
+    expect(review).to_contain_text(re.compile(r"dry run\): the arm was at most \d+\.\d{3} mm"))
+    expect(review.locator("svg.plot polyline")).to_have_count(1)
+    pendant.shot("review")
+
+
+def pytest_approx(value: float):
+    """Within 0.02 mm: float32 positions of points a few hundred mm from the base."""
+    import pytest
+
+    return pytest.approx(value, abs=0.02)
