@@ -3,6 +3,7 @@
 // click, and the button stays disabled until its job has finished.
 
 import { api, events, explain, followJob, FINISHED, setToken, takeToken } from "./api.js";
+import { wireCapture } from "./capture.js";
 
 const $ = (selector, root = document) => root.querySelector(selector);
 const el = (tag, attrs = {}, ...children) => {
@@ -158,6 +159,8 @@ async function loadSessions() {
 
 function closeSession() {
   state.session = null;
+  state.capture.sessionClosed();
+  state.workspace?.showLive(null);
   remember("sessionStorage", SESSION_KEY, null);
   $("#session-view").hidden = true;
 }
@@ -229,6 +232,7 @@ async function refresh() {
   ]);
   Object.assign(state, { session, recordings, scans, reconstructions, trajectories, executions });
   renderSteps();
+  state.capture.sessionShown(sid);
   state.workspace?.show(sid, state).catch((err) => {
     $("#workspace-note").textContent = `workspace: ${err.message}`;
   });
@@ -831,6 +835,15 @@ function wire() {
     const created = await api("/sessions", { method: "POST", json: { name } });
     await loadSessions();
     await openSession(created.id);
+  });
+  state.capture = wireCapture({
+    session: () => state.session,
+    recordings: () => state.recordings,
+    workspace: () => state.workspace,
+    showError,
+    remember,
+    recall,
+    refresh,
   });
   upload("recording", $("#recording-form"));
   upload("scan", $("#scan-form"));

@@ -65,14 +65,17 @@ const PATH_COLOURING = {
 /** A text label drawn into a sprite (for the frames' names). */
 function label(text, colour = "#111") {
   const canvas = document.createElement("canvas");
-  canvas.width = 256; canvas.height = 64;
+  const font = "bold 36px sans-serif";
+  const measure = canvas.getContext("2d");
+  measure.font = font;
+  canvas.width = Math.ceil(measure.measureText(text).width) + 8; canvas.height = 64;
   const context = canvas.getContext("2d");
-  context.font = "bold 36px sans-serif";
+  context.font = font;
   context.fillStyle = colour;
   context.fillText(text, 4, 44);
   const texture = new THREE.CanvasTexture(canvas);
   const sprite = new THREE.Sprite(new THREE.SpriteMaterial({ map: texture, depthTest: false, sizeAttenuation: false }));
-  sprite.scale.set(0.12, 0.03, 1);
+  sprite.scale.set(0.03 * (canvas.width / canvas.height), 0.03, 1);
   return sprite;
 }
 
@@ -107,6 +110,7 @@ export class Workspace {
     this.camera.position.set(1, -1, 1);
     this.controls = new OrbitControls(this.camera, this.renderer.domElement);
     this.controls.addEventListener("change", () => this.render());
+    this.controls.addEventListener("start", () => { this.steered = true; }); // the operator's camera now
     this.pointSize = 2;
     this.layers = {};
     this.shown = null; // what the layers were filled from (ids), so nothing is fetched twice
@@ -169,7 +173,7 @@ export class Workspace {
   }
 
   /** A layer of points or a line, made once per kind and refilled after. */
-  layer(name, kind, positions, colours, colour = COLOURS[name]) {
+  layer(name, kind, positions, colours, colour = COLOURS[name], capacity = positions.length) {
     let object = this.layers[name];
     const n = positions.length / 3;
     if (object && (object.geometry.attributes.position.array.length < positions.length
@@ -179,7 +183,7 @@ export class Workspace {
     }
     if (!object) {
       const geometry = new THREE.BufferGeometry();
-      geometry.setAttribute("position", new THREE.BufferAttribute(new Float32Array(positions.length), 3));
+      geometry.setAttribute("position", new THREE.BufferAttribute(new Float32Array(Math.max(capacity, positions.length)), 3));
       if (colours) geometry.setAttribute("color", new THREE.BufferAttribute(new Float32Array(colours.length), 3));
       const material = kind === "points"
         ? new THREE.PointsMaterial({ size: name === "arm-joints" ? 8 : this.pointSize, sizeAttenuation: false, vertexColors: Boolean(colours), color: colours ? 0xffffff : colour })
@@ -233,6 +237,7 @@ export class Workspace {
     this.shown = key;
     // The base frame when calibrated; the scan through the registration the reconstruction found.
     const baseTracker = matrix(session.T_base_tracker);
+    this.baseTracker = baseTracker;
     const scanTracker = matrix(rec?.summary.T_scan_tracker || session.T_scan_tracker);
     const baseScan = baseTracker.clone().multiply(scanTracker.clone().invert());
     const transformed = (xyz, m) => {
@@ -289,6 +294,36 @@ export class Workspace {
     else this.clear("executed");
     this.hooks.onPlan?.(this.preview, review, exec, traj?.id ?? null);
     this.frame();
+  }
+
+  /** The trace of a running capture (tracker-frame points, [[x, y, z], ...]) over the scan,
+   * with markers where tracking was lost and found again; null clears it. The buffers grow by
+   * doubling, so a capture's stream refills them instead of making new ones each time. */
+  showLive(points, lost = []) {
+    if (!points) {
+      this.clear("live");
+      this.clear("lost");
+      return this.render();
+    }
+    const toBase = (list) => {
+      const out = new Float32Array(list.length * 3);
+      const v = new THREE.Vector3();
+      list.forEach((p, i) => { v.set(p[0], p[1], p[2]).applyMatrix4(this.baseTracker || new THREE.Matrix4()); out.set([v.x, v.y, v.z], 3 * i); });
+      return out;
+    };
+    const capacity = (n) => 3 * 2 ** Math.ceil(Math.log2(Math.max(n, 256)));
+    if (points.length) {
+      const live = this.layer("live", "points", toBase(points), null, 0xff8c00, capacity(points.length));
+      live.material.size = Math.max(3, this.pointSize + 1);
+    }
+    if (lost.length) {
+      const marks = this.layer("lost", "points", toBase(lost), null, 0xd00000, capacity(lost.length));
+      marks.material.size = 10;
+    } else this.clear("lost");
+    // Framed on the growing trace while nothing else of the workpiece is shown, until the
+    // operator turns the camera (then it is theirs).
+    if (points.length && !this.steered && !WORKPIECE.some((n) => this.layers[n])) this.frame("live");
+    this.render();
   }
 
   /** The base (when calibrated), tracker and scan frames as labelled axes. */
@@ -396,7 +431,10 @@ export class Workspace {
    * to a few pixels), or at everything shown (`view` "all"). */
   frame(view = this.view) {
     this.view = view;
-    const names = view === "all" ? Object.keys(this.layers) : WORKPIECE.filter((n) => this.layers[n]);
+    const names = view === "all" ? Object.keys(this.layers)
+      : view === "live" ? ["live"] : WORKPIECE.filter((n) => this.layers[n]);
+    if (view === "live") this.view = "workpiece";
+    else this.steered = false;
     const box = new THREE.Box3();
     for (const name of names.length ? names : Object.keys(this.layers)) {
       if (name !== "frames") box.expandByObject(this.layers[name]);
