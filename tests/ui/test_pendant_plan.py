@@ -13,12 +13,18 @@ from playwright.sync_api import expect
 from tests.ui.test_pendant import canvas_pixels
 
 
-def _plan_demo(server) -> tuple[str, str]:
-    """The demo session reconstructed and planned at 50 mm/s; (session id, reconstruction id)."""
+def _reconstruct_demo(server) -> tuple[str, str]:
+    """The demo session reconstructed; (session id, reconstruction id)."""
     client = server.client
     sid = next(s["id"] for s in client.get("/sessions").json() if s["name"] == "demo")
     job = server.wait(client.post(f"/sessions/{sid}/reconstructions", json={}).json())
-    rid = job["result"]["reconstruction_id"]
+    return sid, job["result"]["reconstruction_id"]
+
+
+def _plan_demo(server) -> tuple[str, str]:
+    """The demo session reconstructed and planned at 50 mm/s; (session id, reconstruction id)."""
+    client = server.client
+    sid, rid = _reconstruct_demo(server)
     body = {"reconstruction_id": rid, "speed_m_s": 0.05}
     job = server.wait(client.post(f"/sessions/{sid}/trajectories", json=body).json())
     assert job["state"] == "succeeded", job
@@ -153,6 +159,47 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     expect(review).to_contain_text(re.compile(r"dry run\): the arm was at most \d+\.\d{3} mm"))
     expect(review.locator("svg.plot polyline")).to_have_count(1)
     pendant.shot("review")
+
+
+def test_the_plan_parameters_come_from_the_schema_and_reach_the_plan(pendant):
+    page = pendant.page
+    sid, rid = _reconstruct_demo(pendant.server)
+    pendant.open()
+    page.get_by_role("button", name="demo", exact=True).click()
+    form = page.locator("#plan-form")
+    form.locator("summary").click()
+    expect(form.locator("#plan-robot")).to_have_value("ur5e")  # the server's arm
+    expect(form.locator("#plan-orientation")).to_have_value("auto")
+    lead = form.locator("#plan-lead_deg")
+    expect(lead).to_have_attribute("max", "60")
+    expect(form.locator("label[for=plan-lead_deg] .hint")).to_contain_text("deg")
+    lead.fill("10")
+    tcp = form.locator("#plan-tcp_offset_m")
+    tcp.fill("0, 0")  # two numbers: refused on the page, nothing sent
+    posts = []
+    page.on("request", lambda r: posts.append(r.url) if r.method == "POST" else None)
+    form.get_by_role("button", name="Plan").click()
+    expect(form.locator(".message")).to_contain_text("tcp_offset_m: give 3 numbers")
+    assert not posts
+    tcp.fill("0, 0, 0.12")
+    # Leaning 10° along the travel, the tool meets the cylinder on the way out: what to change.
+    form.get_by_role("button", name="Plan").click()
+    message = form.locator(".message")
+    expect(message).to_contain_text("tool comes too close to the scan", timeout=60_000)
+    expect(message).to_contain_text("Change the tool orientation (lead, tilt)")
+    pendant.shot("plan-collides")
+    lead.fill("0")
+    form.locator("#plan-tilt_deg").fill("10")
+    form.get_by_role("button", name="Plan").click()
+    expect(message).to_be_empty(timeout=10_000)
+    expect(form.locator(".job-state")).to_have_text("succeeded 100 %", timeout=60_000)
+    pendant.shot("plan-parameters")
+    trajectories = pendant.server.client.get(f"/sessions/{sid}/trajectories").json()
+    params = trajectories[-1]["params"]
+    assert trajectories[-1]["inputs"]["reconstruction_id"] == rid
+    assert params["lead_deg"] == 0 and params["tilt_deg"] == 10
+    assert params["tcp_offset_m"] == [0, 0, 0.12] and params["robot"] == "ur5e"
+    assert params["speed_m_s"] == 0.05
 
 
 def pytest_approx(value: float):

@@ -87,6 +87,9 @@ function showRobot(robot) {
   $("#safety-bar").classList.toggle("alarm", stopped || robot.emergency_stop || !robot.reachable);
   updateStop();
   updatePlanSpeed();
+  // The plan is for the arm the server drives, unless the operator chose another model.
+  const model = $("#plan-robot");
+  if (model && !model.dataset.chosen && [...model.options].some((o) => o.value === robot.robot)) model.value = robot.robot;
   renderSteps();
 }
 
@@ -722,6 +725,9 @@ function wireCalibration() {
 // -- reconstruct: the parameters from the API's own schema ----------------------------------------
 
 const RECONSTRUCTION_FIELDS = ["radius_m", "alpha", "beta", "degree", "method", "spacing_m", "use_scan", "registration"];
+/** The plan's parameters on the form (the speed has its slider). */
+const PLAN_FIELDS = ["robot", "orientation", "lead_deg", "tilt_deg", "smooth_m", "tcp_offset_m", "approach_m",
+  "shoulder", "elbow", "wrist", "tool_radius_m", "clearance_m", "payload_kg", "return_to_start"];
 
 function numberField(name, spec) {
   const input = el("input", { name, type: "number", step: "any" });
@@ -732,52 +738,91 @@ function numberField(name, spec) {
   return input;
 }
 
-function buildReconstructForm(schema) {
-  const props = schema.components.schemas.ReconstructionCreate.properties;
-  const box = $("#reconstruct-params");
+/** One input for a parameter of the API's schema, with its range and default. */
+function paramInput(name, spec) {
+  if (spec.type === "boolean") {
+    const input = el("input", { name, type: "checkbox" });
+    input.checked = spec.default !== false;
+    return input;
+  }
+  if (spec.enum) {
+    const input = el("select", { name }, ...spec.enum.map((v) => el("option", { value: v, text: v })));
+    input.value = spec.default;
+    return input;
+  }
+  if (name === "robot") {
+    // The models the API names in its description (the kinematics it knows).
+    const models = (spec.description.match(/\(([^)]*)\)/)?.[1] || spec.default).split(/,\s*/);
+    const input = el("select", { name }, ...models.map((v) => el("option", { value: v, text: v })));
+    input.value = state.robot?.robot || spec.default;
+    return input;
+  }
+  if (spec.prefixItems) {
+    // x, y, z (or six numbers): typed on one line, each checked against its range.
+    const input = el("input", { name, type: "text", inputmode: "decimal" });
+    input.value = (spec.default || []).join(", ");
+    input.dataset.items = JSON.stringify(spec.prefixItems.map((s) => [s.minimum, s.maximum]));
+    return input;
+  }
+  if (spec.anyOf) {
+    // A number or a word ("auto"): typed as text, checked against both.
+    const number = spec.anyOf.find((s) => s.type === "number");
+    const word = spec.anyOf.find((s) => s.const);
+    const input = el("input", { name, type: "text", inputmode: "decimal" });
+    input.value = spec.default;
+    input.dataset.word = word?.const || "";
+    input.dataset.min = number?.minimum ?? "";
+    input.dataset.max = number?.maximum ?? "";
+    input.pattern = `${word ? `${word.const}|` : ""}[0-9]*\\.?[0-9]+`;
+    return input;
+  }
+  return numberField(name, spec);
+}
+
+/** The parameters `fields` of the API's `schemaName` as labelled inputs in `box`. */
+function buildParams(schema, schemaName, fields, box, prefix) {
+  const props = schema.components.schemas[schemaName].properties;
   box.replaceChildren();
-  for (const name of RECONSTRUCTION_FIELDS) {
+  for (const name of fields) {
     const spec = props[name];
     if (!spec) continue;
-    let input;
-    if (spec.type === "boolean") {
-      input = el("input", { name, type: "checkbox" });
-      input.checked = spec.default !== false;
-    } else if (spec.enum) {
-      input = el("select", { name }, ...spec.enum.map((v) => el("option", { value: v, text: v })));
-      input.value = spec.default;
-    } else if (spec.anyOf) {
-      // A number or a word ("auto"): typed as text, checked against both.
-      const number = spec.anyOf.find((s) => s.type === "number");
-      const word = spec.anyOf.find((s) => s.const);
-      input = el("input", { name, type: "text", inputmode: "decimal" });
-      input.value = spec.default;
-      input.dataset.word = word?.const || "";
-      input.dataset.min = number?.minimum ?? "";
-      input.dataset.max = number?.maximum ?? "";
-      input.pattern = `${word ? `${word.const}|` : ""}[0-9]*\\.?[0-9]+`;
-    } else {
-      input = numberField(name, spec);
-    }
-    input.id = `recon-${name}`;
-    input.dataset.kind = spec.type || (spec.anyOf ? "mixed" : "string");
+    const input = paramInput(name, spec);
+    input.id = `${prefix}-${name}`;
+    input.dataset.kind = spec.prefixItems ? "tuple" : spec.type || (spec.anyOf ? "mixed" : "string");
     box.append(el("label", { for: input.id }, el("span", { class: "name", text: name }), input,
       el("span", { class: "hint", text: spec.description || "" })));
   }
 }
 
-function reconstructBody(form) {
+function buildReconstructForm(schema) {
+  buildParams(schema, "ReconstructionCreate", RECONSTRUCTION_FIELDS, $("#reconstruct-params"), "recon");
+  buildParams(schema, "TrajectoryCreate", PLAN_FIELDS, $("#plan-params"), "plan");
+}
+
+/** The request body of a parameter form; throws {code, message} naming a bad tuple. */
+function paramsBody(form, fields) {
   const body = {};
-  for (const name of RECONSTRUCTION_FIELDS) {
+  for (const name of fields) {
     const input = form.elements[name];
     if (!input) continue;
+    const kind = input.dataset.kind;
     if (input.type === "checkbox") body[name] = input.checked;
-    else if (input.dataset.kind === "number" || input.dataset.kind === "integer") body[name] = Number(input.value);
-    else if (input.dataset.kind === "mixed") body[name] = input.value === input.dataset.word ? input.value : Number(input.value);
-    else body[name] = input.value;
+    else if (kind === "number" || kind === "integer") body[name] = Number(input.value);
+    else if (kind === "mixed") body[name] = input.value === input.dataset.word ? input.value : Number(input.value);
+    else if (kind === "tuple") {
+      const ranges = JSON.parse(input.dataset.items);
+      const values = input.value.split(/[\s,;]+/).filter(Boolean).map(Number);
+      const bad = values.length !== ranges.length || values.some((v, i) => !Number.isFinite(v) || v < ranges[i][0] || v > ranges[i][1]);
+      if (bad) {
+        throw { code: "invalid_request", message: `${name}: give ${ranges.length} numbers separated by commas, each in [${ranges[0][0]}, ${ranges[0][1]}] (you typed “${input.value}”)` };
+      }
+      body[name] = values;
+    } else body[name] = input.value;
   }
   return body;
 }
+
+const reconstructBody = (form) => paramsBody(form, RECONSTRUCTION_FIELDS);
 
 // -- plan -----------------------------------------------------------------------------------------
 
@@ -859,14 +904,19 @@ function wire() {
   });
 
   $("#plan-speed").addEventListener("input", updatePlanSpeed);
+  $("#plan-params").addEventListener("change", (event) => {
+    if (event.target.name === "robot") event.target.dataset.chosen = "1";
+  });
   $("#plan-form").addEventListener("submit", (event) => {
     event.preventDefault();
     const form = event.currentTarget;
-    const body = {
-      reconstruction_id: reconstruction().id,
-      robot: state.robot?.robot || "ur5e",
-      speed_m_s: Number($("#plan-speed").value),
-    };
+    if (!form.reportValidity()) return;
+    let body;
+    try {
+      body = { reconstruction_id: reconstruction().id, ...paramsBody(form, PLAN_FIELDS), speed_m_s: Number($("#plan-speed").value) };
+    } catch (err) {
+      return showError($(".message", form), err);
+    }
     runJob("plan", form, () => api(`/sessions/${state.session.id}/trajectories`, { method: "POST", json: body }));
   });
 
