@@ -181,3 +181,32 @@ def execution_review(trajectory, samples, *, max_samples: int = DEFAULT_SAMPLES)
         "max_off_path_m": float(off_path[worst]),
         "at_s": float(t[worst]),
     }
+
+
+def reconstruction_difference(points_m: FloatArray, other_m: FloatArray) -> dict:
+    """How far each point of one reconstruction lies from another's path, for an overlay.
+
+    Parameters
+    ----------
+    points_m : ndarray of shape (N, 3)
+        The reconstruction drawn (tracker frame).
+    other_m : ndarray of shape (G, 3)
+        The one it is compared with, in order (its polyline is the reference).
+
+    Returns
+    -------
+    dict
+        ``points_m`` (N, 3); ``difference_m`` (N,) each point's distance from the other's path;
+        ``mean_m``, ``max_m`` and ``at_index`` (where the largest is).
+    """
+    from recon.metrics import distance_to_curve
+
+    difference = distance_to_curve(points_m, other_m)
+    worst = int(np.argmax(difference))
+    return {
+        "points_m": _rounded(points_m, 7),
+        "difference_m": _rounded(difference, 7),
+        "mean_m": float(difference.mean()),
+        "max_m": float(difference[worst]),
+        "at_index": worst,
+    }

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response
+from fastapi import APIRouter, Query, Response
 from fastapi.responses import FileResponse
 
 from service import reconstructions
-from service.api.common import CSV, PNG, add_artifact_routes, download
+from service.api.common import CSV, PNG, add_artifact_routes, download, gzip_json
 from service.api.deps import ServicesDep
 from service.artifacts import ReconstructionCodec
 from service.errors import ApiError
@@ -34,6 +34,24 @@ def reconstruction_csv(session_id: str, artifact_id: str, services: ServicesDep)
     arrays = services.store.read_arrays(row)
     text = reconstruction_csv_text(ReconstructionCodec.per_point(arrays))
     return download(text, media_type="text/csv", filename=f"{artifact_id}.csv")
+
+
+@router.get("/reconstructions/{artifact_id}/difference", response_class=Response)
+def reconstruction_difference(
+    session_id: str,
+    artifact_id: str,
+    services: ServicesDep,
+    against: str = Query(..., min_length=1, max_length=64, description="the other reconstruction"),
+):
+    """For overlaying two reconstructions (gzip JSON): this one's points (tracker frame, m),
+    each one's distance from the other's path, the mean and the largest with its index."""
+    from service.preview import reconstruction_difference as difference
+
+    rows = [services.artifact(session_id, "reconstruction", i) for i in (artifact_id, against)]
+    points = [
+        ReconstructionCodec.per_point(services.store.read_arrays(r))["points_m"] for r in rows
+    ]
+    return gzip_json(difference(points[0], points[1]))
 
 
 @router.get(

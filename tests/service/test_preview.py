@@ -153,3 +153,46 @@ def test_unknown_artifacts_are_404(client, planned):
     for path in ("trajectories/trj_000000000000/preview", "executions/exe_000000000000/review"):
         response = client.get(f"/sessions/{sid}/{path}")
         assert response.status_code == 404 and response.json()["code"] == "not_found"
+
+
+def test_the_difference_of_two_reconstructions_is_measured_point_by_point(client, planned):
+    """A reconstruction against itself differs by nothing; against one made with another
+    radius by what the two CSVs say (an independent nearest-neighbour search)."""
+    from scipy.spatial import cKDTree
+
+    sid, _ = planned
+    first = client.get(f"/sessions/{sid}/reconstructions").json()[0]["id"]
+    job = wait(
+        client, client.post(f"/sessions/{sid}/reconstructions", json={"radius_m": 0.004}).json()
+    )
+    second = job["result"]["reconstruction_id"]
+    same = client.get(f"/sessions/{sid}/reconstructions/{first}/difference?against={first}").json()
+    assert same["max_m"] < 2e-5  # the reference polyline is resampled at 20 um
+    response = client.get(f"/sessions/{sid}/reconstructions/{second}/difference?against={first}")
+    assert response.status_code == 200
+    body = response.json()
+
+    def xyz(rid):
+        text = client.get(f"/sessions/{sid}/reconstructions/{rid}/csv").text
+        return np.loadtxt(text.splitlines()[1:], delimiter=",", usecols=(0, 1, 2))
+
+    a, b = xyz(first), xyz(second)
+    assert np.allclose(body["points_m"], b, atol=1e-6)
+    # The distance to the other's polyline is at most that to its nearest vertex, and at least
+    # the nearest vertex distance less half the spacing's chord sag (1 mm spacing).
+    nearest, _ = cKDTree(a).query(b)
+    difference = np.array(body["difference_m"])
+    assert np.all(difference <= nearest + 2e-5)
+    assert np.all(difference >= nearest - 0.6e-3)
+    assert body["max_m"] == pytest.approx(difference.max(), abs=1e-7) and body["max_m"] > 0
+    assert difference[body["at_index"]] == pytest.approx(body["max_m"], abs=1e-7)
+
+
+@pytest.mark.parametrize(
+    "query", ["", "?against=", "?against=rcn_000000000000", "?against=" + "x" * 65]
+)
+def test_a_difference_needs_an_existing_other(client, planned, query):
+    sid, _ = planned
+    first = client.get(f"/sessions/{sid}/reconstructions").json()[0]["id"]
+    response = client.get(f"/sessions/{sid}/reconstructions/{first}/difference{query}")
+    assert response.status_code in (404, 422) and "code" in response.json()

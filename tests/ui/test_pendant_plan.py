@@ -202,6 +202,36 @@ def test_the_plan_parameters_come_from_the_schema_and_reach_the_plan(pendant):
     assert params["speed_m_s"] == 0.05
 
 
+def test_two_reconstructions_overlaid_with_their_difference(pendant):
+    page = pendant.page
+    client = pendant.server.client
+    sid, _ = _reconstruct_demo(pendant.server)
+    job = client.post(f"/sessions/{sid}/reconstructions", json={"radius_m": 0.004}).json()
+    older = pendant.server.wait(job)["result"]["reconstruction_id"]
+    sid, current = _reconstruct_demo(pendant.server)
+    pendant.open()
+    page.get_by_role("button", name="demo", exact=True).click()
+    row = page.locator(f"table.comparison tr[data-reconstruction={older}]")
+    expect(page.locator("table.comparison tr.current button")).to_be_disabled()
+    before = canvas_digest(page)
+    row.get_by_role("button", name="Overlay").click()
+    note = page.locator("#overlay-note")
+    expect(note).to_contain_text(f"{older} over {current}")
+    expected = client.get(
+        f"/sessions/{sid}/reconstructions/{older}/difference?against={current}"
+    ).json()
+    expect(note).to_contain_text(f"{expected['max_m'] * 1000:.3f} mm at most")
+    expect(page.locator("#legend-overlay")).to_be_visible()
+    assert canvas_digest(page) != before
+    for name in ("scan", "raw trace", "reconstruction", "planned TCP path", "arm", "frames"):
+        page.get_by_label(name, exact=True).uncheck()
+    _click_point(page, "overlay", expected["at_index"])
+    expect(page.locator("#pick-readout")).to_contain_text(
+        f"{expected['max_m'] * 1000:.3f} mm from the current reconstruction"
+    )
+    pendant.shot("overlay")
+
+
 def pytest_approx(value: float):
     """Within 0.02 mm: float32 positions of points a few hundred mm from the base."""
     import pytest

@@ -473,11 +473,33 @@ function comparison() {
       String(sm.n_points), mm(sm.mean_displacement_m), mm(sm.max_displacement_m),
       sm.registration ? mm(sm.registration.rmse_m, 3) : "–"];
     const row = el("tr", { "data-reconstruction": r.id }, ...cells.map((c) => el("td", { text: c })));
-    if (i === state.reconstructions.length - 1) row.classList.add("current");
+    const current = i === state.reconstructions.length - 1;
+    if (current) row.classList.add("current");
+    // Any other one can be drawn over the current one, coloured by how far it lies from it.
+    const button = el("button", { type: "button", class: "overlay", text: current ? "current" : "Overlay" });
+    button.disabled = current;
+    button.addEventListener("click", () => overlay(r.id));
+    row.append(el("td", {}, button));
     return row;
   });
   return [el("h4", { text: `All ${state.reconstructions.length} reconstructions of this session` }),
-    el("table", { class: "comparison" }, el("tr", {}, ...heads.map((h) => el("th", { text: h }))), ...rows)];
+    el("table", { class: "comparison" }, el("tr", {}, ...heads.map((h) => el("th", { text: h })), el("th", { text: "3-D" })), ...rows),
+    el("p", { class: "small", id: "overlay-note" })];
+}
+
+/** Draw reconstruction `id` over the current one, each point coloured by its distance from
+ * the current one's path; say the mean and the largest. */
+async function overlay(id) {
+  const current = reconstruction();
+  const note = $("#overlay-note");
+  try {
+    const diff = await api(`/sessions/${state.session.id}/reconstructions/${id}/difference?against=${current.id}`);
+    state.workspace?.showOverlay(diff);
+    note.textContent = `${id} over ${current.id}: ${mm(diff.mean_m, 3)} apart on average, ${mm(diff.max_m, 3)} at most `
+      + `(its point ${diff.at_index}); drawn coloured by the difference, the current one as before.`;
+  } catch (err) {
+    note.textContent = `The overlay failed: ${explain(err).message}`;
+  }
 }
 
 function renderPlan() {
@@ -541,7 +563,7 @@ function showPick(picked) {
   const box = $("#pick-readout");
   if (!picked) return (box.textContent = "Nothing under the cursor: click on a point of a shown layer.");
   const at = `(${[picked.point.x, picked.point.y, picked.point.z].map((v) => (v * 1000).toFixed(1)).join(", ")}) mm`;
-  const words = { reconstruction: "reconstruction point", trace: "trace point", scan: "scan point", path: "planned waypoint" };
+  const words = { reconstruction: "reconstruction point", trace: "trace point", scan: "scan point", path: "planned waypoint", overlay: "overlaid reconstruction point" };
   const parts = [`${words[picked.layer] || picked.layer} ${picked.index} at ${at}`];
   const d = picked.diagnostics;
   if (d) {
@@ -550,6 +572,7 @@ function showPick(picked) {
       `neighbours: ${d.n_path} path, ${d.n_surface} scan`, `alpha ${Number.isFinite(d.alpha) ? d.alpha.toFixed(2) : "–"}`);
   }
   if (picked.time_s != null) parts.push(`at ${picked.time_s.toFixed(2)} s of the plan`);
+  if (picked.difference_m != null) parts.push(`${mm(picked.difference_m, 3)} from the current reconstruction`);
   if (picked.distance_m != null) parts.push(`distance from the previous point: ${mm(picked.distance_m, 2)}`);
   box.replaceChildren(...parts.map((text, i) => el("span", { class: i === parts.length - 1 && picked.distance_m != null ? "distance" : "", text: `${text}${i < parts.length - 1 ? "; " : ""}` })));
 }

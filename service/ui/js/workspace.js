@@ -257,6 +257,7 @@ export class Workspace {
     this.picks = [];
     this.clear("measure");
     this.clear("pick");
+    this.showOverlay(null);
 
     if (session.scan_id) {
       const response = await api(`/sessions/${sid}/scans/${session.scan_id}/points?max_points=200000`, { raw: true });
@@ -323,6 +324,33 @@ export class Workspace {
     // Framed on the growing trace while nothing else of the workpiece is shown, until the
     // operator turns the camera (then it is theirs).
     if (points.length && !this.steered && !WORKPIECE.some((n) => this.layers[n])) this.frame("live");
+    this.render();
+  }
+
+  /** Another reconstruction over the current one (tracker-frame ``points_m``), coloured by
+   * ``difference_m`` on the displacement ramp (blue none .. red ``max_m``); null clears it. */
+  showOverlay(diff) {
+    if (!diff) {
+      this.clear("overlay");
+      this.legend.querySelector("#legend-overlay").hidden = true;
+      return this.render();
+    }
+    const n = diff.points_m.length;
+    const positions = new Float32Array(n * 3);
+    const colours = new Float32Array(n * 3);
+    const v = new THREE.Vector3();
+    const top = Math.max(diff.max_m, 1e-9);
+    diff.points_m.forEach((p, i) => {
+      v.set(p[0], p[1], p[2]).applyMatrix4(this.baseTracker || new THREE.Matrix4());
+      positions.set([v.x, v.y, v.z], 3 * i);
+      colours.set(ramp(diff.difference_m[i] / top), 3 * i);
+    });
+    const object = this.layer("overlay", "points", positions, colours);
+    this.overlayDifference = diff.difference_m;
+    object.material.size = this.pointSize + 2;
+    const legend = this.legend.querySelector("#legend-overlay");
+    legend.hidden = false;
+    legend.querySelector(".max").textContent = `${(top * 1000).toFixed(3)} mm`;
     this.render();
   }
 
@@ -401,7 +429,7 @@ export class Workspace {
     const distance = this.camera.position.distanceTo(this.controls.target);
     caster.params.Points.threshold = (6 / box.height) * 2 * distance * Math.tan(THREE.MathUtils.degToRad(this.camera.fov / 2));
     caster.params.Line.threshold = caster.params.Points.threshold;
-    const targets = ["reconstruction", "trace", "scan", "path"].map((n) => this.layers[n]).filter((o) => o?.visible);
+    const targets = ["overlay", "reconstruction", "trace", "scan", "path"].map((n) => this.layers[n]).filter((o) => o?.visible);
     const hit = caster.intersectObjects(targets, false).filter((h) => h.index < h.object.geometry.drawRange.count)
       .sort((a, b) => a.distanceToRay - b.distanceToRay)[0];
     if (!hit) return this.hooks.onPick?.(null);
@@ -411,6 +439,7 @@ export class Workspace {
     if (hit.object.name === "reconstruction" && this.reconstruction) {
       picked.diagnostics = Object.fromEntries(DIAGNOSTICS.map((k) => [k, this.reconstruction[k][hit.index]]));
     }
+    if (hit.object.name === "overlay") picked.difference_m = this.overlayDifference?.[hit.index];
     if (hit.object.name === "path" && this.preview) picked.time_s = this.preview.t_s[hit.index];
     this.layer("pick", "points", Float32Array.of(point.x, point.y, point.z), null, 0x000000);
     this.layers.pick.material.size = 12;
