@@ -1,0 +1,78 @@
+"""The pendant at the screen sizes of a cell's touch panel and a desk (1280x800, 1920x1080):
+nothing off to the side, the Stop and the 3-D view in reach, every control big enough for a
+finger; and the 3-D view's GPU objects do not pile up as sessions are opened again."""
+
+from __future__ import annotations
+
+import pytest
+from playwright.sync_api import expect
+
+from tests.ui.conftest import pendant_for
+from tests.ui.test_pendant import canvas_pixels
+
+#: The smallest touch target the pendant offers (WCAG 2.5.5 asks for 44 CSS px; rows of
+#: checkboxes are labelled, and the label is the target).
+MIN_TARGET_PX = 40
+
+
+@pytest.mark.parametrize("width, height", [(1280, 800), (1920, 1080)])
+def test_the_pendant_fits_the_screen_and_its_targets_fit_a_finger(
+    browser, server, screens, width, height
+):
+    with pendant_for(browser, server, screens, f"layout-{width}x{height}") as pendant:
+        page = pendant.page
+        page.set_viewport_size({"width": width, "height": height})
+        pendant.open()
+        page.get_by_role("button", name="demo", exact=True).click()
+        expect(page.locator("#session-title")).to_have_text("Session demo")
+        page.wait_for_function("() => document.querySelector('#workspace').workspace.layers.scan")
+        overflow = page.evaluate("document.documentElement.scrollWidth - window.innerWidth")
+        assert overflow <= 0, f"{overflow} px off to the side at {width}x{height}"
+        # The safety bar, with the Stop's place, and the 3-D view are on the first screen.
+        bar = page.locator("#safety-bar").bounding_box()
+        assert bar["y"] == 0 and bar["width"] >= width - 20
+        view = page.locator("#workspace").bounding_box()
+        assert view["x"] + view["width"] <= width and view["y"] + 200 < height
+        assert view["width"] >= 350 and view["height"] >= 300, view
+        assert canvas_pixels(page)["drawn"] > 0.01
+        # Every visible button, select and text field, and every checkbox's label, is a
+        # finger's size.
+        small = page.evaluate(
+            """(least) => [...document.querySelectorAll(
+                'button, select, input:not([type=checkbox]):not([type=hidden]), '
+                + 'label:has(> input[type=checkbox])')]
+              .filter((e) => e.offsetParent !== null)
+              .map((e) => [e.id || e.name || e.textContent.trim().slice(0, 30),
+                           e.getBoundingClientRect()])
+              .filter(([, r]) => r.height < least || r.width < least)
+              .map(([name, r]) => `${name}: ${Math.round(r.width)}x${Math.round(r.height)}`)""",
+            MIN_TARGET_PX,
+        )
+        assert not small, f"controls smaller than {MIN_TARGET_PX} px: {small}"
+        page.screenshot(path=str(screens / f"layout-{width}x{height}.png"))
+
+
+def test_reopening_sessions_does_not_pile_up_gpu_objects(pendant):
+    page = pendant.page
+    pendant.open()
+    pendant.create_session("empty")
+    demo = page.get_by_role("button", name="demo", exact=True)
+    empty = page.get_by_role("button", name="empty", exact=True)
+
+    def memory():
+        page.wait_for_timeout(300)
+        return page.evaluate(
+            "() => { const m = document.querySelector('#workspace').workspace.renderer.info.memory;"
+            " return [m.geometries, m.textures]; }"
+        )
+
+    demo.click()
+    expect(page.locator("#session-title")).to_have_text("Session demo")
+    page.wait_for_function("() => document.querySelector('#workspace').workspace.layers.scan")
+    first = memory()
+    for _ in range(3):
+        empty.click()
+        expect(page.locator("#session-title")).to_have_text("Session empty")
+        demo.click()
+        expect(page.locator("#session-title")).to_have_text("Session demo")
+    assert memory() == first
