@@ -93,7 +93,8 @@ def trajectory_preview(
     dict
         ``t_s`` (K,); ``phase`` (K,) labels' indices into ``phases``; ``joints_m`` (K, 8, 3):
         base, the origins of the DH frames 1..6 (frame 6: the flange) and the TCP, base
-        frame; ``tcp_m`` (K, 3); ``speed_m_s`` (K,); ``q_deg`` (K, 6); the margins (K,),
+        frame; ``tcp_m`` (K, 3); ``tool_axis`` (K, 3) the TCP frame's z (unit, base frame);
+        ``speed_m_s`` (K,); ``q_deg`` (K, 6); the margins (K,),
         each the smallest over the samples up to the next kept one: ``limit_margin_deg``,
         ``wrist_singularity`` (|sin q5|), ``elbow_singularity`` (|sin q3|), ``clearance_m``
         (null when not checked; values beyond the check's horizon are capped there);
@@ -114,6 +115,10 @@ def trajectory_preview(
     if clearance_m is not None and len(clearance_m) == len(q):
         finite = np.where(np.isfinite(clearance_m), clearance_m, 1e3)
         clearance = _rounded(window_min(finite, keep), 5)
+    from scipy.spatial.transform import Rotation
+
+    # The tool's axis (the TCP frame's z) at each kept sample, for the glyphs along the path.
+    tool_axis = Rotation.from_rotvec(trajectory.tcp_rotvec[keep]).as_matrix()[:, :, 2]
     labels = [p.label for p in Phase]
     return {
         "robot": trajectory.robot,
@@ -124,6 +129,7 @@ def trajectory_preview(
         "phase": phases[keep].astype(int).tolist(),
         "joints_m": _rounded(joints, 5),
         "tcp_m": _rounded(trajectory.tcp_m[keep], 5),
+        "tool_axis": _rounded(tool_axis, 4),
         "speed_m_s": _rounded(tcp_speed_m_s(trajectory)[keep], 5),
         "q_deg": _rounded(np.degrees(q[keep]), 3),
         "qd_share": _rounded(np.maximum.reduceat(qd_share, keep), 4),

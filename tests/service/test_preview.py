@@ -74,6 +74,12 @@ def test_the_preview_follows_the_plan_file(client, planned, preview):
     # The TCP the arm figure ends in is the planned TCP of the file, and the joints are the file's.
     assert np.abs(joints[:, 7] - tcp_file).max() < 2e-5
     assert np.abs(np.array(preview["q_deg"]) - np.degrees(q_file)).max() < 2e-3
+    # The tool axis glyphs point along the file's TCP orientation (its rotation vector's z).
+    from scipy.spatial.transform import Rotation
+
+    rotvec = values[rows][:, [header.index(c) for c in ("rx", "ry", "rz")]]
+    axis_file = Rotation.from_rotvec(rotvec).apply([0.0, 0.0, 1.0])
+    assert np.abs(np.array(preview["tool_axis"]) - axis_file).max() < 2e-4
     # Every phase of the plan is in the preview, in order.
     names = [preview["phases"][p] for p in preview["phase"]]
     assert list(dict.fromkeys(names))[:3] == ["transit", "approach", "process"]

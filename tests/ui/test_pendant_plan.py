@@ -53,6 +53,7 @@ def _readout(page, key: str):
 
 
 def _click_point(page, layer: str, index: int) -> None:
+    page.locator("#workspace canvas").scroll_into_view_if_needed()
     at = page.evaluate(
         "([layer, index]) => document.querySelector('#workspace').workspace.screenOf(layer, index)",
         [layer, index],
@@ -86,6 +87,7 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     # A click on the speed plot inside the process phase moves the time there: the arm is
     # drawn elsewhere and the waypoint's margins are read out.
     process = timeline.locator("svg.plot").first.locator("rect[data-phase=process]")
+    process.scroll_into_view_if_needed()
     box = process.bounding_box()
     page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
     expect(_readout(page, "phase")).to_have_text("process")
@@ -121,6 +123,21 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     expect(page.locator("#legend-path")).to_contain_text("50 mm or more from the cell")
     assert canvas_digest(page) != by_phase
     pendant.shot("path-by-clearance")
+    # The tool's axis along the path, switched with the path; camera presets from above and
+    # from the front show other pictures of the same layers.
+    axes = "() => document.querySelector('#workspace').workspace.layers['tool-axes']"
+    assert page.evaluate(f"() => ({axes})().geometry.drawRange.count") >= 60  # 30+ glyphs
+    workpiece = canvas_digest(page)
+    page.get_by_role("button", name="Top").click()
+    top = canvas_digest(page)
+    page.get_by_role("button", name="Front").click()
+    assert len({workpiece, top, canvas_digest(page)}) == 3
+    pendant.shot("front-view")
+    page.get_by_role("button", name="Workpiece").click()
+    assert canvas_digest(page) == workpiece
+    page.get_by_label("planned TCP path", exact=True).uncheck()
+    assert page.evaluate(f"() => ({axes})().visible") is False
+    page.get_by_label("planned TCP path", exact=True).check()
     page.get_by_label("reconstruction by").select_option("mode")
     expect(page.locator("#legend-modes")).to_be_visible()
     expect(page.locator("#legend-displacement")).to_be_hidden()

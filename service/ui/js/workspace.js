@@ -152,11 +152,11 @@ export class Workspace {
 
   /** The objects a layer toggle switches (the arm figure is two; the frames three). */
   members(toggle) {
-    return { arm: ["arm", "arm-joints"], frames: ["frames"] }[toggle] || [toggle];
+    return { arm: ["arm", "arm-joints"], frames: ["frames"], path: ["path", "tool-axes"] }[toggle] || [toggle];
   }
 
   toggleOf(name) {
-    return { "arm-joints": "arm" }[name] || name;
+    return { "arm-joints": "arm", "tool-axes": "path" }[name] || name;
   }
 
   resize() {
@@ -188,7 +188,8 @@ export class Workspace {
       const material = kind === "points"
         ? new THREE.PointsMaterial({ size: name === "arm-joints" ? 8 : this.pointSize, sizeAttenuation: false, vertexColors: Boolean(colours), color: colours ? 0xffffff : colour })
         : new THREE.LineBasicMaterial({ color: colours ? 0xffffff : colour, vertexColors: Boolean(colours) });
-      object = kind === "points" ? new THREE.Points(geometry, material) : new THREE.Line(geometry, material);
+      object = kind === "points" ? new THREE.Points(geometry, material)
+        : kind === "segments" ? new THREE.LineSegments(geometry, material) : new THREE.Line(geometry, material);
       object.name = name;
       this.layers[name] = object;
       this.scene.add(object);
@@ -286,9 +287,10 @@ export class Workspace {
       const p = this.preview;
       this.layer("path", "line", Float32Array.from(p.tcp_m.flat()), new Float32Array(p.tcp_m.length * 3));
       this.colourPath();
+      this.toolAxes(p);
       this.pose(p.joints_m[0]);
     } else {
-      for (const name of ["path", "arm", "arm-joints"]) this.clear(name);
+      for (const name of ["path", "tool-axes", "arm", "arm-joints"]) this.clear(name);
     }
     const review = exec ? await api(`/sessions/${sid}/executions/${exec.id}/review?max_samples=2000`) : null;
     if (review?.actual_tcp_m.length) this.layer("executed", "line", Float32Array.from(review.actual_tcp_m.flat()), null, 0xd62728);
@@ -403,6 +405,22 @@ export class Workspace {
     this.legend.querySelector("#legend-path").textContent = how.legend;
   }
 
+  /** Glyphs of the tool's axis along the process path (about 40, 15 mm up the tool from the
+   * TCP): how the tool meets the workpiece, waypoint by waypoint. */
+  toolAxes(p) {
+    const process = p.phase.map((ph, i) => [ph, i]).filter(([ph]) => p.phases[ph] === "process").map(([, i]) => i);
+    if (!process.length) return this.clear("tool-axes");
+    const every = Math.max(1, Math.floor(process.length / 40));
+    const picked = process.filter((_, k) => k % every === 0);
+    const positions = new Float32Array(picked.length * 6);
+    picked.forEach((i, k) => {
+      const [x, y, z] = p.tcp_m[i];
+      const [ax, ay, az] = p.tool_axis[i];
+      positions.set([x, y, z, x - 0.015 * ax, y - 0.015 * ay, z - 0.015 * az], 6 * k);
+    });
+    this.layer("tool-axes", "segments", positions, null, 0x0b3d91);
+  }
+
   /** Draw the arm's stick figure: base, the DH frames' origins, the flange and the TCP. */
   pose(joints) {
     const flat = Float32Array.from(joints.flat());
@@ -461,7 +479,7 @@ export class Workspace {
   frame(view = this.view) {
     this.view = view;
     const names = view === "all" ? Object.keys(this.layers)
-      : view === "live" ? ["live"] : WORKPIECE.filter((n) => this.layers[n]);
+      : view === "live" ? ["live"] : WORKPIECE.filter((n) => this.layers[n]); // workpiece, top, side
     if (view === "live") this.view = "workpiece";
     else this.steered = false;
     const box = new THREE.Box3();
@@ -472,7 +490,9 @@ export class Workspace {
     const centre = box.getCenter(new THREE.Vector3());
     const size = Math.max(box.getSize(new THREE.Vector3()).length(), 0.05);
     this.controls.target.copy(centre);
-    this.camera.position.copy(centre).add(new THREE.Vector3(0.6, -0.9, 0.7).multiplyScalar(size));
+    // Looking from the front-right above (the default), straight down, or from the front.
+    const direction = { top: [0, -0.001, 1.2], side: [0, -1.2, 0.05] }[view] || [0.6, -0.9, 0.7];
+    this.camera.position.copy(centre).add(new THREE.Vector3(...direction).multiplyScalar(size));
     this.camera.near = size / 100;
     this.camera.far = size * 100;
     this.camera.updateProjectionMatrix();
