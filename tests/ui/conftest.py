@@ -195,6 +195,8 @@ def pendant_for(browser, server: Server, screens: Path, name: str) -> Iterator[P
 
     def shot(step: str) -> Path:
         path = screens / f"{name}-{step}.png"
+        # From the top: a full-page picture of a scrolled page repeats the sticky safety bar.
+        page.evaluate("() => window.scrollTo(0, 0)")
         page.screenshot(path=str(path), full_page=True)
         return path
 
