@@ -456,7 +456,14 @@ function renderReconstruction() {
     ["mean displacement", mm(sm.mean_displacement_m)],
     ["max displacement", mm(sm.max_displacement_m)],
   ];
-  if (sm.registration) rows.push(["registration", `rmse ${mm(sm.registration.rmse_m, 3)}, fitness ${sm.registration.fitness.toFixed(2)}`]);
+  const reg = sm.registration;
+  if (reg) {
+    rows.push(["registration", `to the scan's ${reg.target}: rmse ${mm(reg.rmse_m, 3)}, fitness ${reg.fitness.toFixed(2)}, ${reg.n_pairs} pairs`]);
+    // An edge fixes fewer of the six motions than a surface with relief: say how many.
+    rows.push(["motions the scan fixed", `${reg.constrained_dof} of 6${reg.constrained_dof < 6 ? " (the rest kept from the given frames)" : ""}`]);
+    if (reg.path_moved_mean_m != null) rows.push(["path moved by it", `${mm(reg.path_moved_mean_m)} on average, ${mm(reg.path_moved_max_m)} at most`]);
+  }
+  rows.push(["segments", sm.segments.map((g) => `${g.kind} (points ${g.start}–${g.stop - 1})`).join(", ") || "–"]);
   box.replaceChildren(table(rows), ...(sm.notes.length ? [report(sm.notes)] : []), ...provenance("reconstruction", rec),
     ...comparison());
 }
