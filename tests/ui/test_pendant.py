@@ -160,7 +160,9 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant):
     assert posts.count("reconstructions") == 1
     expect(page.locator("#reconstruct-form .job-state")).to_have_text("succeeded 100 %")
     summary = page.locator("#reconstruct-summary")
-    expect(summary).to_contain_text(re.compile(r"registration\s*to the scan's (edge|surface): rmse"))
+    expect(summary).to_contain_text(
+        re.compile(r"registration\s*to the scan's (edge|surface): rmse")
+    )
     expect(summary).to_contain_text(re.compile(r"motions the scan fixed\s*[1-6] of 6"))
     expect(summary).to_contain_text(re.compile(r"segments\s*edge \(points 0–\d+\)"))
     pendant.shot("reconstructed")
