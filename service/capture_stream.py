@@ -54,6 +54,16 @@ class CaptureTail:
         InputFileError
             A complete line that is not 9 numbers (the file was changed by something else).
         """
+        # Samples before `from_sample` are read past chunk by chunk, so that a page resuming
+        # late in a long capture gets its next samples now, not one chunk per poll.
+        while (result := self._read_chunk()) is not None:
+            if result[1] is not None:
+                return result
+        return None
+
+    def _read_chunk(self) -> tuple[int, SampleBatch | None] | None:
+        """One chunk: None at the end of what is written, (first, None) when all of it lay
+        before ``from_sample``."""
         if not self.path.is_file():
             return None
         with self.path.open("rb") as handle:
@@ -84,7 +94,7 @@ class CaptureTail:
         skip = max(0, self.from_sample - first)
         rows = rows[skip:]
         if not len(rows):
-            return None
+            return first + skip, None
         quats = rows[:, 4:8]
         batch = SampleBatch(
             t_s=rows[:, 0],

@@ -74,6 +74,12 @@ def _rounded(values, decimals: int) -> list:
     return np.round(np.asarray(values, dtype=np.float64), decimals).tolist()
 
 
+def _finite_or_none(values, decimals: int) -> list:
+    """A 1-D series rounded, with null for what is not finite (JSON has no inf or NaN)."""
+    values = np.asarray(values, dtype=np.float64)
+    return [round(float(v), decimals) if np.isfinite(v) else None for v in values]
+
+
 def trajectory_preview(
     trajectory, clearance_m: FloatArray | None = None, *, max_samples: int = DEFAULT_SAMPLES
 ) -> dict:
@@ -97,8 +103,9 @@ def trajectory_preview(
         ``speed_m_s`` (K,); ``q_deg`` (K, 6); the margins (K,),
         each the smallest over the samples up to the next kept one: ``limit_margin_deg``,
         ``wrist_singularity`` (|sin q5|), ``elbow_singularity`` (|sin q3|), ``clearance_m``
-        (null when not checked; values beyond the check's horizon are capped there);
-        ``qd_share`` (K,) the largest joint speed as a share of its limit; the arm's limits;
+        (null when not checked, null per sample where nothing of the cell is in reach);
+        ``qd_share`` (K,) the largest joint speed as a share of its limit; the arm's joint
+        limits ``q_min_deg``, ``q_max_deg`` (null: endless);
         ``speed_drops`` with their times; ``requested_speed_m_s``; ``duration_s``.
     """
     from recon import kinematics
@@ -113,8 +120,8 @@ def trajectory_preview(
     qd_share = (np.abs(trajectory.qd_rad_s) / arm.qd_max_rad_s).max(axis=1)
     clearance = None
     if clearance_m is not None and len(clearance_m) == len(q):
-        finite = np.where(np.isfinite(clearance_m), clearance_m, 1e3)
-        clearance = _rounded(window_min(finite, keep), 5)
+        # inf: nothing in the cell to be near (sent as null, as "not measured" would be).
+        clearance = _finite_or_none(window_min(np.asarray(clearance_m, float), keep), 5)
     from scipy.spatial.transform import Rotation
 
     # The tool's axis (the TCP frame's z) at each kept sample, for the glyphs along the path.
@@ -137,8 +144,9 @@ def trajectory_preview(
         "wrist_singularity": _rounded(window_min(kinematics.wrist_singularity(q), keep), 4),
         "elbow_singularity": _rounded(window_min(kinematics.elbow_singularity(q), keep), 4),
         "clearance_m": clearance,
-        "q_min_deg": _rounded(np.degrees(arm.q_min_rad), 3),
-        "q_max_deg": _rounded(np.degrees(arm.q_max_rad), 3),
+        # An endless joint (the UR3's wrist 3) has no limit: null.
+        "q_min_deg": _finite_or_none(np.degrees(arm.q_min_rad), 3),
+        "q_max_deg": _finite_or_none(np.degrees(arm.q_max_rad), 3),
         "speed_drops": speed_drop_times(trajectory),
     }
 

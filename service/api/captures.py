@@ -71,7 +71,8 @@ async def capture_samples(
             try:
                 while (read := await run_in_threadpool(tail.read)) is not None:
                     yield f"event: samples\ndata: {json.dumps(samples_event(*read))}\n\n"
-            except InputFileError as exc:
+            except (InputFileError, OSError, ValueError) as exc:
+                # Said in the stream (its headers are sent): the page shows it and looks again.
                 yield f"event: error\ndata: {json.dumps({'message': str(exc)})}\n\n"
                 return
             body = None if now is None else CaptureOut.model_validate(now).model_dump(mode="json")

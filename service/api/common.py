@@ -78,17 +78,18 @@ def download(content: bytes | str, *, media_type: str, filename: str) -> Respons
     )
 
 
-def gzip_json(content) -> Response:
-    """JSON, gzip-compressed (``Content-Encoding: gzip``): the pendant's drawing data."""
+def gzip_json(content, request) -> Response:
+    """JSON for the pendant's drawings, gzip-compressed (``Content-Encoding: gzip``) for a
+    client that accepts it (every browser), plain for one that does not."""
     import gzip
     import json
 
     body = json.dumps(content, separators=(",", ":"), allow_nan=False).encode()
-    return Response(
-        gzip.compress(body, compresslevel=5, mtime=0),
-        media_type="application/json",
-        headers={"Content-Encoding": "gzip", "Cache-Control": "no-store"},
-    )
+    headers = {"Cache-Control": "no-store", "Vary": "Accept-Encoding"}
+    if "gzip" in request.headers.get("accept-encoding", "").lower():
+        body = gzip.compress(body, compresslevel=5, mtime=0)
+        headers["Content-Encoding"] = "gzip"
+    return Response(body, media_type="application/json", headers=headers)
 
 
 #: OpenAPI entries of the download routes.

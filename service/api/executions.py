@@ -6,7 +6,7 @@ import csv
 import io
 
 import numpy as np
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, Query, Request, Response
 
 from service import executions, tasks
 from service.api.common import CSV, add_artifact_routes, download, gzip_json
@@ -51,6 +51,7 @@ def execution_review(
     session_id: str,
     artifact_id: str,
     services: ServicesDep,
+    request: Request,
     max_samples: int = Query(1500, ge=10, le=20_000, description="about this many samples"),
 ):
     """Planned against actual (gzip JSON): where the TCP was (base frame, m) and how far the
@@ -63,7 +64,7 @@ def execution_review(
         raise ApiError(404, "not_found", f"execution {artifact_id} recorded no samples")
     plan = services.artifact(session_id, "trajectory", row.inputs["trajectory_id"])
     trajectory = tasks.load_trajectory(services.store.path_of(plan), plan.summary)
-    return gzip_json(review(trajectory, samples, max_samples=max_samples))
+    return gzip_json(review(trajectory, samples, max_samples=max_samples), request)
 
 
 @stop_router.post("/{execution_id}/stop", response_model=StopOut)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import FileResponse
 
 from service import reconstructions
@@ -41,6 +41,7 @@ def reconstruction_difference(
     session_id: str,
     artifact_id: str,
     services: ServicesDep,
+    request: Request,
     against: str = Query(..., min_length=1, max_length=64, description="the other reconstruction"),
 ):
     """For overlaying two reconstructions (gzip JSON): this one's points (tracker frame, m),
@@ -51,7 +52,7 @@ def reconstruction_difference(
     points = [
         ReconstructionCodec.per_point(services.store.read_arrays(r))["points_m"] for r in rows
     ]
-    return gzip_json(difference(points[0], points[1]))
+    return gzip_json(difference(points[0], points[1]), request)
 
 
 @router.get(

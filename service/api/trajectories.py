@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, Query, Request, Response
 
 from service import tasks, trajectories
 from service.api.common import CSV, add_artifact_routes, download, gzip_json
@@ -47,6 +47,7 @@ def trajectory_preview(
     session_id: str,
     artifact_id: str,
     services: ServicesDep,
+    request: Request,
     max_samples: int = Query(1500, ge=10, le=20_000, description="about this many samples"),
 ):
     """The plan as the pendant animates it (gzip JSON): per kept sample the time, phase, the
@@ -60,7 +61,7 @@ def trajectory_preview(
     path = services.store.path_of(row)
     trajectory = tasks.load_trajectory(path, row.summary)
     clearance = load_arrays(path).get("clearance_m")
-    return gzip_json(preview(trajectory, clearance, max_samples=max_samples))
+    return gzip_json(preview(trajectory, clearance, max_samples=max_samples), request)
 
 
 @router.get(

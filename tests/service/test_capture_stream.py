@@ -60,6 +60,27 @@ def test_the_tail_returns_complete_lines_only_and_from_any_sample(tmp_path):
     assert CaptureTail(tmp_path / "missing.csv").read() is None
 
 
+def test_a_late_start_in_a_long_capture_is_found_at_once(tmp_path):
+    """Resuming at sample 30 000 of a 40 000-sample file (several read chunks before it)."""
+    path = tmp_path / "cap.csv"
+    n = 40_000
+    rows = [f"{i / 240:.6f},{i * 1e-4:.9g},0,0,0,0,0,1,1" for i in range(n)]
+    path.write_text(HEADER + "\n".join(rows) + "\n")
+    tail = CaptureTail(path, from_sample=30_000)
+    first, batch = tail.read()
+    assert first == 30_000 and batch.position_m[0, 0] == pytest.approx(3.0)
+    expected, total = first, 0
+    while True:
+        total += len(batch.t_s)
+        expected += len(batch.t_s)
+        read = tail.read()
+        if read is None:
+            break
+        first, batch = read
+        assert first == expected  # each read carries on where the last stopped
+    assert total == n - 30_000
+
+
 def test_the_tail_moves_a_live_feed_to_the_tip_and_refuses_a_changed_file(tmp_path):
     path = tmp_path / "cap.csv"
     # A quarter turn about z: the tip 0.1 m along the body's x lies along the tracker's y.

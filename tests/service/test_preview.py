@@ -9,7 +9,8 @@ import pytest
 
 from recon import kinematics
 from recon.types import Phase
-from service.preview import thinned, window_min
+from service.preview import thinned, trajectory_preview, window_min
+from service.tasks import load_trajectory
 from tests.service.conftest import planned_session, wait
 
 
@@ -130,12 +131,27 @@ def test_the_review_of_a_dry_run_is_where_the_arm_went(client, planned, preview)
     assert len(review["t_s"]) <= 310
     assert review["max_off_path_m"] >= summary["max_path_deviation_m"] - 1e-9
     assert max(review["off_path_m"]) == pytest.approx(review["max_off_path_m"], abs=1e-6)
-    # The actual TCP lies on the planned TCP path, within the tracking error (plus the chords
-    # between the preview's samples).
+    # Independently of the review's code: the executed joints of the CSV through the arm's
+    # kinematics, against every sample of the planned TCP in the plan's file.
+    from scipy.spatial import cKDTree
+
+    header, values = _csv(client, sid, tid)
+    planned_tcp = values[:, [header.index(c) for c in ("x", "y", "z")]]
+    lines = client.get(f"/sessions/{sid}/executions/{eid}/csv").text.splitlines()
+    executed = np.array([[float(v) for v in line.split(",")[7:13]] for line in lines[1:]])
+    arm = kinematics.model(preview["robot"])
+    flange = kinematics.forward(arm, executed)
+    plan_q = values[:, [header.index(f"q{j}") for j in range(6)]]
+    plan_flange = kinematics.forward(arm, plan_q)
+    # The TCP rides rigidly on the flange: carry the plan's first offset to the executed poses.
+    offset = np.linalg.solve(plan_flange[0], np.r_[planned_tcp[0], 1.0])
+    executed_tcp = (flange @ offset)[:, :3]
+    gap, _ = cKDTree(planned_tcp).query(executed_tcp)
+    spacing = np.linalg.norm(np.diff(planned_tcp, axis=0), axis=1).max()
+    assert gap.max() <= review["max_off_path_m"] + spacing / 2 + 1e-5
     actual = np.array(review["actual_tcp_m"])
-    planned_tcp = np.array(preview["tcp_m"])
-    gap = np.linalg.norm(actual[:, None, :] - planned_tcp[None, :, :], axis=2).min(axis=1)
-    assert np.median(gap) < 2e-3
+    gap_sent, _ = cKDTree(executed_tcp).query(actual)
+    assert gap_sent.max() < 1e-4  # the review's TCP is where the executed joints put it
 
 
 @pytest.mark.parametrize(
@@ -202,3 +218,32 @@ def test_a_difference_needs_an_existing_other(client, planned, query):
     first = client.get(f"/sessions/{sid}/reconstructions").json()[0]["id"]
     response = client.get(f"/sessions/{sid}/reconstructions/{first}/difference{query}")
     assert response.status_code in (404, 422) and "code" in response.json()
+
+
+def test_an_endless_joint_and_an_empty_cell_are_null_not_infinite(client, planned):
+    """A UR3e's wrist 3 turns without end and a sample with nothing of the cell in reach has
+    no clearance: JSON has no inf, so both are null (the route would refuse the numbers)."""
+    import dataclasses
+    import json
+
+    sid, tid = planned
+    row = client.app.state.services.store.artifact(tid, kind="trajectory")
+    path = client.app.state.services.store.path_of(row)
+    trajectory = dataclasses.replace(load_trajectory(path, row.summary), robot="ur3e")
+    clearance = np.full(len(trajectory.t_s), np.inf)
+    clearance[:10] = 0.02
+    body = trajectory_preview(trajectory, clearance, max_samples=50)
+    json.dumps(body, allow_nan=False)
+    assert body["q_max_deg"][5] is None and body["q_min_deg"][5] is None
+    assert body["q_max_deg"][0] == pytest.approx(360.0)
+    assert body["clearance_m"][0] == pytest.approx(0.02) and body["clearance_m"][-1] is None
+
+
+def test_a_client_that_takes_no_gzip_gets_plain_json(client, planned):
+    sid, tid = planned
+    url = f"/sessions/{sid}/trajectories/{tid}/preview?max_samples=20"
+    plain = client.get(url, headers={"Accept-Encoding": "identity"})
+    assert "content-encoding" not in plain.headers and plain.headers["vary"] == "Accept-Encoding"
+    zipped = client.get(url, headers={"Accept-Encoding": "gzip"})
+    assert zipped.headers["content-encoding"] == "gzip"
+    assert plain.json() == zipped.json()

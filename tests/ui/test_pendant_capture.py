@@ -15,12 +15,6 @@ from tests.drivers.test_natnet import RATE_HZ, synthetic
 from tests.ui.test_pendant import canvas_pixels
 
 
-def _received(page) -> int:
-    text = page.locator("#capture-status").text_content()
-    match = re.match(r"(\d+) samples received", text)
-    return int(match.group(1)) if match else 0
-
-
 def test_a_live_capture_is_drawn_while_tracing_and_kept_on_stop(pendant):
     page = pendant.page
     recording = synthetic(12.0)
@@ -46,9 +40,22 @@ def test_a_live_capture_is_drawn_while_tracing_and_kept_on_stop(pendant):
         whole_loss = "tracking lost 1× (180 samples; first 1.00 s into the capture)"
         expect(page.locator("#capture-status")).to_contain_text(whole_loss, timeout=20_000)
         expect(page.locator("#capture-status")).not_to_contain_text("LOST NOW")
-        first = _received(page)
+        # The live layer holds every sample received that was tracked, and grows.
+        # (Read in one go: samples keep arriving between two reads.)
+        both = (
+            "() => [document.querySelector('#capture-status').textContent,"
+            " document.querySelector('#workspace').workspace.layers.live.geometry.drawRange.count]"
+        )
+
+        def received_and_drawn() -> tuple[int, int]:
+            text, drawn = page.evaluate(both)
+            return int(re.match(r"(\d+) samples received", text).group(1)), drawn
+
+        first, drawn = received_and_drawn()
+        assert drawn == first - 180  # the 180 lost samples are not drawn
         page.wait_for_timeout(700)
-        assert _received(page) > first
+        later, drawn_later = received_and_drawn()
+        assert later > first and drawn_later == later - 180
         assert canvas_pixels(page)["drawn"] > 0.0005
         pendant.shot("capturing")
 

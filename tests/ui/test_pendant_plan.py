@@ -92,7 +92,7 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
     expect(_readout(page, "phase")).to_have_text("process")
     expect(_readout(page, "TCP speed")).to_have_text(re.compile(r"^(4[5-9]|5[0-5]) mm/s of 50$"))
-    expect(_readout(page, "closest to the cell")).to_have_text(re.compile(r"^-?\d+\.\d mm$"))
+    expect(_readout(page, "closest to the cell")).to_have_text(re.compile(r"^\d{1,3}\.\d mm$"))
     expect(_readout(page, "joint-limit margin")).to_have_text(re.compile(r"^\d+\.\d°$"))
     now_s = float(page.locator("#timeline-now").text_content().split(" s")[0])
     assert 0 < now_s < total_s
@@ -119,9 +119,19 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     by_phase = canvas_digest(page)
     path_colour.select_option("speed")
     expect(page.locator("#legend-path")).to_contain_text("red slowed to a stop")
+    by_speed = canvas_digest(page)
     path_colour.select_option("clearance")
     expect(page.locator("#legend-path")).to_contain_text("50 mm or more from the cell")
-    assert canvas_digest(page) != by_phase
+    assert len({by_phase, by_speed, canvas_digest(page)}) == 3
+    # Along the path the clearance colours vary (near the workpiece red-ish, in the air blue).
+    spread = page.evaluate(
+        "() => { const c = document.querySelector('#workspace').workspace.layers.path"
+        ".geometry.attributes.color.array; let lo = 1, hi = 0;"
+        " for (let i = 0; i < c.length; i += 3) {"
+        " lo = Math.min(lo, c[i]); hi = Math.max(hi, c[i]); }"
+        " return hi - lo; }"
+    )
+    assert spread > 0.3
     pendant.shot("path-by-clearance")
     # The tool's axis along the path, switched with the path; camera presets from above and
     # from the front show other pictures of the same layers.

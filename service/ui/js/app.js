@@ -217,7 +217,9 @@ async function resumeJobs(sid) {
   runJob(step, $(`#step-${step} form`), async () => {
     if (step === "run") {
       state.moving = { executionId: job.params.execution_id, jobId: job.id };
+      // The arm's state may have come first (it owns the arm already): say "moving" now.
       updateStop();
+      renderSteps();
     }
     return job;
   });
@@ -501,6 +503,7 @@ async function overlay(id) {
   const note = $("#overlay-note");
   try {
     const diff = await api(`/sessions/${state.session.id}/reconstructions/${id}/difference?against=${current.id}`);
+    if (reconstruction()?.id !== current.id) return; // a newer one came meanwhile: not against it
     state.workspace?.showOverlay(diff);
     note.textContent = `${id} over ${current.id}: ${mm(diff.mean_m, 3)} apart on average, ${mm(diff.max_m, 3)} at most `
       + `(its point ${diff.at_index}); drawn coloured by the difference, the current one as before.`;
@@ -970,7 +973,9 @@ function wire() {
     runJob("run", form, async () => {
       const job = await api(`/sessions/${state.session.id}/executions`, { method: "POST", json: body });
       state.moving = { executionId: job.params.execution_id, jobId: job.id };
+      // The arm's state may have come first (it owns the arm already): say "moving" now.
       updateStop();
+      renderSteps();
       return job;
     });
   });

@@ -24,7 +24,8 @@ export function wireCapture(deps) {
   const stopButton = form.querySelector("#capture-stop");
   const status = form.querySelector("#capture-status");
   const kind = form.elements.kind;
-  let following = null; // {id, abort}
+  let following = null; // {id, sid, abort}: the capture this page draws
+  let checking = null; // the session whose remembered capture is being looked up
 
   const showKind = () => {
     for (const set of form.querySelectorAll("fieldset[data-kind]")) {
@@ -68,53 +69,81 @@ export function wireCapture(deps) {
     stopButton.disabled = !on;
   }
 
-  /** Follow a capture's samples to its end, drawing them as they come. */
+  /** Follow a capture's samples to its end, drawing them as they come. A stream that breaks
+   * while the capture runs (a network blip) is opened again from the next sample. */
   async function follow(sid, capture) {
     following?.abort.abort();
     const abort = new AbortController();
-    following = { id: capture.id, abort };
+    const mine = { id: capture.id, sid, abort };
+    following = mine;
     running(true);
     const trace = { points: [], lost: [], lostSamples: 0, stretches: 0, n: 0, wasLost: false, lastGood: null, lostAt: null, t0: null };
     status.textContent = "waiting for the first samples…";
     let last = capture;
-    try {
-      for await (const { event, data } of events(`/sessions/${sid}/captures/${capture.id}/samples`, abort.signal)) {
-        if (event === "samples") {
-          trace.t0 ??= data.t_s[0];
-          data.points_m.forEach((p, i) => {
-            trace.n += 1;
-            if (p) {
-              if (trace.wasLost && trace.lastGood) trace.lost.push(trace.lastGood, p); // where it was lost and found
-              trace.points.push(p);
-              trace.lastGood = p;
-              trace.wasLost = false;
-            } else {
-              trace.lostSamples += 1;
-              if (!trace.wasLost) { trace.stretches += 1; trace.lostAt = data.t_s[i] - trace.t0; }
-              trace.wasLost = true;
-            }
-          });
-          deps.workspace()?.showLive(trace.points, trace.lost);
-          status.textContent = describe(trace);
-        } else if (event === "capture") {
-          last = data;
-        } else if (event === "error") {
-          deps.showError(box, { code: "capture_unreadable", message: data.message });
+    const take = (data) => {
+      trace.t0 ??= data.t_s[0];
+      data.points_m.forEach((p, i) => {
+        trace.n += 1;
+        if (p) {
+          if (trace.wasLost && trace.lastGood) trace.lost.push(trace.lastGood, p); // where it was lost and found
+          trace.points.push(p);
+          trace.lastGood = p;
+          trace.wasLost = false;
+        } else {
+          trace.lostSamples += 1;
+          if (!trace.wasLost) { trace.stretches += 1; trace.lostAt = data.t_s[i] - trace.t0; }
+          trace.wasLost = true;
         }
+      });
+      deps.workspace()?.showLive(trace.points, trace.lost);
+      status.textContent = describe(trace);
+    };
+    try {
+      for (;;) {
+        try {
+          for await (const { event, data } of events(`/sessions/${sid}/captures/${capture.id}/samples?from_sample=${trace.n}`, abort.signal)) {
+            if (event === "samples") take(data);
+            else if (event === "capture") last = data;
+            else if (event === "error") deps.showError(box, { code: "capture_unreadable", message: data.message });
+          }
+        } catch (err) {
+          if (err.name === "AbortError" || err.status === 404) throw err;
+        }
+        // The stream ended: with the capture, or broken while it runs (then open it again).
+        const pause = () => new Promise((resolve) => setTimeout(resolve, 500));
+        try {
+          last = await api(`/sessions/${sid}/captures/${capture.id}`, { signal: abort.signal });
+        } catch (err) {
+          if (err.name === "AbortError" || err.status !== 0) throw err;
+          await pause(); // the server out of reach: look again
+          continue;
+        }
+        if (last.state !== "running") break;
+        await pause();
       }
     } catch (err) {
       if (err.name !== "AbortError") deps.showError(box, err);
     } finally {
-      if (following?.id === capture.id) {
+      if (following === mine) {
         following = null;
         running(false);
-        deps.remember("sessionStorage", CAPTURE_KEY + sid, null);
+        if (last.state !== "running") deps.remember("sessionStorage", CAPTURE_KEY + sid, null);
         deps.workspace()?.showLive(null);
         await deps.refresh().catch(() => {});
         if (last.state === "failed") deps.showError(box, { code: "capture_failed", message: last.error || "the capture failed" });
         else if (last.recording_id) kept(last);
       }
     }
+  }
+
+  /** Stop drawing a capture (it runs on; its session's page follows it again when opened). */
+  function detach() {
+    const was = following;
+    following = null;
+    was?.abort.abort();
+    running(false);
+    status.textContent = "";
+    deps.workspace()?.showLive(null);
   }
 
   /** What the capture left: the recording, and what cleaning it took (a lost stretch splits
@@ -153,7 +182,7 @@ export function wireCapture(deps) {
     stopButton.disabled = true;
     try {
       // The stream then ends with the capture's last samples; `follow` tidies up.
-      await api(`/sessions/${deps.session().id}/captures/${following.id}/stop`, { method: "POST" });
+      await api(`/sessions/${following.sid}/captures/${following.id}/stop`, { method: "POST" });
     } catch (err) {
       deps.showError(box, err);
       stopButton.disabled = false;
@@ -165,25 +194,24 @@ export function wireCapture(deps) {
      * followed again (after a reload). */
     async sessionShown(sid) {
       listRecordings();
-      if (following) return;
+      if (following?.sid === sid || checking === sid) return;
+      if (following) detach(); // another session's capture: it runs on, undrawn here
       running(false);
       const id = deps.recall("sessionStorage", CAPTURE_KEY + sid);
       if (!id) return;
+      checking = sid; // one look at a time (refreshes come in pairs on opening)
       try {
         const capture = await api(`/sessions/${sid}/captures/${id}`);
-        if (capture.state === "running") follow(sid, capture);
-        else deps.remember("sessionStorage", CAPTURE_KEY + sid, null);
-      } catch {
-        deps.remember("sessionStorage", CAPTURE_KEY + sid, null);
+        if (capture.state === "running" && deps.session()?.id === sid) follow(sid, capture);
+        else if (capture.state !== "running") deps.remember("sessionStorage", CAPTURE_KEY + sid, null);
+      } catch (err) {
+        if (err.status === 404) deps.remember("sessionStorage", CAPTURE_KEY + sid, null);
+      } finally {
+        checking = null;
       }
     },
     /** The session is closed: stop drawing (the capture itself runs on). */
-    sessionClosed() {
-      following?.abort.abort();
-      following = null;
-      running(false);
-      status.textContent = "";
-    },
+    sessionClosed: detach,
   };
 }
 

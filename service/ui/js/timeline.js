@@ -140,6 +140,9 @@ export class Timeline {
     this.scrub.min = t[0]; this.scrub.max = t[t.length - 1]; this.scrub.step = "any";
     const common = { t, phases: preview.phases, phaseOf: preview.phase };
     const requested = preview.requested_speed_m_s * 1000;
+    // An endless joint has no limit (null): its angles set the scale instead.
+    const limits = [...new Set([...preview.q_min_deg, ...preview.q_max_deg])].filter((v) => v != null);
+    const angles = preview.q_deg.flat();
     const process = preview.phase.map((p, i) => (preview.phases[p] === "process" ? preview.speed_m_s[i] * 1000 : 0));
     this.plotList = [
       new Plot(this.plots, { ...common, title: "TCP speed (requested dashed, slow-downs red)", unit: "mm/s",
@@ -149,16 +152,17 @@ export class Timeline {
         top: 1.6 * Math.max(requested, ...process) }),
       new Plot(this.plots, { ...common, title: "joint angles (limits dashed)", unit: "deg",
         series: JOINT_COLOURS.map((colour, j) => ({ values: preview.q_deg.map((q) => q[j]), colour })),
-        references: [...new Set([...preview.q_min_deg, ...preview.q_max_deg])].map((v) => ({ value: v, colour: "#b00020" })),
-        bottom: Math.min(...preview.q_min_deg), top: Math.max(...preview.q_max_deg) }),
+        references: limits.map((v) => ({ value: v, colour: "#b00020" })),
+        bottom: Math.min(...limits, ...angles), top: Math.max(...limits, ...angles) }),
       new Plot(this.plots, { ...common, title: "fastest joint (limit dashed)", unit: "% of its limit",
         series: [{ values: preview.qd_share.map((v) => v * 100), colour: "#9467bd" }],
         references: [{ value: 100, colour: "#b00020" }], top: 110 }),
     ];
-    if (preview.clearance_m) {
+    const clearances = (preview.clearance_m || []).filter((v) => v != null);
+    if (clearances.length) {
       this.plotList.push(new Plot(this.plots, { ...common, title: "closest to the cell", unit: "mm",
-        series: [{ values: preview.clearance_m.map((v) => v * 1000), colour: "#8c564b" }],
-        top: Math.min(200, Math.max(...preview.clearance_m) * 1000) }));
+        series: [{ values: preview.clearance_m.map((v) => (v == null ? NaN : v * 1000)), colour: "#8c564b" }],
+        top: Math.min(200, Math.max(...clearances) * 1000), bottom: Math.min(0, ...clearances) * 1000 }));
     }
     this.seek(keep ?? t[0]);
   }
@@ -185,7 +189,7 @@ export class Timeline {
       ["wrist singularity |sin q5|", p.wrist_singularity[i].toFixed(3)],
       ["elbow singularity |sin q3|", p.elbow_singularity[i].toFixed(3)],
       ["fastest joint", `${Math.round(p.qd_share[i] * 100)} % of its limit`],
-      ["closest to the cell", p.clearance_m ? mm(p.clearance_m[i]) : "not checked"],
+      ["closest to the cell", !p.clearance_m ? "not checked" : p.clearance_m[i] == null ? "nothing in reach" : mm(p.clearance_m[i])],
     ];
     this.readout.replaceChildren(...rows.map(([k, v]) => {
       const tr = document.createElement("tr");

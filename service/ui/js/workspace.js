@@ -55,7 +55,10 @@ const PATH_COLOURING = {
   speed: { legend: "path by speed: blue at the requested speed, red slowed to a stop",
     risk: (p, i) => 1 - Math.min(1, p.speed_m_s[i] / p.requested_speed_m_s) },
   clearance: { legend: "path by clearance: blue 50 mm or more from the cell, red touching",
-    risk: (p, i) => (p.clearance_m ? 1 - Math.min(1, Math.max(0, p.clearance_m[i]) / 0.05) : 0) },
+    unknown: "path by clearance: grey, this plan was not checked against the cell",
+    known: (p) => Boolean(p.clearance_m),
+    // null at a sample: nothing of the cell within reach (as far from it as can be).
+    risk: (p, i) => (p.clearance_m[i] == null ? 0 : 1 - Math.min(1, Math.max(0, p.clearance_m[i]) / 0.05)) },
   limits: { legend: "path by joint-limit margin: blue 30° or more, red at a limit",
     risk: (p, i) => 1 - Math.min(1, Math.max(0, p.limit_margin_deg[i]) / 30) },
   singularity: { legend: "path by singularity: blue |sin q| ≥ 0.2 at wrist and elbow, red singular",
@@ -234,8 +237,20 @@ export class Workspace {
     const exec = traj ? [...executions].reverse().find((e) => e.inputs.trajectory_id === traj.id && e.summary.n_samples > 0) : null;
     const calibration = JSON.stringify([session.T_base_tracker, session.T_scan_tracker, rec?.summary.T_scan_tracker]);
     const key = [sid, session.recording_id, session.scan_id, rec?.id, traj?.id, exec?.id, calibration].join("/");
-    if (key === this.shown) return;
-    this.shown = key;
+    if (key === this.shown || key === this.showing) return;
+    // The newest call wins: an older one still loading stops at its next step.
+    this.showing = key;
+    const current = () => this.showing === key;
+    try {
+      await this.fill(sid, key, current, { session, rec, traj, exec });
+    } finally {
+      if (current()) this.showing = null;
+    }
+  }
+
+  /** The layers for one state of the session (see show); `current()` is false once a newer
+   * state is being shown, and then nothing more is drawn from this one. */
+  async fill(sid, key, current, { session, rec, traj, exec }) {
     // The base frame when calibrated; the scan through the registration the reconstruction found.
     const baseTracker = matrix(session.T_base_tracker);
     this.baseTracker = baseTracker;
@@ -262,16 +277,20 @@ export class Workspace {
 
     if (session.scan_id) {
       const response = await api(`/sessions/${sid}/scans/${session.scan_id}/points?max_points=200000`, { raw: true });
-      this.layer("scan", "points", transformed(new Float32Array(await response.arrayBuffer()), baseScan));
+      const xyz = new Float32Array(await response.arrayBuffer());
+      if (!current()) return;
+      this.layer("scan", "points", transformed(xyz, baseScan));
     } else this.clear("scan");
 
     if (session.recording_id) {
       const csv = parseCsv(await api(`/sessions/${sid}/recordings/${session.recording_id}/csv`), ["x", "y", "z"]);
+      if (!current()) return;
       this.layer("trace", "line", transformed(interleave(csv), baseTracker));
     } else this.clear("trace");
 
     if (rec) {
       const csv = parseCsv(await api(`/sessions/${sid}/reconstructions/${rec.id}/csv`), ["x", "y", "z", ...DIAGNOSTICS], 1, ["mode"]);
+      if (!current()) return;
       this.reconstruction = { id: rec.id, ...csv };
       this.layer("reconstruction", "points", transformed(interleave(csv), baseTracker), new Float32Array(csv.n * 3));
       this.colourReconstruction();
@@ -282,7 +301,9 @@ export class Workspace {
 
     this.showFrames(session.T_base_tracker ? baseTracker : null, baseTracker, session.scan_id ? baseScan : null);
 
-    this.preview = traj ? await api(`/sessions/${sid}/trajectories/${traj.id}/preview?max_samples=2000`) : null;
+    const preview = traj ? await api(`/sessions/${sid}/trajectories/${traj.id}/preview?max_samples=2000`) : null;
+    if (!current()) return;
+    this.preview = preview;
     if (this.preview) {
       const p = this.preview;
       this.layer("path", "line", Float32Array.from(p.tcp_m.flat()), new Float32Array(p.tcp_m.length * 3));
@@ -293,10 +314,14 @@ export class Workspace {
       for (const name of ["path", "tool-axes", "arm", "arm-joints"]) this.clear(name);
     }
     const review = exec ? await api(`/sessions/${sid}/executions/${exec.id}/review?max_samples=2000`) : null;
+    if (!current()) return;
     if (review?.actual_tcp_m.length) this.layer("executed", "line", Float32Array.from(review.actual_tcp_m.flat()), null, 0xd62728);
     else this.clear("executed");
     this.hooks.onPlan?.(this.preview, review, exec, traj?.id ?? null);
     this.frame();
+    // Only a state drawn whole counts as shown (a failed fetch is tried again next refresh).
+    this.shown = key;
+    this.container.dataset.shown = key;
   }
 
   /** The trace of a running capture (tracker-frame points, [[x, y, z], ...]) over the scan,
@@ -304,19 +329,35 @@ export class Workspace {
    * doubling, so a capture's stream refills them instead of making new ones each time. */
   showLive(points, lost = []) {
     if (!points) {
+      this.liveBase = null;
       this.clear("live");
       this.clear("lost");
       return this.render();
     }
-    const toBase = (list) => {
-      const out = new Float32Array(list.length * 3);
+    const m = this.baseTracker || new THREE.Matrix4();
+    const toBase = (list, out = new Float32Array(list.length * 3), from = 0) => {
       const v = new THREE.Vector3();
-      list.forEach((p, i) => { v.set(p[0], p[1], p[2]).applyMatrix4(this.baseTracker || new THREE.Matrix4()); out.set([v.x, v.y, v.z], 3 * i); });
+      for (let i = from; i < list.length; i++) {
+        v.set(list[i][0], list[i][1], list[i][2]).applyMatrix4(m);
+        out[3 * i] = v.x; out[3 * i + 1] = v.y; out[3 * i + 2] = v.z;
+      }
       return out;
     };
     const capacity = (n) => 3 * 2 ** Math.ceil(Math.log2(Math.max(n, 256)));
     if (points.length) {
-      const live = this.layer("live", "points", toBase(points), null, 0xff8c00, capacity(points.length));
+      // Only the new points are carried into the base frame (a long capture streams on).
+      let cache = this.liveBase;
+      if (!cache || cache.list !== points || cache.n > points.length) {
+        cache = { list: points, xyz: new Float32Array(capacity(points.length)), n: 0 };
+      } else if (cache.xyz.length < 3 * points.length) {
+        const grown = new Float32Array(capacity(points.length));
+        grown.set(cache.xyz);
+        cache.xyz = grown;
+      }
+      toBase(points, cache.xyz, cache.n);
+      cache.n = points.length;
+      this.liveBase = cache;
+      const live = this.layer("live", "points", cache.xyz.subarray(0, 3 * points.length), null, 0xff8c00, capacity(points.length));
       live.material.size = Math.max(3, this.pointSize + 1);
     }
     if (lost.length) {
@@ -397,12 +438,14 @@ export class Workspace {
     const p = this.preview;
     if (!p) return;
     const how = PATH_COLOURING[this.pathColour.value] || PATH_COLOURING.phase;
+    // A margin the plan does not have is grey, never the colour of "fine".
+    const known = !how.known || how.known(p);
     const colours = new Float32Array(p.t_s.length * 3);
     for (let i = 0; i < p.t_s.length; i++) {
-      colours.set(how.risk ? ramp(how.risk(p, i)) : PHASE_COLOURS[p.phases[p.phase[i]]], 3 * i);
+      colours.set(!known ? [0.6, 0.6, 0.6] : how.risk ? ramp(how.risk(p, i)) : PHASE_COLOURS[p.phases[p.phase[i]]], 3 * i);
     }
     this.recolour("path", colours);
-    this.legend.querySelector("#legend-path").textContent = how.legend;
+    this.legend.querySelector("#legend-path").textContent = known ? how.legend : how.unknown;
   }
 
   /** Glyphs of the tool's axis along the process path (about 40, 15 mm up the tool from the
