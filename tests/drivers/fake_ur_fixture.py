@@ -105,23 +105,23 @@ class FakeURProcess:
             raise RuntimeError(f"fake controller refused {cmd}: {reply['error']}")
         return reply
 
-    def send_program(self, text: str, port: int = SCRIPT_PORTS[1]) -> float:
+    def send_program(self, text: str, port: int = SCRIPT_PORTS[1]) -> int:
         """Send a URScript program to a script port and close the connection (which completes
-        it). The controller time just before, for :meth:`wait_program`."""
-        t0 = self.control("program_status")["t_s"]
+        it). The number of the controller's last program before it, for :meth:`wait_program`."""
+        before = self.control("program_status")["number"]
         with socket.create_connection((self.host, port), timeout=5.0) as sock:
             sock.sendall(text.encode())
-        return t0
+        return before
 
-    def wait_program(self, after_s: float, timeout_s: float = 30.0, *, running=False) -> dict:
-        """The ``program_status`` of the program started after controller time ``after_s`` once
-        it has ended (or, ``running``, once it runs: for programs that run a while -- one
-        that ends between two polls is never seen running)."""
+    def wait_program(self, after: int, timeout_s: float = 30.0, *, running=False) -> dict:
+        """The ``program_status`` of the first program after the controller's program number
+        ``after`` once it has ended (or, ``running``, once it runs: for programs that run a
+        while -- one that ends between two polls is never seen running). Numbers, not start
+        times: a refused program and the next one can start in the same control period."""
         deadline = time.monotonic() + timeout_s
         while True:
             status = self.control("program_status")
-            started = status["started_s"] is not None and status["started_s"] >= after_s
-            if started and (status["state"] != "running") != running:
+            if status["number"] > after and (status["state"] != "running") != running:
                 return status
             if time.monotonic() > deadline:
                 raise TimeoutError(f"the program did not get there: {status}")

@@ -356,13 +356,13 @@ def test_an_exported_program_runs_where_it_is_planned(fake_ur):
         "end\n"
         "exported()\n"
     )
-    t0 = fake_ur.send_program(text)
-    status = fake_ur.wait_program(t0, running=True)
+    before = fake_ur.send_program(text)
+    status = fake_ur.wait_program(before, running=True)
     assert _dashboard(fake_ur.host, "programState", "running") == [
         "PLAYING exported",
         "Program running: true",
     ]
-    status = fake_ur.wait_program(t0, timeout_s=60)
+    status = fake_ur.wait_program(before, timeout_s=60)
     assert status["state"] == "finished", status
     assert status["statements"] == status["executed"] == 205
     assert np.abs(np.array(status["q_rad"]) - q_d).max() < 1e-3
@@ -424,10 +424,10 @@ def test_movep_keeps_its_speed_and_passes_within_the_blend_radius_of_each_pose(f
 @pytest.mark.timeout(60)
 def test_an_unknown_function_stops_the_program_with_its_line_and_nothing_moves(fake_ur):
     q1 = HOME + [0.3, 0, 0, 0, 0, 0]
-    t0 = fake_ur.send_program(
+    before = fake_ur.send_program(
         f"def oops():\n  movej([{fmt(q1)}])\n  # next\n  socket_open(1)\nend\n"
     )
-    status = fake_ur.wait_program(t0)
+    status = fake_ur.wait_program(before)
     assert status["state"] == "error" and status["line"] == 4
     assert "socket_open" in status["message"]
     assert any("Compile error: line 4" in m for m in status["messages"])
@@ -444,8 +444,8 @@ def test_a_protective_stop_or_an_emergency_stop_stops_a_running_program(fake_ur)
     fake_ur.control("configure", unlock_wait_s=0.0)
     far = HOME + [1.5, 0, 0, 0, 0, 0]
     program = f"def slow():\n  movej([{fmt(far)}], v=0.3)\nend\n"
-    t0 = fake_ur.send_program(program)
-    fake_ur.wait_program(t0, running=True)
+    before = fake_ur.send_program(program)
+    fake_ur.wait_program(before, running=True)
     assert _dashboard(fake_ur.host, *STATE_QUERIES) == [
         "Robotmode: RUNNING",
         "Safetystatus: NORMAL",
@@ -455,7 +455,7 @@ def test_a_protective_stop_or_an_emergency_stop_stops_a_running_program(fake_ur)
     ]
     time.sleep(0.5)
     fake_ur.control("protective_stop")
-    status = fake_ur.wait_program(t0)
+    status = fake_ur.wait_program(before)
     assert status["state"] == "stopped" and status["line"] == 2
     assert status["message"].startswith("protective stop")
     q_stopped = np.array(status["q_rad"])
@@ -472,11 +472,11 @@ def test_a_protective_stop_or_an_emergency_stop_stops_a_running_program(fake_ur)
     # Refused while stopped; runs again once unlocked.
     assert fake_ur.wait_program(fake_ur.send_program(program))["state"] == "refused"
     assert _dashboard(fake_ur.host, "unlock protective stop") == ["Protective stop releasing"]
-    t0 = fake_ur.send_program(program)
-    fake_ur.wait_program(t0, running=True)
+    before = fake_ur.send_program(program)
+    fake_ur.wait_program(before, running=True)
     for source, name in (("robot", "ROBOT_EMERGENCY_STOP"), ("system", "SYSTEM_EMERGENCY_STOP")):
         fake_ur.control("emergency_stop", source=source)
-        status = fake_ur.wait_program(t0)
+        status = fake_ur.wait_program(before)
         assert status["state"] == "stopped" and status["message"] == f"{source} emergency stop"
         assert _dashboard(fake_ur.host, *STATE_QUERIES)[:3] == [
             "Robotmode: POWER_OFF",
@@ -489,8 +489,8 @@ def test_a_protective_stop_or_an_emergency_stop_stops_a_running_program(fake_ur)
             "Brake releasing",
             "Robotmode: RUNNING",
         ]
-        t0 = fake_ur.send_program(program)
-        fake_ur.wait_program(t0, running=True)
+        before = fake_ur.send_program(program)
+        fake_ur.wait_program(before, running=True)
     assert _dashboard(fake_ur.host, "stop", "programState") == ["Stopped", "STOPPED slow"]
     assert fake_ur.control("program_status")["message"] == "stopped from the dashboard"
 

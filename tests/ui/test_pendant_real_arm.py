@@ -122,10 +122,12 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             expect(other.locator("#run-form .job-state")).to_contain_text("running")
             expect(other.get_by_role("button", name="Run on arm")).to_be_disabled()
 
-        # Mid-path (half of the job's progress), Escape stops the arm.
+        # Mid-path, Escape stops the arm: a fifth of the way in, so that a loaded machine (two
+        # shared cores, the fake controller in real time beside the browser) still has 16 s of
+        # the 20 s run left for the stop to land.
         deadline = time.monotonic() + 120
-        while _progress(page, "#run-form") < 0.5:
-            assert time.monotonic() < deadline, "the run did not get half way"
+        while _progress(page, "#run-form") < 0.2:
+            assert time.monotonic() < deadline, "the run did not get a fifth of the way"
             time.sleep(0.05)
         assert np.abs(_joints(fake) - q_before).max() > 1e-3  # the arm has moved
         pendant.shot("running")

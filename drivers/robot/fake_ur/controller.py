@@ -246,6 +246,7 @@ class FakeController:
         # A standalone URScript program and what became of the last program of either kind.
         self.runner: urscript.Runner | None = None
         self.run: urscript.RunState | None = None
+        self.programs_received = 0  # numbers the runs, see _new_run
         self.trace = Trace()
         self._trace_until: float | None = None  # recording ends then (None: while running)
         self._pose_cache: tuple[bytes, list[float]] = (b"", [])
@@ -418,7 +419,7 @@ class FakeController:
             self.script = info
             self.program_name = name
             self.runner = None
-            self.run = urscript.RunState(started_s=self.t_s)
+            self.run = self._new_run()
             if compile_error is not None:
                 message = f"Compile error: {compile_error}"
                 log.warning("program %s not started: %s", name, message)
@@ -455,9 +456,13 @@ class FakeController:
 
     def _refused(self, name: str, reason: str) -> None:
         log.warning("program %s refused: %s", name, reason)
-        self.run = urscript.RunState(
-            state="refused", message=reason, started_s=self.t_s, ended_s=self.t_s
-        )
+        self.run = self._new_run(state="refused", message=reason, ended_s=self.t_s)
+
+    def _new_run(self, **fields) -> urscript.RunState:
+        """The state of the next program, numbered: the controller clock moves in whole
+        periods, so two programs (a refused one and the next) can share a start time."""
+        self.programs_received += 1
+        return urscript.RunState(number=self.programs_received, started_s=self.t_s, **fields)
 
     def restart_program(self) -> bool:
         """The dashboard's ``play``: run the last standalone program again from its start, or
@@ -472,7 +477,7 @@ class FakeController:
             if program is None:
                 return False
             self.stop_program("restarted")
-            self.run = urscript.RunState(started_s=self.t_s)
+            self.run = self._new_run()
             self.runner = urscript.Runner(program, self, status=self.run)
             self.trace = Trace()
             self._trace_until = None

@@ -421,7 +421,8 @@ def program_status(c: ctl.FakeController) -> dict:
     ``{"state": "none" | "running" | "finished" | "error" | "stopped" | "refused",
     "kind": "urscript" | "rtde_control" | null, "name": str, "line": int | null (the line
     running, or where it failed / stopped), "message": str | null (the error, or why it
-    stopped / was refused), "started_s", "ended_s": controller time (s) | null,
+    stopped / was refused), "number": the how-manyth program this is (0: none yet),
+    "started_s", "ended_s": controller time (s) | null,
     "statements": int, "executed": int (statements run), "trace_samples": int,
     "q_rad": [6], "tcp_pose": [6] (now), "messages": [str] (the last textmsg / errors)}``
     """
@@ -438,6 +439,7 @@ def program_status(c: ctl.FakeController) -> dict:
         "name": c.program_name,
         "line": line,
         "message": run.message if run is not None else None,
+        "number": run.number if run is not None else 0,
         "started_s": run.started_s if run is not None else None,
         "ended_s": run.ended_s if run is not None else None,
         "statements": len(c.runner.program.statements) if c.runner is not None else 0,

@@ -643,7 +643,8 @@ class _MoveArgs:
 class RunState:
     """Where a program is (for the control channel's ``program_status``)."""
 
-    state: str = "running"  # running | finished | error | stopped
+    state: str = "running"  # running | finished | error | stopped | refused
+    number: int = 0  # the how-manyth program the controller received (1 = the first)
     line: int | None = None
     message: str | None = None
     started_s: float = 0.0
