@@ -18,7 +18,7 @@ demo: setup
 	$(BIN)/teachpath demo --out-dir $(OUT)
 
 test: setup
-	$(BIN)/python -m pytest -q -p no:cacheprovider tests --ignore=tests/bench
+	$(BIN)/python -m pytest -q -p no:cacheprovider --durations=25 tests --ignore=tests/bench
 
 # Speed and accuracy tables; never part of `make test` (timings on a shared machine are noisy).
 bench: setup
