@@ -530,6 +530,9 @@ MIN_WRIST_SINGULARITY = 0.02
 MIN_ELBOW_SINGULARITY = 0.02
 #: Smallest distance of the wrist centre from the shoulder-singular cylinder, metres.
 MIN_SHOULDER_MARGIN_M = 0.005
+#: Branch scores and start distances are compared to this many decimals (rad or sin), so that
+#: rounding noise never picks between two equally good branches.
+SCORE_DECIMALS = 9
 #: Largest change of any joint between neighbouring waypoints (they are a few mm apart): more
 #: means the branch flipped through a singularity.
 MAX_JOINT_STEP_RAD = 0.35
@@ -626,9 +629,21 @@ def follow_path(
             "change the tool orientation, or choose another arm"
         )
     if q_near_rad is not None:
-        branch, q, margin, wrist, elbow, _, _ = min(candidates, key=lambda c: c[6])
+        branch, q, margin, wrist, elbow, _, _ = min(
+            candidates, key=lambda c: (round(c[6], SCORE_DECIMALS), c[0])
+        )
     else:
-        branch, q, margin, wrist, elbow, _, _ = max(candidates, key=lambda c: c[5])
+        # Mirror-image branches score the same up to rounding (the elbow-up and elbow-down
+        # solutions of a pose have the same margins), so the last bits must not decide: equal
+        # scores prefer the elbow up, then the lowest branch number.
+        branch, q, margin, wrist, elbow, _, _ = max(
+            candidates,
+            key=lambda c: (
+                round(c[5], SCORE_DECIMALS),
+                configuration_of(arm, c[1][0]).elbow == "up",
+                -c[0],
+            ),
+        )
     return JointPath(
         q_rad=q,
         branch=branch,

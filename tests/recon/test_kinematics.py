@@ -118,6 +118,22 @@ def test_the_nearest_branch_to_the_current_joints_is_kept():
             assert diff < 1e-9
 
 
+@pytest.mark.parametrize("y_m", [-0.25, -0.1, 0.0, 0.15])
+def test_equally_good_branches_are_told_apart_by_the_elbow_not_by_rounding(y_m):
+    """Elbow-up and elbow-down solutions of a pose have the same margins; which one is kept must
+    not depend on the last bits of the arithmetic (a numpy upgrade flipped it once)."""
+    from recon.kinematics import configuration_of
+
+    arm = model("ur5e")
+    poses = _line_poses([0.45, y_m, 0.15], [0.45, y_m + 0.1, 0.15], 40)
+    path = follow_path(arm, poses)
+    assert configuration_of(arm, path.q_rad[0]).elbow == "up"
+    # Rounding noise below the comparison's precision does not change the choice.
+    nudged = poses.copy()
+    nudged[:, :3, 3] += 1e-13
+    assert follow_path(arm, nudged).branch == path.branch
+
+
 @pytest.mark.parametrize("name", MODELS)
 def test_joint_frames_end_at_the_flange_and_put_each_joint_axis_on_z(name):
     from recon.kinematics import joint_frames
