@@ -6,8 +6,9 @@
 #      `npm ci --ignore-scripts`, copied into service/ui/vendor/ (scripts/vendor-ui.sh);
 #   4. Debian's curl and jq, for the README's REST walk-through (a test runs it);
 #   5. Debian's chromium, which the pendant's browser tests (tests/ui, Playwright) drive.
-# The stamp file .venv/.installed records the pyproject.toml it was installed from, so a changed
-# dependency list triggers a re-install and an unchanged one costs nothing.
+# The stamp file .venv/.installed records the pyproject.toml and constraints.txt (the exact versions)
+# it was installed from, so a changed dependency list triggers a re-install and an unchanged one
+# costs nothing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -68,7 +69,7 @@ if ! command -v chromium >/dev/null; then
     apt_install --no-install-recommends chromium fonts-liberation
 fi
 
-want=$(sha256sum pyproject.toml | cut -d' ' -f1)
+want=$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)
 if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ]; then
     exit 0
 fi
@@ -91,5 +92,5 @@ quiet_pip() {
     rm -f "$log"
 }
 quiet_pip install -q --upgrade pip
-quiet_pip install -q -e '.[dev]'
+quiet_pip install -q -c constraints.txt -e '.[dev]'
 echo "$want" > "$STAMP"
