@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from recon.edge_lines import fit_edge_lines
+from recon.edge_lines import EdgeLineFit, fit_edge_lines
 from recon.features import ScanFeatures
 from recon.types import FloatArray
 
@@ -68,6 +68,69 @@ def _every(path_m: FloatArray, spacing_m: float) -> FloatArray:
     return path_m[np.clip(index, 0, len(path_m) - 1)]
 
 
+def _beyond_ends(path_m: FloatArray, spacing_m: float, reach_m: float) -> FloatArray:
+    """Points past both ends of a path, along its end directions, every ``spacing_m`` up to
+    ``reach_m`` (the directions from the last ``reach_m`` of the path, where there is that much).
+
+    Returns
+    -------
+    ndarray of shape (Q, 3)
+        Empty for a path shorter than two points.
+    """
+    if len(path_m) < 2 or reach_m <= 0:
+        return np.zeros((0, 3))
+    arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(path_m, axis=0), axis=1))))
+    steps = np.arange(spacing_m, reach_m + 1e-12, spacing_m)
+    out = []
+    for end, inner in (
+        (0, np.searchsorted(arc, min(reach_m, arc[-1]))),
+        (len(path_m) - 1, np.searchsorted(arc, max(arc[-1] - reach_m, 0.0))),
+    ):
+        inner = int(np.clip(inner, 0, len(path_m) - 1))
+        direction = path_m[end] - path_m[inner]
+        norm = np.linalg.norm(direction)
+        if norm > 1e-9:
+            out.append(path_m[end] + np.outer(steps, direction / norm))
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+#: Where a fit in the full ball fails, one in a ball this much smaller is tried.
+SMALL_BALL_FRACTION = 0.5
+
+
+def _fit_and_judge(queries, features, radius_m, trees, *, typical):
+    """Edge-line fits at the queries, and which to keep: well-posed, near their query, and (a fit
+    spanning three faces near a box corner has a large residual) not much worse than typical
+    (the median of the kept ones, unless given)."""
+    fit = fit_edge_lines(queries, features, radius_m=radius_m, trees=trees)
+    moved = np.linalg.norm(fit.points_m - queries, axis=1)
+    keep = fit.ok & (moved <= 0.5 * radius_m)
+    if np.any(keep):
+        if typical is None:
+            typical = float(np.median(fit.residual_m[keep]))
+        keep &= fit.residual_m <= 2.0 * typical + 1e-6
+    return fit, keep
+
+
+def _with_rows(fit: EdgeLineFit, rows, other: EdgeLineFit, other_keep) -> EdgeLineFit:
+    """``fit`` with the kept ones of ``other`` in place of ``rows``."""
+    take = rows[other_keep]
+    arrays = {}
+    for name in (
+        "points_m",
+        "directions",
+        "residual_m",
+        "n_points",
+        "dihedral_deg",
+        "ok",
+        "bisector",
+    ):
+        values = getattr(fit, name).copy()
+        values[take] = getattr(other, name)[other_keep]
+        arrays[name] = values
+    return EdgeLineFit(**arrays)
+
+
 def thin_edges(
     features: ScanFeatures,
     near_m: FloatArray,
@@ -76,6 +139,7 @@ def thin_edges(
     query_spacing_m: float,
     sample_spacing_m: float,
     trees: tuple[cKDTree, cKDTree] | None = None,
+    beyond_ends_m: float = 0.0,
 ) -> EdgePoints:
     """Thin the band of edge points to the edge itself, along a path that follows it.
 
@@ -100,6 +164,11 @@ def thin_edges(
         Spacing of the returned points along each local line.
     trees : (cKDTree, cKDTree), optional
         Trees over the voxel and dense clouds, to reuse (see :func:`fit_edge_lines`).
+    beyond_ends_m : float
+        Fits are also made this far past both ends of ``near_m``, along its end directions: an
+        edge usually runs on past where an operator starts and stops, and a point near the end
+        of the path then has the edge on both sides of it, as every other point has (rather
+        than a fit extrapolated past its data). Where the edge ends, these fits find none.
 
     Returns
     -------
@@ -109,7 +178,10 @@ def thin_edges(
     empty = EdgePoints.empty()
     if not np.any(features.is_edge) or len(near_m) == 0:
         return empty
-    queries = _every(np.asarray(near_m, np.float64), query_spacing_m)
+    near_m = np.asarray(near_m, np.float64)
+    queries = np.concatenate(
+        [_every(near_m, query_spacing_m), _beyond_ends(near_m, query_spacing_m, beyond_ends_m)]
+    )
     # Only where the band of edge points is within half a ball: elsewhere the ball would reach a
     # distant edge, or none.
     band = features.points_m[features.is_edge]
@@ -117,15 +189,19 @@ def thin_edges(
     queries = queries[np.isfinite(band_dist)]
     if len(queries) == 0:
         return empty
-    fit = fit_edge_lines(queries, features, radius_m=radius_m, trees=trees)
-    moved = np.linalg.norm(fit.points_m - queries, axis=1)
-    keep = fit.ok & (moved <= 0.5 * radius_m)
-    if np.any(keep):
-        # A fit spanning three faces (near a box corner) has a large residual: drop the worst.
-        typical = np.median(fit.residual_m[keep])
-        keep &= fit.residual_m <= 2.0 * typical + 1e-6
+    fit, keep = _fit_and_judge(queries, features, radius_m, trees, typical=None)
     if not np.any(keep):
         return empty
+    # Where the edge bends tightly (a rounded corner of 15 mm radius) a ball of the full radius
+    # holds no two flat faces and its fit is dropped; a ball half as wide often does.
+    retry = ~keep
+    if np.any(retry):
+        typical = float(np.median(fit.residual_m[keep]))
+        small, small_keep = _fit_and_judge(
+            queries[retry], features, SMALL_BALL_FRACTION * radius_m, trees, typical=typical
+        )
+        fit = _with_rows(fit, np.flatnonzero(retry), small, small_keep)
+        keep[retry] = small_keep
     half = 0.5 * query_spacing_m
     offsets = np.arange(-half, half + 1e-12, sample_spacing_m)
     centres, directions = fit.points_m[keep], fit.directions[keep]

@@ -29,6 +29,11 @@ class RegistrationError(ReconError):
     """Registration (ICP) of the path to the scan did not produce a trustworthy transform."""
 
 
+class TouchesInsufficientError(RegistrationError):
+    """Touches of the workpiece that leave free a motion the traced feature needs fixed (all on
+    one face for a path along an edge, say); the message names the motion and where to touch."""
+
+
 class PoorFitError(ReconError):
     """A calibration fit is worse than its tolerance (pairs that disagree, a pivot that
     wandered). Refused unless the caller accepts a poor fit; ``detail`` holds the figures."""

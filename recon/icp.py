@@ -204,24 +204,13 @@ class _Problem:
         rmse = float(np.sqrt(np.mean(size[inlier] ** 2)))
         sigma = 1.4826 * float(np.median(size))
         median_pair = float(np.median(dist[paired]))
-        # The motion x -> x + (omega x (x - c)) + t, with omega scaled by the pairs' extent so
-        # that all six unknowns are in metres and the eigenvalues compare.
-        centre = points[inlier].mean(axis=0)
-        length = max(float(np.linalg.norm(np.ptp(points[inlier], axis=0))), 1e-3)
-        arm = (points - centre) / length
-        jacobian = np.concatenate([np.cross(arm[:, None, :], axes), axes], axis=2)  # (P, A, 6)
+        motion = RigidMotion.around(points[inlier])
+        jacobian = motion.jacobian(points, axes)
         info = np.einsum("p,pai,paj->ij", weight, jacobian, jacobian)
-        values, vectors = np.linalg.eigh(info)
-        keep = values > DEGENERACY_RATIO * values.max()
         gradient = np.einsum("p,pai,pa->i", weight, jacobian, residual)
-        basis = vectors[:, keep]
-        twist = -basis @ ((basis.T @ gradient) / values[keep])
-        delta = np.eye(4)
-        R = Rotation.from_rotvec(twist[:3] / length).as_matrix()
-        delta[:3, :3] = R
-        delta[:3, 3] = centre + twist[3:] - R @ centre
+        twist, keep = solve_constrained(info, gradient)
         return _Step(
-            delta @ T,
+            motion.transform(twist) @ T,
             rmse,
             n_inliers,
             sigma,
@@ -229,6 +218,92 @@ class _Problem:
             int(np.count_nonzero(keep)),
             float(np.linalg.norm(twist)),
         )
+
+
+@dataclass(frozen=True)
+class RigidMotion:
+    """Small rigid motions ``x -> x + omega x (x - c) + t`` as a twist ``(L omega, t)``.
+
+    Scaling the rotation by a length L (the extent of the points that constrain it) puts all six
+    unknowns in metres, so that the eigenvalues of an information matrix compare and one ratio
+    tells a free motion from a fixed one.
+
+    Attributes
+    ----------
+    centre_m : ndarray of shape (3,)
+        c, the point rotations turn about.
+    length_m : float
+        L.
+    """
+
+    centre_m: FloatArray
+    length_m: float
+
+    @classmethod
+    def around(cls, points_m: FloatArray) -> RigidMotion:
+        """Centred on the points' mean, scaled by their extent (at least a millimetre)."""
+        points_m = np.asarray(points_m, dtype=np.float64)
+        length = max(float(np.linalg.norm(np.ptp(points_m, axis=0))), 1e-3)
+        return cls(points_m.mean(axis=0), length)
+
+    def jacobian(self, points_m: FloatArray, axes: FloatArray) -> FloatArray:
+        """Derivatives of residuals ``axes . x`` with respect to the twist.
+
+        Parameters
+        ----------
+        points_m : ndarray of shape (P, 3)
+        axes : ndarray of shape (P, A, 3)
+            The directions each point's residuals are measured along (a normal; two directions
+            across an edge; the three axes).
+
+        Returns
+        -------
+        ndarray of shape (P, A, 6)
+        """
+        arm = (points_m - self.centre_m) / self.length_m
+        return np.concatenate([np.cross(arm[:, None, :], axes), axes], axis=2)
+
+    def transform(self, twist: FloatArray) -> FloatArray:
+        """The 4x4 transform of a twist (exact rotation, so it stays rigid)."""
+        delta = np.eye(4)
+        R = Rotation.from_rotvec(twist[:3] / self.length_m).as_matrix()
+        delta[:3, :3] = R
+        delta[:3, 3] = self.centre_m + twist[3:] - R @ self.centre_m
+        return delta
+
+    def describe(self, direction: FloatArray) -> str:
+        """A twist direction in words: turning about an axis, or sliding along a direction."""
+        rotation, translation = direction[:3], direction[3:]
+        if np.linalg.norm(rotation) >= np.linalg.norm(translation):
+            x, y, z = rotation / np.linalg.norm(rotation)
+            return f"turning about ({x:.2f}, {y:.2f}, {z:.2f})"
+        x, y, z = translation / np.linalg.norm(translation)
+        return f"sliding along ({x:.2f}, {y:.2f}, {z:.2f})"
+
+
+def solve_constrained(info: FloatArray, gradient: FloatArray) -> tuple[FloatArray, np.ndarray]:
+    """One Gauss-Newton step restricted to the motions the information fixes.
+
+    Parameters
+    ----------
+    info : ndarray of shape (6, 6)
+        ``J^T W J``.
+    gradient : ndarray of shape (6,)
+        ``J^T W r``.
+
+    Returns
+    -------
+    twist : ndarray of shape (6,)
+        Zero along every eigen-direction of ``info`` with less than :data:`DEGENERACY_RATIO` of
+        its largest eigenvalue (left as the initial guess had it).
+    fixed : ndarray of shape (6,), bool
+        Which eigen-directions (of ``numpy.linalg.eigh(info)``) were fixed.
+    """
+    values, vectors = np.linalg.eigh(info)
+    fixed = values > DEGENERACY_RATIO * max(values.max(), 1e-300)
+    basis = vectors[:, fixed]
+    twist = -basis @ ((basis.T @ gradient) / values[fixed])
+    return twist, fixed
 
 
 def _across(directions: FloatArray) -> FloatArray:

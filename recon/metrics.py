@@ -65,6 +65,70 @@ def error_stats(points_m: FloatArray, truth_m: FloatArray) -> ErrorStats:
     )
 
 
+#: The stretch at each end of a path whose errors are reported apart (where a tool meets the
+#: workpiece first and leaves it last).
+END_STRETCH_M = 0.010
+
+
+@dataclass(frozen=True)
+class PathScore:
+    """Errors of a path against ground truth, with its two ends apart, metres.
+
+    Attributes
+    ----------
+    mean_m, p99_m, max_m : float
+        Over every point.
+    start_max_m, end_max_m : float
+        Largest error of the points whose nearest true point lies within :data:`END_STRETCH_M` of
+        the start (end) of the true curve; NaN when none does.
+    """
+
+    mean_m: float
+    p99_m: float
+    max_m: float
+    start_max_m: float
+    end_max_m: float
+
+    @property
+    def ends_max_m(self) -> float:
+        """The larger of the two ends' maxima."""
+        return float(np.nanmax([self.start_max_m, self.end_max_m]))
+
+
+def score_path(points_m: FloatArray, truth_m: FloatArray, *, ends_m: float = END_STRETCH_M):
+    """:class:`PathScore` of ``points_m`` against the true curve ``truth_m`` (both ordered).
+
+    A point beyond an end of the true curve is as far off as it is from that end: a tool that
+    runs on past where the feature ends has an error there too.
+
+    Parameters
+    ----------
+    points_m : ndarray of shape (N, 3)
+    truth_m : ndarray of shape (G, 3)
+    ends_m : float
+        Length of each end's stretch, along the true curve.
+
+    Returns
+    -------
+    PathScore
+    """
+    dense = resample_equidistant(truth_m, spacing_m=TRUTH_SPACING_M)
+    distance, index = cKDTree(dense.points_m).query(points_m, workers=-1)
+    arc = dense.arc_length_m[index]
+    length = dense.arc_length_m[-1]
+
+    def end_max(mask):
+        return float(distance[mask].max()) if np.any(mask) else float("nan")
+
+    return PathScore(
+        mean_m=float(distance.mean()),
+        p99_m=float(np.percentile(distance, 99)),
+        max_m=float(distance.max()),
+        start_max_m=end_max(arc <= ends_m),
+        end_max_m=end_max(arc >= length - ends_m),
+    )
+
+
 def savitzky_golay(points_m: FloatArray, *, window_points: int, order: int = 2) -> FloatArray:
     """Per-axis Savitzky-Golay smoothing of an equidistant path (the classic baseline).
 

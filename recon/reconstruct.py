@@ -13,22 +13,33 @@ The result carries the transform and the scan model it used, so that planning re
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from recon.classify import PATH_ONLY, SegmentKind, classify_segments
-from recon.errors import DegenerateInputError, UnitsMismatchError
+from recon.corners import (
+    Candidate,
+    Corner,
+    confirm_with_scan,
+    find_candidates,
+    judge_without_scan,
+    lines_to_edge_samples,
+)
+from recon.errors import DegenerateInputError, TouchesInsufficientError, UnitsMismatchError
+from recon.icp import RigidMotion
 from recon.methods.anchored import anchored_segment
 from recon.methods.common import SegmentResult
 from recon.methods.paper import paper_segment
-from recon.registration import register_to_model
+from recon.registration import feature_information, register_to_model
 from recon.resample import ResampledPath, resample_equidistant
 from recon.scan_model import ScanModel, build_scan_model
-from recon.segment import find_corners, split_at
+from recon.segment import split_at
+from recon.touches import TouchRegistration, motions_missing
 from recon.transforms import apply_transform, check_rigid, invert_transform
 from recon.types import (
+    CornerReport,
     FloatArray,
     Method,
     ReconParams,
@@ -77,18 +88,45 @@ def check_scales(path_m: FloatArray, scan_m: FloatArray | None) -> None:
 
 @dataclass(frozen=True)
 class SegmentPlan:
-    """The resampled path, its segments (``[start, stop)``, sharing corners, never spanning two
-    pieces of the trace), N_P's half-width in points, and the piece of each resampled point."""
+    """The resampled path, where it may turn a corner, and its segments.
+
+    Attributes
+    ----------
+    resampled : ResampledPath
+    bounds : list of (start, stop)
+        Segments split at every corner candidate (``[start, stop)``, sharing corners, never
+        spanning two pieces of the trace): what registration classifies before the corners are
+        judged.
+    half_width : int
+        N_P's half-width in points.
+    piece : ndarray of shape (N,), int
+        The piece of each resampled point.
+    piece_bounds : list of (start, stop)
+        Each piece's points.
+    candidates : list of Candidate
+        Where the trace turns sharply (indices into ``resampled``).
+    """
 
     resampled: ResampledPath
     bounds: list[tuple[int, int]]
     half_width: int
     piece: NDArray[np.int64]
+    piece_bounds: list[tuple[int, int]]
+    candidates: list[Candidate]
+
+    def split(self, corners: list[int]) -> list[tuple[int, int]]:
+        """The pieces split at the given corner indices."""
+        bounds = []
+        for start, stop in self.piece_bounds:
+            inside = np.array([c - start for c in corners if start < c < stop - 1], np.int64)
+            bounds += [(start + a, start + b) for a, b in split_at(stop - start, inside)]
+        return bounds
 
 
 def plan_segments(recording: Recording, params: ReconParams) -> SegmentPlan:
-    """Algorithm 1's path part: resample equidistantly and split at corners, piece by piece
-    (the stretch between two pieces was not traced: nothing is resampled across it).
+    """Algorithm 1's path part: resample equidistantly and find where the trace turns sharply,
+    piece by piece (the stretch between two pieces was not traced: nothing is resampled across
+    it).
 
     Raises
     ------
@@ -100,24 +138,29 @@ def plan_segments(recording: Recording, params: ReconParams) -> SegmentPlan:
         _resample(piece, params, "the path" if len(pieces) == 1 else f"piece {k} of the path")
         for k, piece in enumerate(pieces)
     ]
-    bounds: list[tuple[int, int]] = []
+    candidates: list[Candidate] = []
+    piece_bounds: list[tuple[int, int]] = []
     offset = 0
     for part in parts:
-        corners = find_corners(
+        found = find_candidates(
             part.points_m,
             spacing_m=part.spacing_m,
             angle_deg=params.corner_angle_deg,
             scale_m=params.corner_scale_m,
         )
-        bounds += [(offset + a, offset + b) for a, b in split_at(len(part.points_m), corners)]
+        candidates += [replace(c, index=c.index + offset) for c in found]
+        piece_bounds.append((offset, offset + len(part.points_m)))
         offset += len(part.points_m)
     resampled = parts[0] if len(parts) == 1 else _joined(parts)
-    return SegmentPlan(
+    plan = SegmentPlan(
         resampled=resampled,
-        bounds=bounds,
+        bounds=[],
         half_width=max(1, int(round(params.radius_m / resampled.spacing_m))),
         piece=np.repeat(np.arange(len(parts)), [len(p.points_m) for p in parts]),
+        piece_bounds=piece_bounds,
+        candidates=candidates,
     )
+    return replace(plan, bounds=plan.split([c.index for c in candidates]))
 
 
 def _resample(recording: Recording, params: ReconParams, label: str) -> ResampledPath:
@@ -164,6 +207,7 @@ def reconstruct(
     *,
     params: ReconParams | None = None,
     T_scan_tracker_init: FloatArray | None = None,
+    touches: TouchRegistration | None = None,
 ) -> Reconstruction:
     """Reconstruct a traced path, using the scan's structure where there is one.
 
@@ -179,6 +223,10 @@ def reconstruct(
     T_scan_tracker_init : ndarray of shape (4, 4), optional
         Known or approximate transform from tracker to scan frame (a stored calibration);
         identity if not given. Registration refines it unless ``params.register`` is False.
+    touches : TouchRegistration, optional
+        The scanner registered by touching the workpiece (:mod:`recon.touches`): its transform
+        is used as it is (the trace is not registered, so its drift stays out of the transform),
+        after checking that the touches fix every motion the traced features need.
 
     Returns
     -------
@@ -192,6 +240,8 @@ def reconstruct(
         Malformed arguments.
     DegenerateInputError, NoOverlapError, UnitsMismatchError, RegistrationError
         See :mod:`recon.errors`.
+    TouchesInsufficientError
+        The touches leave free a motion the traced features need fixed.
     """
     params = params or ReconParams()
     recording = path if isinstance(path, Recording) else Recording(points_m=path)
@@ -204,16 +254,26 @@ def reconstruct(
     registration: Registration | None = None
     model: ScanModel | None = None
     T_scan_tracker: FloatArray | None = None
-    if scan is not None and params.uses_scan:
+    if scan is not None and params.uses_scan and touches is not None:
+        model = build_scan_model(scan, apply_transform(touches.T_scan_tracker, points), params)
+        registration = touch_registration(
+            points, touches, model, bounds, params, T_scan_tracker_init=T_scan_tracker_init
+        )
+        T_scan_tracker = registration.T_scan_tracker
+    elif scan is not None and params.uses_scan:
         prepared = prepare_scan_model(
             points, scan, bounds, params, T_scan_tracker_init=T_scan_tracker_init
         )
         model, T_scan_tracker = prepared.model, prepared.T_scan_tracker
         registration = prepared.registration
-        work_points = apply_transform(T_scan_tracker, points)
+    work_points = points if T_scan_tracker is None else apply_transform(T_scan_tracker, points)
+
+    corners = judge_corners(plan, work_points, model, params)
+    bounds = plan.split([c.index for c in corners if c.split])
+    if model is not None:
+        model = with_corner_edges(model, corners)
         classes = classify_segments(work_points, bounds, model, params)
     else:
-        work_points = points
         classes = [PATH_ONLY] * len(bounds)
 
     results = []
@@ -232,10 +292,19 @@ def reconstruct(
         results.append(method(seg_points, kind, model, params, half_width))
         if kind == SegmentKind.PATH and model is not None:
             notes.append(f"segment {len(segments) - 1} has no scan near it: path only")
+    join_at_corners(
+        bounds, results, corners, work_points, spacing_m=resampled.spacing_m, beta=params.beta
+    )
     if T_scan_tracker is not None:
         T_tracker_scan = invert_transform(T_scan_tracker)
         for result in results:
             result.points = apply_transform(T_tracker_scan, result.points)
+        corners = [
+            c
+            if c.point_m is None
+            else replace(c, point_m=apply_transform(T_tracker_scan, c.point_m[None])[0])
+            for c in corners
+        ]
 
     return _assemble(
         resampled,
@@ -248,7 +317,240 @@ def reconstruct(
         T_scan_tracker=T_scan_tracker,
         scan_model=model,
         piece=plan.piece,
+        corners=corners,
     )
+
+
+def judge_corners(
+    plan: SegmentPlan, points_m: FloatArray, model: ScanModel | None, params: ReconParams
+) -> list[Corner]:
+    """Each corner candidate judged: by the scan's edges where it has some there, else by its
+    sharpness (see :mod:`recon.corners`).
+
+    Parameters
+    ----------
+    plan : SegmentPlan
+    points_m : ndarray of shape (N, 3)
+        The resampled trace, in the scan frame when there is a model.
+    model : ScanModel or None
+    params : ReconParams
+
+    Returns
+    -------
+    list of Corner
+        One per candidate, in path order.
+    """
+    arc = plan.resampled.arc_length_m
+    out = []
+    for candidate in plan.candidates:
+        judged = None
+        if model is not None:
+            judged = confirm_with_scan(
+                points_m,
+                arc,
+                candidate,
+                model.edges.points_m,
+                model.edge_tree,
+                edge_directions=model.edges.directions,
+                angle_deg=params.corner_angle_deg,
+            )
+        if judged is None:
+            judged = judge_without_scan(candidate, angle_deg=params.corner_angle_deg)
+        out.append(judged)
+    return out
+
+
+def with_corner_edges(model: ScanModel, corners: list[Corner]) -> ScanModel:
+    """The model with the scan's confirmed corners' edge lines sampled up to the corners.
+
+    Near a corner the edge fits span three faces and are left out of the thinned edge, which
+    would leave each segment's last stretch to extrapolate; the two edge lines that met there
+    fill it, so both segments follow their edge to where the edges meet.
+    """
+    confirmed = [c for c in corners if c.split and c.point_m is not None]
+    if not confirmed:
+        return model
+    extra = [
+        lines_to_edge_samples(
+            c, reach_m=model.edge_fit_radius_m, spacing_m=model.edge_sample_spacing_m
+        )
+        for c in confirmed
+    ]
+    # The scan's own samples near a corner come from balls that reach both legs; the lines,
+    # fitted farther out, are the better account of the edge there.
+    near_corner = np.zeros(len(model.edges), dtype=bool)
+    if len(model.edges):
+        for corner in confirmed:
+            near_corner |= (
+                np.linalg.norm(model.edges.points_m - corner.point_m, axis=1)
+                < CORNER_CLEAR_FRACTION * model.edge_fit_radius_m
+            )
+    return model.with_extra_edges(
+        np.concatenate([p for p, _ in extra]),
+        np.concatenate([d for _, d in extra]),
+        drop=near_corner,
+    )
+
+
+#: The scan's own edge samples this close to a confirmed corner (as a share of the edge-fit
+#: ball's radius) give way to the corner's edge lines.
+CORNER_CLEAR_FRACTION = 0.75
+
+
+#: Without a scan, a corner is where the lines fitted to this much of each segment's end meet.
+CORNER_LINE_M = 0.008
+
+
+def join_at_corners(
+    bounds: list[tuple[int, int]],
+    results: list[SegmentResult],
+    corners: list[Corner],
+    input_points_m: FloatArray,
+    *,
+    spacing_m: float,
+    beta: float,
+) -> None:
+    """Make neighbouring segments end on one point at each corner (in place).
+
+    At a corner the scan confirmed, both end where the scan's edge lines meet. Elsewhere both end
+    where lines fitted to their last :data:`CORNER_LINE_M` meet (the mean of the two ends if
+    those lines do not come within a millimetre of each other). As every other point, the corner
+    moves by ``beta`` of the way from the trace to there.
+
+    Parameters
+    ----------
+    bounds : list of (start, stop)
+    results : list of SegmentResult
+        One per segment, ``points`` in the frame of ``input_points_m``.
+    corners : list of Corner
+    input_points_m : ndarray of shape (N, 3)
+        The resampled trace.
+    spacing_m : float
+    beta : float
+    """
+    by_index = {c.index: c for c in corners if c.split}
+    k = max(2, int(round(CORNER_LINE_M / spacing_m)))
+    for left, right, (_, stop) in zip(results[:-1], results[1:], bounds[:-1], strict=True):
+        corner = by_index.get(stop - 1)
+        if corner is None:
+            continue  # two pieces of the trace, not a corner: nothing to join
+        if corner.point_m is not None:
+            target = corner.point_m
+        else:
+            # Lines through where the segments went (undoing beta, which is applied below).
+            traced = input_points_m[stop - k : stop + k - 1]
+            full_left = traced[:k] + (left.points[-k:] - traced[:k]) / max(beta, 1e-12)
+            full_right = traced[k - 1 :] + (right.points[:k] - traced[k - 1 :]) / max(beta, 1e-12)
+            target = _meeting_point(full_left, full_right)
+        trace_point = input_points_m[stop - 1]
+        point = trace_point + beta * (target - trace_point)
+        left.points[-1] = point
+        right.points[0] = point
+
+
+def _meeting_point(before: FloatArray, after: FloatArray) -> FloatArray:
+    """Where lines through two point runs meet (the mean of their facing ends if they do not)."""
+    fallback = 0.5 * (before[-1] + after[0])
+    lines = []
+    for run in (before, after):
+        centre = run.mean(axis=0)
+        _, _, vt = np.linalg.svd(run - centre)
+        lines.append((centre, vt[0]))
+    (pa, da), (pb, db) = lines
+    w = pa - pb
+    ab = da @ db
+    det = 1.0 - ab * ab
+    if det < 1e-6:
+        return fallback
+    s = (ab * (db @ w) - (da @ w)) / det
+    t = ((db @ w) - ab * (da @ w)) / det
+    qa, qb = pa + s * da, pb + t * db
+    if np.linalg.norm(qa - qb) > 1e-3 or np.linalg.norm(0.5 * (qa + qb) - fallback) > 5e-3:
+        return fallback
+    return 0.5 * (qa + qb)
+
+
+def touch_registration(
+    points_tracker_m: FloatArray,
+    touches: TouchRegistration,
+    model: ScanModel,
+    bounds: list[tuple[int, int]],
+    params: ReconParams,
+    *,
+    T_scan_tracker_init: FloatArray | None = None,
+) -> Registration:
+    """The touches' transform as the reconstruction's registration, once it is checked to fix
+    every motion the trace's features need.
+
+    Parameters
+    ----------
+    points_tracker_m : ndarray of shape (N, 3)
+        The resampled trace, tracker frame.
+    touches : TouchRegistration
+    model : ScanModel
+        Built around the trace placed by the touches.
+    bounds : list of (start, stop)
+    params : ReconParams
+    T_scan_tracker_init : ndarray of shape (4, 4), optional
+        Where the path was before (identity if not given), to say how far the touches moved it.
+
+    Returns
+    -------
+    Registration
+        Target ``"touches"``; ``rmse_m`` and ``n_pairs`` of the touches used.
+
+    Raises
+    ------
+    TouchesInsufficientError
+        A motion the trace's features need is left free by the touches.
+    """
+    motion = RigidMotion.around(points_tracker_m)
+    info = feature_information(
+        points_tracker_m,
+        model,
+        bounds,
+        params,
+        T_scan_tracker=touches.T_scan_tracker,
+        motion=motion,
+    )
+    missing = motions_missing(touches, info, motion=motion)
+    if missing:
+        raise TouchesInsufficientError(
+            f"the touches fix {touches.fixed_motions} of the 6 motions and leave free "
+            f"{'; '.join(missing)}, which this trace's features need fixed: "
+            f"{touch_advice(missing)}, or reconstruct without the touches"
+        )
+    T = touches.T_scan_tracker
+    init = np.eye(4) if T_scan_tracker_init is None else check_rigid(T_scan_tracker_init)
+    moved = np.linalg.norm(
+        apply_transform(T, points_tracker_m) - apply_transform(init, points_tracker_m), axis=1
+    )
+    residual = touches.residual_m[touches.used]
+    return Registration(
+        T_scan_tracker=T,
+        rmse_m=float(np.sqrt(np.mean(residual**2))),
+        fitness=float(np.mean(touches.used)),
+        n_pairs=int(np.count_nonzero(touches.used)),
+        target="touches",
+        constrained_dof=touches.fixed_motions,
+        path_moved_mean_m=float(moved.mean()),
+        path_moved_max_m=float(moved.max()),
+        reason=f"{np.count_nonzero(touches.used)} touches of the workpiece fix "
+        f"{touches.fixed_motions} motions, every one this trace's features need"
+        + (f" ({'; '.join(touches.notes)})" if touches.notes else ""),
+    )
+
+
+def touch_advice(missing: list[str]) -> str:
+    """What to touch to fix the missing motions (see :func:`recon.touches.motions_missing`)."""
+    advice = []
+    for motion in missing:
+        if motion.startswith("sliding along"):
+            advice.append(f"touch a face that faces {motion.removeprefix('sliding ')}")
+        else:
+            axis = motion.removeprefix("turning about ")
+            advice.append(f"touch points farther apart across the axis {axis}")
+    return "; ".join(advice)
 
 
 @dataclass(frozen=True)
@@ -332,8 +634,10 @@ def _assemble(
     T_scan_tracker: FloatArray | None,
     scan_model: ScanModel | None,
     piece: NDArray[np.int64],
+    corners: list[Corner],
 ) -> Reconstruction:
-    """Concatenate segment results; a corner point shared by two segments takes the later one."""
+    """Concatenate segment results; a corner point shared by two segments takes the later one
+    (both hold the same point there, see :func:`join_at_corners`)."""
     n = len(resampled.points_m)
     points = np.empty((n, 3))
     mode = np.empty(n, np.int8)
@@ -373,4 +677,14 @@ def _assemble(
         T_scan_tracker=T_scan_tracker,
         scan_model=scan_model,
         piece=piece,
+        corners=tuple(
+            CornerReport(
+                index=c.index,
+                angle_deg=c.angle_deg,
+                split=c.split,
+                reason=c.reason,
+                point_m=None if c.point_m is None else tuple(float(v) for v in c.point_m),
+            )
+            for c in corners
+        ),
     )

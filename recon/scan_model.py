@@ -107,6 +107,53 @@ class ScanModel:
         """The voxel and dense trees, as :func:`recon.edge_lines.fit_edge_lines` takes them."""
         return self.coarse_tree, self.dense_tree
 
+    def with_extra_edges(
+        self, points_m: FloatArray, directions: FloatArray, *, drop: np.ndarray | None = None
+    ) -> ScanModel:
+        """The model with more thinned-edge samples (e.g. a corner's edge lines filled in).
+
+        Parameters
+        ----------
+        points_m, directions : ndarrays of shape (S, 3)
+            Scan frame; the samples get the residual and face count of the model's typical edge
+            sample (the median), as they come from lines fitted to those samples.
+        drop : ndarray of shape (E,), bool, optional
+            The model's own samples to leave out (those the new ones replace).
+
+        Returns
+        -------
+        ScanModel
+            A new model; its edge tree is rebuilt on first use, the others are shared.
+        """
+        edges = self.edges
+        if drop is not None and np.any(drop):
+            kept = ~np.asarray(drop, dtype=bool)
+            edges = EdgePoints(
+                points_m=edges.points_m[kept],
+                directions=edges.directions[kept],
+                residual_m=edges.residual_m[kept],
+                n_points=edges.n_points[kept],
+            )
+        residual = float(np.median(edges.residual_m)) if len(edges) else 0.0
+        count = int(np.median(edges.n_points)) if len(edges) else 0
+        grown = EdgePoints(
+            points_m=np.concatenate([edges.points_m, points_m]),
+            directions=np.concatenate([edges.directions, directions]),
+            residual_m=np.concatenate([edges.residual_m, np.full(len(points_m), residual)]),
+            n_points=np.concatenate([edges.n_points, np.full(len(points_m), count, np.int64)]),
+        )
+        model = ScanModel(
+            features=self.features,
+            edges=grown,
+            edge_fit_radius_m=self.edge_fit_radius_m,
+            edge_query_spacing_m=self.edge_query_spacing_m,
+            edge_sample_spacing_m=self.edge_sample_spacing_m,
+        )
+        for shared in ("coarse_tree", "dense_tree"):
+            if shared in self.__dict__:
+                model.__dict__[shared] = self.__dict__[shared]
+        return model
+
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The model as plain arrays (scalars as 0-d arrays), for ``np.savez`` without pickle.
 
@@ -244,6 +291,7 @@ def build_scan_model(scan: Scan, points_in_scan_m: FloatArray, params: ReconPara
         query_spacing_m=query_spacing,
         sample_spacing_m=EDGE_SAMPLE_SPACING_M,
         trees=(coarse_tree, dense_tree),
+        beyond_ends_m=fit_radius,
     )
     model = ScanModel(
         features=features,

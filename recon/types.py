@@ -508,6 +508,30 @@ class Segment:
 
 
 @dataclass(frozen=True)
+class CornerReport:
+    """Where the trace turned sharply, and whether the path was split there.
+
+    Attributes
+    ----------
+    index : int
+        The resampled point of the turn.
+    angle_deg : float
+        How much the trace turned there.
+    split : bool
+    reason : str
+        Why (or why not), in words.
+    point_m : tuple of 3 floats or None
+        Where both segments end, tracker frame, when the scan's edges placed the corner.
+    """
+
+    index: int
+    angle_deg: float
+    split: bool
+    reason: str
+    point_m: tuple[float, float, float] | None = None
+
+
+@dataclass(frozen=True)
 class Registration:
     """Result of registering the path to the scan.
 
@@ -531,6 +555,12 @@ class Registration:
         if unknown). What a user means by "registration moved the path": the transform's own
         translation also holds the scanner's placement, metres away for a scanner whose origin
         is far from the tracker's.
+    reason : str
+        Why this target was chosen (empty when there was no choice).
+    alternative : dict or None
+        The other target's figures when it was tried too: ``target``, ``rmse_m``, ``fitness``,
+        ``constrained_dof``, ``following_edge`` (the fraction of the path that would follow the
+        edge), ``path_moved_mean_m``.
     """
 
     T_scan_tracker: FloatArray
@@ -541,6 +571,8 @@ class Registration:
     constrained_dof: int = 6
     path_moved_mean_m: float = float("nan")
     path_moved_max_m: float = float("nan")
+    reason: str = ""
+    alternative: dict | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         T = np.array(self.T_scan_tracker, dtype=np.float64)
@@ -619,6 +651,8 @@ class Reconstruction:
         The scan's structure near the path, scan frame, as the reconstruction used it (None
         without a scan). Planning reuses it with ``T_scan_tracker`` instead of recomputing it.
         Left out of equality and repr: it is large and derived from the inputs.
+    corners : tuple of CornerReport
+        Every place the trace turned sharply, split or not, and why.
     """
 
     points_m: FloatArray
@@ -640,6 +674,7 @@ class Reconstruction:
     T_scan_tracker: FloatArray | None = None
     scan_model: ScanModel | None = field(default=None, compare=False, repr=False)
     piece: NDArray[np.int64] | None = None
+    corners: tuple[CornerReport, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "piece", piece_labels(self.piece, len(self.points_m)))

@@ -60,6 +60,7 @@ ERROR_MAP: list[tuple[type[Exception], int, str]] = [
     (recon_errors.UnitsMismatchError, 422, "units_mismatch"),
     (recon_errors.NoOverlapError, 422, "no_overlap"),
     (recon_errors.DegenerateInputError, 422, "degenerate_input"),
+    (recon_errors.TouchesInsufficientError, 422, "touches_insufficient"),
     (recon_errors.RegistrationError, 422, "registration_failed"),
     (recon_errors.PoorFitError, 422, "poor_fit"),
     (recon_errors.CollisionError, 422, "collision"),

@@ -13,6 +13,8 @@ covers Algorithm 2 and the anchored method, not the scan preparation they share.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
 from recon import reconstruct as R
@@ -248,14 +250,24 @@ def reconstruct_loop(recording, scan, params: ReconParams, T_scan_tracker_init=N
             points, scan, bounds, params, T_scan_tracker_init=T_scan_tracker_init
         )
         model, T = prepared.model, prepared.T_scan_tracker
-        work = apply_transform(T, points)
+    work = apply_transform(T, points)
+    # Where the segments are is the pipeline's structure, not the per-point stage: shared.
+    corners = R.judge_corners(plan, work, model, params)
+    bounds = plan.split([c.index for c in corners if c.split])
+    if model is not None:
+        model = R.with_corner_edges(model, corners)
         classes = classify_segments(work, bounds, model, params)
     else:
-        work = points
         classes = [PATH_ONLY] * len(bounds)
     loop = anchored_segment_loop if params.method == "anchored" else paper_segment_loop
-    out = np.empty_like(points)
+    results = []
     for (start, stop), segment_class in zip(bounds, classes, strict=True):
         result, _ = loop(work[start:stop], segment_class.kind, model, params, half)
-        out[start:stop] = result
+        results.append(SimpleNamespace(points=result))
+    R.join_at_corners(
+        bounds, results, corners, work, spacing_m=plan.resampled.spacing_m, beta=params.beta
+    )
+    out = np.empty_like(points)
+    for (start, stop), result in zip(bounds, results, strict=True):
+        out[start:stop] = result.points
     return apply_transform(invert_transform(T), out)

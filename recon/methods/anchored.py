@@ -37,11 +37,11 @@ from recon.types import FloatArray, PointMode, ReconParams
 #: The drift estimate averages the path-to-scan discrepancy over this many radii.
 DRIFT_WINDOW_RADII = 10.0
 #: Nearest scan neighbours per point for the surface fits.
-SURFACE_NEIGHBOURS = 128
+SURFACE_NEIGHBOURS = 1024
 #: N_S on an edge reaches this many radii from the smoothed point.
 EDGE_SCAN_RADII = 1.5
 #: N_S on a surface reaches this many radii from the smoothed point.
-SURFACE_SCAN_RADII = 1.5
+SURFACE_SCAN_RADII = 4
 
 
 def anchored_segment(

@@ -1,11 +1,11 @@
-"""Resampling and corner detection against analytic paths."""
+"""Resampling and splitting at corners against analytic paths (corners: test_corners.py)."""
 
 import numpy as np
 import pytest
 
 from recon.errors import DegenerateInputError
 from recon.resample import resample_equidistant
-from recon.segment import find_corners, split_at, turning_angle_deg
+from recon.segment import split_at
 
 
 def test_resampled_points_are_equidistant_and_keep_the_ends():
@@ -47,26 +47,6 @@ def test_bad_arguments_raise_value_error():
         resample_equidistant(np.zeros((5, 2)), spacing_m=0.001)
     with pytest.raises(ValueError):
         resample_equidistant(np.zeros((5, 3)), spacing_m=0.0)
-
-
-def test_turning_angle_of_a_right_angle_is_ninety_degrees():
-    leg = np.linspace(0, 0.05, 51)
-    points = np.concatenate(
-        [
-            np.column_stack([leg, np.zeros(51), np.zeros(51)]),
-            np.column_stack([np.full(50, 0.05), leg[1:], np.zeros(50)]),
-        ]
-    )
-    angle = turning_angle_deg(points, half_window=4)
-    assert angle.max() == pytest.approx(90.0, abs=1e-9)
-    assert np.argmax(angle) == 50
-    assert find_corners(points, spacing_m=0.001, angle_deg=50, scale_m=0.004).tolist() == [50]
-
-
-def test_a_smooth_circle_has_no_corners():
-    a = np.linspace(0, 2 * np.pi, 315)
-    points = np.column_stack([0.05 * np.cos(a), 0.05 * np.sin(a), np.zeros_like(a)])
-    assert len(find_corners(points, spacing_m=0.001, angle_deg=50, scale_m=0.004)) == 0
 
 
 def test_segments_share_their_corner_point():

@@ -1,205 +1,19 @@
-"""Synthetic scenes with known ground truth: the paper's test cases and a few of our own.
-
-Each scene holds the true feature curve, a noisy hand trace of it in the tracker frame and,
-where the case has one, a noisy scan of the workpiece in a slightly misplaced scan frame.
-
-Noise follows what real traces look like (paper, Sec. VI: max error 2-5 mm, std 0.5-1 mm): hand
-tremor correlated over a few centimetres, plus a slow drift off the feature correlated over tens of
-centimetres, plus a little white tracker noise. A local smoother removes the tremor but not the
-drift; only the scan can remove the drift.
-
-Used by the tests, the benchmarks and the demo; deterministic for a given seed.
-"""
+"""The paper's test cases (Figs. 4, 6, 7 and 8), a box corner, and a long edge for timing."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
-
 import numpy as np
-from scipy.ndimage import convolve1d
-from scipy.spatial.transform import Rotation
 
+from recon.scenes.base import (
+    MM,
+    Face,
+    Scene,
+    sample_count,
+    scan_from_surface,
+)
+from recon.scenes.noise import HandNoise, hand_trace, misalignment
 from recon.transforms import apply_transform
-from recon.types import FloatArray, Recording, Scan
-
-MM = 1e-3
-
-
-@dataclass(frozen=True)
-class Scene:
-    """A test case with ground truth.
-
-    Attributes
-    ----------
-    name : str
-    description : str
-    truth_m : ndarray of shape (G, 3)
-        The feature the operator meant to trace, densely sampled, tracker frame.
-    recording : Recording
-        The noisy trace, tracker frame.
-    scan : Scan or None
-        The workpiece scan in the scan frame.
-    T_scan_tracker : ndarray of shape (4, 4)
-        The true transform from tracker to scan frame (the misalignment to be recovered).
-    feature : {"edge", "surface", "none"}
-        What the scan defines along the path.
-    surface_height : callable or None
-        Height of a point above the true surface (tracker frame), for surface scenes.
-    """
-
-    name: str
-    description: str
-    truth_m: FloatArray
-    recording: Recording
-    scan: Scan | None
-    T_scan_tracker: FloatArray
-    feature: str
-    surface_height: Callable[[FloatArray], FloatArray] | None = None
-
-
-@dataclass(frozen=True)
-class HandNoise:
-    """Coloured noise of a hand trace, in metres (std per axis) and metres of arc length.
-
-    The defaults give a 3-D error of about 1 mm on average and 2.5-3.5 mm at most, the paper's
-    measured operator error (std 0.5-1 mm, max 2-5 mm). The drift's kernel of 40 mm correlates
-    it over wavelengths of 15-25 cm, far beyond any reconstruction window.
-    """
-
-    tremor_sigma_m: float = 0.3 * MM
-    tremor_length_m: float = 8 * MM
-    drift_sigma_m: float = 0.6 * MM
-    drift_length_m: float = 40 * MM
-    white_sigma_m: float = 0.05 * MM
-
-
-def coloured_noise(
-    arc_m: FloatArray, rng: np.random.Generator, *, sigma_m: float, length_m: float
-) -> FloatArray:
-    """Gaussian-correlated noise along arc length, three independent axes.
-
-    Parameters
-    ----------
-    arc_m : ndarray of shape (N,)
-        Equally spaced arc-length samples.
-    sigma_m : float
-        Standard deviation per axis (over realisations).
-    length_m : float
-        Standard deviation of the Gaussian correlation kernel.
-
-    Returns
-    -------
-    ndarray of shape (N, 3)
-    """
-    if sigma_m == 0:
-        return np.zeros((len(arc_m), 3))
-    ds = float(arc_m[1] - arc_m[0])
-    sigma_samples = max(length_m / ds, 1e-6)
-    half = int(np.ceil(4 * sigma_samples))
-    kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma_samples) ** 2)
-    kernel /= np.sqrt(np.sum(kernel**2))  # unit variance of the filtered white noise
-    pad = len(kernel)
-    white = rng.standard_normal((len(arc_m) + 2 * pad, 3))
-    return sigma_m * convolve1d(white, kernel, axis=0, mode="constant")[pad:-pad]
-
-
-def _cross_track_frame(points: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Two unit directions across a curve at each sample: horizontal and (mostly) vertical.
-
-    Parameters
-    ----------
-    points : ndarray of shape (N, 3)
-        Densely sampled curve that is nowhere vertical.
-
-    Returns
-    -------
-    across, up : ndarrays of shape (N, 3)
-    """
-    tangent = np.gradient(points, axis=0)
-    tangent /= np.linalg.norm(tangent, axis=1)[:, None]
-    across = np.cross(tangent, [0.0, 0.0, 1.0])
-    across /= np.linalg.norm(across, axis=1)[:, None]
-    return across, np.cross(across, tangent)
-
-
-def hand_trace(
-    curve: Callable[[FloatArray], FloatArray],
-    length_m: float,
-    rng: np.random.Generator,
-    *,
-    noise: HandNoise,
-    sample_spacing_m: float = 0.25 * MM,
-    speed_m_s: float = 0.04,
-    extra_offset: Callable[[FloatArray], FloatArray] | None = None,
-) -> tuple[Recording, FloatArray]:
-    """Trace ``curve(s)`` (arc-length parameterised) by a shaky hand.
-
-    Returns
-    -------
-    recording : Recording
-        Noisy samples with times (speed varies by +-20 % like a hand's).
-    truth : ndarray of shape (G, 3)
-        The curve sampled densely (0.05 mm), as ground truth.
-    """
-    s = np.arange(0.0, length_m + 1e-12, sample_spacing_m)
-    ideal = curve(s)
-    # The drift is off the feature: across it, in the curve's own frame. (In world axes a
-    # constant drift would be a rigid shift that registration absorbs; across a curved feature
-    # it is not.) Tremor shakes in every direction.
-    across, up = _cross_track_frame(ideal)
-    drift = coloured_noise(s, rng, sigma_m=noise.drift_sigma_m, length_m=noise.drift_length_m)
-    offset = (
-        coloured_noise(s, rng, sigma_m=noise.tremor_sigma_m, length_m=noise.tremor_length_m)
-        + drift[:, :1] * across
-        + drift[:, 1:2] * up
-        + noise.white_sigma_m * rng.standard_normal((len(s), 3))
-    )
-    if extra_offset is not None:
-        offset = offset + extra_offset(s)
-    speed = speed_m_s * (1.0 + 0.2 * np.sin(2 * np.pi * s / max(length_m / 3, 1e-9)))
-    t = np.concatenate(([0.0], np.cumsum(np.diff(s) / speed[1:])))
-    truth = curve(np.arange(0.0, length_m + 1e-12, 0.05 * MM))
-    return Recording(points_m=ideal + offset, t_s=t), truth
-
-
-def misalignment(rng: np.random.Generator, *, shift_m: float, angle_deg: float) -> FloatArray:
-    """A rigid transform with a translation of ``shift_m`` and a rotation of ``angle_deg``.
-
-    Returns
-    -------
-    ndarray of shape (4, 4)
-    """
-    axis = rng.standard_normal(3)
-    direction = rng.standard_normal(3)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(
-        np.radians(angle_deg) * axis / np.linalg.norm(axis)
-    ).as_matrix()
-    T[:3, 3] = shift_m * direction / np.linalg.norm(direction)
-    return T
-
-
-def _scan_from_surface(
-    points: FloatArray,
-    normals: FloatArray,
-    rng: np.random.Generator,
-    *,
-    sigma_m: float,
-    outlier_fraction: float,
-    T_scan_tracker: FloatArray,
-) -> Scan:
-    """Noise along the normals (how depth noise looks on a face-on surface), a few outliers."""
-    noisy = points + normals * (sigma_m * rng.standard_normal(len(points)))[:, None]
-    n_out = int(outlier_fraction * len(points))
-    if n_out:
-        lo, hi = points.min(axis=0) - 0.01, points.max(axis=0) + 0.01
-        noisy = np.concatenate([noisy, rng.uniform(lo, hi, size=(n_out, 3))])
-    return Scan(points_m=apply_transform(T_scan_tracker, noisy))
-
-
-def _sample_count(area_m2: float, density_per_mm2: float) -> int:
-    return max(int(area_m2 / MM**2 * density_per_mm2), 10)
+from recon.types import Scan
 
 
 def cylinder_edge(
@@ -230,16 +44,16 @@ def cylinder_edge(
         return np.column_stack([R * np.cos(a), R * np.sin(a), np.full_like(a, H)])
 
     recording, truth = hand_trace(curve, length, rng, noise=noise)
-    n_top = _sample_count(np.pi * R**2, scan_density_per_mm2)
+    n_top = sample_count(np.pi * R**2, scan_density_per_mm2)
     r = R * np.sqrt(rng.uniform(0, 1, n_top))
     a = rng.uniform(0, 2 * np.pi, n_top)
     top = np.column_stack([r * np.cos(a), r * np.sin(a), np.full(n_top, H)])
-    n_side = _sample_count(2 * np.pi * R * H, scan_density_per_mm2)
+    n_side = sample_count(2 * np.pi * R * H, scan_density_per_mm2)
     a = rng.uniform(0, 2 * np.pi, n_side)
     side = np.column_stack([R * np.cos(a), R * np.sin(a), rng.uniform(0, H, n_side)])
     side_normals = np.column_stack([np.cos(a), np.sin(a), np.zeros(n_side)])
     T = misalignment(rng, shift_m=shift_m, angle_deg=angle_deg)
-    scan = _scan_from_surface(
+    scan = scan_from_surface(
         np.concatenate([top, side]),
         np.concatenate([np.tile([0.0, 0.0, 1.0], (n_top, 1)), side_normals]),
         rng,
@@ -257,7 +71,29 @@ def cylinder_edge(
         scan=scan,
         T_scan_tracker=T,
         feature="edge",
+        curve=curve,
+        length_m=length,
+        noise=noise,
+        faces=_cylinder_faces(R, H),
     )
+
+
+def _cylinder_faces(R: float, H: float) -> tuple[Face, ...]:
+    """The cylinder's top (kept 5 mm inside the rim) and its side wall."""
+
+    def top(rng, n):
+        r = (R - 5 * MM) * np.sqrt(rng.uniform(0.05, 1, n))
+        a = rng.uniform(0, 2 * np.pi, n)
+        points = np.column_stack([r * np.cos(a), r * np.sin(a), np.full(n, H)])
+        return points, np.tile([0.0, 0.0, 1.0], (n, 1))
+
+    def side(rng, n):
+        a = rng.uniform(0, 2 * np.pi, n)
+        normals = np.column_stack([np.cos(a), np.sin(a), np.zeros(n)])
+        points = R * normals + np.outer(rng.uniform(5 * MM, H - 5 * MM, n), [0.0, 0.0, 1.0])
+        return points, normals
+
+    return (Face("top", top), Face("side", side))
 
 
 def polynomial_ridge(
@@ -294,8 +130,9 @@ def polynomial_ridge(
         white_sigma_m=base.white_sigma_m,
     )
     recording, truth = hand_trace(curve, float(arc[-1]), rng, noise=noise)
+    length = float(arc[-1])
     width = 20 * MM
-    n = _sample_count((2 * half_length_m + 20 * MM) * 2 * width * np.sqrt(2), 1.0)
+    n = sample_count((2 * half_length_m + 20 * MM) * 2 * width * np.sqrt(2), 1.0)
     x = rng.uniform(-half_length_m - 10 * MM, half_length_m + 10 * MM, n)
     d = rng.uniform(-width, width, n)  # offset across the crest, in y
     pts = np.column_stack([x, 0.5 * c * x**2 + d, -np.abs(d)])
@@ -304,7 +141,7 @@ def polynomial_ridge(
     normals = np.column_stack([c * x * sgn, -sgn, -np.ones(n)])
     normals /= np.linalg.norm(normals, axis=1)[:, None]
     T = misalignment(rng, shift_m=shift_m, angle_deg=angle_deg)
-    scan = _scan_from_surface(
+    scan = scan_from_surface(
         pts, normals, rng, sigma_m=scan_noise_m, outlier_fraction=0.002, T_scan_tracker=T
     )
     return Scene(
@@ -316,7 +153,29 @@ def polynomial_ridge(
         scan=scan,
         T_scan_tracker=T,
         feature="edge",
+        curve=curve,
+        length_m=length,
+        noise=noise,
+        faces=_ridge_faces(c, half_length_m, width),
     )
+
+
+def _ridge_faces(c: float, half_length_m: float, width_m: float) -> tuple[Face, ...]:
+    """The ridge's two 45-degree faces, kept 3 mm off the crest and the far borders."""
+
+    def face(sign):
+        def sample(rng, n):
+            x = rng.uniform(-half_length_m, half_length_m, n)
+            d = sign * rng.uniform(3 * MM, width_m - 3 * MM, n)
+            points = np.column_stack([x, 0.5 * c * x**2 + d, -np.abs(d)])
+            # The face is z = -sign (y - c x^2 / 2); its upward normal is the gradient of
+            # z + sign (y - c x^2 / 2).
+            normals = np.column_stack([-c * x * sign, np.full(n, sign), np.ones(n)])
+            return points, normals / np.linalg.norm(normals, axis=1)[:, None]
+
+        return sample
+
+    return (Face("face +y", face(1.0)), Face("face -y", face(-1.0)))
 
 
 def flat_liftoff(
@@ -349,8 +208,9 @@ def flat_liftoff(
         bump = lift_m * np.exp(-0.5 * ((s - 0.55 * length) / lift_width_m) ** 2)
         return np.column_stack([np.zeros_like(s), np.zeros_like(s), bump])
 
-    recording, truth = hand_trace(curve, length, rng, noise=HandNoise(), extra_offset=lift)
-    n = _sample_count(200 * MM * 80 * MM, 1.0)
+    noise = HandNoise()
+    recording, truth = hand_trace(curve, length, rng, noise=noise, extra_offset=lift)
+    n = sample_count(200 * MM * 80 * MM, 1.0)
     pts = np.column_stack(
         [rng.uniform(-100 * MM, 100 * MM, n), rng.uniform(-40 * MM, 40 * MM, n), np.zeros(n)]
     )
@@ -374,7 +234,20 @@ def flat_liftoff(
         T_scan_tracker=T,
         feature="surface",
         surface_height=lambda p: p[:, 2],
+        curve=curve,
+        length_m=length,
+        noise=noise,
+        extra_offset=lift,
+        faces=(Face("plate", _plate_top),),
     )
+
+
+def _plate_top(rng: np.random.Generator, n: int):
+    """Points on the plate (z = 0), kept 10 mm inside its borders."""
+    points = np.column_stack(
+        [rng.uniform(-90 * MM, 90 * MM, n), rng.uniform(-30 * MM, 30 * MM, n), np.zeros(n)]
+    )
+    return points, np.tile([0.0, 0.0, 1.0], (n, 1))
 
 
 def free_curve(seed: int = 0) -> Scene:
@@ -392,6 +265,8 @@ def free_curve(seed: int = 0) -> Scene:
 
     recording, truth = hand_trace(curve, float(arc[-1]), rng, noise=HandNoise())
     return Scene(
+        curve=curve,
+        length_m=float(arc[-1]),
         name="free_curve",
         description="Fig. 8: a 3-D curve traced in the air, no scan",
         truth_m=truth,
@@ -426,7 +301,7 @@ def box_corner(
 
     recording, truth = hand_trace(curve, leg_a + leg_b, rng, noise=HandNoise())
     X, Y, Z = 100 * MM, 80 * MM, 40 * MM
-    n_top, n_front, n_right = (_sample_count(a, 1.0) for a in (X * Y, X * Z, Y * Z))
+    n_top, n_front, n_right = (sample_count(a, 1.0) for a in (X * Y, X * Z, Y * Z))
     top = np.column_stack([rng.uniform(0, X, n_top), rng.uniform(0, Y, n_top), np.zeros(n_top)])
     front = np.column_stack(
         [rng.uniform(0, X, n_front), np.zeros(n_front), rng.uniform(-Z, 0, n_front)]
@@ -442,7 +317,7 @@ def box_corner(
         ]
     )
     T = misalignment(rng, shift_m=shift_m, angle_deg=angle_deg)
-    scan = _scan_from_surface(
+    scan = scan_from_surface(
         np.concatenate([top, front, right]),
         normals,
         rng,
@@ -458,7 +333,36 @@ def box_corner(
         scan=scan,
         T_scan_tracker=T,
         feature="edge",
+        curve=curve,
+        length_m=leg_a + leg_b,
+        faces=_box_faces(X, Y, Z),
+        corners_m=corner[None, :],
     )
+
+
+def _box_faces(X: float, Y: float, Z: float) -> tuple[Face, ...]:
+    """The box's top, front (y = 0) and right (x = X) faces, kept 5 mm inside their borders."""
+    inset = 5 * MM
+
+    def top(rng, n):
+        points = np.column_stack(
+            [rng.uniform(inset, X - inset, n), rng.uniform(inset, Y - inset, n), np.zeros(n)]
+        )
+        return points, np.tile([0.0, 0.0, 1.0], (n, 1))
+
+    def front(rng, n):
+        points = np.column_stack(
+            [rng.uniform(inset, X - inset, n), np.zeros(n), rng.uniform(inset - Z, -inset, n)]
+        )
+        return points, np.tile([0.0, -1.0, 0.0], (n, 1))
+
+    def right(rng, n):
+        points = np.column_stack(
+            [np.full(n, X), rng.uniform(inset, Y - inset, n), rng.uniform(inset - Z, -inset, n)]
+        )
+        return points, np.tile([1.0, 0.0, 0.0], (n, 1))
+
+    return (Face("top", top), Face("front", front), Face("right", right))
 
 
 def long_edge(
@@ -518,13 +422,3 @@ def long_edge(
         T_scan_tracker=np.eye(4),
         feature="edge",
     )
-
-
-#: The accuracy scenes, by name, with their default arguments.
-SCENES: dict[str, Callable[..., Scene]] = {
-    "cylinder_edge": cylinder_edge,
-    "polynomial_ridge": polynomial_ridge,
-    "flat_liftoff": flat_liftoff,
-    "free_curve": free_curve,
-    "box_corner": box_corner,
-}
