@@ -111,3 +111,60 @@ def classify_segments(
         else:
             classes.append(SegmentClass(SegmentKind.SURFACE, fraction))
     return classes
+
+
+#: Once registered, a path that follows an edge runs within a hand's error of it: a segment whose
+#: median distance from the thinned edge (or from the surface, along its normal) is above this
+#: is not where the scan says its feature is (a wrong registration, another edge), and leaning it
+#: onto the scan could make it worse than it came in.
+CONSISTENT_DISTANCE_M = 0.0015
+
+
+def check_consistency(
+    points_m: FloatArray,
+    bounds: list[tuple[int, int]],
+    classes: list[SegmentClass],
+    model: ScanModel,
+) -> tuple[list[SegmentClass], list[str]]:
+    """Segments whose registered path does not agree with the scan fall back to the path alone.
+
+    Parameters
+    ----------
+    points_m : ndarray of shape (N, 3)
+        The registered path, scan frame.
+    bounds : list of (start, stop)
+    classes : list of SegmentClass
+        From :func:`classify_segments`.
+    model : ScanModel
+
+    Returns
+    -------
+    classes : list of SegmentClass
+        With :data:`PATH_ONLY` for every segment that failed the check.
+    notes : list of str
+        One per fallback, saying why and what to check.
+    """
+    out, notes = [], []
+    for index, ((start, stop), segment_class) in enumerate(zip(bounds, classes, strict=True)):
+        here = points_m[start:stop]
+        distance = None
+        if segment_class.kind == SegmentKind.EDGE and model.edge_tree is not None:
+            distance, _ = model.edge_tree.query(here, workers=-1)
+            feature = "edge"
+        elif segment_class.kind == SegmentKind.SURFACE:
+            _, nearest = model.coarse_tree.query(here, workers=-1)
+            normals = model.features.normals[nearest]
+            offset = here - model.features.points_m[nearest]
+            distance = np.abs(np.einsum("ij,ij->i", offset, normals))
+            feature = "surface"
+        if distance is None or np.median(distance) <= CONSISTENT_DISTANCE_M:
+            out.append(segment_class)
+            continue
+        out.append(PATH_ONLY)
+        notes.append(
+            f"segment {index} runs {np.median(distance) * 1e3:.1f} mm from the scan's {feature} "
+            f"on median once registered (a hand stays within "
+            f"{CONSISTENT_DISTANCE_M * 1e3:.1f} mm): the scan was not used there, the path was "
+            "smoothed on its own; check the registration or the calibration"
+        )
+    return out, notes

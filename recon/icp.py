@@ -156,6 +156,9 @@ def register_icp(
         constrained_dof=final.constrained_dof,
         path_moved_mean_m=float(moved_m.mean()),
         path_moved_max_m=float(moved_m.max()),
+        covariance=final.covariance,
+        motion_centre_m=final.motion.centre_m,
+        motion_length_m=final.motion.length_m,
     )
 
 
@@ -168,6 +171,8 @@ class _Step:
     median_pair_m: float  # median Euclidean distance of the pairs
     constrained_dof: int
     motion_m: float
+    motion: RigidMotion | None = None  # the twists' centre and scale (scan frame)
+    covariance: FloatArray | None = None  # of the twist, from the residuals (see _covariance)
 
 
 @dataclass(frozen=True)
@@ -217,7 +222,45 @@ class _Problem:
             median_pair,
             int(np.count_nonzero(keep)),
             float(np.linalg.norm(twist)),
+            motion,
+            _covariance(info, residual[inlier], axes.shape[1]),
         )
+
+
+def _covariance(info: FloatArray, residual: FloatArray, n_axes: int) -> FloatArray:
+    """Covariance of the registration's twist from its residuals.
+
+    The classic ``sigma^2 (J^T W J)^-1`` treats the residuals as independent; along a hand trace
+    they are not (drift is correlated over centimetres), and the transform is that much less
+    certain. The residuals' correlation length along the path (in pairs: where their
+    autocorrelation falls below 1/e, doubled) inflates it. The motions the feature leaves free
+    get no variance (they are not estimated at all).
+
+    Parameters
+    ----------
+    info : ndarray of shape (6, 6)
+    residual : ndarray of shape (P, A)
+        The inlier pairs' residuals, in path order.
+    n_axes : int
+        A, the residual components per pair.
+
+    Returns
+    -------
+    ndarray of shape (6, 6)
+    """
+    r = residual[:, 0] - residual[:, 0].mean()
+    variance = float(np.mean(residual**2))  # per component
+    lag = len(r)
+    if len(r) > 4 and np.dot(r, r) > 0:
+        spectrum = np.fft.rfft(r, n=2 * len(r))
+        auto = np.fft.irfft(spectrum * np.conj(spectrum))[: len(r)]
+        below = np.flatnonzero(auto / auto[0] < np.exp(-1.0))
+        lag = int(below[0]) if len(below) else len(r)
+    inflation = float(np.clip(2 * lag, 1, max(len(r) / 3, 1)))
+    values, vectors = np.linalg.eigh(info)
+    fixed = values > DEGENERACY_RATIO * max(values.max(), 1e-300)
+    del n_axes  # the variance is per component already
+    return (vectors[:, fixed] / values[fixed]) @ vectors[:, fixed].T * variance * inflation
 
 
 @dataclass(frozen=True)
@@ -270,6 +313,25 @@ class RigidMotion:
         delta[:3, :3] = R
         delta[:3, 3] = self.centre_m + twist[3:] - R @ self.centre_m
         return delta
+
+    def point_sigma(self, covariance: FloatArray, points_m: FloatArray) -> FloatArray:
+        """RMS position error of points moved by a twist of the given covariance.
+
+        Parameters
+        ----------
+        covariance : ndarray of shape (6, 6)
+        points_m : ndarray of shape (N, 3)
+
+        Returns
+        -------
+        ndarray of shape (N,)
+            ``sqrt(trace(J Sigma J^T))`` per point, J the point's 3x6 Jacobian.
+        """
+        points = np.asarray(points_m, dtype=np.float64)
+        axes = np.broadcast_to(np.eye(3), (len(points), 3, 3))
+        jacobian = self.jacobian(points, axes)  # (N, 3, 6)
+        variance = np.einsum("nai,ij,naj->n", jacobian, covariance, jacobian)
+        return np.sqrt(np.maximum(variance, 0.0))
 
     def describe(self, direction: FloatArray) -> str:
         """A twist direction in words: turning about an axis, or sliding along a direction."""

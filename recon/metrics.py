@@ -95,11 +95,17 @@ class PathScore:
         return float(np.nanmax([self.start_max_m, self.end_max_m]))
 
 
-def score_path(points_m: FloatArray, truth_m: FloatArray, *, ends_m: float = END_STRETCH_M):
+def score_path(
+    points_m: FloatArray,
+    truth_m: FloatArray,
+    *,
+    ends_m: float = END_STRETCH_M,
+    extend_ends_m: float = 0.0,
+) -> PathScore:
     """:class:`PathScore` of ``points_m`` against the true curve ``truth_m`` (both ordered).
 
     A point beyond an end of the true curve is as far off as it is from that end: a tool that
-    runs on past where the feature ends has an error there too.
+    runs on past where the feature ends has an error there too. (Unless ``extend_ends_m``.)
 
     Parameters
     ----------
@@ -107,15 +113,29 @@ def score_path(points_m: FloatArray, truth_m: FloatArray, *, ends_m: float = END
     truth_m : ndarray of shape (G, 3)
     ends_m : float
         Length of each end's stretch, along the true curve.
+    extend_ends_m : float
+        Run the true curve on straight past both ends by this much first: errors across the
+        path only. For the registered frame, where the truth's ends move along the path with
+        whatever the registration could not fix (sliding along a straight edge).
 
     Returns
     -------
     PathScore
     """
     dense = resample_equidistant(truth_m, spacing_m=TRUTH_SPACING_M)
-    distance, index = cKDTree(dense.points_m).query(points_m, workers=-1)
-    arc = dense.arc_length_m[index]
     length = dense.arc_length_m[-1]
+    points, arcs = dense.points_m, dense.arc_length_m
+    if extend_ends_m > 0:
+        steps = np.arange(1, int(extend_ends_m / TRUTH_SPACING_M) + 1) * TRUTH_SPACING_M
+        head = points[1] - points[0]
+        tail = points[-1] - points[-2]
+        head, tail = head / np.linalg.norm(head), tail / np.linalg.norm(tail)
+        points = np.concatenate(
+            [points[0] - np.outer(steps[::-1], head), points, points[-1] + np.outer(steps, tail)]
+        )
+        arcs = np.concatenate([-steps[::-1], arcs, length + steps])
+    distance, index = cKDTree(points).query(points_m, workers=-1)
+    arc = arcs[index]
 
     def end_max(mask):
         return float(distance[mask].max()) if np.any(mask) else float("nan")

@@ -12,13 +12,13 @@ The result carries the transform and the scan model it used, so that planning re
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from recon.classify import PATH_ONLY, SegmentKind, classify_segments
+from recon.classify import PATH_ONLY, SegmentKind, check_consistency, classify_segments
 from recon.corners import (
     Candidate,
     Corner,
@@ -28,9 +28,10 @@ from recon.corners import (
     lines_to_edge_samples,
 )
 from recon.errors import DegenerateInputError, TouchesInsufficientError, UnitsMismatchError
+from recon.fusion import fuse_traces
 from recon.icp import RigidMotion
 from recon.methods.anchored import anchored_segment
-from recon.methods.common import SegmentResult
+from recon.methods.common import HAND_ERROR_PRIOR_M, SegmentResult
 from recon.methods.paper import paper_segment
 from recon.registration import feature_information, register_to_model
 from recon.resample import ResampledPath, resample_equidistant
@@ -50,10 +51,9 @@ from recon.types import (
     Segment,
 )
 
-#: One segment's reconstruction: (points, kind, scan model or None, params, N_P half-width).
-SegmentMethod = Callable[
-    [FloatArray, SegmentKind, ScanModel | None, ReconParams, int], SegmentResult
-]
+#: One segment's reconstruction: ``method(points, kind, model or None, params, N_P half-width, *,
+#: prior_variance_m2)`` -> SegmentResult (see :func:`recon.methods.anchored.anchored_segment`).
+SegmentMethod = Callable[..., SegmentResult]
 #: The methods by ``ReconParams.method``.
 METHODS: dict[Method, SegmentMethod] = {"paper": paper_segment, "anchored": anchored_segment}
 
@@ -202,7 +202,7 @@ def _joined(parts: list[ResampledPath]) -> ResampledPath:
 
 
 def reconstruct(
-    path: Recording | FloatArray,
+    path: Recording | FloatArray | Sequence[Recording],
     scan: Scan | None = None,
     *,
     params: ReconParams | None = None,
@@ -213,9 +213,12 @@ def reconstruct(
 
     Parameters
     ----------
-    path : Recording or ndarray of shape (N, 3), metres
+    path : Recording, ndarray of shape (N, 3), metres, or sequence of Recording
         The trace, tracker frame. A recording in pieces (``Recording.piece``) is resampled and
         fitted piece by piece (no segment spans two), with one registration for all of them.
+        Several recordings are demonstrations of one path: they are fused first
+        (:func:`recon.fusion.fuse_traces`; an outlier is left out and named) and the fused
+        trace, with its known variance, is reconstructed.
     scan : Scan, optional
         The workpiece, scan frame. Without it (or with ``alpha=1``) only the path is used, as in
         the paper's Fig. 8.
@@ -244,13 +247,29 @@ def reconstruct(
         The touches leave free a motion the traced features need fixed.
     """
     params = params or ReconParams()
+    notes: list[str] = []
+    fused = None
+    if isinstance(path, Sequence) and not isinstance(path, np.ndarray):
+        recordings = list(path)
+        if not recordings or not all(isinstance(r, Recording) for r in recordings):
+            raise ValueError("path must be a recording, an (N, 3) array or a list of recordings")
+        for r in recordings:
+            check_scales(r.points_m, None if scan is None else scan.points_m)
+        if len(recordings) > 1:
+            fused = fuse_traces(recordings, spacing_m=params.spacing_m)
+            notes += fused.notes
+            path = fused.recording
+        else:
+            path = recordings[0]
     recording = path if isinstance(path, Recording) else Recording(points_m=path)
     check_scales(recording.points_m, None if scan is None else scan.points_m)
     plan = plan_segments(recording, params)
     resampled, bounds, half_width = plan.resampled, plan.bounds, plan.half_width
     points = resampled.points_m
+    # What the trace alone is known to be off by, across the path: the fused demonstrations'
+    # variance (two of its three axes) where there are several, else the hand-error prior.
+    prior = None if fused is None else _prior_from_fusion(fused, resampled)
 
-    notes: list[str] = []
     registration: Registration | None = None
     model: ScanModel | None = None
     T_scan_tracker: FloatArray | None = None
@@ -273,6 +292,8 @@ def reconstruct(
     if model is not None:
         model = with_corner_edges(model, corners)
         classes = classify_segments(work_points, bounds, model, params)
+        classes, fallbacks = check_consistency(work_points, bounds, classes, model)
+        notes += fallbacks
     else:
         classes = [PATH_ONLY] * len(bounds)
 
@@ -289,7 +310,16 @@ def reconstruct(
             results.append(SegmentResult.unchanged(seg_points))
             notes.append(f"segment {len(segments) - 1} has {len(seg_points)} points: left as is")
             continue
-        results.append(method(seg_points, kind, model, params, half_width))
+        results.append(
+            method(
+                seg_points,
+                kind,
+                model,
+                params,
+                half_width,
+                prior_variance_m2=None if prior is None else prior[start:stop],
+            )
+        )
         if kind == SegmentKind.PATH and model is not None:
             notes.append(f"segment {len(segments) - 1} has no scan near it: path only")
     join_at_corners(
@@ -318,7 +348,45 @@ def reconstruct(
         scan_model=model,
         piece=plan.piece,
         corners=corners,
+        demonstrations=() if fused is None else fused.traces,
     )
+
+
+def _prior_from_fusion(fused, resampled: ResampledPath) -> FloatArray:
+    """The fused variance at the resampled points (by arc length), across the path."""
+    fused_points = fused.recording.points_m
+    arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(fused_points, axis=0), axis=1))))
+    variance = np.interp(resampled.arc_length_m, arc, fused.variance_m2)
+    return variance * (2.0 / 3.0)
+
+
+def registration_sigma_m(
+    registration: Registration | None, points_tracker_m: FloatArray
+) -> FloatArray:
+    """1-sigma error the registration's uncertainty gives each point (zero when unknown).
+
+    Parameters
+    ----------
+    registration : Registration or None
+    points_tracker_m : ndarray of shape (N, 3)
+
+    Returns
+    -------
+    ndarray of shape (N,), metres
+    """
+    points = np.asarray(points_tracker_m, dtype=np.float64)
+    if registration is None or registration.covariance is None:
+        return np.zeros(len(points))
+    motion = RigidMotion(registration.motion_centre_m, registration.motion_length_m)
+    in_scan = apply_transform(registration.T_scan_tracker, points)
+    sigma = motion.point_sigma(registration.covariance, in_scan)
+    if registration.target != "touches":
+        # Registered to the trace itself: the rigid part of the hand's slow drift went into the
+        # transform, and the residuals cannot show it (measured: the transform's error at the
+        # path was 2-4 times what the residuals' covariance gives). It is as large as the
+        # hand's error.
+        sigma = np.maximum(sigma, HAND_ERROR_PRIOR_M)
+    return sigma
 
 
 def judge_corners(
@@ -526,6 +594,7 @@ def touch_registration(
         apply_transform(T, points_tracker_m) - apply_transform(init, points_tracker_m), axis=1
     )
     residual = touches.residual_m[touches.used]
+    covariance, scan_motion = touches.covariance_in_scan_frame()
     return Registration(
         T_scan_tracker=T,
         rmse_m=float(np.sqrt(np.mean(residual**2))),
@@ -535,6 +604,9 @@ def touch_registration(
         constrained_dof=touches.fixed_motions,
         path_moved_mean_m=float(moved.mean()),
         path_moved_max_m=float(moved.max()),
+        covariance=covariance,
+        motion_centre_m=scan_motion.centre_m,
+        motion_length_m=scan_motion.length_m,
         reason=f"{np.count_nonzero(touches.used)} touches of the workpiece fix "
         f"{touches.fixed_motions} motions, every one this trace's features need"
         + (f" ({'; '.join(touches.notes)})" if touches.notes else ""),
@@ -551,6 +623,37 @@ def touch_advice(missing: list[str]) -> str:
             axis = motion.removeprefix("turning about ")
             advice.append(f"touch points farther apart across the axis {axis}")
     return "; ".join(advice)
+
+
+def uncertainty_notes(
+    uncertainty_m: FloatArray, arc_m: FloatArray, *, tolerance_m: float
+) -> list[str]:
+    """A note per stretch of the path whose uncertainty exceeds ``tolerance_m``.
+
+    Parameters
+    ----------
+    uncertainty_m : ndarray of shape (N,)
+    arc_m : ndarray of shape (N,)
+        Arc length of the points.
+    tolerance_m : float
+
+    Returns
+    -------
+    list of str
+        E.g. "points 0-14 (0-14 mm along the path): uncertainty up to 0.83 mm, above the
+        0.50 mm tolerance".
+    """
+    above = np.asarray(uncertainty_m) > tolerance_m
+    edges = np.flatnonzero(np.diff(np.r_[0, above.astype(np.int8), 0]))
+    notes = []
+    for start, stop in zip(edges[::2], edges[1::2], strict=True):
+        worst = float(np.max(uncertainty_m[start:stop]))
+        notes.append(
+            f"points {start}-{stop - 1} ({arc_m[start] * 1e3:.0f}-{arc_m[stop - 1] * 1e3:.0f} mm "
+            f"along the path): uncertainty up to {worst * 1e3:.2f} mm, above the "
+            f"{tolerance_m * 1e3:.2f} mm tolerance"
+        )
+    return notes
 
 
 @dataclass(frozen=True)
@@ -635,6 +738,7 @@ def _assemble(
     scan_model: ScanModel | None,
     piece: NDArray[np.int64],
     corners: list[Corner],
+    demonstrations: tuple = (),
 ) -> Reconstruction:
     """Concatenate segment results; a corner point shared by two segments takes the later one
     (both hold the same point there, see :func:`join_at_corners`)."""
@@ -647,6 +751,7 @@ def _assemble(
     residual_path = np.empty(n)
     residual_surface = np.empty(n)
     alpha = np.empty(n)
+    variance = np.empty(n)
     for index, ((start, stop), result) in enumerate(zip(bounds, results, strict=True)):
         sl = slice(start, stop)
         points[sl] = result.points
@@ -657,6 +762,11 @@ def _assemble(
         residual_path[sl] = result.residual_path
         residual_surface[sl] = result.residual_surface
         alpha[sl] = result.alpha
+        variance[sl] = result.variance_m2
+    uncertainty = np.sqrt(variance + registration_sigma_m(registration, points) ** 2)
+    notes = list(notes) + uncertainty_notes(
+        uncertainty, resampled.arc_length_m, tolerance_m=params.uncertainty_tolerance_m
+    )
     return Reconstruction(
         points_m=points,
         input_points_m=resampled.points_m,
@@ -677,6 +787,8 @@ def _assemble(
         T_scan_tracker=T_scan_tracker,
         scan_model=scan_model,
         piece=piece,
+        uncertainty_m=uncertainty,
+        demonstrations=tuple(demonstrations),
         corners=tuple(
             CornerReport(
                 index=c.index,

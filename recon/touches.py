@@ -216,28 +216,16 @@ class TouchRegistration:
         ndarray of shape (N,), metres
             Zero from the free motions (they are not known at all; see ``free_motions``).
         """
-        return point_sigma(self.motion, self.covariance, points_tracker_m)
+        return self.motion.point_sigma(self.covariance, points_tracker_m)
 
-
-def point_sigma(motion: RigidMotion, covariance: FloatArray, points_m: FloatArray) -> FloatArray:
-    """RMS position error of points moved by a twist of the given covariance.
-
-    Parameters
-    ----------
-    motion : RigidMotion
-    covariance : ndarray of shape (6, 6)
-    points_m : ndarray of shape (N, 3)
-
-    Returns
-    -------
-    ndarray of shape (N,)
-        ``sqrt(trace(J Sigma J^T))`` per point, J the point's 3x6 Jacobian.
-    """
-    points = np.asarray(points_m, dtype=np.float64)
-    axes = np.broadcast_to(np.eye(3), (len(points), 3, 3))
-    jacobian = motion.jacobian(points, axes)  # (N, 3, 6)
-    variance = np.einsum("nai,ij,naj->n", jacobian, covariance, jacobian)
-    return np.sqrt(np.maximum(variance, 0.0))
+    def covariance_in_scan_frame(self) -> tuple[FloatArray, RigidMotion]:
+        """The covariance and its twists' centre and scale expressed in the scan frame."""
+        R = self.T_scan_tracker[:3, :3]
+        rotate = np.zeros((6, 6))
+        rotate[:3, :3] = R
+        rotate[3:, 3:] = R
+        centre = apply_transform(self.T_scan_tracker, self.motion.centre_m[None])[0]
+        return rotate @ self.covariance @ rotate.T, RigidMotion(centre, self.motion.length_m)
 
 
 def register_touches(

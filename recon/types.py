@@ -248,6 +248,8 @@ class ReconParams:
         edge points.
     surface_k : int
         k nearest scan points of every point of N_P that form N_S on a surface.
+    uncertainty_tolerance_m : float
+        The summary warns of every stretch whose points' 1-sigma uncertainty exceeds this.
     """
 
     spacing_m: float = param(0.001, gt=0, le=0.01, unit="m", help="resampling step")
@@ -287,6 +289,13 @@ class ReconParams:
     )
     surface_k: int = param(
         10, ge=3, le=1000, help="nearest scan points per path point on a surface"
+    )
+    uncertainty_tolerance_m: float = param(
+        0.0005,
+        gt=0,
+        le=0.01,
+        unit="m",
+        help="the summary names the stretches whose 1-sigma uncertainty exceeds this",
     )
 
     def __post_init__(self) -> None:
@@ -508,6 +517,30 @@ class Segment:
 
 
 @dataclass(frozen=True)
+class DemonstrationReport:
+    """How one of several demonstrations of a path entered their fusion.
+
+    Attributes
+    ----------
+    used : bool
+    reversed : bool
+        It was traced the other way round and turned.
+    mean_offset_m : float
+        Its mean distance from the others' median.
+    roughness_m : float
+        RMS departure from its own smoothing (hand tremor and tracker noise).
+    reason : str
+        Why it was left out (empty when used).
+    """
+
+    used: bool
+    reversed: bool
+    mean_offset_m: float
+    roughness_m: float
+    reason: str = ""
+
+
+@dataclass(frozen=True)
 class CornerReport:
     """Where the trace turned sharply, and whether the path was split there.
 
@@ -561,6 +594,12 @@ class Registration:
         The other target's figures when it was tried too: ``target``, ``rmse_m``, ``fitness``,
         ``constrained_dof``, ``following_edge`` (the fraction of the path that would follow the
         edge), ``path_moved_mean_m``.
+    covariance : ndarray of shape (6, 6) or None
+        Of the transform's error as a twist ``(L omega, t)`` about ``motion_centre_m`` with
+        ``L = motion_length_m`` (see :class:`recon.icp.RigidMotion`), scan frame; zero along the
+        motions the target leaves free. None when unknown.
+    motion_centre_m : ndarray of shape (3,) or None
+    motion_length_m : float or None
     """
 
     T_scan_tracker: FloatArray
@@ -573,6 +612,9 @@ class Registration:
     path_moved_max_m: float = float("nan")
     reason: str = ""
     alternative: dict | None = field(default=None, compare=False)
+    covariance: FloatArray | None = field(default=None, compare=False, repr=False)
+    motion_centre_m: FloatArray | None = field(default=None, compare=False, repr=False)
+    motion_length_m: float | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         T = np.array(self.T_scan_tracker, dtype=np.float64)
@@ -607,6 +649,7 @@ PER_POINT_FIELDS = (
     "residual_surface_m",
     "alpha",
     "piece",
+    "uncertainty_m",
 )
 
 
@@ -653,6 +696,12 @@ class Reconstruction:
         Left out of equality and repr: it is large and derived from the inputs.
     corners : tuple of CornerReport
         Every place the trace turned sharply, split or not, and why.
+    uncertainty_m : ndarray of shape (N,), metres, or None
+        1-sigma uncertainty of each point across the path, tracker frame: from the fits, the
+        trace's estimated noise and the registration (the transform's uncertainty moves the
+        scan's features, and the path with them). None for results made before it was kept.
+    demonstrations : tuple of DemonstrationReport
+        When several demonstrations were fused into the trace: how each one entered.
     """
 
     points_m: FloatArray
@@ -675,6 +724,8 @@ class Reconstruction:
     scan_model: ScanModel | None = field(default=None, compare=False, repr=False)
     piece: NDArray[np.int64] | None = None
     corners: tuple[CornerReport, ...] = ()
+    uncertainty_m: FloatArray | None = None
+    demonstrations: tuple[DemonstrationReport, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "piece", piece_labels(self.piece, len(self.points_m)))

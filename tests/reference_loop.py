@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from recon import reconstruct as R
-from recon.classify import PATH_ONLY, SegmentKind, classify_segments
+from recon.classify import PATH_ONLY, SegmentKind, check_consistency, classify_segments
 from recon.methods import anchored as A
 from recon.methods.common import EDGE_DIRECTION_TOLERANCE_DEG
 from recon.methods.paper import align_scan_axes
@@ -257,6 +257,7 @@ def reconstruct_loop(recording, scan, params: ReconParams, T_scan_tracker_init=N
     if model is not None:
         model = R.with_corner_edges(model, corners)
         classes = classify_segments(work, bounds, model, params)
+        classes, _ = check_consistency(work, bounds, classes, model)
     else:
         classes = [PATH_ONLY] * len(bounds)
     loop = anchored_segment_loop if params.method == "anchored" else paper_segment_loop

@@ -30,7 +30,13 @@ from recon.fitting import (
     weighted_pca,
     window_indices,
 )
-from recon.methods.common import SegmentResult, chunks, edge_neighbourhoods, path_fit
+from recon.methods.common import (
+    HAND_ERROR_PRIOR_M,
+    SegmentResult,
+    chunks,
+    edge_neighbourhoods,
+    path_fit,
+)
 from recon.scan_model import ScanModel
 from recon.types import FloatArray, PointMode, ReconParams
 
@@ -50,6 +56,8 @@ def anchored_segment(
     model: ScanModel | None,
     params: ReconParams,
     half_width: int,
+    *,
+    prior_variance_m2: FloatArray | None = None,
 ) -> SegmentResult:
     """The anchored method for every point of one segment (see the module docstring).
 
@@ -65,12 +73,22 @@ def anchored_segment(
     params : ReconParams
     half_width : int
         N_P's half-width, in points.
+    prior_variance_m2 : ndarray of shape (n,), optional
+        How far off the trace is known to be, across the path (both directions together): the
+        fused variance of several demonstrations. :data:`HAND_ERROR_PRIOR_M` when not given.
+        It is the uncertainty of what only the path decides (a point without a scan, the
+        in-plane position on a surface).
 
     Returns
     -------
     SegmentResult
     """
     n = len(points)
+    prior = (
+        np.full(n, HAND_ERROR_PRIOR_M**2)
+        if prior_variance_m2 is None
+        else np.asarray(prior_variance_m2, dtype=np.float64)
+    )
     windows = window_indices(n, half_width)
     degree = min(params.degree, windows.shape[1] - 2)
     scale = params.radius_m
@@ -105,20 +123,37 @@ def anchored_segment(
         out.n_surface[rows] = np.where(ok, count, 0)
         out.residual_surface[rows] = np.where(ok, resid, np.nan)
 
+    # Across the path, what only the path decides is as uncertain as the trace (the prior); the
+    # smoothing's own noise adds to it.
+    path_only_var = prior + 2.0 * var_path_fit
     if use_scan:
+        var_path = _path_variance(smoothed, target, var_target, var_path_fit, supported, half_width)
         if params.alpha == "auto":
-            alpha = _auto_alpha(smoothed, target, var_target, var_path_fit, supported, half_width)
+            alpha = _auto_alpha(var_target, var_path, supported)
         else:
             alpha = np.full(n, float(params.alpha))
         alpha = np.where(supported, alpha, 1.0)
         followed = PointMode.EDGE if kind == SegmentKind.EDGE else PointMode.SURFACE
         out.mode[:] = np.where(supported, followed, PointMode.PATH)
+        # The components the scan defines: two across an edge, the height on a surface; on a
+        # surface the third (in the plane, across the path) is the path's alone.
+        components = 2 if kind == SegmentKind.EDGE else 1
+        per_component = np.where(supported, var_path, 0.0) / components
+        blend_var = components * (
+            alpha**2 * per_component + (1.0 - alpha) ** 2 * np.where(supported, var_target, 0.0)
+        )
+        if kind == SegmentKind.SURFACE:
+            blend_var = blend_var + 0.5 * path_only_var
+        variance = np.where(supported, blend_var, path_only_var)
     else:
         alpha = np.ones(n)
         out.mode[:] = PointMode.PATH
+        variance = path_only_var
     blended = alpha[:, None] * smoothed + (1.0 - alpha[:, None]) * target
-    out.points[:] = points + params.beta * (blended - points)
+    beta = params.beta
+    out.points[:] = points + beta * (blended - points)
     out.alpha[:] = alpha
+    out.variance_m2[:] = beta**2 * variance + (1.0 - beta) ** 2 * prior
     return out
 
 
@@ -216,8 +251,16 @@ def _within_span(x: FloatArray, weights: FloatArray, x_at: FloatArray, *, margin
     return (x_at >= lo - margin) & (x_at <= hi + margin)
 
 
-def _auto_alpha(smoothed, target, var_target, var_path_fit, supported, half_width):
-    """Inverse-variance weight of the path (see the module docstring)."""
+def _path_variance(smoothed, target, var_target, var_path_fit, supported, half_width):
+    """The smoothed path's variance against the scan's target, drift included (see the module
+    docstring): the mean path-to-target discrepancy over a long stretch less the target's own
+    variance, and never below the smoothing's own.
+
+    Returns
+    -------
+    ndarray of shape (n,)
+        Summed over the components the target defines.
+    """
     discrepancy = np.where(supported, np.sum((smoothed - target) ** 2, axis=1), 0.0)
     size = int(2 * DRIFT_WINDOW_RADII * half_width + 1)
     weight = uniform_filter1d(supported.astype(np.float64), size, mode="nearest")
@@ -225,5 +268,10 @@ def _auto_alpha(smoothed, target, var_target, var_path_fit, supported, half_widt
         weight, 1e-12
     )
     var_t = np.where(supported, var_target, 0.0)
-    var_path = np.maximum(mean_discrepancy - var_t, var_path_fit)
+    return np.maximum(mean_discrepancy - var_t, var_path_fit)
+
+
+def _auto_alpha(var_target, var_path, supported):
+    """Inverse-variance weight of the path (see the module docstring)."""
+    var_t = np.where(supported, var_target, 0.0)
     return var_t / np.maximum(var_t + var_path, 1e-300)

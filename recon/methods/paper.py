@@ -15,7 +15,13 @@ import numpy as np
 
 from recon.classify import SegmentKind
 from recon.fitting import fit_linear_robust, poly_design, weighted_pca, window_indices
-from recon.methods.common import SegmentResult, chunks, edge_neighbourhoods, path_fit
+from recon.methods.common import (
+    HAND_ERROR_PRIOR_M,
+    SegmentResult,
+    chunks,
+    edge_neighbourhoods,
+    path_fit,
+)
 from recon.scan_model import ScanModel
 from recon.types import FloatArray, PointMode, ReconParams
 
@@ -54,6 +60,8 @@ def paper_segment(
     model: ScanModel | None,
     params: ReconParams,
     half_width: int,
+    *,
+    prior_variance_m2: FloatArray | None = None,
 ) -> SegmentResult:
     """Eq. (4) of the paper for every point of one segment.
 
@@ -69,12 +77,21 @@ def paper_segment(
     params : ReconParams
     half_width : int
         N_P's half-width, in points.
+    prior_variance_m2 : ndarray of shape (n,), optional
+        How far off the trace is known to be, across the path (see
+        :func:`recon.methods.anchored.anchored_segment`). Eq. (4) takes the point's position
+        from the path (only the scan's shape enters), so this stays in every point's variance.
 
     Returns
     -------
     SegmentResult
     """
     n = len(points)
+    prior = (
+        np.full(n, HAND_ERROR_PRIOR_M**2)
+        if prior_variance_m2 is None
+        else np.asarray(prior_variance_m2, dtype=np.float64)
+    )
     windows = window_indices(n, half_width)
     degree = min(params.degree, windows.shape[1] - 2)
     scale = params.radius_m
@@ -89,6 +106,8 @@ def paper_segment(
         fitted = path_fit(points, windows[rows], rows, degree=degree, scale=scale, outputs=1)
         frame, x_i, design_at, fit_p = fitted.frame, fitted.x_i, fitted.design_at, fitted.fit
         f_p = fit_p.predict(design_at)[:, 0]
+        var_p = fit_p.rms**2 * fit_p.leverage(design_at)
+        var_s = np.zeros(len(x_i))
         alpha = np.ones(len(x_i))
         f_s = np.zeros(len(x_i))
         n_surface = np.zeros(len(x_i), np.int64)
@@ -112,9 +131,8 @@ def paper_segment(
             )
             ok = fit_s.dof >= 1
             f_s = fit_s.predict(design_at)[:, 0]
+            var_s = np.where(ok, fit_s.rms**2 * fit_s.leverage(design_at), 0.0)
             if params.alpha == "auto":
-                var_p = fit_p.rms**2 * fit_p.leverage(design_at)
-                var_s = fit_s.rms**2 * fit_s.leverage(design_at)
                 alpha = var_s / np.maximum(var_p + var_s, 1e-300)
             else:
                 alpha = np.full(len(x_i), float(params.alpha))
@@ -135,4 +153,6 @@ def paper_segment(
         out.residual_path[rows] = fit_p.rms
         out.residual_surface[rows] = residual_s
         out.alpha[rows] = alpha
+        fit_var = 2.0 * (alpha**2 * var_p + (1.0 - alpha) ** 2 * var_s)
+        out.variance_m2[rows] = prior[rows] + beta**2 * fit_var
     return out

@@ -327,9 +327,12 @@ def test_an_unreachable_placement_fails_the_job_naming_the_waypoint(
 def test_a_workpiece_inside_the_arm_fails_the_job_naming_where_it_collides(
     client, session, reconstruction
 ):
-    identity = np.eye(4).tolist()  # the workpiece on the table where the arm's base stands
-    job = _plan_at(client, session, reconstruction, identity)
-    assert job["state"] == "failed" and job["error"]["code"] == "collision"
+    # The workpiece on the table where the arm's base stands, 5 cm out so that the path itself
+    # stays reachable (right over the base's axis it passes the shoulder singularity first).
+    at_base = np.eye(4)
+    at_base[0, 3] = 0.05
+    job = _plan_at(client, session, reconstruction, at_base.tolist())
+    assert job["state"] == "failed" and job["error"]["code"] == "collision", job["error"]
     detail = job["error"]["detail"]
     assert detail["link"] == "base" and detail["obstacle"] == "scan"
     assert detail["phase"] == "transit" and detail["clearance_m"] < 0

@@ -109,7 +109,9 @@ def test_the_margins_per_waypoint_agree_with_the_plans_summary(client, planned, 
     assert min(preview["clearance_m"]) == pytest.approx(summary["min_clearance_m"], abs=1e-5)
     process = np.array(preview["phase"]) == int(Phase.PROCESS)
     wrist = np.array(preview["wrist_singularity"])[process]
-    assert wrist.min() >= summary["min_wrist_singularity"] - 1e-4
+    # The preview rounds to four decimals (half a unit of 1e-4 either way), the plan's samples
+    # lie between the preview's.
+    assert wrist.min() >= summary["min_wrist_singularity"] - 1.5e-4
     speed = np.array(preview["speed_m_s"])[process]
     assert np.median(speed) == pytest.approx(preview["requested_speed_m_s"], rel=0.1)
     for drop in preview["speed_drops"]:

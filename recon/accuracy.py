@@ -1,0 +1,270 @@
+"""The accuracy suite: every scene of :data:`recon.scenes.ACCURACY_SCENES` over many seeds, for
+every way of reconstructing, scored where the tool touches.
+
+What a row says, errors in the tracker frame (what the robot gets) unless said otherwise:
+
+* the mean, 99th percentile and largest error, each the median over the seeds, and the worst
+  seed's largest error (one lucky draw proves nothing);
+* the ends (the first and last 10 mm of the feature, :data:`recon.metrics.END_STRETCH_M`) apart;
+* the mean error over the raw trace's, median and worst seed;
+* the registered frame: the errors across the path to the feature where the registered scan puts
+  it (what the method itself controls; the rest is the rigid part of the hand's drift, which
+  registration cannot tell from a misplaced scanner);
+* for a surface, the largest height above it (tracker frame).
+
+The variants (:func:`suite_variants`): the raw trace, the best Savitzky-Golay filter in hindsight,
+the paper's Eq. (4), the default with registration from the trace, from touches of the workpiece,
+with a calibrated scanner, and three fused demonstrations (with the scanner registered from them,
+and from touches).
+"""
+
+from __future__ import annotations
+
+import statistics
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from recon.errors import ReconError
+from recon.metrics import PathScore, best_savitzky_golay, score_path
+from recon.reconstruct import reconstruct
+from recon.scenes import Scene, touch_recording
+from recon.touches import find_dwells, register_touches
+from recon.transforms import apply_transform, invert_transform
+from recon.types import FloatArray, ReconParams, Reconstruction
+
+MM = 1e-3
+#: The registered frame's errors are measured against the feature run on this far past its ends.
+REGISTERED_EXTENSION_M = 0.03
+#: Demonstrations fused in the "fused" variants.
+N_FUSED = 3
+#: Without a scan the default radius is too small to smooth a hand's tremor; the paper's Fig. 8
+#: uses a large one.
+NO_SCAN_RADIUS_M = 0.032
+
+
+@dataclass(frozen=True)
+class SuiteVariant:
+    """A way to reconstruct a scene.
+
+    Attributes
+    ----------
+    label : str
+    run : callable
+        ``run(scene, seed)`` -> a Reconstruction, or an (N, 3) array for the baselines.
+    needs_scan : bool
+        Skipped on scenes without a scan.
+    """
+
+    label: str
+    run: Callable[[Scene, int], Reconstruction | FloatArray]
+    needs_scan: bool = False
+
+
+def touches_for(scene: Scene, seed: int):
+    """The scanner registered from a touch recording of the scene (6 touches)."""
+    touches = touch_recording(scene, seed)
+    dwells, _ = find_dwells(touches.recording.points_m, touches.recording.t_s)
+    return register_touches(
+        np.array([d.point_m for d in dwells]),
+        scene.scan.points_m,
+        T_scan_tracker_init=np.eye(4),
+        touch_sigma_m=np.array([d.standard_error_m for d in dwells]),
+    )
+
+
+def _params(scene: Scene, **changes) -> ReconParams:
+    base = ReconParams() if scene.scan is not None else ReconParams(radius_m=NO_SCAN_RADIUS_M)
+    return replace(base, **changes)
+
+
+def suite_variants() -> list[SuiteVariant]:
+    """The rows of the accuracy tables, in order."""
+
+    def raw(scene, seed):
+        return scene.recording.points_m
+
+    def savgol(scene, seed):
+        return best_savitzky_golay(scene.recording.points_m, scene.truth_m, spacing_m=1e-3).points_m
+
+    def paper(scene, seed):
+        return reconstruct(scene.recording, scene.scan, params=_params(scene, method="paper"))
+
+    def default(scene, seed):
+        return reconstruct(scene.recording, scene.scan, params=_params(scene))
+
+    def touches(scene, seed):
+        return reconstruct(
+            scene.recording, scene.scan, params=_params(scene), touches=touches_for(scene, seed)
+        )
+
+    def calibrated(scene, seed):
+        return reconstruct(
+            scene.recording,
+            scene.scan,
+            params=_params(scene, register=False),
+            T_scan_tracker_init=scene.T_scan_tracker,
+        )
+
+    def fused(scene, seed):
+        traces = [scene.recording, *scene.traces(N_FUSED - 1, seed)]
+        return reconstruct(traces, scene.scan, params=_params(scene))
+
+    def fused_touches(scene, seed):
+        traces = [scene.recording, *scene.traces(N_FUSED - 1, seed)]
+        return reconstruct(
+            traces, scene.scan, params=_params(scene), touches=touches_for(scene, seed)
+        )
+
+    return [
+        SuiteVariant("raw trace", raw),
+        SuiteVariant("best Savitzky-Golay (hindsight)", savgol),
+        SuiteVariant("paper, Eq. (4)", paper),
+        SuiteVariant("default, registered from the trace", default),
+        SuiteVariant("default, registered by touches", touches, needs_scan=True),
+        SuiteVariant("default, calibrated scanner", calibrated, needs_scan=True),
+        SuiteVariant(f"default, {N_FUSED} fused traces", fused),
+        SuiteVariant(f"default, {N_FUSED} fused traces + touches", fused_touches, needs_scan=True),
+    ]
+
+
+@dataclass(frozen=True)
+class SeedResult:
+    """One variant on one seed of one scene."""
+
+    tracker: PathScore
+    raw: PathScore
+    registered: PathScore | None
+    height_max_m: float | None
+
+
+@dataclass(frozen=True)
+class SuiteRow:
+    """One variant on one scene over the seeds (see the module docstring).
+
+    Attributes
+    ----------
+    scene, variant : str
+    results : list of SeedResult
+        Of the seeds it ran on.
+    refused : list of (int, str)
+        Seeds it was refused on, and why (touches that fix too little, say).
+    """
+
+    scene: str
+    variant: str
+    results: list[SeedResult]
+    refused: list[tuple[int, str]]
+
+    def median(self, value: Callable[[SeedResult], float]) -> float:
+        return statistics.median(value(r) for r in self.results)
+
+    def worst(self, value: Callable[[SeedResult], float]) -> float:
+        return max(value(r) for r in self.results)
+
+
+def run_variant(scene: Scene, seed: int, variant: SuiteVariant) -> SeedResult:
+    """Run one variant on one scene and score it.
+
+    Raises
+    ------
+    ReconError
+        The variant refused the scene (kept as a refusal by :func:`run_suite`).
+    """
+    out = variant.run(scene, seed)
+    recon = out if isinstance(out, Reconstruction) else None
+    points = recon.points_m if recon is not None else np.asarray(out)
+    registered = None
+    if recon is not None and recon.T_scan_tracker is not None and scene.feature == "edge":
+        error = invert_transform(recon.T_scan_tracker) @ scene.T_scan_tracker
+        registered = score_path(
+            points,
+            apply_transform(error, scene.truth_m),
+            extend_ends_m=REGISTERED_EXTENSION_M,
+        )
+    height = None
+    if scene.surface_height is not None:
+        height = float(np.max(np.abs(scene.surface_height(points))))
+    return SeedResult(
+        tracker=score_path(points, scene.truth_m),
+        raw=score_path(scene.recording.points_m, scene.truth_m),
+        registered=registered,
+        height_max_m=height,
+    )
+
+
+def run_suite(
+    scenes: dict[str, Callable[[int], Scene]],
+    seeds: range,
+    variants: list[SuiteVariant] | None = None,
+) -> list[SuiteRow]:
+    """Every variant on every scene and seed.
+
+    Returns
+    -------
+    list of SuiteRow
+        Scene by scene, variants in order; variants that need a scan are left out of scenes
+        without one.
+    """
+    variants = variants or suite_variants()
+    rows = []
+    for name, make in scenes.items():
+        built = [make(seed) for seed in seeds]
+        for variant in variants:
+            if variant.needs_scan and built[0].scan is None:
+                continue
+            results, refused = [], []
+            for seed, scene in zip(seeds, built, strict=True):
+                try:
+                    results.append(run_variant(scene, seed, variant))
+                except ReconError as error:
+                    refused.append((seed, str(error)))
+            rows.append(SuiteRow(name, variant.label, results, refused))
+    return rows
+
+
+def format_suite(rows: list[SuiteRow]) -> str:
+    """The rows as Markdown tables, one per scene; millimetres."""
+    out = []
+    scene = None
+    for row in rows:
+        if row.scene != scene:
+            scene = row.scene
+            out += [
+                "",
+                f"**{scene}** (median over seeds, worst seed after the slash)",
+                "",
+                "| variant | mean | p99 | max | ends max | mean / raw | registered: mean | max "
+                "| height max | refused |",
+                "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+            ]
+        if not row.results:
+            out.append(f"| {row.variant} | - | - | - | - | - | - | - | - | {len(row.refused)} |")
+            continue
+        reg = "- | -"
+        if all(r.registered is not None for r in row.results):
+            reg = (
+                f"{row.median(lambda r: r.registered.mean_m) / MM:.3f} | "
+                f"{row.median(lambda r: r.registered.max_m) / MM:.2f} / "
+                f"{row.worst(lambda r: r.registered.max_m) / MM:.2f}"
+            )
+        height = "-"
+        if row.results[0].height_max_m is not None:
+            height = (
+                f"{row.median(lambda r: r.height_max_m) / MM:.2f} / "
+                f"{row.worst(lambda r: r.height_max_m) / MM:.2f}"
+            )
+        out.append(
+            f"| {row.variant} "
+            f"| {row.median(lambda r: r.tracker.mean_m) / MM:.3f} "
+            f"| {row.median(lambda r: r.tracker.p99_m) / MM:.2f} "
+            f"| {row.median(lambda r: r.tracker.max_m) / MM:.2f} / "
+            f"{row.worst(lambda r: r.tracker.max_m) / MM:.2f} "
+            f"| {row.median(lambda r: r.tracker.ends_max_m) / MM:.2f} / "
+            f"{row.worst(lambda r: r.tracker.ends_max_m) / MM:.2f} "
+            f"| {row.median(lambda r: r.tracker.mean_m / r.raw.mean_m):.2f} / "
+            f"{row.worst(lambda r: r.tracker.mean_m / r.raw.mean_m):.2f} "
+            f"| {reg} | {height} | {len(row.refused)} |"
+        )
+    return "\n".join(out)
