@@ -50,7 +50,7 @@ def reconstruction_csv_text(arrays: dict) -> str:
     """The CSV of a reconstruction from its arrays (the fields of :class:`Reconstruction`).
 
     ``mode`` is written as a word (path, surface, edge, unchanged); NaN residuals (no such fit)
-    as empty cells.
+    as empty cells. ``uncertainty_m`` is each point's 1-sigma uncertainty across the path.
     """
     labels = {int(m): m.label for m in PointMode}
     t, q = arrays.get("t_s"), arrays.get("orientations_xyzw")
@@ -70,6 +70,9 @@ def reconstruction_csv_text(arrays: dict) -> str:
     points = arrays["points_m"]
     piece = arrays.get("piece")
     piece = np.zeros(len(points), dtype=np.int64) if piece is None else piece
+    # Reconstructions stored before it was kept have no uncertainty: empty cells.
+    uncertainty = arrays.get("uncertainty_m")
+    uncertainty = np.full(len(points), np.nan) if uncertainty is None else uncertainty
     for i in range(len(points)):
         row = [number(v) for v in points[i]]
         if t is not None:
@@ -86,6 +89,7 @@ def reconstruction_csv_text(arrays: dict) -> str:
             number(arrays["residual_surface_m"][i]),
             number(arrays["alpha"][i]),
             str(int(piece[i])),
+            number(uncertainty[i]),
         ]
         writer.writerow(row)
     return buffer.getvalue()

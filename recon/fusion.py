@@ -118,12 +118,14 @@ def fuse_traces(recordings: list[Recording], *, spacing_m: float) -> FusedTrace:
     lengths = [sum(_length(p) for p in ps) for ps in pieces]
     reference = np.concatenate(pieces[int(np.argmax(lengths))])
     roughness = np.array([_roughness(ps, spacing_m) for ps in pieces])
-    used = np.ones(len(pieces), dtype=bool)
+    everyone = np.ones(len(pieces), dtype=bool)
     mean = reference
     for _ in range(PASSES):
         grid = _arc(mean)
         sampled = np.stack([_on_grid(ps, mean, grid) for ps in pieces])  # (T, G, 3), NaN gaps
-        mean, used, offsets = _robust_mean(sampled, roughness, used)
+        # Every pass judges every trace again: an early mean, aligned along one trace, may make
+        # a good one look far.
+        mean, used, offsets = _robust_mean(sampled, roughness, everyone)
         mean, keep = _covered(mean, sampled, used)
         if np.count_nonzero(keep) < 2:
             raise DegenerateInputError(
@@ -132,7 +134,7 @@ def fuse_traces(recordings: list[Recording], *, spacing_m: float) -> FusedTrace:
         mean = resample_equidistant(mean[keep], spacing_m=spacing_m).points_m
     grid = _arc(mean)
     sampled = np.stack([_on_grid(ps, mean, grid) for ps in pieces])
-    fused, used, offsets = _robust_mean(sampled, roughness, used)
+    fused, used, offsets = _robust_mean(sampled, roughness, everyone)
     variance, coverage = _variance(sampled[used], fused, roughness[used])
     reports = []
     for k in range(len(pieces)):
@@ -227,13 +229,34 @@ def _robust_mean(sampled, roughness, used):
         raise DegenerateInputError(
             "fewer than two demonstrations agree with each other: trace the same path each time"
         )
-    weight = np.where(out, 1.0 / roughness**2, 0.0)[:, None] * present
+    weight = np.where(out, 1.0 / roughness**2, 0.0)[:, None] * _taper(present)
     total = weight.sum(axis=0)
     mean = (
         np.einsum("tg,tgi->gi", weight, np.nan_to_num(sampled)) / np.maximum(total, 1e-300)[:, None]
     )
     mean[total == 0] = np.nan
     return mean, out, offsets
+
+
+#: A trace's weight ramps up over this many grid points from where it starts, stops or has a
+#: gap, so that the mean does not jump where the number of traces averaged changes.
+TAPER_POINTS = 10
+
+
+def _taper(present: np.ndarray) -> FloatArray:
+    """Per trace and grid point: 0 where absent, rising linearly to 1 over
+    :data:`TAPER_POINTS` from every end of what it covers."""
+    weights = np.zeros(present.shape)
+    for k, row in enumerate(present):
+        # Distance (in grid points) to the nearest absent point or end, on either side.
+        index = np.arange(len(row))
+        absent = np.flatnonzero(~row)
+        bounds = np.concatenate(([-1], absent, [len(row)]))
+        left = bounds[np.searchsorted(bounds, index, side="right") - 1]
+        right = bounds[np.searchsorted(bounds, index, side="left")]
+        distance = np.minimum(index - left, right - index)
+        weights[k] = np.where(row, np.minimum(distance / TAPER_POINTS, 1.0), 0.0)
+    return weights
 
 
 def _covered(mean, sampled, used):

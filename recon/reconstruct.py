@@ -37,7 +37,7 @@ from recon.registration import feature_information, register_to_model
 from recon.resample import ResampledPath, resample_equidistant
 from recon.scan_model import ScanModel, build_scan_model
 from recon.segment import split_at
-from recon.touches import TouchRegistration, motions_missing
+from recon.touches import TouchRegistration, motions_missing, register_touches
 from recon.transforms import apply_transform, check_rigid, invert_transform
 from recon.types import (
     CornerReport,
@@ -611,6 +611,58 @@ def touch_registration(
         f"{touches.fixed_motions} motions, every one this trace's features need"
         + (f" ({'; '.join(touches.notes)})" if touches.notes else ""),
     )
+
+
+def touches_for_trace(
+    trace: Recording,
+    touches_tracker_m: FloatArray,
+    scan: Scan,
+    *,
+    params: ReconParams | None = None,
+    T_scan_tracker_init: FloatArray | None = None,
+    touch_sigma_m: FloatArray | None = None,
+    check: bool = True,
+) -> TouchRegistration:
+    """The scanner registered by touches, started from a stored calibration or, without one,
+    from registering the trace to the scan as a reconstruction does; checked (unless ``check``
+    is False) to fix every motion the trace's features need.
+
+    Parameters
+    ----------
+    trace : Recording
+        The traced path, tracker frame.
+    touches_tracker_m : ndarray of shape (T, 3)
+        The touches (the dwells' mean tip positions), tracker frame.
+    scan : Scan
+    params : ReconParams, optional
+    T_scan_tracker_init : ndarray of shape (4, 4), optional
+    touch_sigma_m : ndarray of shape (T,), optional
+        See :func:`recon.touches.register_touches`.
+    check : bool
+
+    Returns
+    -------
+    TouchRegistration
+
+    Raises
+    ------
+    RegistrationError
+        The touches could not be registered, or (``TouchesInsufficientError``) they leave free a
+        motion the trace's features need.
+    """
+    params = params or ReconParams()
+    plan = plan_segments(trace, params)
+    points = plan.resampled.points_m
+    start = T_scan_tracker_init
+    if start is None:
+        start = prepare_scan_model(points, scan, plan.bounds, params).T_scan_tracker
+    touches = register_touches(
+        touches_tracker_m, scan.points_m, T_scan_tracker_init=start, touch_sigma_m=touch_sigma_m
+    )
+    if check:
+        model = build_scan_model(scan, apply_transform(touches.T_scan_tracker, points), params)
+        touch_registration(points, touches, model, plan.bounds, params)
+    return touches
 
 
 def touch_advice(missing: list[str]) -> str:

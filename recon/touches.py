@@ -145,10 +145,14 @@ def find_dwells(
     edges = np.flatnonzero(np.diff(np.r_[0, still.astype(np.int8), 0]))
     dwells, notes = [], []
     for first, end in zip(edges[::2], edges[1::2], strict=True):
+        # The speed's baseline reaches into the moves on either side: the rest itself is that
+        # much longer than the run of still samples.
+        if t[end - 1] - t[first] + SPEED_BASELINE_S < min_duration_s:
+            continue
         a = int(np.searchsorted(t, t[first] + SETTLE_S))
         b = int(np.searchsorted(t, t[end - 1] - SETTLE_S, side="right"))
-        if b - a < 2 or t[b - 1] - t[a] < min_duration_s - 2 * SETTLE_S:
-            continue
+        if b - a < 3:
+            a, b = first, end
         rest = points[a:b]
         mean = rest.mean(axis=0)
         spread = float(np.sqrt(np.mean(np.sum((rest - mean) ** 2, axis=1))))

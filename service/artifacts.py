@@ -38,6 +38,7 @@ KindName = Literal["recording", "scan", "reconstruction", "trajectory", "executi
 #: Artifact kinds and the prefix of their ids.
 ID_PREFIX: dict[str, str] = {
     "recording": "rec",
+    "touches": "tch",
     "scan": "scn",
     "reconstruction": "rcn",
     "trajectory": "trj",
@@ -271,6 +272,16 @@ class RecordingSummary(_Summary):
     notes: list[str] = Field(default_factory=list)
 
 
+class TouchesSummary(RecordingSummary):
+    """A touch recording: the recording's summary and the tip's rests found in it."""
+
+    n_touches: int = Field(..., description="rests of the tip of 0.3 s or more")
+    touches_m: list[Vector3] = Field(..., description="each rest's mean tip position")
+    touch_spread_m: list[float] = Field(
+        default_factory=list, description="RMS of the tip about each rest's mean"
+    )
+
+
 class ScanSummary(_Summary):
     format: str
     n_points: int
@@ -293,12 +304,34 @@ class RegistrationSummary(BaseModel):
     rmse_m: float
     fitness: float
     n_pairs: int
-    target: Literal["edge", "surface"]
+    target: Literal["edge", "surface", "touches"]
     constrained_dof: int
     path_moved_mean_m: float | None = Field(
         None, description="how far the path's points moved from the initial placement (mean)"
     )
     path_moved_max_m: float | None = Field(None, description="the same, at most")
+    reason: str = Field("", description="why this target was chosen")
+    alternative: dict[str, Any] | None = Field(
+        None, description="the other target's figures, when it was tried too"
+    )
+
+
+class CornerSummary(BaseModel):
+    index: int = Field(..., description="the resampled point where the trace turns")
+    angle_deg: float
+    split: bool
+    reason: str
+    point_m: Vector3 | None = Field(
+        None, description="where both segments end (tracker frame), when the scan placed it"
+    )
+
+
+class DemonstrationSummary(BaseModel):
+    used: bool
+    reversed: bool
+    mean_offset_m: float
+    roughness_m: float
+    reason: str = ""
 
 
 class ReconstructionSummary(_Summary):
@@ -312,6 +345,16 @@ class ReconstructionSummary(_Summary):
         None, description="the transform used: registered, else the given one; null: no scan"
     )
     registration: RegistrationSummary | None = None
+    corners: list[CornerSummary] = Field(
+        default_factory=list, description="every sharp turn of the trace, split or not, and why"
+    )
+    demonstrations: list[DemonstrationSummary] = Field(
+        default_factory=list, description="how each fused demonstration entered"
+    )
+    uncertainty_mean_m: float | None = Field(
+        None, description="1-sigma uncertainty across the path, mean over the points"
+    )
+    uncertainty_max_m: float | None = Field(None, description="the same, at most")
     notes: list[str] = Field(default_factory=list)
 
 

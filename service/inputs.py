@@ -90,16 +90,24 @@ def _tip_for(session: SessionRow, marker: str | None):
 
 
 async def add_recording(
-    services: Services, session_id: str, upload: Upload, options: TraceOptions
+    services: Services,
+    session_id: str,
+    upload: Upload,
+    options: TraceOptions,
+    *,
+    kind: str = "recording",
 ) -> ArtifactRow:
-    """Parse an uploaded trace and make it the session's recording."""
+    """Parse an uploaded trace and make it the session's recording (``kind="recording"``), or
+    keep it as the session's newest touches of the workpiece (``kind="touches"``: a recording
+    whose tip rests on several points, see :mod:`recon.touches`)."""
     session = await run_in_threadpool(services.session, session_id)
     tip = _tip_for(session, options.marker)
-    artifact_id = new_id(ID_PREFIX["recording"])
+    artifact_id = new_id(ID_PREFIX[kind])
     summary = await _parsed(
         services,
         artifact_id,
         tasks.ParseRecording(
+            kind=kind,
             content=upload.content,
             filename=upload.filename,
             format=options.format,
@@ -121,7 +129,7 @@ async def add_recording(
         "tip_offset_m": list(tip) if tip and summary["tip_offset_applied"] else None,
     }
     return await run_in_threadpool(
-        _store_upload, services, session_id, "recording", artifact_id, upload, params, summary
+        _store_upload, services, session_id, kind, artifact_id, upload, params, summary
     )
 
 
@@ -158,7 +166,8 @@ def _store_upload(
         arrays=None,
         upload_path=f"uploads/{artifact_id}/{storage_name(upload.filename)}",
         content=upload.content,
-        session_fields={f"{kind}_id": artifact_id},
+        # Touches are not the session's "current" anything: reconstructions take the newest.
+        session_fields={} if kind == "touches" else {f"{kind}_id": artifact_id},
         params=params,
         summary=summary,
         source_name=upload.filename,

@@ -137,6 +137,40 @@ def parse_recording(
     return _handed_back(RecordingCodec.encode(recording), summary, out_path)
 
 
+def parse_touches(path: str, filename: str, *, out_path: str | None = None, **trace_kwargs):
+    """A touch recording: the trace's arrays, with the tip's rests found and summarised.
+
+    Raises
+    ------
+    DegenerateInputError
+        No sample times, or fewer rests than a registration needs (nothing is written).
+    """
+    from recon.errors import DegenerateInputError
+    from recon.touches import MIN_TOUCHES, find_dwells
+
+    handed = parse_recording(path, filename, **trace_kwargs)
+    summary = json.loads(str(handed.pop(SUMMARY_KEY)))
+    arrays = handed
+    points, t = arrays["points_m"], arrays.get("t_s")
+    if t is None:
+        raise DegenerateInputError(
+            f"{filename} has no sample times, so the tip's rests cannot be found: record the "
+            "touches with times (a t column, Motive or C3D)"
+        )
+    dwells, notes = find_dwells(points, t)
+    if len(dwells) < MIN_TOUCHES:
+        raise DegenerateInputError(
+            f"{filename} has {len(dwells)} rests of the tip of 0.3 s or more; at least "
+            f"{MIN_TOUCHES} are needed, on two or three faces of the workpiece: hold the tip "
+            "still on each point for half a second"
+        )
+    summary["n_touches"] = len(dwells)
+    summary["touches_m"] = [d.point_m.tolist() for d in dwells]
+    summary["touch_spread_m"] = [d.spread_m for d in dwells]
+    summary.setdefault("notes", []).extend(notes)
+    return _handed_back(arrays, summary, out_path)
+
+
 def parse_pivot(
     path: str,
     filename: str,

@@ -182,6 +182,121 @@ def point_pairs(
     return outcome
 
 
+# -- the scanner registered by touching ------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TouchOutcome:
+    """The scanner's pose from touches of the workpiece, and the rests they came from.
+
+    Attributes
+    ----------
+    registration : recon.touches.TouchRegistration
+    dwells : list of recon.touches.Dwell
+    notes : list of str
+        Rests left out, touches left out.
+    """
+
+    registration: object
+    dwells: list
+    notes: list[str]
+
+    def as_json(self) -> dict:
+        """What the calibration file and the API keep beside the matrix."""
+        reg = self.registration
+        return {
+            "source": "touches",
+            "touches_m": np.asarray(reg.touches_m).tolist(),
+            "touch_times_s": [[d.t_start_s, d.t_end_s] for d in self.dwells],
+            "touch_residuals_m": [_jsonable_or_none(v) for v in reg.residual_m],
+            "touches_used": [bool(v) for v in reg.used],
+            "fixed_motions": reg.fixed_motions,
+            "free_motions": list(reg.free_motions),
+            "notes": list(self.notes) + list(reg.notes),
+        }
+
+    @property
+    def residual_rms_m(self) -> float:
+        reg = self.registration
+        used = np.asarray(reg.residual_m)[np.asarray(reg.used)]
+        return float(np.sqrt(np.mean(used**2)))
+
+    def lines(self) -> list[str]:
+        reg, mm = self.registration, 1e3
+        lines = [
+            f"{len(self.dwells)} touches found, {int(np.sum(reg.used))} used; they fix "
+            f"{reg.fixed_motions} of the 6 motions"
+            + (f" (free: {'; '.join(reg.free_motions)})" if reg.free_motions else ""),
+            "residual per touch (mm): "
+            + ", ".join(
+                "-" if not np.isfinite(v) else f"{v * mm:+.3f}" + ("" if used else " (left out)")
+                for v, used in zip(reg.residual_m, reg.used, strict=True)
+            ),
+        ]
+        return lines + [f"note: {n}" for n in self.notes + list(reg.notes)]
+
+
+def touch_calibration(
+    touches, scan, *, trace=None, params=None, T_scan_tracker_init=None
+) -> TouchOutcome:
+    """The scanner registered by touches (see :mod:`recon.touches`).
+
+    Parameters
+    ----------
+    touches : recon.types.Recording
+        The touch recording (with times): the tip rests on each of several points.
+    scan : recon.types.Scan
+    trace : recon.types.Recording, optional
+        The path these touches are for: without ``T_scan_tracker_init`` the touches start from
+        registering it to the scan, and the result is refused if it leaves free a motion this
+        trace's features need.
+    params : recon.types.ReconParams, optional
+    T_scan_tracker_init : ndarray of shape (4, 4), optional
+        Where to start (identity when neither it nor a trace is given).
+
+    Raises
+    ------
+    recon.errors.DegenerateInputError
+        No sample times (rests cannot be found without them).
+    recon.errors.RegistrationError
+        Too few touches on the scanned surface; (TouchesInsufficientError) too few motions
+        fixed for the trace.
+    """
+    from recon.errors import DegenerateInputError
+    from recon.reconstruct import touches_for_trace
+    from recon.touches import MIN_TOUCHES, find_dwells, register_touches
+
+    if touches.t_s is None:
+        raise DegenerateInputError(
+            "the touch recording has no sample times, so the tip's rests cannot be found: "
+            "record it with times (a t column, Motive or C3D)"
+        )
+    dwells, notes = find_dwells(touches.points_m, touches.t_s)
+    if len(dwells) < MIN_TOUCHES:
+        from recon.errors import RegistrationError
+
+        raise RegistrationError(
+            f"the touch recording has {len(dwells)} rests of the tip of 0.3 s or more; "
+            f"at least {MIN_TOUCHES} are needed, on two or three faces: hold the tip still on "
+            "each point for half a second"
+        )
+    points = np.array([d.point_m for d in dwells])
+    sigma = np.array([d.standard_error_m for d in dwells])
+    init = None if T_scan_tracker_init is None else np.asarray(T_scan_tracker_init, np.float64)
+    if trace is not None:
+        registration = touches_for_trace(
+            trace, points, scan, params=params, T_scan_tracker_init=init, touch_sigma_m=sigma
+        )
+    else:
+        registration = register_touches(
+            points,
+            scan.points_m,
+            T_scan_tracker_init=np.eye(4) if init is None else init,
+            touch_sigma_m=sigma,
+        )
+    return TouchOutcome(registration=registration, dwells=dwells, notes=notes)
+
+
 # -- reconstruction --------------------------------------------------------------------------------
 
 
@@ -226,7 +341,22 @@ class ReconstructOutcome:
                 "constrained_dof": reg.constrained_dof,
                 "path_moved_mean_m": _jsonable_or_none(reg.path_moved_mean_m),
                 "path_moved_max_m": _jsonable_or_none(reg.path_moved_max_m),
+                "reason": reg.reason,
+                "alternative": None
+                if reg.alternative is None
+                else {
+                    k: (_jsonable_or_none(v) if isinstance(v, float) else v)
+                    for k, v in reg.alternative.items()
+                },
             },
+            "corners": [asdict(c) for c in recon.corners],
+            "demonstrations": [asdict(d) for d in recon.demonstrations],
+            "uncertainty_mean_m": None
+            if recon.uncertainty_m is None
+            else float(np.mean(recon.uncertainty_m)),
+            "uncertainty_max_m": None
+            if recon.uncertainty_m is None
+            else float(np.max(recon.uncertainty_m)),
             "notes": list(recon.notes),
         }
 
@@ -243,15 +373,28 @@ class ReconstructOutcome:
             f"moved {np.mean(recon.displacement_m) * mm:.2f} mm on average, "
             f"{np.max(recon.displacement_m) * mm:.2f} mm at most",
         ]
+        if recon.uncertainty_m is not None:
+            lines.append(
+                f"uncertainty (1 sigma, across the path): {np.mean(recon.uncertainty_m) * mm:.2f} "
+                f"mm on average, {np.max(recon.uncertainty_m) * mm:.2f} mm at most"
+            )
+        for corner in recon.corners:
+            lines.append(f"corner at point {corner.index}: {corner.reason}")
         reg = recon.registration
-        if reg is not None:
+        if reg is not None and reg.target == "touches":
+            lines.append(
+                f"scanner registered by touches: {reg.reason}; the path moved "
+                f"{reg.path_moved_mean_m * mm:.2f} mm on average from the initial placement, "
+                f"touch residual {reg.rmse_m * mm:.3f} mm RMS"
+            )
+        elif reg is not None:
             lines.append(
                 f"registered to the scan's {reg.target}: the path moved "
                 f"{reg.path_moved_mean_m * mm:.2f} mm on average, "
                 f"{reg.path_moved_max_m * mm:.2f} mm at most from the initial placement, "
                 f"residual {reg.rmse_m * mm:.2f} mm RMS, "
                 f"{reg.fitness * 100:.0f} % of the path paired, {reg.constrained_dof}/6 motions "
-                "fixed"
+                f"fixed ({reg.reason})"
             )
         lines += [f"note: {note}" for note in recon.notes]
         return lines
@@ -263,23 +406,36 @@ class ReconstructOutcome:
         plot_reconstruction(path, self.reconstruction, scan_m=self.scan_tracker_m, title=title)
 
 
-def reconstruct(recording, scan, *, params, T_scan_tracker_init=None) -> ReconstructOutcome:
+def reconstruct(
+    recording, scan, *, params, T_scan_tracker_init=None, touches=None
+) -> ReconstructOutcome:
     """Reconstruct a trace with the scan's structure (see :func:`recon.reconstruct.reconstruct`).
 
     Parameters
     ----------
-    recording : recon.types.Recording
+    recording : recon.types.Recording or list of them
+        Several recordings are demonstrations of one path, fused first.
     scan : recon.types.Scan or None
     params : recon.types.ReconParams
     T_scan_tracker_init : ndarray of shape (4, 4), optional
         The stored calibration: registration's initial guess, or the transform itself when
         ``params.register`` is False.
+    touches : recon.types.Recording, optional
+        A touch recording: the scanner is registered by it (started from the calibration, or
+        from registering the trace) instead of by the trace.
     """
     from recon.reconstruct import reconstruct as run
     from recon.transforms import apply_transform, invert_transform
 
     init = None if T_scan_tracker_init is None else np.asarray(T_scan_tracker_init, np.float64)
-    recon = run(recording, scan, params=params, T_scan_tracker_init=init)
+    recordings = recording if isinstance(recording, list | tuple) else [recording]
+    touched = None
+    if touches is not None and scan is not None and params.uses_scan:
+        touched = touch_calibration(
+            touches, scan, trace=recordings[0], params=params, T_scan_tracker_init=init
+        ).registration
+    path = recordings if len(recordings) > 1 else recordings[0]
+    recon = run(path, scan, params=params, T_scan_tracker_init=init, touches=touched)
     scan_tracker = None
     if scan is not None:
         T = recon.T_scan_tracker if recon.T_scan_tracker is not None else init

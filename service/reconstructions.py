@@ -33,24 +33,41 @@ def start(services: Services, session_id: str, request: ReconstructionCreate) ->
         A combination of parameters the core refuses.
     """
     session = services.session(session_id)
-    recording_id = request.recording_id or session.recording_id
-    if recording_id is None:
+    if request.recording_ids:
+        recording_ids = list(dict.fromkeys(request.recording_ids))  # each once, in order
+    else:
+        recording_ids = [request.recording_id or session.recording_id]
+    if recording_ids[0] is None:
         raise ApiError(
             409,
             "no_recording",
             "the session has no recording: upload one "
             "(PUT /sessions/{id}/recording) or capture one first",
         )
-    recording = services.artifact(session_id, "recording", recording_id)
+    recordings = [services.artifact(session_id, "recording", rid) for rid in recording_ids]
     scan = None
     if request.use_scan:
         scan_id = request.scan_id or session.scan_id
         if scan_id is not None:
             scan = services.artifact(session_id, "scan", scan_id)
+    touches = None
+    if scan is not None and request.use_touches:
+        if request.touches_id is not None:
+            touches = services.artifact(session_id, "touches", request.touches_id)
+        else:
+            newest = services.store.artifacts(session_id, "touches")
+            touches = newest[-1] if newest else None
     params = request.recon_params()  # refuses bad combinations now, not in the worker
     T_init = request.T_scan_tracker or session.T_scan_tracker
     out_id = new_id(ID_PREFIX["reconstruction"])
-    inputs = {"recording_id": recording.id, "scan_id": scan.id if scan else None}
+    inputs = (
+        {"recording_id": recordings[0].id}
+        if len(recordings) == 1
+        else {"recording_ids": [r.id for r in recordings]}
+    )
+    inputs["scan_id"] = scan.id if scan else None
+    if touches is not None:
+        inputs["touches_id"] = touches.id
     stored_params = {**params, "T_scan_tracker_init": T_init if scan else None}
     done = services.record_when_done(
         session_id,
@@ -61,13 +78,14 @@ def start(services: Services, session_id: str, request: ReconstructionCreate) ->
         result=lambda summary: {"reconstruction_id": out_id},
     )
     task = tasks.Reconstruct(
-        recording_path=str(services.store.path_of(recording)),
+        recording_paths=tuple(str(services.store.path_of(r)) for r in recordings),
         scan_path=str(services.store.path_of(scan)) if scan else None,
         params=params,
         out_path=services.array_path(out_id),
         preview_path=str(preview_path(services, out_id)),
-        preview_title=recording.source_name or "reconstruction",
+        preview_title=recordings[0].source_name or "reconstruction",
         T_scan_tracker_init=T_init if scan else None,
+        touches_path=str(services.store.path_of(touches)) if touches else None,
     )
     return services.jobs.submit(
         session_id,

@@ -12,6 +12,7 @@ from pydantic import (
     ConfigDict,
     Field,
     StrictBool,
+    StringConstraints,
     field_validator,
     model_validator,
 )
@@ -23,6 +24,7 @@ from service.artifacts import (
     ReconstructionSummary,
     RecordingSummary,
     ScanSummary,
+    TouchesSummary,
     TrajectorySummary,
 )
 
@@ -169,6 +171,11 @@ class RecordingOut(_ArtifactOut):
     summary: RecordingSummary
 
 
+class TouchesOut(_ArtifactOut):
+    kind: Literal["touches"]
+    summary: TouchesSummary
+
+
 class ScanOut(_ArtifactOut):
     kind: Literal["scan"]
     summary: ScanSummary
@@ -191,7 +198,7 @@ class ExecutionOut(_ArtifactOut):
 
 #: Any artifact, told apart by its ``kind``.
 ArtifactOut = Annotated[
-    RecordingOut | ScanOut | ReconstructionOut | TrajectoryOut | ExecutionOut,
+    RecordingOut | TouchesOut | ScanOut | ReconstructionOut | TrajectoryOut | ExecutionOut,
     Field(discriminator="kind"),
 ]
 
@@ -238,12 +245,28 @@ TRAJECTORY_PARAMS = (
 )
 
 
+#: Most demonstrations a reconstruction fuses.
+MAX_DEMONSTRATIONS = 10
+
+
 class _ReconstructionRequest(Strict):
     """What to reconstruct, and how; the numbers' defaults and bounds are the core's."""
 
     recording_id: str | None = Field(None, description="default: the session's recording")
+    recording_ids: list[Annotated[str, StringConstraints(max_length=32)]] | None = Field(
+        None,
+        max_length=MAX_DEMONSTRATIONS,
+        description="several demonstrations of one path, fused before reconstructing (an "
+        "outlier is left out and named); overrides recording_id",
+    )
     scan_id: str | None = Field(None, description="default: the session's scan")
     use_scan: bool = Field(True, description="false: path-only reconstruction")
+    touches_id: str | None = Field(
+        None, description="touches registering the scanner; default: the session's newest"
+    )
+    use_touches: bool = Field(
+        True, description="false: register the scanner from the trace even with touches"
+    )
     registration: bool = Field(
         default_of(ReconParams, "register"),
         description="register the path to the scan (ICP); false trusts the frames as given",

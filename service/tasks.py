@@ -185,6 +185,9 @@ class ParseRecording:
     piece: int | Literal["all"] | None = None
     parse_limits: ParseLimits = ParseLimits(time_setting="TEACHPATH_MAX_TRACE_PARSE_S")
     out_path: str | None = None
+    #: ``touches``: a touch recording, whose rests are found and summarised
+    #: (:func:`service.parsing.parse_touches`); ``recording``: a trace.
+    kind: Literal["recording", "touches"] = "recording"
 
     def run(self, on_usage: Callable[[Usage], None] | None = None) -> tuple[Arrays, dict]:
         kwargs = {
@@ -196,7 +199,7 @@ class ParseRecording:
             "piece": self.piece,
         }
         return parse_in_child(
-            "parse_recording",
+            "parse_touches" if self.kind == "touches" else "parse_recording",
             self.content,
             self.filename,
             kwargs,
@@ -276,24 +279,30 @@ class Reconstruct:
     ``run()`` returns the reconstruction's summary.
     """
 
-    recording_path: str
+    recording_paths: tuple[str, ...]
     scan_path: str | None
     params: dict
     out_path: str
     preview_path: str
     preview_title: str
     T_scan_tracker_init: list | None = None
+    #: A touch recording: the scanner is registered by it rather than by the trace.
+    touches_path: str | None = None
 
     def run(self) -> dict:
         from recon.types import ReconParams
 
-        recording = RecordingCodec.decode(load_arrays(self.recording_path))
+        recordings = [RecordingCodec.decode(load_arrays(p)) for p in self.recording_paths]
         scan = ScanCodec.decode(load_arrays(self.scan_path)) if self.scan_path else None
+        touches = (
+            RecordingCodec.decode(load_arrays(self.touches_path)) if self.touches_path else None
+        )
         outcome = pipelines.reconstruct(
-            recording,
+            recordings if len(recordings) > 1 else recordings[0],
             scan,
             params=ReconParams(**self.params),
             T_scan_tracker_init=self.T_scan_tracker_init,
+            touches=touches,
         )
         save_arrays(self.out_path, ReconstructionCodec.encode(outcome.reconstruction))
         outcome.write_preview(self.preview_path, title=self.preview_title)

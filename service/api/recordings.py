@@ -12,7 +12,7 @@ from service import inputs
 from service.api.common import CSV, add_artifact_routes, download, received
 from service.api.deps import ServicesDep
 from service.artifacts import RecordingCodec
-from service.schemas import RecordingOut
+from service.schemas import RecordingOut, TouchesOut
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["recordings"])
 
@@ -49,6 +49,33 @@ async def upload_recording(
 
 
 add_artifact_routes(router, "recording", "recordings", RecordingOut)
+
+
+@router.put("/touches", status_code=201, response_model=TouchesOut)
+async def upload_touches(
+    session_id: str,
+    services: ServicesDep,
+    file: UploadFile = File(
+        ..., description="a recording in which the pen's tip rests on several workpiece points"
+    ),
+    format: str | None = Form(None, description="csv, motive or c3d"),
+    units: Literal["m", "mm"] | None = Form(None, description="if the file states none (m)"),
+    rigid_body: str | None = Form(None, description="Motive: the pen's rigid body"),
+    marker: str | None = Form(None, description="Motive or C3D: a single marker as the pen"),
+):
+    """Upload touches of the workpiece: the tip rests 0.3 s or more on each of at least three
+    points, on two or three faces, and moves between them. Reconstructions with a scan then
+    register the scanner by them (the newest touches; ``use_touches: false`` opts out), so the
+    trace's drift stays out of where the robot goes. A file with fewer rests is a 422 and
+    changes nothing."""
+    options = inputs.TraceOptions(
+        format=format, units=units, rigid_body=rigid_body, marker=marker, piece="all"
+    )
+    async with received(file, services) as upload:
+        return await inputs.add_recording(services, session_id, upload, options, kind="touches")
+
+
+add_artifact_routes(router, "touches", "touches", TouchesOut)
 
 
 @router.get("/recordings/{artifact_id}/csv", response_class=Response, responses=CSV)

@@ -1,4 +1,5 @@
-"""``teachpath calibrate pivot|base``: the pen's tip offset and the tracker-to-robot transform."""
+"""``teachpath calibrate pivot|base|scan``: the pen's tip offset, the tracker-to-robot transform
+and the tracker-to-scanner transform from touches of the workpiece."""
 
 from __future__ import annotations
 
@@ -6,13 +7,23 @@ import argparse
 from pathlib import Path
 
 from recon.params import PIVOT_TOLERANCE_M
-from service.cli.options import OneLineParser, add_trace_options, check_output, positive
+from service.cli.options import (
+    OneLineParser,
+    add_scan_options,
+    add_trace_options,
+    check_output,
+    positive,
+    read_matrix,
+    read_scan_for,
+    read_trace_for,
+)
 
 
 def add_parser(commands) -> None:
     calibrate = commands.add_parser(
         "calibrate",
-        help="pen-tip (pivot) and tracker-to-robot (point pairs) calibrations",
+        help="pen-tip (pivot), tracker-to-robot (point pairs) and tracker-to-scanner (touches) "
+        "calibrations",
         description="Compute a calibration, print its residuals and save it as JSON.",
     )
     kinds = calibrate.add_subparsers(dest="kind", required=True, parser_class=OneLineParser)
@@ -51,6 +62,35 @@ def add_parser(commands) -> None:
     _accept_poor_fit(base)
     base.add_argument("--out", required=True, metavar="T_base_tracker.json")
     base.set_defaults(handler=run_base)
+    scan = kinds.add_parser(
+        "scan",
+        help="T_scan_tracker from touches of the workpiece",
+        description="TOUCHES_FILE is a recording (any trace format, with times) in which the "
+        "pen's tip rests 0.3 s or more on each of 3 or more points of the workpiece, on two or "
+        "three faces, and moves between them. The rests are found and averaged, and registered "
+        "point to plane to the scan's surface; the result names the residual of every touch "
+        "and the motions the touches fix (those they leave free keep the initial guess). "
+        "Pass the file to reconstruct or plan with --scan-from-tracker (and --no-register).",
+    )
+    scan.add_argument("touches", metavar="TOUCHES_FILE")
+    add_trace_options(scan)
+    scan.add_argument("--scan", required=True, metavar="SCAN_FILE", help="the workpiece's scan")
+    add_scan_options(scan)
+    scan.add_argument("--units", choices=("m", "mm"), help="unit if a file states none")
+    scan.add_argument(
+        "--scan-from-tracker",
+        metavar="T0.json",
+        help="initial guess (a stored T_scan_tracker); default: from --trace registered to the "
+        "scan, else the frames as given",
+    )
+    scan.add_argument(
+        "--trace",
+        metavar="PATH_FILE",
+        help="the path the calibration is for: the initial guess comes from registering it, "
+        "and the calibration is refused if the touches leave free a motion its features need",
+    )
+    scan.add_argument("--out", required=True, metavar="T_scan_tracker.json")
+    scan.set_defaults(handler=run_scan)
 
 
 def _accept_poor_fit(parser) -> None:
@@ -121,5 +161,30 @@ def run_base(args: argparse.Namespace) -> int:
             key: result[key] for key in ("residuals_m", "leave_one_out_m", "used", "tolerance_m")
         }
         | {"source": Path(args.pairs).name},
+    )
+    return 0
+
+
+def run_scan(args: argparse.Namespace) -> int:
+    from drivers.calibration import write_calibration
+    from service import pipelines
+
+    out = check_output(args.out, ".json")
+    touches = read_trace_for(args, args.touches, piece="all")
+    trace = read_trace_for(args, args.trace) if args.trace else None
+    scan = read_scan_for(args)
+    outcome = pipelines.touch_calibration(
+        touches,
+        scan,
+        trace=trace,
+        T_scan_tracker_init=read_matrix(args.scan_from_tracker, "T_scan_tracker"),
+    )
+    print("\n".join(outcome.lines()))
+    write_calibration(
+        out,
+        "T_scan_tracker",
+        outcome.registration.T_scan_tracker,
+        residual_rms_m=outcome.residual_rms_m,
+        extra=outcome.as_json() | {"source": Path(args.touches).name},
     )
     return 0

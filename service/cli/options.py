@@ -138,9 +138,11 @@ def add_units_option(parser: argparse.ArgumentParser, help: str) -> None:
     parser.add_argument("--units", choices=("m", "mm"), help=help)
 
 
-def read_trace_for(args: argparse.Namespace):
-    """The trace of a command, with its tip calibration applied and its gaps cleaned; what the
-    cleaning did goes to stderr."""
+def read_trace_for(args: argparse.Namespace, path: str | None = None, *, piece=None):
+    """The trace of a command (``args.path_file`` unless ``path`` is given), with its tip
+    calibration applied and its gaps cleaned; what the cleaning did goes to stderr.
+
+    ``piece`` overrides ``--piece`` (touch recordings keep all of theirs)."""
     from drivers.calibration import read_tip_calibration
     from drivers.errors import InputFileError
     from drivers.tracking.readers import read_trace
@@ -157,13 +159,13 @@ def read_trace_for(args: argparse.Namespace):
             )
         tip = calibration.offset_m
     trace = read_trace(
-        args.path_file,
+        path or args.path_file,
         fmt=args.path_format,
         units=args.units,
         rigid_body=args.rigid_body,
         marker=args.marker,
         tip_offset_m=tip,
-        piece=args.piece,
+        piece=piece if piece is not None else args.piece,
     )
     report = trace.clean.report
     if report.events or len(trace.clean.pieces) > 1:

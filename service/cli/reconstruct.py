@@ -27,10 +27,12 @@ def add_parser(commands) -> None:
         "OUT.npz: the same with the scan's transform and model, which `teachpath plan` reuses.",
     )
     rec.add_argument(
-        "path_file",
+        "path_files",
+        nargs="+",
         metavar="PATH_FILE",
         help="the trace: canonical CSV (x,y,z, optionally t, qx,qy,qz,qw), Motive CSV export "
-        "or C3D",
+        "or C3D. Several files are demonstrations of one path (either direction): they are "
+        "fused, an outlier is left out and named, and the fused trace is reconstructed",
     )
     add_trace_options(rec)
     rec.add_argument(
@@ -51,6 +53,14 @@ def add_parser(commands) -> None:
     from service.schemas import RECONSTRUCTION_PARAMS
 
     add_param_options(rec, ReconParams, RECONSTRUCTION_PARAMS)
+    rec.add_argument(
+        "--touches",
+        metavar="TOUCHES_FILE",
+        help="a recording (any trace format, with times) in which the pen's tip rests 0.3 s or "
+        "more on each of 3 or more points of the workpiece: the scanner is registered by them "
+        "(see `teachpath calibrate scan`) rather than by the trace, and refused if they leave "
+        "free a motion the traced features need",
+    )
     rec.add_argument(
         "--no-register",
         action="store_true",
@@ -80,12 +90,21 @@ def run(args: argparse.Namespace) -> int:
     fixed = {"register": False} if args.no_register else {}
     params = params_from_args(ReconParams, args, RECONSTRUCTION_PARAMS, **fixed)
     T_init = read_matrix(args.scan_from_tracker, "T_scan_tracker")
-    recording = read_trace_for(args)
+    recordings = [read_trace_for(args, path) for path in args.path_files]
+    if args.touches and not args.scan:
+        raise ValueError("--touches register the scanner: give the scan too (--scan SCAN_FILE)")
+    touches = read_trace_for(args, args.touches, piece="all") if args.touches else None
     scan = read_scan_for(args) if args.scan else None
-    outcome = pipelines.reconstruct(recording, scan, params=params, T_scan_tracker_init=T_init)
+    outcome = pipelines.reconstruct(
+        recordings if len(recordings) > 1 else recordings[0],
+        scan,
+        params=params,
+        T_scan_tracker_init=T_init,
+        touches=touches,
+    )
     if plot is not None:
         # Written first: if the plot fails, no CSV claims the run succeeded.
-        outcome.write_preview(plot, title=Path(args.path_file).name)
+        outcome.write_preview(plot, title=Path(args.path_files[0]).name)
     # Beside the CSV, for `teachpath plan`: the arrays the service stores (with the transform
     # and the scan model the reconstruction used, so planning registers nothing again).
     save_arrays(sidecar_of(out), ReconstructionCodec.encode(outcome.reconstruction))
