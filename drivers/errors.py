@@ -243,6 +243,7 @@ WIRE_ERRORS: dict[str, type[Exception]] = {
         _recon_errors.NoOverlapError,
         _recon_errors.UnitsMismatchError,
         _recon_errors.RegistrationError,
+        _recon_errors.TouchesInsufficientError,
         _recon_errors.PoorFitError,
         _recon_errors.InfeasibleTrajectoryError,
         _recon_errors.CollisionError,

@@ -33,6 +33,7 @@ from recon.fitting import (
 from recon.methods.common import (
     HAND_ERROR_PRIOR_M,
     SegmentResult,
+    adaptive_smoothing,
     chunks,
     edge_neighbourhoods,
     path_fit,
@@ -99,15 +100,25 @@ def anchored_segment(
     var_path_fit = np.zeros(n)
     var_target = np.full(n, np.inf)
     supported = np.zeros(n, dtype=bool)
+    if kind != SegmentKind.EDGE:
+        # Where the path alone decides across it (no scan; the plane of a surface), the widest
+        # window that does not bend it (see adaptive_smoothing).
+        adaptive = adaptive_smoothing(points, half_width, degree=params.degree, scale=scale)
     for rows in chunks(n):
         # A 3-D curve: both transverse components as polynomials of the first.
         fitted = path_fit(points, windows[rows], rows, degree=degree, scale=scale, outputs=2)
         frame, x_i, design_at, fit_p = fitted.frame, fitted.x_i, fitted.design_at, fitted.fit
-        on_curve = np.column_stack([x_i, fit_p.predict(design_at)])
-        smoothed[rows] = frame.to_world(on_curve)
-        var_path_fit[rows] = fit_p.rms**2 * fit_p.leverage(design_at)
-        out.n_path[rows] = windows.shape[1]
-        out.residual_path[rows] = fit_p.rms
+        if kind == SegmentKind.EDGE:
+            on_curve = np.column_stack([x_i, fit_p.predict(design_at)])
+            smoothed[rows] = frame.to_world(on_curve)
+            var_path_fit[rows] = fit_p.rms**2 * fit_p.leverage(design_at)
+            out.n_path[rows] = windows.shape[1]
+            out.residual_path[rows] = fit_p.rms
+        else:
+            smoothed[rows] = adaptive.points_m[rows]
+            var_path_fit[rows] = adaptive.variance_m2[rows]
+            out.n_path[rows] = 2 * adaptive.half_width[rows] + 1
+            out.residual_path[rows] = adaptive.rms_m[rows]
         if not use_scan:
             continue
         if kind == SegmentKind.EDGE:

@@ -66,6 +66,9 @@ class Scene:
         Faces of the workpiece that can be touched to register the scanner.
     corners_m : ndarray of shape (C, 3)
         The true corners along the feature, tracker frame (empty for smooth features).
+    in_plane : callable or None
+        For surface scenes: points (N, 3) -> their coordinates in the surface's plane (N, 3,
+        height zeroed), to score the position the scan does not define.
     """
 
     name: str
@@ -82,6 +85,7 @@ class Scene:
     extra_offset: Callable[[FloatArray], FloatArray] | None = None
     faces: tuple[Face, ...] = ()
     corners_m: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    in_plane: Callable[[FloatArray], FloatArray] | None = None
 
     def traces(self, n: int, seed: int) -> list[Recording]:
         """``n`` more traces of the same feature with independent noise, every other one traced

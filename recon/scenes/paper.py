@@ -239,6 +239,7 @@ def flat_liftoff(
         noise=noise,
         extra_offset=lift,
         faces=(Face("plate", _plate_top),),
+        in_plane=lambda p: p * [1.0, 1.0, 0.0],
     )
 
 
