@@ -96,6 +96,10 @@ def _beyond_ends(path_m: FloatArray, spacing_m: float, reach_m: float) -> FloatA
 
 #: Where a fit in the full ball fails, one in a ball this much smaller is tried.
 SMALL_BALL_FRACTION = 0.5
+#: A fitted edge point must have a scan point within this many face-fit sigmas of it (and at
+#: least :data:`EDGE_GAP_FLOOR_M`): the crest is scanned too.
+EDGE_GAP_SIGMAS = 2.0
+EDGE_GAP_FLOOR_M = 1e-3
 
 
 def _fit_and_judge(queries, features, radius_m, trees, *, typical):
@@ -109,6 +113,11 @@ def _fit_and_judge(queries, features, radius_m, trees, *, typical):
         if typical is None:
             typical = float(np.median(fit.residual_m[keep]))
         keep &= fit.residual_m <= 2.0 * typical + 1e-6
+    # Two faces that met where the scan has no points (in the air, or inside the workpiece)
+    # were extrapolated from a ball that holds no two flat faces: a tight bend seen whole.
+    dense_tree = trees[1] if trees is not None else cKDTree(features.dense_points_m)
+    gap, _ = dense_tree.query(fit.points_m, workers=-1)
+    keep &= gap <= np.maximum(EDGE_GAP_FLOOR_M, EDGE_GAP_SIGMAS * fit.residual_m)
     return fit, keep
 
 

@@ -20,6 +20,7 @@ import numpy as np
 from recon import reconstruct as R
 from recon.classify import PATH_ONLY, SegmentKind, check_consistency, classify_segments
 from recon.methods import anchored as A
+from recon.methods import common as C
 from recon.methods.common import EDGE_DIRECTION_TOLERANCE_DEG
 from recon.methods.paper import align_scan_axes
 from recon.transforms import apply_transform, invert_transform
@@ -147,6 +148,38 @@ def paper_segment_loop(points, kind, model, params: ReconParams, half_width: int
     return out, alphas
 
 
+def _adaptive_point(points, i, half_width, params):
+    """Point i smoothed by the widest window that agrees with every narrower one (see
+    recon.methods.common.adaptive_smoothing), as (point, variance)."""
+    n = len(points)
+    estimates = []
+    for factor in C.ADAPTIVE_FACTORS:
+        h = half_width * factor
+        if factor > 1 and 2 * h + 1 > n:
+            break
+        window = points[_window(i, n, h)]
+        degree = min(params.degree, len(window) - 2)
+        scale = params.radius_m * factor
+        mean, axes = _path_frame(window)
+        local = (window - mean) @ axes
+        x_i = (points[i] - mean) @ axes[:, 0]
+        design_at = _design(np.array([x_i]), degree, scale)[0]
+        coef, rms, inverse, _ = _fit(_design(local[:, 0], degree, scale), local[:, 1:])
+        point = mean + axes @ np.concatenate([[x_i], design_at @ coef])
+        estimates.append((point, rms**2 * design_at @ inverse @ design_at))
+    chosen = 0
+    for j in range(1, len(estimates)):
+        agree = all(
+            np.linalg.norm(estimates[j][0] - estimates[k][0])
+            <= C.ADAPTIVE_GAMMA * (np.sqrt(estimates[j][1]) + np.sqrt(estimates[k][1]))
+            for k in range(j)
+        )
+        if not agree:
+            break
+        chosen = j
+    return estimates[chosen]
+
+
 def anchored_segment_loop(points, kind, model, params: ReconParams, half_width: int):
     """The anchored method, one point at a time. Returns (points (n, 3), alpha (n,))."""
     n = len(points)
@@ -166,6 +199,8 @@ def anchored_segment_loop(points, kind, model, params: ReconParams, half_width: 
         coef, rms, inverse, _ = _fit(_design(local[:, 0], degree, scale), local[:, 1:])
         smoothed[i] = mean + axes @ np.concatenate([[x_i], design_at @ coef])
         var_fit[i] = rms**2 * design_at @ inverse @ design_at
+        if kind != SegmentKind.EDGE:
+            smoothed[i], var_fit[i] = _adaptive_point(points, i, half_width, params)
         if not use_scan:
             continue
         if kind == SegmentKind.EDGE:
@@ -184,8 +219,9 @@ def anchored_segment_loop(points, kind, model, params: ReconParams, half_width: 
             x_at = (smoothed[i] - mean_s) @ axes_s[:, 0]
             d_at = _design(np.array([x_at]), degree, scale)[0]
             xs = local_s[keep, 0]
-            inside = xs.min() - 0.5 * params.radius_m <= x_at <= xs.max() + 0.5 * params.radius_m
-            if dof_s >= 2 and inside:
+            margin = A.EDGE_SPAN_MARGIN_RADII * params.radius_m
+            inside = xs.min() - margin <= x_at <= xs.max() + margin
+            if dof_s >= 2 and inside and np.count_nonzero(keep) >= A.MIN_EDGE_SAMPLES:
                 target[i] = mean_s + axes_s @ np.concatenate([[x_at], d_at @ coef_s])
                 scatter = rms_s**2 * min(d_at @ inv_s @ d_at * A.edge_dependence(model), 1.0)
                 # The line fits' own precision, averaged over the points the fit kept.

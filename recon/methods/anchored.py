@@ -47,6 +47,10 @@ DRIFT_WINDOW_RADII = 10.0
 SURFACE_NEIGHBOURS = 1024
 #: N_S on an edge reaches this many radii from the smoothed point.
 EDGE_SCAN_RADII = 1.5
+#: An edge target needs edge samples on both sides of it, give or take this many radii.
+EDGE_SPAN_MARGIN_RADII = 0.25
+#: ... and at least this many samples (about ten millimetres of edge).
+MIN_EDGE_SAMPLES = 10
 #: N_S on a surface reaches this many radii from the smoothed point.
 SURFACE_SCAN_RADII = 4
 
@@ -207,9 +211,11 @@ def _edge_targets(centres, direction, model, params, degree):
     var_from_fits = (ws * line_variance).sum(axis=1) / np.maximum(ws.sum(axis=1), 1e-300)
     var = np.maximum(var_from_scatter, var_from_fits)
     # Require support on both sides of short extrapolation: the point must lie within the span.
-    span_ok = _within_span(local[..., 0], ws, x_at, margin=0.5 * params.radius_m)
-    ok = (fit.dof >= 2) & span_ok
+    span_ok = _within_span(local[..., 0], ws, x_at, margin=EDGE_SPAN_MARGIN_RADII * params.radius_m)
     count = np.count_nonzero(ws, axis=1)
+    # A handful of samples left by the direction filter on a tight bend: a curve through them is
+    # an extrapolation, not the edge (measured on a 15 mm bend: 7 samples, 1.2 mm off).
+    ok = (fit.dof >= 2) & span_ok & (count >= MIN_EDGE_SAMPLES)
     return target, np.where(ok, var, np.inf), count, fit.rms
 
 

@@ -148,6 +148,14 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     page.get_by_label("planned TCP path", exact=True).uncheck()
     assert page.evaluate(f"() => ({axes})().visible") is False
     page.get_by_label("planned TCP path", exact=True).check()
+    # By uncertainty: the legend's top is the largest 1-sigma uncertainty of the CSV.
+    page.get_by_label("reconstruction by").select_option("uncertainty")
+    expect(page.locator("#legend-quantity")).to_have_text("uncertainty (1σ)")
+    table = pendant.server.client.get(f"/sessions/{sid}/reconstructions/{rid}/csv").text
+    lines = table.splitlines()
+    column = lines[0].split(",").index("uncertainty_m")
+    top_mm = max(float(line.split(",")[column]) for line in lines[1:]) * 1000
+    expect(page.locator("#legend-max")).to_have_text(f"{top_mm:.2f} mm")
     page.get_by_label("reconstruction by").select_option("mode")
     expect(page.locator("#legend-modes")).to_be_visible()
     expect(page.locator("#legend-displacement")).to_be_hidden()
@@ -167,6 +175,7 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     expect(readout).to_contain_text("displacement")
     expect(readout).to_contain_text("mode: an edge of the scan")
     expect(readout).to_contain_text("fit residuals")
+    expect(readout).to_contain_text("(1σ)")
     pendant.shot("picked")
     page.get_by_label("measure (click two points)").check()
     _click_point(page, "reconstruction", 0)

@@ -459,13 +459,25 @@ function renderReconstruction() {
     ["max displacement", mm(sm.max_displacement_m)],
   ];
   const reg = sm.registration;
-  if (reg) {
+  if (reg && reg.target === "touches") {
+    rows.push(["registration", `by ${reg.n_pairs} touches of the workpiece: residual ${mm(reg.rmse_m, 3)} RMS`]);
+    rows.push(["motions the touches fixed", `${reg.constrained_dof} of 6`]);
+  } else if (reg) {
     rows.push(["registration", `to the scan's ${reg.target}: rmse ${mm(reg.rmse_m, 3)}, fitness ${reg.fitness.toFixed(2)}, ${reg.n_pairs} pairs`]);
     // An edge fixes fewer of the six motions than a surface with relief: say how many.
     rows.push(["motions the scan fixed", `${reg.constrained_dof} of 6${reg.constrained_dof < 6 ? " (the rest kept from the given frames)" : ""}`]);
+  }
+  if (reg) {
+    if (reg.reason) rows.push(["why", reg.reason]);
     if (reg.path_moved_mean_m != null) rows.push(["path moved by it", `${mm(reg.path_moved_mean_m)} on average, ${mm(reg.path_moved_max_m)} at most`]);
   }
   rows.push(["segments", sm.segments.map((g) => `${g.kind} (points ${g.start}–${g.stop - 1})`).join(", ") || "–"]);
+  for (const c of sm.corners || []) rows.push([`turn at point ${c.index}`, `${c.split ? "corner" : "not split"}: ${c.reason}`]);
+  if (sm.demonstrations && sm.demonstrations.length) {
+    const used = sm.demonstrations.filter((d) => d.used).length;
+    rows.push(["demonstrations", `${used} of ${sm.demonstrations.length} fused`]);
+  }
+  if (sm.uncertainty_max_m != null) rows.push(["uncertainty (1σ)", `${mm(sm.uncertainty_mean_m)} on average, ${mm(sm.uncertainty_max_m)} at most`]);
   box.replaceChildren(table(rows), ...(sm.notes.length ? [report(sm.notes)] : []), ...provenance("reconstruction", rec),
     ...comparison());
 }
@@ -580,6 +592,7 @@ function showPick(picked) {
     parts.push(`displacement ${mm(d.displacement_m, 3)}`, `mode: ${MODE_WORDS[d.mode] || d.mode}`, `segment ${d.segment}`,
       `fit residuals: path ${mm(d.residual_path_m, 3)}, surface ${mm(d.residual_surface_m, 3)}`,
       `neighbours: ${d.n_path} path, ${d.n_surface} scan`, `alpha ${Number.isFinite(d.alpha) ? d.alpha.toFixed(2) : "–"}`);
+    if (Number.isFinite(d.uncertainty_m)) parts.push(`uncertainty ±${mm(d.uncertainty_m, 2)} (1σ)`);
   }
   if (picked.time_s != null) parts.push(`at ${picked.time_s.toFixed(2)} s of the plan`);
   if (picked.difference_m != null) parts.push(`${mm(picked.difference_m, 3)} from the current reconstruction`);

@@ -45,7 +45,7 @@ function parseCsv(text, wanted, every = 1, textColumns = []) {
 }
 
 /** The reconstruction's per-point diagnostics the pendant shows on a click. */
-const DIAGNOSTICS = ["displacement_m", "mode", "segment", "n_path", "n_surface", "residual_path_m", "residual_surface_m", "alpha"];
+const DIAGNOSTICS = ["displacement_m", "mode", "segment", "n_path", "n_surface", "residual_path_m", "residual_surface_m", "alpha", "uncertainty_m"];
 const MODE_COLOURS = { edge: [0.85, 0.1, 0.1], surface: [0.1, 0.55, 0.2], path: [0.15, 0.3, 0.9], unchanged: [0.5, 0.5, 0.5] };
 const PHASE_COLOURS = { transit: [0.55, 0.6, 0.75], approach: [0.95, 0.55, 0.1], process: [0.12, 0.47, 1.0], retract: [0.95, 0.55, 0.1], return: [0.55, 0.6, 0.75] };
 
@@ -417,20 +417,27 @@ export class Workspace {
     group.visible = this.visibility("frames");
   }
 
-  /** Colour the reconstruction by its displacement from the trace or by its mode. */
+  /** Colour the reconstruction by its displacement from the trace, its mode, or its 1-sigma
+   * uncertainty (grey where a stored reconstruction has none). */
   colourReconstruction() {
     const c = this.reconstruction;
     if (!c) return;
     const colours = new Float32Array(c.n * 3);
-    const byMode = this.reconColour.value === "mode";
-    const top = Math.max(...c.displacement_m.filter(Number.isFinite), 1e-9);
+    const how = this.reconColour.value;
+    const byMode = how === "mode";
+    const values = how === "uncertainty" ? c.uncertainty_m : c.displacement_m;
+    const finite = Array.from(values).filter(Number.isFinite);
+    const top = Math.max(...finite, 1e-9);
     for (let i = 0; i < c.n; i++) {
-      colours.set(byMode ? MODE_COLOURS[c.mode[i]] || MODE_COLOURS.unchanged : ramp(c.displacement_m[i] / top), 3 * i);
+      const value = values[i];
+      colours.set(byMode ? MODE_COLOURS[c.mode[i]] || MODE_COLOURS.unchanged
+        : Number.isFinite(value) ? ramp(value / top) : [0.6, 0.6, 0.6], 3 * i);
     }
     this.recolour("reconstruction", colours);
     this.legend.querySelector("#legend-displacement").hidden = byMode;
     this.legend.querySelector("#legend-modes").hidden = !byMode;
-    this.legend.querySelector("#legend-max").textContent = `${(top * 1000).toFixed(2)} mm`;
+    this.legend.querySelector("#legend-quantity").textContent = how === "uncertainty" ? "uncertainty (1σ)" : "displacement";
+    this.legend.querySelector("#legend-max").textContent = finite.length ? `${(top * 1000).toFixed(2)} mm` : "– (not kept)";
   }
 
   /** Colour the planned path per waypoint by the chosen feasibility margin. */
