@@ -165,6 +165,7 @@ class SeedResult:
     registered: PathScore | None
     height_max_m: float | None
     in_plane: PathScore | None = None
+    raw_registered: PathScore | None = None
 
 
 @dataclass(frozen=True)
@@ -203,13 +204,13 @@ def run_variant(scene: Scene, seed: int, variant: SuiteVariant) -> SeedResult:
     out = variant.run(scene, seed)
     recon = out if isinstance(out, Reconstruction) else None
     points = recon.points_m if recon is not None else np.asarray(out)
-    registered = None
+    registered = raw_registered = None
     if recon is not None and recon.T_scan_tracker is not None and scene.feature == "edge":
         error = invert_transform(recon.T_scan_tracker) @ scene.T_scan_tracker
-        registered = score_path(
-            points,
-            apply_transform(error, scene.truth_m),
-            extend_ends_m=REGISTERED_EXTENSION_M,
+        moved_truth = apply_transform(error, scene.truth_m)
+        registered = score_path(points, moved_truth, extend_ends_m=REGISTERED_EXTENSION_M)
+        raw_registered = score_path(
+            scene.recording.points_m, moved_truth, extend_ends_m=REGISTERED_EXTENSION_M
         )
     height = None
     if scene.surface_height is not None:
@@ -228,6 +229,7 @@ def run_variant(scene: Scene, seed: int, variant: SuiteVariant) -> SeedResult:
         registered=registered,
         height_max_m=height,
         in_plane=in_plane,
+        raw_registered=raw_registered,
     )
 
 
