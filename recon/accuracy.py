@@ -274,13 +274,13 @@ def format_suite(rows: list[SuiteRow]) -> str:
                 "",
                 f"**{scene}** (median over seeds, worst seed after the slash)",
                 "",
-                "| variant | mean | p99 | max | ends max | mean / raw | registered: mean | max "
-                "| height max | in-plane mean | refused |",
-                "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+                "| variant | mean | p99 | max | first 10 mm max | last 10 mm max | mean / raw "
+                "| registered: mean | max | height max | in-plane mean | refused |",
+                "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
             ]
         if not row.results:
             out.append(
-                f"| {row.variant} | - | - | - | - | - | - | - | - | - | {len(row.refused)} |"
+                f"| {row.variant} | - | - | - | - | - | - | - | - | - | - | {len(row.refused)} |"
             )
             continue
         reg = "- | -"
@@ -305,8 +305,10 @@ def format_suite(rows: list[SuiteRow]) -> str:
             f"| {row.median(lambda r: r.tracker.p99_m) / MM:.2f} "
             f"| {row.median(lambda r: r.tracker.max_m) / MM:.2f} / "
             f"{row.worst(lambda r: r.tracker.max_m) / MM:.2f} "
-            f"| {row.median(lambda r: r.tracker.ends_max_m) / MM:.2f} / "
-            f"{row.worst(lambda r: r.tracker.ends_max_m) / MM:.2f} "
+            f"| {row.median(lambda r: r.tracker.start_max_m) / MM:.2f} / "
+            f"{row.worst(lambda r: r.tracker.start_max_m) / MM:.2f} "
+            f"| {row.median(lambda r: r.tracker.end_max_m) / MM:.2f} / "
+            f"{row.worst(lambda r: r.tracker.end_max_m) / MM:.2f} "
             f"| {row.median(lambda r: r.tracker.mean_m / r.raw.mean_m):.2f} / "
             f"{row.worst(lambda r: r.tracker.mean_m / r.raw.mean_m):.2f} "
             f"| {reg} | {height} | {plane} | {len(row.refused)} |"

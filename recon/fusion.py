@@ -18,7 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from recon.errors import DegenerateInputError
 from recon.resample import resample_equidistant
@@ -31,6 +30,9 @@ PASSES = 3
 OUTLIER_FACTOR = 3.0
 #: ... and more than this (traces of one path by one hand stay within a few millimetres).
 OUTLIER_FLOOR_M = 0.002
+#: Demonstrations whose typical distance from their median is above this are not of one path
+#: (one hand's traces of one feature stay within a few millimetres of each other).
+SAME_PATH_M = 0.01
 #: Fused points need at least this share of the traces (used ones) at their arc length: the ends
 #: are where most demonstrations start and stop, not where one overshot.
 MIN_COVERAGE = 0.5
@@ -192,16 +194,33 @@ def _roughness(pieces: list[FloatArray], spacing_m: float) -> float:
     return max(float(np.sqrt(np.mean(np.sum(r**2, axis=1)))), 1e-6)
 
 
+#: A trace's point is aligned to the nearest point of the mean within this arc-length window
+#: around where its own arc length puts it: a path that crosses itself (a loop back to its
+#: start) has two nearest candidates, and only one is where the trace is along the path.
+ALIGN_WINDOW_M = 0.03
+
+
 def _on_grid(pieces: list[FloatArray], mean: FloatArray, grid: FloatArray) -> FloatArray:
     """A trace's positions at the mean's arc lengths ``grid`` (NaN where it has none).
 
-    Each of its points is placed at the arc length of its nearest point on the mean (the
+    Each of its points is placed at the arc length of its nearest point on the mean, searched
+    within :data:`ALIGN_WINDOW_M` of where the trace's own share of its length puts it (the
     along-path alignment); positions in between are interpolated within each piece.
     """
-    tree = cKDTree(mean)
     out = np.full((len(grid), 3), np.nan)
+    own_length = sum(_length(p) for p in pieces)
+    spacing = grid[1] - grid[0] if len(grid) > 1 else 1.0
+    half = max(1, int(np.ceil(ALIGN_WINDOW_M / spacing)))
+    offset = 0.0
     for points in pieces:
-        _, index = tree.query(points)
+        own_arc = offset + _arc(points)
+        offset = own_arc[-1]
+        expected = np.clip(
+            np.round(own_arc / max(own_length, 1e-12) * (len(grid) - 1)), 0, len(grid) - 1
+        ).astype(np.int64)
+        candidates = np.clip(expected[:, None] + np.arange(-half, half + 1), 0, len(grid) - 1)
+        gaps = np.linalg.norm(mean[candidates] - points[:, None, :], axis=2)
+        index = candidates[np.arange(len(points)), np.argmin(gaps, axis=1)]
         s = grid[index]
         # Hand traces go forwards; a point projected behind its predecessor (noise at a turn)
         # keeps the order by taking the running maximum.
@@ -218,16 +237,24 @@ def _on_grid(pieces: list[FloatArray], mean: FloatArray, grid: FloatArray) -> Fl
 def _robust_mean(sampled, roughness, used):
     """Weighted mean of the used traces; outliers (far from the others' median) left out."""
     present = ~np.isnan(sampled[..., 0])
-    median = np.nanmedian(np.where(used[:, None, None], sampled, np.nan), axis=0)
+    candidates = np.where(used[:, None, None], sampled, np.nan)
+    # The median where some trace is (elsewhere it stays NaN, and no distance is taken there).
+    covered = present[used].any(axis=0)
+    median = np.full(sampled.shape[1:], np.nan)
+    median[covered] = np.nanmedian(candidates[:, covered], axis=0)
     distance = np.linalg.norm(sampled - median, axis=2)
     offsets = np.array(
-        [np.nanmean(d[p]) if p.any() else np.inf for d, p in zip(distance, present, strict=True)]
+        [
+            np.nanmean(d[p]) if np.isfinite(d[p]).any() else np.inf
+            for d, p in zip(distance, present, strict=True)
+        ]
     )
     typical = np.median(offsets[used])
     out = used & ~((offsets > OUTLIER_FACTOR * typical) & (offsets > OUTLIER_FLOOR_M))
-    if np.count_nonzero(out) < 2:
+    if np.count_nonzero(out) < 2 or typical > SAME_PATH_M:
         raise DegenerateInputError(
-            "fewer than two demonstrations agree with each other: trace the same path each time"
+            "fewer than two demonstrations agree with each other (they run "
+            f"{typical * 1e3:.1f} mm from their median on average): trace the same path each time"
         )
     weight = np.where(out, 1.0 / roughness**2, 0.0)[:, None] * _taper(present)
     total = weight.sum(axis=0)

@@ -1,7 +1,8 @@
-"""Benchmarks: accuracy and speed tables (``make bench``). They print; they never fail on time.
+"""Benchmarks: the paper's alpha variants, the Fig. 6 sweep and speed (``make bench``). They
+print; they never fail on time.
 
-Accuracy figures are asserted in ``tests/recon/test_reconstruct.py``; here they are tabulated for
-every scene and variant, with medians over seeds where a single noise draw would mislead.
+The accuracy suite over 20 seeds (every scene, every way of registering) is
+``test_bench_accuracy.py``; accuracy figures are asserted in ``tests/recon/test_accuracy.py``.
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ MM = 1e-3
 
 
 def test_accuracy_tables():
-    print("\n## Accuracy (errors in mm; distances to the true feature)\n")
+    """The paper's Eq. (4) and ours at several alphas, seed 0 of the paper's scenes."""
+    print("\n## Accuracy, seed 0, alpha variants (errors in mm; distances to the true feature)\n")
     for make in scenes.SCENES.values():
         scene = make(0)
         base, title = ReconParams(), scene.description
@@ -39,32 +41,6 @@ def test_accuracy_tables():
             base, title = replace(base, radius_m=0.032), f"{title} (r = 32 mm)"
         print(format_table(evaluate(scene, default_variants(base)), title=title))
         print()
-
-
-def test_accuracy_over_seeds():
-    """Median over ten noise draws of the default method's mean error, both frames."""
-    print("\n## Default method over ten seeds (median; mm and ratio to the raw trace)\n")
-    print(
-        "| scene | raw, tracker | default, tracker | ratio | raw, registered "
-        "| default, registered | ratio |"
-    )
-    print("|---|---:|---:|---:|---:|---:|---:|")
-    for name in ("cylinder_edge", "polynomial_ridge", "box_corner"):
-        cells = []
-        for seed in range(10):
-            scene = scenes.SCENES[name](seed)
-            recon = R.reconstruct(scene.recording, scene.scan)
-            truth = registered_truth(scene, recon)
-            raw_t = error_stats(scene.recording.points_m, scene.truth_m).mean_m
-            raw_r = error_stats(scene.recording.points_m, truth).mean_m
-            ours_t = error_stats(recon.points_m, scene.truth_m).mean_m
-            ours_r = error_stats(recon.points_m, truth).mean_m
-            cells.append((raw_t, ours_t, ours_t / raw_t, raw_r, ours_r, ours_r / raw_r))
-        med = [statistics.median(c[i] for c in cells) for i in range(6)]
-        print(
-            f"| {name} | {med[0] / MM:.3f} | {med[1] / MM:.3f} | {med[2]:.2f} | "
-            f"{med[3] / MM:.3f} | {med[4] / MM:.3f} | {med[5]:.2f} |"
-        )
 
 
 def test_alpha_sweep_fig6():
@@ -143,25 +119,3 @@ def test_speed_table():
                 f"| {loop / vector:.0f}x |"
             )
     print(f"\n\\* loop timed on {LOOP_POINTS} points and scaled to the path's length.")
-
-
-def test_registration_error_split():
-    """How much of the tracker-frame error is registration (the rigid part of the drift)."""
-    print("\n## Calibrated scanner vs registration from the trace (tracker frame, mean mm)\n")
-    print("| scene | raw | registered by ICP | calibrated scanner (true T, no ICP) |")
-    print("|---|---:|---:|---:|")
-    for name in ("cylinder_edge", "polynomial_ridge", "box_corner", "flat_liftoff"):
-        scene = scenes.SCENES[name](0)
-        raw = error_stats(scene.recording.points_m, scene.truth_m).mean_m
-        icp = R.reconstruct(scene.recording, scene.scan)
-        calibrated = R.reconstruct(
-            scene.recording,
-            scene.scan,
-            params=replace(ReconParams(), register=False),
-            T_scan_tracker_init=scene.T_scan_tracker,
-        )
-        print(
-            f"| {name} | {raw / MM:.3f} | "
-            f"{error_stats(icp.points_m, scene.truth_m).mean_m / MM:.3f} | "
-            f"{error_stats(calibrated.points_m, scene.truth_m).mean_m / MM:.3f} |"
-        )

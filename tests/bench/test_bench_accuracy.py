@@ -19,6 +19,7 @@ pytestmark = pytest.mark.bench
 SEEDS = int(os.environ.get("TEACHPATH_BENCH_SEEDS", "20"))
 
 
+@pytest.mark.timeout(3600)
 def test_accuracy_suite():
     start = time.perf_counter()
     rows = run_suite(scenes.ACCURACY_SCENES, range(SEEDS))

@@ -74,7 +74,7 @@ def test_touches_on_one_face_are_refused_for_a_path_along_two_edges(files):
         "--trace", folder / "trace.csv", "--out", out,
     )  # fmt: skip
     assert result.returncode == 1
-    assert "leave free sliding along" in result.stderr
+    assert "fix 3 of the 6 motions and leave free" in result.stderr
     assert "touch a face that faces" in result.stderr
     assert not out.exists()
     # Without a trace to judge by, the calibration is written, its free motions named.

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import re
+import tempfile
+from pathlib import Path
 
 import pytest
 from playwright.sync_api import expect
@@ -440,3 +442,60 @@ def test_the_pendant_works_where_the_browser_refuses_site_storage(pendant):
     expect(page.locator("#session-title")).to_have_text("Session demo")
     page.get_by_label("High contrast").check()
     expect(page.locator("body")).to_have_class(re.compile("contrast"))
+
+
+def test_touches_are_uploaded_in_the_calibration_panel_and_place_the_scan(pendant, scene_files):
+    """The operator uploads touches of the workpiece: a file with too few rests is refused
+    inline, a good one is listed touch by touch, and the next reconstruction says the scan was
+    placed by them (and can be told not to)."""
+    from drivers.tracking.canonical_csv import write_trace_csv
+    from recon import scenes
+
+    page = pendant.page
+    pendant.guard.allow(422, "/touches")
+    pendant.open()
+    pendant.create_session("touches")
+    for form, name, data in (
+        ("#recording-form", "trace.csv", scene_files["trace"]),
+        ("#scan-form", "scan.ply", scene_files["scan"]),
+    ):
+        page.locator(form).get_by_label("File", exact=True).set_input_files(
+            {"name": name, "mimeType": "application/octet-stream", "buffer": data}
+        )
+        page.locator(form).get_by_role("button", name=re.compile("^Upload")).click()
+        expect(page.locator(form).locator(".message")).to_have_text(f"{name} uploaded.")
+
+    touches = page.locator("#touches-form")
+    # Two rests, a move between: one rest short of fixing anything.
+    x = [0.02] * 120 + [0.02 + 0.001 * k for k in range(1, 40)] + [0.06] * 120
+    still = "t,x,y,z\n" + "".join(f"{k / 120:.4f},{v},0.02,0\n" for k, v in enumerate(x))
+    touches.get_by_label("Recording of the touches").set_input_files(
+        {"name": "still.csv", "mimeType": "text/csv", "buffer": still.encode()}
+    )
+    touches.get_by_role("button", name="Upload touches").click()
+    expect(touches.locator(".message")).to_contain_text("at least 3 are needed")
+    expect(page.locator("#touches-summary")).to_be_empty()
+
+    recording = scenes.touch_recording(scenes.box_corner(0), 0).recording
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "touches.csv"
+        write_trace_csv(path, recording)
+        content = path.read_bytes()
+    touches.get_by_label("Recording of the touches").set_input_files(
+        {"name": "touches.csv", "mimeType": "text/csv", "buffer": content}
+    )
+    touches.get_by_role("button", name="Upload touches").click()
+    expect(touches.locator(".message")).to_have_text("touches.csv uploaded.")
+    summary = page.locator("#touches-summary")
+    expect(summary).to_contain_text("6 rests found in touches.csv")
+    expect(summary).to_contain_text("touch 6")
+    pendant.shot("touches")
+
+    page.get_by_role("button", name="Reconstruct").click()
+    result = page.locator("#reconstruct-summary")
+    expect(result).to_contain_text("by 6 touches of the workpiece", timeout=90_000)
+    expect(result).to_contain_text("motions the touches fixed")
+    pendant.shot("reconstructed-by-touches")
+    page.locator("#reconstruct-params").get_by_label("use_touches").uncheck()
+    page.get_by_role("button", name="Reconstruct").click()
+    expect(result).to_contain_text("to the scan's edge", timeout=90_000)

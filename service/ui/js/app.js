@@ -227,15 +227,16 @@ async function resumeJobs(sid) {
 
 async function refresh() {
   const sid = state.session.id;
-  const [session, recordings, scans, reconstructions, trajectories, executions] = await Promise.all([
+  const [session, recordings, scans, reconstructions, trajectories, executions, touches] = await Promise.all([
     api(`/sessions/${sid}`),
     api(`/sessions/${sid}/recordings`),
     api(`/sessions/${sid}/scans`),
     api(`/sessions/${sid}/reconstructions`),
     api(`/sessions/${sid}/trajectories`),
     api(`/sessions/${sid}/executions`),
+    api(`/sessions/${sid}/touches`),
   ]);
-  Object.assign(state, { session, recordings, scans, reconstructions, trajectories, executions });
+  Object.assign(state, { session, recordings, scans, reconstructions, trajectories, executions, touches });
   renderSteps();
   state.capture.sessionShown(sid);
   state.workspace?.show(sid, state).catch((err) => {
@@ -350,6 +351,7 @@ function updateButtons() {
   const set = (selector, enabled) => { $(selector).disabled = !enabled; };
   set("#recording-form button[type=submit]", !busy);
   set("#scan-form button[type=submit]", !busy);
+  set("#touches-form button[type=submit]", !busy);
   set("#reconstruct-form button[type=submit]", !busy && Boolean(s?.recording_id) && Boolean(state.schema));
   set("#plan-form button[type=submit]", !busy && Boolean(reconstruction()) && Boolean(s?.T_base_tracker));
   set("#dryrun-form button[type=submit]", !busy && Boolean(traj));
@@ -443,6 +445,16 @@ function renderCalibration() {
     ? `tracker → base set: translation ${T.map((row) => mm(row[3], 1)).slice(0, 3).join(", ")}` +
       (s.tip_offset_m ? `; tip offset ${s.tip_offset_m.map((v) => mm(v, 1)).join(", ")}` : "")
     : "not calibrated";
+  // The newest touches place the scan for the next reconstructions (unless use_touches is off).
+  const touches = (state.touches || []).at(-1);
+  $("#touches-summary").replaceChildren(...(touches ? [
+    table([
+      ["touches", `${touches.summary.n_touches} rests found in ${touches.source_name || touches.id}`],
+      ...touches.summary.touches_m.map((p, i) => [`touch ${i + 1}`, `(${p.map((v) => (v * 1000).toFixed(1)).join(", ")}) mm`]),
+    ]),
+    ...(touches.summary.notes.length ? [report(touches.summary.notes)] : []),
+    ...provenance("touches", touches),
+  ] : []));
 }
 
 function renderReconstruction() {
@@ -770,7 +782,7 @@ function wireCalibration() {
 
 // -- reconstruct: the parameters from the API's own schema ----------------------------------------
 
-const RECONSTRUCTION_FIELDS = ["radius_m", "alpha", "beta", "degree", "method", "spacing_m", "use_scan", "registration"];
+const RECONSTRUCTION_FIELDS = ["radius_m", "alpha", "beta", "degree", "method", "spacing_m", "use_scan", "registration", "use_touches"];
 /** The plan's parameters on the form (the speed has its slider). */
 const PLAN_FIELDS = ["robot", "orientation", "lead_deg", "tilt_deg", "smooth_m", "tcp_offset_m", "approach_m",
   "shoulder", "elbow", "wrist", "tool_radius_m", "clearance_m", "payload_kg", "return_to_start"];
@@ -937,6 +949,7 @@ function wire() {
     refresh,
   });
   upload("recording", $("#recording-form"));
+  upload("touches", $("#touches-form"));
   upload("scan", $("#scan-form"));
   wireCalibration();
 
