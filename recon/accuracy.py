@@ -32,7 +32,7 @@ from recon.errors import ReconError
 from recon.metrics import PathScore, best_savitzky_golay, score_path
 from recon.reconstruct import reconstruct
 from recon.scenes import Scene, touch_recording
-from recon.touches import find_dwells, register_touches
+from recon.touches import register_touches, touches_in
 from recon.transforms import apply_transform, invert_transform
 from recon.types import FloatArray, ReconParams, Reconstruction
 
@@ -67,13 +67,13 @@ class SuiteVariant:
 
 def touches_for(scene: Scene, seed: int):
     """The scanner registered from a touch recording of the scene (6 touches)."""
-    touches = touch_recording(scene, seed)
-    dwells, _ = find_dwells(touches.recording.points_m, touches.recording.t_s)
+    recording = touch_recording(scene, seed).recording
+    found = touches_in(recording.points_m, recording.t_s)
     return register_touches(
-        np.array([d.point_m for d in dwells]),
+        found.points_m,
         scene.scan.points_m,
         T_scan_tracker_init=np.eye(4),
-        touch_sigma_m=np.array([d.standard_error_m for d in dwells]),
+        touch_sigma_m=found.sigma_m,
     )
 
 

@@ -44,10 +44,13 @@ class SegmentClass:
     edge_fraction : float
         Mean fraction of edge points among the scan points nearest to the segment's points
         (0 for a segment with no scan near it).
+    fell_back : bool
+        The scan was near but the path disagreed with it (:func:`check_consistency`): path only.
     """
 
     kind: SegmentKind
     edge_fraction: float
+    fell_back: bool = False
 
 
 #: The class of every segment when no scan is used.
@@ -141,7 +144,7 @@ def check_consistency(
     Returns
     -------
     classes : list of SegmentClass
-        With :data:`PATH_ONLY` for every segment that failed the check.
+        Path-only (``fell_back``) for every segment that failed the check.
     notes : list of str
         One per fallback, saying why and what to check.
     """
@@ -161,7 +164,7 @@ def check_consistency(
         if distance is None or np.median(distance) <= CONSISTENT_DISTANCE_M:
             out.append(segment_class)
             continue
-        out.append(PATH_ONLY)
+        out.append(SegmentClass(SegmentKind.PATH, segment_class.edge_fraction, fell_back=True))
         notes.append(
             f"segment {index} runs {np.median(distance) * 1e3:.1f} mm from the scan's {feature} "
             f"on median once registered (a hand stays within "

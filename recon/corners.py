@@ -268,8 +268,8 @@ def confirm_with_scan(
     edge_directions: FloatArray,
     angle_deg: float,
 ) -> Corner | None:
-    """Whether the scan's edges turn where the trace does; None when the scan has no edge on
-    either side of the candidate (the scan has no say there).
+    """Whether the scan's edges turn where the trace does; None when the scan has no edge line
+    on one side of the candidate or both (the scan has no say there).
 
     Parameters
     ----------
@@ -290,6 +290,7 @@ def confirm_with_scan(
     Returns
     -------
     Corner or None
+        None when the scan cannot say: no edge line on one side or both.
     """
     if edge_tree is None or len(edge_points_m) == 0:
         return None
@@ -302,13 +303,9 @@ def confirm_with_scan(
     if lines[0] is None and lines[1] is None:
         return None
     if lines[0] is None or lines[1] is None:
-        return Corner(
-            c,
-            candidate.angle_deg,
-            False,
-            f"the trace turns {candidate.angle_deg:.0f} deg but the scan has an edge on one "
-            "side only: not split",
-        )
+        # The path leaves an edge (onto a face, into the air) or the candidate is too near an
+        # end for a line: the scan cannot say, the trace's sharpness does.
+        return None
     # Each line's direction turned to point away from the corner (towards its samples' centre).
     before, after = (
         EdgeLine(
@@ -322,7 +319,7 @@ def confirm_with_scan(
     # The edge's turn: 180 deg less the angle between the two directions pointing away.
     cos_between = float(np.clip(np.dot(before.direction, after.direction), -1.0, 1.0))
     turn = 180.0 - float(np.degrees(np.arccos(cos_between)))
-    point, gap = _closest_point(before, after)
+    point, gap = closest_approach(before, after)
     offset = float(np.linalg.norm(point - points_scan_m[c]))
     problems = []
     if turn < MIN_TURN_SHARE * angle_deg:
@@ -378,8 +375,9 @@ def _edge_line(path_stretch_m, edge_points_m, edge_directions, edge_tree) -> Edg
     return EdgeLine(centre, direction, rms, int(np.count_nonzero(keep)))
 
 
-def _closest_point(a: EdgeLine, b: EdgeLine) -> tuple[FloatArray, float]:
-    """Midpoint of the closest approach of two lines, and their distance there."""
+def closest_approach(a: EdgeLine, b: EdgeLine) -> tuple[FloatArray, float]:
+    """Midpoint of the closest approach of two lines, and their distance there (inf for
+    parallel lines)."""
     w = a.point_m - b.point_m
     da, db = a.direction, b.direction
     aa, ab, bb = da @ da, da @ db, db @ db

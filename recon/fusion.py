@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from recon.errors import DegenerateInputError
 from recon.resample import resample_equidistant
@@ -103,15 +104,10 @@ def fuse_traces(recordings: list[Recording], *, spacing_m: float) -> FusedTrace:
         raise ValueError(f"spacing_m must be > 0, got {spacing_m}")
     pieces = [_resampled_pieces(r, spacing_m) for r in recordings]
     # The result runs the way the first demonstration does; the others are turned to match
-    # when their start is nearer its end.
+    # when they mostly run against it where they pass it (their ends alone do not tell on a
+    # loop, nor on a demonstration of part of the path).
     first = np.concatenate(pieces[0])
-    flipped = []
-    for ps in pieces:
-        start, end = ps[0][0], ps[-1][-1]
-        reverse = np.linalg.norm(start - first[-1]) + np.linalg.norm(
-            end - first[0]
-        ) < np.linalg.norm(start - first[0]) + np.linalg.norm(end - first[-1])
-        flipped.append(bool(reverse))
+    flipped = [_runs_against(np.concatenate(ps), first) for ps in pieces]
     pieces = [
         [p[::-1] for p in ps[::-1]] if reverse else ps
         for ps, reverse in zip(pieces, flipped, strict=True)
@@ -151,7 +147,7 @@ def fuse_traces(recordings: list[Recording], *, spacing_m: float) -> FusedTrace:
                 bool(used[k]), bool(flipped[k]), float(offsets[k]), float(roughness[k]), reason
             )
         )
-    keep = coverage >= max(2, int(np.ceil(MIN_COVERAGE * np.count_nonzero(used))))
+    keep = _enough(coverage, used)
     return FusedTrace(
         recording=Recording(points_m=fused[keep]),
         variance_m2=variance[keep],
@@ -198,33 +194,73 @@ def _roughness(pieces: list[FloatArray], spacing_m: float) -> float:
 #: around where its own arc length puts it: a path that crosses itself (a loop back to its
 #: start) has two nearest candidates, and only one is where the trace is along the path.
 ALIGN_WINDOW_M = 0.03
+#: Where its own arc length puts a point is counted from the last aligned point this far back:
+#: traces of one path differ in length by a percent or two (over 10 m, far more than the
+#: window), and a jittery trace's arc length runs ahead of the path's.
+ALIGN_BLOCK_M = 0.02
+
+
+def _runs_against(trace: FloatArray, reference: FloatArray) -> bool:
+    """Whether ``trace`` mostly runs the other way from ``reference`` where it passes it
+    (directions compared at points every few millimetres, each with the reference's nearest)."""
+    step = max(1, len(trace) // 200)
+    here = trace[::step]
+    if len(here) < 3 or len(reference) < 3:
+        return False
+    own = np.gradient(here, axis=0)
+    _, nearest = cKDTree(reference).query(here)
+    theirs = np.gradient(reference, axis=0)[nearest]
+    return float(np.sum(np.einsum("ij,ij->i", own, theirs))) < 0.0
+
+
+def _moving_average(points: FloatArray, width: int) -> FloatArray:
+    """Each point averaged with its neighbours, ``width`` in all (fewer at the ends)."""
+    if len(points) < width:
+        return points
+    kernel = np.ones(width)
+    total = np.column_stack([np.convolve(points[:, i], kernel, mode="same") for i in range(3)])
+    count = np.convolve(np.ones(len(points)), kernel, mode="same")
+    return total / count[:, None]
 
 
 def _on_grid(pieces: list[FloatArray], mean: FloatArray, grid: FloatArray) -> FloatArray:
     """A trace's positions at the mean's arc lengths ``grid`` (NaN where it has none).
 
-    Each of its points is placed at the arc length of its nearest point on the mean, searched
-    within :data:`ALIGN_WINDOW_M` of where the trace's own share of its length puts it (the
-    along-path alignment); positions in between are interpolated within each piece.
+    Each of its pieces starts at the point of the mean nearest to its first point (the earliest
+    of the near ones, and after where the previous piece ended); then each point is placed at
+    the nearest point of the mean within :data:`ALIGN_WINDOW_M` of where its arc length from the
+    last aligned point (:data:`ALIGN_BLOCK_M` back) puts it. Positions in between are
+    interpolated within each piece.
     """
     out = np.full((len(grid), 3), np.nan)
-    own_length = sum(_length(p) for p in pieces)
     spacing = grid[1] - grid[0] if len(grid) > 1 else 1.0
     half = max(1, int(np.ceil(ALIGN_WINDOW_M / spacing)))
-    offset = 0.0
+    block = max(1, int(np.ceil(ALIGN_BLOCK_M / spacing)))
+    lowest = 0
     for points in pieces:
-        own_arc = offset + _arc(points)
-        offset = own_arc[-1]
-        expected = np.clip(
-            np.round(own_arc / max(own_length, 1e-12) * (len(grid) - 1)), 0, len(grid) - 1
-        ).astype(np.int64)
-        candidates = np.clip(expected[:, None] + np.arange(-half, half + 1), 0, len(grid) - 1)
-        gaps = np.linalg.norm(mean[candidates] - points[:, None, :], axis=2)
-        index = candidates[np.arange(len(points)), np.argmin(gaps, axis=1)]
+        if lowest >= len(grid) - 1:
+            break
+        gaps = np.linalg.norm(mean[lowest:] - points[0], axis=1)
+        anchor = lowest + int(np.flatnonzero(gaps <= gaps.min() + 2e-3)[0])
+        # Arc length of the trace smoothed over a few millimetres: its jitter is not progress.
+        arc = _arc(_moving_average(points, 5)) / spacing
+        index = np.empty(len(points), dtype=np.int64)
+        for start in range(0, len(points), block):
+            rows = slice(start, min(start + block, len(points)))
+            origin = anchor if start == 0 else int(index[start - 1])
+            expected = np.round(origin + arc[rows] - (arc[start - 1] if start else 0.0))
+            candidates = np.clip(
+                expected.astype(np.int64)[:, None] + np.arange(-half, half + 1),
+                lowest,
+                len(grid) - 1,
+            )
+            distance = np.linalg.norm(mean[candidates] - points[rows, None, :], axis=2)
+            index[rows] = candidates[np.arange(len(distance)), np.argmin(distance, axis=1)]
         s = grid[index]
         # Hand traces go forwards; a point projected behind its predecessor (noise at a turn)
         # keeps the order by taking the running maximum.
         s = np.maximum.accumulate(s)
+        lowest = int(np.searchsorted(grid, s[-1]))
         inside = (grid >= s[0]) & (grid <= s[-1])
         if s[-1] - s[0] <= 0 or not inside.any():
             continue
@@ -286,12 +322,14 @@ def _taper(present: np.ndarray) -> FloatArray:
     return weights
 
 
+def _enough(coverage: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """Grid points covered by enough of the used traces (:data:`MIN_COVERAGE`, at least two)."""
+    return coverage >= max(2, int(np.ceil(MIN_COVERAGE * np.count_nonzero(used))))
+
+
 def _covered(mean, sampled, used):
-    present = ~np.isnan(sampled[used][..., 0])
-    coverage = present.sum(axis=0)
-    keep = (coverage >= max(2, int(np.ceil(MIN_COVERAGE * np.count_nonzero(used))))) & ~np.isnan(
-        mean[:, 0]
-    )
+    coverage = (~np.isnan(sampled[used][..., 0])).sum(axis=0)
+    keep = _enough(coverage, used) & ~np.isnan(mean[:, 0])
     return mean, keep
 
 

@@ -13,6 +13,7 @@ that matters, track or calibrate the scanner and pass its transform as the initi
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -257,10 +258,8 @@ def _covariance(info: FloatArray, residual: FloatArray, n_axes: int) -> FloatArr
         below = np.flatnonzero(auto / auto[0] < np.exp(-1.0))
         lag = int(below[0]) if len(below) else len(r)
     inflation = float(np.clip(2 * lag, 1, max(len(r) / 3, 1)))
-    values, vectors = np.linalg.eigh(info)
-    fixed = values > DEGENERACY_RATIO * max(values.max(), 1e-300)
     del n_axes  # the variance is per component already
-    return (vectors[:, fixed] / values[fixed]) @ vectors[:, fixed].T * variance * inflation
+    return inverse_on_fixed(info)[0] * variance * inflation
 
 
 @dataclass(frozen=True)
@@ -343,7 +342,41 @@ class RigidMotion:
         return f"sliding along ({x:.2f}, {y:.2f}, {z:.2f})"
 
 
-def solve_constrained(info: FloatArray, gradient: FloatArray) -> tuple[FloatArray, np.ndarray]:
+def fixed_by_ratio(values: FloatArray) -> np.ndarray:
+    """Which eigenvalues of an information matrix belong to fixed motions: those with at least
+    :data:`DEGENERACY_RATIO` of the largest (what a trace's features fix)."""
+    return values > DEGENERACY_RATIO * max(values.max(), 1e-300)
+
+
+def inverse_on_fixed(
+    info: FloatArray, fixed_test: Callable[[FloatArray], np.ndarray] = fixed_by_ratio
+) -> tuple[FloatArray, FloatArray, np.ndarray]:
+    """The inverse of an information matrix on the motions it fixes (zero on the others).
+
+    Parameters
+    ----------
+    info : ndarray of shape (6, 6)
+    fixed_test : callable
+        Eigenvalues (ascending) -> which are fixed.
+
+    Returns
+    -------
+    inverse : ndarray of shape (6, 6)
+    vectors : ndarray of shape (6, 6)
+        The eigenvectors (columns), ascending eigenvalues.
+    fixed : ndarray of shape (6,), bool
+    """
+    values, vectors = np.linalg.eigh(info)
+    fixed = fixed_test(values)
+    inverse = (vectors[:, fixed] / values[fixed]) @ vectors[:, fixed].T
+    return inverse, vectors, fixed
+
+
+def solve_constrained(
+    info: FloatArray,
+    gradient: FloatArray,
+    fixed_test: Callable[[FloatArray], np.ndarray] = fixed_by_ratio,
+) -> tuple[FloatArray, np.ndarray]:
     """One Gauss-Newton step restricted to the motions the information fixes.
 
     Parameters
@@ -352,20 +385,19 @@ def solve_constrained(info: FloatArray, gradient: FloatArray) -> tuple[FloatArra
         ``J^T W J``.
     gradient : ndarray of shape (6,)
         ``J^T W r``.
+    fixed_test : callable
+        Which eigenvalues belong to fixed motions (default :func:`fixed_by_ratio`).
 
     Returns
     -------
     twist : ndarray of shape (6,)
-        Zero along every eigen-direction of ``info`` with less than :data:`DEGENERACY_RATIO` of
-        its largest eigenvalue (left as the initial guess had it).
+        Zero along every eigen-direction of ``info`` that is not fixed (left as the initial
+        guess had it).
     fixed : ndarray of shape (6,), bool
         Which eigen-directions (of ``numpy.linalg.eigh(info)``) were fixed.
     """
-    values, vectors = np.linalg.eigh(info)
-    fixed = values > DEGENERACY_RATIO * max(values.max(), 1e-300)
-    basis = vectors[:, fixed]
-    twist = -basis @ ((basis.T @ gradient) / values[fixed])
-    return twist, fixed
+    inverse, _, fixed = inverse_on_fixed(info, fixed_test)
+    return -inverse @ gradient, fixed
 
 
 def _across(directions: FloatArray) -> FloatArray:

@@ -22,6 +22,8 @@ from recon.classify import PATH_ONLY, SegmentKind, check_consistency, classify_s
 from recon.corners import (
     Candidate,
     Corner,
+    EdgeLine,
+    closest_approach,
     confirm_with_scan,
     find_candidates,
     judge_without_scan,
@@ -258,6 +260,11 @@ def reconstruct(
         if len(recordings) > 1:
             fused = fuse_traces(recordings, spacing_m=params.spacing_m)
             notes += fused.notes
+            if any(r.orientations_xyzw is not None for r in recordings):
+                notes.append(
+                    "the fused trace keeps no pen orientations (demonstrations at different "
+                    "speeds share no clock): take the tool axis from the scan or a fixed one"
+                )
             path = fused.recording
         else:
             path = recordings[0]
@@ -320,10 +327,16 @@ def reconstruct(
                 prior_variance_m2=None if prior is None else prior[start:stop],
             )
         )
-        if kind == SegmentKind.PATH and model is not None:
+        if kind == SegmentKind.PATH and model is not None and not segment_class.fell_back:
             notes.append(f"segment {len(segments) - 1} has no scan near it: path only")
     join_at_corners(
-        bounds, results, corners, work_points, spacing_m=resampled.spacing_m, beta=params.beta
+        bounds,
+        results,
+        corners,
+        [c.kind for c in classes],
+        work_points,
+        spacing_m=resampled.spacing_m,
+        beta=params.beta,
     )
     if T_scan_tracker is not None:
         T_tracker_scan = invert_transform(T_scan_tracker)
@@ -349,6 +362,7 @@ def reconstruct(
         piece=plan.piece,
         corners=corners,
         demonstrations=() if fused is None else fused.traces,
+        prior=prior,
     )
 
 
@@ -361,7 +375,10 @@ def _prior_from_fusion(fused, resampled: ResampledPath) -> FloatArray:
 
 
 def registration_sigma_m(
-    registration: Registration | None, points_tracker_m: FloatArray
+    registration: Registration | None,
+    points_tracker_m: FloatArray,
+    *,
+    hand_variance_m2: FloatArray | None = None,
 ) -> FloatArray:
     """1-sigma error the registration's uncertainty gives each point (zero when unknown).
 
@@ -369,6 +386,10 @@ def registration_sigma_m(
     ----------
     registration : Registration or None
     points_tracker_m : ndarray of shape (N, 3)
+    hand_variance_m2 : ndarray of shape (N,), optional
+        What the trace is known to be off by across the path (the fused demonstrations'
+        variance); :data:`HAND_ERROR_PRIOR_M` squared when not given. A registration to the
+        trace is at least this uncertain.
 
     Returns
     -------
@@ -384,8 +405,13 @@ def registration_sigma_m(
         # Registered to the trace itself: the rigid part of the hand's slow drift went into the
         # transform, and the residuals cannot show it (measured: the transform's error at the
         # path was 2-4 times what the residuals' covariance gives). It is as large as the
-        # hand's error.
-        sigma = np.maximum(sigma, HAND_ERROR_PRIOR_M)
+        # hand's error (the fused demonstrations' where there are several).
+        hand = (
+            HAND_ERROR_PRIOR_M
+            if hand_variance_m2 is None
+            else np.sqrt(np.asarray(hand_variance_m2, dtype=np.float64))
+        )
+        sigma = np.maximum(sigma, hand)
     return sigma
 
 
@@ -473,6 +499,7 @@ def join_at_corners(
     bounds: list[tuple[int, int]],
     results: list[SegmentResult],
     corners: list[Corner],
+    kinds: list[SegmentKind],
     input_points_m: FloatArray,
     *,
     spacing_m: float,
@@ -480,10 +507,11 @@ def join_at_corners(
 ) -> None:
     """Make neighbouring segments end on one point at each corner (in place).
 
-    At a corner the scan confirmed, both end where the scan's edge lines meet. Elsewhere both end
-    where lines fitted to their last :data:`CORNER_LINE_M` meet (the mean of the two ends if
-    those lines do not come within a millimetre of each other). As every other point, the corner
-    moves by ``beta`` of the way from the trace to there.
+    Where the scan confirmed the corner and both segments follow its edges, both end where the
+    scan's edge lines meet, or ``beta`` of the way there from the trace (as every other point
+    moves by ``beta``). Elsewhere both end where lines fitted to their results' last
+    :data:`CORNER_LINE_M` (less on a shorter segment) meet, or at the mean of their two ends if
+    those lines do not come within a millimetre of each other.
 
     Parameters
     ----------
@@ -491,6 +519,9 @@ def join_at_corners(
     results : list of SegmentResult
         One per segment, ``points`` in the frame of ``input_points_m``.
     corners : list of Corner
+    kinds : list of SegmentKind
+        What each segment follows, once checked (a segment that fell back to the path alone
+        does not end on the scan's corner).
     input_points_m : ndarray of shape (N, 3)
         The resampled trace.
     spacing_m : float
@@ -498,44 +529,42 @@ def join_at_corners(
     """
     by_index = {c.index: c for c in corners if c.split}
     k = max(2, int(round(CORNER_LINE_M / spacing_m)))
-    for left, right, (_, stop) in zip(results[:-1], results[1:], bounds[:-1], strict=True):
+    pairs = zip(results[:-1], results[1:], bounds[:-1], kinds[:-1], kinds[1:], strict=True)
+    for left, right, (_, stop), left_kind, right_kind in pairs:
         corner = by_index.get(stop - 1)
         if corner is None:
             continue  # two pieces of the trace, not a corner: nothing to join
-        if corner.point_m is not None:
-            target = corner.point_m
+        on_edges = left_kind == SegmentKind.EDGE and right_kind == SegmentKind.EDGE
+        if corner.point_m is not None and on_edges:
+            trace_point = input_points_m[stop - 1]
+            point = trace_point + beta * (corner.point_m - trace_point)
         else:
-            # Lines through where the segments went (undoing beta, which is applied below).
-            traced = input_points_m[stop - k : stop + k - 1]
-            full_left = traced[:k] + (left.points[-k:] - traced[:k]) / max(beta, 1e-12)
-            full_right = traced[k - 1 :] + (right.points[:k] - traced[k - 1 :]) / max(beta, 1e-12)
-            target = _meeting_point(full_left, full_right)
-        trace_point = input_points_m[stop - 1]
-        point = trace_point + beta * (target - trace_point)
+            run = min(k, len(left.points), len(right.points))
+            point = 0.5 * (left.points[-1] + right.points[0])
+            if run >= 2:
+                point = meeting_point(left.points[-run:], right.points[:run], fallback=point)
         left.points[-1] = point
         right.points[0] = point
 
 
-def _meeting_point(before: FloatArray, after: FloatArray) -> FloatArray:
-    """Where lines through two point runs meet (the mean of their facing ends if they do not)."""
-    fallback = 0.5 * (before[-1] + after[0])
+def meeting_point(before: FloatArray, after: FloatArray, *, fallback: FloatArray) -> FloatArray:
+    """Where lines through two runs of points meet (``fallback`` if they pass more than a
+    millimetre apart, or meet more than 5 mm from it).
+
+    Parameters
+    ----------
+    before, after : ndarrays of shape (K, 3), K >= 2
+    fallback : ndarray of shape (3,)
+    """
     lines = []
     for run in (before, after):
         centre = run.mean(axis=0)
         _, _, vt = np.linalg.svd(run - centre)
-        lines.append((centre, vt[0]))
-    (pa, da), (pb, db) = lines
-    w = pa - pb
-    ab = da @ db
-    det = 1.0 - ab * ab
-    if det < 1e-6:
+        lines.append(EdgeLine(centre, vt[0], 0.0, len(run)))
+    point, gap = closest_approach(*lines)
+    if gap > 1e-3 or np.linalg.norm(point - fallback) > 5e-3:
         return fallback
-    s = (ab * (db @ w) - (da @ w)) / det
-    t = ((db @ w) - ab * (da @ w)) / det
-    qa, qb = pa + s * da, pb + t * db
-    if np.linalg.norm(qa - qb) > 1e-3 or np.linalg.norm(0.5 * (qa + qb) - fallback) > 5e-3:
-        return fallback
-    return 0.5 * (qa + qb)
+    return point
 
 
 def touch_registration(
@@ -697,15 +726,33 @@ def uncertainty_notes(
     """
     above = np.asarray(uncertainty_m) > tolerance_m
     edges = np.flatnonzero(np.diff(np.r_[0, above.astype(np.int8), 0]))
-    notes = []
+    stretches: list[list[int]] = []
     for start, stop in zip(edges[::2], edges[1::2], strict=True):
+        # Stretches a few points apart are one stretch to an operator.
+        if stretches and start - stretches[-1][1] <= MERGE_GAP_POINTS:
+            stretches[-1][1] = stop
+        else:
+            stretches.append([start, stop])
+    notes = []
+    for start, stop in stretches[:MAX_UNCERTAINTY_NOTES]:
         worst = float(np.max(uncertainty_m[start:stop]))
         notes.append(
             f"points {start}-{stop - 1} ({arc_m[start] * 1e3:.0f}-{arc_m[stop - 1] * 1e3:.0f} mm "
             f"along the path): uncertainty up to {worst * 1e3:.2f} mm, above the "
             f"{tolerance_m * 1e3:.2f} mm tolerance"
         )
+    if len(stretches) > MAX_UNCERTAINTY_NOTES:
+        notes.append(
+            f"and {len(stretches) - MAX_UNCERTAINTY_NOTES} more stretches above the tolerance "
+            "(the CSV's uncertainty_m has every point)"
+        )
     return notes
+
+
+#: Stretches above the uncertainty tolerance this many points apart or fewer are named as one.
+MERGE_GAP_POINTS = 10
+#: At most this many stretches are named; the rest are counted.
+MAX_UNCERTAINTY_NOTES = 5
 
 
 @dataclass(frozen=True)
@@ -791,6 +838,7 @@ def _assemble(
     piece: NDArray[np.int64],
     corners: list[Corner],
     demonstrations: tuple = (),
+    prior: FloatArray | None = None,
 ) -> Reconstruction:
     """Concatenate segment results; a corner point shared by two segments takes the later one
     (both hold the same point there, see :func:`join_at_corners`)."""
@@ -815,7 +863,8 @@ def _assemble(
         residual_surface[sl] = result.residual_surface
         alpha[sl] = result.alpha
         variance[sl] = result.variance_m2
-    uncertainty = np.sqrt(variance + registration_sigma_m(registration, points) ** 2)
+    from_registration = registration_sigma_m(registration, points, hand_variance_m2=prior)
+    uncertainty = np.sqrt(variance + from_registration**2)
     notes = list(notes) + uncertainty_notes(
         uncertainty, resampled.arc_length_m, tolerance_m=params.uncertainty_tolerance_m
     )

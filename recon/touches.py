@@ -12,9 +12,10 @@ Three steps:
 1. :func:`find_dwells`: where the tip rested (at least :data:`MIN_DWELL_S` below a walking speed
    of the tip), averaged.
 2. :func:`register_touches`: each touch is matched point-to-plane to the scan's surface where it
-   lands (a plane fitted to the scan within :data:`PLANE_RADIUS_M`, re-fitted as the transform
-   moves), solved for the motions the touches fix; the motions they leave free keep the initial
-   guess. Touches that stay far off the surface are left out and named.
+   lands (the tangent plane of a quadric fitted to the scan within :data:`PLANE_RADIUS_M`, at the
+   touch's foot, re-fitted as the transform moves), solved for the motions the touches fix; the
+   motions they leave free keep the initial guess. Touches that stay far off the surface are left
+   out and named.
 3. :func:`motions_missing`: which motions a traced feature needs fixed that the touches leave free,
    so a calibration that cannot serve the trace is refused rather than used.
 """
@@ -27,9 +28,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from recon.errors import RegistrationError
+from recon.errors import DegenerateInputError, RegistrationError
 from recon.fitting import fit_linear, quadric_design, weighted_pca
-from recon.icp import DEGENERACY_RATIO, RigidMotion
+from recon.icp import RigidMotion, fixed_by_ratio, inverse_on_fixed, solve_constrained
 from recon.transforms import apply_transform, check_rigid
 from recon.types import FloatArray
 
@@ -167,6 +168,64 @@ def find_dwells(
 
 
 @dataclass(frozen=True)
+class FoundTouches:
+    """The touches of a recording: its rests, averaged.
+
+    Attributes
+    ----------
+    points_m : ndarray of shape (T, 3)
+        Each rest's mean tip position, tracker frame.
+    sigma_m : ndarray of shape (T,)
+        Each mean's standard error from the tracker's noise.
+    dwells : list of Dwell
+    notes : list of str
+        Rests left out, and why.
+    """
+
+    points_m: FloatArray
+    sigma_m: FloatArray
+    dwells: list[Dwell]
+    notes: list[str]
+
+
+def touches_in(
+    points_m: FloatArray, t_s: FloatArray | None, *, label: str = "the touch recording"
+) -> FoundTouches:
+    """The touches of a recording, refused with what to do when there are too few to register.
+
+    Parameters
+    ----------
+    points_m : ndarray of shape (N, 3)
+    t_s : ndarray of shape (N,) or None
+    label : str
+        How messages name the recording.
+
+    Raises
+    ------
+    DegenerateInputError
+        No sample times, or fewer than :data:`MIN_TOUCHES` rests.
+    """
+    if t_s is None:
+        raise DegenerateInputError(
+            f"{label} has no sample times, so the tip's rests cannot be found: record the "
+            "touches with times (a t column, Motive or C3D)"
+        )
+    dwells, notes = find_dwells(points_m, t_s)
+    if len(dwells) < MIN_TOUCHES:
+        raise DegenerateInputError(
+            f"{label} has {len(dwells)} rests of the tip of {MIN_DWELL_S:g} s or more; at least "
+            f"{MIN_TOUCHES} are needed, on two or three faces of the workpiece: hold the tip "
+            "still on each point for half a second"
+        )
+    return FoundTouches(
+        points_m=np.array([d.point_m for d in dwells]),
+        sigma_m=np.array([d.standard_error_m for d in dwells]),
+        dwells=dwells,
+        notes=notes,
+    )
+
+
+@dataclass(frozen=True)
 class TouchRegistration:
     """The scanner's pose from touches.
 
@@ -242,9 +301,10 @@ def register_touches(
 ) -> TouchRegistration:
     """Register touches of the workpiece (tracker frame) to its scan (scan frame), point to plane.
 
-    Each iteration maps the touches into the scan frame, fits a plane to the scan points within
-    :data:`PLANE_RADIUS_M` of each, and takes one Gauss-Newton step on the touches' distances to
-    their planes, in the motions the planes' normals fix (the others keep the initial guess). A
+    Each iteration maps the touches into the scan frame, fits a quadric to the scan points within
+    :data:`PLANE_RADIUS_M` of each (its tangent plane at the touch's foot is the touch's plane),
+    and takes one Gauss-Newton step on the touches' distances to their planes, in the motions
+    the planes' normals fix (the others keep the initial guess). A
     touch whose distance stays large (more than :data:`OUTLIER_FACTOR` times what is expected of
     it) is left out and the fit repeated.
 
@@ -320,9 +380,7 @@ def register_touches(
                 "covers, or give a better initial guess (--scan-from-tracker)"
             )
     info, weights = _information(touches, used, planes, expected, T, motion)
-    values, vectors = np.linalg.eigh(info)
-    fixed = _fixed(values)
-    covariance = (vectors[:, fixed] / values[fixed]) @ vectors[:, fixed].T
+    covariance, vectors, fixed = inverse_on_fixed(info, _fixed)
     free = vectors[:, ~fixed].T
     return TouchRegistration(
         T_scan_tracker=T,
@@ -407,7 +465,7 @@ def _match(touches, used, own, scan, tree, T, motion):
         weight = 1.0 / expected[ok] ** 2
         info = np.einsum("t,tai,taj->ij", weight, jacobian, jacobian)
         gradient = np.einsum("t,tai,t->i", weight, jacobian, residual)
-        twist, _ = _solve_fixed(info, gradient)
+        twist, _ = solve_constrained(info, gradient, _fixed)
         T = step_motion.transform(twist) @ T
         if np.linalg.norm(twist) < CONVERGED_M:
             break
@@ -417,14 +475,6 @@ def _match(touches, used, own, scan, tree, T, motion):
 def _fixed(values: FloatArray) -> np.ndarray:
     """Which eigenvalues of a touch information matrix belong to fixed motions."""
     return values > 1.0 / FREE_SIGMA_M**2
-
-
-def _solve_fixed(info: FloatArray, gradient: FloatArray):
-    """A Gauss-Newton step in the motions the touches fix (see :data:`FREE_SIGMA_M`)."""
-    values, vectors = np.linalg.eigh(info)
-    fixed = _fixed(values)
-    basis = vectors[:, fixed]
-    return -basis @ ((basis.T @ gradient) / values[fixed]), fixed
 
 
 def _information(touches, used, planes, expected, T, motion):
@@ -458,7 +508,7 @@ def motions_missing(
         Each missing motion in words; empty when the touches fix everything the feature needs.
     """
     values, vectors = np.linalg.eigh(feature_info)
-    needed = vectors[:, values > DEGENERACY_RATIO * max(values.max(), 1e-300)]
+    needed = vectors[:, fixed_by_ratio(values)]
     if needed.shape[1] == 0 or touches.free_directions.shape[0] == 0:
         return []
     # Express the touches' free motions in the feature's twist coordinates: the same rigid

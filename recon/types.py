@@ -554,7 +554,8 @@ class CornerReport:
     reason : str
         Why (or why not), in words.
     point_m : tuple of 3 floats or None
-        Where both segments end, tracker frame, when the scan's edges placed the corner.
+        Where the scan's edges meet, tracker frame, when they placed the corner: both segments
+        end there (with ``beta`` < 1, that share of the way there from the trace).
     """
 
     index: int

@@ -33,7 +33,7 @@ from recon.types import (
 
 Arrays = dict[str, np.ndarray]
 
-KindName = Literal["recording", "scan", "reconstruction", "trajectory", "execution"]
+KindName = Literal["recording", "touches", "scan", "reconstruction", "trajectory", "execution"]
 
 #: Artifact kinds and the prefix of their ids.
 ID_PREFIX: dict[str, str] = {
@@ -329,7 +329,9 @@ class CornerSummary(BaseModel):
 class DemonstrationSummary(BaseModel):
     used: bool
     reversed: bool
-    mean_offset_m: float
+    mean_offset_m: float | None = Field(
+        None, description="mean distance from the others' median (null: it overlapped none)"
+    )
     roughness_m: float
     reason: str = ""
 
@@ -467,6 +469,7 @@ class ExecutionSummary(_Summary):
 
 SUMMARY_MODELS: dict[str, type[_Summary]] = {
     "recording": RecordingSummary,
+    "touches": TouchesSummary,
     "scan": ScanSummary,
     "reconstruction": ReconstructionSummary,
     "trajectory": TrajectorySummary,
@@ -481,6 +484,11 @@ def summary_of(kind: str, summary: dict) -> _Summary:
 
 
 AnySummary = Annotated[
-    RecordingSummary | ScanSummary | ReconstructionSummary | TrajectorySummary | ExecutionSummary,
+    RecordingSummary
+    | TouchesSummary
+    | ScanSummary
+    | ReconstructionSummary
+    | TrajectorySummary
+    | ExecutionSummary,
     Field(description="the summary of the artifact's kind"),
 ]

@@ -145,25 +145,13 @@ def parse_touches(path: str, filename: str, *, out_path: str | None = None, **tr
     DegenerateInputError
         No sample times, or fewer rests than a registration needs (nothing is written).
     """
-    from recon.errors import DegenerateInputError
-    from recon.touches import MIN_TOUCHES, find_dwells
+    from recon.touches import touches_in
 
     handed = parse_recording(path, filename, **trace_kwargs)
     summary = json.loads(str(handed.pop(SUMMARY_KEY)))
     arrays = handed
-    points, t = arrays["points_m"], arrays.get("t_s")
-    if t is None:
-        raise DegenerateInputError(
-            f"{filename} has no sample times, so the tip's rests cannot be found: record the "
-            "touches with times (a t column, Motive or C3D)"
-        )
-    dwells, notes = find_dwells(points, t)
-    if len(dwells) < MIN_TOUCHES:
-        raise DegenerateInputError(
-            f"{filename} has {len(dwells)} rests of the tip of 0.3 s or more; at least "
-            f"{MIN_TOUCHES} are needed, on two or three faces of the workpiece: hold the tip "
-            "still on each point for half a second"
-        )
+    found = touches_in(arrays["points_m"], arrays.get("t_s"), label=filename)
+    dwells, notes = found.dwells, found.notes
     summary["n_touches"] = len(dwells)
     summary["touches_m"] = [d.point_m.tolist() for d in dwells]
     summary["touch_spread_m"] = [d.spread_m for d in dwells]

@@ -12,7 +12,7 @@ imports this module for every command.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -237,7 +237,7 @@ class TouchOutcome:
 
 
 def touch_calibration(
-    touches, scan, *, trace=None, params=None, T_scan_tracker_init=None
+    touches, scan, *, trace=None, params=None, T_scan_tracker_init=None, check=True
 ) -> TouchOutcome:
     """The scanner registered by touches (see :mod:`recon.touches`).
 
@@ -253,47 +253,41 @@ def touch_calibration(
     params : recon.types.ReconParams, optional
     T_scan_tracker_init : ndarray of shape (4, 4), optional
         Where to start (identity when neither it nor a trace is given).
+    check : bool
+        With a trace, refuse touches that leave free a motion its features need (a
+        reconstruction checks again against the path it reconstructs, and passes False).
 
     Raises
     ------
     recon.errors.DegenerateInputError
-        No sample times (rests cannot be found without them).
+        No sample times, or fewer than three rests.
     recon.errors.RegistrationError
         Too few touches on the scanned surface; (TouchesInsufficientError) too few motions
         fixed for the trace.
     """
-    from recon.errors import DegenerateInputError
     from recon.reconstruct import touches_for_trace
-    from recon.touches import MIN_TOUCHES, find_dwells, register_touches
+    from recon.touches import register_touches, touches_in
 
-    if touches.t_s is None:
-        raise DegenerateInputError(
-            "the touch recording has no sample times, so the tip's rests cannot be found: "
-            "record it with times (a t column, Motive or C3D)"
-        )
-    dwells, notes = find_dwells(touches.points_m, touches.t_s)
-    if len(dwells) < MIN_TOUCHES:
-        from recon.errors import RegistrationError
-
-        raise RegistrationError(
-            f"the touch recording has {len(dwells)} rests of the tip of 0.3 s or more; "
-            f"at least {MIN_TOUCHES} are needed, on two or three faces: hold the tip still on "
-            "each point for half a second"
-        )
-    points = np.array([d.point_m for d in dwells])
-    sigma = np.array([d.standard_error_m for d in dwells])
+    found = touches_in(touches.points_m, touches.t_s)
     init = None if T_scan_tracker_init is None else np.asarray(T_scan_tracker_init, np.float64)
     if trace is not None:
         registration = touches_for_trace(
-            trace, points, scan, params=params, T_scan_tracker_init=init, touch_sigma_m=sigma
+            trace,
+            found.points_m,
+            scan,
+            params=params,
+            T_scan_tracker_init=init,
+            touch_sigma_m=found.sigma_m,
+            check=check,
         )
     else:
         registration = register_touches(
-            points,
+            found.points_m,
             scan.points_m,
             T_scan_tracker_init=np.eye(4) if init is None else init,
-            touch_sigma_m=sigma,
+            touch_sigma_m=found.sigma_m,
         )
+    dwells, notes = found.dwells, found.notes
     return TouchOutcome(registration=registration, dwells=dwells, notes=notes)
 
 
@@ -350,13 +344,16 @@ class ReconstructOutcome:
                 },
             },
             "corners": [asdict(c) for c in recon.corners],
-            "demonstrations": [asdict(d) for d in recon.demonstrations],
+            "demonstrations": [
+                {**asdict(d), "mean_offset_m": _jsonable_or_none(d.mean_offset_m)}
+                for d in recon.demonstrations
+            ],
             "uncertainty_mean_m": None
             if recon.uncertainty_m is None
-            else float(np.mean(recon.uncertainty_m)),
+            else _jsonable_or_none(np.mean(recon.uncertainty_m)),
             "uncertainty_max_m": None
             if recon.uncertainty_m is None
-            else float(np.max(recon.uncertainty_m)),
+            else _jsonable_or_none(np.max(recon.uncertainty_m)),
             "notes": list(recon.notes),
         }
 
@@ -431,11 +428,22 @@ def reconstruct(
     recordings = recording if isinstance(recording, list | tuple) else [recording]
     touched = None
     if touches is not None and scan is not None and params.uses_scan:
+        # Started from the first demonstration's registration; checked against the path
+        # actually reconstructed (the fused one, with several) by the reconstruction itself.
         touched = touch_calibration(
-            touches, scan, trace=recordings[0], params=params, T_scan_tracker_init=init
-        ).registration
+            touches, scan, trace=recordings[0], params=params, T_scan_tracker_init=init,
+            check=False,
+        )  # fmt: skip
     path = recordings if len(recordings) > 1 else recordings[0]
-    recon = run(path, scan, params=params, T_scan_tracker_init=init, touches=touched)
+    recon = run(
+        path,
+        scan,
+        params=params,
+        T_scan_tracker_init=init,
+        touches=None if touched is None else touched.registration,
+    )
+    if touched is not None and touched.notes:
+        recon = replace(recon, notes=(*recon.notes, *touched.notes))
     scan_tracker = None
     if scan is not None:
         T = recon.T_scan_tracker if recon.T_scan_tracker is not None else init

@@ -50,14 +50,17 @@ def start(services: Services, session_id: str, request: ReconstructionCreate) ->
         scan_id = request.scan_id or session.scan_id
         if scan_id is not None:
             scan = services.artifact(session_id, "scan", scan_id)
-    touches = None
-    if scan is not None and request.use_touches:
-        if request.touches_id is not None:
-            touches = services.artifact(session_id, "touches", request.touches_id)
-        else:
-            newest = services.store.artifacts(session_id, "touches")
-            touches = newest[-1] if newest else None
     params = request.recon_params()  # refuses bad combinations now, not in the worker
+    touches = None
+    if request.touches_id is not None:
+        touches = services.artifact(session_id, "touches", request.touches_id)
+    elif request.use_touches and request.registration:
+        # The newest touches place the scan, unless the frames are to be trusted as given.
+        newest = services.store.artifacts(session_id, "touches")
+        touches = newest[-1] if newest else None
+    uses_scan = params["alpha"] == "auto" or params["alpha"] < 1.0
+    if scan is None or not uses_scan or not request.use_touches:
+        touches = None  # nothing to place, or asked not to: not an input
     T_init = request.T_scan_tracker or session.T_scan_tracker
     out_id = new_id(ID_PREFIX["reconstruction"])
     inputs = (

@@ -218,7 +218,15 @@ class JobOut(FromRow):
 
 
 #: The core's reconstruction parameters a request may set (the others keep their defaults).
-RECONSTRUCTION_PARAMS = ("radius_m", "alpha", "beta", "degree", "method", "spacing_m")
+RECONSTRUCTION_PARAMS = (
+    "radius_m",
+    "alpha",
+    "beta",
+    "degree",
+    "method",
+    "spacing_m",
+    "uncertainty_tolerance_m",
+)
 #: The core's planning parameters a request may set.
 TRAJECTORY_PARAMS = (
     "robot",
@@ -262,7 +270,9 @@ class _ReconstructionRequest(Strict):
     scan_id: str | None = Field(None, description="default: the session's scan")
     use_scan: bool = Field(True, description="false: path-only reconstruction")
     touches_id: str | None = Field(
-        None, description="touches registering the scanner; default: the session's newest"
+        None,
+        description="touches registering the scanner; default: the session's newest (not with "
+        "registration false, where the frames are trusted as given)",
     )
     use_touches: bool = Field(
         True, description="false: register the scanner from the trace even with touches"

@@ -302,7 +302,13 @@ def reconstruct_loop(recording, scan, params: ReconParams, T_scan_tracker_init=N
         result, _ = loop(work[start:stop], segment_class.kind, model, params, half)
         results.append(SimpleNamespace(points=result))
     R.join_at_corners(
-        bounds, results, corners, work, spacing_m=plan.resampled.spacing_m, beta=params.beta
+        bounds,
+        results,
+        corners,
+        [c.kind for c in classes],
+        work,
+        spacing_m=plan.resampled.spacing_m,
+        beta=params.beta,
     )
     out = np.empty_like(points)
     for (start, stop), result in zip(bounds, results, strict=True):

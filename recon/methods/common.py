@@ -30,6 +30,26 @@ from recon.types import FloatArray, PointMode
 #: (Sec. VI; our scenes' traces: 0.9 mm RMS). A local smoother removes the tremor but not the slow
 #: drift, which is most of it.
 HAND_ERROR_PRIOR_M = 0.8e-3
+
+
+def prior_variance(prior_variance_m2: FloatArray | None, n: int) -> FloatArray:
+    """What only the path decides is off by across it, per point (see :data:`HAND_ERROR_PRIOR_M`;
+    the fused demonstrations' variance where given).
+
+    Parameters
+    ----------
+    prior_variance_m2 : ndarray of shape (n,) or None
+    n : int
+
+    Returns
+    -------
+    ndarray of shape (n,), m^2
+    """
+    if prior_variance_m2 is None:
+        return np.full(n, HAND_ERROR_PRIOR_M**2)
+    return np.asarray(prior_variance_m2, dtype=np.float64)
+
+
 #: Rows processed at once; bounds memory (a chunk holds chunk x K neighbours).
 CHUNK = 2048
 #: Edge points whose direction differs from the path's by more than this are another edge

@@ -16,11 +16,11 @@ import numpy as np
 from recon.classify import SegmentKind
 from recon.fitting import fit_linear_robust, poly_design, weighted_pca, window_indices
 from recon.methods.common import (
-    HAND_ERROR_PRIOR_M,
     SegmentResult,
     chunks,
     edge_neighbourhoods,
     path_fit,
+    prior_variance,
 )
 from recon.scan_model import ScanModel
 from recon.types import FloatArray, PointMode, ReconParams
@@ -87,11 +87,7 @@ def paper_segment(
     SegmentResult
     """
     n = len(points)
-    prior = (
-        np.full(n, HAND_ERROR_PRIOR_M**2)
-        if prior_variance_m2 is None
-        else np.asarray(prior_variance_m2, dtype=np.float64)
-    )
+    prior = prior_variance(prior_variance_m2, n)
     windows = window_indices(n, half_width)
     degree = min(params.degree, windows.shape[1] - 2)
     scale = params.radius_m

@@ -90,6 +90,12 @@ def run(args: argparse.Namespace) -> int:
     fixed = {"register": False} if args.no_register else {}
     params = params_from_args(ReconParams, args, RECONSTRUCTION_PARAMS, **fixed)
     T_init = read_matrix(args.scan_from_tracker, "T_scan_tracker")
+    resolved = [Path(path).resolve() for path in args.path_files]
+    if len(set(resolved)) < len(resolved):
+        raise ValueError(
+            "the same trace file is given twice: fusing it with itself would count its errors "
+            "as if two hands had drawn them; give each demonstration once"
+        )
     recordings = [read_trace_for(args, path) for path in args.path_files]
     if args.touches and not args.scan:
         raise ValueError("--touches register the scanner: give the scan too (--scan SCAN_FILE)")

@@ -142,3 +142,16 @@ def test_a_trace_that_only_looks_sharp_is_not_split_where_the_scan_runs_straight
     assert not any(c.split for c in recon.corners)
     assert any("not split" in c.reason for c in recon.corners)
     assert score_path(recon.points_m, scene.truth_m).max_m < 2.0 * MM
+
+
+def test_a_corner_near_the_start_of_a_path_without_a_scan_is_joined():
+    """Six millimetres, then a right angle: the first segment is shorter than the lines the
+    join fits (it crashed once)."""
+    from recon.types import Recording
+
+    first = np.column_stack([np.arange(6) * MM, np.zeros(6), np.zeros(6)])
+    second = np.column_stack([np.full(40, 5 * MM), np.arange(1, 41) * MM, np.zeros(40)])
+    recon = reconstruct(Recording(points_m=np.concatenate([first, second])))
+    assert [c.split for c in recon.corners] == [True]
+    a, b = recon.segments
+    np.testing.assert_array_equal(recon.points_m[a.stop - 1], recon.points_m[b.start])

@@ -101,3 +101,35 @@ def test_three_fused_demonstrations_reconstruct_better_than_one():
         score_path(fused.points_m, scene.truth_m).mean_m
         < score_path(single.points_m, scene.truth_m).mean_m
     )
+
+
+def test_a_loop_traced_both_ways_is_fused_whole():
+    """A closed path: its start and end coincide, so the ends cannot tell the direction nor
+    where along the path a point belongs; the passes' directions and arc lengths do."""
+    a = np.linspace(0, 2 * np.pi, 629)
+    loop = np.column_stack([0.05 * np.cos(a), 0.05 * np.sin(a), np.zeros_like(a)])
+    rng = np.random.default_rng(0)
+    traces = [
+        Recording(points_m=loop + 0.3 * MM * rng.standard_normal(loop.shape)) for _ in range(3)
+    ]
+    traces[2] = Recording(points_m=traces[2].points_m[::-1].copy())
+    fused = fuse_traces(traces, spacing_m=1e-3)
+    assert [(t.used, t.reversed) for t in fused.traces] == [
+        (True, False),
+        (True, False),
+        (True, True),
+    ]
+    arc = np.sum(np.linalg.norm(np.diff(fused.recording.points_m, axis=0), axis=1))
+    assert arc > 0.95 * 2 * np.pi * 0.05  # all the way round
+    assert score_path(fused.recording.points_m, loop).max_m < 0.6 * MM
+
+
+def test_a_demonstration_of_part_of_the_path_joins_where_it_belongs():
+    scene = scenes.box_corner(0)
+    traces = [scene.recording, *scene.traces(2, 0)]
+    traces[1] = Recording(points_m=traces[1].points_m[: len(traces[1].points_m) // 2])
+    fused = fuse_traces(traces, spacing_m=1e-3)
+    assert all(t.used for t in fused.traces)
+    full = score_path(fused.recording.points_m, scene.truth_m)
+    assert np.isfinite(full.start_max_m) and np.isfinite(full.end_max_m)  # end to end
+    assert full.max_m < max(score_path(t.points_m, scene.truth_m).max_m for t in traces)

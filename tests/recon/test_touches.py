@@ -145,3 +145,23 @@ def test_a_recording_without_times_has_no_rests_to_find():
     assert find_dwells(np.zeros((1, 3)), np.zeros(1)) == ([], [])
     recording = Recording(points_m=np.zeros((3, 3)) + np.arange(3)[:, None] * 0.01)
     assert recording.t_s is None
+
+
+def test_stretches_above_the_uncertainty_tolerance_are_named_merged_and_counted():
+    from recon.reconstruct import MAX_UNCERTAINTY_NOTES, uncertainty_notes
+
+    arc = np.arange(400) * MM
+    u = np.full(400, 0.2 * MM)
+    u[10:20] = 0.7 * MM
+    u[25:30] = 0.6 * MM  # 5 points after the first stretch: the same stretch to an operator
+    notes = uncertainty_notes(u, arc, tolerance_m=0.5 * MM)
+    assert notes == [
+        "points 10-29 (10-29 mm along the path): uncertainty up to 0.70 mm, above the "
+        "0.50 mm tolerance"
+    ]
+    many = np.full(400, 0.2 * MM)
+    many[::30] = 0.9 * MM  # 14 separate stretches
+    notes = uncertainty_notes(many, arc, tolerance_m=0.5 * MM)
+    assert len(notes) == MAX_UNCERTAINTY_NOTES + 1
+    assert notes[-1].startswith(f"and {14 - MAX_UNCERTAINTY_NOTES} more stretches")
+    assert uncertainty_notes(u, arc, tolerance_m=1 * MM) == []

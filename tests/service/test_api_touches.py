@@ -105,6 +105,22 @@ def test_touches_are_uploaded_and_used_by_the_next_reconstruction(client, sid, s
     points = np.column_stack([table["x"], table["y"], table["z"]])
     assert score_path(points, scene.truth_m).max_m < 0.5 * MM
     assert np.all(table["uncertainty_m"] > 0)
+    # Frames trusted as given (registration off): the touches are not used unless named.
+    job = _reconstruct(client, sid, {"recording_id": ids[0], "registration": False})
+    body = client.get(
+        f"/sessions/{sid}/reconstructions/{job['result']['reconstruction_id']}"
+    ).json()
+    assert "touches_id" not in body["inputs"] and body["summary"]["registration"] is None
+    job = _reconstruct(
+        client,
+        sid,
+        {"recording_id": ids[0], "registration": False, "touches_id": touches["id"]},
+    )
+    body = client.get(
+        f"/sessions/{sid}/reconstructions/{job['result']['reconstruction_id']}"
+    ).json()
+    assert body["inputs"]["touches_id"] == touches["id"]
+    assert body["summary"]["registration"]["target"] == "touches"
     # Opting out registers the scanner from the trace again.
     job = _reconstruct(client, sid, {"recording_id": ids[0], "use_touches": False})
     rid = job["result"]["reconstruction_id"]
