@@ -8,9 +8,9 @@ read it back refuse a file planned for another arm.
 
 from __future__ import annotations
 
-import csv
 import io
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,47 +52,44 @@ def reconstruction_csv_text(arrays: dict) -> str:
     ``mode`` is written as a word (path, surface, edge, unchanged); NaN residuals (no such fit)
     as empty cells. ``uncertainty_m`` is each point's 1-sigma uncertainty across the path.
     """
-    labels = {int(m): m.label for m in PointMode}
+    labels = np.array([m.label for m in sorted(PointMode, key=int)], dtype=object)
+    n = len(arrays["points_m"])
     t, q = arrays.get("t_s"), arrays.get("orientations_xyzw")
-    header = (
-        ["x", "y", "z"]
-        + (["t"] if t is not None else [])
-        + (list(QUATERNION_COLUMNS) if q is not None else [])
-        + list(DIAGNOSTIC_COLUMNS)
-    )
-
-    def number(value: float) -> str:
-        return "" if not np.isfinite(value) else f"{value:.9g}"
-
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(header)
-    points = arrays["points_m"]
     piece = arrays.get("piece")
-    piece = np.zeros(len(points), dtype=np.int64) if piece is None else piece
     # Reconstructions stored before it was kept have no uncertainty: empty cells.
     uncertainty = arrays.get("uncertainty_m")
-    uncertainty = np.full(len(points), np.nan) if uncertainty is None else uncertainty
-    for i in range(len(points)):
-        row = [number(v) for v in points[i]]
-        if t is not None:
-            row.append(number(t[i]))
-        if q is not None:
-            row += [number(v) for v in q[i]]
-        row += [
-            number(arrays["displacement_m"][i]),
-            labels[int(arrays["mode"][i])],
-            str(int(arrays["segment"][i])),
-            str(int(arrays["n_path"][i])),
-            str(int(arrays["n_surface"][i])),
-            number(arrays["residual_path_m"][i]),
-            number(arrays["residual_surface_m"][i]),
-            number(arrays["alpha"][i]),
-            str(int(piece[i])),
-            number(uncertainty[i]),
-        ]
-        writer.writerow(row)
-    return buffer.getvalue()
+    # (header, values, printf format) per column, in the file's order.
+    columns = [(axis, arrays["points_m"][:, k], "%.9g") for k, axis in enumerate("xyz")]
+    if t is not None:
+        columns.append(("t", t, "%.9g"))
+    if q is not None:
+        columns += [(name, q[:, k], "%.9g") for k, name in enumerate(QUATERNION_COLUMNS)]
+    columns += [
+        ("displacement_m", arrays["displacement_m"], "%.9g"),
+        ("mode", labels[np.asarray(arrays["mode"], dtype=np.int64)], "%s"),
+        ("segment", arrays["segment"], "%d"),
+        ("n_path", arrays["n_path"], "%d"),
+        ("n_surface", arrays["n_surface"], "%d"),
+        ("residual_path_m", arrays["residual_path_m"], "%.9g"),
+        ("residual_surface_m", arrays["residual_surface_m"], "%.9g"),
+        ("alpha", arrays["alpha"], "%.9g"),
+        ("piece", np.zeros(n, np.int64) if piece is None else piece, "%d"),
+        ("uncertainty_m", np.full(n, np.nan) if uncertainty is None else uncertainty, "%.9g"),
+    ]
+    # The whole table in one printf: per-number formatting in Python took 0.35 s for 10k rows.
+    cells: list = [None] * (n * len(columns))
+    for k, (_, values, fmt) in enumerate(columns):
+        values = np.asarray(values)
+        cells[k :: len(columns)] = (values.astype(np.int64) if fmt == "%d" else values).tolist()
+    row = ",".join(fmt for _, _, fmt in columns) + "\n"
+    body = (row * n) % tuple(cells)
+    # A non-finite number is an empty cell (no such fit), never "nan" or "inf".
+    body = _NON_FINITE_CELL.sub("", body)
+    return ",".join(name for name, _, _ in columns) + "\n" + body
+
+
+#: A cell that printf wrote for NaN or an infinity.
+_NON_FINITE_CELL = re.compile(r"(?<![^,\n])[-+]?(?:nan|inf)(?![^,\n])")
 
 
 def read_reconstruction_csv(

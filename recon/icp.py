@@ -53,6 +53,8 @@ def register_icp(
     target_directions: FloatArray | None = None,
     target_label: str,
     max_iterations: int = 60,
+    target_tree: cKDTree | None = None,
+    max_source_points: int = MAX_SOURCE_POINTS,
 ) -> Registration:
     """Rigidly register ``source_m`` onto a feature with a degeneracy-aware ICP.
 
@@ -92,6 +94,10 @@ def register_icp(
         Recorded in the result ("edge" or "surface").
     max_iterations : int
         Per stage.
+    target_tree : cKDTree, optional
+        A tree over ``target_m`` to reuse.
+    max_source_points : int
+        The path is thinned evenly to at most this many points.
 
     Returns
     -------
@@ -112,10 +118,11 @@ def register_icp(
         )
     source_m = np.asarray(source_m, dtype=np.float64)
     # Six unknowns need nowhere near 100k pairs; an even subset keeps every step cheap.
-    source_m = source_m[:: max(1, -(-len(source_m) // MAX_SOURCE_POINTS))]
+    source_m = source_m[:: max(1, -(-len(source_m) // max_source_points))]
     target_m = np.asarray(target_m, dtype=np.float64)
     T = check_rigid(init_T_target_source, name="initial T_scan_tracker")
-    problem = _Problem(source_m, target_m, cKDTree(target_m), target_normals, target_directions)
+    tree = target_tree if target_tree is not None else cKDTree(target_m)
+    problem = _Problem(source_m, target_m, tree, target_normals, target_directions)
     # Stage 1 weighs pairs up to the pairing distance (the misalignment may be that large).
     # Stage 2 re-derives pairing distance and Tukey scale from robust spreads (medians) at every
     # iteration, so a lifted stretch of the path, a minority, drops out as the rest settles.

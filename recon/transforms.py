@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 #: Largest entry-wise deviation of ``R R^T`` from the identity, and of the last row from
 #: (0, 0, 0, 1), that still counts as rigid. Matrices written with 6-8 significant digits (JSON
@@ -192,6 +191,8 @@ def transform_from_pose(pose: NDArray[np.float64]) -> NDArray[np.float64]:
     -------
     ndarray of shape (4, 4) or (N, 4, 4)
     """
+    from scipy.spatial.transform import Rotation  # here: importing scipy.spatial takes 0.2 s
+
     pose = np.asarray(pose, dtype=np.float64)
     T = np.zeros((*pose.shape[:-1], 4, 4))
     T[..., :3, :3] = Rotation.from_rotvec(pose[..., 3:6]).as_matrix()
@@ -211,6 +212,8 @@ def pose_from_transform(T: NDArray[np.float64]) -> NDArray[np.float64]:
     -------
     ndarray of shape (6,) or (N, 6)
     """
+    from scipy.spatial.transform import Rotation
+
     T = np.asarray(T, dtype=np.float64)
     rotvec = _canonical_half_turns(Rotation.from_matrix(T[..., :3, :3]).as_rotvec())
     return np.concatenate([T[..., :3, 3], rotvec], axis=-1)

@@ -17,8 +17,6 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
-import open3d as o3d
-
 from drivers.errors import InputFileError, clipped
 
 _NATIVE_STDERR_LOCK = threading.Lock()
@@ -56,6 +54,8 @@ def open3d_message(error: Exception, limit: int = 200) -> str:
 
 def quiet_open3d():
     """Open3D at Error verbosity: its warnings would reach the terminal, not the caller."""
+    import open3d as o3d  # here, not at the top: importing it takes 0.9 s
+
     return o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error)
 
 
@@ -144,8 +144,11 @@ def _check_png(data: bytes, label: str) -> ImageInfo:
     return ImageInfo("png", width, height, bit_depth, _PNG_CHANNELS.get(colour_type))
 
 
-def read_image(path: Path, label: str) -> o3d.geometry.Image:
-    """Read a checked PNG or JPEG with Open3D, refusing the empty image it returns on failure."""
+def read_image(path: Path, label: str):
+    """Read a checked PNG or JPEG with Open3D (an ``open3d.geometry.Image``), refusing the empty
+    image it returns on failure."""
+    import open3d as o3d
+
     check_image_file(path, label)
     with captured_native_stderr() as native, quiet_open3d():
         image = o3d.io.read_image(str(path))

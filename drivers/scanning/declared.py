@@ -27,7 +27,7 @@ what the file holds.
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from drivers.errors import InputFileError, clipped
@@ -165,20 +165,55 @@ def _too_many(label: str, declared: str, count: int, body: int, room: int, each:
 
 
 @dataclass
-class _PlyElement:
+class PlyElement:
+    """One element of a PLY header: its name, count and properties (name, type; a list
+    property's type is ``list``)."""
+
     name: str
     count: int
+    properties: list[tuple[str, str]] = field(default_factory=list)
     fixed_bytes: int = 0  # binary bytes of the scalar properties, plus the lists' counts
     values: int = 0  # values of a record at least (a list: its count)
 
+    @property
+    def has_lists(self) -> bool:
+        """Whether a record's size depends on its data (a list property)."""
+        return any(kind == "list" for _, kind in self.properties)
+
+
+@dataclass
+class PlyLayout:
+    """A PLY header as parsed: the body's format and offset, and the elements in order."""
+
+    format: str
+    body_offset: int
+    elements: list[PlyElement]
+
+    @property
+    def vertex(self) -> PlyElement | None:
+        """The vertex element, if the header has one."""
+        return next((e for e in self.elements if e.name == "vertex"), None)
+
 
 def _check_ply(path: Path, label: str) -> int | None:
+    vertex = ply_layout(path, label).vertex
+    return None if vertex is None else vertex.count
+
+
+def ply_layout(path: Path, label: str) -> PlyLayout:
+    """Parse a PLY header, refusing one that is malformed or declares more than the file holds.
+
+    Raises
+    ------
+    InputFileError
+        As :func:`check_declared_counts`.
+    """
     lines, offset = _header(
         path, label, "ply", lambda line: line == "end_header", max_line_bytes=MAX_PLY_LINE_BYTES
     )
     body = path.stat().st_size - offset
     fmt = None
-    elements: list[_PlyElement] = []
+    elements: list[PlyElement] = []
     for line in lines[1:-1]:
         words = line.split()
         if not words or words[0] in ("comment", "obj_info"):
@@ -193,15 +228,17 @@ def _check_ply(path: Path, label: str) -> int | None:
             if fmt not in PLY_FORMATS:
                 raise _malformed(label, "ply", line)
         elif words[0] == "element" and len(words) == 3:
-            elements.append(_PlyElement(words[1], _count(words[2], label, "ply", line)))
+            elements.append(PlyElement(words[1], _count(words[2], label, "ply", line)))
         elif words[0] == "property" and elements:
             element = elements[-1]
             if len(words) == 5 and words[1] == "list":
                 if words[2] not in PLY_TYPE_BYTES or words[3] not in PLY_TYPE_BYTES:
                     raise _malformed(label, "ply", line)
                 element.fixed_bytes += PLY_TYPE_BYTES[words[2]]  # an empty list: its count only
+                element.properties.append((words[4], "list"))
             elif len(words) == 3 and words[1] in PLY_TYPE_BYTES:
                 element.fixed_bytes += PLY_TYPE_BYTES[words[1]]
+                element.properties.append((words[2], words[1]))
             else:
                 raise _malformed(label, "ply", line)
             element.values += 1
@@ -227,8 +264,7 @@ def _check_ply(path: Path, label: str) -> int | None:
         if element.count > room:
             raise _too_many(label, declared, element.count, body, room, how)
         used += element.count * each
-    vertex = next((e for e in elements if e.name == "vertex"), None)
-    return None if vertex is None else vertex.count
+    return PlyLayout(format=fmt, body_offset=offset, elements=elements)
 
 
 # --------------------------------------------------------------------------- PCD

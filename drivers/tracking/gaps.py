@@ -30,9 +30,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.interpolate import PchipInterpolator
-from scipy.ndimage import median_filter
-from scipy.spatial.transform import Rotation, Slerp
 
 from drivers.errors import InputFileError
 from drivers.tracking.base import SampleBatch
@@ -249,6 +246,11 @@ def clean_trace(raw: SampleBatch, *, params: GapParams | None = None) -> CleanTr
         piece_pos = pos[inside].copy()
         piece_quat = None if quat is None else quat[inside].copy()
         if np.any(missing):
+            # Imported here: scipy.interpolate takes 0.3 s to import, and most traces have no
+            # gap to bridge.
+            from scipy.interpolate import PchipInterpolator
+            from scipy.spatial.transform import Rotation, Slerp
+
             piece_pos[missing] = PchipInterpolator(t[run], pos[run], axis=0)(t[inside][missing])
             if piece_quat is not None:
                 slerp = Slerp(t[run], Rotation.from_quat(quat[run]))
@@ -309,6 +311,8 @@ def _outliers(t: FloatArray, pos: FloatArray, ok: np.ndarray, params: GapParams)
         return out
     period = float(np.median(np.diff(t[idx])))
     width = max(5, int(round(params.outlier_window_s / period)) | 1)
+    from scipy.ndimage import median_filter
+
     median = median_filter(pos[idx], size=(width, 1), mode="nearest")
     suspect = np.linalg.norm(pos[idx] - median, axis=1) > params.outlier_m
     if not np.any(suspect):
@@ -381,6 +385,8 @@ def apply_tip_offset(raw: SampleBatch, tip_offset_m: FloatArray) -> SampleBatch:
     quat = np.asarray(raw.orientation_xyzw, dtype=np.float64)
     finite = np.isfinite(quat).all(axis=1) & (np.linalg.norm(quat, axis=1) > 0.5)
     tip = np.full_like(np.asarray(raw.position_m, dtype=np.float64), np.nan)
+    from scipy.spatial.transform import Rotation
+
     tip[finite] = raw.position_m[finite] + Rotation.from_quat(quat[finite]).apply(offset)
     return SampleBatch(
         t_s=raw.t_s,

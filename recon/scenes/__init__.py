@@ -28,6 +28,7 @@ from recon.scenes.paper import (
     free_curve,
     long_edge,
     polynomial_ridge,
+    serpentine_plate,
 )
 from recon.scenes.touches import Touches, touch_recording
 
@@ -48,6 +49,7 @@ __all__ = [
     "long_edge",
     "misalignment",
     "polynomial_ridge",
+    "serpentine_plate",
     "touch_recording",
     "turning_edge",
 ]

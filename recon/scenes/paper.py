@@ -1,4 +1,4 @@
-"""The paper's test cases (Figs. 4, 6, 7 and 8), a box corner, and a long edge for timing."""
+"""The paper's test cases (Figs. 4, 6, 7 and 8), a box corner, and long paths for timing."""
 
 from __future__ import annotations
 
@@ -422,4 +422,74 @@ def long_edge(
         scan=Scan(points_m=pts),
         T_scan_tracker=np.eye(4),
         feature="edge",
+    )
+
+
+def serpentine_plate(
+    n_path_points: int,
+    n_scan_points: int,
+    seed: int = 0,
+    *,
+    spacing_m: float = 1 * MM,
+    row_length_m: float = 0.3,
+    pitch_m: float = 20 * MM,
+    near_x_m: float = 0.35,
+    scan_noise_m: float = 0.5 * MM,
+) -> Scene:
+    """A long path on a plate within a UR arm's reach, for timing planning.
+
+    The path runs in rows ``row_length_m`` long along y, ``pitch_m`` apart in x from
+    ``near_x_m`` outwards, joined by half circles, ``n_path_points * spacing_m`` long in all, on
+    the plate z = 0 of the tracker frame (the base frame of an arm at its origin). The scan has
+    ``n_scan_points`` on the plate, 10 mm past the path all round.
+    """
+    rng = np.random.default_rng(seed)
+    length = n_path_points * spacing_m
+    turn = np.pi * pitch_m / 2
+    rows = int(np.ceil(length / (row_length_m + turn))) + 1
+    pieces = []
+    for row in range(rows):
+        x = near_x_m + row * pitch_m
+        y0, y1 = (-0.5, 0.5) if row % 2 == 0 else (0.5, -0.5)
+        ys = np.linspace(y0 * row_length_m, y1 * row_length_m, 2001)
+        pieces.append(np.column_stack([np.full_like(ys, x), ys, np.zeros_like(ys)]))
+        # Half a circle to the next row, on the side the row ended.
+        angle = np.linspace(np.pi, 0.0, 200)[1:-1]
+        centre = (x + pitch_m / 2, y1 * row_length_m)
+        side = 1.0 if y1 > 0 else -1.0
+        pieces.append(
+            np.column_stack(
+                [
+                    centre[0] + pitch_m / 2 * np.cos(angle),
+                    centre[1] + side * pitch_m / 2 * np.sin(angle),
+                    np.zeros_like(angle),
+                ]
+            )
+        )
+    line = np.concatenate(pieces)
+    arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))))
+
+    def curve(s):
+        return np.column_stack([np.interp(s, arc, line[:, k]) for k in range(3)])
+
+    recording, truth = hand_trace(
+        curve, length, rng, noise=HandNoise(), sample_spacing_m=spacing_m / 2
+    )
+    lo, hi = truth.min(axis=0) - 10 * MM, truth.max(axis=0) + 10 * MM
+    points = np.column_stack(
+        [
+            rng.uniform(lo[0], hi[0], n_scan_points),
+            rng.uniform(lo[1], hi[1], n_scan_points),
+            scan_noise_m * rng.standard_normal(n_scan_points),
+        ]
+    )
+    return Scene(
+        name=f"serpentine_plate_{n_path_points}",
+        description=f"{length:.0f} m in rows on a plate, {n_scan_points} scan points",
+        truth_m=truth,
+        recording=recording,
+        scan=Scan(points_m=points),
+        T_scan_tracker=np.eye(4),
+        feature="surface",
+        surface_height=lambda p: p[:, 2],
     )

@@ -106,7 +106,7 @@ def test_status_latency_during_a_large_reconstruction(tmp_path):
         write_trace_csv(Path(tmp) / "trace.csv", scene.recording)
         write_scan(Path(tmp) / "scan.ply", scene.scan)
         trace, scan = (Path(tmp) / "trace.csv").read_bytes(), (Path(tmp) / "scan.ply").read_bytes()
-    server = Server(tmp_path / "data")
+    server = Server(tmp_path / "data", token=TOKEN)
     rows = []
     try:
         sid = server.client.post("/sessions", json={"name": "bench"}).json()["id"]

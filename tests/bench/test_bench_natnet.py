@@ -107,7 +107,7 @@ def test_no_frame_lost_by_a_service_capture_while_it_reconstructs(tmp_path):
 
     from drivers.scanning.pointcloud import write_scan
     from drivers.tracking.canonical_csv import write_trace_csv
-    from tests.e2e.test_server_flow import Server
+    from tests.e2e.test_server_flow import TOKEN, Server
 
     scene = scenes.long_edge(10_000, 1_000_000)
     with tempfile.TemporaryDirectory() as tmp:
@@ -115,7 +115,7 @@ def test_no_frame_lost_by_a_service_capture_while_it_reconstructs(tmp_path):
         write_scan(Path(tmp) / "scan.ply", scene.scan)
         trace, scan = (Path(tmp) / "trace.csv").read_bytes(), (Path(tmp) / "scan.ply").read_bytes()
     rec = _recording()
-    server = Server(tmp_path / "data")
+    server = Server(tmp_path / "data", token=TOKEN)
     jobs = []
     try:
         client = server.client
