@@ -22,7 +22,7 @@ test: setup
 
 # Speed and accuracy tables; never part of `make test` (timings on a shared machine are noisy).
 bench: setup
-	@command -v wrk >/dev/null || scripts/setup.sh --bench-tools
+	@scripts/setup.sh --bench-tools
 	$(BIN)/python -m pytest -q -s -p no:cacheprovider tests/bench
 
 lint: setup

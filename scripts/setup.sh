@@ -31,8 +31,10 @@ apt_install() {
 }
 
 if [ "${1:-}" = "--bench-tools" ]; then
-    # The API latency benchmark drives the server with wrk (a C load generator).
+    # The API latency benchmark drives the server with wrk (a C load generator); the speed
+    # benchmark reads each command's peak memory from GNU time.
     command -v wrk >/dev/null || { echo "setup: installing wrk"; apt_install wrk; }
+    [ -x /usr/bin/time ] || { echo "setup: installing time (GNU time)"; apt_install time; }
     exit 0
 fi
 

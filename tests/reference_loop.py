@@ -5,7 +5,8 @@ Independent of ``recon.fitting``: one point at a time with ``numpy.linalg.eigh``
 
 * the tests check that the vectorised implementation gives the same points (an independent
   method, written from the paper and the module docstrings rather than from the batched code);
-* the speed benchmark times it next to the vectorised one, in the same process.
+* the speed benchmark runs it as a whole command (``tests/bench/loop_command.py``) beside
+  ``teachpath reconstruct``.
 
 It consumes the same scan model (features, thinned edges, trees) as the vectorised code, so it
 covers Algorithm 2 and the anchored method, not the scan preparation they share.

@@ -33,8 +33,8 @@ from recon.fitting import (
 from recon.methods.common import (
     SegmentResult,
     adaptive_smoothing,
-    chunks,
     edge_neighbourhoods,
+    for_each_chunk,
     path_fit,
     prior_variance,
 )
@@ -107,7 +107,8 @@ def anchored_segment(
         # Where the path alone decides across it (no scan; the plane of a surface), the widest
         # window that does not bend it (see adaptive_smoothing).
         adaptive = adaptive_smoothing(points, half_width, degree=params.degree, scale=scale)
-    for rows in chunks(n):
+
+    def fit_chunk(rows: slice) -> None:
         # A 3-D curve: both transverse components as polynomials of the first.
         fitted = path_fit(points, windows[rows], rows, degree=degree, scale=scale, outputs=2)
         frame, x_i, design_at, fit_p = fitted.frame, fitted.x_i, fitted.design_at, fitted.fit
@@ -123,7 +124,7 @@ def anchored_segment(
             out.n_path[rows] = 2 * adaptive.half_width[rows] + 1
             out.residual_path[rows] = adaptive.rms_m[rows]
         if not use_scan:
-            continue
+            return
         if kind == SegmentKind.EDGE:
             t, var_t, count, resid = _edge_targets(
                 smoothed[rows], frame.axes[:, :, 0], model, params, degree
@@ -136,6 +137,11 @@ def anchored_segment(
         supported[rows] = ok
         out.n_surface[rows] = np.where(ok, count, 0)
         out.residual_surface[rows] = np.where(ok, resid, np.nan)
+
+    if use_scan:
+        # The trees are built on first use: build them here, not once per thread.
+        _ = model.edge_tree if kind == SegmentKind.EDGE else model.dense_tree
+    for_each_chunk(fit_chunk, n)
 
     # Across the path, what only the path decides is as uncertain as the trace (the prior); the
     # smoothing's own noise adds to it.

@@ -7,7 +7,9 @@ Every function works on one segment at a time, vectorised over its points in chu
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import os
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -215,6 +217,23 @@ def chunks(n: int) -> Iterator[slice]:
     """Slices of at most :data:`CHUNK` rows covering ``range(n)``."""
     for start in range(0, n, CHUNK):
         yield slice(start, min(start + CHUNK, n))
+
+
+def for_each_chunk(work: Callable[[slice], None], n: int) -> None:
+    """Run ``work(rows)`` for every chunk of ``range(n)``, on as many threads as there are cores.
+
+    ``work`` must only write its own rows of shared arrays. numpy's batched arithmetic, matmul,
+    eigh and SciPy's tree queries release the GIL, so chunks run in parallel (the per-point stage
+    of a 10k-point edge: 0.29 s on one thread, 0.21 s on two; the same points).
+    """
+    rows = list(chunks(n))
+    if len(rows) <= 1:
+        for r in rows:
+            work(r)
+        return
+    with ThreadPoolExecutor(max_workers=min(len(rows), os.cpu_count() or 1)) as pool:
+        # list(): re-raise the first exception of any chunk here.
+        list(pool.map(work, rows))
 
 
 #: The windows :func:`adaptive_smoothing` chooses among, as multiples of N_P's half-width (wider

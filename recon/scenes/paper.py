@@ -434,14 +434,16 @@ def serpentine_plate(
     row_length_m: float = 0.3,
     pitch_m: float = 20 * MM,
     near_x_m: float = 0.35,
+    height_m: float = 0.1,
     scan_noise_m: float = 0.5 * MM,
 ) -> Scene:
     """A long path on a plate within a UR arm's reach, for timing planning.
 
     The path runs in rows ``row_length_m`` long along y, ``pitch_m`` apart in x from
     ``near_x_m`` outwards, joined by half circles, ``n_path_points * spacing_m`` long in all, on
-    the plate z = 0 of the tracker frame (the base frame of an arm at its origin). The scan has
-    ``n_scan_points`` on the plate, 10 mm past the path all round.
+    the plate z = ``height_m`` of the tracker frame (the base frame of an arm at its origin, on
+    a table below the plate). The scan has ``n_scan_points`` on the plate, 10 mm past the path
+    all round.
     """
     rng = np.random.default_rng(seed)
     length = n_path_points * spacing_m
@@ -452,7 +454,7 @@ def serpentine_plate(
         x = near_x_m + row * pitch_m
         y0, y1 = (-0.5, 0.5) if row % 2 == 0 else (0.5, -0.5)
         ys = np.linspace(y0 * row_length_m, y1 * row_length_m, 2001)
-        pieces.append(np.column_stack([np.full_like(ys, x), ys, np.zeros_like(ys)]))
+        pieces.append(np.column_stack([np.full_like(ys, x), ys, np.full_like(ys, height_m)]))
         # Half a circle to the next row, on the side the row ended.
         angle = np.linspace(np.pi, 0.0, 200)[1:-1]
         centre = (x + pitch_m / 2, y1 * row_length_m)
@@ -462,7 +464,7 @@ def serpentine_plate(
                 [
                     centre[0] + pitch_m / 2 * np.cos(angle),
                     centre[1] + side * pitch_m / 2 * np.sin(angle),
-                    np.zeros_like(angle),
+                    np.full_like(angle, height_m),
                 ]
             )
         )
@@ -480,7 +482,7 @@ def serpentine_plate(
         [
             rng.uniform(lo[0], hi[0], n_scan_points),
             rng.uniform(lo[1], hi[1], n_scan_points),
-            scan_noise_m * rng.standard_normal(n_scan_points),
+            height_m + scan_noise_m * rng.standard_normal(n_scan_points),
         ]
     )
     return Scene(
@@ -491,5 +493,5 @@ def serpentine_plate(
         scan=Scan(points_m=points),
         T_scan_tracker=np.eye(4),
         feature="surface",
-        surface_height=lambda p: p[:, 2],
+        surface_height=lambda p: p[:, 2] - height_m,
     )
