@@ -8,7 +8,6 @@ read it back refuse a file planned for another arm.
 
 from __future__ import annotations
 
-import io
 import json
 import re
 from dataclasses import dataclass
@@ -76,15 +75,22 @@ def reconstruction_csv_text(arrays: dict) -> str:
         ("piece", np.zeros(n, np.int64) if piece is None else piece, "%d"),
         ("uncertainty_m", np.full(n, np.nan) if uncertainty is None else uncertainty, "%.9g"),
     ]
-    # The whole table in one printf: per-number formatting in Python took 0.35 s for 10k rows.
+    return csv_table(columns)
+
+
+def csv_table(columns: list[tuple[str, np.ndarray, str]]) -> str:
+    """A CSV table (header line, then rows) from columns of ``(name, values (N,), printf
+    format)``, formatted as one block: one printf over the whole table (per-number formatting
+    in Python took 0.35 s for 10k rows, ``numpy.savetxt`` 0.45 s for 74k trajectory samples).
+    A non-finite number is an empty cell; ``%d`` columns are written as integers.
+    """
+    n = len(columns[0][1]) if columns else 0
     cells: list = [None] * (n * len(columns))
     for k, (_, values, fmt) in enumerate(columns):
         values = np.asarray(values)
         cells[k :: len(columns)] = (values.astype(np.int64) if fmt == "%d" else values).tolist()
     row = ",".join(fmt for _, _, fmt in columns) + "\n"
-    body = (row * n) % tuple(cells)
-    # A non-finite number is an empty cell (no such fit), never "nan" or "inf".
-    body = _NON_FINITE_CELL.sub("", body)
+    body = _NON_FINITE_CELL.sub("", (row * n) % tuple(cells))
     return ",".join(name for name, _, _ in columns) + "\n" + body
 
 
@@ -168,7 +174,7 @@ def trajectory_csv_text(trajectory: JointTrajectory, *, meta: dict | None = None
         What else the file should say (the plan's summary: TCP, configuration, checks, ...);
         ``robot``, ``rate_hz`` and ``requested_speed_m_s`` come from the trajectory.
     """
-    labels = np.array([p.label for p in Phase])[trajectory.phases]
+    labels = np.array([p.label for p in Phase], dtype=object)[trajectory.phases]
     numbers = np.column_stack(
         [trajectory.t_s, trajectory.q_rad, trajectory.tcp_m, trajectory.tcp_rotvec]
     )
@@ -179,14 +185,9 @@ def trajectory_csv_text(trajectory: JointTrajectory, *, meta: dict | None = None
         "rate_hz": 1.0 / trajectory.period_s if len(trajectory) > 1 else None,
         "requested_speed_m_s": trajectory.requested_speed_m_s,
     }
-    buffer = io.StringIO()
-    buffer.write(META_PREFIX + json.dumps(head, allow_nan=False) + "\n")
-    buffer.write(",".join((*TRAJECTORY_COLUMNS, "phase")) + "\n")
-    body = io.StringIO()
-    np.savetxt(body, numbers, delimiter=",", fmt="%.10g")
-    for line, label in zip(body.getvalue().splitlines(), labels, strict=True):
-        buffer.write(f"{line},{label}\n")
-    return buffer.getvalue()
+    columns = [(name, numbers[:, k], "%.10g") for k, name in enumerate(TRAJECTORY_COLUMNS)]
+    columns.append(("phase", labels, "%s"))
+    return META_PREFIX + json.dumps(head, allow_nan=False) + "\n" + csv_table(columns)
 
 
 @dataclass(frozen=True)

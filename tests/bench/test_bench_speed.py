@@ -176,8 +176,9 @@ def _import_seconds() -> float:
     """Seconds a fresh interpreter spends importing what ``reconstruct`` needs."""
     code = (
         "import time; t = time.perf_counter(); "
-        "import service.cli, service.pipelines, drivers.scanning.pointcloud, "
-        "drivers.tracking.readers, drivers.export; print(time.perf_counter() - t)"
+        "import service.cli, service.pipelines, service.tasks, drivers.scanning.pointcloud, "
+        "drivers.tracking.readers, drivers.export, recon.reconstruct; "
+        "print(time.perf_counter() - t)"
     )
     runs = [
         float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout)

@@ -1,4 +1,5 @@
-"""The reconstruction CSV, written as one formatted block, against a row-by-row csv.writer."""
+"""The result CSVs (reconstruction, trajectory), written as one formatted block, against the
+row-by-row writers they replaced."""
 
 from __future__ import annotations
 
@@ -95,3 +96,37 @@ def test_an_empty_reconstruction_is_a_header_only():
     }
     assert reconstruction_csv_text(arrays) == _row_by_row(arrays)
     assert reconstruction_csv_text(arrays).count("\n") == 1
+
+
+def test_the_trajectory_csv_is_what_numpy_savetxt_wrote_and_reads_back(tmp_path):
+    from drivers.export import (
+        META_PREFIX,
+        TRAJECTORY_COLUMNS,
+        read_trajectory_csv,
+        trajectory_csv_text,
+        write_trajectory_csv,
+    )
+    from recon.types import Phase
+    from tests.motion_fixtures import line_plan
+
+    trajectory = line_plan().trajectory  # every phase, from the arm's home
+    text = trajectory_csv_text(trajectory, meta={"source": "test"})
+    # The row-by-row writer it replaced: numpy.savetxt, then the phase's word.
+    numbers = np.column_stack(
+        [trajectory.t_s, trajectory.q_rad, trajectory.tcp_m, trajectory.tcp_rotvec]
+    )
+    body = io.StringIO()
+    np.savetxt(body, numbers, delimiter=",", fmt="%.10g")
+    labels = [p.label for p in Phase]
+    rows = [
+        f"{line},{labels[phase]}"
+        for line, phase in zip(body.getvalue().splitlines(), trajectory.phases, strict=True)
+    ]
+    head, columns, *data = text.splitlines()
+    assert head.startswith(META_PREFIX)
+    assert columns == ",".join((*TRAJECTORY_COLUMNS, "phase"))
+    assert data == rows
+    path = tmp_path / "trajectory.csv"
+    write_trajectory_csv(path, trajectory, meta={"source": "test"})
+    back = read_trajectory_csv(path, robot=trajectory.robot).trajectory
+    np.testing.assert_allclose(back.q_rad, trajectory.q_rad, rtol=0, atol=1e-9)
