@@ -9,7 +9,6 @@ read it back refuse a file planned for another arm.
 from __future__ import annotations
 
 import json
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -81,21 +80,26 @@ def reconstruction_csv_text(arrays: dict) -> str:
 def csv_table(columns: list[tuple[str, np.ndarray, str]]) -> str:
     """A CSV table (header line, then rows) from columns of ``(name, values (N,), printf
     format)``, formatted as one block: one printf over the whole table (per-number formatting
-    in Python took 0.35 s for 10k rows, ``numpy.savetxt`` 0.45 s for 74k trajectory samples).
+    in Python and the csv module took 0.35 s for 10k reconstruction rows, this 0.09 s).
     A non-finite number is an empty cell; ``%d`` columns are written as integers.
     """
     n = len(columns[0][1]) if columns else 0
     cells: list = [None] * (n * len(columns))
+    formats = []
     for k, (_, values, fmt) in enumerate(columns):
         values = np.asarray(values)
-        cells[k :: len(columns)] = (values.astype(np.int64) if fmt == "%d" else values).tolist()
-    row = ",".join(fmt for _, _, fmt in columns) + "\n"
-    body = _NON_FINITE_CELL.sub("", (row * n) % tuple(cells))
-    return ",".join(name for name, _, _ in columns) + "\n" + body
-
-
-#: A cell that printf wrote for NaN or an infinity.
-_NON_FINITE_CELL = re.compile(r"(?<![^,\n])[-+]?(?:nan|inf)(?![^,\n])")
+        if fmt == "%d":
+            values = values.astype(np.int64)
+        elif values.dtype.kind == "f" and not np.isfinite(values).all():
+            # This column alone cell by cell: empty where there is no number.
+            values = np.array(
+                [fmt % v if np.isfinite(v) else "" for v in values.tolist()], dtype=object
+            )
+            fmt = "%s"
+        cells[k :: len(columns)] = values.tolist()
+        formats.append(fmt)
+    row = ",".join(formats) + "\n"
+    return ",".join(name for name, _, _ in columns) + "\n" + (row * n) % tuple(cells)
 
 
 def read_reconstruction_csv(
