@@ -37,6 +37,10 @@ pytestmark = [pytest.mark.bench, pytest.mark.timeout(3600)]
 
 #: Runs of each whole command (median, min, max).
 RUNS = int(os.environ.get("TEACHPATH_BENCH_RUNS", "5"))
+#: A checkout of another version (``git worktree add /tmp/base COMMIT``): its ``reconstruct``
+#: runs alternate with this one's in the same run, for a before/after that shares the machine's
+#: moods (timings here vary by a third between runs minutes apart).
+BASELINE = os.environ.get("TEACHPATH_BENCH_BASELINE")
 #: (trace points at 1 mm, scan points), with the issue's targets for the whole command (s).
 CASES = ((1_000, 100_000, 0.5), (10_000, 1_000_000, 1.5), (100_000, 1_000_000, 5.0))
 #: The per-point loop baseline runs on paths up to this many points (longer ones take minutes).
@@ -58,14 +62,20 @@ def _case_files(folder: Path, n_path: int, n_scan: int) -> tuple[Path, Path]:
 GNU_TIME = "/usr/bin/time"
 
 
-def timed_runs(argv: list[str], runs: int = RUNS) -> tuple[list[float], list[float]]:
+def timed_runs(
+    argv: list[str], runs: int = RUNS, *, pythonpath: str | None = None
+) -> tuple[list[float], list[float]]:
     """Wall-clock seconds and peak RSS (MiB) of ``runs`` runs of a command, each checked to
-    succeed (its stderr shown if not); the RSS is NaN without GNU time."""
+    succeed (its stderr shown if not); the RSS is NaN without GNU time. ``pythonpath`` runs
+    another checkout's code with this environment's packages."""
     seconds, peak_mib = [], []
     measure = [GNU_TIME, "-f", "peak-kib %M"] if Path(GNU_TIME).exists() else []
+    env = {**os.environ, "PYTHONPATH": pythonpath} if pythonpath else None
     for _ in range(runs):
         start = time.perf_counter()
-        done = subprocess.run(measure + argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        done = subprocess.run(
+            measure + argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env
+        )
         seconds.append(time.perf_counter() - start)
         error = done.stderr.decode(errors="replace")
         assert done.returncode == 0, f"{' '.join(argv)} failed: {error}"
@@ -282,3 +292,26 @@ def test_plan_speed(tmp_path_factory):
     for label, seconds in stages.items():
         print(f"| {label} | {seconds:.2f} |")
     print(f"| everything in the process after imports | {total:.2f} |")
+
+
+@pytest.mark.skipif(BASELINE is None, reason="set TEACHPATH_BENCH_BASELINE to a checkout")
+def test_against_a_baseline_checkout(tmp_path_factory):
+    """``reconstruct`` of this checkout and of TEACHPATH_BENCH_BASELINE, run after run."""
+    folder = tmp_path_factory.mktemp("baseline")
+    print(f"\n## Before and after: {BASELINE} against this checkout, runs alternating\n")
+    print("| case | version | median | min | max | peak MiB | before / after |")
+    print("|---|---|---:|---:|---:|---:|---:|")
+    for n_path, n_scan, _ in CASES[:2]:
+        trace, scan = _case_files(folder, n_path, n_scan)
+        argv = [TEACHPATH, "reconstruct", str(trace), "--scan", str(scan)]
+        runs: dict[str, tuple[list, list]] = {"before": ([], []), "after": ([], [])}
+        for _ in range(RUNS):
+            for which, path in (("before", BASELINE), ("after", None)):
+                out = ["--out", str(folder / f"{which}.csv")]
+                seconds, peak = timed_runs(argv + out, 1, pythonpath=path)
+                runs[which][0].extend(seconds)
+                runs[which][1].extend(peak)
+        ratio = statistics.median(runs["before"][0]) / statistics.median(runs["after"][0])
+        for which, (seconds, peak) in runs.items():
+            extra = f" {ratio:.2f}x |" if which == "after" else " |"
+            print(_row(f"{n_path:,} / {n_scan:,} | {which}", seconds, peak, extra))
