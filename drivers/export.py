@@ -34,6 +34,14 @@ TRAJECTORY_COLUMNS = ("t", "q0", "q1", "q2", "q3", "q4", "q5", "x", "y", "z", "r
 #: Columns after x, y, z, t and the quaternion, in order (the CSV contract of ``teachpath
 #: reconstruct``): the per-point diagnostics of a reconstruction.
 DIAGNOSTIC_COLUMNS = PER_POINT_FIELDS[PER_POINT_FIELDS.index("displacement_m") :]
+#: printf formats of the diagnostic columns that are not numbers to 9 digits.
+DIAGNOSTIC_FORMATS = {
+    "mode": "%s",
+    "segment": "%d",
+    "n_path": "%d",
+    "n_surface": "%d",
+    "piece": "%d",
+}
 
 
 def write_reconstruction_csv(path: str | Path, recon: Reconstruction) -> None:
@@ -50,12 +58,19 @@ def reconstruction_csv_text(arrays: dict) -> str:
     ``mode`` is written as a word (path, surface, edge, unchanged); NaN residuals (no such fit)
     as empty cells. ``uncertainty_m`` is each point's 1-sigma uncertainty across the path.
     """
-    labels = np.array([m.label for m in sorted(PointMode, key=int)], dtype=object)
+    labels = {int(m): m.label for m in PointMode}
     n = len(arrays["points_m"])
     t, q = arrays.get("t_s"), arrays.get("orientations_xyzw")
-    piece = arrays.get("piece")
-    # Reconstructions stored before it was kept have no uncertainty: empty cells.
-    uncertainty = arrays.get("uncertainty_m")
+    # Reconstructions stored before they were kept have no piece (one piece) and no uncertainty
+    # (empty cells).
+    values = {
+        **arrays,
+        "mode": np.array([labels[int(m)] for m in arrays["mode"]], dtype=object),
+        "piece": np.zeros(n, np.int64) if arrays.get("piece") is None else arrays["piece"],
+        "uncertainty_m": (
+            np.full(n, np.nan) if arrays.get("uncertainty_m") is None else arrays["uncertainty_m"]
+        ),
+    }
     # (header, values, printf format) per column, in the file's order.
     columns = [(axis, arrays["points_m"][:, k], "%.9g") for k, axis in enumerate("xyz")]
     if t is not None:
@@ -63,16 +78,7 @@ def reconstruction_csv_text(arrays: dict) -> str:
     if q is not None:
         columns += [(name, q[:, k], "%.9g") for k, name in enumerate(QUATERNION_COLUMNS)]
     columns += [
-        ("displacement_m", arrays["displacement_m"], "%.9g"),
-        ("mode", labels[np.asarray(arrays["mode"], dtype=np.int64)], "%s"),
-        ("segment", arrays["segment"], "%d"),
-        ("n_path", arrays["n_path"], "%d"),
-        ("n_surface", arrays["n_surface"], "%d"),
-        ("residual_path_m", arrays["residual_path_m"], "%.9g"),
-        ("residual_surface_m", arrays["residual_surface_m"], "%.9g"),
-        ("alpha", arrays["alpha"], "%.9g"),
-        ("piece", np.zeros(n, np.int64) if piece is None else piece, "%d"),
-        ("uncertainty_m", np.full(n, np.nan) if uncertainty is None else uncertainty, "%.9g"),
+        (name, values[name], DIAGNOSTIC_FORMATS.get(name, "%.9g")) for name in DIAGNOSTIC_COLUMNS
     ]
     return csv_table(columns)
 

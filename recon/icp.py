@@ -121,6 +121,10 @@ def register_icp(
     source_m = source_m[:: max(1, -(-len(source_m) // max_source_points))]
     target_m = np.asarray(target_m, dtype=np.float64)
     T = check_rigid(init_T_target_source, name="initial T_scan_tracker")
+    if target_tree is not None and target_tree.n != len(target_m):
+        raise ValueError(
+            f"target_tree holds {target_tree.n} points, target_m {len(target_m)}: not its tree"
+        )
     tree = target_tree if target_tree is not None else cKDTree(target_m)
     problem = _Problem(source_m, target_m, tree, target_normals, target_directions)
     # Stage 1 weighs pairs up to the pairing distance (the misalignment may be that large).

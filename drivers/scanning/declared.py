@@ -32,25 +32,28 @@ from pathlib import Path
 
 from drivers.errors import InputFileError, clipped
 
-#: Bytes of each PLY property type (the PLY format's names and their sized aliases).
-PLY_TYPE_BYTES = {
-    "char": 1,
-    "int8": 1,
-    "uchar": 1,
-    "uint8": 1,
-    "short": 2,
-    "int16": 2,
-    "ushort": 2,
-    "uint16": 2,
-    "int": 4,
-    "int32": 4,
-    "uint": 4,
-    "uint32": 4,
-    "float": 4,
-    "float32": 4,
-    "double": 8,
-    "float64": 8,
+#: numpy type codes of each PLY property type (the PLY format's names and their sized aliases);
+#: byte order comes from the header's format.
+PLY_NUMPY_TYPES = {
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
+#: Bytes of each PLY property type.
+PLY_TYPE_BYTES = {name: int(code[1]) for name, code in PLY_NUMPY_TYPES.items()}
 PLY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
 #: Longest header read: real headers are a few hundred bytes; comments may make them longer, but
 #: a file with no end of header within this much is not a point cloud.

@@ -219,6 +219,19 @@ def chunks(n: int) -> Iterator[slice]:
         yield slice(start, min(start + CHUNK, n))
 
 
+#: At most this many chunks at once: each holds its neighbours (tens of MB on a surface), and
+#: the tree queries inside a chunk use every core again.
+MAX_CHUNK_THREADS = 4
+
+
+def _cores() -> int:
+    """The cores this process may run on (its affinity, which a container may narrow)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
 def for_each_chunk(work: Callable[[slice], None], n: int) -> None:
     """Run ``work(rows)`` for every chunk of ``range(n)``, on as many threads as there are cores.
 
@@ -231,7 +244,7 @@ def for_each_chunk(work: Callable[[slice], None], n: int) -> None:
         for r in rows:
             work(r)
         return
-    with ThreadPoolExecutor(max_workers=min(len(rows), os.cpu_count() or 1)) as pool:
+    with ThreadPoolExecutor(max_workers=min(len(rows), MAX_CHUNK_THREADS, _cores())) as pool:
         # list(): re-raise the first exception of any chunk here.
         list(pool.map(work, rows))
 

@@ -437,7 +437,8 @@ def serpentine_plate(
     height_m: float = 0.1,
     scan_noise_m: float = 0.5 * MM,
 ) -> Scene:
-    """A long path on a plate within a UR arm's reach, for timing planning.
+    """A long path on a plate within a UR10e's reach (up to about 12k points at the defaults:
+    longer paths add rows beyond it), for timing planning.
 
     The path runs in rows ``row_length_m`` long along y, ``pitch_m`` apart in x from
     ``near_x_m`` outwards, joined by half circles, ``n_path_points * spacing_m`` long in all, on

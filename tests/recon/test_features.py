@@ -186,3 +186,29 @@ def o3d_hybrid(radius_m, max_nn):
     import open3d as o3d
 
     return o3d.geometry.KDTreeSearchParamHybrid(radius_m, max_nn)
+
+
+def test_small_and_degenerate_clouds():
+    # Nothing, or no averaging: the points as they are.
+    empty, count = voxel_average(np.zeros((0, 3)), 0.002)
+    assert empty.shape == (0, 3) and count == 0
+    points = np.random.default_rng(7).normal(size=(5, 3))
+    same, count = voxel_average(points, 0.0)
+    np.testing.assert_array_equal(same, points)
+    assert count == 5
+    # A grid too large for one integer key (kilometres in 1 mm voxels) still averages exactly.
+    far = np.array([[0.0, 0.0, 0.0], [0.0002, 0.0, 0.0], [3e6, 4e6, 5e6]])
+    centroids, count = voxel_average(far, 0.001)
+    assert count == 2
+    np.testing.assert_allclose(_sorted_rows(centroids), [[0.0001, 0.0, 0.0], [3e6, 4e6, 5e6]])
+    # Fewer points than the cap, down to one: balls of what there is; no surface in them.
+    for m in (1, 2, 5):
+        cloud = points[:m] * 1e-3
+        balls = neighbour_balls(cloud, cKDTree(cloud), radius_m=0.008, max_neighbours=48)
+        assert balls.shape == (m, m)
+        normals, curvature = covariance_features(cloud, balls)
+        assert normals.shape == (m, 3) and np.all(np.isfinite(normals))
+        assert np.all(curvature[np.diff(balls.indptr) < 3] == 1 / 3)
+    # Outlier statistics need more points than neighbours: fewer are all kept.
+    few = points[:5]
+    assert statistical_inliers(few, cKDTree(few), neighbours=8, std_ratio=3.0).all()
