@@ -188,7 +188,9 @@ def _following(points_scan_m, model, bounds, params) -> np.ndarray:
     return on_edge
 
 
-def _register_surface(points, model, params, T_init, max_source_points=None) -> Registration:
+def _register_surface(
+    points, model, params, T_init, max_source_points=MAX_SOURCE_POINTS
+) -> Registration:
     features = model.features
     return register_icp(
         points,
@@ -198,7 +200,7 @@ def _register_surface(points, model, params, T_init, max_source_points=None) -> 
         target_normals=features.normals,
         target_label=SegmentKind.SURFACE.value,
         target_tree=model.coarse_tree,
-        max_source_points=max_source_points or MAX_SOURCE_POINTS,
+        max_source_points=max_source_points,
     )
 
 

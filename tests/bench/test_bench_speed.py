@@ -48,6 +48,12 @@ LOOP_POINTS = 10_000
 TEACHPATH = str(Path(sys.executable).with_name("teachpath"))
 
 
+@pytest.fixture(scope="module")
+def case_folder(tmp_path_factory) -> Path:
+    """Where the scenes' files are written once for every test of the module."""
+    return tmp_path_factory.mktemp("cases")
+
+
 def _case_files(folder: Path, n_path: int, n_scan: int) -> tuple[Path, Path]:
     trace, scan = folder / f"trace_{n_path}.csv", folder / f"scan_{n_path}_{n_scan}.ply"
     if not trace.exists():
@@ -100,8 +106,8 @@ def _loop_command(trace: Path, scan: Path, out: Path) -> list[str]:
 LOOP_RUNS = min(RUNS, 3)
 
 
-def test_whole_command_speed(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("speed")
+def test_whole_command_speed(case_folder):
+    folder = case_folder
     out = folder / "out.csv"
     print(
         f"\n## Whole command, start-up included (seconds over {RUNS} runs; peak RSS of the "
@@ -197,8 +203,8 @@ def _import_seconds() -> float:
     return statistics.median(runs)
 
 
-def test_stage_profile_of_the_10k_1m_case(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("profile")
+def test_stage_profile_of_the_10k_1m_case(case_folder):
+    folder = case_folder
     trace, scan = _case_files(folder, 10_000, 1_000_000)
     argv = ["reconstruct", str(trace), "--scan", str(scan), "--out", str(folder / "out.csv")]
     _stage_profile(argv)  # warm the file cache and numpy's first calls
@@ -215,11 +221,11 @@ def test_stage_profile_of_the_10k_1m_case(tmp_path_factory):
     print(f"| everything in the process after imports | {total:.2f} |")
 
 
-def test_service_upload_to_result(tmp_path_factory):
+def test_service_upload_to_result(tmp_path_factory, case_folder):
     from tests.e2e.test_server_flow import TOKEN, Server
 
     folder = tmp_path_factory.mktemp("service")
-    trace, scan = _case_files(folder, 10_000, 1_000_000)
+    trace, scan = _case_files(case_folder, 10_000, 1_000_000)
     trace_bytes, scan_bytes = trace.read_bytes(), scan.read_bytes()
     server = Server(folder / "data", token=TOKEN)
     rows = []
@@ -295,9 +301,9 @@ def test_plan_speed(tmp_path_factory):
 
 
 @pytest.mark.skipif(BASELINE is None, reason="set TEACHPATH_BENCH_BASELINE to a checkout")
-def test_against_a_baseline_checkout(tmp_path_factory):
+def test_against_a_baseline_checkout(case_folder):
     """``reconstruct`` of this checkout and of TEACHPATH_BENCH_BASELINE, run after run."""
-    folder = tmp_path_factory.mktemp("baseline")
+    folder = case_folder
     print(f"\n## Before and after: {BASELINE} against this checkout, runs alternating\n")
     print("| case | version | median | min | max | peak MiB | before / after |")
     print("|---|---|---:|---:|---:|---:|---:|")
