@@ -623,12 +623,13 @@ def touch_registration(
         apply_transform(T, points_tracker_m) - apply_transform(init, points_tracker_m), axis=1
     )
     residual = touches.residual_m[touches.used]
+    n_used = len(residual)
     covariance, scan_motion = touches.covariance_in_scan_frame()
     return Registration(
         T_scan_tracker=T,
         rmse_m=float(np.sqrt(np.mean(residual**2))),
         fitness=float(np.mean(touches.used)),
-        n_pairs=int(np.count_nonzero(touches.used)),
+        n_pairs=n_used,
         target="touches",
         constrained_dof=touches.fixed_motions,
         path_moved_mean_m=float(moved.mean()),
@@ -636,8 +637,16 @@ def touch_registration(
         covariance=covariance,
         motion_centre_m=scan_motion.centre_m,
         motion_length_m=scan_motion.length_m,
-        reason=f"{np.count_nonzero(touches.used)} touches of the workpiece fix "
-        f"{touches.fixed_motions} motions, every one this trace's features need"
+        reason=f"{n_used} touches of the workpiece fix {touches.fixed_motions} motions, every one "
+        "this trace's features need"
+        # No touch left over: the fit passes through every touch, so a residual of 0 checks
+        # nothing and a touch that slipped would go unnoticed.
+        + (
+            "; no more touches than motions, so their residual checks nothing: touch one or two "
+            "more points to have a check"
+            if n_used <= touches.fixed_motions
+            else ""
+        )
         + (f" ({'; '.join(touches.notes)})" if touches.notes else ""),
     )
 

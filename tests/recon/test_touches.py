@@ -165,3 +165,18 @@ def test_stretches_above_the_uncertainty_tolerance_are_named_merged_and_counted(
     assert len(notes) == MAX_UNCERTAINTY_NOTES + 1
     assert notes[-1].startswith(f"and {14 - MAX_UNCERTAINTY_NOTES} more stretches")
     assert uncertainty_notes(u, arc, tolerance_m=1 * MM) == []
+
+
+@pytest.mark.parametrize("n_touches, checked", [(6, False), (9, True)])
+def test_touches_without_a_spare_say_their_residual_checks_nothing(n_touches, checked):
+    """Six touches for six motions: the fit passes through every one (residual 0), which an
+    operator must not read as a perfect calibration."""
+    scene = scenes.box_corner(1)
+    touch = scenes.touch_recording(scene, 1, n_touches=n_touches)
+    dwells, _ = find_dwells(touch.recording.points_m, touch.recording.t_s)
+    touches = touches_for_trace(scene.recording, np.array([d.point_m for d in dwells]), scene.scan)
+    registration = reconstruct(scene.recording, scene.scan, touches=touches).registration
+    assert registration.constrained_dof == 6
+    assert ("residual checks nothing" in registration.reason) is not checked
+    if not checked:
+        assert registration.rmse_m < 1e-6  # what the words explain
