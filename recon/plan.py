@@ -38,6 +38,7 @@ from recon.types import (
     ToolPath,
     piece_labels,
     piece_slices,
+    speed_drop_lines,
 )
 
 
@@ -117,13 +118,7 @@ class Plan:
                 f"{np.linalg.norm(translation_m(self.T_scan_tracker)) * mm:.2f} mm and "
                 f"{rotation_angle_deg(self.T_scan_tracker):.2f} deg from the tracker frame"
             )
-        for drop in traj.speed_drops:
-            lines.append(
-                f"slower than requested from {drop.start_m * mm:.0f} to "
-                f"{drop.end_m * mm:.0f} mm (down to {drop.min_speed_m_s * mm:.1f} "
-                f"mm/s): {drop.cause}"
-            )
-        return lines
+        return lines + speed_drop_lines(traj.speed_drops)
 
 
 #: Approach heights tried, as multiples of the one asked for, when the transit or the approach

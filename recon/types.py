@@ -863,6 +863,37 @@ class SpeedDrop:
     cause: str
 
 
+#: A summary lists at most this many speed drops, the slowest, and counts the rest.
+LISTED_SPEED_DROPS = 5
+
+
+def speed_drop_lines(drops: tuple[SpeedDrop, ...] | list[SpeedDrop]) -> list[str]:
+    """Summary lines for the stretches slower than requested: the slowest
+    :data:`LISTED_SPEED_DROPS` in path order, then one line counting the others.
+
+    A 10 m serpentine has over a hundred small drops at its turns; a line for each buried the
+    rest of the summary. Every drop stays in the plan (``speed_drops``) for the pendant and the
+    files.
+    """
+    drops = list(drops)
+    slowest = sorted(drops, key=lambda d: d.min_speed_m_s)[:LISTED_SPEED_DROPS]
+    lines = [
+        f"slower than requested from {d.start_m * 1e3:.0f} to {d.end_m * 1e3:.0f} mm of path "
+        f"(down to {d.min_speed_m_s * 1e3:.1f} mm/s): {d.cause}"
+        for d in sorted(slowest, key=lambda d: d.start_m)
+    ]
+    rest = len(drops) - len(slowest)
+    if rest:
+        length_mm = sum(d.end_m - d.start_m for d in drops) * 1e3
+        floor = max(d.min_speed_m_s for d in slowest) * 1e3
+        lines.append(
+            f"... and {rest} more stretches slower than requested, none below {floor:.1f} mm/s "
+            f"({len(drops)} in all over {length_mm:.0f} mm of path; every one is in the plan's "
+            "speed_drops)"
+        )
+    return lines
+
+
 class Phase(enum.IntEnum):
     """What a sample of a planned motion is part of."""
 

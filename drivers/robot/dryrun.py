@@ -13,7 +13,7 @@ from drivers.robot.clock import FakeClock
 from drivers.robot.sim import SimBackend, SimConfig
 from recon import kinematics
 from recon.metrics import distance_to_curve
-from recon.types import FloatArray, JointTrajectory, Phase, SpeedDrop
+from recon.types import FloatArray, JointTrajectory, Phase, SpeedDrop, speed_drop_lines
 
 
 @dataclass(frozen=True)
@@ -123,11 +123,7 @@ class ExecutionReport:
             f"tool moves straight, wrist |sin q5| {self.min_wrist_singularity:.2f}, elbow "
             f"|sin q3| {self.min_elbow_singularity:.2f}"
         )
-        for drop in self.speed_drops:
-            out.append(
-                f"slower than requested from {drop.start_m * mm:.0f} to {drop.end_m * mm:.0f} mm "
-                f"of path (down to {drop.min_speed_m_s * mm:.1f} mm/s): {drop.cause}"
-            )
+        out += speed_drop_lines(self.speed_drops)
         out += [f"fault: {fault}" for fault in self.faults]
         return out
 

@@ -23,6 +23,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
 
@@ -291,6 +292,13 @@ def test_plan_speed(tmp_path_factory):
     print("|---|---:|---:|---:|---:|")
     print(_row("`reconstruct` (surface)", reconstruct_s, reconstruct_peak))
     print(_row("`plan` (IK, timing, collision checks; target 0.5)", plan_s, plan_peak))
+    if BASELINE is not None:
+        print(f"\n## Before and after: {BASELINE} against this checkout, runs alternating\n")
+        print("| case | version | median | min | max | peak MiB | before / after |")
+        print("|---|---|---:|---:|---:|---:|---:|")
+        _alternating(
+            "`plan` 10k", [TEACHPATH, *args[:-2]], lambda w: ["--out", str(folder / f"{w}.csv")]
+        )
     _stage_profile(args, PLAN_STAGES)  # warm
     stages, total = _stage_profile(args, PLAN_STAGES)
     print("\n| stage of `plan` (cProfile, one run in this process) | seconds |")
@@ -298,6 +306,21 @@ def test_plan_speed(tmp_path_factory):
     for label, seconds in stages.items():
         print(f"| {label} | {seconds:.2f} |")
     print(f"| everything in the process after imports | {total:.2f} |")
+
+
+def _alternating(label: str, argv: list[str], out_of: Callable[[str], list[str]]) -> None:
+    """Rows "before" and "after" of one command, this checkout's runs alternating with
+    TEACHPATH_BENCH_BASELINE's (``out_of(which)`` gives each its own output arguments)."""
+    runs: dict[str, tuple[list, list]] = {"before": ([], []), "after": ([], [])}
+    for _ in range(RUNS):
+        for which, path in (("before", BASELINE), ("after", None)):
+            seconds, peak = timed_runs(argv + out_of(which), 1, pythonpath=path)
+            runs[which][0].extend(seconds)
+            runs[which][1].extend(peak)
+    ratio = statistics.median(runs["before"][0]) / statistics.median(runs["after"][0])
+    for which, (seconds, peak) in runs.items():
+        extra = f" {ratio:.2f}x |" if which == "after" else " |"
+        print(_row(f"{label} | {which}", seconds, peak, extra))
 
 
 @pytest.mark.skipif(BASELINE is None, reason="set TEACHPATH_BENCH_BASELINE to a checkout")
@@ -310,14 +333,8 @@ def test_against_a_baseline_checkout(case_folder):
     for n_path, n_scan, _ in CASES[:2]:
         trace, scan = _case_files(folder, n_path, n_scan)
         argv = [TEACHPATH, "reconstruct", str(trace), "--scan", str(scan)]
-        runs: dict[str, tuple[list, list]] = {"before": ([], []), "after": ([], [])}
-        for _ in range(RUNS):
-            for which, path in (("before", BASELINE), ("after", None)):
-                out = ["--out", str(folder / f"{which}.csv")]
-                seconds, peak = timed_runs(argv + out, 1, pythonpath=path)
-                runs[which][0].extend(seconds)
-                runs[which][1].extend(peak)
-        ratio = statistics.median(runs["before"][0]) / statistics.median(runs["after"][0])
-        for which, (seconds, peak) in runs.items():
-            extra = f" {ratio:.2f}x |" if which == "after" else " |"
-            print(_row(f"{n_path:,} / {n_scan:,} | {which}", seconds, peak, extra))
+        _alternating(
+            f"`reconstruct` {n_path:,} / {n_scan:,}",
+            argv,
+            lambda which: ["--out", str(folder / f"{which}.csv")],
+        )

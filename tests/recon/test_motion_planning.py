@@ -137,3 +137,57 @@ def test_the_reconstructed_demo_path_plans_with_scan_normals():
     assert plan.tool.source == "scan"
     durations = plan.trajectory.phase_durations_s()
     assert durations["process"] == pytest.approx(0.3 / 0.05, rel=0.1)
+
+
+def test_the_vectorised_samples_are_toppras_own():
+    """``ConstAccelTiming`` evaluates toppra's constant-acceleration parametrisation on whole
+    arrays: the same numbers as toppra's ``ParametrizeConstAccel`` at every sample, the end and
+    times past the end included."""
+    import toppra
+    import toppra.algorithm
+    import toppra.constraint
+
+    from recon.timing import ConstAccelTiming, _sample
+
+    s = np.linspace(0.0, 0.3, 40)
+    q = np.column_stack([np.sin(3 * s + k) for k in range(6)] + [s])
+    path = toppra.SplineInterpolator(s, q)
+    constraints = [
+        toppra.constraint.JointVelocityConstraint(np.tile([-1.0, 1.0], (7, 1))),
+        toppra.constraint.JointAccelerationConstraint(np.tile([-2.0, 2.0], (7, 1))),
+    ]
+    instance = toppra.algorithm.TOPPRA(
+        constraints, path, gridpoints=np.linspace(0, 0.3, 301), parametrizer="ParametrizeConstAccel"
+    )
+    reference = instance.compute_trajectory(0.0, 0.0)
+    timing = ConstAccelTiming(instance.problem_data.gridpoints, instance.problem_data.sd_vec)
+    assert timing.t_s[-1] == reference.duration
+    samples = _sample(path, timing, 500.0)
+    at = np.minimum(samples["t"], reference.duration)
+    inside = samples["t"] <= reference.duration
+    np.testing.assert_array_equal(samples["x"], reference(at))
+    np.testing.assert_array_equal(samples["xd"][inside], reference(at, 1)[inside])
+    np.testing.assert_array_equal(samples["xdd"][inside], reference(at, 2)[inside])
+    assert samples["t"][-1] >= reference.duration > samples["t"][-2]
+    np.testing.assert_array_equal(samples["xd"][~inside], 0.0)  # held at rest past the end
+    assert len(samples["t"]) > 100
+
+
+def test_a_summary_lists_the_slowest_speed_drops_and_counts_the_rest():
+    from recon.types import LISTED_SPEED_DROPS, SpeedDrop, speed_drop_lines
+
+    assert speed_drop_lines([]) == []
+    few = [SpeedDrop(0.1 * i, 0.1 * i + 0.01, 0.05 + 0.001 * i, "joint speed") for i in range(3)]
+    assert len(speed_drop_lines(few)) == 3
+    # 40 drops, the slowest (20 mm/s) at 2.0 m: listed first among the few, in path order.
+    many = [SpeedDrop(0.1 * i, 0.1 * i + 0.02, 0.09 - 0.001 * (i % 7), "turn") for i in range(40)]
+    many[20] = SpeedDrop(2.0, 2.05, 0.02, "a tight curve")
+    lines = speed_drop_lines(many)
+    assert len(lines) == LISTED_SPEED_DROPS + 1
+    assert "from 2000 to 2050 mm of path (down to 20.0 mm/s): a tight curve" in "".join(lines)
+    starts = [float(line.split()[4]) for line in lines[:-1]]
+    assert starts == sorted(starts)
+    assert lines[-1].startswith(f"... and {40 - LISTED_SPEED_DROPS} more stretches")
+    assert "40 in all over 830 mm of path" in lines[-1]
+    listed = [float(line.split("down to ")[1].split()[0]) for line in lines[:-1]]
+    assert f"none below {max(listed):.1f} mm/s" in lines[-1]
