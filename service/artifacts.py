@@ -492,3 +492,30 @@ AnySummary = Annotated[
     | ExecutionSummary,
     Field(description="the summary of the artifact's kind"),
 ]
+
+
+def check_stored(kind: str, arrays: Arrays, summary: dict) -> None:
+    """Raise if ``arrays`` and ``summary`` are not what an artifact of ``kind`` holds (its
+    summary model and its codec): for files that come from elsewhere (an imported bundle).
+
+    Raises
+    ------
+    ValueError
+        Including pydantic's ValidationError, and KeyError for a missing array (as ValueError).
+    """
+    typed = summary_of(kind, summary)
+    try:
+        if kind in ("recording", "touches"):
+            RecordingCodec.decode(arrays)
+        elif kind == "scan":
+            ScanCodec.decode(arrays)
+        elif kind == "reconstruction":
+            ReconstructionCodec.decode(arrays)
+        elif kind == "trajectory":
+            TrajectoryCodec.decode(arrays, typed)
+        elif kind == "execution":
+            ExecutionCodec.decode(arrays)
+        else:
+            raise ValueError(f"unknown artifact kind {kind!r}")
+    except KeyError as exc:
+        raise ValueError(f"the arrays lack {exc}") from None

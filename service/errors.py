@@ -17,7 +17,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from drivers import errors as driver_errors
 from recon import errors as recon_errors
-from service import gate
+from service import bundles, gate
 from service.store import SessionDeletedError, StorageError
 
 log = logging.getLogger("teachpath.service")
@@ -89,6 +89,9 @@ ERROR_MAP: list[tuple[type[Exception], int, str]] = [
     (driver_errors.RobotError, 502, "robot_error"),
     (driver_errors.DriverError, 422, "driver_error"),
     (SessionDeletedError, 409, "session_deleted"),
+    # Before ValueError, which they subclass.
+    (bundles.BundleConflictError, 409, "bundle_conflict"),
+    (bundles.BundleError, 422, "bundle_invalid"),
     (StorageError, 500, "storage_corrupt"),
     (ValueError, 422, "invalid_value"),
 ]

@@ -150,6 +150,14 @@ class SessionOut(FromRow):
     calibration_report: dict[str, Any] | None = None
 
 
+class BundleImportOut(BaseModel):
+    session: SessionOut
+    created: bool = Field(description="false: the same session was here already, unchanged")
+    n_artifacts: int
+    n_files: int = Field(description="files unpacked (0 when nothing changed)")
+    n_bytes: int
+
+
 class CalibrationResult(BaseModel):
     session: SessionOut
     result: dict[str, Any]

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 from fastapi import APIRouter, File, Form, Response, UploadFile
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse
+from starlette.background import BackgroundTask
 
 from recon.params import PIVOT_TOLERANCE_M
 from service import inputs
@@ -13,6 +17,7 @@ from service.api.deps import ServicesDep
 from service.schemas import (
     ArtifactOut,
     BaseCalibrationIn,
+    BundleImportOut,
     CalibrationIn,
     CalibrationResult,
     SessionCreate,
@@ -31,6 +36,66 @@ def create_session(body: SessionCreate, services: ServicesDep):
 @router.get("", response_model=list[SessionOut])
 def list_sessions(services: ServicesDep):
     return services.store.sessions()
+
+
+@router.post(
+    "/import",
+    status_code=201,
+    response_model=BundleImportOut,
+    responses={200: {"model": BundleImportOut, "description": "the session was here already"}},
+)
+async def import_session(
+    services: ServicesDep,
+    response: Response,
+    file: UploadFile = File(..., description="a session bundle (GET /sessions/{id}/bundle)"),
+) -> dict:
+    """Import a session bundle: every checksum, the manifest and the schema are checked before
+    anything changes (422 ``bundle_invalid`` says what is wrong). A session that is here already
+    with the same content is left as it is (200, ``created`` false); one with the same id and
+    other content is refused (409 ``bundle_conflict``)."""
+    from service.bundles import import_bundle
+
+    async with received(file, services) as upload:
+        result = await run_in_threadpool(import_bundle, services.store, upload.content)
+    if not result.created:
+        response.status_code = 200
+    return {
+        "session": services.session(result.session_id),
+        "created": result.created,
+        "n_artifacts": result.n_artifacts,
+        "n_files": result.n_files,
+        "n_bytes": result.n_bytes,
+    }
+
+
+@router.get(
+    "/{session_id}/bundle",
+    response_class=FileResponse,
+    responses={200: {"content": {"application/zip": {}}}},
+)
+async def export_session(session_id: str, services: ServicesDep) -> FileResponse:
+    """The session as one zip: a manifest (teachpath and schema versions, the session and its
+    calibrations, every artifact with its inputs, parameters, summary and SHA-256) and every
+    file of every artifact. Exporting the same session again gives the same bytes."""
+    import tempfile
+
+    from service.bundles import export_bundle
+
+    services.session(session_id)
+    handle = tempfile.NamedTemporaryFile(prefix="teachpath-bundle-", suffix=".zip", delete=False)
+    path = Path(handle.name)
+    try:
+        with handle:
+            await run_in_threadpool(export_bundle, services.store, session_id, handle)
+    except BaseException:
+        path.unlink(missing_ok=True)
+        raise
+    return FileResponse(
+        path,
+        media_type="application/zip",
+        filename=f"{session_id}.zip",
+        background=BackgroundTask(path.unlink, missing_ok=True),
+    )
 
 
 @router.get("/{session_id}", response_model=SessionOut)

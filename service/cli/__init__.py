@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from drivers.errors import DriverError
 from recon.errors import ReconError
 from service.cli import (
+    bundle,
     calibrate,
     demo,
     dry_run,
@@ -27,7 +28,18 @@ from service.cli import (
 from service.cli.options import EXIT_FAILURE, OneLineParser
 
 #: The commands in the order ``--help`` lists them.
-COMMANDS = (reconstruct, plan, dry_run, export_urscript, record, calibrate, serve, fake_ur, demo)
+COMMANDS = (
+    reconstruct,
+    plan,
+    dry_run,
+    export_urscript,
+    record,
+    calibrate,
+    serve,
+    bundle,
+    fake_ur,
+    demo,
+)
 
 
 def build_parser() -> OneLineParser:
