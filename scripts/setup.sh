@@ -5,7 +5,8 @@
 #   3. the pendant's browser libraries (three.js, Swagger UI, ReDoc; package-lock.json) with
 #      `npm ci --ignore-scripts`, copied into service/ui/vendor/ (scripts/vendor-ui.sh);
 #   4. Debian's curl and jq, for the README's REST walk-through (a test runs it);
-#   5. Debian's chromium, which the pendant's browser tests (tests/ui, Playwright) drive.
+#   5. Debian's chromium, which the pendant's browser tests (tests/ui, Playwright) drive;
+#   6. Debian's postgresql, whose server the database tests start in a temporary folder.
 # The stamp file .venv/.installed records the pyproject.toml and constraints.txt (the exact versions)
 # it was installed from, so a changed dependency list triggers a re-install and an unchanged one
 # costs nothing.
@@ -63,6 +64,13 @@ if [ -n "$missing" ]; then
     echo "setup: installing Debian package(s)$missing (for the README's REST walk-through)"
     # shellcheck disable=SC2086 - one word per package
     apt_install $missing
+fi
+
+# PostgreSQL's server: the store and API suites also run against a real one, which the tests
+# start in a temporary folder (tests/postgres.py); Debian's package, never a download.
+if ! ls /usr/lib/postgresql/*/bin/pg_ctl >/dev/null 2>&1; then
+    echo "setup: installing Debian package postgresql (for the database tests)"
+    apt_install --no-install-recommends postgresql
 fi
 
 # The browser the UI tests drive (Playwright, never its own downloaded browsers).

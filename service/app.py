@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 from contextlib import asynccontextmanager
 from importlib import metadata
 
@@ -34,7 +35,7 @@ from service.jobs import JobManager
 from service.robot import RobotWatch
 from service.schemas import ErrorBody
 from service.settings import Settings
-from service.store import Store
+from service.store import HEARTBEAT_S, Store
 
 log = logging.getLogger("teachpath.service")
 
@@ -98,15 +99,62 @@ class _TooLarge(Exception):
 
 def _recover(services: Services) -> None:
     """After a restart: fail jobs that were running, keep what captures received and what real-arm
-    executions journalled."""
-    failed = services.store.fail_interrupted_jobs()
+    executions journalled. With other instances on the same database, only what stopped
+    instances left (a live one's jobs, captures and files in progress are its own)."""
+    store = services.store
+    failed = store.fail_interrupted_jobs()
     if failed:
         log.warning("marked %d interrupted job(s) failed", failed)
-    removed = services.store.remove_unnamed_files()
-    if removed:
-        log.warning("removed %d file(s) no artifact names: %s", len(removed), ", ".join(removed))
+    others = store.live_instances() - {store.instance_id}
+    if others:
+        # Their jobs' outputs are written before their artifacts are recorded: an unnamed file
+        # may be one of theirs in progress.
+        log.warning(
+            "%d other instance(s) use this database (%s): unnamed files are left in place",
+            len(others),
+            ", ".join(sorted(others)),
+        )
+    else:
+        removed = store.remove_unnamed_files()
+        if removed:
+            names = ", ".join(removed)
+            log.warning("removed %d file(s) no artifact names: %s", len(removed), names)
     capture_workflow.recover(services)
     execution_workflow.recover(services)
+
+
+class Heartbeat:
+    """This instance's heartbeat in the database, every ``HEARTBEAT_S``; with each beat, the jobs
+    of instances that stopped meanwhile are failed (a client waiting on one learns it)."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="heartbeat", daemon=True)
+
+    def start(self) -> None:
+        self.store.heartbeat()
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(HEARTBEAT_S):
+            try:
+                self.store.heartbeat()
+                failed = self.store.fail_interrupted_jobs()
+                if failed:
+                    log.warning("marked %d job(s) of a stopped instance failed", failed)
+                self.store.forget_stopped_instances()
+            except Exception:  # a database that is briefly away: beat again next time
+                log.exception("heartbeat failed")
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=10)
+        try:
+            self.store.leave()
+        except Exception:
+            log.exception("could not remove this instance's row")
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -116,6 +164,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         store = Store(settings.data_dir, settings.db_url)
+        heartbeat = Heartbeat(store)
+        heartbeat.start()  # before recovery: this instance is live, its own rows are not stale
         services = Services(
             settings=settings,
             store=store,
@@ -131,6 +181,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
+            heartbeat.stop()
             services.close()
 
     try:

@@ -55,20 +55,32 @@ def _present(arrays: Arrays) -> Arrays:
 
 
 class RecordingCodec:
-    """A recording: pen-tip positions (tracker frame, m), times (s), orientations (xyzw)."""
+    """A recording: pen-tip positions (tracker frame, m), times (s), orientations (xyzw); a
+    synthetic one (the demo, a scene) also keeps the curve it was traced from (``truth_m``,
+    tracker frame), so that a replay can say whether a change made it better or worse."""
 
     kind: ClassVar[str] = "recording"
 
     @staticmethod
-    def encode(recording: Recording) -> Arrays:
+    def encode(recording: Recording, *, truth_m: FloatArray | None = None) -> Arrays:
         return _present(
             {
                 "points_m": np.asarray(recording.points_m),
                 "t_s": recording.t_s,
                 "orientations_xyzw": recording.orientations_xyzw,
                 "piece": recording.piece if recording.n_pieces > 1 else None,
+                "truth_m": None if truth_m is None else np.asarray(truth_m, dtype=np.float64),
             }
         )
+
+    @staticmethod
+    def truth(arrays: Arrays) -> FloatArray | None:
+        """The ground truth of a synthetic recording, shape (G, 3), tracker frame; None for a
+        real one (or one whose truth is not a finite curve)."""
+        truth = arrays.get("truth_m")
+        if truth is None or truth.ndim != 2 or truth.shape[1] != 3 or len(truth) < 2:
+            return None
+        return truth if np.isfinite(truth).all() else None
 
     @staticmethod
     def decode(arrays: Arrays) -> Recording:

@@ -288,6 +288,72 @@ def _add(bundle: zipfile.ZipFile, name: str, source: BinaryIO) -> None:
             target.write(block)
 
 
+# -- reading in place ----------------------------------------------------------------------------
+
+
+class BundleReader:
+    """A bundle read where it lies (for replay): the manifest and layout checked on opening,
+    each file checked against its checksum when it is read.
+
+    Parameters
+    ----------
+    path : path
+        The bundle.
+
+    Raises
+    ------
+    BundleError
+        As :func:`import_bundle` would for the zip, the manifest and the layout.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self._zip = zipfile.ZipFile(self.path)
+        except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError) as exc:
+            raise BundleError(
+                f"{self.path.name} is not a readable zip ({exc}): export it again"
+            ) from None
+        try:
+            self.manifest = _read_manifest(self._zip)
+            _check_layout(self._zip, self.manifest, max_bytes=1 << 40)
+        except BaseException:
+            self._zip.close()
+            raise
+        self._by_id = {artifact.id: artifact for artifact in self.manifest.artifacts}
+
+    def __enter__(self) -> BundleReader:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._zip.close()
+
+    def artifacts(self, kind: str) -> list[ArtifactEntry]:
+        """The artifacts of one kind, oldest first."""
+        return [a for a in self.manifest.artifacts if a.kind == kind]
+
+    def artifact(self, artifact_id: str) -> ArtifactEntry:
+        try:
+            return self._by_id[artifact_id]
+        except KeyError:
+            raise BundleError(f"{self.path.name} has no artifact {artifact_id}") from None
+
+    def arrays(self, artifact_id: str) -> dict:
+        """An artifact's arrays, after checking their file against the manifest."""
+        import numpy as np
+
+        entry = self.artifact(artifact_id).data
+        try:
+            with self._zip.open(entry.path) as handle:
+                content = handle.read(entry.size + 1)
+        except (zipfile.BadZipFile, EOFError, zlib.error) as exc:
+            raise BundleError(f"{self.path.name}: {entry.path} is damaged ({exc})") from None
+        if len(content) != entry.size or hashlib.sha256(content).hexdigest() != entry.sha256:
+            raise BundleError(f"{self.path.name}: {entry.path} does not match its checksum")
+        with np.load(io.BytesIO(content), allow_pickle=False) as data:
+            return {key: data[key] for key in data.files}
+
+
 # -- import ----------------------------------------------------------------------------------------
 
 
@@ -660,6 +726,7 @@ def _record(store: Store, manifest: Manifest) -> None:
 
 __all__ = [
     "BUNDLE_SCHEMA",
+    "BundleReader",
     "BundleConflictError",
     "BundleError",
     "ImportResult",

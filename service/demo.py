@@ -25,8 +25,8 @@ def create_demo_session(store: Store) -> SessionRow | None:
         artifact_id=rec_id,
         session_id=session.id,
         kind="recording",
-        arrays=RecordingCodec.encode(scene.recording),
-        params={"format": "synthetic"},
+        arrays=RecordingCodec.encode(scene.recording, truth_m=scene.truth_m),
+        params={"format": "synthetic", "scene": scene.description},
         summary=tasks.recording_summary(scene.recording, "synthetic"),
         source_name="demo: cylinder edge trace",
     )

@@ -21,7 +21,7 @@ from service import tasks
 from service.arm_runner import ExecutionRunner
 from service.artifacts import ID_PREFIX, ExecutionCodec
 from service.core import Services
-from service.errors import not_found
+from service.errors import ApiError, not_found
 from service.gate import check_real_arm
 from service.pipelines import ExecutionOutcome
 from service.schemas import ExecutionCreate
@@ -235,6 +235,16 @@ def stop(services: Services, execution_id: str) -> StopOutcome:
     runner = services.live.executions.get(execution_id)
     job = services.store.job(job_id)
     already_ended = job.state in FINISHED
+    if runner is None and not already_ended and job.owner != services.store.instance_id:
+        # Several instances share the database: only the one that runs it can stop this arm.
+        # Saying "stopped" here would be a lie with the arm still moving.
+        raise ApiError(
+            409,
+            "other_instance",
+            f"execution {execution_id} runs on another teachpath instance ({job.owner}): this "
+            "one cannot stop it. Send the stop to that instance, or stop the arm at its teach "
+            "pendant or emergency stop",
+        )
     if runner is not None:
         runner.stop()  # latched, whether it moves yet or not
     elif job.state == "queued":
@@ -269,6 +279,8 @@ def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
         ),
         None,
     )
+    if job is not None and job.state == "running" and store.is_live(job.owner):
+        return  # another live instance drives this arm now: its journal is its own
     if job is None or store.artifact(execution_id) is not None:
         journal.unlink(missing_ok=True)
         return

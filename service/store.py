@@ -18,6 +18,7 @@ import json
 import os
 import secrets
 import shutil
+import socket
 import threading
 from datetime import UTC, datetime
 from pathlib import Path
@@ -26,6 +27,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy import (
     JSON,
+    BigInteger,
     DateTime,
     Float,
     ForeignKey,
@@ -51,6 +53,11 @@ def new_id(prefix: str) -> str:
 
 def now() -> datetime:
     return datetime.now(UTC)
+
+
+def _aware(moment: datetime) -> datetime:
+    """A stored moment as an aware UTC datetime (SQLite returns naive ones, stored as UTC)."""
+    return moment.replace(tzinfo=UTC) if moment.tzinfo is None else moment
 
 
 def iso(moment: datetime | None) -> str | None:
@@ -92,7 +99,7 @@ class ArtifactRow(Base):
     summary: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     path: Mapped[str] = mapped_column(String(300))
     sha256: Mapped[str] = mapped_column(String(64))
-    size: Mapped[int] = mapped_column(Integer)
+    size: Mapped[int] = mapped_column(BigInteger)
     source_name: Mapped[str | None] = mapped_column(String(300), nullable=True)
 
 
@@ -109,6 +116,8 @@ class JobRow(Base):
     params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     result: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
     error: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
+    #: The instance (``InstanceRow.id``) that runs it; None: made before instances were kept.
+    owner: Mapped[str | None] = mapped_column(String(64), nullable=True, index=True)
 
 
 class CaptureRow(Base):
@@ -122,6 +131,18 @@ class CaptureRow(Base):
     path: Mapped[str] = mapped_column(String(300))
     recording_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
     error: Mapped[str | None] = mapped_column(String(500), nullable=True)
+    owner: Mapped[str | None] = mapped_column(String(64), nullable=True)
+
+
+class InstanceRow(Base):
+    """A running service process (``teachpath serve``) on this database."""
+
+    __tablename__ = "instances"
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    host: Mapped[str] = mapped_column(String(200))
+    pid: Mapped[int] = mapped_column(Integer)
+    started_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+    heartbeat_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
 
 
 class StorageError(Exception):
@@ -138,22 +159,55 @@ class SessionDeletedError(Exception):
     """Work finished for a session that was deleted meanwhile: nothing is added to it."""
 
 
+#: An instance refreshes its heartbeat this often (s) ...
+HEARTBEAT_S = 2.0
+#: ... and one whose heartbeat is older than this has stopped (its jobs are failed, its captures
+#: ended). Generous: a process busy in a long GIL-holding call still beats within it.
+STALE_S = 20.0
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process: alive
+        return True
+    return True
+
+
+def database_url(url: str) -> str:
+    """A SQLAlchemy URL with the driver teachpath ships: ``postgresql://`` means psycopg 3
+    (SQLAlchemy's default for it is psycopg2, which is not installed)."""
+    for plain in ("postgresql://", "postgres://"):
+        if url.startswith(plain):
+            return "postgresql+psycopg://" + url[len(plain) :]
+    return url
+
+
 class Store:
     """The database and the array files of one data folder.
+
+    Several service instances may share one (PostgreSQL) database and one data folder: each
+    has an ``instance_id``, owns the jobs and captures it starts, and keeps a heartbeat
+    (:meth:`heartbeat`); start-up recovery only touches what stopped instances left.
 
     Parameters
     ----------
     data_dir : Path
     url : str
-        SQLAlchemy database URL.
+        SQLAlchemy database URL (``postgresql://`` uses psycopg 3).
+    instance_id : str, optional
+        This process's id among the instances (default: host, process id and a random part).
     """
 
-    def __init__(self, data_dir: Path, url: str) -> None:
+    def __init__(self, data_dir: Path, url: str, *, instance_id: str | None = None) -> None:
         self.data_dir = Path(data_dir)
         # Uploads, calibrations and the token are the site's: only the service's user reads them.
         for folder in (self.data_dir, *(self.data_dir / name for name in FOLDERS)):
             folder.mkdir(mode=PRIVATE_DIR, parents=True, exist_ok=True)
             os.chmod(folder, PRIVATE_DIR)
+        url = database_url(url)
         sqlite = url.startswith("sqlite")
         database = make_url(url).database if sqlite else None
         if database not in (None, "", ":memory:"):
@@ -164,7 +218,9 @@ class Store:
                 if os.path.exists(database + suffix):
                     os.chmod(database + suffix, PRIVATE_FILE)
         self.engine = create_engine(
-            url, connect_args={"check_same_thread": False, "timeout": 30} if sqlite else {}
+            url,
+            connect_args={"check_same_thread": False, "timeout": 30} if sqlite else {},
+            pool_pre_ping=not sqlite,  # a restarted database server: reconnect, do not fail
         )
         if sqlite:
 
@@ -176,10 +232,67 @@ class Store:
                 cursor.execute("PRAGMA foreign_keys=ON")
                 cursor.close()
 
-        Base.metadata.create_all(self.engine)
-        _add_missing_columns(self.engine)
+        migrate(self.engine, lock_path=None if database in (None, "", ":memory:") else database)
         self.db = sessionmaker(self.engine, expire_on_commit=False)
         self._calibration_lock = threading.Lock()
+        self.instance_id = instance_id or (
+            f"{socket.gethostname()[:40]}:{os.getpid()}:{secrets.token_hex(3)}"
+        )
+
+    # -- instances -------------------------------------------------------------------------------
+
+    def heartbeat(self) -> None:
+        """Say this instance is alive (registers it on the first call)."""
+        moment = now()
+        with self.db.begin() as db:
+            row = db.get(InstanceRow, self.instance_id)
+            if row is None:
+                db.add(
+                    InstanceRow(
+                        id=self.instance_id,
+                        host=socket.gethostname()[:200],
+                        pid=os.getpid(),
+                        started_at=moment,
+                        heartbeat_at=moment,
+                    )
+                )
+            else:
+                row.heartbeat_at = moment
+
+    def leave(self) -> None:
+        """This instance stops: its row goes (what it owns is recovered by the next start)."""
+        with self.db.begin() as db:
+            row = db.get(InstanceRow, self.instance_id)
+            if row is not None:
+                db.delete(row)
+
+    def live_instances(self) -> set[str]:
+        """Ids of the instances whose heartbeat is fresh (this one included once it beat)."""
+        from datetime import timedelta
+
+        horizon = now() - timedelta(seconds=STALE_S)
+        host = socket.gethostname()[:200]
+        with self.db() as db:
+            rows = list(db.scalars(select(InstanceRow)))
+        return {
+            row.id
+            for row in rows
+            if _aware(row.heartbeat_at) >= horizon
+            # On this host a process that is gone is known at once (a crash, then a restart
+            # within the stale time, must not wait for its heartbeat to age).
+            and (row.host != host or row.id == self.instance_id or _process_alive(row.pid))
+        }
+
+    def forget_stopped_instances(self) -> int:
+        """Remove the rows of instances that stopped long ago (ten times the stale time)."""
+        from datetime import timedelta
+
+        horizon = now() - timedelta(seconds=10 * STALE_S)
+        with self.db.begin() as db:
+            rows = [r for r in db.scalars(select(InstanceRow)) if _aware(r.heartbeat_at) < horizon]
+            for row in rows:
+                db.delete(row)
+            return len(rows)
 
     # -- files -----------------------------------------------------------------------------------
 
@@ -266,7 +379,7 @@ class Store:
 
     def update_session(self, session_id: str, **fields) -> SessionRow:
         with self.db.begin() as db:
-            row = db.get(SessionRow, session_id)
+            row = db.get(SessionRow, session_id, with_for_update=True)
             for key, value in fields.items():
                 setattr(row, key, value)
             return row
@@ -274,8 +387,10 @@ class Store:
     def record_calibration(self, session_id: str, name: str, entry: dict, **fields) -> SessionRow:
         """Set calibration fields and file ``entry`` under ``name`` in the session's calibration
         report, in one step (two calibrations landing together both stay in the report)."""
+        # The row is locked (PostgreSQL: SELECT ... FOR UPDATE) so that two instances' updates
+        # are applied one after the other; within this process the lock does the same on SQLite.
         with self._calibration_lock, self.db.begin() as db:
-            row = db.get(SessionRow, session_id)
+            row = db.get(SessionRow, session_id, with_for_update=True)
             row.calibration_report = {**(row.calibration_report or {}), name: entry}
             for key, value in fields.items():
                 setattr(row, key, value)
@@ -320,12 +435,14 @@ class Store:
             source_name=source_name,
         )
         with self.db.begin() as db:
-            # In the transaction that adds the row: a delete that lands first wins.
-            session = db.get(SessionRow, session_id)
+            # In the transaction that adds the row: a delete that lands first wins. The session's
+            # row is locked, so uploads to one session from several instances land one by one.
+            session = db.get(SessionRow, session_id, with_for_update=True)
             if session is None or session.deleted_at is not None:
                 raise SessionDeletedError(
                     f"session {session_id} was deleted; its new {kind} was discarded"
                 )
+            row.created_at = now()  # under the lock: the newest artifact is the one set last
             db.add(row)
             for key, value in (session_fields or {}).items():
                 setattr(session, key, value)
@@ -471,6 +588,7 @@ class Store:
             progress=0.0,
             created_at=now(),
             params=_jsonable(params),
+            owner=self.instance_id,
         )
         with self.db.begin() as db:
             db.add(row)
@@ -508,9 +626,13 @@ class Store:
         return row
 
     def fail_interrupted_jobs(self) -> int:
-        """Mark jobs a previous process left queued or running as failed (called on start)."""
+        """Mark failed the jobs that stopped instances left queued or running (called on start
+        and with each heartbeat): those of instances whose heartbeat is stale, and those made
+        before instances were kept. A live instance's jobs are never touched."""
+        live = self.live_instances() | {self.instance_id}
         with self.db.begin() as db:
-            rows = list(db.scalars(select(JobRow).where(JobRow.state.in_(("queued", "running")))))
+            query = select(JobRow).where(JobRow.state.in_(("queued", "running")))
+            rows = [r for r in db.scalars(query.with_for_update()) if r.owner not in live]
             for row in rows:
                 row.state = "failed"
                 row.finished_at = now()
@@ -521,6 +643,10 @@ class Store:
                     "detail": None,
                 }
             return len(rows)
+
+    def is_live(self, owner: str | None) -> bool:
+        """Whether the instance ``owner`` runs (this one, or a fresh heartbeat)."""
+        return owner is not None and (owner == self.instance_id or owner in self.live_instances())
 
     # -- captures --------------------------------------------------------------------------------
 
@@ -534,6 +660,7 @@ class Store:
             created_at=now(),
             n_samples=0,
             path=f"captures/{capture_id}.csv",
+            owner=self.instance_id,
         )
         with self.db.begin() as db:
             db.add(row)
@@ -551,9 +678,12 @@ class Store:
             return row
 
     def stop_interrupted_captures(self) -> list[CaptureRow]:
-        """Captures a previous process left running: their samples are on disk."""
+        """Captures stopped instances left running (their samples are on disk); a live
+        instance's are not."""
+        live = self.live_instances() | {self.instance_id}
         with self.db() as db:
-            return list(db.scalars(select(CaptureRow).where(CaptureRow.state == "running")))
+            rows = db.scalars(select(CaptureRow).where(CaptureRow.state == "running"))
+            return [row for row in rows if row.owner not in live]
 
 
 def _jsonable(value):
@@ -571,26 +701,51 @@ def _default(value):
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
-def _add_missing_columns(engine) -> None:
-    """Bring a database made by an earlier version up to date.
+#: Where the migrations are (Alembic's script location).
+MIGRATIONS = Path(__file__).with_name("migrations")
+#: PostgreSQL advisory lock key held while migrating (any fixed number; "teachpth" in ASCII).
+_MIGRATION_LOCK = 0x7465616368707468 & 0x7FFFFFFFFFFFFFFF
 
-    Only additive changes have happened so far: new nullable columns, added here with
-    ALTER TABLE so an existing data folder keeps working after an upgrade. A change that is
-    not additive needs a real migration tool (Alembic) and a note in the README.
+
+def migrate(engine, *, lock_path: str | None = None) -> None:
+    """Bring the database to the newest schema with Alembic (``service/migrations``).
+
+    An empty database gets every table; one made by a release before Alembic (no
+    ``alembic_version`` table) is brought to the first migration's schema by it, then up. Two
+    instances starting together take turns: a PostgreSQL advisory lock, or a lock file beside a
+    SQLite database.
+
+    Parameters
+    ----------
+    engine : sqlalchemy.engine.Engine
+    lock_path : str, optional
+        The SQLite database file (its ``.migrate-lock`` sibling is locked).
     """
-    from sqlalchemy import inspect, text
+    import fcntl
 
-    inspector = inspect(engine)
-    with engine.begin() as conn:
-        for table in Base.metadata.sorted_tables:
-            present = {c["name"] for c in inspector.get_columns(table.name)}
-            for column in table.columns:
-                if column.name in present:
-                    continue
-                if not column.nullable:
-                    raise RuntimeError(
-                        f"the database lacks the non-nullable column {table.name}.{column.name}; "
-                        "it was made by an incompatible version of teachpath"
-                    )
-                kind = column.type.compile(dialect=engine.dialect)
-                conn.execute(text(f'ALTER TABLE {table.name} ADD COLUMN "{column.name}" {kind}'))
+    from alembic import command
+    from alembic.config import Config
+
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS))
+    lock = open(lock_path + ".migrate-lock", "a") if lock_path else None  # noqa: SIM115
+    try:
+        if lock is not None:
+            os.chmod(lock.name, PRIVATE_FILE)
+            fcntl.flock(lock, fcntl.LOCK_EX)
+        with engine.begin() as connection:
+            if connection.dialect.name == "postgresql":
+                connection.exec_driver_sql(f"SELECT pg_advisory_xact_lock({_MIGRATION_LOCK})")
+            config.attributes["connection"] = connection
+            command.upgrade(config, "head")
+    finally:
+        if lock is not None:
+            lock.close()
+
+
+def schema_revision(engine) -> str | None:
+    """The Alembic revision the database is at (None: not under Alembic)."""
+    from alembic.runtime.migration import MigrationContext
+
+    with engine.connect() as connection:
+        return MigrationContext.configure(connection).get_current_revision()

@@ -41,7 +41,16 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
     recon_params = {k: v for k, v in recon.params.items() if k not in _NOT_RECON_PARAMS}
     out_id = new_id(ID_PREFIX["trajectory"])
     inputs = {"reconstruction_id": recon.id, "scan_id": recon.inputs.get("scan_id")}
-    stored_params = {**params, "T_base_tracker": T, "start_from": start_from}
+    boxes = [list(box) for box in services.settings.keep_out_boxes]
+    planes = [list(plane) for plane in services.settings.cell_planes]
+    # The cell too: a replay of the plan must check it against the same obstacles.
+    stored_params = {
+        **params,
+        "T_base_tracker": T,
+        "start_from": start_from,
+        "keep_out_boxes": boxes,
+        "cell_planes": planes,
+    }
     done = services.record_when_done(
         session_id,
         "trajectory",
@@ -59,8 +68,8 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
         T_base_tracker=T,
         out_path=services.array_path(out_id),
         scan_path=None if scan is None else str(services.store.path_of(scan)),
-        keep_out_boxes=[list(box) for box in services.settings.keep_out_boxes],
-        cell_planes=[list(plane) for plane in services.settings.cell_planes],
+        keep_out_boxes=boxes,
+        cell_planes=planes,
         start_from=start_from,
     )
     return services.jobs.submit(

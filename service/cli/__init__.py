@@ -23,6 +23,7 @@ from service.cli import (
     plan,
     reconstruct,
     record,
+    replay,
     serve,
 )
 from service.cli.options import EXIT_FAILURE, OneLineParser
@@ -37,6 +38,7 @@ COMMANDS = (
     calibrate,
     serve,
     bundle,
+    replay,
     fake_ur,
     demo,
 )

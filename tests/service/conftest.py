@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 
 import pytest
@@ -19,7 +20,38 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 T_BASE_TRACKER = [[1, 0, 0, 0.35], [0, 1, 0, -0.05], [0, 0, 1, 0.1], [0, 0, 0, 1]]
 
 
+#: ``TEACHPATH_TEST_DATABASE=postgresql``: every service these tests start uses a fresh database
+#: of a real PostgreSQL server (``make test`` runs the store and API suites so, after SQLite).
+ON_POSTGRES = os.environ.get("TEACHPATH_TEST_DATABASE") == "postgresql"
+_postgres: list = []  # the server, once started
+
+
+def test_database_url() -> str | None:
+    """A fresh PostgreSQL database's URL when the suites run on PostgreSQL; else None (SQLite in
+    the data folder)."""
+    if not ON_POSTGRES:
+        return None
+    if not _postgres:
+        from tests.postgres import PostgresServer
+
+        _postgres.append(PostgresServer())
+    return _postgres[0].new_database()
+
+
+test_database_url.__test__ = False  # a helper, not a test
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _stop_postgres():
+    yield
+    while _postgres:
+        _postgres.pop().stop()
+
+
 def make_settings(data_dir, **overrides) -> Settings:
+    url = test_database_url()
+    if url is not None:
+        overrides.setdefault("database_url", url)
     return Settings(data_dir=data_dir, token=TOKEN, cpu_workers=1, max_upload_mb=5, **overrides)
 
 

@@ -1,0 +1,1 @@
+"""The database's schema history, as Alembic migrations (see :func:`service.store.migrate`)."""
