@@ -17,8 +17,14 @@ run: setup
 demo: setup
 	$(BIN)/teachpath demo --out-dir $(OUT)
 
+# Then the store and API suites again, every service on a fresh database of a real PostgreSQL
+# server the tests start (tests/postgres.py; the migration and two-instance tests always do).
+PG_SUITES = tests/service/test_api.py tests/service/test_session_lifecycle.py \
+	tests/service/test_api_inputs.py
+
 test: setup
 	$(BIN)/python -m pytest -q -p no:cacheprovider --durations=25 tests --ignore=tests/bench
+	TEACHPATH_TEST_DATABASE=postgresql $(BIN)/python -m pytest -q -p no:cacheprovider $(PG_SUITES)
 
 # Speed and accuracy tables; never part of `make test` (timings on a shared machine are noisy).
 bench: setup

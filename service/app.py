@@ -140,7 +140,7 @@ class Heartbeat:
         while not self._stop.wait(HEARTBEAT_S):
             try:
                 self.store.heartbeat()
-                failed = self.store.fail_interrupted_jobs()
+                failed = self.store.fail_interrupted_jobs(unowned=False)
                 if failed:
                     log.warning("marked %d job(s) of a stopped instance failed", failed)
                 self.store.forget_stopped_instances()
@@ -181,8 +181,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
-            heartbeat.stop()
-            services.close()
+            # The arm and the captures stop first; this instance stays live until they have,
+            # so that no other instance takes its executions for interrupted meanwhile.
+            try:
+                services.close()
+            finally:
+                heartbeat.stop()
 
     try:
         version = metadata.version("teachpath")

@@ -63,7 +63,8 @@ SESSION_ID = re.compile(rf"ses_{_HEX}")
 #: its uploads folder). A real-arm journal is not one: it is the execution's record until the
 #: execution artifact exists, and removed at the next start after that.
 _FILE_PATTERNS = ("arrays/{id}.npz", "arrays/{id}.png")
-_UPLOAD_NAME = re.compile(r"[A-Za-z0-9._-]{1,200}")
+#: An upload's kept name (``service.uploads.storage_name``): never a dot-file, which export skips.
+_UPLOAD_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,199}")
 
 
 class BundleError(ValueError):
@@ -346,7 +347,7 @@ class BundleReader:
         try:
             with self._zip.open(entry.path) as handle:
                 content = handle.read(entry.size + 1)
-        except (zipfile.BadZipFile, EOFError, zlib.error) as exc:
+        except (zipfile.BadZipFile, EOFError, RuntimeError, zlib.error) as exc:
             raise BundleError(f"{self.path.name}: {entry.path} is damaged ({exc})") from None
         if len(content) != entry.size or hashlib.sha256(content).hexdigest() != entry.sha256:
             raise BundleError(f"{self.path.name}: {entry.path} does not match its checksum")
@@ -406,13 +407,16 @@ def import_bundle(
             try:
                 _record(store, manifest)
             except IntegrityError:
-                # Another process imported the same session meanwhile: its files are these very
-                # bytes (same checksums), so they stay; anything else is a conflict.
+                # Another process recorded the same ids meanwhile. The files this import put in
+                # place go (it created them); files it found in place were another's.
+                _undo(store, manifest, written)
                 existing = _existing(store, manifest)
                 if existing is not None:
                     return existing
-                _undo(store, manifest, written)
-                raise
+                raise BundleConflictError(
+                    f"session {manifest.session.id} or one of its artifacts was imported by "
+                    "another process meanwhile, with other content"
+                ) from None
             except BaseException:
                 _undo(store, manifest, written)
                 raise
@@ -431,8 +435,15 @@ _IMPORTING = threading.Lock()
 
 
 def _undo(store: Store, manifest: Manifest, written: list[Path]) -> None:
+    """Remove the files this import created, except those an artifact recorded meanwhile names
+    (another process's import of the same ids, with the same bytes, committed first)."""
+    ids = [artifact.id for artifact in manifest.artifacts]
+    with store.db() as db:
+        recorded = set(db.scalars(select(ArtifactRow.id).where(ArtifactRow.id.in_(ids))))
     for path in written:
-        path.unlink(missing_ok=True)
+        owner = path.parent.name if path.parent.parent.name == "uploads" else path.stem
+        if owner not in recorded:
+            path.unlink(missing_ok=True)
     for artifact in manifest.artifacts:
         with contextlib.suppress(OSError):
             (store.data_dir / "uploads" / artifact.id).rmdir()
@@ -442,6 +453,14 @@ def _read_manifest(bundle: zipfile.ZipFile) -> Manifest:
     infos = bundle.infolist()
     if len(infos) > MAX_ENTRIES + 1:
         raise BundleError(f"the bundle has {len(infos)} entries, more than {MAX_ENTRIES + 1}")
+    for info in infos:  # before anything is read: zipfile raises odd errors for these
+        if info.flag_bits & 0x1:
+            raise BundleError(f"{info.filename[:100]!r} is encrypted: teachpath never writes that")
+        if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+            raise BundleError(
+                f"{info.filename[:100]!r} is compressed with method {info.compress_type}: "
+                "teachpath writes stored or deflated entries only"
+            )
     try:
         info = bundle.getinfo(MANIFEST_NAME)
     except KeyError:
@@ -454,7 +473,10 @@ def _read_manifest(bundle: zipfile.ZipFile) -> Manifest:
     try:
         with bundle.open(info) as handle:
             raw = handle.read(MAX_MANIFEST_BYTES + 1)
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError, NotImplementedError) as exc:
+    except (
+        zipfile.BadZipFile, OSError, EOFError, ValueError, NotImplementedError, RuntimeError,
+        zlib.error,
+    ) as exc:  # fmt: skip
         raise BundleError(
             f"{MANIFEST_NAME} cannot be read ({exc}): export the bundle again"
         ) from None
@@ -539,7 +561,6 @@ def _check_layout(bundle: zipfile.ZipFile, manifest: Manifest, max_bytes: int) -
                 len(upload) == 3
                 and upload[:2] == ["uploads", artifact.id]
                 and _UPLOAD_NAME.fullmatch(upload[2])
-                and upload[2].strip(".")
             ):
                 raise BundleError(f"{entry.path!r} is not a file teachpath keeps for {artifact.id}")
         files += [artifact.data, *artifact.files]
@@ -638,7 +659,7 @@ def _unpack(
                     f"{entry.path} does not match its checksum in the manifest: the bundle was "
                     "altered or damaged; export it again"
                 )
-    except (zipfile.BadZipFile, EOFError, NotImplementedError, zlib.error) as exc:
+    except (zipfile.BadZipFile, EOFError, NotImplementedError, RuntimeError, zlib.error) as exc:
         _remove(staged)
         raise BundleError(f"the bundle is damaged ({exc}); export it again") from None
     except BaseException:
@@ -649,9 +670,40 @@ def _unpack(
     except BaseException:
         _remove(staged)
         raise
-    for tmp, final in staged:
-        os.replace(tmp, final)
-    return [final for _, final in staged]
+    return _place(staged, files)
+
+
+def _place(staged: list[tuple[Path, Path]], files: list[FileEntry]) -> list[Path]:
+    """Link each checked file to its final name, never over an existing file: one found there
+    with the same bytes is left as it is (another import of the same session put it there),
+    one with other bytes is a conflict. Returns the files this import created (for undoing)."""
+    created: list[Path] = []
+    try:
+        for (tmp, final), entry in zip(staged, files, strict=True):
+            try:
+                os.link(tmp, final)
+                created.append(final)
+            except FileExistsError:
+                if _sha256_of(final) != entry.sha256:
+                    raise BundleConflictError(
+                        f"{entry.path} exists in this data folder with other content: another "
+                        "import of different data with the same ids; nothing was imported"
+                    ) from None
+    except BaseException:
+        for path in created:
+            path.unlink(missing_ok=True)
+        raise
+    finally:
+        _remove(staged)
+    return created
+
+
+def _sha256_of(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        for block in iter(lambda: handle.read(_CHUNK), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def _check_contents(
@@ -667,17 +719,44 @@ def _check_contents(
         try:
             # np.savez stores its members uncompressed: a compressed member could unpack to
             # far more memory than the file's size (a bomb inside the bundle).
-            with zipfile.ZipFile(path) as npz:
-                if any(info.compress_type != zipfile.ZIP_STORED for info in npz.infolist()):
-                    raise ValueError("its arrays file has compressed members")
+            _check_npz(path)
             with np.load(path, allow_pickle=False) as data:
                 arrays = {key: data[key] for key in data.files}
             check_stored(artifact.kind, arrays, artifact.summary)
-        except (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile) as exc:
+        except (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile, MemoryError) as exc:
             raise BundleError(
                 f"{artifact.id} ({artifact.kind}) does not hold what a {artifact.kind} holds: "
                 f"{_first_error(exc) if isinstance(exc, ValidationError) else str(exc)[:200]}"
             ) from None
+
+
+def _check_npz(path: Path) -> None:
+    """An arrays file whose arrays fit in it: ``np.savez`` stores its members uncompressed, and
+    each member's header must not declare more data than the member holds (numpy allocates what
+    the header declares before it reads: a bomb inside the bundle).
+
+    Raises
+    ------
+    ValueError
+    """
+    import numpy as np
+
+    with zipfile.ZipFile(path) as npz:
+        for info in npz.infolist():
+            if info.compress_type != zipfile.ZIP_STORED or info.flag_bits & 0x1:
+                raise ValueError("its arrays file has compressed or encrypted members")
+            with npz.open(info) as member:
+                version = np.lib.format.read_magic(member)
+                if version == (1, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_1_0(member)
+                else:
+                    shape, _, dtype = np.lib.format.read_array_header_2_0(member)
+            declared = math.prod(shape) * dtype.itemsize
+            if dtype.hasobject or declared > info.file_size:
+                raise ValueError(
+                    f"its array {info.filename[:60]!r} declares {declared} bytes in a member of "
+                    f"{info.file_size}"
+                )
 
 
 def _remove(staged: list[tuple[Path, Path]]) -> None:

@@ -235,9 +235,11 @@ def stop(services: Services, execution_id: str) -> StopOutcome:
     runner = services.live.executions.get(execution_id)
     job = services.store.job(job_id)
     already_ended = job.state in FINISHED
-    if runner is None and not already_ended and job.owner != services.store.instance_id:
+    elsewhere = runner is None and job.owner not in (None, services.store.instance_id)
+    if elsewhere and (not already_ended or services.store.is_live(job.owner)):
         # Several instances share the database: only the one that runs it can stop this arm.
-        # Saying "stopped" here would be a lie with the arm still moving.
+        # Answering "stopped" or "already ended" here could be a lie with the arm still moving
+        # (whatever the database says, the instance that drives the arm knows).
         raise ApiError(
             409,
             "other_instance",

@@ -113,9 +113,9 @@ def find_bundles(sources: Iterable[str | Path]) -> list[Path]:
     for source in sources:
         path = Path(source)
         if path.is_dir():
-            found += sorted(p for p in path.glob("*.zip") if p.is_file())
+            found += sorted(p.resolve() for p in path.glob("*.zip") if p.is_file())
         elif path.is_file():
-            found.append(path)
+            found.append(path.resolve())  # a remote worker resolves nothing against our folder
         else:
             raise ValueError(f"{source} is neither a bundle nor a folder of bundles")
     if not found:
@@ -208,7 +208,9 @@ def _guarded(reader, artifact, replay: Callable, overrides, tolerance_m) -> dict
     start = time.perf_counter()
     try:
         return replay(reader, artifact, overrides, tolerance_m)
-    except (ReconError, DriverError, BundleError, ValueError, KeyError) as exc:
+    except Exception as exc:  # one result's failure is its row; the others go on
+        if not isinstance(exc, ReconError | DriverError | BundleError | ValueError | KeyError):
+            exc = RuntimeError(f"unexpected {type(exc).__name__}: {exc}")
         return _row(
             reader,
             kind=artifact.kind,
@@ -251,7 +253,7 @@ def _reconstruction(reader: BundleReader, artifact, overrides: Overrides, tolera
         reader,
         kind="reconstruction",
         artifact_id=artifact.id,
-        status=MOVED if deviation.max() > tolerance_m else SAME,
+        status=SAME if _within(deviation, tolerance_m) else MOVED,
         n_stored=len(stored),
         n_replayed=len(replayed),
         deviation_mean_m=float(deviation.mean()),
@@ -266,6 +268,11 @@ def _reconstruction(reader: BundleReader, artifact, overrides: Overrides, tolera
             row[f"truth_{label}_mean_m"] = float(error.mean())
             row[f"truth_{label}_max_m"] = float(error.max())
     return row
+
+
+def _within(deviation: np.ndarray, tolerance_m: float) -> bool:
+    """Every deviation finite and within the tolerance (a NaN has moved, whatever it compares)."""
+    return bool(len(deviation)) and bool(np.all(deviation <= tolerance_m))
 
 
 def _as_stored(params: dict, overrides: dict) -> dict:
@@ -301,6 +308,9 @@ def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> 
     params = dict(artifact.params)
     T_base = params.pop("T_base_tracker", None)
     start_from = params.pop("start_from", "given")
+    note = ""
+    if "keep_out_boxes" not in params:
+        note = "the stored plan does not record its cell's keep-out boxes and planes: none used"
     boxes = params.pop("keep_out_boxes", [])
     planes = params.pop("cell_planes", [])
     params = _as_stored(params, overrides.plan)
@@ -342,7 +352,7 @@ def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> 
     duration = float(sum(trajectory.phase_durations_s().values()))  # as the summary adds them
     tcp = np.asarray(trajectory.tcp_m)
     deviation = path_deviation_m(stored_tcp, tcp)
-    moved = deviation.max() > tolerance_m or abs(duration - stored_duration) > 1e-3
+    moved = not _within(deviation, tolerance_m) or not abs(duration - stored_duration) <= 1e-3
     return _row(
         reader,
         kind="trajectory",
@@ -355,6 +365,7 @@ def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> 
         duration_stored_s=round(stored_duration, 4),
         duration_replayed_s=round(duration, 4),
         run_time_s=round(elapsed, 3),
+        error=note,
     )
 
 
@@ -423,7 +434,12 @@ def run_replay(
             host="127.0.0.1",
             dashboard_address=None,
         )
-    client = Client(cluster if cluster is not None else scheduler)
+    try:
+        client = Client(cluster if cluster is not None else scheduler)
+    except BaseException:
+        if cluster is not None:
+            cluster.close()
+        raise
     n_moved = n_failed = n_rows = 0
     try:
         if on_cluster is not None:

@@ -13,6 +13,7 @@ files only.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import os
@@ -176,6 +177,19 @@ def _process_alive(pid: int) -> bool:
     return True
 
 
+@functools.cache
+def machine_identity() -> str:
+    """This machine and process namespace: host name, boot id and pid namespace. Two instances
+    with the same identity see each other's processes (a pid check means something); machines
+    cloned from one image share a host name, not a boot id."""
+    try:
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+        namespace = os.stat("/proc/self/ns/pid").st_ino
+    except OSError:  # not Linux: no shortcut (the heartbeat alone decides)
+        return f"{socket.gethostname()[:60]} {secrets.token_hex(8)}"
+    return f"{socket.gethostname()[:60]} {boot} {namespace}"
+
+
 def database_url(url: str) -> str:
     """A SQLAlchemy URL with the driver teachpath ships: ``postgresql://`` means psycopg 3
     (SQLAlchemy's default for it is psycopg2, which is not installed)."""
@@ -241,16 +255,25 @@ class Store:
 
     # -- instances -------------------------------------------------------------------------------
 
+    def _db_now(self, db) -> datetime:
+        """The database's clock (PostgreSQL's ``now()``): instances on several hosts compare
+        heartbeats on one clock, whatever their own clocks say. SQLite is one host's: its clock."""
+        if self.engine.dialect.name == "postgresql":
+            from sqlalchemy import func
+
+            return _aware(db.scalar(select(func.now())))
+        return now()
+
     def heartbeat(self) -> None:
         """Say this instance is alive (registers it on the first call)."""
-        moment = now()
         with self.db.begin() as db:
+            moment = self._db_now(db)
             row = db.get(InstanceRow, self.instance_id)
             if row is None:
                 db.add(
                     InstanceRow(
                         id=self.instance_id,
-                        host=socket.gethostname()[:200],
+                        host=machine_identity(),
                         pid=os.getpid(),
                         started_at=moment,
                         heartbeat_at=moment,
@@ -266,29 +289,33 @@ class Store:
             if row is not None:
                 db.delete(row)
 
-    def live_instances(self) -> set[str]:
-        """Ids of the instances whose heartbeat is fresh (this one included once it beat)."""
+    def live_instances(self, db=None) -> set[str]:
+        """Ids of the instances whose heartbeat is fresh on the database's clock (this one
+        included once it beat), read in ``db`` if given (a transaction under way)."""
+        if db is None:
+            with self.db() as own:
+                return self.live_instances(own)
         from datetime import timedelta
 
-        horizon = now() - timedelta(seconds=STALE_S)
-        host = socket.gethostname()[:200]
-        with self.db() as db:
-            rows = list(db.scalars(select(InstanceRow)))
+        horizon = self._db_now(db) - timedelta(seconds=STALE_S)
+        here = machine_identity()
+        rows = list(db.scalars(select(InstanceRow)))
         return {
             row.id
             for row in rows
             if _aware(row.heartbeat_at) >= horizon
-            # On this host a process that is gone is known at once (a crash, then a restart
-            # within the stale time, must not wait for its heartbeat to age).
-            and (row.host != host or row.id == self.instance_id or _process_alive(row.pid))
+            # In this very machine and process namespace (same boot, same pid namespace), a
+            # process that is gone is known at once: a crash, then a restart within the stale
+            # time, must not wait for the heartbeat to age. Anywhere else: the heartbeat alone.
+            and (row.host != here or row.id == self.instance_id or _process_alive(row.pid))
         }
 
     def forget_stopped_instances(self) -> int:
         """Remove the rows of instances that stopped long ago (ten times the stale time)."""
         from datetime import timedelta
 
-        horizon = now() - timedelta(seconds=10 * STALE_S)
         with self.db.begin() as db:
+            horizon = self._db_now(db) - timedelta(seconds=10 * STALE_S)
             rows = [r for r in db.scalars(select(InstanceRow)) if _aware(r.heartbeat_at) < horizon]
             for row in rows:
                 db.delete(row)
@@ -625,14 +652,24 @@ class Store:
                 setattr(row, key, _jsonable(value) if isinstance(value, dict) else value)
         return row
 
-    def fail_interrupted_jobs(self) -> int:
+    def fail_interrupted_jobs(self, *, unowned: bool = True) -> int:
         """Mark failed the jobs that stopped instances left queued or running (called on start
-        and with each heartbeat): those of instances whose heartbeat is stale, and those made
-        before instances were kept. A live instance's jobs are never touched."""
-        live = self.live_instances() | {self.instance_id}
+        and with each heartbeat): those of instances whose heartbeat is stale, and (``unowned``,
+        on start) those made before instances were kept. A live instance's jobs are never
+        touched.
+
+        The jobs are locked first and the instances read after, in one transaction: a job whose
+        row is visible was created after its instance registered, so its instance is seen too.
+        """
         with self.db.begin() as db:
             query = select(JobRow).where(JobRow.state.in_(("queued", "running")))
-            rows = [r for r in db.scalars(query.with_for_update()) if r.owner not in live]
+            candidates = list(db.scalars(query.with_for_update()))
+            live = self.live_instances(db) | {self.instance_id}
+            rows = [
+                r
+                for r in candidates
+                if (r.owner is None and unowned) or (r.owner is not None and r.owner not in live)
+            ]
             for row in rows:
                 row.state = "failed"
                 row.finished_at = now()

@@ -353,7 +353,10 @@ def test_a_database_from_an_earlier_version_is_upgraded(tmp_path):
             "INSERT INTO sessions VALUES ('ses_old', 'old', '2026-11-01 10:00:00.000000', "
             "NULL, NULL, NULL, NULL)"
         )
-    with TestClient(create_app(make_settings(data)), headers=AUTH) as client:
+    # An SQLite file of its own, also when the suite runs on PostgreSQL (test_database.py
+    # upgrades earlier PostgreSQL databases).
+    settings = make_settings(data, database_url=f"sqlite:///{data / 'teachpath.db'}")
+    with TestClient(create_app(settings), headers=AUTH) as client:
         body = client.get("/sessions/ses_old").json()
         assert body["name"] == "old" and body["tip_offset_m"] is None
         body = client.put("/sessions/ses_old/calibration", json={"tip_offset_m": [0, 0, 0.1]})

@@ -86,7 +86,7 @@ def _state(folder: Path) -> tuple:
     sessions = [(s.id, s.name) for s in store.sessions(include_deleted=True)]
     artifacts = sorted((a.id, a.sha256) for s in sessions for a in store.artifacts(s[0]))
     files = sorted(
-        str(p.relative_to(folder))
+        (str(p.relative_to(folder)), hashlib.sha256(p.read_bytes()).hexdigest())
         for p in folder.rglob("*")
         if p.is_file() and p.name not in ("teachpath.db", "teachpath.db-wal", "teachpath.db-shm")
     )
@@ -240,6 +240,53 @@ def _first(manifest, kind):
     return next(a for a in manifest["artifacts"] if a["kind"] == kind)
 
 
+def _encrypted(content: bytes) -> bytes:
+    """The bundle with the scan's arrays flagged as encrypted (zipfile writes no such entry:
+    the flag is set in the central directory's record of it)."""
+    data = bytearray(content)
+    with zipfile.ZipFile(io.BytesIO(content)) as bundle:
+        name = next(n for n in bundle.namelist() if n.startswith("arrays/scn_")).encode()
+    at = 0
+    while True:
+        at = data.index(b"PK\x01\x02", at)
+        name_length = int.from_bytes(data[at + 28 : at + 30], "little")
+        if data[at + 46 : at + 46 + name_length] == name:
+            break
+        at += 4
+    data[at + 8] |= 0x1
+    return bytes(data)
+
+
+def _lzma(content: bytes) -> bytes:
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as bundle:
+        for name, data in _entries(content).items():
+            method = zipfile.ZIP_LZMA if name.endswith(".npz") else zipfile.ZIP_DEFLATED
+            bundle.writestr(name, data, compress_type=method)
+    return out.getvalue()
+
+
+def _npy_that_lies() -> bytes:
+    """An .npz whose stored member's header declares a terabyte of points."""
+    member = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        member, {"descr": "<f8", "fortran_order": False, "shape": (10**11, 3)}
+    )
+    member.write(b"\0" * 64)
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_STORED) as npz:
+        npz.writestr("points_m.npy", member.getvalue())
+    return out.getvalue()
+
+
+def _renamed_upload(entries, manifest, new_name: str) -> None:
+    scan = _first(manifest, "scan")
+    upload = next(f for f in scan["files"] if f["path"].startswith("uploads/"))
+    renamed = upload["path"].rsplit("/", 1)[0] + "/" + new_name
+    entries[renamed] = entries.pop(upload["path"])
+    upload["path"] = renamed
+
+
 BAD_BUNDLES = {
     "not a zip": (lambda z: b"PK\x03\x04 this is not a zip at all", "not a readable zip"),
     "empty": (lambda z: b"", "not a readable zip"),
@@ -345,13 +392,25 @@ BAD_BUNDLES = {
         lambda z: _recomputed(
             z, lambda e, m: e.update({_first(m, "scan")["data"]["path"]: _bomb_npz()})
         ),
-        "compressed members",
+        "compressed or encrypted members",
     ),
     "forged summary": (
         lambda z: _recomputed(
             z, lambda e, m: _first(m, "trajectory")["summary"].update(duration_s="long")
         ),
         "does not hold what a trajectory holds",
+    ),
+    "encrypted entry": (_encrypted, "is encrypted"),
+    "other compression": (_lzma, "compressed with method 14"),
+    "hidden upload name": (
+        lambda z: _recomputed(z, lambda e, m: _renamed_upload(e, m, ".hidden")),
+        "not a file teachpath keeps",
+    ),
+    "array header that lies": (
+        lambda z: _recomputed(
+            z, lambda e, m: e.update({_first(m, "scan")["data"]["path"]: _npy_that_lies()})
+        ),
+        "declares",
     ),
     "recording id not in the bundle": (
         lambda z: _with_manifest(z, lambda m: m["session"].update(recording_id="rec_000000000000")),
@@ -452,3 +511,48 @@ def test_a_damaged_data_folder_is_not_exported(source, tmp_path):
     with pytest.raises(BundleError, match="no longer match their checksum"):
         export_bundle(store, source["sid"], tmp_path / "out.zip")
     assert not (tmp_path / "out.zip").exists()
+
+
+def test_two_processes_importing_the_same_ids_at_once_leave_one_consistent_session(
+    source, tmp_path
+):
+    """The CLI in two processes imports two bundles of the same session ids, one renamed: one
+    wins, the other is refused as a conflict, and the winner's session exports to its bundle."""
+    import subprocess
+    import sys
+
+    other = _with_manifest(source["zip"], lambda m: m["session"].update(name="renamed"))
+    paths = [tmp_path / "a.zip", tmp_path / "b.zip"]
+    paths[0].write_bytes(source["zip"])
+    paths[1].write_bytes(other)
+    target = tmp_path / "target"
+    _store(target)  # the database exists before both start
+    for _ in range(3):
+        runs = [
+            subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "service.cli",
+                    "bundle",
+                    "import",
+                    str(p),
+                    "--data-dir",
+                    str(target),
+                ],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )  # fmt: skip
+            for p in paths
+        ]
+        results = [(run.wait(120), run.stdout.read(), run.stderr.read()) for run in runs]
+        codes = sorted(code for code, _, _ in results)
+        assert codes == [0, 1], results  # later rounds: the winner's is "already here"
+        (session,) = _store(target).sessions()
+        winner = paths[0] if session.name == "bundled" else paths[1]
+        out = tmp_path / "again.zip"
+        export_bundle(_store(target), source["sid"], out)
+        assert _entries(out.read_bytes()) == _entries(winner.read_bytes())
+        for code, _, err in results:
+            assert code == 0 or "other content" in err or "meanwhile" in err, err
