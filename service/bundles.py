@@ -399,11 +399,11 @@ def import_bundle(
     with bundle:
         manifest = _read_manifest(bundle)
         files = _check_layout(bundle, manifest, max_bytes)
-        with _IMPORTING:
+        with _IMPORTING, store.presence("import") as still_here:
             existing = _existing(store, manifest)
             if existing is not None:
                 return existing
-            written = _unpack(store, bundle, files, manifest)
+            written = _unpack(store, bundle, files, manifest, still_here)
             try:
                 _record(store, manifest)
             except IntegrityError:
@@ -630,7 +630,11 @@ def _existing(store: Store, manifest: Manifest) -> ImportResult | None:
 
 
 def _unpack(
-    store: Store, bundle: zipfile.ZipFile, files: list[FileEntry], manifest: Manifest
+    store: Store,
+    bundle: zipfile.ZipFile,
+    files: list[FileEntry],
+    manifest: Manifest,
+    still_here=lambda: None,
 ) -> list[Path]:
     """Copy the files out under temporary names, checking each against its size and checksum
     and each artifact's arrays and summary against its kind, then rename them into place.
@@ -654,6 +658,7 @@ def _unpack(
                     target.write(block)
                 target.flush()
                 os.fsync(target.fileno())
+            still_here()
             if size != entry.size or digest.hexdigest() != entry.sha256:
                 raise BundleError(
                     f"{entry.path} does not match its checksum in the manifest: the bundle was "

@@ -282,6 +282,21 @@ class Store:
             else:
                 row.heartbeat_at = moment
 
+    @contextlib.contextmanager
+    def presence(self, what: str):
+        """Count as a live instance while a block runs (a bundle import from the command line
+        writes files before it records them: a service starting meanwhile must not take them for
+        a crash's leftovers). Yields a function that refreshes the heartbeat (call it now and
+        then in long work)."""
+        stand_in = Store.__new__(Store)
+        stand_in.__dict__.update(self.__dict__)
+        stand_in.instance_id = f"{self.instance_id}:{what}:{secrets.token_hex(3)}"[:64]
+        stand_in.heartbeat()
+        try:
+            yield stand_in.heartbeat
+        finally:
+            stand_in.leave()
+
     def leave(self) -> None:
         """This instance stops: its row goes (what it owns is recovered by the next start)."""
         with self.db.begin() as db:

@@ -556,3 +556,21 @@ def test_two_processes_importing_the_same_ids_at_once_leave_one_consistent_sessi
         assert _entries(out.read_bytes()) == _entries(winner.read_bytes())
         for code, _, err in results:
             assert code == 0 or "other content" in err or "meanwhile" in err, err
+
+
+def test_a_service_starting_during_an_import_leaves_the_files_it_writes(tmp_path):
+    """An import (here, from the command line) writes its files before it records them: a
+    service starting meanwhile must not remove them as a crash's leftovers; once alone, it
+    removes files no artifact names."""
+    data = tmp_path / "d"
+    store = _store(data)
+    pending = data / "arrays" / "rec_0123456789ab.npz"
+    pending.write_bytes(b"not yet recorded")
+    settings = make_settings(data, database_url=f"sqlite:///{data / 'teachpath.db'}")
+    with store.presence("import"):
+        with TestClient(create_app(settings), headers=AUTH):
+            pass
+        assert pending.exists()
+    with TestClient(create_app(settings), headers=AUTH):
+        pass
+    assert not pending.exists()

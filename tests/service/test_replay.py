@@ -176,3 +176,22 @@ def test_bad_sources_and_options_are_refused(tmp_path, capsys):
     for argv, words in cases:
         assert main(argv) == 1, argv
         assert words in capsys.readouterr().err
+
+
+def test_an_existing_cluster_runs_the_replay_by_its_address(bundles, tmp_path, capsys):
+    """``--scheduler``: a cluster started elsewhere (here: one on loopback, its own processes)
+    runs the tasks; the command only connects to it, and leaves it running."""
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(
+        n_workers=2, threads_per_worker=1, host="127.0.0.1", dashboard_address=None
+    ) as cluster:
+        report = tmp_path / "report.csv"
+        argv = ["replay", str(bundles), "--scheduler", cluster.scheduler_address]
+        assert main([*argv, "--report", str(report)]) == 0
+        rows = read_report(report)
+        assert len(rows) == 4 and {r["status"] for r in rows} == {SAME}
+        assert all(r["bundle"].startswith("/") for r in rows)  # absolute: workers may be remote
+        assert cluster.scheduler_address in capsys.readouterr().err
+        with Client(cluster) as client:  # still up after the command
+            assert len(client.scheduler_info()["workers"]) == 2
