@@ -40,7 +40,7 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
 from service.artifacts import ID_PREFIX, KindName, check_stored
-from service.store import FOLDERS, PRIVATE_FILE, ArtifactRow, SessionRow, Store
+from service.store import FOLDERS, PRIVATE_FILE, ArtifactRow, SessionRow, Store, file_digest
 
 #: What the manifest's ``format`` says.
 BUNDLE_FORMAT = "teachpath-session-bundle"
@@ -186,13 +186,8 @@ def artifact_files(store: Store, artifact: ArtifactRow) -> list[str]:
 
 
 def _file_entry(store: Store, relative: str) -> FileEntry:
-    digest = hashlib.sha256()
-    size = 0
-    with (store.data_dir / relative).open("rb") as handle:
-        for block in iter(lambda: handle.read(_CHUNK), b""):
-            digest.update(block)
-            size += len(block)
-    return FileEntry(path=relative, sha256=digest.hexdigest(), size=size)
+    sha256, size = file_digest(store.data_dir / relative)
+    return FileEntry(path=relative, sha256=sha256, size=size)
 
 
 def build_manifest(store: Store, session_id: str) -> Manifest:
@@ -233,15 +228,8 @@ def build_manifest(store: Store, session_id: str) -> Manifest:
         schema_version=BUNDLE_SCHEMA,
         teachpath_version=teachpath_version(),
         session=SessionEntry(
-            id=session.id,
-            name=session.name,
-            created_at=_utc(session.created_at),
-            recording_id=session.recording_id,
-            scan_id=session.scan_id,
-            T_base_tracker=session.T_base_tracker,
-            T_scan_tracker=session.T_scan_tracker,
-            tip_offset_m=session.tip_offset_m,
-            calibration_report=session.calibration_report,
+            **{name: getattr(session, name) for name in SessionEntry.model_fields}
+            | {"created_at": _utc(session.created_at)}
         ),
         artifacts=entries,
     )
@@ -347,7 +335,7 @@ class BundleReader:
         try:
             with self._zip.open(entry.path) as handle:
                 content = handle.read(entry.size + 1)
-        except (zipfile.BadZipFile, EOFError, RuntimeError, zlib.error) as exc:
+        except (zipfile.BadZipFile, EOFError, zlib.error) as exc:
             raise BundleError(f"{self.path.name}: {entry.path} is damaged ({exc})") from None
         if len(content) != entry.size or hashlib.sha256(content).hexdigest() != entry.sha256:
             raise BundleError(f"{self.path.name}: {entry.path} does not match its checksum")
@@ -473,10 +461,7 @@ def _read_manifest(bundle: zipfile.ZipFile) -> Manifest:
     try:
         with bundle.open(info) as handle:
             raw = handle.read(MAX_MANIFEST_BYTES + 1)
-    except (
-        zipfile.BadZipFile, OSError, EOFError, ValueError, NotImplementedError, RuntimeError,
-        zlib.error,
-    ) as exc:  # fmt: skip
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, zlib.error) as exc:
         raise BundleError(
             f"{MANIFEST_NAME} cannot be read ({exc}): export the bundle again"
         ) from None
@@ -664,7 +649,7 @@ def _unpack(
                     f"{entry.path} does not match its checksum in the manifest: the bundle was "
                     "altered or damaged; export it again"
                 )
-    except (zipfile.BadZipFile, EOFError, NotImplementedError, RuntimeError, zlib.error) as exc:
+    except (zipfile.BadZipFile, EOFError, zlib.error) as exc:
         _remove(staged)
         raise BundleError(f"the bundle is damaged ({exc}); export it again") from None
     except BaseException:
@@ -689,7 +674,7 @@ def _place(staged: list[tuple[Path, Path]], files: list[FileEntry]) -> list[Path
                 os.link(tmp, final)
                 created.append(final)
             except FileExistsError:
-                if _sha256_of(final) != entry.sha256:
+                if file_digest(final)[0] != entry.sha256:
                     raise BundleConflictError(
                         f"{entry.path} exists in this data folder with other content: another "
                         "import of different data with the same ids; nothing was imported"
@@ -701,14 +686,6 @@ def _place(staged: list[tuple[Path, Path]], files: list[FileEntry]) -> list[Path
     finally:
         _remove(staged)
     return created
-
-
-def _sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for block in iter(lambda: handle.read(_CHUNK), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _check_contents(
@@ -776,34 +753,17 @@ def _record(store: Store, manifest: Manifest) -> None:
     """The session and its artifacts, in one transaction."""
     session = manifest.session
     with store.db.begin() as db:
-        db.add(
-            SessionRow(
-                id=session.id,
-                name=session.name,
-                created_at=session.created_at,
-                recording_id=session.recording_id,
-                scan_id=session.scan_id,
-                T_base_tracker=session.T_base_tracker,
-                T_scan_tracker=session.T_scan_tracker,
-                tip_offset_m=session.tip_offset_m,
-                calibration_report=session.calibration_report,
-            )
-        )
+        # The manifest's session and artifacts hold the rows' own columns (by construction).
+        db.add(SessionRow(**session.model_dump()))
         db.flush()  # the session before the artifacts that refer to it
         for artifact in manifest.artifacts:
             db.add(
                 ArtifactRow(
-                    id=artifact.id,
+                    **artifact.model_dump(exclude={"data", "files"}),
                     session_id=session.id,
-                    kind=artifact.kind,
-                    created_at=artifact.created_at,
-                    inputs=artifact.inputs,
-                    params=artifact.params,
-                    summary=artifact.summary,
                     path=artifact.data.path,
                     sha256=artifact.data.sha256,
                     size=artifact.data.size,
-                    source_name=artifact.source_name,
                 )
             )
 

@@ -167,6 +167,15 @@ HEARTBEAT_S = 2.0
 STALE_S = 20.0
 
 
+def file_digest(path: Path) -> tuple[str, int]:
+    """A file's SHA-256 (hex) and size, read in blocks."""
+    digest = hashlib.sha256()
+    with Path(path).open("rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest(), Path(path).stat().st_size
+
+
 def _process_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -264,15 +273,17 @@ class Store:
             return _aware(db.scalar(select(func.now())))
         return now()
 
-    def heartbeat(self) -> None:
-        """Say this instance is alive (registers it on the first call)."""
+    def heartbeat(self, instance_id: str | None = None) -> None:
+        """Say this instance (or ``instance_id``, a stand-in of it) is alive; registers it on the
+        first call."""
+        instance_id = instance_id or self.instance_id
         with self.db.begin() as db:
             moment = self._db_now(db)
-            row = db.get(InstanceRow, self.instance_id)
+            row = db.get(InstanceRow, instance_id)
             if row is None:
                 db.add(
                     InstanceRow(
-                        id=self.instance_id,
+                        id=instance_id,
                         host=machine_identity(),
                         pid=os.getpid(),
                         started_at=moment,
@@ -288,19 +299,18 @@ class Store:
         writes files before it records them: a service starting meanwhile must not take them for
         a crash's leftovers). Yields a function that refreshes the heartbeat (call it now and
         then in long work)."""
-        stand_in = Store.__new__(Store)
-        stand_in.__dict__.update(self.__dict__)
-        stand_in.instance_id = f"{self.instance_id}:{what}:{secrets.token_hex(3)}"[:64]
-        stand_in.heartbeat()
+        stand_in = f"{self.instance_id}:{what}:{secrets.token_hex(3)}"[:64]
+        self.heartbeat(stand_in)
         try:
-            yield stand_in.heartbeat
+            yield lambda: self.heartbeat(stand_in)
         finally:
-            stand_in.leave()
+            self.leave(stand_in)
 
-    def leave(self) -> None:
-        """This instance stops: its row goes (what it owns is recovered by the next start)."""
+    def leave(self, instance_id: str | None = None) -> None:
+        """This instance (or its stand-in) stops: its row goes (what it owns is recovered by the
+        next start)."""
         with self.db.begin() as db:
-            row = db.get(InstanceRow, self.instance_id)
+            row = db.get(InstanceRow, instance_id or self.instance_id)
             if row is not None:
                 db.delete(row)
 
@@ -346,7 +356,7 @@ class Store:
             with tmp.open("wb") as handle:
                 np.savez(handle, **{k: v for k, v in arrays.items() if v is not None})
             os.chmod(tmp, PRIVATE_FILE)
-        return relative, *self._digest(target)
+        return relative, *file_digest(target)
 
     def write_bytes(self, relative: str, content: bytes) -> tuple[str, int]:
         target = self.data_dir / relative
@@ -354,7 +364,7 @@ class Store:
         with atomic_path(target) as tmp:
             tmp.write_bytes(content)
             os.chmod(tmp, PRIVATE_FILE)
-        return self._digest(target)
+        return file_digest(target)
 
     def read_arrays(self, artifact: ArtifactRow) -> dict[str, np.ndarray]:
         """The arrays of an artifact, after checking the file against its checksum."""
@@ -366,17 +376,9 @@ class Store:
         path = self.data_dir / artifact.path
         if not path.is_file():
             raise StorageError(f"the file of {artifact.id} is missing")
-        if self._digest(path)[0] != artifact.sha256:
+        if file_digest(path)[0] != artifact.sha256:
             raise StorageError(f"the file of {artifact.id} does not match its checksum")
         return path
-
-    @staticmethod
-    def _digest(path: Path) -> tuple[str, int]:
-        digest = hashlib.sha256()
-        with path.open("rb") as handle:
-            for block in iter(lambda: handle.read(1 << 20), b""):
-                digest.update(block)
-        return digest.hexdigest(), path.stat().st_size
 
     def remove_unnamed_files(self) -> list[str]:
         """Remove files of ``arrays/`` and ``uploads/`` that no artifact names (called on start,
@@ -535,7 +537,7 @@ class Store:
             path = f"arrays/{artifact_id}.npz"
             written.append(self.data_dir / path)
             if arrays is None:
-                sha, size = self._digest(self.data_dir / path)
+                sha, size = file_digest(self.data_dir / path)
             else:
                 path, sha, size = self.write_arrays(artifact_id, arrays)
             written.append(self.data_dir / upload_path)
@@ -587,7 +589,7 @@ class Store:
     ) -> ArtifactRow:
         """Record an artifact whose file a worker already wrote at ``path`` (relative)."""
         os.chmod(self.data_dir / path, PRIVATE_FILE)
-        sha, size = self._digest(self.data_dir / path)
+        sha, size = file_digest(self.data_dir / path)
         return self.add_artifact(
             artifact_id=artifact_id,
             session_id=session_id,

@@ -451,35 +451,16 @@ def test_the_api_and_cli_refuse_bad_bundles_with_their_reason(source, tmp_path, 
     assert main(["bundle", "import", str(path), "--data-dir", str(tmp_path / "d")]) == 1
     assert "does not match its checksum" in capsys.readouterr().err
     assert main(["bundle", "import", str(tmp_path / "none.zip"), "--data-dir", str(tmp_path)]) == 1
-    assert (
-        main(
-            [
-                "bundle",
-                "export",
-                "ses_000000000000",
-                "--data-dir",
-                str(source["data"]),
-                "--out",
-                str(tmp_path / "x.zip"),
-            ]
+
+    def export(data_dir) -> int:
+        out = str(tmp_path / "x.zip")
+        return main(
+            ["bundle", "export", "ses_000000000000", "--data-dir", str(data_dir), "--out", out]
         )
-        == 1
-    )
+
+    assert export(source["data"]) == 1
     assert "no session" in capsys.readouterr().err
-    assert (
-        main(
-            [
-                "bundle",
-                "export",
-                "ses_000000000000",
-                "--data-dir",
-                str(tmp_path / "empty"),
-                "--out",
-                str(tmp_path / "x.zip"),
-            ]
-        )
-        == 1
-    )
+    assert export(tmp_path / "empty") == 1
     assert "holds no teachpath database" in capsys.readouterr().err
     assert not (tmp_path / "x.zip").exists()
 
