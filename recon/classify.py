@@ -21,9 +21,12 @@ if TYPE_CHECKING:
     # pull in the scan model's Open3D and SciPy.
     from recon.scan_model import ScanModel
 
-#: A segment whose points lie this close (median) to the thinned edge follows it: 2.5 times
-#: the operator's typical error (paper, Sec. VI: std 0.5-1 mm).
+#: A segment follows an edge when it runs within this of it, RMS over the stretch the edge is
+#: there: about 2.5 times a hand's error across the path (paper, Sec. VI: std 0.5-1 mm). A trace
+#: alongside an edge (on a face next to a wall, a few millimetres off it) runs farther.
 EDGE_FOLLOW_DISTANCE_M = 0.0025
+#: Edge points within this distance of a segment's points are its candidate edges.
+EDGE_CANDIDATE_REACH_M = 0.006
 
 
 class SegmentKind(enum.StrEnum):
@@ -46,11 +49,22 @@ class SegmentClass:
         (0 for a segment with no scan near it).
     fell_back : bool
         The scan was near but the path disagreed with it (:func:`check_consistency`): path only.
+    tracks : tuple of int, or None
+        The edge an EDGE segment follows: the tracks of :class:`recon.edges.EdgePoints` that
+        make it up (one edge found in pieces is several tracks).
+    rms_to_edge_m : float
+        RMS distance of the segment to that edge, where the edge is there.
+    next_edge_m : float
+        How far the next candidate edge lies from the segment (RMS; inf when none): how clearly
+        the trace picked its edge.
     """
 
     kind: SegmentKind
     edge_fraction: float
     fell_back: bool = False
+    tracks: tuple[int, ...] | None = None
+    rms_to_edge_m: float = float("nan")
+    next_edge_m: float = float("nan")
 
 
 #: The class of every segment when no scan is used.
@@ -63,15 +77,15 @@ def classify_segments(
     model: ScanModel,
     params: ReconParams,
 ) -> list[SegmentClass]:
-    """Per segment: follows an edge, a surface, or nothing of the scan.
+    """Per segment: which edge it follows, else a surface, else nothing of the scan.
 
-    The paper's rule: a segment follows an edge when a large fraction (``edge_fraction``) of the
-    scan points nearest to it are edge points. Curvature flags thin out as scan noise grows
-    (at 1.5 mm the fraction on a traced right-angle ridge fell to 0.48), so a segment also
-    follows an edge when the thinned edge (the fitted intersection of two faces) runs within
-    :data:`EDGE_FOLLOW_DISTANCE_M` of it on median. Either way it must have thinned edge points
-    along at least half of it. A segment with scan points near less than half of its points has
-    nothing to follow.
+    A segment with scan points near less than half of its points has nothing to follow. Else
+    each edge of the scan near it (a track of :class:`recon.edges.EdgePoints`) is weighed as a
+    whole: along how much of the segment it runs (its coverage) and how far from the segment,
+    RMS. The segment follows the edge with the largest coverage among those that run within
+    :data:`EDGE_FOLLOW_DISTANCE_M` of it, if that coverage is at least ``params.edge_fraction``:
+    one edge for the whole segment, never a hop from edge to edge point by point. Otherwise it
+    follows a surface.
 
     Parameters
     ----------
@@ -81,8 +95,8 @@ def classify_segments(
         The segments, ``[start, stop)`` into ``points_m``.
     model : ScanModel
     params : ReconParams
-        ``icp_max_distance_m`` is the reach for scan support, ``radius_m`` for thinned-edge
-        support, ``edge_fraction`` the paper's threshold.
+        ``icp_max_distance_m`` is the reach for scan support, ``edge_fraction`` the coverage an
+        edge needs.
 
     Returns
     -------
@@ -90,30 +104,102 @@ def classify_segments(
         One per segment, in order.
     """
     reach = params.icp_max_distance_m
-    dist, idx = model.coarse_tree.query(points_m, k=5, distance_upper_bound=reach, workers=-1)
-    near = np.isfinite(dist)
-    n_coarse = model.coarse_tree.n
-    is_edge = gather(model.features.is_edge.astype(np.float64), idx, n_coarse) > 0.5
-    supported = near.any(axis=1)
-    point_fraction = (is_edge & near).sum(axis=1) / np.maximum(near.sum(axis=1), 1)
-    if model.edge_tree is not None:
-        edge_dist, _ = model.edge_tree.query(points_m, distance_upper_bound=params.radius_m)
-    else:
-        edge_dist = np.full(len(points_m), np.inf)
-    edge_near = np.isfinite(edge_dist)
+    dist, _ = model.coarse_tree.query(points_m, k=1, distance_upper_bound=reach, workers=-1)
+    supported = np.isfinite(dist)
+    candidates = _edge_candidates(points_m, model)
     classes = []
     for start, stop in bounds:
         seg = slice(start, stop)
         if supported[seg].mean() < 0.5:
             classes.append(PATH_ONLY)
             continue
-        fraction = float(point_fraction[seg][supported[seg]].mean())
-        on_thinned_edge = np.median(edge_dist[seg]) <= EDGE_FOLLOW_DISTANCE_M
-        if (fraction >= params.edge_fraction or on_thinned_edge) and edge_near[seg].mean() >= 0.5:
-            classes.append(SegmentClass(SegmentKind.EDGE, fraction))
+        choice = _choose_edge(candidates, seg, stop - start)
+        if choice is not None and choice.coverage >= params.edge_fraction:
+            classes.append(
+                SegmentClass(
+                    SegmentKind.EDGE,
+                    choice.coverage,
+                    tracks=choice.tracks,
+                    rms_to_edge_m=choice.rms_m,
+                    next_edge_m=choice.next_m,
+                )
+            )
         else:
-            classes.append(SegmentClass(SegmentKind.SURFACE, fraction))
+            coverage = 0.0 if choice is None else choice.coverage
+            classes.append(SegmentClass(SegmentKind.SURFACE, coverage))
     return classes
+
+
+@dataclass(frozen=True)
+class _EdgeChoice:
+    tracks: tuple[int, ...]
+    coverage: float
+    rms_m: float
+    next_m: float
+
+
+def _edge_candidates(points_m: FloatArray, model: ScanModel):
+    """Per point and track: the distance to the track's nearest edge point within
+    :data:`EDGE_CANDIDATE_REACH_M` (a dict of track -> (N,) distances, inf where absent)."""
+    if model.edge_tree is None:
+        return {}
+    k = min(48, len(model.edges))
+    dist, idx = model.edge_tree.query(
+        points_m, k=k, distance_upper_bound=EDGE_CANDIDATE_REACH_M, workers=-1
+    )
+    if k == 1:
+        dist, idx = dist[:, None], idx[:, None]
+    tracks = gather(model.edges.track, idx, fill_index=len(model.edges))
+    present = np.isfinite(dist)
+    out = {}
+    for track in np.unique(tracks[present]):
+        out[int(track)] = np.where(present & (tracks == track), dist, np.inf).min(axis=1)
+    return out
+
+
+def _choose_edge(candidates, seg: slice, length: int) -> _EdgeChoice | None:
+    """The edge a segment follows (see :func:`classify_segments`), or None.
+
+    The track that runs along most of the segment within :data:`EDGE_FOLLOW_DISTANCE_M` of it
+    is the edge; other such tracks join it where they continue it (where both are there, they
+    lie within :data:`SAME_EDGE_M` of each other as seen from the segment): one edge the scan
+    showed in pieces.
+    """
+    scored = []
+    for track, distance in candidates.items():
+        here = distance[seg]
+        covered = np.isfinite(here)
+        if not np.any(covered):
+            continue
+        rms = float(np.sqrt(np.mean(here[covered] ** 2)))
+        scored.append((track, covered, rms, here))
+    following = [c for c in scored if c[2] <= EDGE_FOLLOW_DISTANCE_M]
+    if not following:
+        return None
+    first = max(following, key=lambda c: (round(float(np.mean(c[1])), 2), -c[2]))
+    tracks = [first[0]]
+    covered = first[1].copy()
+    for track, mine, _, here in sorted(following, key=lambda c: -np.count_nonzero(c[1])):
+        if track == first[0]:
+            continue
+        both = mine & first[1]
+        if np.any(both) and np.median(np.abs(here[both] - first[3][both])) > SAME_EDGE_M:
+            continue  # a parallel edge, not this one in another piece
+        tracks.append(track)
+        covered |= mine
+    distances = np.where(covered, np.min([c[3] for c in scored if c[0] in tracks], axis=0), 0.0)
+    rms = float(np.sqrt(np.sum(distances**2) / max(np.count_nonzero(covered), 1)))
+    others = [
+        c[2] for c in scored if c[0] not in tracks and np.count_nonzero(c[1]) >= 0.25 * length
+    ]
+    return _EdgeChoice(
+        tuple(tracks), float(np.mean(covered)), rms, min(others) if others else float("inf")
+    )
+
+
+#: Two tracks seen from a segment within this of each other (median, where both are there) are
+#: one edge.
+SAME_EDGE_M = 0.0008
 
 
 #: Once registered, a path that follows an edge runs within a hand's error of it: a segment whose

@@ -1,7 +1,14 @@
-"""The thinned edge: points sampled along the local edge lines near a path.
+"""The thinned edge: points on the scan's edges near a path, grouped into tracks.
 
-Registration (point-to-line ICP) and the reconstruction's edge targets use these points rather
-than the curvature band, whose centroid lies inside the corner (about a millimetre off).
+Every corner of the scan's cross-sections along the path (:mod:`recon.profiles`) is an edge
+point: where two faces of the slice meet, the trace's feature or one beside it. Corners of
+neighbouring slices that line up are one edge, a *track*: the two edges of a thin wall, the top
+and the foot of a step, the two borders of a chamfer are separate tracks, so a segment can follow
+one of them all the way rather than hop between them point by point.
+
+Registration (point-to-line ICP), the segments' classification and the reconstruction's edge
+targets use these points rather than the curvature band, whose centroid lies inside the corner
+(about a millimetre off).
 """
 
 from __future__ import annotations
@@ -10,35 +17,59 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from recon.edge_lines import EdgeLineFit, fit_edge_lines
-from recon.features import ScanFeatures
+from recon.fitting import gather, weighted_pca
+from recon.profiles import Profiles
 from recon.types import FloatArray
 
-#: Variance of an edge point from its line fit per unit of face variance over face points
-#: (see :attr:`EdgePoints.variance_m2`).
+#: Variance of an edge point from its line fit per unit of face variance over face points,
+#: for edge points stored without their own variance (models stored by an earlier version).
 EDGE_VARIANCE_FACTOR = 20.0
+#: Corners of slices this close (across the edge) and this near (along it, bridging a few slices
+#: without a corner) are one edge.
+TRACK_OFFSET_M = 0.0008
+TRACK_LINK_M = 0.010
+#: An edge point's direction comes from its track's corners within this distance.
+DIRECTION_REACH_M = 0.005
+#: Each corner stands for this much of its edge, sampled every millimetre either side of it.
+SAMPLE_OFFSETS_M = (-0.001, 0.0, 0.001)
 
 
 @dataclass(frozen=True)
 class EdgePoints:
-    """The thinned edge: points on the local edge lines, one per processed band point.
+    """The thinned edge: points on the scan's edges, grouped into tracks.
 
     Attributes
     ----------
     points_m : ndarray of shape (E, 3)
     directions : ndarray of shape (E, 3)
     residual_m : ndarray of shape (E,)
-        Face-fit residual at each point (a noise level for alpha="auto").
+        RMS scatter of the faces' points about them where the point was found (a noise level).
     n_points : ndarray of shape (E,), int
-        Points on the smaller face of each point's fit.
+        Points on the smaller of the two faces.
+    track : ndarray of shape (E,), int
+        Which edge the point belongs to (-1: not known, e.g. a corner's edge lines filled in).
+    variance_m2 : ndarray of shape (E,)
+        Variance of the point's position across the edge, both directions together.
     """
 
     points_m: FloatArray
     directions: FloatArray
     residual_m: FloatArray
     n_points: NDArray[np.int64]
+    track: NDArray[np.int64] | None = None
+    variance_m2: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.points_m)
+        if self.track is None:
+            object.__setattr__(self, "track", np.full(n, -1, np.int64))
+        if self.variance_m2 is None:
+            legacy = EDGE_VARIANCE_FACTOR * self.residual_m**2 / np.maximum(self.n_points, 1)
+            object.__setattr__(self, "variance_m2", np.asarray(legacy, dtype=np.float64))
 
     @classmethod
     def empty(cls) -> EdgePoints:
@@ -48,177 +79,160 @@ class EdgePoints:
     def __len__(self) -> int:
         return len(self.points_m)
 
-    @property
-    def variance_m2(self) -> FloatArray:
-        """Variance of each point's position from its line fit, ``K sigma^2 / n``.
+    def subset(self, keep: NDArray[np.bool_]) -> EdgePoints:
+        """The points where ``keep`` is True."""
+        return EdgePoints(
+            points_m=self.points_m[keep],
+            directions=self.directions[keep],
+            residual_m=self.residual_m[keep],
+            n_points=self.n_points[keep],
+            track=self.track[keep],
+            variance_m2=self.variance_m2[keep],
+        )
 
-        An edge point is where two noisy faces, fitted off the crest, are extrapolated to meet;
-        the extrapolation multiplies the faces' noise. K = 20 is the factor measured on
-        right-angle edges (per-fit scatter 0.22-0.33 mm at sigma = 1 mm with about 250 points
-        per face).
-        """
-        return EDGE_VARIANCE_FACTOR * self.residual_m**2 / np.maximum(self.n_points, 1)
-
-
-def _every(path_m: FloatArray, spacing_m: float) -> FloatArray:
-    """Points of a polyline, one at each multiple of ``spacing_m`` of arc length (and the end)."""
-    arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(path_m, axis=0), axis=1))))
-    stations = np.append(np.arange(0.0, arc[-1], spacing_m), arc[-1])
-    index = np.unique(np.searchsorted(arc, stations))
-    return path_m[np.clip(index, 0, len(path_m) - 1)]
-
-
-def _beyond_ends(path_m: FloatArray, spacing_m: float, reach_m: float) -> FloatArray:
-    """Points past both ends of a path, along its end directions, every ``spacing_m`` up to
-    ``reach_m`` (the directions from the last ``reach_m`` of the path, where there is that much).
-
-    Returns
-    -------
-    ndarray of shape (Q, 3)
-        Empty for a path shorter than two points.
-    """
-    if len(path_m) < 2 or reach_m <= 0:
-        return np.zeros((0, 3))
-    arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(path_m, axis=0), axis=1))))
-    steps = np.arange(spacing_m, reach_m + 1e-12, spacing_m)
-    out = []
-    for end, inner in (
-        (0, np.searchsorted(arc, min(reach_m, arc[-1]))),
-        (len(path_m) - 1, np.searchsorted(arc, max(arc[-1] - reach_m, 0.0))),
-    ):
-        inner = int(np.clip(inner, 0, len(path_m) - 1))
-        direction = path_m[end] - path_m[inner]
-        norm = np.linalg.norm(direction)
-        if norm > 1e-9:
-            out.append(path_m[end] + np.outer(steps, direction / norm))
-    return np.concatenate(out) if out else np.zeros((0, 3))
+    @classmethod
+    def concatenate(cls, parts: list[EdgePoints]) -> EdgePoints:
+        if not parts:
+            return cls.empty()
+        return cls(
+            **{
+                name: np.concatenate([getattr(p, name) for p in parts])
+                for name in (
+                    "points_m",
+                    "directions",
+                    "residual_m",
+                    "n_points",
+                    "track",
+                    "variance_m2",
+                )
+            }
+        )
 
 
-#: Where a fit in the full ball fails, one in a ball this much smaller is tried.
-SMALL_BALL_FRACTION = 0.5
-#: A fitted edge point must have a scan point within this many face-fit sigmas of it (and at
-#: least :data:`EDGE_GAP_FLOOR_M`): the crest is scanned too.
-EDGE_GAP_SIGMAS = 2.0
-EDGE_GAP_FLOOR_M = 1e-3
-
-
-def _fit_and_judge(queries, features, radius_m, trees, *, typical):
-    """Edge-line fits at the queries, and which to keep: well-posed, near their query, and (a fit
-    spanning three faces near a box corner has a large residual) not much worse than typical
-    (the median of the kept ones, unless given)."""
-    fit = fit_edge_lines(queries, features, radius_m=radius_m, trees=trees)
-    moved = np.linalg.norm(fit.points_m - queries, axis=1)
-    keep = fit.ok & (moved <= 0.5 * radius_m)
-    if np.any(keep):
-        if typical is None:
-            typical = float(np.median(fit.residual_m[keep]))
-        keep &= fit.residual_m <= 2.0 * typical + 1e-6
-    # Two faces that met where the scan has no points (in the air, or inside the workpiece)
-    # were extrapolated from a ball that holds no two flat faces: a tight bend seen whole.
-    dense_tree = trees[1] if trees is not None else cKDTree(features.dense_points_m)
-    gap, _ = dense_tree.query(fit.points_m, workers=-1)
-    keep &= gap <= np.maximum(EDGE_GAP_FLOOR_M, EDGE_GAP_SIGMAS * fit.residual_m)
-    return fit, keep
-
-
-def _with_rows(fit: EdgeLineFit, rows, other: EdgeLineFit, other_keep) -> EdgeLineFit:
-    """``fit`` with the kept ones of ``other`` in place of ``rows``."""
-    take = rows[other_keep]
-    arrays = {}
-    for name in (
-        "points_m",
-        "directions",
-        "residual_m",
-        "n_points",
-        "dihedral_deg",
-        "ok",
-        "bisector",
-    ):
-        values = getattr(fit, name).copy()
-        values[take] = getattr(other, name)[other_keep]
-        arrays[name] = values
-    return EdgeLineFit(**arrays)
-
-
-def thin_edges(
-    features: ScanFeatures,
-    near_m: FloatArray,
-    *,
-    radius_m: float,
-    query_spacing_m: float,
-    sample_spacing_m: float,
-    trees: tuple[cKDTree, cKDTree] | None = None,
-    beyond_ends_m: float = 0.0,
-) -> EdgePoints:
-    """Thin the band of edge points to the edge itself, along a path that follows it.
-
-    Edge lines are fitted (:func:`fit_edge_lines`) at points of ``near_m`` spaced
-    ``query_spacing_m`` apart, where the band of edge points is within reach; each fitted line
-    is then sampled every ``sample_spacing_m`` over the stretch its query stands for. Querying
-    along the path rather than at every band point avoids fitting the same stretch of edge many
-    times over across the band's width, and sampling the local lines gives registration a
-    continuous edge rather than isolated points.
+def edges_from_profiles(profiles: Profiles) -> EdgePoints:
+    """The corners of every slice as edge points, linked into tracks, each with the direction
+    of its track there.
 
     Parameters
     ----------
-    features : ScanFeatures
-    near_m : ndarray of shape (N, 3)
-        An ordered path near the edges of interest (the trace, roughly aligned). Queries are
-        taken along it by arc length, which does not depend on the frame (a voxel grid would).
-    radius_m : float
-        Neighbourhood radius of the two-face fits.
-    query_spacing_m : float
-        Distance between fits along ``near_m``.
-    sample_spacing_m : float
-        Spacing of the returned points along each local line.
-    trees : (cKDTree, cKDTree), optional
-        Trees over the voxel and dense clouds, to reuse (see :func:`fit_edge_lines`).
-    beyond_ends_m : float
-        Fits are also made this far past both ends of ``near_m``, along its end directions: an
-        edge usually runs on past where an operator starts and stops, and a point near the end
-        of the path then has the edge on both sides of it, as every other point has (rather
-        than a fit extrapolated past its data). Where the edge ends, these fits find none.
+    profiles : Profiles
 
     Returns
     -------
     EdgePoints
         Possibly empty.
     """
-    empty = EdgePoints.empty()
-    if not np.any(features.is_edge) or len(near_m) == 0:
-        return empty
-    near_m = np.asarray(near_m, np.float64)
-    queries = np.concatenate(
-        [_every(near_m, query_spacing_m), _beyond_ends(near_m, query_spacing_m, beyond_ends_m)]
-    )
-    # Only where the band of edge points is within half a ball: elsewhere the ball would reach a
-    # distant edge, or none.
-    band = features.points_m[features.is_edge]
-    band_dist, _ = cKDTree(band).query(queries, distance_upper_bound=0.5 * radius_m, workers=-1)
-    queries = queries[np.isfinite(band_dist)]
-    if len(queries) == 0:
-        return empty
-    fit, keep = _fit_and_judge(queries, features, radius_m, trees, typical=None)
-    if not np.any(keep):
-        return empty
-    # Where the edge bends tightly (a rounded corner of 15 mm radius) a ball of the full radius
-    # holds no two flat faces and its fit is dropped; a ball half as wide often does.
-    retry = ~keep
-    if np.any(retry):
-        typical = float(np.median(fit.residual_m[keep]))
-        small, small_keep = _fit_and_judge(
-            queries[retry], features, SMALL_BALL_FRACTION * radius_m, trees, typical=typical
-        )
-        fit = _with_rows(fit, np.flatnonzero(retry), small, small_keep)
-        keep[retry] = small_keep
-    half = 0.5 * query_spacing_m
-    offsets = np.arange(-half, half + 1e-12, sample_spacing_m)
-    centres, directions = fit.points_m[keep], fit.directions[keep]
-    samples = centres[:, None, :] + offsets[None, :, None] * directions[:, None, :]
-    count = len(offsets)
+    station, pair = np.nonzero(profiles.corner_ok)
+    if len(station) == 0:
+        return EdgePoints.empty()
+    corners = profiles.corners_world_m[station, pair]
+    along = profiles.along[station]
+    i, j = profiles.pairs[pair, 0], profiles.pairs[pair, 1]
+    count = np.minimum(profiles.count[station, i], profiles.count[station, j])
+    residual = np.maximum(profiles.rms_m[station, i], profiles.rms_m[station, j])
+    variance = profiles.corner_variance_m2[station, pair]
+    track = _tracks(corners, along, station)
+    direction = _track_directions(corners, along, track)
+    offsets = np.asarray(SAMPLE_OFFSETS_M)
+    samples = corners[:, None, :] + offsets[None, :, None] * direction[:, None, :]
+    repeat = len(offsets)
     return EdgePoints(
         points_m=samples.reshape(-1, 3),
-        directions=np.repeat(directions, count, axis=0),
-        residual_m=np.repeat(fit.residual_m[keep], count),
-        n_points=np.repeat(fit.n_points[keep], count),
+        directions=np.repeat(direction, repeat, axis=0),
+        residual_m=np.repeat(residual, repeat),
+        n_points=np.repeat(count.astype(np.int64), repeat),
+        track=np.repeat(track, repeat),
+        variance_m2=np.repeat(variance, repeat),
     )
+
+
+def _tracks(corners: FloatArray, along: FloatArray, station: np.ndarray) -> NDArray[np.int64]:
+    """Connected groups of corners: two corners of different slices are linked when they lie
+    within :data:`TRACK_LINK_M` of each other and within :data:`TRACK_OFFSET_M` across the
+    path."""
+    n = len(corners)
+    pairs = cKDTree(corners).query_pairs(TRACK_LINK_M, output_type="ndarray")
+    if len(pairs) == 0:
+        return np.arange(n, dtype=np.int64)
+    a, b = pairs[:, 0], pairs[:, 1]
+    gap = corners[b] - corners[a]
+    t = along[a] + along[b]
+    t /= np.maximum(np.linalg.norm(t, axis=1), 1e-300)[:, None]
+    across = gap - np.einsum("pi,pi->p", gap, t)[:, None] * t
+    linked = (station[a] != station[b]) & (np.linalg.norm(across, axis=1) <= TRACK_OFFSET_M)
+    graph = coo_matrix((np.ones(np.count_nonzero(linked)), (a[linked], b[linked])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    return labels.astype(np.int64)
+
+
+def _track_directions(corners: FloatArray, along: FloatArray, track: np.ndarray) -> FloatArray:
+    """Each corner's edge direction: the main axis of its track's corners within
+    :data:`DIRECTION_REACH_M` (the slice's normal where the track is too short there)."""
+    k = min(16, len(corners))
+    dist, idx = cKDTree(corners).query(corners, k=k, distance_upper_bound=DIRECTION_REACH_M)
+    if k == 1:
+        dist, idx = dist[:, None], idx[:, None]
+    same = np.isfinite(dist) & (gather(track, idx, fill_index=len(track)) == track[:, None])
+    points = gather(corners, idx, fill_index=len(corners))
+    pca = weighted_pca(points, same.astype(np.float64))
+    direction = pca.axes[:, :, 0]
+    enough = np.count_nonzero(same, axis=1) >= 3
+    spread = pca.variances[:, 0] > 4.0 * np.maximum(pca.variances[:, 1], 1e-18)
+    direction = np.where((enough & spread)[:, None], direction, along)
+    flip = np.einsum("ni,ni->n", direction, along) < 0
+    direction[flip] *= -1
+    return direction / np.linalg.norm(direction, axis=1)[:, None]
+
+
+#: Slices are cut along the path every this far ...
+STATION_SPACING_M = 0.002
+#: ... and on past both of its ends this far: an edge usually runs on past where an operator
+#: starts and stops, and the points near an end then have the edge on both sides of them.
+BEYOND_ENDS_M = 0.012
+
+
+def stations_along(path_m: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Where to cut slices along an ordered path, and the path's direction there.
+
+    Returns
+    -------
+    stations : ndarray of shape (B, 3)
+        Every :data:`STATION_SPACING_M` of arc length, and on past both ends by up to
+        :data:`BEYOND_ENDS_M` along the end directions.
+    along : ndarray of shape (B, 3)
+        Unit directions: the path's over 6 mm, its end directions past its ends.
+    """
+    path_m = np.asarray(path_m, dtype=np.float64)
+    if len(path_m) < 2:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(path_m, axis=0), axis=1))))
+    if arc[-1] <= 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+
+    def at(s):
+        return np.column_stack([np.interp(s, arc, path_m[:, k]) for k in range(3)])
+
+    length = arc[-1]
+    inner_arc = np.append(np.arange(0.0, length, STATION_SPACING_M), length)
+    stations = [at(inner_arc)]
+    along = [at(inner_arc + 0.003) - at(inner_arc - 0.003)]
+    steps = np.arange(STATION_SPACING_M, BEYOND_ENDS_M + 1e-12, STATION_SPACING_M)
+    reach = min(0.006, length)
+    for end, direction in (
+        (path_m[0], path_m[0] - at(np.array([reach]))[0]),
+        (path_m[-1], path_m[-1] - at(np.array([length - reach]))[0]),
+    ):
+        norm = np.linalg.norm(direction)
+        if norm > 1e-9:
+            direction = direction / norm
+            stations.append(end + np.outer(steps, direction))
+            along.append(np.tile(direction, (len(steps), 1)))
+    stations_m, along_m = np.concatenate(stations), np.concatenate(along)
+    norm = np.linalg.norm(along_m, axis=1)
+    keep = norm > 1e-9
+    return stations_m[keep], along_m[keep] / norm[keep][:, None]
+
+
+def thin_edges(profiles: Profiles) -> EdgePoints:
+    """The thinned edge along a path from its slices (see :func:`edges_from_profiles`)."""
+    return edges_from_profiles(profiles)

@@ -45,6 +45,7 @@ from recon.types import (
     CornerReport,
     FloatArray,
     Method,
+    PointReason,
     ReconParams,
     Reconstruction,
     Recording,
@@ -325,10 +326,14 @@ def reconstruct(
                 params,
                 half_width,
                 prior_variance_m2=None if prior is None else prior[start:stop],
+                tracks=segment_class.tracks,
             )
         )
-        if kind == SegmentKind.PATH and model is not None and not segment_class.fell_back:
-            notes.append(f"segment {len(segments) - 1} has no scan near it: path only")
+        if kind == SegmentKind.PATH and model is not None:
+            if segment_class.fell_back:
+                results[-1].reason[:] = PointReason.SEGMENT_DISAGREES
+            else:
+                notes.append(f"segment {len(segments) - 1} has no scan near it: path only")
     join_at_corners(
         bounds,
         results,
@@ -861,6 +866,7 @@ def _assemble(
     residual_surface = np.empty(n)
     alpha = np.empty(n)
     variance = np.empty(n)
+    reason = np.empty(n, np.int8)
     for index, ((start, stop), result) in enumerate(zip(bounds, results, strict=True)):
         sl = slice(start, stop)
         points[sl] = result.points
@@ -872,6 +878,7 @@ def _assemble(
         residual_surface[sl] = result.residual_surface
         alpha[sl] = result.alpha
         variance[sl] = result.variance_m2
+        reason[sl] = result.reason
     from_registration = registration_sigma_m(registration, points, hand_variance_m2=prior)
     uncertainty = np.sqrt(variance + from_registration**2)
     notes = list(notes) + uncertainty_notes(
@@ -899,6 +906,7 @@ def _assemble(
         piece=piece,
         uncertainty_m=uncertainty,
         demonstrations=tuple(demonstrations),
+        reason=reason,
         corners=tuple(
             CornerReport(
                 index=c.index,

@@ -19,8 +19,9 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial import cKDTree
 
-from recon.edges import EdgePoints, thin_edges
-from recon.features import ScanFeatures, prepare_scan
+from recon.edges import EdgePoints, stations_along, thin_edges
+from recon.features import ScanFeatures, covariance_features, neighbour_balls, prepare_scan
+from recon.profiles import Profiles, find_profiles
 from recon.types import FloatArray, ReconParams, Scan
 
 #: The edge-line fits use balls this much larger than the curvature ball, to reach past the
@@ -31,8 +32,19 @@ EDGE_FIT_RADIUS_FACTOR = 2.0
 EDGE_QUERY_SPACING_FRACTION = 0.375
 #: Spacing of the points sampled along each fitted edge line.
 EDGE_SAMPLE_SPACING_M = 0.001
+#: The small-scale normals of the dense points: from this many nearest dense points ...
+FINE_NORMAL_NEIGHBOURS = 16
+#: ... within this distance (at a depth camera's point per square millimetre, about 2.3 mm).
+FINE_NORMAL_RADIUS_M = 0.004
+#: A point's face is looked up in the nearest slice within this distance ...
+FACE_SLICE_REACH_M = 0.004
+#: ... among the lines within this height of the point ...
+FACE_HEIGHT_REACH_M = 0.004
+#: ... whose points reach within this of the point's foot on the line.
+FACE_FOOT_MARGIN_M = 0.002
 #: Version of the layout written by :meth:`ScanModel.to_arrays`; bump it when the keys change.
-ARRAYS_VERSION = 1
+#: Version 1 (without edge tracks and variances) is still read.
+ARRAYS_VERSION = 2
 
 # Array keys of to_arrays: (key, attribute of ScanFeatures or EdgePoints, dtype).
 _FEATURE_ARRAYS = (
@@ -54,6 +66,12 @@ _EDGE_ARRAYS = (
     ("edge_residual_m", "residual_m", np.float64),
     ("edge_n_points", "n_points", np.int64),
 )
+#: Edge arrays added in version 2 (a version-1 model reads without them: tracks unknown,
+#: variances from the residuals).
+_EDGE_ARRAYS_V2 = (
+    ("edge_track", "track", np.int64),
+    ("edge_variance_m2", "variance_m2", np.float64),
+)
 _MODEL_SCALARS = ("edge_fit_radius_m", "edge_query_spacing_m", "edge_sample_spacing_m")
 
 
@@ -74,6 +92,10 @@ class ScanModel:
         Distance along the path between the edge-line fits the thinned edge was sampled from.
     edge_sample_spacing_m : float
         Spacing of the thinned edge's points along each fitted line.
+    profiles : Profiles or None
+        The cross-sections along the path the model was built around, where the edges came
+        from; they also say which face lies under a point (:meth:`face_normals_under`). Not
+        stored by :meth:`to_arrays` (None in a model read back).
 
     Notes
     -----
@@ -86,6 +108,7 @@ class ScanModel:
     edge_fit_radius_m: float
     edge_query_spacing_m: float
     edge_sample_spacing_m: float
+    profiles: Profiles | None = None
 
     @cached_property
     def coarse_tree(self) -> cKDTree:
@@ -102,6 +125,69 @@ class ScanModel:
         """Tree over ``edges.points_m``; None when there are no edge points."""
         return cKDTree(self.edges.points_m) if len(self.edges) else None
 
+    @cached_property
+    def dense_normals(self) -> FloatArray:
+        """The normal of each dense point's nearest voxel (shape (D, 3); sign arbitrary): which
+        way the surface faces there, at the curvature ball's scale."""
+        _, nearest = self.coarse_tree.query(self.features.dense_points_m, workers=-1)
+        return self.features.normals[nearest]
+
+    @cached_property
+    def fine_normals(self) -> FloatArray:
+        """Unit normals of the dense points at a small scale (sign arbitrary, shape (D, 3)): the
+        plane through each point's :data:`FINE_NORMAL_NEIGHBOURS` nearest dense points within
+        :data:`FINE_NORMAL_RADIUS_M`, which tells a wall a few millimetres tall from the faces
+        above and below it (the curvature ball's normals blend them)."""
+        dense = self.features.dense_points_m
+        balls = neighbour_balls(
+            dense,
+            self.dense_tree,
+            radius_m=FINE_NORMAL_RADIUS_M,
+            max_neighbours=FINE_NORMAL_NEIGHBOURS,
+        )
+        normals, _ = covariance_features(dense, balls)
+        return normals
+
+    def face_normals_under(self, points_m: FloatArray) -> tuple[FloatArray, np.ndarray]:
+        """The normal of the face each point lies over, from the nearest cross-section: the
+        line of that slice nearest to the point whose points reach past its foot.
+
+        Parameters
+        ----------
+        points_m : ndarray of shape (B, 3)
+            Scan frame.
+
+        Returns
+        -------
+        normals : ndarray of shape (B, 3)
+            Unit, sign arbitrary; meaningless where not ``found``.
+        found : ndarray of shape (B,), bool
+            A slice within :data:`FACE_SLICE_REACH_M` has such a line.
+        """
+        points_m = np.asarray(points_m, dtype=np.float64)
+        b = len(points_m)
+        profiles = self.profiles
+        if profiles is None or len(profiles) == 0:
+            return np.zeros((b, 3)), np.zeros(b, dtype=bool)
+        gap, station = cKDTree(profiles.origin_m).query(points_m, workers=-1)
+        rel = points_m - profiles.origin_m[station]
+        axes = profiles.axes[station]
+        local = np.einsum("bki,bi->bk", axes, rel)  # (B, 2)
+        normal = profiles.normal[station]  # (B, L, 2)
+        height = np.abs(np.einsum("blk,bk->bl", normal, local) - profiles.offset_m[station])
+        foot = np.einsum("blk,bk->bl", np.stack([-normal[..., 1], normal[..., 0]], -1), local)
+        extent = profiles.extent_m[station]
+        covers = (foot >= extent[..., 0] - FACE_FOOT_MARGIN_M) & (
+            foot <= extent[..., 1] + FACE_FOOT_MARGIN_M
+        )
+        usable = profiles.line_ok[station] & covers & (height <= FACE_HEIGHT_REACH_M)
+        pick = np.argmin(np.where(usable, height, np.inf), axis=1)
+        rows = np.arange(b)
+        n2 = normal[rows, pick]
+        normals = n2[:, :1] * axes[:, 0] + n2[:, 1:] * axes[:, 1]
+        found = usable[rows, pick] & (gap <= FACE_SLICE_REACH_M)
+        return normals, found
+
     @property
     def trees(self) -> tuple[cKDTree, cKDTree]:
         """The voxel and dense trees, as :func:`recon.edge_lines.fit_edge_lines` takes them."""
@@ -115,8 +201,9 @@ class ScanModel:
         Parameters
         ----------
         points_m, directions : ndarrays of shape (S, 3)
-            Scan frame; the samples get the residual and face count of the model's typical edge
-            sample (the median), as they come from lines fitted to those samples.
+            Scan frame; the samples get the residual, face count and variance of the model's
+            typical edge sample (the median), as they come from lines fitted to those samples,
+            and the track of the model's nearest sample along the same direction (-1 if none).
         drop : ndarray of shape (E,), bool, optional
             The model's own samples to leave out (those the new ones replace).
 
@@ -127,20 +214,30 @@ class ScanModel:
         """
         edges = self.edges
         if drop is not None and np.any(drop):
-            kept = ~np.asarray(drop, dtype=bool)
-            edges = EdgePoints(
-                points_m=edges.points_m[kept],
-                directions=edges.directions[kept],
-                residual_m=edges.residual_m[kept],
-                n_points=edges.n_points[kept],
-            )
+            edges = edges.subset(~np.asarray(drop, dtype=bool))
+        points_m = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+        directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         residual = float(np.median(edges.residual_m)) if len(edges) else 0.0
         count = int(np.median(edges.n_points)) if len(edges) else 0
-        grown = EdgePoints(
-            points_m=np.concatenate([edges.points_m, points_m]),
-            directions=np.concatenate([edges.directions, directions]),
-            residual_m=np.concatenate([edges.residual_m, np.full(len(points_m), residual)]),
-            n_points=np.concatenate([edges.n_points, np.full(len(points_m), count, np.int64)]),
+        variance = float(np.median(edges.variance_m2)) if len(edges) else 0.0
+        track = np.full(len(points_m), -1, np.int64)
+        if len(edges) and len(points_m):
+            gap, nearest = cKDTree(edges.points_m).query(points_m)
+            along = np.abs(np.einsum("ni,ni->n", edges.directions[nearest], directions))
+            same = (gap <= 0.002) & (along >= np.cos(np.radians(30.0)))
+            track = np.where(same, edges.track[nearest], -1)
+        grown = EdgePoints.concatenate(
+            [
+                edges,
+                EdgePoints(
+                    points_m=points_m,
+                    directions=directions,
+                    residual_m=np.full(len(points_m), residual),
+                    n_points=np.full(len(points_m), count, np.int64),
+                    track=track,
+                    variance_m2=np.full(len(points_m), variance),
+                ),
+            ]
         )
         model = ScanModel(
             features=self.features,
@@ -148,8 +245,9 @@ class ScanModel:
             edge_fit_radius_m=self.edge_fit_radius_m,
             edge_query_spacing_m=self.edge_query_spacing_m,
             edge_sample_spacing_m=self.edge_sample_spacing_m,
+            profiles=self.profiles,
         )
-        for shared in ("coarse_tree", "dense_tree"):
+        for shared in ("coarse_tree", "dense_tree", "dense_normals", "fine_normals"):
             if shared in self.__dict__:
                 model.__dict__[shared] = self.__dict__[shared]
         return model
@@ -172,7 +270,7 @@ class ScanModel:
             out[key] = np.asarray(getattr(self.features, attr), dtype=dtype)
         for key, attr, kind in _FEATURE_SCALARS:
             out[key] = np.asarray(kind(getattr(self.features, attr)))
-        for key, attr, dtype in _EDGE_ARRAYS:
+        for key, attr, dtype in _EDGE_ARRAYS + _EDGE_ARRAYS_V2:
             out[key] = np.asarray(getattr(self.edges, attr), dtype=dtype)
         for key in _MODEL_SCALARS:
             out[key] = np.asarray(float(getattr(self, key)))
@@ -206,19 +304,24 @@ class ScanModel:
         if missing:
             raise ValueError(f"the scan model's arrays lack {', '.join(missing)}")
         version = int(np.asarray(arrays["version"]))
-        if version != ARRAYS_VERSION:
+        if version not in (1, ARRAYS_VERSION):
             raise ValueError(
                 f"the scan model's arrays have layout version {version}; this version reads "
-                f"{ARRAYS_VERSION}: build the model again from the scan"
+                f"1 and {ARRAYS_VERSION}: build the model again from the scan"
             )
+        if version >= 2:
+            missing = [k for k, _, _ in _EDGE_ARRAYS_V2 if k not in arrays]
+            if missing:
+                raise ValueError(f"the scan model's arrays lack {', '.join(missing)}")
         feature_kwargs = {
             attr: np.array(arrays[key], dtype=dtype) for key, attr, dtype in _FEATURE_ARRAYS
         }
         feature_kwargs |= {
             attr: kind(np.asarray(arrays[key])) for key, attr, kind in _FEATURE_SCALARS
         }
+        edge_arrays = _EDGE_ARRAYS + (_EDGE_ARRAYS_V2 if version >= 2 else ())
         edges = EdgePoints(
-            **{attr: np.array(arrays[key], dtype=dtype) for key, attr, dtype in _EDGE_ARRAYS}
+            **{attr: np.array(arrays[key], dtype=dtype) for key, attr, dtype in edge_arrays}
         )
         features = ScanFeatures(**feature_kwargs)
         _check_shapes(features, edges)
@@ -243,6 +346,8 @@ def _check_shapes(features: ScanFeatures, edges: EdgePoints) -> None:
         raise ValueError("the scan model's edge points and directions must have shape (E, 3)")
     if edges.residual_m.shape != (e,) or edges.n_points.shape != (e,):
         raise ValueError(f"the scan model's edge residuals and counts must have {e} rows")
+    if edges.track.shape != (e,) or edges.variance_m2.shape != (e,):
+        raise ValueError(f"the scan model's edge tracks and variances must have {e} rows")
 
 
 def build_scan_model(scan: Scan, points_in_scan_m: FloatArray, params: ReconParams) -> ScanModel:
@@ -285,23 +390,27 @@ def build_scan_model(scan: Scan, points_in_scan_m: FloatArray, params: ReconPara
     query_spacing = EDGE_QUERY_SPACING_FRACTION * fit_radius
     coarse_tree = cKDTree(features.points_m)
     dense_tree = cKDTree(features.dense_points_m)
-    edges = thin_edges(
-        features,
-        path,
-        radius_m=fit_radius,
-        query_spacing_m=query_spacing,
-        sample_spacing_m=EDGE_SAMPLE_SPACING_M,
-        trees=(coarse_tree, dense_tree),
-        beyond_ends_m=fit_radius,
+    model = ScanModel(
+        features=features,
+        edges=EdgePoints.empty(),
+        edge_fit_radius_m=fit_radius,
+        edge_query_spacing_m=query_spacing,
+        edge_sample_spacing_m=EDGE_SAMPLE_SPACING_M,
     )
+    model.__dict__.update(coarse_tree=coarse_tree, dense_tree=dense_tree)
+    stations, along = stations_along(path)
+    profiles = find_profiles(
+        stations, along, features.dense_points_m, model.fine_normals, dense_tree
+    )
+    edges = thin_edges(profiles)
+    shared = {k: model.__dict__[k] for k in ("coarse_tree", "dense_tree", "fine_normals")}
     model = ScanModel(
         features=features,
         edges=edges,
         edge_fit_radius_m=fit_radius,
         edge_query_spacing_m=query_spacing,
         edge_sample_spacing_m=EDGE_SAMPLE_SPACING_M,
+        profiles=profiles,
     )
-    # The edge thinning searched these very trees: seed the model's lazy ones with them rather
-    # than build them again (cached_property keeps its value in the instance's __dict__).
-    model.__dict__.update(coarse_tree=coarse_tree, dense_tree=dense_tree)
+    model.__dict__.update(shared)
     return model

@@ -244,12 +244,17 @@ class ReconParams:
         Surface variation above which a scan point is an edge point; None derives it from the
         cloud (see ``recon.features.edge_threshold``).
     edge_fraction : float
-        A segment follows an edge when at least this fraction of the scan points nearest to it are
-        edge points.
+        A segment follows an edge of the scan when the edge runs along at least this share of it
+        (and close to it); its points without the edge then take the height of the face under
+        them (see ``recon.classify``).
     surface_k : int
         k nearest scan points of every point of N_P that form N_S on a surface.
     uncertainty_tolerance_m : float
         The summary warns of every stretch whose points' 1-sigma uncertainty exceeds this.
+    evidence_sigmas : float
+        The scan may move a point at most this many of the trace's standard deviations (the
+        hand's error model); a feature farther away is not the one traced there, and the point
+        keeps the smoothed trace (said per point in ``reason``).
     """
 
     spacing_m: float = param(0.001, gt=0, le=0.01, unit="m", help="resampling step")
@@ -285,7 +290,7 @@ class ReconParams:
         None, gt=0, lt=1 / 3, help="surface variation above which a scan point is an edge"
     )
     edge_fraction: float = param(
-        0.5, gt=0, le=1, help="share of edge points near a segment that makes it follow an edge"
+        0.25, gt=0, le=1, help="share of a segment an edge must run along for it to follow it"
     )
     surface_k: int = param(
         10, ge=3, le=1000, help="nearest scan points per path point on a surface"
@@ -296,6 +301,12 @@ class ReconParams:
         le=0.01,
         unit="m",
         help="the summary names the stretches whose 1-sigma uncertainty exceeds this",
+    )
+    evidence_sigmas: float = param(
+        3.0,
+        gt=0,
+        le=20,
+        help="the scan moves a point at most this many of the trace's standard deviations",
     )
 
     def __post_init__(self) -> None:
@@ -493,6 +504,36 @@ class PointMode(enum.IntEnum):
         return self.name.lower()
 
 
+class PointReason(enum.IntEnum):
+    """Why a point was not reconstructed as its segment claims (the scan's evidence failed
+    there), or how it was, where that needs saying. ``NONE`` for every point that followed its
+    segment's feature, and for every point of a reconstruction without a scan."""
+
+    NONE = 0  #: as its segment claims
+    NO_FEATURE = 1  #: the scan shows no such feature here (nothing fitted, too few points)
+    FAR_FROM_TRACE = 2  #: the feature is farther from the trace than the hand's error explains
+    OFF_EVIDENCE = 3  #: the fitted feature is not where the scan's points are (too far from them)
+    SEGMENT_DISAGREES = 4  #: the whole segment runs far from the scan (registration, calibration)
+    ONE_FACE = 5  #: the edge was not found here; the height comes from the one face under it
+    CONTINUED = 6  #: past the end of the scan's feature, continued along its line
+    PAST_END = 7  #: farther past the end of the scan's feature than it is continued
+
+    @property
+    def label(self) -> str:
+        return "" if self is PointReason.NONE else self.name.lower()
+
+    @property
+    def fallen_back(self) -> bool:
+        """The scan was not used at this point although the segment claimed it."""
+        return self in (
+            PointReason.NO_FEATURE,
+            PointReason.FAR_FROM_TRACE,
+            PointReason.OFF_EVIDENCE,
+            PointReason.SEGMENT_DISAGREES,
+            PointReason.PAST_END,
+        )
+
+
 @dataclass(frozen=True)
 class Segment:
     """A run of path points between corners, reconstructed on its own.
@@ -651,6 +692,7 @@ PER_POINT_FIELDS = (
     "alpha",
     "piece",
     "uncertainty_m",
+    "reason",
 )
 
 
@@ -703,6 +745,10 @@ class Reconstruction:
         scan's features, and the path with them). None for results made before it was kept.
     demonstrations : tuple of DemonstrationReport
         When several demonstrations were fused into the trace: how each one entered.
+    reason : ndarray of shape (N,), int8, or None
+        :class:`PointReason` of each point: why the scan's evidence was not used where the
+        segment claimed it, or how it was used past a feature's end. None for results made
+        before it was kept.
     """
 
     points_m: FloatArray
@@ -727,6 +773,7 @@ class Reconstruction:
     corners: tuple[CornerReport, ...] = ()
     uncertainty_m: FloatArray | None = None
     demonstrations: tuple[DemonstrationReport, ...] = ()
+    reason: NDArray[np.int8] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "piece", piece_labels(self.piece, len(self.points_m)))

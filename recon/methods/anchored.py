@@ -18,10 +18,13 @@ variance.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.ndimage import uniform_filter1d
 
 from recon.classify import SegmentKind
+from recon.faces import fit_faces
 from recon.fitting import (
     fit_linear_robust,
     gather,
@@ -39,7 +42,7 @@ from recon.methods.common import (
     prior_variance,
 )
 from recon.scan_model import ScanModel
-from recon.types import FloatArray, PointMode, ReconParams
+from recon.types import FloatArray, PointMode, PointReason, ReconParams
 
 #: The drift estimate averages the path-to-scan discrepancy over this many radii.
 DRIFT_WINDOW_RADII = 10.0
@@ -54,6 +57,8 @@ EDGE_SCAN_RADII = 1.5
 EDGE_SPAN_MARGIN_RADII = 0.25
 #: ... and at least this many samples (about ten millimetres of edge).
 MIN_EDGE_SAMPLES = 10
+#: Edge samples per independent one: 3 samples per slice's corner, slices 6 mm thick every 2 mm.
+EDGE_SAMPLES_PER_INDEPENDENT = 9.0
 #: N_S on a surface reaches this many radii from the smoothed point.
 SURFACE_SCAN_RADII = 4
 
@@ -66,6 +71,7 @@ def anchored_segment(
     half_width: int,
     *,
     prior_variance_m2: FloatArray | None = None,
+    tracks: tuple[int, ...] | None = None,
 ) -> SegmentResult:
     """The anchored method for every point of one segment (see the module docstring).
 
@@ -86,6 +92,8 @@ def anchored_segment(
         fused variance of several demonstrations. :data:`HAND_ERROR_PRIOR_M` when not given.
         It is the uncertainty of what only the path decides (a point without a scan, the
         in-plane position on a surface).
+    tracks : tuple of int, optional
+        The edge an EDGE segment follows (its points alone form N_S).
 
     Returns
     -------
@@ -99,10 +107,8 @@ def anchored_segment(
     use_scan = kind != SegmentKind.PATH and params.alpha != 1.0
     out = SegmentResult.unchanged(points)
     smoothed = np.empty_like(points)
-    target = points.copy()
     var_path_fit = np.zeros(n)
-    var_target = np.full(n, np.inf)
-    supported = np.zeros(n, dtype=bool)
+    evidence = Evidence.empty(points)
     if kind != SegmentKind.EDGE:
         # Where the path alone decides across it (no scan; the plane of a surface), the widest
         # window that does not bend it (see adaptive_smoothing).
@@ -123,49 +129,58 @@ def anchored_segment(
             var_path_fit[rows] = adaptive.variance_m2[rows]
             out.n_path[rows] = 2 * adaptive.half_width[rows] + 1
             out.residual_path[rows] = adaptive.rms_m[rows]
-        if not use_scan:
-            return
-        if kind == SegmentKind.EDGE:
-            t, var_t, count, resid = _edge_targets(
-                smoothed[rows], frame.axes[:, :, 0], model, params, degree
+        if use_scan:
+            evidence.fill(
+                rows,
+                weigh_evidence(
+                    smoothed[rows],
+                    frame.axes[:, :, 0],
+                    kind,
+                    model,
+                    params,
+                    degree,
+                    max_move_m=params.evidence_sigmas * np.sqrt(prior[rows]),
+                    tracks=tracks,
+                ),
             )
-        else:
-            t, var_t, count, resid = _surface_targets(smoothed[rows], model, params)
-        ok = np.isfinite(var_t)
-        target[rows] = np.where(ok[:, None], t, smoothed[rows])
-        var_target[rows] = var_t
-        supported[rows] = ok
-        out.n_surface[rows] = np.where(ok, count, 0)
-        out.residual_surface[rows] = np.where(ok, resid, np.nan)
 
     if use_scan:
         # The trees are built on first use: build them here, not once per thread.
         _ = model.edge_tree if kind == SegmentKind.EDGE else model.dense_tree
+        _ = model.fine_normals
     for_each_chunk(fit_chunk, n)
 
     # Across the path, what only the path decides is as uncertain as the trace (the prior); the
     # smoothing's own noise adds to it.
     path_only_var = prior + 2.0 * var_path_fit
     if use_scan:
+        supported = evidence.mode != PointMode.PATH
+        target = np.where(supported[:, None], evidence.target, smoothed)
+        var_target = np.where(supported, evidence.variance, np.inf)
         var_path = _path_variance(smoothed, target, var_target, var_path_fit, supported, half_width)
         if params.alpha == "auto":
             alpha = _auto_alpha(var_target, var_path, supported)
         else:
             alpha = np.full(n, float(params.alpha))
-        alpha = np.where(supported, alpha, 1.0)
-        followed = PointMode.EDGE if kind == SegmentKind.EDGE else PointMode.SURFACE
-        out.mode[:] = np.where(supported, followed, PointMode.PATH)
-        # The components the scan defines: two across an edge, the height on a surface; on a
-        # surface the third (in the plane, across the path) is the path's alone.
-        components = 2 if kind == SegmentKind.EDGE else 1
+        # Where the evidence starts and stops, the scan's pull fades in and out over N_P rather
+        # than jumping.
+        weight = ramp(supported, half_width)
+        alpha = 1.0 - weight * (1.0 - np.where(supported, alpha, 1.0))
+        out.mode[:] = evidence.mode
+        out.reason[:] = evidence.reason
+        out.n_surface[:] = np.where(supported, evidence.count, 0)
+        out.residual_surface[:] = np.where(supported, evidence.residual, np.nan)
+        # The components the scan defines: two across an edge, the height on a face; on a face
+        # the third (in the plane, across the path) is the path's alone.
+        components = np.where(evidence.mode == PointMode.EDGE, 2, 1)
         per_component = np.where(supported, var_path, 0.0) / components
         blend_var = components * (
             alpha**2 * per_component + (1.0 - alpha) ** 2 * np.where(supported, var_target, 0.0)
         )
-        if kind == SegmentKind.SURFACE:
-            blend_var = blend_var + 0.5 * path_only_var
-        variance = np.where(supported, blend_var, path_only_var)
+        blend_var = blend_var + np.where(components == 1, 0.5 * path_only_var, 0.0)
+        variance = np.where(supported, weight * blend_var + (1 - weight) * path_only_var, path_only_var)
     else:
+        target = smoothed
         alpha = np.ones(n)
         out.mode[:] = PointMode.PATH
         variance = path_only_var
@@ -177,7 +192,184 @@ def anchored_segment(
     return out
 
 
-def _edge_targets(centres, direction, model, params, degree):
+@dataclass
+class Evidence:
+    """What the scan says at each point of a segment, once weighed (one row per point).
+
+    Attributes
+    ----------
+    target : ndarray of shape (n, 3)
+        Where the scan's feature puts the point (the smoothed point where it says nothing).
+    variance : ndarray of shape (n,)
+        Of the target across the path (inf where the scan is not used).
+    mode : ndarray of shape (n,), int8
+        :class:`PointMode`: EDGE, SURFACE (one face), or PATH where the evidence failed.
+    reason : ndarray of shape (n,), int8
+        :class:`PointReason`.
+    count : ndarray of shape (n,), int
+        Scan points (or edge samples) behind the target.
+    residual : ndarray of shape (n,)
+        RMS residual of the scan's fit.
+    """
+
+    target: FloatArray
+    variance: FloatArray
+    mode: np.ndarray
+    reason: np.ndarray
+    count: np.ndarray
+    residual: FloatArray
+
+    @classmethod
+    def empty(cls, points: FloatArray) -> Evidence:
+        n = len(points)
+        return cls(
+            target=points.copy(),
+            variance=np.full(n, np.inf),
+            mode=np.full(n, PointMode.PATH, np.int8),
+            reason=np.full(n, PointReason.NONE, np.int8),
+            count=np.zeros(n, np.int64),
+            residual=np.full(n, np.nan),
+        )
+
+    def fill(self, rows: slice, other: Evidence) -> None:
+        for name in ("target", "variance", "mode", "reason", "count", "residual"):
+            getattr(self, name)[rows] = getattr(other, name)
+
+
+def weigh_evidence(
+    centres: FloatArray,
+    direction: FloatArray,
+    kind: SegmentKind,
+    model: ScanModel,
+    params: ReconParams,
+    degree: int,
+    *,
+    max_move_m: FloatArray,
+    tracks: tuple[int, ...] | None = None,
+) -> Evidence:
+    """The scan's target for each smoothed point, accepted only where the evidence holds.
+
+    A target is accepted where (a) the scan defines the feature there (an edge fitted from edge
+    samples on both sides with scan points near it; a face with points near the target) and (b)
+    the point moves no farther than the trace's error explains (``max_move_m``). On an edge
+    segment, a point whose edge fails falls back to the one face under it (its height), then to
+    the path alone; on a surface segment, to the path alone.
+
+    Parameters
+    ----------
+    centres : ndarray of shape (B, 3)
+        Smoothed path points, scan frame.
+    direction : ndarray of shape (B, 3)
+        The path's direction there.
+    kind : SegmentKind
+        EDGE or SURFACE.
+    model : ScanModel
+    params : ReconParams
+    degree : int
+        Of the edge's local polynomial.
+    max_move_m : ndarray of shape (B,)
+        The farthest a point may move across the path.
+    tracks : tuple of int, optional
+        The edge the segment follows.
+
+    Returns
+    -------
+    Evidence
+    """
+    out = Evidence.empty(centres)
+    todo = np.ones(len(centres), dtype=bool)
+    first_failure = np.full(len(centres), PointReason.NO_FEATURE, np.int8)
+    if kind == SegmentKind.EDGE:
+        t, var_t, count, resid = _edge_targets(
+            centres, direction, model, params, degree, tracks=tracks
+        )
+        found = np.isfinite(var_t)
+        gap, _ = model.dense_tree.query(t, workers=-1)
+        on_evidence = found & (gap <= EDGE_SUPPORT_M)
+        near = np.linalg.norm(t - centres, axis=1) <= max_move_m
+        accept = on_evidence & near
+        first_failure = np.where(
+            ~found,
+            PointReason.NO_FEATURE,
+            np.where(~on_evidence, PointReason.OFF_EVIDENCE, PointReason.FAR_FROM_TRACE),
+        ).astype(np.int8)
+        _take(out, accept, t, var_t, PointMode.EDGE, PointReason.NONE, count, resid)
+        todo &= ~accept
+    if np.any(todo):
+        rows = np.flatnonzero(todo)
+        face = fit_faces(
+            centres[rows],
+            model,
+            radius_m=SURFACE_SCAN_RADII * params.radius_m,
+            neighbours=SURFACE_NEIGHBOURS,
+            scale_m=params.radius_m,
+        )
+        near = np.linalg.norm(face.target_m - centres[rows], axis=1) <= max_move_m[rows]
+        accept = np.zeros(len(centres), dtype=bool)
+        accept[rows] = face.ok & near
+        reason = PointReason.ONE_FACE if kind == SegmentKind.EDGE else PointReason.NONE
+        t = np.zeros_like(centres)
+        t[rows] = face.target_m
+        var_t = np.full(len(centres), np.inf)
+        var_t[rows] = face.variance_m2
+        count = np.zeros(len(centres), np.int64)
+        count[rows] = face.count
+        resid = np.full(len(centres), np.nan)
+        resid[rows] = face.rms_m
+        _take(out, accept, t, var_t, PointMode.SURFACE, reason, count, resid)
+        if kind == SegmentKind.SURFACE:
+            face_failure = np.where(face.ok, PointReason.FAR_FROM_TRACE, PointReason.NO_FEATURE)
+            first_failure[rows] = face_failure
+        todo &= ~accept
+    out.reason[todo] = first_failure[todo]
+    return out
+
+
+def _take(out: Evidence, accept, target, variance, mode, reason, count, residual) -> None:
+    out.target[accept] = target[accept]
+    out.variance[accept] = variance[accept]
+    out.mode[accept] = mode
+    out.reason[accept] = reason
+    out.count[accept] = count[accept]
+    out.residual[accept] = residual[accept]
+
+
+#: An edge target needs a scan point this close to it: the crest (or the faces right next to it)
+#: is in the scan, the two faces were not extrapolated over a gap.
+EDGE_SUPPORT_M = 0.002
+
+
+def ramp(supported: np.ndarray, half_width: int) -> FloatArray:
+    """A weight that is 1 deep inside runs of supported points and falls to 0 over ``half_width``
+    points towards their ends (0 at unsupported points): how much of the scan's pull a point
+    gets, so that it fades in and out instead of jumping.
+
+    Parameters
+    ----------
+    supported : ndarray of shape (n,), bool
+    half_width : int
+
+    Returns
+    -------
+    ndarray of shape (n,), in [0, 1]
+    """
+    n = len(supported)
+    if n == 0 or half_width <= 0:
+        return supported.astype(np.float64)
+    # Distance (in points) to the nearest unsupported point, either way; segment ends do not
+    # count (a segment's end is not where evidence stops).
+    index = np.arange(n)
+    gaps = np.flatnonzero(~supported)
+    if len(gaps) == 0:
+        return np.ones(n)
+    position = np.searchsorted(gaps, index)
+    before = np.where(position > 0, index - gaps[np.maximum(position - 1, 0)], n)
+    after = np.where(position < len(gaps), gaps[np.minimum(position, len(gaps) - 1)] - index, n)
+    distance = np.minimum(before, after).astype(np.float64)
+    return np.clip(distance / half_width, 0.0, 1.0) * supported
+
+
+def _edge_targets(centres, direction, model, params, degree, *, tracks=None):
     """Nearest point of the local edge curve to each smoothed path point.
 
     A 3-D polynomial (both transverse components of the edge points' principal frame as
@@ -191,7 +383,7 @@ def _edge_targets(centres, direction, model, params, degree):
         b = len(centres)
         return centres, np.full(b, np.inf), np.zeros(b, np.int64), np.full(b, np.nan)
     ns, ws, idx_s = edge_neighbourhoods(
-        centres, direction, model, EDGE_SCAN_RADII * params.radius_m
+        centres, direction, model, EDGE_SCAN_RADII * params.radius_m, tracks=tracks
     )
     frame = weighted_pca(ns, ws)
     axes = frame.axes.copy()
@@ -227,10 +419,11 @@ def _edge_targets(centres, direction, model, params, degree):
 def edge_dependence(model: ScanModel) -> float:
     """How many edge samples carry one sample's worth of independent information.
 
-    Edge samples come from line fits in overlapping balls of the scan, so their errors are shared
-    over a ball's diameter: count one independent sample per diameter, not one per sample.
+    Each slice's corner is sampled three times along the edge, and neighbouring slices share
+    points (they are thicker than they are apart): count one independent sample per slice
+    thickness, not one per sample.
     """
-    return 2.0 * model.edge_fit_radius_m / model.edge_sample_spacing_m
+    return EDGE_SAMPLES_PER_INDEPENDENT
 
 
 def _surface_targets(centres, model, params):
@@ -254,30 +447,14 @@ SURFACE_CHUNK = 256
 
 
 def _surface_targets_of(centres, model, params):
-    dense = model.features.dense_points_m
-    k = min(SURFACE_NEIGHBOURS, len(dense))
-    dist, idx = model.dense_tree.query(
-        centres, k=k, distance_upper_bound=SURFACE_SCAN_RADII * params.radius_m, workers=-1
+    face = fit_faces(
+        centres,
+        model,
+        radius_m=SURFACE_SCAN_RADII * params.radius_m,
+        neighbours=SURFACE_NEIGHBOURS,
+        scale_m=params.radius_m,
     )
-    if k == 1:
-        dist, idx = dist[:, None], idx[:, None]
-    ns = gather(dense, idx, fill_index=len(dense))
-    ws = np.isfinite(dist).astype(np.float64)
-    frame = weighted_pca(ns, ws)
-    local = frame.to_local(ns)
-    scale = params.radius_m
-    fit, ws = fit_linear_robust(
-        quadric_design(local[..., 0], local[..., 1], scale=scale), local[..., 2], ws, floor=1e-5
-    )
-    at = frame.to_local(centres)
-    design_at = quadric_design(at[:, 0], at[:, 1], scale=scale)
-    height = fit.predict(design_at)[:, 0]
-    normal = frame.axes[:, :, 2]
-    target = centres + (height - at[:, 2])[:, None] * normal
-    var = fit.rms**2 * np.minimum(fit.leverage(design_at), 1.0)
-    ok = fit.dof >= 4
-    count = np.count_nonzero(ws, axis=1)
-    return target, np.where(ok, var, np.inf), count, fit.rms
+    return face.target_m, face.variance_m2, face.count, face.rms_m
 
 
 def _within_span(x: FloatArray, weights: FloatArray, x_at: FloatArray, *, margin: float):

@@ -25,7 +25,7 @@ from recon.fitting import (
     window_indices,
 )
 from recon.scan_model import ScanModel
-from recon.types import FloatArray, PointMode
+from recon.types import FloatArray, PointMode, PointReason
 
 #: What a hand trace is off by where nothing but the trace says where the path is, 1 sigma
 #: across the path: the paper measured operators' errors at a standard deviation of 0.5-1 mm
@@ -78,6 +78,8 @@ class SegmentResult:
         Variance of each point's position across the path (both cross-track directions
         together), from the fits, the estimated noise of the path and, where the path alone
         decided, :data:`HAND_ERROR_PRIOR_M` (the registration's share is added by the caller).
+    reason : ndarray of shape (n,), int8
+        :class:`recon.types.PointReason` of each point.
     """
 
     points: FloatArray
@@ -88,6 +90,7 @@ class SegmentResult:
     residual_surface: FloatArray
     alpha: FloatArray
     variance_m2: FloatArray
+    reason: NDArray[np.int8]
 
     @classmethod
     def unchanged(cls, points: FloatArray) -> SegmentResult:
@@ -103,6 +106,7 @@ class SegmentResult:
             residual_surface=np.full(n, np.nan),
             alpha=np.ones(n),
             variance_m2=np.full(n, HAND_ERROR_PRIOR_M**2),
+            reason=np.full(n, PointReason.NONE, np.int8),
         )
 
 
@@ -118,7 +122,12 @@ def path_frame(neighbourhoods: FloatArray) -> PCA:
 
 
 def edge_neighbourhoods(
-    centres: FloatArray, path_direction: FloatArray, model: ScanModel, radius_m: float
+    centres: FloatArray,
+    path_direction: FloatArray,
+    model: ScanModel,
+    radius_m: float,
+    *,
+    tracks: tuple[int, ...] | None = None,
 ) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
     """N_S on an edge: thinned edge points within ``radius_m`` that run along the path.
 
@@ -131,6 +140,9 @@ def edge_neighbourhoods(
     model : ScanModel
         With a non-empty thinned edge.
     radius_m : float
+    tracks : tuple of int, optional
+        Only the points of this edge (the segment's tracks, see :func:`recon.classify
+        .classify_segments`); every edge when not given.
 
     Returns
     -------
@@ -148,6 +160,8 @@ def edge_neighbourhoods(
     dirs = gather(edges.directions, idx, fill_index=len(edges))
     along = np.abs(np.einsum("bki,bi->bk", dirs, path_direction))
     weights = np.isfinite(dist) & (along >= np.cos(np.radians(EDGE_DIRECTION_TOLERANCE_DEG)))
+    if tracks is not None:
+        weights &= np.isin(gather(edges.track, idx, fill_index=len(edges)), tracks)
     return pts, weights.astype(np.float64), idx
 
 

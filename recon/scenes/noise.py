@@ -66,13 +66,18 @@ def coloured_noise(
     return sigma_m * convolve1d(white, kernel, axis=0, mode="constant")[pad:-pad]
 
 
-def cross_track_frame(points: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Two unit directions across a curve at each sample: horizontal and (mostly) vertical.
+def cross_track_frame(
+    points: FloatArray, up: FloatArray | None = None
+) -> tuple[FloatArray, FloatArray]:
+    """Two unit directions across a curve at each sample: sideways and (mostly) up.
 
     Parameters
     ----------
     points : ndarray of shape (N, 3)
-        Densely sampled curve that is nowhere vertical.
+        Densely sampled curve; without ``up``, nowhere vertical.
+    up : ndarray of shape (N, 3), optional
+        What "up" is at each sample (e.g. the outward bisector of the faces at an edge: the
+        hand drifts off the edge across it and away from the part). World z when not given.
 
     Returns
     -------
@@ -80,7 +85,12 @@ def cross_track_frame(points: FloatArray) -> tuple[FloatArray, FloatArray]:
     """
     tangent = np.gradient(points, axis=0)
     tangent /= np.linalg.norm(tangent, axis=1)[:, None]
-    across = np.cross(tangent, [0.0, 0.0, 1.0])
+    reference = np.broadcast_to([0.0, 0.0, 1.0], points.shape) if up is None else up
+    across = np.cross(tangent, reference)
+    # Where "up" runs along the curve it says nothing across it: any other direction will do.
+    spare = np.where(np.abs(tangent[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    degenerate = np.linalg.norm(across, axis=1) < 1e-6
+    across[degenerate] = np.cross(tangent[degenerate], spare[degenerate])
     across /= np.linalg.norm(across, axis=1)[:, None]
     return across, np.cross(across, tangent)
 
@@ -94,8 +104,12 @@ def hand_trace(
     sample_spacing_m: float = 0.25 * MM,
     speed_m_s: float = 0.04,
     extra_offset: Callable[[FloatArray], FloatArray] | None = None,
+    up: Callable[[FloatArray], FloatArray] | None = None,
 ) -> tuple[Recording, FloatArray]:
     """Trace ``curve(s)`` (arc-length parameterised) by a shaky hand.
+
+    ``up(s)`` (shape (N,) -> (N, 3)), when given, says what is "up" across the curve at arc
+    length ``s`` (see :func:`cross_track_frame`); world z otherwise.
 
     Returns
     -------
@@ -109,12 +123,12 @@ def hand_trace(
     # The drift is off the feature: across it, in the curve's own frame. (In world axes a
     # constant drift would be a rigid shift that registration absorbs; across a curved feature
     # it is not.) Tremor shakes in every direction.
-    across, up = cross_track_frame(ideal)
+    across, up_dir = cross_track_frame(ideal, None if up is None else up(s))
     drift = coloured_noise(s, rng, sigma_m=noise.drift_sigma_m, length_m=noise.drift_length_m)
     offset = (
         coloured_noise(s, rng, sigma_m=noise.tremor_sigma_m, length_m=noise.tremor_length_m)
         + drift[:, :1] * across
-        + drift[:, 1:2] * up
+        + drift[:, 1:2] * up_dir
         + noise.white_sigma_m * rng.standard_normal((len(s), 3))
     )
     if extra_offset is not None:

@@ -1,0 +1,178 @@
+"""The one face under a path point: a smooth patch of the scan grown from the points right under
+it, and a quadric fitted to that patch alone.
+
+A quadric fitted to every scan point near a path point spans whatever lies there: two faces at an
+edge (it lands inside the material between them), the two walls of a slot (it lands in the gap), a
+step (it lands in the air above it). So the face is selected first. It is seeded by the scan
+points nearest to the path point whose normals agree with the flattest nearby voxel's, and grown
+outwards in two stages: within :data:`STAGE_ONE_RADIUS_M` by the seed's plane, then over the
+whole neighbourhood by the first stage's quadric. A point joins only where its height is within
+three noise levels of the face so far and its normal agrees with the face's, so a wall, a step or
+the far side of an edge, whose heights or normals differ, stay out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from recon.fitting import fit_linear_robust, gather, quadric_design, weighted_pca
+from recon.scan_model import ScanModel
+from recon.types import FloatArray
+
+#: The seed: this many dense points nearest to the path point (about 15-30 mm^2 of a face).
+SEED_POINTS = 32
+#: The first stage grows the seed's plane this far.
+STAGE_ONE_RADIUS_M = 0.008
+#: A face may curve: the first stage allows a height of ``rho^2 / (2 R)`` off the seed's plane at
+#: a distance rho, for faces of this radius of curvature and flatter.
+MIN_FACE_RADIUS_M = 0.02
+#: A point's normal (at a small scale, :attr:`recon.scan_model.ScanModel.fine_normals`) must be
+#: within this of the face's to join it: a wall, a chamfer or the far side of an edge turn by
+#: more, the noise of those normals (about 6 degrees) by less.
+NORMAL_TOLERANCE_DEG = 25.0
+#: Noise floor of the face's height, metres: a nearly exact face does not shut out points for
+#: rounding-level residuals.
+HEIGHT_FLOOR_M = 0.1e-3
+#: The fit's evidence: the face needs this many points ...
+MIN_FACE_POINTS = 24
+#: ... and one of them within this distance (in the face's plane) of the path point.
+MAX_SUPPORT_GAP_M = 0.002
+
+
+@dataclass(frozen=True)
+class FaceFit:
+    """The face under each of B path points.
+
+    Attributes
+    ----------
+    target_m : ndarray of shape (B, 3)
+        The path point moved along the face's normal onto the fitted quadric.
+    normal : ndarray of shape (B, 3)
+        Unit normal of the face at the target (sign arbitrary).
+    variance_m2 : ndarray of shape (B,)
+        Variance of the target's height from the fit.
+    count : ndarray of shape (B,), int
+        Points of the face used.
+    rms_m : ndarray of shape (B,)
+        RMS residual of the face's points to the quadric.
+    support_gap_m : ndarray of shape (B,)
+        In-plane distance from the target to the nearest point of the face.
+    ok : ndarray of shape (B,), bool
+        Enough points, one of them near the target: the scan defines the face here.
+    """
+
+    target_m: FloatArray
+    normal: FloatArray
+    variance_m2: FloatArray
+    count: np.ndarray
+    rms_m: FloatArray
+    support_gap_m: FloatArray
+    ok: np.ndarray
+
+
+def fit_faces(
+    centres_m: FloatArray, model: ScanModel, *, radius_m: float, neighbours: int, scale_m: float
+) -> FaceFit:
+    """The face under each path point (see the module docstring).
+
+    Parameters
+    ----------
+    centres_m : ndarray of shape (B, 3)
+        Path points (smoothed), scan frame.
+    model : ScanModel
+    radius_m : float
+        The neighbourhood the face may grow over.
+    neighbours : int
+        At most this many dense points of it (the nearest).
+    scale_m : float
+        Abscissa scale of the quadric (conditioning).
+
+    Returns
+    -------
+    FaceFit
+    """
+    centres_m = np.asarray(centres_m, dtype=np.float64)
+    b = len(centres_m)
+    dense = model.features.dense_points_m
+    k = min(neighbours, len(dense))
+    dist, idx = model.dense_tree.query(centres_m, k=k, distance_upper_bound=radius_m, workers=-1)
+    if k == 1:
+        dist, idx = dist[:, None], idx[:, None]
+    present = np.isfinite(dist)
+    points = gather(dense, idx, fill_index=len(dense))
+    normals = gather(model.fine_normals, idx, fill_index=len(dense))
+
+    # The face under the point: as the cross-section there shows it, else the flattest voxel's.
+    reference, found = model.face_normals_under(centres_m)
+    reference = np.where(found[:, None], reference, _reference_normals(centres_m, model))
+    cos_tol = np.cos(np.radians(NORMAL_TOLERANCE_DEG))
+    agree = present & (np.abs(np.einsum("bki,bi->bk", normals, reference)) >= cos_tol)
+    # Seed: the nearest points that face the same way as the flattest voxel nearby.
+    rank = np.cumsum(agree, axis=1)
+    seed = agree & (rank <= SEED_POINTS)
+    frame = weighted_pca(points, seed.astype(np.float64))
+    local = frame.to_local(points)
+    u, v, h = local[..., 0], local[..., 1], local[..., 2]
+    rho2 = u * u + v * v
+    seed_sigma = np.sqrt(np.maximum(frame.variances[:, 2], HEIGHT_FLOOR_M**2))
+    stage_one = (
+        agree
+        & (rho2 <= STAGE_ONE_RADIUS_M**2)
+        & (np.abs(h) <= 3.0 * seed_sigma[:, None] + rho2 / (2.0 * MIN_FACE_RADIUS_M))
+    )
+    design = quadric_design(u, v, scale=scale_m)
+    fit, _ = fit_linear_robust(design, h, stage_one.astype(np.float64), floor=HEIGHT_FLOOR_M)
+    residual = np.abs(h - fit.predict_all(design)[..., 0])
+    tolerance = 3.0 * np.maximum(fit.rms, HEIGHT_FLOOR_M)[:, None]
+    stage_two = agree & (residual <= tolerance)
+    fit, used = fit_linear_robust(design, h, stage_two.astype(np.float64), floor=HEIGHT_FLOOR_M)
+    used = used > 0
+
+    at = frame.to_local(centres_m)
+    design_at = quadric_design(at[:, 0], at[:, 1], scale=scale_m)
+    height = fit.predict(design_at)[:, 0]
+    axes = frame.axes
+    target = frame.to_world(np.column_stack([at[:, 0], at[:, 1], height]))
+    # The quadric's normal at the target: (-dh/du, -dh/dv, 1) in the face's frame.
+    coef = fit.coef[:, :, 0]
+    slope_u, slope_v = _quadric_slopes(coef, at[:, 0], at[:, 1], scale_m)
+    local_normal = np.column_stack([-slope_u, -slope_v, np.ones(b)])
+    local_normal /= np.linalg.norm(local_normal, axis=1)[:, None]
+    normal = np.einsum("bij,bj->bi", axes, local_normal)
+    count = np.count_nonzero(used, axis=1)
+    gap2 = np.where(used, (u - at[:, :1]) ** 2 + (v - at[:, 1:2]) ** 2, np.inf).min(axis=1)
+    gap = np.sqrt(gap2)
+    variance = fit.rms**2 * np.minimum(fit.leverage(design_at), 1.0)
+    ok = (fit.dof >= 4) & (count >= MIN_FACE_POINTS) & (gap <= MAX_SUPPORT_GAP_M)
+    return FaceFit(
+        target_m=target,
+        normal=normal,
+        variance_m2=np.where(ok, variance, np.inf),
+        count=count,
+        rms_m=fit.rms,
+        support_gap_m=gap,
+        ok=ok,
+    )
+
+
+def _reference_normals(centres_m: FloatArray, model: ScanModel) -> FloatArray:
+    """The normal of the flattest of the voxels nearest to each point (the face the point is
+    over, not the blend of an edge nearby)."""
+    coarse = model.features
+    k = min(8, len(coarse.points_m))
+    _, nearest = model.coarse_tree.query(centres_m, k=k, workers=-1)
+    if k == 1:
+        nearest = nearest[:, None]
+    flattest = nearest[np.arange(len(centres_m)), np.argmin(coarse.curvature[nearest], axis=1)]
+    return coarse.normals[flattest]
+
+
+def _quadric_slopes(coef: FloatArray, u: FloatArray, v: FloatArray, scale_m: float):
+    """dh/du and dh/dv of :func:`recon.fitting.quadric_design`'s quadric at (u, v)."""
+    # quadric_design: 1, u/s, v/s, (u/s)^2, (u/s)(v/s), (v/s)^2
+    us, vs = u / scale_m, v / scale_m
+    du = (coef[:, 1] + 2 * coef[:, 3] * us + coef[:, 4] * vs) / scale_m
+    dv = (coef[:, 2] + coef[:, 4] * us + 2 * coef[:, 5] * vs) / scale_m
+    return du, dv

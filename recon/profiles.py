@@ -1,0 +1,460 @@
+"""Cross-sections of the scan across a path: the faces as lines in each slice, and the edges as
+the corners where two of those lines meet.
+
+Looking along a feature, a workpiece is a profile: faces are lines in the slice (a wall, a floor, a
+chamfer, both sides of a thin wall), edges are the corners where two lines meet, and a slot, a
+step or a lip is a few lines a few millimetres apart. Fitting surfaces in a ball around a point
+blends whatever the ball holds; finding the lines of the slice first keeps near-parallel features
+apart down to the scan's noise.
+
+At each station along the path, the dense scan points within :data:`SLAB_HALF_THICKNESS_M` of
+the plane across the path (and :data:`PROFILE_RADIUS_M` of the station) are projected onto it.
+Lines are found by a Hough transform (every point votes for the lines through it), strongest
+first: each peak is refined by a total-least-squares fit to the points within a band of it, and
+its points are then taken out before the next peak is sought. A corner is where two lines that
+are at least :data:`MIN_CORNER_ANGLE_DEG` apart cross, and both lines' own points reach it.
+
+Everything is vectorised over stations (no Python loop per station), chunk by chunk.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import uniform_filter1d
+
+from recon.fitting import gather
+from recon.types import FloatArray
+
+#: Half the thickness of each slice (along the path): thick enough for tens of points per face
+#: at a depth camera's density, thin enough that a curved feature stays straight within it.
+SLAB_HALF_THICKNESS_M = 0.003
+#: How far from the station the slice reaches.
+PROFILE_RADIUS_M = 0.012
+#: Dense points gathered per station before the slice is cut from them.
+PROFILE_NEIGHBOURS = 768
+#: The Hough transform's resolution: line directions ...
+THETA_BINS = 90
+#: ... and offsets.
+RHO_BIN_M = 0.0005
+#: At most this many lines per slice.
+MAX_LINES = 4
+#: A line needs this many points ...
+MIN_LINE_POINTS = 10
+#: ... spread over at least this length.
+MIN_LINE_LENGTH_M = 0.002
+#: A point belongs to a line within this many of the line's noise levels, and at least
+#: :data:`MIN_BAND_M`.
+BAND_SIGMAS = 2.5
+MIN_BAND_M = 0.0008
+#: Before a line's own noise is known: the band of its first refinement.
+FIRST_BAND_M = 0.0015
+#: Two lines closer than this to parallel make no corner.
+MIN_CORNER_ANGLE_DEG = 25.0
+#: A corner is supported when each line has a point within this of it (a depth camera loses the
+#: pixels right at a silhouette) ...
+CORNER_REACH_M = 0.0025
+#: ... and extends at least this far from it.
+MIN_ARM_M = 0.002
+#: The peak of the Hough transform is sought over bands of this many offset bins (1.5 mm: about
+#: the width of a face's points at a depth camera's noise).
+PEAK_BAND_BINS = 3
+#: A point votes only for lines whose normal is within this of its own (its face's) ...
+NORMAL_TOLERANCE_DEG = 15.0
+#: ... which is this many direction bins either side.
+VOTE_HALF_WINDOW = int(np.ceil(NORMAL_TOLERANCE_DEG / (180.0 / THETA_BINS)))
+#: A point whose normal lies mostly along the path (its face is cut at a glancing angle) does not
+#: vote: the in-slice part of its unit normal must be at least this long.
+MIN_NORMAL_IN_SLICE = 0.6
+#: A line whose halves each run at more than this to it is two faces, not one.
+BENT_ANGLE_DEG = 5.0
+#: Stations processed at once (bounds memory: votes are stations x points x directions).
+STATION_CHUNK = 64
+
+
+@dataclass(frozen=True)
+class Profiles:
+    """The lines and corners of the slices at B stations (L lines, P = L(L-1)/2 pairs each).
+
+    Line ``i`` of station ``b`` is ``{p : normal[b, i] . p = offset_m[b, i]}`` in the slice's
+    coordinates ``p = ((x - origin) . axes[b, 0], (x - origin) . axes[b, 1])``.
+
+    Attributes
+    ----------
+    origin_m : ndarray of shape (B, 3)
+        The stations (scan frame).
+    along : ndarray of shape (B, 3)
+        Unit normal of each slice: the path's direction there.
+    axes : ndarray of shape (B, 2, 3)
+        The slice's two in-plane unit axes.
+    normal : ndarray of shape (B, L, 2)
+        Unit normal of each line, slice coordinates.
+    offset_m : ndarray of shape (B, L)
+    count : ndarray of shape (B, L), int
+        Points of each line.
+    rms_m : ndarray of shape (B, L)
+        RMS distance of a line's points to it.
+    extent_m : ndarray of shape (B, L, 2)
+        Smallest and largest position of a line's points along it (along ``(-n_y, n_x)``).
+    line_ok : ndarray of shape (B, L), bool
+    corner_m : ndarray of shape (B, P, 2)
+        Where each pair of lines crosses, slice coordinates.
+    corner_ok : ndarray of shape (B, P), bool
+        A supported corner (see the module docstring).
+    corner_angle_deg : ndarray of shape (B, P)
+        Angle between the two lines (0 parallel, 90 square).
+    corner_variance_m2 : ndarray of shape (B, P)
+        Variance of the corner's position (both directions together) from the two lines' fits.
+    pairs : ndarray of shape (P, 2), int
+        The lines of each pair.
+    """
+
+    origin_m: FloatArray
+    along: FloatArray
+    axes: FloatArray
+    normal: FloatArray
+    offset_m: FloatArray
+    count: NDArray[np.int64]
+    rms_m: FloatArray
+    extent_m: FloatArray
+    line_ok: NDArray[np.bool_]
+    corner_m: FloatArray
+    corner_ok: NDArray[np.bool_]
+    corner_angle_deg: FloatArray
+    corner_variance_m2: FloatArray
+    pairs: NDArray[np.int64]
+
+    def __len__(self) -> int:
+        return len(self.origin_m)
+
+    def to_slice(self, points_m: FloatArray) -> FloatArray:
+        """Points (one per station, shape (B, 3)) in their station's slice coordinates (B, 2)."""
+        rel = points_m - self.origin_m
+        return np.einsum("bki,bi->bk", self.axes, rel)
+
+    def to_world(self, slice_m: FloatArray) -> FloatArray:
+        """Slice coordinates (B, 2) or (B, P, 2) back to the scan frame (B, 3) or (B, P, 3)."""
+        if slice_m.ndim == 2:
+            return self.origin_m + np.einsum("bk,bki->bi", slice_m, self.axes)
+        return self.origin_m[:, None] + np.einsum("bpk,bki->bpi", slice_m, self.axes)
+
+    @property
+    def corners_world_m(self) -> FloatArray:
+        """Every pair's crossing, scan frame (B, P, 3)."""
+        return self.to_world(self.corner_m)
+
+
+def slice_axes(along: FloatArray) -> FloatArray:
+    """Two unit axes across each direction (B, 3) -> (B, 2, 3), right-handed with it."""
+    helper = np.where(np.abs(along[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    a = np.cross(helper, along)
+    a /= np.linalg.norm(a, axis=1)[:, None]
+    b = np.cross(along, a)
+    return np.stack([a, b], axis=1)
+
+
+def find_profiles(
+    stations_m: FloatArray,
+    along: FloatArray,
+    dense_points_m: FloatArray,
+    dense_normals: FloatArray,
+    dense_tree,
+) -> Profiles:
+    """The lines and corners of the slices across a path (see the module docstring).
+
+    Parameters
+    ----------
+    stations_m : ndarray of shape (B, 3)
+        Where to cut, scan frame.
+    along : ndarray of shape (B, 3)
+        The path's direction at each station (the slices' normals; unit or not).
+    dense_points_m : ndarray of shape (D, 3)
+        The scan near the path.
+    dense_normals : ndarray of shape (D, 3)
+        Their unit normals at a small scale (sign arbitrary): a point votes only for lines
+        that run along its own face.
+    dense_tree : scipy.spatial.cKDTree
+        Over ``dense_points_m``.
+
+    Returns
+    -------
+    Profiles
+    """
+    stations_m = np.asarray(stations_m, dtype=np.float64)
+    along = np.asarray(along, dtype=np.float64)
+    along = along / np.maximum(np.linalg.norm(along, axis=1), 1e-300)[:, None]
+    parts = [
+        _profiles_chunk(
+            stations_m[i : i + STATION_CHUNK],
+            along[i : i + STATION_CHUNK],
+            dense_points_m,
+            dense_normals,
+            dense_tree,
+        )
+        for i in range(0, len(stations_m), STATION_CHUNK)
+    ]
+    if not parts:
+        return _empty_profiles()
+    pairs = parts[0].pairs
+    fields = [f for f in Profiles.__dataclass_fields__ if f != "pairs"]
+    return Profiles(
+        **{f: np.concatenate([getattr(p, f) for p in parts]) for f in fields}, pairs=pairs
+    )
+
+
+def _empty_profiles() -> Profiles:
+    pairs = _pairs()
+    b, lines, p = 0, MAX_LINES, len(pairs)
+    return Profiles(
+        origin_m=np.zeros((b, 3)),
+        along=np.zeros((b, 3)),
+        axes=np.zeros((b, 2, 3)),
+        normal=np.zeros((b, lines, 2)),
+        offset_m=np.zeros((b, lines)),
+        count=np.zeros((b, lines), np.int64),
+        rms_m=np.zeros((b, lines)),
+        extent_m=np.zeros((b, lines, 2)),
+        line_ok=np.zeros((b, lines), bool),
+        corner_m=np.zeros((b, p, 2)),
+        corner_ok=np.zeros((b, p), bool),
+        corner_angle_deg=np.zeros((b, p)),
+        corner_variance_m2=np.zeros((b, p)),
+        pairs=pairs,
+    )
+
+
+def _pairs() -> NDArray[np.int64]:
+    i, j = np.triu_indices(MAX_LINES, k=1)
+    return np.column_stack([i, j]).astype(np.int64)
+
+
+def _profiles_chunk(stations, along, dense, normals, tree) -> Profiles:
+    b = len(stations)
+    axes = slice_axes(along)
+    k = min(PROFILE_NEIGHBOURS, len(dense))
+    # The slice's points lie within the profile radius in 3-D too (the slab is thin).
+    reach = float(np.hypot(PROFILE_RADIUS_M, SLAB_HALF_THICKNESS_M))
+    dist, idx = tree.query(stations, k=k, distance_upper_bound=reach, workers=-1)
+    if k == 1:
+        dist, idx = dist[:, None], idx[:, None]
+    points = gather(dense, idx, fill_index=len(dense)) - stations[:, None, :]
+    point_normals = gather(normals, idx, fill_index=len(dense))
+    x = np.einsum("bki,bi->bk", points, axes[:, 0])
+    y = np.einsum("bki,bi->bk", points, axes[:, 1])
+    z = np.einsum("bki,bi->bk", points, along)
+    nx = np.einsum("bki,bi->bk", point_normals, axes[:, 0])
+    ny = np.einsum("bki,bi->bk", point_normals, axes[:, 1])
+    free = np.isfinite(dist) & (np.abs(z) <= SLAB_HALF_THICKNESS_M)
+    free &= x * x + y * y <= PROFILE_RADIUS_M**2
+    # A point on a face that the slice cuts at a glancing angle (its normal along the path) says
+    # nothing about the slice's lines.
+    free &= nx * nx + ny * ny >= MIN_NORMAL_IN_SLICE**2
+    # Only the slice's points from here on: moved to the front of each row and the rest cut off
+    # (a quarter of the ball or less), which bounds the Hough votes.
+    order = np.argsort(~free, axis=1, kind="stable")
+    width = max(int(np.count_nonzero(free, axis=1).max(initial=0)), 1)
+    order = order[:, :width]
+    x, y = np.take_along_axis(x, order, 1), np.take_along_axis(y, order, 1)
+    nx, ny = np.take_along_axis(nx, order, 1), np.take_along_axis(ny, order, 1)
+    free = np.take_along_axis(free, order, 1)
+    # Each point's normal direction in the slice, as a line direction's normal angle in [0, pi).
+    phi = np.mod(np.arctan2(ny, nx), np.pi)
+
+    theta = (np.arange(THETA_BINS) + 0.5) * np.pi / THETA_BINS
+    cos_t, sin_t = np.cos(theta), np.sin(theta)
+    n_rho = int(np.ceil(2 * PROFILE_RADIUS_M / RHO_BIN_M)) + 2
+    lines = MAX_LINES
+    normal = np.zeros((b, lines, 2))
+    offset = np.zeros((b, lines))
+    count = np.zeros((b, lines), np.int64)
+    rms = np.zeros((b, lines))
+    extent = np.zeros((b, lines, 2))
+    line_ok = np.zeros((b, lines), bool)
+    members = np.zeros((b, lines) + x.shape[1:], bool)
+    accumulator = _votes(x, y, phi, free, n_rho)
+    for line in range(lines):
+        # Votes within a band of each offset, not in one bin: a line's points scatter over a few
+        # bins.
+        banded = uniform_filter1d(accumulator, size=PEAK_BAND_BINS, axis=2, mode="constant")
+        peak = banded.reshape(b, -1).argmax(axis=1)
+        t_bin, r_bin = np.divmod(peak, n_rho)
+        n0 = np.column_stack([cos_t[t_bin], sin_t[t_bin]])
+        rho0 = (r_bin + 0.5) * RHO_BIN_M - PROFILE_RADIUS_M - RHO_BIN_M
+        band = np.full(b, FIRST_BAND_M)
+        inside = free & (np.abs(x * n0[:, :1] + y * n0[:, 1:] - rho0[:, None]) <= band[:, None])
+        inside &= _along_line(phi, n0)
+        n0, rho0, sigma, inside = _refine(x, y, phi, free, inside, passes=2)
+        # A line through two parallel faces a few millimetres apart (a step, a lip) slants
+        # across both; each half of its points then runs along its own face, not along it.
+        # Keep the half that is straighter, grown again as a line of its own.
+        half, bent = _straighter_half(x, y, inside, n0)
+        if np.any(bent):
+            n1, rho1, sigma1, inside1 = _refine(x, y, phi, free, half, passes=2)
+            n0 = np.where(bent[:, None], n1, n0)
+            rho0 = np.where(bent, rho1, rho0)
+            sigma = np.where(bent, sigma1, sigma)
+            inside = np.where(bent[:, None], inside1, inside)
+        # The line's points along it.
+        s = x * -n0[:, 1:] + y * n0[:, :1]
+        lo = np.where(inside, s, np.inf).min(axis=1)
+        hi = np.where(inside, s, -np.inf).max(axis=1)
+        n_in = np.count_nonzero(inside, axis=1)
+        ok = (n_in >= MIN_LINE_POINTS) & (hi - lo >= MIN_LINE_LENGTH_M)
+        normal[:, line] = n0
+        offset[:, line] = rho0
+        count[:, line] = n_in
+        rms[:, line] = sigma
+        extent[:, line] = np.column_stack([lo, hi])
+        line_ok[:, line] = ok
+        members[:, line] = inside & ok[:, None]
+        # Its points vote no more.
+        accumulator -= _votes(x, y, phi, inside, n_rho)
+        free &= ~inside
+        if not np.any(free):
+            break
+
+    pairs = _pairs()
+    corner, corner_ok, angle, corner_var = _corners(
+        x, y, members, normal, offset, rms, count, line_ok, pairs
+    )
+    return Profiles(
+        origin_m=stations,
+        along=along,
+        axes=axes,
+        normal=normal,
+        offset_m=offset,
+        count=count,
+        rms_m=rms,
+        extent_m=extent,
+        line_ok=line_ok,
+        corner_m=corner,
+        corner_ok=corner_ok,
+        corner_angle_deg=angle,
+        corner_variance_m2=corner_var,
+        pairs=pairs,
+    )
+
+
+def _votes(x, y, phi, weight, n_rho) -> FloatArray:
+    """Hough accumulator (B, THETA_BINS, n_rho): each weighted point votes for the lines through
+    it whose normals lie within :data:`NORMAL_TOLERANCE_DEG` of its own normal (``phi``), each
+    vote shared linearly between the two nearest offset bins."""
+    b, k = x.shape
+    step = np.pi / THETA_BINS
+    window = np.arange(-VOTE_HALF_WINDOW, VOTE_HALF_WINDOW + 1)
+    centre = np.floor(phi / step).astype(np.int64)
+    t_bin = np.mod(centre[:, :, None] + window, THETA_BINS)  # (B, K, W)
+    theta = (t_bin + 0.5) * step
+    rho = x[:, :, None] * np.cos(theta) + y[:, :, None] * np.sin(theta)
+    position = (rho + PROFILE_RADIUS_M + RHO_BIN_M) / RHO_BIN_M - 0.5
+    low = np.floor(position).astype(np.int64)
+    frac = position - low
+    low = np.clip(low, 0, n_rho - 2)
+    w = np.broadcast_to(weight[:, :, None].astype(np.float64), rho.shape)
+    flat = ((np.arange(b)[:, None, None] * THETA_BINS + t_bin) * n_rho + low).ravel()
+    size = b * THETA_BINS * n_rho
+    acc = np.bincount(flat, weights=(w * (1.0 - frac)).ravel(), minlength=size)
+    acc += np.bincount(flat + 1, weights=(w * frac).ravel(), minlength=size)
+    return acc.reshape(b, THETA_BINS, n_rho)
+
+
+def _along_line(phi: FloatArray, normal: FloatArray) -> NDArray[np.bool_]:
+    """Whether each point's normal (angle ``phi`` (B, K)) agrees with a line's normal (B, 2)
+    within :data:`NORMAL_TOLERANCE_DEG`, sign ignored."""
+    line_phi = np.mod(np.arctan2(normal[:, 1], normal[:, 0]), np.pi)[:, None]
+    diff = np.abs(phi - line_phi)
+    diff = np.minimum(diff, np.pi - diff)
+    return diff <= np.radians(NORMAL_TOLERANCE_DEG)
+
+
+def _refine(x, y, phi, free, inside, *, passes: int):
+    """Total least squares on a line's points, then its points again (within a band of its own
+    noise, along its direction), ``passes`` times."""
+    for _ in range(passes):
+        normal, rho, sigma = _total_least_squares(x, y, inside)
+        band = np.maximum(BAND_SIGMAS * sigma, MIN_BAND_M)
+        distance = np.abs(x * normal[:, :1] + y * normal[:, 1:] - rho[:, None])
+        inside = free & (distance <= band[:, None]) & _along_line(phi, normal)
+    return normal, rho, sigma, inside
+
+
+def _straighter_half(x, y, inside, normal):
+    """Where a line's two halves (split at its median point) run at more than
+    :data:`BENT_ANGLE_DEG` to it: the points of the half with the smaller scatter, and which
+    lines are bent."""
+    s = x * -normal[:, 1:] + y * normal[:, :1]
+    count = np.count_nonzero(inside, axis=1)
+    median = _masked_median(s, inside)
+    left = inside & (s <= median[:, None])
+    right = inside & (s > median[:, None])
+    halves = []
+    for half in (left, right):
+        n_h, _, sigma_h = _total_least_squares(x, y, half)
+        cos = np.abs(np.einsum("bi,bi->b", n_h, normal))
+        angle = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+        enough = np.count_nonzero(half, axis=1) >= MIN_LINE_POINTS
+        halves.append((half, angle, sigma_h, enough))
+    (left, angle_l, sigma_l, ok_l), (right, angle_r, sigma_r, ok_r) = halves
+    bent = (count >= 2 * MIN_LINE_POINTS) & ok_l & ok_r
+    bent &= np.maximum(angle_l, angle_r) > BENT_ANGLE_DEG
+    keep_left = sigma_l <= sigma_r
+    return np.where(keep_left[:, None], left, right), bent
+
+
+def _masked_median(values, mask):
+    filled = np.where(mask, values, np.inf)
+    ordered = np.sort(filled, axis=1)
+    count = mask.sum(axis=1)
+    rows = np.arange(len(values))
+    lo = ordered[rows, np.maximum((count - 1) // 2, 0)]
+    hi = ordered[rows, np.maximum(count // 2, 0)]
+    return np.where(count > 0, 0.5 * (lo + hi), 0.0)
+
+
+def _total_least_squares(x, y, weight):
+    """Each station's line through its weighted points: unit normal (B, 2), offset (B,) and the
+    RMS distance of the points to it (B,)."""
+    w = weight.astype(np.float64)
+    total = np.maximum(w.sum(axis=1), 1e-300)
+    mx, my = (w * x).sum(1) / total, (w * y).sum(1) / total
+    dx, dy = x - mx[:, None], y - my[:, None]
+    sxx, syy, sxy = (w * dx * dx).sum(1), (w * dy * dy).sum(1), (w * dx * dy).sum(1)
+    # The normal is the eigenvector of the smaller eigenvalue of [[sxx, sxy], [sxy, syy]].
+    angle = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # direction of the line
+    normal = np.column_stack([-np.sin(angle), np.cos(angle)])
+    rho = normal[:, 0] * mx + normal[:, 1] * my
+    residual = (dx * normal[:, :1] + dy * normal[:, 1:]) ** 2
+    dof = np.maximum(w.sum(axis=1) - 2, 1)
+    sigma = np.sqrt((w * residual).sum(axis=1) / dof)
+    return normal, rho, sigma
+
+
+def _corners(x, y, members, normal, offset, rms, count, line_ok, pairs):
+    """Where each pair of lines crosses, and whether both lines' points reach it."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    na, nb = normal[:, i], normal[:, j]  # (B, P, 2)
+    det = na[..., 0] * nb[..., 1] - na[..., 1] * nb[..., 0]
+    sin_angle = np.abs(det)
+    angle = np.degrees(np.arcsin(np.clip(sin_angle, 0.0, 1.0)))
+    safe = np.where(sin_angle > 1e-9, det, 1.0)
+    ra, rb = offset[:, i], offset[:, j]
+    cx = (ra * nb[..., 1] - rb * na[..., 1]) / safe
+    cy = (na[..., 0] * rb - nb[..., 0] * ra) / safe
+    corner = np.stack([cx, cy], axis=-1)
+    ok = line_ok[:, i] & line_ok[:, j] & (angle >= MIN_CORNER_ANGLE_DEG)
+    ok &= cx * cx + cy * cy <= PROFILE_RADIUS_M**2
+    # Both lines' own points reach the corner and run on from it.
+    for line in (i, j):
+        mine = members[:, line]  # (B, P, K)
+        d = np.hypot(x[:, None] - cx[..., None], y[:, None] - cy[..., None])
+        reach = np.where(mine, d, np.inf).min(axis=2)
+        arm = np.where(mine, d, -np.inf).max(axis=2)
+        ok &= (reach <= CORNER_REACH_M) & (arm >= MIN_ARM_M)
+    # Each line's offset is known to rms / sqrt(count) (its direction adds little near its
+    # centre); the corner moves by that over sin(angle), from each line.
+    var_a = rms[:, i] ** 2 / np.maximum(count[:, i], 1)
+    var_b = rms[:, j] ** 2 / np.maximum(count[:, j], 1)
+    variance = (var_a + var_b) / np.maximum(sin_angle, 1e-3) ** 2
+    return corner, ok, angle, np.where(ok, variance, np.inf)

@@ -1,0 +1,259 @@
+"""A depth camera simulated on a triangle mesh: what a structured-light or stereo camera held by a
+person would give of a real part.
+
+Rays of a pinhole image are cast at the mesh with Open3D's ``RaycastingScene``. What makes the
+cloud look like a real camera's rather than a sampled CAD surface:
+
+* **noise along the ray that grows with depth**: a stereo camera matches disparity to a fraction
+  of a pixel, so the depth error is ``z^2 / (f b)`` times the disparity error (0.6 mm at 0.45 m
+  by default, as a RealSense D4xx-class camera at close range);
+* **quantisation**: the disparity comes in steps of a sixteenth of a pixel, so depth comes in
+  steps (0.4 mm at 0.45 m);
+* **dropouts at grazing angles**: a surface seen nearly edge-on returns nothing (none beyond
+  :attr:`DepthCamera.grazing_limit_deg`, fewer and fewer from 15 degrees before it);
+* **dropouts at depth edges**: the pixels either side of a jump in depth are lost (the matcher's
+  window straddles two surfaces), which leaves a gap along every silhouette;
+* **views that do not fit perfectly**: each view of a multi-view scan is merged with a small
+  registration error of its own.
+
+Everything is in the frame of the mesh (the tracker frame of a scene); the caller moves the fused
+cloud to a scan frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from recon.types import FloatArray
+
+MM = 1e-3
+#: The depth the depth-edge threshold is given at.
+REFERENCE_DEPTH_M = 0.45
+
+
+@dataclass(frozen=True)
+class DepthCamera:
+    """A pinhole depth camera and its error model.
+
+    Attributes
+    ----------
+    width_px, height_px : int
+        Image size.
+    focal_px : float
+        Focal length in pixels (600 px over 640 px: a 56-degree horizontal field of view).
+    baseline_m : float
+        Stereo baseline; with the focal length it converts disparity to depth.
+    disparity_sigma_px : float
+        Standard deviation of the matched disparity, pixels (sets the depth noise:
+        0.6 mm at 0.45 m with the defaults).
+    disparity_step_px : float
+        The disparity's quantum (sets the depth steps).
+    grazing_limit_deg : float
+        No return from a surface whose normal is farther than this from the ray; returns thin
+        out linearly over the 15 degrees before it.
+    depth_edge_m : float
+        Neighbouring pixels whose depths differ by more than this (at 0.45 m; it scales with
+        depth squared, as the matcher's uncertainty does) are both dropped.
+    view_shift_m, view_angle_deg : float
+        Standard deviation of each view's registration error when views are merged.
+    """
+
+    width_px: int = 640
+    height_px: int = 480
+    focal_px: float = 600.0
+    baseline_m: float = 0.055
+    disparity_sigma_px: float = 0.098
+    disparity_step_px: float = 1.0 / 16.0
+    grazing_limit_deg: float = 78.0
+    depth_edge_m: float = 3 * MM
+    view_shift_m: float = 0.1 * MM
+    view_angle_deg: float = 0.02
+
+    def depth_sigma_m(self, depth_m: FloatArray | float) -> FloatArray | float:
+        """The depth noise (1 sigma) at a depth, metres."""
+        return np.asarray(depth_m) ** 2 / (self.focal_px * self.baseline_m) * self.disparity_sigma_px
+
+
+@dataclass(frozen=True)
+class View:
+    """Where the camera stands and what it looks at (mesh frame).
+
+    Attributes
+    ----------
+    eye_m : ndarray of shape (3,)
+    target_m : ndarray of shape (3,)
+    up : ndarray of shape (3,)
+        Roughly the image's up direction.
+    """
+
+    eye_m: FloatArray
+    target_m: FloatArray
+    up: FloatArray
+
+
+def hand_held_views(
+    target_m: FloatArray,
+    rng: np.random.Generator,
+    *,
+    count: int = 2,
+    distance_m: float = 0.45,
+    facing: FloatArray | None = None,
+    elevation_deg: tuple[float, float] = (35.0, 65.0),
+    spread_deg: float = 50.0,
+) -> list[View]:
+    """Viewpoints as a person scanning a part on a table would take them: from above the table
+    (z up), around the place of interest, the views some tens of degrees apart.
+
+    Parameters
+    ----------
+    target_m : ndarray of shape (3,)
+        What the camera is pointed at.
+    rng : numpy.random.Generator
+    count : int
+        Views, 1 to 3.
+    distance_m : float
+        Camera to target (about 0.45 m: a depth camera's sweet spot at close range).
+    facing : ndarray of shape (3,), optional
+        The direction the feature of interest faces (e.g. the outward bisector of an edge): the
+        views gather around its horizontal heading. Random when not given or vertical.
+    elevation_deg : (float, float)
+        Range of the camera's elevation above the horizontal.
+    spread_deg : float
+        Azimuth between consecutive views.
+
+    Returns
+    -------
+    list of View
+    """
+    if not 1 <= count <= 3:
+        raise ValueError(f"count must be 1 to 3 views, got {count}")
+    heading = None
+    if facing is not None:
+        horizontal = np.asarray(facing, dtype=np.float64)[:2]
+        if np.linalg.norm(horizontal) > 0.3 * np.linalg.norm(facing):
+            heading = float(np.arctan2(horizontal[1], horizontal[0]))
+    if heading is None:
+        heading = float(rng.uniform(0.0, 2.0 * np.pi))
+    views = []
+    for k in range(count):
+        azimuth = heading + np.radians(spread_deg) * (k - 0.5 * (count - 1))
+        azimuth += np.radians(rng.uniform(-10.0, 10.0))
+        elevation = np.radians(rng.uniform(*elevation_deg))
+        direction = np.array(
+            [
+                np.cos(elevation) * np.cos(azimuth),
+                np.cos(elevation) * np.sin(azimuth),
+                np.sin(elevation),
+            ]
+        )
+        target = np.asarray(target_m, dtype=np.float64)
+        views.append(View(target + distance_m * direction, target, np.array([0.0, 0.0, 1.0])))
+    return views
+
+
+def _camera_axes(view: View) -> FloatArray:
+    """Rows: the camera's x (right), y (down), z (forward) in the mesh frame."""
+    forward = view.target_m - view.eye_m
+    forward = forward / np.linalg.norm(forward)
+    right = np.cross(forward, view.up)
+    if np.linalg.norm(right) < 1e-9:  # looking straight along up
+        right = np.cross(forward, [1.0, 0.0, 0.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return np.stack([right, down, forward])
+
+
+def scan_mesh(
+    vertices_m: FloatArray,
+    triangles: np.ndarray,
+    views: list[View],
+    rng: np.random.Generator,
+    *,
+    camera: DepthCamera | None = None,
+) -> FloatArray:
+    """Scan a mesh from several views and merge the views (mesh frame).
+
+    Parameters
+    ----------
+    vertices_m : ndarray of shape (V, 3), metres
+    triangles : ndarray of shape (F, 3), int
+    views : list of View
+    rng : numpy.random.Generator
+    camera : DepthCamera, optional
+
+    Returns
+    -------
+    ndarray of shape (M, 3), metres
+        Every view's returns, each view moved by its own small registration error.
+    """
+    import open3d as o3d  # the simulator's only user of Open3D's ray casting
+
+    camera = camera or DepthCamera()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(np.asarray(vertices_m, dtype=np.float32)),
+        o3d.core.Tensor(np.asarray(triangles, dtype=np.uint32)),
+    )
+    clouds = []
+    for view in views:
+        points = _scan_view(scene, view, camera, rng)
+        error = Rotation.from_rotvec(
+            np.radians(camera.view_angle_deg) * rng.standard_normal(3)
+        ).as_matrix()
+        shift = camera.view_shift_m * rng.standard_normal(3)
+        centre = view.target_m
+        clouds.append((points - centre) @ error.T + centre + shift)
+    return np.concatenate(clouds) if clouds else np.zeros((0, 3))
+
+
+def _scan_view(scene, view: View, camera: DepthCamera, rng: np.random.Generator) -> FloatArray:
+    """One view's returns (mesh frame) with the camera's errors (see the module docstring)."""
+    import open3d as o3d
+
+    h, w, f = camera.height_px, camera.width_px, camera.focal_px
+    axes = _camera_axes(view)
+    u, v = np.meshgrid(np.arange(w) + 0.5 - w / 2, np.arange(h) + 0.5 - h / 2)
+    # Ray through each pixel centre, in the mesh frame: (u / f, v / f, 1) in camera axes.
+    local = np.stack([u / f, v / f, np.ones_like(u)], axis=-1)
+    directions = local @ axes
+    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+    rays = np.concatenate([np.broadcast_to(view.eye_m, directions.shape), directions], axis=-1)
+    hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))
+    distance = hit["t_hit"].numpy().astype(np.float64)
+    normals = hit["primitive_normals"].numpy().astype(np.float64)
+    valid = np.isfinite(distance)
+    # Depth along the optical axis, as the camera measures it.
+    cos_axis = directions @ axes[2]
+    depth = np.where(valid, distance * cos_axis, np.nan)
+
+    # Grazing angles: fewer returns as the surface turns away, none past the limit.
+    incidence = np.degrees(np.arccos(np.clip(np.abs(np.sum(normals * directions, -1)), 0, 1)))
+    limit = camera.grazing_limit_deg
+    keep_probability = np.clip((limit - incidence) / 15.0, 0.0, 1.0)
+    valid &= rng.uniform(size=valid.shape) < keep_probability
+
+    # Depth edges: both sides of a jump lose their pixels (a miss counts as infinitely far, so
+    # a silhouette against the background loses its rim too).
+    filled = np.where(np.isfinite(depth), depth, np.inf)
+    edge = np.zeros_like(valid)
+    for first, second, pair in (
+        (filled[:-1], filled[1:], (np.s_[:-1], np.s_[1:])),
+        (filled[:, :-1], filled[:, 1:], (np.s_[:, :-1], np.s_[:, 1:])),
+    ):
+        with np.errstate(invalid="ignore"):
+            near = np.minimum(first, second)
+            big = np.abs(second - first) > camera.depth_edge_m * (near / REFERENCE_DEPTH_M) ** 2
+        edge[pair[0]] |= big
+        edge[pair[1]] |= big
+    valid &= ~edge
+
+    # Disparity with matching noise, quantised, back to depth.
+    fb = camera.focal_px * camera.baseline_m
+    disparity = fb / depth[valid]
+    disparity = disparity + camera.disparity_sigma_px * rng.standard_normal(disparity.shape)
+    disparity = np.round(disparity / camera.disparity_step_px) * camera.disparity_step_px
+    measured = fb / disparity
+    return view.eye_m + directions[valid] * (measured / cos_axis[valid])[:, None]
