@@ -23,6 +23,8 @@ from recon.types import FloatArray
 
 #: The seed: this many dense points nearest to the path point (about 15-30 mm^2 of a face).
 SEED_POINTS = 32
+#: Seed points lie within this height of the face the cross-section shows under the point.
+SEED_HEIGHT_M = 0.0012
 #: The first stage grows the seed's plane this far.
 STAGE_ONE_RADIUS_M = 0.008
 #: A face may curve: the first stage allows a height of ``rho^2 / (2 R)`` off the seed's plane at
@@ -104,14 +106,17 @@ def fit_faces(
     points = gather(dense, idx, fill_index=len(dense))
     normals = gather(model.fine_normals, idx, fill_index=len(dense))
 
-    # The face under the point: as the cross-section there shows it, else the flattest voxel's.
-    reference, found = model.face_normals_under(centres_m)
+    # The face under the point: as the cross-section there shows it (its direction and where
+    # it is: a step's two levels face the same way), else the flattest voxel's direction.
+    reference, feet, found = model.faces_under(centres_m)
     reference = np.where(found[:, None], reference, _reference_normals(centres_m, model))
     cos_tol = np.cos(np.radians(NORMAL_TOLERANCE_DEG))
     agree = present & (np.abs(np.einsum("bki,bi->bk", normals, reference)) >= cos_tol)
-    # Seed: the nearest points that face the same way as the flattest voxel nearby.
-    rank = np.cumsum(agree, axis=1)
-    seed = agree & (rank <= SEED_POINTS)
+    on_level = np.abs(np.einsum("bki,bi->bk", points - feet[:, None], reference))
+    level = ~found[:, None] | (on_level <= SEED_HEIGHT_M)
+    # Seed: the nearest points that face that way (and lie on that face).
+    rank = np.cumsum(agree & level, axis=1)
+    seed = agree & level & (rank <= SEED_POINTS)
     frame = weighted_pca(points, seed.astype(np.float64))
     local = frame.to_local(points)
     u, v, h = local[..., 0], local[..., 1], local[..., 2]

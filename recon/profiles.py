@@ -30,7 +30,7 @@ from recon.types import FloatArray
 
 #: Half the thickness of each slice (along the path): thick enough for tens of points per face
 #: at a depth camera's density, thin enough that a curved feature stays straight within it.
-SLAB_HALF_THICKNESS_M = 0.003
+SLAB_HALF_THICKNESS_M = 0.004
 #: How far from the station the slice reaches.
 PROFILE_RADIUS_M = 0.012
 #: Dense points gathered per station before the slice is cut from them.
@@ -55,14 +55,14 @@ FIRST_BAND_M = 0.0015
 MIN_CORNER_ANGLE_DEG = 25.0
 #: A corner is supported when each line has a point within this of it (a depth camera loses the
 #: pixels right at a silhouette) ...
-CORNER_REACH_M = 0.0025
+CORNER_REACH_M = 0.0035
 #: ... and extends at least this far from it.
 MIN_ARM_M = 0.002
 #: The peak of the Hough transform is sought over bands of this many offset bins (1.5 mm: about
 #: the width of a face's points at a depth camera's noise).
 PEAK_BAND_BINS = 3
 #: A point votes only for lines whose normal is within this of its own (its face's) ...
-NORMAL_TOLERANCE_DEG = 15.0
+NORMAL_TOLERANCE_DEG = 35.0
 #: ... which is this many direction bins either side.
 VOTE_HALF_WINDOW = int(np.ceil(NORMAL_TOLERANCE_DEG / (180.0 / THETA_BINS)))
 #: A point whose normal lies mostly along the path (its face is cut at a glancing angle) does not
@@ -315,6 +315,9 @@ def _profiles_chunk(stations, along, dense, normals, tree) -> Profiles:
         if not np.any(free):
             break
 
+    normal, offset, rms, count, members = _without_crests(
+        x, y, members, normal, offset, rms, count, line_ok
+    )
     pairs = _pairs()
     corner, corner_ok, angle, corner_var = _corners(
         x, y, members, normal, offset, rms, count, line_ok, pairs
@@ -429,6 +432,34 @@ def _total_least_squares(x, y, weight):
     dof = np.maximum(w.sum(axis=1) - 2, 1)
     sigma = np.sqrt((w * residual).sum(axis=1) / dof)
     return normal, rho, sigma
+
+
+def _without_crests(x, y, members, normal, offset, rms, count, line_ok):
+    """Each line refitted without the points that also lie within another line's band: near a
+    corner the crest's points sit close to both faces and would pull both lines into the
+    corner."""
+    band = np.maximum(BAND_SIGMAS * rms, MIN_BAND_M)  # (B, L)
+    distance = np.abs(
+        x[:, None] * normal[:, :, :1] + y[:, None] * normal[:, :, 1:] - offset[:, :, None]
+    )  # (B, L, K)
+    near = line_ok[:, :, None] & (distance <= band[:, :, None])
+    others = near.sum(axis=1, keepdims=True) - near  # how many other lines claim each point
+    clean = members & (others == 0)
+    n_clean = np.count_nonzero(clean, axis=2)
+    refit = line_ok & (n_clean >= MIN_LINE_POINTS) & (n_clean < count)
+    if not np.any(refit):
+        return normal, offset, rms, count, members
+    normal, offset, rms = normal.copy(), offset.copy(), rms.copy()
+    count, members = count.copy(), members.copy()
+    for line in range(normal.shape[1]):
+        rows = refit[:, line]
+        if not np.any(rows):
+            continue
+        n_l, rho_l, sigma_l = _total_least_squares(x[rows], y[rows], clean[rows, line])
+        normal[rows, line], offset[rows, line], rms[rows, line] = n_l, rho_l, sigma_l
+        count[rows, line] = n_clean[rows, line]
+        members[rows, line] = clean[rows, line]
+    return normal, offset, rms, count, members
 
 
 def _corners(x, y, members, normal, offset, rms, count, line_ok, pairs):

@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from recon.classify import PATH_ONLY, SegmentKind, check_consistency, classify_segments
+from recon.classify import PATH_ONLY, SegmentKind, classify_segments
 from recon.corners import (
     Candidate,
     Corner,
@@ -300,8 +300,6 @@ def reconstruct(
     if model is not None:
         model = with_corner_edges(model, corners)
         classes = classify_segments(work_points, bounds, model, params)
-        classes, fallbacks = check_consistency(work_points, bounds, classes, model)
-        notes += fallbacks
     else:
         classes = [PATH_ONLY] * len(bounds)
 

@@ -148,9 +148,9 @@ class ScanModel:
         normals, _ = covariance_features(dense, balls)
         return normals
 
-    def face_normals_under(self, points_m: FloatArray) -> tuple[FloatArray, np.ndarray]:
-        """The normal of the face each point lies over, from the nearest cross-section: the
-        line of that slice nearest to the point whose points reach past its foot.
+    def faces_under(self, points_m: FloatArray) -> tuple[FloatArray, FloatArray, np.ndarray]:
+        """The face each point lies over, from the nearest cross-section: the line of that
+        slice nearest to the point whose points reach past its foot.
 
         Parameters
         ----------
@@ -161,6 +161,8 @@ class ScanModel:
         -------
         normals : ndarray of shape (B, 3)
             Unit, sign arbitrary; meaningless where not ``found``.
+        feet_m : ndarray of shape (B, 3)
+            The foot of each point on its face (in the slice): where the face is.
         found : ndarray of shape (B,), bool
             A slice within :data:`FACE_SLICE_REACH_M` has such a line.
         """
@@ -168,7 +170,7 @@ class ScanModel:
         b = len(points_m)
         profiles = self.profiles
         if profiles is None or len(profiles) == 0:
-            return np.zeros((b, 3)), np.zeros(b, dtype=bool)
+            return np.zeros((b, 3)), points_m.copy(), np.zeros(b, dtype=bool)
         gap, station = cKDTree(profiles.origin_m).query(points_m, workers=-1)
         rel = points_m - profiles.origin_m[station]
         axes = profiles.axes[station]
@@ -185,8 +187,11 @@ class ScanModel:
         rows = np.arange(b)
         n2 = normal[rows, pick]
         normals = n2[:, :1] * axes[:, 0] + n2[:, 1:] * axes[:, 1]
+        # The point moved onto the line, within its slice's plane.
+        signed = np.einsum("bk,bk->b", n2, local) - profiles.offset_m[station][rows, pick]
+        feet = points_m - signed[:, None] * normals
         found = usable[rows, pick] & (gap <= FACE_SLICE_REACH_M)
-        return normals, found
+        return normals, feet, found
 
     @property
     def trees(self) -> tuple[cKDTree, cKDTree]:

@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from recon.scenes.base import MM, Face, Scene, interpolated_curve
-from recon.scenes.depth_camera import DepthCamera, hand_held_views, scan_mesh
+from recon.scenes.depth_camera import DepthCamera, SimulatedScan, hand_held_views, scan_mesh
 from recon.scenes.noise import HandNoise, hand_trace, misalignment
 from recon.transforms import apply_transform, invert_transform
 from recon.types import FloatArray, Scan
@@ -50,6 +50,8 @@ PROBE_COUNT = 72
 FACE_OFFSET_M = 4 * MM
 #: A past-the-ends trace starts and stops this far past the feature's ends.
 OVERRUN_M = 1.5 * MM
+#: A curve longer than this is scanned from three views (two otherwise).
+LONG_CURVE_M = 0.15
 #: Longest stretch of a curve that is traced (a sub-arc of a longer one).
 MAX_TRACE_M = 0.25
 #: A curve sample is seen when the scan has a point this close to it. A depth camera loses the
@@ -316,6 +318,59 @@ def visible_fraction(truth_m: FloatArray, scan_points_m: FloatArray, *, within_m
     return float(np.mean(np.isfinite(distance)))
 
 
+#: A face next to a curve counts as seen where the camera's rays met it within this distance of
+#: the curve (on a wall only a few millimetres tall, nearer to it than to the next face) ...
+FACE_SEEN_WITHIN_M = 2 * MM
+#: ... on a triangle facing the face's way (within this angle) and in its plane.
+FACE_SEEN_ANGLE_DEG = 20.0
+
+
+def faces_seen(case: CurveCase, scan: SimulatedScan) -> tuple[FloatArray, FloatArray]:
+    """Whether the camera saw each of the two faces next to each sample of a curve.
+
+    Judged on what the rays truly hit (not on the noisy returns): a face is seen at a sample
+    when some ray met a triangle of that face (its normal within :data:`FACE_SEEN_ANGLE_DEG` of
+    the face's, the hit within 0.2 mm of the face's plane) within :data:`FACE_SEEN_WITHIN_M` of
+    the sample.
+
+    Parameters
+    ----------
+    case : CurveCase
+    scan : SimulatedScan
+        In the part's (tracker) frame.
+
+    Returns
+    -------
+    both, either : ndarrays of shape (G,), bool
+        Per truth sample: both faces seen (the scan defines the edge there), at least one.
+    """
+    g = len(case.truth_m)
+    if len(scan.surface_m) == 0:
+        return np.zeros(g, bool), np.zeros(g, bool)
+    v, f = case.part.vertices_m, case.part.triangles
+    tri_normals = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    tri_normals /= np.maximum(np.linalg.norm(tri_normals, axis=1), 1e-300)[:, None]
+    k = min(64, len(scan.surface_m))
+    dist, idx = cKDTree(scan.surface_m).query(
+        case.truth_m, k=k, distance_upper_bound=FACE_SEEN_WITHIN_M
+    )
+    if k == 1:
+        dist, idx = dist[:, None], idx[:, None]
+    present = np.isfinite(dist)
+    safe = np.where(present, idx, 0)
+    hit_normals = tri_normals[scan.triangle[safe]]  # (G, K, 3)
+    offset = scan.surface_m[safe] - case.truth_m[:, None]
+    seen = []
+    for face in (0, 1):
+        normal = case.profile.face_normals[:, face]
+        facing = np.abs(np.einsum("gki,gi->gk", hit_normals, normal)) >= np.cos(
+            np.radians(FACE_SEEN_ANGLE_DEG)
+        )
+        in_plane = np.abs(np.einsum("gki,gi->gk", offset, normal)) <= 0.2 * MM
+        seen.append((present & facing & in_plane).any(axis=1))
+    return seen[0] & seen[1], seen[0] | seen[1]
+
+
 def true_corners(truth_m: FloatArray, *, angle_deg: float = 40.0, chord_m: float = 2 * MM):
     """Points where a curve turns by more than ``angle_deg`` over ``chord_m`` either side."""
     arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(truth_m, axis=0), axis=1))]
@@ -404,12 +459,55 @@ def _face_sampler(part: Part, members, normals, area, inset_m):
     return sample
 
 
+#: The random streams of a scene: the hand's trace, the camera's scan, the scanner's pose.
+TRACE_STREAM, SCAN_STREAM, POSE_STREAM = 0, 1, 2
+
+
+def scene_rng(case: CurveCase, seed: int, stream: int) -> np.random.Generator:
+    """One random stream of a case's scene: the same scan for the same case and seed whether
+    the whole scene is built or only its scan."""
+    return np.random.default_rng([seed, case.index, sum(map(ord, case.part.name)), stream])
+
+
+def scan_case(
+    case: CurveCase,
+    rng: np.random.Generator,
+    *,
+    views: int | None = None,
+    camera: DepthCamera | None = None,
+) -> SimulatedScan:
+    """The part scanned by a hand-held depth camera pointed at a curve: one view at each part of
+    the curve (its thirds, or halves), from the side it faces, as a person covers a feature they
+    mean to program. Tracker frame.
+
+    Parameters
+    ----------
+    case : CurveCase
+    rng : numpy.random.Generator
+    views : int, optional
+        1 to 3; by default two, three for a curve longer than :data:`LONG_CURVE_M`.
+    camera : DepthCamera, optional
+    """
+    count = views if views is not None else (3 if case.length_m > LONG_CURVE_M else 2)
+    marks = ((np.arange(count) + 0.5) / count * (len(case.truth_m) - 1)).astype(int)
+    window = max(1, len(case.truth_m) // (2 * count))
+    bisector = case.profile.bisector
+    facings = np.array([bisector[max(0, m - window) : m + window + 1].mean(axis=0) for m in marks])
+    return scan_mesh(
+        case.part.vertices_m,
+        case.part.triangles,
+        hand_held_views(case.truth_m[marks], rng, facings=facings),
+        rng,
+        camera=camera or DepthCamera(),
+    )
+
+
 def cad_scene(
     case: CurveCase,
     seed: int,
     *,
     kind: str = "edge",
-    views: int = 2,
+    views: int | None = None,
     camera: DepthCamera | None = None,
     noise: HandNoise = REAL_PART_HAND,
     shift_m: float = 2 * MM,
@@ -424,8 +522,9 @@ def cad_scene(
         Trace, camera and misplacement are a deterministic function of it (and of the case).
     kind : {"edge", "past_ends", "face"}
         See the module docstring.
-    views : int
-        Depth-camera views merged into the scan, 1 to 3.
+    views : int, optional
+        Depth-camera views merged into the scan, 1 to 3: by default two, three for a curve
+        longer than :data:`LONG_CURVE_M`.
     camera : DepthCamera, optional
     noise : HandNoise
     shift_m, angle_deg : float
@@ -439,7 +538,7 @@ def cad_scene(
     """
     if kind not in TRACE_KINDS:
         raise ValueError(f"kind must be one of {', '.join(TRACE_KINDS)}, got {kind!r}")
-    rng = np.random.default_rng([seed, case.index, sum(map(ord, case.part.name))])
+    rng = scene_rng(case, seed, TRACE_STREAM)
     profile = case.profile
     truth = case.truth_m
     traced = truth
@@ -459,17 +558,8 @@ def cad_scene(
         return up_vectors[np.minimum(nearest, len(up_vectors) - 1)]
 
     recording, _ = hand_trace(curve, length, rng, noise=noise, sample_spacing_m=1 * MM, up=up)
-    facing = np.median(profile.bisector, axis=0)
-    target = truth.mean(axis=0)
-    camera = camera or DepthCamera()
-    cloud = scan_mesh(
-        case.part.vertices_m,
-        case.part.triangles,
-        hand_held_views(target, rng, count=views, facing=facing),
-        rng,
-        camera=camera,
-    )
-    T = misalignment(rng, shift_m=shift_m, angle_deg=angle_deg)
+    scan = scan_case(case, scene_rng(case, seed, SCAN_STREAM), views=views, camera=camera)
+    T = misalignment(scene_rng(case, seed, POSE_STREAM), shift_m=shift_m, angle_deg=angle_deg)
     feature = "surface" if kind == "face" else "edge"
     edge_kind = "concave" if profile.concave else "convex"
     return Scene(
@@ -478,7 +568,7 @@ def cad_scene(
         f"{profile.dihedral_deg:.0f} deg, {case.length_m * 1e3:.0f} mm), traced {kind}",
         truth_m=truth if kind != "past_ends" else _extended(truth, OVERRUN_M),
         recording=recording,
-        scan=Scan(points_m=apply_transform(T, cloud)),
+        scan=Scan(points_m=apply_transform(T, scan.points_m)),
         T_scan_tracker=T,
         feature=feature,
         surface_height=case.part.distance,
@@ -498,11 +588,24 @@ class CaseChoice:
     ----------
     case : CurveCase
     visible : float
-        Share of the traced stretch with a scan point within a millimetre (true frame).
+        Share of the traced stretch with a scan point within :data:`VISIBLE_WITHIN_M`.
+    defined : float
+        Share of the traced stretch where the scan shows both faces next to it: where the scan
+        defines the edge (elsewhere it shows one face, or none).
     """
 
     case: CurveCase
     visible: float
+    defined: float
+
+    @property
+    def scan_defines_edge(self) -> bool:
+        """Both faces seen along most of the curve (:data:`DEFINED_SHARE`)."""
+        return self.defined >= DEFINED_SHARE
+
+
+#: A curve whose two faces are both seen along this share of it is one the scan defines.
+DEFINED_SHARE = 0.8
 
 
 def traceable_cases(
@@ -526,11 +629,11 @@ def traceable_cases(
         case = curve_case(part, index, np.random.default_rng([seed, index]))
         if case.length_m < min_length_m or case.profile.dihedral_deg < min_dihedral_deg:
             continue
-        scene = cad_scene(case, seed)
-        cloud = apply_transform(invert_transform(scene.T_scan_tracker), scene.scan.points_m)
-        visible = visible_fraction(case.truth_m, cloud, within_m=VISIBLE_WITHIN_M)
+        scan = scan_case(case, scene_rng(case, seed, SCAN_STREAM))
+        visible = visible_fraction(case.truth_m, scan.points_m, within_m=VISIBLE_WITHIN_M)
         if visible >= min_visible:
-            found.append(CaseChoice(case, visible))
+            both, _ = faces_seen(case, scan)
+            found.append(CaseChoice(case, visible, float(np.mean(both))))
     concave = [c for c in found if c.case.profile.concave]
     convex = [c for c in found if not c.case.profile.concave]
     convex.sort(key=lambda c: -c.case.length_m)

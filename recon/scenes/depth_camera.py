@@ -69,8 +69,8 @@ class DepthCamera:
     disparity_step_px: float = 1.0 / 16.0
     grazing_limit_deg: float = 78.0
     depth_edge_m: float = 3 * MM
-    view_shift_m: float = 0.1 * MM
-    view_angle_deg: float = 0.02
+    view_shift_m: float = 0.05 * MM
+    view_angle_deg: float = 0.01
 
     def depth_sigma_m(self, depth_m: FloatArray | float) -> FloatArray | float:
         """The depth noise (1 sigma) at a depth, metres."""
@@ -95,52 +95,47 @@ class View:
 
 
 def hand_held_views(
-    target_m: FloatArray,
+    targets_m: FloatArray,
     rng: np.random.Generator,
     *,
-    count: int = 2,
     distance_m: float = 0.45,
-    facing: FloatArray | None = None,
+    facings: FloatArray | None = None,
     elevation_deg: tuple[float, float] = (35.0, 65.0),
-    spread_deg: float = 50.0,
 ) -> list[View]:
     """Viewpoints as a person scanning a part on a table would take them: from above the table
-    (z up), around the place of interest, the views some tens of degrees apart.
+    (z up), one view pointed at each place of interest, from the side it faces.
 
     Parameters
     ----------
-    target_m : ndarray of shape (3,)
-        What the camera is pointed at.
+    targets_m : ndarray of shape (V, 3)
+        What each view is pointed at (1 to 3 views).
     rng : numpy.random.Generator
-    count : int
-        Views, 1 to 3.
     distance_m : float
         Camera to target (about 0.45 m: a depth camera's sweet spot at close range).
-    facing : ndarray of shape (3,), optional
-        The direction the feature of interest faces (e.g. the outward bisector of an edge): the
-        views gather around its horizontal heading. Random when not given or vertical.
+    facings : ndarray of shape (V, 3), optional
+        The direction the feature faces at each target (e.g. the outward bisector of an edge):
+        the camera stands on that side, give or take 20 degrees of azimuth. Random where not
+        given or vertical.
     elevation_deg : (float, float)
         Range of the camera's elevation above the horizontal.
-    spread_deg : float
-        Azimuth between consecutive views.
 
     Returns
     -------
     list of View
     """
-    if not 1 <= count <= 3:
-        raise ValueError(f"count must be 1 to 3 views, got {count}")
-    heading = None
-    if facing is not None:
-        horizontal = np.asarray(facing, dtype=np.float64)[:2]
-        if np.linalg.norm(horizontal) > 0.3 * np.linalg.norm(facing):
-            heading = float(np.arctan2(horizontal[1], horizontal[0]))
-    if heading is None:
-        heading = float(rng.uniform(0.0, 2.0 * np.pi))
+    targets_m = np.atleast_2d(np.asarray(targets_m, dtype=np.float64))
+    if not 1 <= len(targets_m) <= 3:
+        raise ValueError(f"1 to 3 views, got {len(targets_m)}")
     views = []
-    for k in range(count):
-        azimuth = heading + np.radians(spread_deg) * (k - 0.5 * (count - 1))
-        azimuth += np.radians(rng.uniform(-10.0, 10.0))
+    for k, target in enumerate(targets_m):
+        heading = None
+        if facings is not None:
+            facing = np.asarray(facings[k], dtype=np.float64)
+            if np.linalg.norm(facing[:2]) > 0.3 * np.linalg.norm(facing):
+                heading = float(np.arctan2(facing[1], facing[0]))
+        if heading is None:
+            heading = float(rng.uniform(0.0, 2.0 * np.pi))
+        azimuth = heading + np.radians(rng.uniform(-20.0, 20.0))
         elevation = np.radians(rng.uniform(*elevation_deg))
         direction = np.array(
             [
@@ -149,7 +144,6 @@ def hand_held_views(
                 np.sin(elevation),
             ]
         )
-        target = np.asarray(target_m, dtype=np.float64)
         views.append(View(target + distance_m * direction, target, np.array([0.0, 0.0, 1.0])))
     return views
 
@@ -166,6 +160,25 @@ def _camera_axes(view: View) -> FloatArray:
     return np.stack([right, down, forward])
 
 
+@dataclass(frozen=True)
+class SimulatedScan:
+    """What a simulated depth camera returned, with what it truly hit.
+
+    Attributes
+    ----------
+    points_m : ndarray of shape (M, 3)
+        The returns as the camera gives them (noise, quantisation, the views' merge errors).
+    surface_m : ndarray of shape (M, 3)
+        Where each return's ray truly met the mesh.
+    triangle : ndarray of shape (M,), int
+        The mesh triangle it met.
+    """
+
+    points_m: FloatArray
+    surface_m: FloatArray
+    triangle: np.ndarray
+
+
 def scan_mesh(
     vertices_m: FloatArray,
     triangles: np.ndarray,
@@ -173,7 +186,7 @@ def scan_mesh(
     rng: np.random.Generator,
     *,
     camera: DepthCamera | None = None,
-) -> FloatArray:
+) -> SimulatedScan:
     """Scan a mesh from several views and merge the views (mesh frame).
 
     Parameters
@@ -186,7 +199,7 @@ def scan_mesh(
 
     Returns
     -------
-    ndarray of shape (M, 3), metres
+    SimulatedScan
         Every view's returns, each view moved by its own small registration error.
     """
     import open3d as o3d  # the simulator's only user of Open3D's ray casting
@@ -197,20 +210,27 @@ def scan_mesh(
         o3d.core.Tensor(np.asarray(vertices_m, dtype=np.float32)),
         o3d.core.Tensor(np.asarray(triangles, dtype=np.uint32)),
     )
-    clouds = []
+    clouds, surfaces, hit_triangles = [], [], []
     for view in views:
-        points = _scan_view(scene, view, camera, rng)
+        points, surface, triangle = _scan_view(scene, view, camera, rng)
         error = Rotation.from_rotvec(
             np.radians(camera.view_angle_deg) * rng.standard_normal(3)
         ).as_matrix()
         shift = camera.view_shift_m * rng.standard_normal(3)
         centre = view.target_m
         clouds.append((points - centre) @ error.T + centre + shift)
-    return np.concatenate(clouds) if clouds else np.zeros((0, 3))
+        surfaces.append(surface)
+        hit_triangles.append(triangle)
+    if not clouds:
+        return SimulatedScan(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64))
+    return SimulatedScan(
+        np.concatenate(clouds), np.concatenate(surfaces), np.concatenate(hit_triangles)
+    )
 
 
-def _scan_view(scene, view: View, camera: DepthCamera, rng: np.random.Generator) -> FloatArray:
-    """One view's returns (mesh frame) with the camera's errors (see the module docstring)."""
+def _scan_view(scene, view: View, camera: DepthCamera, rng: np.random.Generator):
+    """One view's returns (mesh frame) with the camera's errors (see the module docstring), the
+    true hit points and the triangles hit."""
     import open3d as o3d
 
     h, w, f = camera.height_px, camera.width_px, camera.focal_px
@@ -224,6 +244,7 @@ def _scan_view(scene, view: View, camera: DepthCamera, rng: np.random.Generator)
     hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))
     distance = hit["t_hit"].numpy().astype(np.float64)
     normals = hit["primitive_normals"].numpy().astype(np.float64)
+    triangle = hit["primitive_ids"].numpy().astype(np.int64)
     valid = np.isfinite(distance)
     # Depth along the optical axis, as the camera measures it.
     cos_axis = directions @ axes[2]
@@ -256,4 +277,6 @@ def _scan_view(scene, view: View, camera: DepthCamera, rng: np.random.Generator)
     disparity = disparity + camera.disparity_sigma_px * rng.standard_normal(disparity.shape)
     disparity = np.round(disparity / camera.disparity_step_px) * camera.disparity_step_px
     measured = fb / disparity
-    return view.eye_m + directions[valid] * (measured / cos_axis[valid])[:, None]
+    points = view.eye_m + directions[valid] * (measured / cos_axis[valid])[:, None]
+    surface = view.eye_m + directions[valid] * distance[valid][:, None]
+    return points, surface, triangle[valid]
