@@ -267,6 +267,7 @@ def confirm_with_scan(
     *,
     edge_directions: FloatArray,
     angle_deg: float,
+    max_offset_m: float = MAX_CORNER_OFFSET_M,
 ) -> Corner | None:
     """Whether the scan's edges turn where the trace does; None when the scan has no edge line
     on one side of the candidate or both (the scan has no say there).
@@ -286,6 +287,9 @@ def confirm_with_scan(
         The thinned edge's unit directions.
     angle_deg : float
         The corner threshold: the scan's edges must turn at least this much.
+    max_offset_m : float
+        The scan's corner must lie within this of the trace near the turn (the farthest the
+        hand's error explains); farther, it is another corner than the one traced.
 
     Returns
     -------
@@ -320,13 +324,16 @@ def confirm_with_scan(
     cos_between = float(np.clip(np.dot(before.direction, after.direction), -1.0, 1.0))
     turn = 180.0 - float(np.degrees(np.arccos(cos_between)))
     point, gap = closest_approach(before, after)
-    offset = float(np.linalg.norm(point - points_scan_m[c]))
+    # Across the trace, not along it: where along the path the hand turned is itself uncertain
+    # by a few millimetres (a hand rounds a corner).
+    near_turn = np.abs(arc_m - arc_m[c]) <= LINE_STRETCH_M[0]
+    offset = float(np.min(np.linalg.norm(points_scan_m[near_turn] - point, axis=1)))
     problems = []
     if turn < MIN_TURN_SHARE * angle_deg:
         problems.append(f"the scan's edge turns only {turn:.0f} deg there")
     if gap > MAX_LINE_GAP_M:
         problems.append(f"its two edge lines pass {gap * 1e3:.1f} mm apart")
-    if offset > MAX_CORNER_OFFSET_M:
+    if offset > max_offset_m:
         problems.append(f"they meet {offset * 1e3:.1f} mm from the trace's turn")
     if problems:
         return Corner(

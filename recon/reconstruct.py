@@ -450,6 +450,7 @@ def judge_corners(
                 model.edge_tree,
                 edge_directions=model.edges.directions,
                 angle_deg=params.corner_angle_deg,
+                max_offset_m=params.evidence_sigmas * HAND_ERROR_PRIOR_M,
             )
         if judged is None:
             judged = judge_without_scan(candidate, angle_deg=params.corner_angle_deg)

@@ -53,6 +53,8 @@ DRIFT_WINDOW_RADII = 10.0
 SURFACE_NEIGHBOURS = 1024
 #: N_S on an edge reaches this many radii from the smoothed point.
 EDGE_SCAN_RADII = 1.5
+#: Edge samples gathered for the narrowest N_S (more for the wider ones, in proportion).
+EDGE_NEIGHBOURS = 64
 #: An edge target needs edge samples on both sides of it, give or take this many radii.
 EDGE_SPAN_MARGIN_RADII = 0.25
 #: ... and at least this many samples (about ten millimetres of edge).
@@ -370,10 +372,15 @@ def ramp(supported: np.ndarray, half_width: int) -> FloatArray:
 
 
 def _edge_targets(centres, direction, model, params, degree, *, tracks=None):
-    """Nearest point of the local edge curve to each smoothed path point.
+    """Nearest point of the local edge curve to each smoothed path point, over the widest stretch
+    of edge that does not bend it.
 
-    A 3-D polynomial (both transverse components of the edge points' principal frame as
-    functions of the first) is fitted robustly to the thinned edge points near the point.
+    The edge is fitted over :data:`EDGE_WINDOW_FACTORS` times the N_S reach (see
+    :func:`_edge_targets_within`); at each point the widest fit that agrees with every narrower
+    one (within :data:`EDGE_ICI_GAMMA` of their summed standard deviations: the intersection of
+    confidence intervals, as for the path in :func:`recon.methods.common.adaptive_smoothing`) is
+    kept. A straight edge is then averaged over several centimetres of scan, a tight bend over
+    the narrowest stretch.
 
     Returns
     -------
@@ -382,15 +389,53 @@ def _edge_targets(centres, direction, model, params, degree, *, tracks=None):
     if model.edge_tree is None:
         b = len(centres)
         return centres, np.full(b, np.inf), np.zeros(b, np.int64), np.full(b, np.nan)
+    fits = [
+        _edge_targets_within(centres, direction, model, params, degree, tracks, factor)
+        for factor in EDGE_WINDOW_FACTORS
+    ]
+    rows = np.arange(len(centres))
+    chosen = np.zeros(len(centres), dtype=np.int64)
+    agreeing = np.isfinite(fits[0][1])
+    for j in range(1, len(fits)):
+        t_j, var_j = fits[j][0], fits[j][1]
+        agreeing &= np.isfinite(var_j)
+        for i in range(j):
+            t_i, var_i = fits[i][0], fits[i][1]
+            gap = np.linalg.norm(t_j - t_i, axis=1)
+            with np.errstate(invalid="ignore"):
+                bound = EDGE_ICI_GAMMA * (np.sqrt(var_i) + np.sqrt(var_j))
+            agreeing &= gap <= bound
+        chosen = np.where(agreeing, j, chosen)
+    return tuple(np.stack([f[k] for f in fits])[chosen, rows] for k in range(4))
+
+
+#: The edge's N_S reaches these multiples of its narrowest reach; the widest that does not bend
+#: the edge is kept (see :func:`_edge_targets`).
+EDGE_WINDOW_FACTORS = (1, 2, 4)
+#: The intersection-of-confidence-intervals constant of the edge's window choice.
+EDGE_ICI_GAMMA = 1.5
+
+
+def _edge_targets_within(centres, direction, model, params, degree, tracks, factor):
+    """:func:`_edge_targets` with N_S reaching ``factor`` times :data:`EDGE_SCAN_RADII` radii.
+
+    A 3-D polynomial (both transverse components of the edge points' principal frame as
+    functions of the first) is fitted robustly to the thinned edge points near the point.
+    """
     ns, ws, idx_s = edge_neighbourhoods(
-        centres, direction, model, EDGE_SCAN_RADII * params.radius_m, tracks=tracks
+        centres,
+        direction,
+        model,
+        EDGE_SCAN_RADII * params.radius_m * factor,
+        tracks=tracks,
+        max_points=EDGE_NEIGHBOURS * factor,
     )
     frame = weighted_pca(ns, ws)
     axes = frame.axes.copy()
     flip = np.einsum("bi,bi->b", axes[:, :, 0], direction) < 0
     axes[flip, :, 0] *= -1
     local = np.einsum("bij,bki->bkj", axes, ns - frame.mean[:, None])
-    scale = params.radius_m
+    scale = params.radius_m * factor
     fit, ws = fit_linear_robust(
         poly_design(local[..., 0], degree=degree, scale=scale), local[..., 1:], ws, floor=1e-5
     )
@@ -402,11 +447,11 @@ def _edge_targets(centres, direction, model, params, degree, *, tracks=None):
     var_from_scatter = fit.rms**2 * np.minimum(
         fit.leverage(design_at) * edge_dependence(model), 1.0
     )
-    # The scatter about the local curve hides what the line fits share over a ball's diameter,
-    # so the fits' own precision bounds the target's variance from below.
+    # The scatter about the local curve hides what neighbouring corners share (their slices
+    # overlap), so the corners' own precision bounds the target's variance from below.
     line_variance = gather(model.edges.variance_m2, idx_s, fill_index=len(model.edges))
     var_from_fits = (ws * line_variance).sum(axis=1) / np.maximum(ws.sum(axis=1), 1e-300)
-    var = np.maximum(var_from_scatter, var_from_fits)
+    var = np.maximum(var_from_scatter, var_from_fits / factor)
     # Require support on both sides of short extrapolation: the point must lie within the span.
     span_ok = _within_span(local[..., 0], ws, x_at, margin=EDGE_SPAN_MARGIN_RADII * params.radius_m)
     count = np.count_nonzero(ws, axis=1)

@@ -128,6 +128,7 @@ def edge_neighbourhoods(
     radius_m: float,
     *,
     tracks: tuple[int, ...] | None = None,
+    max_points: int = 64,
 ) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
     """N_S on an edge: thinned edge points within ``radius_m`` that run along the path.
 
@@ -143,6 +144,8 @@ def edge_neighbourhoods(
     tracks : tuple of int, optional
         Only the points of this edge (the segment's tracks, see :func:`recon.classify
         .classify_segments`); every edge when not given.
+    max_points : int
+        At most this many (the nearest).
 
     Returns
     -------
@@ -152,7 +155,7 @@ def edge_neighbourhoods(
         Into ``model.edges``; ``len(model.edges)`` marks padding.
     """
     edges = model.edges
-    k = min(64, len(edges))
+    k = min(max_points, len(edges))
     dist, idx = model.edge_tree.query(centres, k=k, distance_upper_bound=radius_m, workers=-1)
     if k == 1:
         dist, idx = dist[:, None], idx[:, None]
