@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from recon.features import ScanFeatures
-from recon.fitting import fit_linear, gather, weighted_pca
+from recon.fitting import PCA, fit_linear, gather, weighted_pca
 from recon.types import FloatArray
 
 #: Lower bound of the face-fit noise level, as a fraction of the ball radius (see
@@ -162,6 +162,7 @@ def fit_edge_lines(
     trees: tuple[cKDTree, cKDTree] | None = None,
     min_points: int = 6,
     chunk: int = 256,
+    seed_planes: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = None,
 ) -> EdgeLineFit:
     """Fit the local edge line near each query point as the intersection of two faces.
 
@@ -184,6 +185,10 @@ def fit_edge_lines(
         Fewest points each face needs.
     chunk : int
         Queries processed at once (bounds memory: a chunk holds chunk x 768 neighbours).
+    seed_planes : (normal_a, point_a, normal_b, point_b), each of shape (Q, 3), optional
+        The two faces to start from (e.g. the lines of a cross-section through the query, see
+        :mod:`recon.profiles`), instead of splitting the ball's normals in two: which faces
+        meet is then already decided, the fit only makes them precise.
 
     Returns
     -------
@@ -193,12 +198,18 @@ def fit_edge_lines(
     if trees is None:
         trees = (cKDTree(features.points_m), cKDTree(features.dense_points_m))
     starts = range(0, len(query_m), chunk)
+
+    def seeds_of(i):
+        if seed_planes is None:
+            return None
+        return tuple(np.asarray(a, dtype=np.float64)[i : i + chunk] for a in seed_planes)
+
     # numpy's matmul and eigh release the GIL, so chunks run in parallel on threads.
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
         parts = list(
             pool.map(
                 lambda i: _fit_edge_lines_chunk(
-                    query_m[i : i + chunk], features, trees, radius_m, min_points
+                    query_m[i : i + chunk], features, trees, radius_m, min_points, seeds_of(i)
                 ),
                 starts,
             )
@@ -240,6 +251,18 @@ def _neighbours(tree: cKDTree, values: FloatArray, query_m: FloatArray, k: int, 
     return gather(values, idx, fill_index=tree.n), np.isfinite(dist), idx
 
 
+def _plane(normal: FloatArray, point: FloatArray) -> PCA:
+    """A plane given by its normal and a point, as the PCA the fits use (normal third)."""
+    normal = normal / np.linalg.norm(normal, axis=1)[:, None]
+    helper = np.where(np.abs(normal[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    first = np.cross(helper, normal)
+    first /= np.linalg.norm(first, axis=1)[:, None]
+    second = np.cross(normal, first)
+    axes = np.stack([first, second, normal], axis=2)
+    b = len(normal)
+    return PCA(mean=point, axes=axes, variances=np.zeros((b, 3)), weight=np.ones(b))
+
+
 def _dots(vectors: FloatArray, direction: FloatArray) -> FloatArray:
     """Dot product of each of K vectors with one direction per row: (Q, K, 3), (Q, 3) -> (Q, K)."""
     return np.matmul(vectors, direction[..., None])[..., 0]
@@ -256,19 +279,26 @@ def _masked_median(values: FloatArray, mask: NDArray[np.bool_]) -> FloatArray:
     return np.where(count > 0, 0.5 * (lo + hi), np.nan)
 
 
-def _fit_edge_lines_chunk(query_m, features, trees, radius_m, min_points) -> EdgeLineFit:
+def _fit_edge_lines_chunk(
+    query_m, features, trees, radius_m, min_points, seeds=None
+) -> EdgeLineFit:
     coarse_tree, dense_tree = trees
-    # Initial split: normals of the voxel cloud, off-crest points only.
-    coarse, c_present, c_idx = _neighbours(coarse_tree, features.points_m, query_m, 128, radius_m)
-    c_normals = gather(features.normals, c_idx, fill_index=coarse_tree.n)
-    c_edge = gather(features.is_edge.astype(np.float64), c_idx, coarse_tree.n).astype(bool)
-    flat = c_present & ~c_edge
-    # Where the crest's band fills most of the ball, seed from every point rather than none.
-    few = np.count_nonzero(flat, axis=1) < 4 * min_points
-    flat = np.where(few[:, None], c_present, flat)
-    second = _axial_two_means(c_normals, flat.astype(np.float64))
-    pa = weighted_pca(coarse, (flat & ~second).astype(np.float64))
-    pb = weighted_pca(coarse, (flat & second).astype(np.float64))
+    if seeds is None:
+        # Initial split: normals of the voxel cloud, off-crest points only.
+        coarse, c_present, c_idx = _neighbours(
+            coarse_tree, features.points_m, query_m, 128, radius_m
+        )
+        c_normals = gather(features.normals, c_idx, fill_index=coarse_tree.n)
+        c_edge = gather(features.is_edge.astype(np.float64), c_idx, coarse_tree.n).astype(bool)
+        flat = c_present & ~c_edge
+        # Where the crest's band fills most of the ball, seed from every point rather than none.
+        few = np.count_nonzero(flat, axis=1) < 4 * min_points
+        flat = np.where(few[:, None], c_present, flat)
+        second = _axial_two_means(c_normals, flat.astype(np.float64))
+        pa = weighted_pca(coarse, (flat & ~second).astype(np.float64))
+        pb = weighted_pca(coarse, (flat & second).astype(np.float64))
+    else:
+        pa, pb = (_plane(normal, point) for normal, point in (seeds[:2], seeds[2:]))
 
     dense, present, _ = _neighbours(
         dense_tree, features.dense_points_m, query_m, EDGE_FIT_NEIGHBOURS, radius_m

@@ -21,6 +21,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from recon.edge_lines import fit_edge_lines
+from recon.features import ScanFeatures
 from recon.fitting import gather, weighted_pca
 from recon.profiles import Profiles
 from recon.types import FloatArray
@@ -109,13 +111,32 @@ class EdgePoints:
         )
 
 
-def edges_from_profiles(profiles: Profiles) -> EdgePoints:
+def edges_from_profiles(
+    profiles: Profiles,
+    features: ScanFeatures | None = None,
+    trees: tuple[cKDTree, cKDTree] | None = None,
+    *,
+    fit_radius_m: float = 0.016,
+) -> EdgePoints:
     """The corners of every slice as edge points, linked into tracks, each with the direction
-    of its track there.
+    of its track there; every :data:`REFINE_EVERY` th corner of a track refined by a fit of its
+    two faces in 3-D (when ``features`` are given).
+
+    A slice holds tens of points per face, and the corner is where two lines extrapolated from
+    them meet: a few tenths of a millimetre off at a depth camera's noise. The slice has told
+    which two faces meet there; fitted over a ball of ``fit_radius_m`` (hundreds of points each,
+    curving along the edge), the same two faces place the edge several times more precisely
+    (:func:`recon.edge_lines.fit_edge_lines` started from the slice's lines).
 
     Parameters
     ----------
     profiles : Profiles
+    features : ScanFeatures, optional
+        The scan near the path, for the refinement.
+    trees : (cKDTree, cKDTree), optional
+        Over the voxel and dense clouds.
+    fit_radius_m : float
+        Ball of the refining fits.
 
     Returns
     -------
@@ -133,16 +154,123 @@ def edges_from_profiles(profiles: Profiles) -> EdgePoints:
     variance = profiles.corner_variance_m2[station, pair]
     track = _tracks(corners, along, station)
     direction = _track_directions(corners, along, track)
+    parts = []
+    covered = np.zeros(len(corners), dtype=bool)
+    if features is not None and len(features.dense_points_m):
+        refined, covered = _refined(
+            profiles, station, pair, corners, direction, track, features, trees, fit_radius_m
+        )
+        parts.append(refined)
+    keep = ~covered
     offsets = np.asarray(SAMPLE_OFFSETS_M)
-    samples = corners[:, None, :] + offsets[None, :, None] * direction[:, None, :]
+    samples = corners[keep, None, :] + offsets[None, :, None] * direction[keep, None, :]
     repeat = len(offsets)
-    return EdgePoints(
-        points_m=samples.reshape(-1, 3),
-        directions=np.repeat(direction, repeat, axis=0),
-        residual_m=np.repeat(residual, repeat),
-        n_points=np.repeat(count.astype(np.int64), repeat),
-        track=np.repeat(track, repeat),
-        variance_m2=np.repeat(variance, repeat),
+    parts.append(
+        EdgePoints(
+            points_m=samples.reshape(-1, 3),
+            directions=np.repeat(direction[keep], repeat, axis=0),
+            residual_m=np.repeat(residual[keep], repeat),
+            n_points=np.repeat(count[keep].astype(np.int64), repeat),
+            track=np.repeat(track[keep], repeat),
+            variance_m2=np.repeat(variance[keep], repeat),
+        )
+    )
+    return EdgePoints.concatenate(parts)
+
+
+#: Every this many corners of a track (slices 2 mm apart) is refined in 3-D, and stands for its
+#: neighbours either side.
+REFINE_EVERY = 3
+#: A refined corner must stay within this of its slice's corner ...
+REFINE_MAX_MOVE_M = 0.0015
+#: ... run within this angle of its track ...
+REFINE_MAX_TURN_DEG = 30.0
+#: ... scatter no more than this many times the slice's lines ...
+REFINE_MAX_SCATTER = 1.3
+#: ... and keep its faces within this angle of the slice's lines (else it found other faces).
+REFINE_MAX_FACE_TURN_DEG = 15.0
+
+
+def _refined(profiles, station, pair, corners, direction, track, features, trees, radius_m):
+    """Every :data:`REFINE_EVERY` th corner of each track refined in 3-D (see
+    :func:`edges_from_profiles`): the refined edge points, and which slice corners they stand
+    for."""
+    order = np.lexsort((station, track))
+    rank = np.empty(len(order), np.int64)
+    # Position of each corner within its track, in station order.
+    starts = np.r_[0, np.flatnonzero(np.diff(track[order])) + 1]
+    position = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
+    rank[order] = position
+    chosen = np.flatnonzero(rank % REFINE_EVERY == REFINE_EVERY // 2)
+    if len(chosen) == 0:
+        return EdgePoints.empty(), np.zeros(len(corners), bool)
+    b, p = station[chosen], pair[chosen]
+    i, j = profiles.pairs[p, 0], profiles.pairs[p, 1]
+    axes = profiles.axes[b]
+
+    def normal3(line):
+        n2 = profiles.normal[b, line]
+        return n2[:, :1] * axes[:, 0] + n2[:, 1:] * axes[:, 1]
+
+    query = corners[chosen]
+    fit = fit_edge_lines(
+        query,
+        features,
+        radius_m=radius_m,
+        trees=trees,
+        seed_planes=(normal3(i), query, normal3(j), query),
+    )
+    moved = np.linalg.norm(fit.points_m - query, axis=1)
+    turn = np.abs(np.einsum("ni,ni->n", fit.directions, direction[chosen]))
+    ok = fit.ok & (moved <= REFINE_MAX_MOVE_M) & (turn >= np.cos(np.radians(REFINE_MAX_TURN_DEG)))
+    ok &= _faces_kept(fit, normal3(i), normal3(j))
+    # The ball's faces must be as flat as the slice's lines: a third face taken in (a small
+    # part's next feature, a shallow crease's neighbour) shows as a larger scatter.
+    slice_rms = np.maximum(profiles.rms_m[b, i], profiles.rms_m[b, j])
+    ok &= fit.residual_m <= REFINE_MAX_SCATTER * slice_rms
+    good = chosen[ok]
+    covered = np.zeros(len(corners), dtype=bool)
+    if len(good) == 0:
+        return EdgePoints.empty(), covered
+    # Each refined corner stands for the slices either side of it on its track.
+    by_rank = {(int(track[c]), int(rank[c])): c for c in range(len(corners))}
+    for c in good:
+        for step in range(-(REFINE_EVERY // 2), REFINE_EVERY // 2 + 1):
+            other = by_rank.get((int(track[c]), int(rank[c]) + step))
+            if other is not None:
+                covered[other] = True
+    lines = fit.directions[ok]
+    flip = np.einsum("ni,ni->n", lines, direction[good]) < 0
+    lines[flip] *= -1
+    half = 0.5 * REFINE_EVERY * STATION_SPACING_M
+    offsets = np.arange(-half, half + 1e-9, 0.001)
+    samples = fit.points_m[ok][:, None, :] + offsets[None, :, None] * lines[:, None, :]
+    repeat = len(offsets)
+    residual = fit.residual_m[ok]
+    count = fit.n_points[ok]
+    return (
+        EdgePoints(
+            points_m=samples.reshape(-1, 3),
+            directions=np.repeat(lines, repeat, axis=0),
+            residual_m=np.repeat(residual, repeat),
+            n_points=np.repeat(count, repeat),
+            track=np.repeat(track[good], repeat),
+            variance_m2=np.repeat(
+                EDGE_VARIANCE_FACTOR * residual**2 / np.maximum(count, 1), repeat
+            ),
+        ),
+        covered,
+    )
+
+
+def _faces_kept(fit, normal_a, normal_b) -> np.ndarray:
+    """Whether a refined fit's faces are still the slice's two (either way round)."""
+    cos = np.cos(np.radians(REFINE_MAX_FACE_TURN_DEG))
+    # The fit's face normals are not kept; its direction and bisector are: both slice normals
+    # must be perpendicular to the fitted edge direction, near enough.
+    along = fit.directions
+    return (np.abs(np.einsum("ni,ni->n", along, normal_a)) <= np.sqrt(1 - cos**2)) & (
+        np.abs(np.einsum("ni,ni->n", along, normal_b)) <= np.sqrt(1 - cos**2)
     )
 
 
@@ -233,6 +361,12 @@ def stations_along(path_m: FloatArray) -> tuple[FloatArray, FloatArray]:
     return stations_m[keep], along_m[keep] / norm[keep][:, None]
 
 
-def thin_edges(profiles: Profiles) -> EdgePoints:
+def thin_edges(
+    profiles: Profiles,
+    features: ScanFeatures | None = None,
+    trees: tuple[cKDTree, cKDTree] | None = None,
+    *,
+    fit_radius_m: float = 0.016,
+) -> EdgePoints:
     """The thinned edge along a path from its slices (see :func:`edges_from_profiles`)."""
-    return edges_from_profiles(profiles)
+    return edges_from_profiles(profiles, features, trees, fit_radius_m=fit_radius_m)

@@ -407,7 +407,7 @@ def build_scan_model(scan: Scan, points_in_scan_m: FloatArray, params: ReconPara
     profiles = find_profiles(
         stations, along, features.dense_points_m, model.fine_normals, dense_tree
     )
-    edges = thin_edges(profiles)
+    edges = thin_edges(profiles, features, (coarse_tree, dense_tree), fit_radius_m=fit_radius)
     shared = {k: model.__dict__[k] for k in ("coarse_tree", "dense_tree", "fine_normals")}
     model = ScanModel(
         features=features,

@@ -57,14 +57,15 @@ def _touches(scene: Scene, seed: int):
     recording = touch_recording(scene, seed, n_touches=7).recording
     found = touches_in(recording.points_m, recording.t_s)
     return register_touches(
-        found.points_m, scene.scan.points_m, T_scan_tracker_init=np.eye(4), touch_sigma_m=found.sigma_m
+        found.points_m,
+        scene.scan.points_m,
+        T_scan_tracker_init=np.eye(4),
+        touch_sigma_m=found.sigma_m,
     )
 
 
 VARIANTS = {
-    "trace": Variant(
-        "registered from the trace", lambda s, seed: reconstruct(s.recording, s.scan)
-    ),
+    "trace": Variant("registered from the trace", lambda s, seed: reconstruct(s.recording, s.scan)),
     "known": Variant(
         "scanner pose known",
         lambda s, seed: reconstruct(

@@ -90,7 +90,9 @@ def plot_slices(scene, recons: dict, part, path, *, indices=None, half_width_m=1
         ax.scatter(m[:, 0], m[:, 1], s=0.5, c="k", label="part")
         ax.scatter([0], [0], marker="*", s=120, c="tab:green", label="true curve", zorder=5)
         trace = section(first.input_points_m, 0.6 * MM)
-        ax.scatter(trace[:, 0], trace[:, 1], marker="o", s=40, c="tab:blue", label="trace", zorder=5)
+        ax.scatter(
+            trace[:, 0], trace[:, 1], marker="o", s=40, c="tab:blue", label="trace", zorder=5
+        )
         for colour, (label, recon) in zip(colours, recons.items(), strict=False):
             r = section(recon.points_m, 0.6 * MM)
             ax.scatter(r[:, 0], r[:, 1], marker="x", s=60, c=colour, label=label, zorder=6)

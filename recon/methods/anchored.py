@@ -29,7 +29,6 @@ from recon.fitting import (
     fit_linear_robust,
     gather,
     poly_design,
-    quadric_design,
     weighted_pca,
     window_indices,
 )
@@ -55,8 +54,6 @@ SURFACE_NEIGHBOURS = 1024
 EDGE_SCAN_RADII = 1.5
 #: Edge samples gathered for the narrowest N_S (more for the wider ones, in proportion).
 EDGE_NEIGHBOURS = 64
-#: An edge target needs edge samples on both sides of it, give or take this many radii.
-EDGE_SPAN_MARGIN_RADII = 0.25
 #: ... and at least this many samples (about ten millimetres of edge).
 MIN_EDGE_SAMPLES = 10
 #: Edge samples per independent one: 3 samples per slice's corner, slices 6 mm thick every 2 mm.
@@ -180,7 +177,9 @@ def anchored_segment(
             alpha**2 * per_component + (1.0 - alpha) ** 2 * np.where(supported, var_target, 0.0)
         )
         blend_var = blend_var + np.where(components == 1, 0.5 * path_only_var, 0.0)
-        variance = np.where(supported, weight * blend_var + (1 - weight) * path_only_var, path_only_var)
+        variance = np.where(
+            supported, weight * blend_var + (1 - weight) * path_only_var, path_only_var
+        )
     else:
         target = smoothed
         alpha = np.ones(n)
@@ -282,20 +281,28 @@ def weigh_evidence(
     todo = np.ones(len(centres), dtype=bool)
     first_failure = np.full(len(centres), PointReason.NO_FEATURE, np.int8)
     if kind == SegmentKind.EDGE:
-        t, var_t, count, resid = _edge_targets(
+        t, var_t, count, resid, past = _edge_targets(
             centres, direction, model, params, degree, tracks=tracks
         )
         found = np.isfinite(var_t)
         gap, _ = model.dense_tree.query(t, workers=-1)
-        on_evidence = found & (gap <= EDGE_SUPPORT_M)
-        near = np.linalg.norm(t - centres, axis=1) <= max_move_m
+        # A continued edge's line runs on past the scan's points: the support is looked for
+        # where the edge's samples end.
+        on_evidence = found & ((gap <= EDGE_SUPPORT_M) | (past > 0))
+        near = _explained(centres, t, max_move_m, model, on_evidence)
         accept = on_evidence & near
+        ended = ~found & (past > CONTINUE_PAST_END_M)
         first_failure = np.where(
-            ~found,
-            PointReason.NO_FEATURE,
-            np.where(~on_evidence, PointReason.OFF_EVIDENCE, PointReason.FAR_FROM_TRACE),
+            ended,
+            PointReason.PAST_END,
+            np.where(
+                ~found,
+                PointReason.NO_FEATURE,
+                np.where(~on_evidence, PointReason.OFF_EVIDENCE, PointReason.FAR_FROM_TRACE),
+            ),
         ).astype(np.int8)
-        _take(out, accept, t, var_t, PointMode.EDGE, PointReason.NONE, count, resid)
+        reason = np.where(past > CONTINUED_NOTE_M, PointReason.CONTINUED, PointReason.NONE)
+        _take(out, accept, t, var_t, PointMode.EDGE, reason.astype(np.int8), count, resid)
         todo &= ~accept
     if np.any(todo):
         rows = np.flatnonzero(todo)
@@ -306,9 +313,13 @@ def weigh_evidence(
             neighbours=SURFACE_NEIGHBOURS,
             scale_m=params.radius_m,
         )
-        near = np.linalg.norm(face.target_m - centres[rows], axis=1) <= max_move_m[rows]
-        accept = np.zeros(len(centres), dtype=bool)
-        accept[rows] = face.ok & near
+        face_target = centres.copy()
+        face_target[rows] = face.target_m
+        face_ok = np.zeros(len(centres), dtype=bool)
+        face_ok[rows] = face.ok
+        face_normal = np.zeros_like(centres)
+        face_normal[rows] = face.normal
+        accept = _explained(centres, face_target, max_move_m, model, face_ok, face_normal) & todo
         reason = PointReason.ONE_FACE if kind == SegmentKind.EDGE else PointReason.NONE
         t = np.zeros_like(centres)
         t[rows] = face.target_m
@@ -327,11 +338,97 @@ def weigh_evidence(
     return out
 
 
+def _explained(centres, targets, max_move_m, model, candidate, normals=None) -> np.ndarray:
+    """Whether moving each point (consecutive points of a segment) to its target is what the
+    trace's error explains: a move within the hand's error (``max_move_m``), or, onto a face
+    (``normals`` given), a lift-off.
+
+    A lift-off is the pen off a face for a moment: up to :data:`MAX_LIFT_OFF_M` above it, with
+    nothing of the scan between the pen and the face (it hung in the air above it), and the
+    trace on that very face within the hand's error right before and after (a run of at most
+    :data:`MAX_LIFT_OFF_LENGTH_M`; a trace that runs off a face all along it is on another one,
+    or on a face the scan does not show), the scan running from there to the lifted target
+    without a step. Only points where ``candidate`` (the target is on the scan's evidence) count.
+    """
+    move = np.linalg.norm(targets - centres, axis=1)
+    near = candidate & (move <= max_move_m)
+    if normals is None:
+        return near
+    lifted = candidate & ~near & (move <= MAX_LIFT_OFF_M)
+    n = len(centres)
+    if np.any(lifted) and n > 1:
+        spacing = float(np.median(np.linalg.norm(np.diff(centres, axis=0), axis=1)))
+        longest = max(1, int(round(MAX_LIFT_OFF_LENGTH_M / max(spacing, 1e-9))))
+        edges = np.flatnonzero(np.diff(np.r_[0, lifted.astype(np.int8), 0]))
+        for start, stop in zip(edges[::2], edges[1::2], strict=True):
+            # A run of lifted points, flanked by the trace on the face (a run that reaches an
+            # end of the segment needs its other side only).
+            flanks = [k for k in (start - 1, stop) if 0 <= k < n]
+            if stop - start > longest or not flanks or not all(near[k] for k in flanks):
+                lifted[start:stop] = False
+                continue
+            rows = np.arange(start, stop)
+            ok = np.ones(len(rows), dtype=bool)
+            for k in flanks:
+                ok &= _scan_along(np.repeat(targets[k][None], len(rows), 0), targets[rows], model)
+            lifted[rows] = ok
+    if np.any(lifted):
+        rows = np.flatnonzero(lifted)
+        lifted[rows] = _in_free_air(centres[rows], targets[rows], model)
+    return near | lifted
+
+
+def _scan_along(starts: FloatArray, ends: FloatArray, model: ScanModel) -> np.ndarray:
+    """Whether the scan has a point within :data:`LIFT_OFF_SAME_FACE_M` of every millimetre of
+    the straight way from each start to its end (both on one face, with no step between)."""
+    length = float(np.max(np.linalg.norm(ends - starts, axis=1), initial=0.0))
+    steps = np.linspace(0.0, 1.0, int(np.ceil(length / 0.001)) + 2)
+    probes = starts[:, None, :] + steps[None, :, None] * (ends - starts)[:, None, :]
+    gap, _ = model.dense_tree.query(
+        probes.reshape(-1, 3), distance_upper_bound=LIFT_OFF_SAME_FACE_M, workers=-1
+    )
+    return np.isfinite(gap).reshape(len(starts), len(steps)).all(axis=1)
+
+
+def _in_free_air(starts: FloatArray, targets: FloatArray, model: ScanModel) -> np.ndarray:
+    """Whether the straight way from each start to its target (all but its last
+    :data:`LIFT_OFF_LANDING_M`) passes no scan point closer than :data:`LINE_OF_SIGHT_M`."""
+    way = targets - starts
+    length = np.linalg.norm(way, axis=1)
+    reach = np.maximum(length - LIFT_OFF_LANDING_M, 0.0)
+    steps = np.arange(0.0, MAX_LIFT_OFF_M, 0.5 * LINE_OF_SIGHT_M)
+    unit = way / np.maximum(length, 1e-12)[:, None]
+    probes = (
+        starts[:, None, :] + np.minimum(steps[None, :], reach[:, None])[..., None] * unit[:, None]
+    )
+    gap, _ = model.dense_tree.query(
+        probes.reshape(-1, 3), distance_upper_bound=LINE_OF_SIGHT_M, workers=-1
+    )
+    blocked = np.isfinite(gap).reshape(len(starts), len(steps))
+    return ~blocked.any(axis=1)
+
+
+#: A pen lifted off the workpiece is farther from it than the hand's error explains: a point may
+#: move this far down onto its feature when nothing of the scan lies between (paper, Fig. 7: a
+#: lift-off of several millimetres).
+MAX_LIFT_OFF_M = 0.012
+#: A lift-off lasts at most this long along the path, flanked by the trace on the face ...
+MAX_LIFT_OFF_LENGTH_M = 0.06
+#: ... the face there the same: the scan within this of the straight way from there to the
+#: lifted point's target (a step of a few millimetres leaves a gap; the scan's own gaps between
+#: points, about a millimetre, do not).
+LIFT_OFF_SAME_FACE_M = 0.0018
+#: The way down is clear when no scan point lies within this of it ...
+LINE_OF_SIGHT_M = 0.0008
+#: ... but for its last stretch, where it reaches the feature.
+LIFT_OFF_LANDING_M = 0.0015
+
+
 def _take(out: Evidence, accept, target, variance, mode, reason, count, residual) -> None:
     out.target[accept] = target[accept]
     out.variance[accept] = variance[accept]
     out.mode[accept] = mode
-    out.reason[accept] = reason
+    out.reason[accept] = reason[accept] if np.ndim(reason) else reason
     out.count[accept] = count[accept]
     out.residual[accept] = residual[accept]
 
@@ -384,11 +481,18 @@ def _edge_targets(centres, direction, model, params, degree, *, tracks=None):
 
     Returns
     -------
-    target : (B, 3); var : (B,) (inf where unfit); count : (B,); residual : (B,)
+    target : (B, 3); var : (B,) (inf where unfit); count : (B,); residual : (B,); past : (B,)
+        How far past the end of the edge's samples the point lies (0 within them).
     """
     if model.edge_tree is None:
         b = len(centres)
-        return centres, np.full(b, np.inf), np.zeros(b, np.int64), np.full(b, np.nan)
+        return (
+            centres,
+            np.full(b, np.inf),
+            np.zeros(b, np.int64),
+            np.full(b, np.nan),
+            np.zeros(b),
+        )
     fits = [
         _edge_targets_within(centres, direction, model, params, degree, tracks, factor)
         for factor in EDGE_WINDOW_FACTORS
@@ -406,7 +510,7 @@ def _edge_targets(centres, direction, model, params, degree, *, tracks=None):
                 bound = EDGE_ICI_GAMMA * (np.sqrt(var_i) + np.sqrt(var_j))
             agreeing &= gap <= bound
         chosen = np.where(agreeing, j, chosen)
-    return tuple(np.stack([f[k] for f in fits])[chosen, rows] for k in range(4))
+    return tuple(np.stack([f[k] for f in fits])[chosen, rows] for k in range(5))
 
 
 #: The edge's N_S reaches these multiples of its narrowest reach; the widest that does not bend
@@ -440,10 +544,18 @@ def _edge_targets_within(centres, direction, model, params, degree, tracks, fact
         poly_design(local[..., 0], degree=degree, scale=scale), local[..., 1:], ws, floor=1e-5
     )
     x_at = np.einsum("bi,bi->b", axes[:, :, 0], centres - frame.mean)
-    design_at = poly_design(x_at, degree=degree, scale=scale)
-    target = frame.mean + np.einsum(
-        "bij,bj->bi", axes, np.column_stack([x_at, fit.predict(design_at)])
-    )
+    # Past the end of the edge's samples, the edge's line is continued (straight, from where
+    # its samples end) rather than its polynomial extrapolated.
+    has = np.any(ws > 0, axis=1)
+    lo = np.where(has, np.where(ws > 0, local[..., 0], np.inf).min(axis=1), x_at)
+    hi = np.where(has, np.where(ws > 0, local[..., 0], -np.inf).max(axis=1), x_at)
+    x_end = np.clip(x_at, lo, hi)
+    past = np.where(has, np.abs(x_at - x_end), np.inf)
+    design_at = poly_design(x_end, degree=degree, scale=scale)
+    slope = np.einsum("bp,bpm->bm", _poly_slope(x_end, degree=degree, scale=scale), fit.coef)
+    across = fit.predict(design_at) + slope * (x_at - x_end)[:, None]
+    target = frame.mean + np.einsum("bij,bj->bi", axes, np.column_stack([x_at, across]))
+    target = np.where((has & np.all(np.isfinite(target), axis=1))[:, None], target, centres)
     var_from_scatter = fit.rms**2 * np.minimum(
         fit.leverage(design_at) * edge_dependence(model), 1.0
     )
@@ -452,13 +564,17 @@ def _edge_targets_within(centres, direction, model, params, degree, tracks, fact
     line_variance = gather(model.edges.variance_m2, idx_s, fill_index=len(model.edges))
     var_from_fits = (ws * line_variance).sum(axis=1) / np.maximum(ws.sum(axis=1), 1e-300)
     var = np.maximum(var_from_scatter, var_from_fits / factor)
-    # Require support on both sides of short extrapolation: the point must lie within the span.
-    span_ok = _within_span(local[..., 0], ws, x_at, margin=EDGE_SPAN_MARGIN_RADII * params.radius_m)
-    count = np.count_nonzero(ws, axis=1)
+    # Within the samples' span, or continued at most CONTINUE_PAST_END_M past its end; the
+    # continued line's uncertainty grows with the distance (its slope's).
+    count = count_of(ws)
+    span_ok = past <= CONTINUE_PAST_END_M
+    # The line's direction is known to about rms / sqrt(count) over the window's length.
+    slope_sigma = np.maximum(fit.rms, 1e-5) / np.sqrt(np.maximum(count, 1)) / scale
+    var = var + (np.where(has, past, 0.0) * slope_sigma) ** 2
     # A handful of samples left by the direction filter on a tight bend: a curve through them is
     # an extrapolation, not the edge (measured on a 15 mm bend: 7 samples, 1.2 mm off).
     ok = (fit.dof >= 2) & span_ok & (count >= MIN_EDGE_SAMPLES)
-    return target, np.where(ok, var, np.inf), count, fit.rms
+    return target, np.where(ok, var, np.inf), count, fit.rms, past
 
 
 def edge_dependence(model: ScanModel) -> float:
@@ -502,11 +618,25 @@ def _surface_targets_of(centres, model, params):
     return face.target_m, face.variance_m2, face.count, face.rms_m
 
 
-def _within_span(x: FloatArray, weights: FloatArray, x_at: FloatArray, *, margin: float):
-    """Whether ``x_at`` lies within the weighted points' extent along x, plus ``margin``."""
-    lo = np.where(weights > 0, x, np.inf).min(axis=1)
-    hi = np.where(weights > 0, x, -np.inf).max(axis=1)
-    return (x_at >= lo - margin) & (x_at <= hi + margin)
+def count_of(weights: FloatArray) -> np.ndarray:
+    """Points with a weight, per row."""
+    return np.count_nonzero(weights, axis=1)
+
+
+def _poly_slope(x: FloatArray, *, degree: int, scale: float) -> FloatArray:
+    """d/dx of :func:`recon.fitting.poly_design`'s basis at ``x``: shape (B, degree + 1)."""
+    u = np.asarray(x) / scale
+    powers = np.arange(degree + 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        values = powers * np.where(powers > 0, u[:, None] ** np.maximum(powers - 1, 0), 0.0)
+    return values / scale
+
+
+#: Past the end of an edge's samples (a trace that runs on past where the feature ends), the
+#: edge's line is continued this far; farther, the point keeps the trace (said per point).
+CONTINUE_PAST_END_M = 0.005
+#: A point continued more than this past its edge's samples is said to be (reason CONTINUED).
+CONTINUED_NOTE_M = 0.0015
 
 
 def _path_variance(smoothed, target, var_target, var_path_fit, supported, half_width):

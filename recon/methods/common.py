@@ -164,7 +164,10 @@ def edge_neighbourhoods(
     along = np.abs(np.einsum("bki,bi->bk", dirs, path_direction))
     weights = np.isfinite(dist) & (along >= np.cos(np.radians(EDGE_DIRECTION_TOLERANCE_DEG)))
     if tracks is not None:
-        weights &= np.isin(gather(edges.track, idx, fill_index=len(edges)), tracks)
+        # Samples of no known track (a confirmed corner's edge lines, filled in up to the
+        # corner) belong to whichever edge they run along.
+        sample_track = gather(edges.track, idx, fill_index=len(edges))
+        weights &= np.isin(sample_track, tracks) | (sample_track == -1)
     return pts, weights.astype(np.float64), idx
 
 

@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from recon.scenes.base import MM, Face, Scene, interpolated_curve
 from recon.scenes.depth_camera import DepthCamera, SimulatedScan, hand_held_views, scan_mesh
 from recon.scenes.noise import HandNoise, hand_trace, misalignment
-from recon.transforms import apply_transform, invert_transform
+from recon.transforms import apply_transform
 from recon.types import FloatArray, Scan
 
 #: What a scene traces (see the module docstring).
@@ -296,13 +296,48 @@ def face_truth(case: CurveCase, offset_m: float = FACE_OFFSET_M) -> tuple[FloatA
     truth_m : ndarray of shape (G, 3)
     face : int
         0 or 1, the face of :attr:`EdgeProfile.face_normals` it lies on.
+
+    Raises
+    ------
+    ValueError
+        The face is not a flat stretch that wide all along the curve (it ends, bends or meets
+        another sharp feature within the offset): no line to trace there.
     """
     profile = case.profile
     upward = np.median(profile.face_normals[:, :, 2], axis=0)
     face = int(np.argmax(upward))
-    moved = case.truth_m + offset_m * profile.faces_along[:, face]
+    # The line stops short of the curve's ends, where the face meets the next feature.
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(case.truth_m, axis=0), axis=1))]
+    inner = (arc >= FACE_END_CLEARANCE_M) & (arc <= arc[-1] - FACE_END_CLEARANCE_M)
+    if np.count_nonzero(inner) < 10:
+        raise ValueError(f"{case.name}: too short for a face line")
+    truth_m = case.truth_m[inner]
+    moved = truth_m + offset_m * profile.faces_along[inner, face]
     on_surface = case.part.closest(moved)
+    # Flat all the way out: the point offset straight along the face lies on the surface
+    # (within the probes' angular resolution) ...
+    off_plane = np.linalg.norm(on_surface - moved, axis=1)
+    # ... and no other sharp feature comes near the line.
+    others = [c for k, c in enumerate(case.part.curves_m) if k != case.index]
+    clearance = np.inf
+    if others:
+        dense_others = np.concatenate([densified(np.asarray(c)) for c in others])
+        clearance = float(cKDTree(dense_others).query(on_surface)[0].min())
+    if off_plane.max() > FACE_FLATNESS_M or clearance < FACE_CLEARANCE_M:
+        raise ValueError(
+            f"{case.name}: its face is not flat for {offset_m * 1e3:.0f} mm all along it "
+            f"(off plane by up to {off_plane.max() * 1e3:.1f} mm, another edge "
+            f"{clearance * 1e3:.1f} mm from the line)"
+        )
     return densified(on_surface), face
+
+
+#: A face line stops this far short of its curve's ends ...
+FACE_END_CLEARANCE_M = 6 * MM
+#: ... must stay within this of the face's plane ...
+FACE_FLATNESS_M = 0.6 * MM
+#: ... and this far from every other sharp feature of the part.
+FACE_CLEARANCE_M = 3 * MM
 
 
 def visible_fraction(truth_m: FloatArray, scan_points_m: FloatArray, *, within_m: float) -> float:
@@ -382,7 +417,9 @@ def true_corners(truth_m: FloatArray, *, angle_deg: float = 40.0, chord_m: float
     cos = np.einsum("ni,ni->n", d1, d2) / np.maximum(n1 * n2, 1e-18)
     turning = ok & (cos < np.cos(np.radians(angle_deg)))
     corners = []
-    for run in np.split(np.flatnonzero(turning), np.flatnonzero(np.diff(np.flatnonzero(turning)) > 1) + 1):
+    for run in np.split(
+        np.flatnonzero(turning), np.flatnonzero(np.diff(np.flatnonzero(turning)) > 1) + 1
+    ):
         if len(run):
             corners.append(truth_m[run[np.argmin(cos[run])]])
     return np.asarray(corners).reshape(-1, 3)
@@ -418,7 +455,9 @@ def touch_faces(part: Part, *, inset_m: float = 4 * MM, count: int = 3) -> tuple
     faces = []
     for region in chosen:
         members = np.flatnonzero(label == region)
-        faces.append(Face(f"face {len(faces)}", _face_sampler(part, members, normals, area, inset_m)))
+        faces.append(
+            Face(f"face {len(faces)}", _face_sampler(part, members, normals, area, inset_m))
+        )
     return tuple(faces)
 
 

@@ -74,7 +74,9 @@ class DepthCamera:
 
     def depth_sigma_m(self, depth_m: FloatArray | float) -> FloatArray | float:
         """The depth noise (1 sigma) at a depth, metres."""
-        return np.asarray(depth_m) ** 2 / (self.focal_px * self.baseline_m) * self.disparity_sigma_px
+        return (
+            np.asarray(depth_m) ** 2 / (self.focal_px * self.baseline_m) * self.disparity_sigma_px
+        )
 
 
 @dataclass(frozen=True)
