@@ -212,6 +212,32 @@ def statistical_inliers(
     return spread < spread.mean() + std_ratio * spread.std(ddof=1)
 
 
+def ball_covariances(points_m: FloatArray, balls) -> tuple[FloatArray, np.ndarray]:
+    """The covariance of each point's ball (see :func:`covariance_features`).
+
+    Returns
+    -------
+    covariances : ndarray of shape (M, 3, 3)
+    counts : ndarray of shape (M,), int
+        Points in each ball.
+    """
+    points_m = np.asarray(points_m, dtype=np.float64)
+    m = len(points_m)
+    balls = balls.tocsr()
+    # Coordinates about the cloud's centre keep E[p p^T] - E[p] E[p]^T precise: the cloud spans
+    # a metre at most and the smallest variance is about (0.1 mm)^2, far above the cancellation.
+    centred = points_m - points_m.mean(axis=0) if m else points_m
+    columns = np.column_stack([centred] + [centred[:, i] * centred[:, j] for i, j in _PRODUCTS])
+    sums = balls @ columns
+    counts = np.diff(balls.indptr)
+    n = np.maximum(counts, 1)[:, None]
+    mean, second = sums[:, :3] / n, sums[:, 3:] / n
+    covariances = np.empty((m, 3, 3))
+    for c, (i, j) in enumerate(_PRODUCTS):
+        covariances[:, i, j] = covariances[:, j, i] = second[:, c] - mean[:, i] * mean[:, j]
+    return covariances, counts
+
+
 def covariance_features(points_m: FloatArray, balls) -> tuple[FloatArray, FloatArray]:
     """Normals and surface variation from the covariance of each point's ball.
 
@@ -233,20 +259,7 @@ def covariance_features(points_m: FloatArray, balls) -> tuple[FloatArray, FloatA
         ``l3 / (l1 + l2 + l3)``; 1/3 (isotropic, i.e. no surface) where a ball holds < 3 points
         (whose normal is then arbitrary, as Open3D's is).
     """
-    points_m = np.asarray(points_m, dtype=np.float64)
-    m = len(points_m)
-    balls = balls.tocsr()
-    # Coordinates about the cloud's centre keep E[p p^T] - E[p] E[p]^T precise: the cloud spans
-    # a metre at most and the smallest variance is about (0.1 mm)^2, far above the cancellation.
-    centred = points_m - points_m.mean(axis=0) if m else points_m
-    columns = np.column_stack([centred] + [centred[:, i] * centred[:, j] for i, j in _PRODUCTS])
-    sums = balls @ columns
-    counts = np.diff(balls.indptr)
-    n = np.maximum(counts, 1)[:, None]
-    mean, second = sums[:, :3] / n, sums[:, 3:] / n
-    covariances = np.empty((m, 3, 3))
-    for c, (i, j) in enumerate(_PRODUCTS):
-        covariances[:, i, j] = covariances[:, j, i] = second[:, c] - mean[:, i] * mean[:, j]
+    covariances, counts = ball_covariances(points_m, balls)
     values, normals = symmetric_eig3(covariances)
     total = values.sum(axis=1)
     surface = (counts >= 3) & (total > 0)
@@ -356,7 +369,8 @@ def prepare_scan(
     coarse, _ = voxel_average(cropped, voxel_m)
     # The cheap crop keeps a superset that depends on the axes; the statistics below (outlier
     # removal, the edge threshold's percentiles) must not, so the voxel cloud is cut exactly.
-    dist, _ = cKDTree(path_m).query(coarse, distance_upper_bound=crop_margin_m, workers=-1)
+    path_tree = cKDTree(path_m)
+    dist, _ = path_tree.query(coarse, distance_upper_bound=crop_margin_m, workers=-1)
     coarse = coarse[np.isfinite(dist)]
     n_before = len(coarse)
     tree = cKDTree(coarse)
@@ -372,6 +386,10 @@ def prepare_scan(
     dense = _thin_randomly(
         cropped, n_voxels=n_before, voxel_m=voxel_m, spacing_m=dense_spacing_m, seed=seed
     )
+    # The dense cloud cut exactly too: the fits reach out to the margin, and a superset that
+    # depends on the axes would make the result depend on them.
+    dist, _ = path_tree.query(dense, distance_upper_bound=crop_margin_m, workers=-1)
+    dense = dense[np.isfinite(dist)]
     return ScanFeatures(
         points_m=points,
         dense_points_m=dense,

@@ -259,6 +259,10 @@ def _profiles_chunk(stations, along, dense, normals, tree) -> Profiles:
     x, y = np.take_along_axis(x, order, 1), np.take_along_axis(y, order, 1)
     nx, ny = np.take_along_axis(nx, order, 1), np.take_along_axis(ny, order, 1)
     free = np.take_along_axis(free, order, 1)
+    # The slice's own axes, from its points rather than the world's: the first along their main
+    # normal direction, pointing away from their centre. A rigid motion (or a mirror image) of
+    # the scan and the path then moves (mirrors) every result with it, bin for bin.
+    x, y, nx, ny, axes = _intrinsic_axes(x, y, nx, ny, free, axes)
     # Each point's normal direction in the slice, as a line direction's normal angle in [0, pi).
     phi = np.mod(np.arctan2(ny, nx), np.pi)
 
@@ -337,6 +341,40 @@ def _profiles_chunk(stations, along, dense, normals, tree) -> Profiles:
         corner_angle_deg=angle,
         corner_variance_m2=corner_var,
         pairs=pairs,
+    )
+
+
+def _intrinsic_axes(x, y, nx, ny, free, axes):
+    """Turn each slice's axes onto its points' main normal direction (sign: away from their
+    centroid) and express the points and normals in them."""
+    w = free.astype(np.float64)
+    # The doubled angle of the normals (sign-free), averaged: its half is the main direction.
+    c2 = (w * (nx * nx - ny * ny)).sum(axis=1)
+    s2 = (w * 2.0 * nx * ny).sum(axis=1)
+    angle = 0.5 * np.arctan2(s2, c2)
+    e = np.column_stack([np.cos(angle), np.sin(angle)])
+    total = np.maximum(w.sum(axis=1), 1e-300)
+    centroid = np.column_stack([(w * x).sum(1), (w * y).sum(1)]) / total[:, None]
+    flip = np.einsum("bk,bk->b", centroid, e) > 0
+    e[flip] *= -1
+    perp = np.column_stack([-e[:, 1], e[:, 0]])
+
+    def turned(u, v, basis):
+        return u * basis[:, :1] + v * basis[:, 1:]
+
+    new_axes = np.stack(
+        [
+            e[:, :1] * axes[:, 0] + e[:, 1:] * axes[:, 1],
+            perp[:, :1] * axes[:, 0] + perp[:, 1:] * axes[:, 1],
+        ],
+        axis=1,
+    )
+    return (
+        turned(x, y, e),
+        turned(x, y, perp),
+        turned(nx, ny, e),
+        turned(nx, ny, perp),
+        new_axes,
     )
 
 

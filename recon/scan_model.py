@@ -20,7 +20,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from recon.edges import EdgePoints, stations_along, thin_edges
-from recon.features import ScanFeatures, covariance_features, neighbour_balls, prepare_scan
+from recon.features import ScanFeatures, ball_covariances, neighbour_balls, prepare_scan
+from recon.fitting import symmetric_eig3
 from recon.profiles import Profiles, find_profiles
 from recon.types import FloatArray, ReconParams, Scan
 
@@ -34,8 +35,12 @@ EDGE_QUERY_SPACING_FRACTION = 0.375
 EDGE_SAMPLE_SPACING_M = 0.001
 #: The small-scale normals of the dense points: from this many nearest dense points ...
 FINE_NORMAL_NEIGHBOURS = 16
-#: ... within this distance (at a depth camera's point per square millimetre, about 2.3 mm).
+#: ... within this distance (at a depth camera's point per square millimetre, about 2.3 mm) ...
 FINE_NORMAL_RADIUS_M = 0.004
+#: ... at least this many of them ...
+MIN_FINE_NORMAL_POINTS = 6
+#: ... whose smallest spread is clearly the smallest: below the middle one by this share of it.
+PLANE_EIGEN_GAP = 0.3
 #: A point's face is looked up in the nearest slice within this distance ...
 FACE_SLICE_REACH_M = 0.004
 #: ... among the lines within this height of the point ...
@@ -137,7 +142,9 @@ class ScanModel:
         """Unit normals of the dense points at a small scale (sign arbitrary, shape (D, 3)): the
         plane through each point's :data:`FINE_NORMAL_NEIGHBOURS` nearest dense points within
         :data:`FINE_NORMAL_RADIUS_M`, which tells a wall a few millimetres tall from the faces
-        above and below it (the curvature ball's normals blend them)."""
+        above and below it (the curvature ball's normals blend them). Zero where the ball shows
+        no plane (too few points, or no clearly smallest spread: a lone point, a line of them),
+        which no rotation of the data could make the same twice."""
         dense = self.features.dense_points_m
         balls = neighbour_balls(
             dense,
@@ -145,8 +152,12 @@ class ScanModel:
             radius_m=FINE_NORMAL_RADIUS_M,
             max_neighbours=FINE_NORMAL_NEIGHBOURS,
         )
-        normals, _ = covariance_features(dense, balls)
-        return normals
+        covariances, counts = ball_covariances(dense, balls)
+        values, normals = symmetric_eig3(covariances)
+        planar = (counts >= MIN_FINE_NORMAL_POINTS) & (
+            values[:, 1] - values[:, 0] >= PLANE_EIGEN_GAP * np.maximum(values[:, 1], 1e-30)
+        )
+        return np.where(planar[:, None], normals, 0.0)
 
     def faces_under(self, points_m: FloatArray) -> tuple[FloatArray, FloatArray, np.ndarray]:
         """The face each point lies over, from the nearest cross-section: the line of that

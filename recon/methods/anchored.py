@@ -113,6 +113,8 @@ def anchored_segment(
     smoothed = np.empty_like(points)
     var_path_fit = np.zeros(n)
     evidence = Evidence.empty(points)
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
+    end_distance = np.minimum(arc, arc[-1] - arc)
     if kind != SegmentKind.EDGE:
         # Where the path alone decides across it (no scan; the plane of a surface), the widest
         # window that does not bend it (see adaptive_smoothing).
@@ -144,6 +146,7 @@ def anchored_segment(
                     params,
                     degree,
                     max_move_m=params.evidence_sigmas * np.sqrt(prior[rows]),
+                    end_distance_m=end_distance[rows],
                     tracks=tracks,
                 ),
             )
@@ -251,6 +254,7 @@ def weigh_evidence(
     degree: int,
     *,
     max_move_m: FloatArray,
+    end_distance_m: FloatArray | None = None,
     tracks: tuple[int, ...] | None = None,
 ) -> Evidence:
     """The scan's target for each smoothed point, accepted only where the evidence holds.
@@ -275,6 +279,10 @@ def weigh_evidence(
         Of the edge's local polynomial.
     max_move_m : ndarray of shape (B,)
         The farthest a point may move across the path.
+    end_distance_m : ndarray of shape (B,), optional
+        How far each point lies from its segment's nearer end, along it: only there may an edge
+        be continued past the end of its samples (inside a segment a gap in them is bridged by
+        the samples beyond it, not by a straight line). Everywhere when not given.
     tracks : tuple of int, optional
         The edge the segment follows.
 
@@ -287,7 +295,7 @@ def weigh_evidence(
     first_failure = np.full(len(centres), PointReason.NO_FEATURE, np.int8)
     if kind == SegmentKind.EDGE:
         t, var_t, count, resid, past = _edge_targets(
-            centres, direction, model, params, degree, tracks=tracks
+            centres, direction, model, params, degree, tracks=tracks, end_distance_m=end_distance_m
         )
         found = np.isfinite(var_t)
         gap, _ = model.dense_tree.query(t, workers=-1)
@@ -473,7 +481,7 @@ def ramp(supported: np.ndarray, half_width: int) -> FloatArray:
     return np.clip(distance / half_width, 0.0, 1.0) * supported
 
 
-def _edge_targets(centres, direction, model, params, degree, *, tracks=None):
+def _edge_targets(centres, direction, model, params, degree, *, tracks=None, end_distance_m=None):
     """Nearest point of the local edge curve to each smoothed path point, over the widest stretch
     of edge that does not bend it.
 
@@ -498,23 +506,34 @@ def _edge_targets(centres, direction, model, params, degree, *, tracks=None):
             np.full(b, np.nan),
             np.zeros(b),
         )
+    near_end = (
+        np.ones(len(centres), dtype=bool)
+        if end_distance_m is None
+        else np.asarray(end_distance_m) <= CONTINUE_PAST_END_M + SPAN_SLACK_M
+    )
     fits = [
-        _edge_targets_within(centres, direction, model, params, degree, tracks, factor)
+        _edge_targets_within(centres, direction, model, params, degree, tracks, factor, near_end)
         for factor in EDGE_WINDOW_FACTORS
     ]
     rows = np.arange(len(centres))
-    chosen = np.zeros(len(centres), dtype=np.int64)
-    agreeing = np.isfinite(fits[0][1])
+    valid = np.stack([np.isfinite(f[1]) for f in fits])  # (F, B)
+    # Start from the narrowest window that fits (a gap in the edge's samples narrower than the
+    # wider windows is bridged by them), widen while every narrower valid one agrees.
+    start = np.where(valid.any(axis=0), np.argmax(valid, axis=0), 0)
+    chosen = start.copy()
+    growing = valid[start, rows]
     for j in range(1, len(fits)):
         t_j, var_j = fits[j][0], fits[j][1]
-        agreeing &= np.isfinite(var_j)
+        widen = growing & (j > start) & valid[j]
         for i in range(j):
             t_i, var_i = fits[i][0], fits[i][1]
             gap = np.linalg.norm(t_j - t_i, axis=1)
             with np.errstate(invalid="ignore"):
                 bound = EDGE_ICI_GAMMA * (np.sqrt(var_i) + np.sqrt(var_j))
-            agreeing &= gap <= bound
-        chosen = np.where(agreeing, j, chosen)
+            counts = (i >= start) & valid[i]
+            widen &= ~counts | (gap <= bound)
+        growing &= widen | (j <= start)
+        chosen = np.where(widen, j, chosen)
     return tuple(np.stack([f[k] for f in fits])[chosen, rows] for k in range(5))
 
 
@@ -525,7 +544,7 @@ EDGE_WINDOW_FACTORS = (1, 2, 4)
 EDGE_ICI_GAMMA = 1.5
 
 
-def _edge_targets_within(centres, direction, model, params, degree, tracks, factor):
+def _edge_targets_within(centres, direction, model, params, degree, tracks, factor, near_end):
     """:func:`_edge_targets` with N_S reaching ``factor`` times :data:`EDGE_SCAN_RADII` radii.
 
     A 3-D polynomial (both transverse components of the edge points' principal frame as
@@ -573,7 +592,7 @@ def _edge_targets_within(centres, direction, model, params, degree, tracks, fact
     # Within the samples' span, or continued at most CONTINUE_PAST_END_M past its end; the
     # continued line's uncertainty grows with the distance (its slope's).
     count = count_of(ws)
-    span_ok = past <= CONTINUE_PAST_END_M
+    span_ok = (past <= SPAN_SLACK_M) | (near_end & (past <= CONTINUE_PAST_END_M))
     # The line's direction is known to about rms / sqrt(count) over the window's length.
     slope_sigma = np.maximum(fit.rms, 1e-5) / np.sqrt(np.maximum(count, 1)) / scale
     var = var + (np.where(has, past, 0.0) * slope_sigma) ** 2
@@ -641,6 +660,8 @@ def _poly_slope(x: FloatArray, *, degree: int, scale: float) -> FloatArray:
 #: Past the end of an edge's samples (a trace that runs on past where the feature ends), the
 #: edge's line is continued this far; farther, the point keeps the trace (said per point).
 CONTINUE_PAST_END_M = 0.005
+#: A point this far past its edge's samples is still among them (they are a millimetre apart).
+SPAN_SLACK_M = 0.0005
 #: A point continued more than this past its edge's samples is said to be (reason CONTINUED).
 CONTINUED_NOTE_M = 0.0015
 
