@@ -161,7 +161,9 @@ def edges_from_profiles(
             profiles, station, pair, corners, direction, track, features, trees, fit_radius_m
         )
         parts.append(refined)
-    keep = ~covered
+    # A slice's corner unrefined is kept only where its own lines place it well (at a depth
+    # camera's noise of a millimetre, most slices' lines cannot).
+    keep = ~covered & (variance <= MAX_SLICE_CORNER_SIGMA_M**2)
     offsets = np.asarray(SAMPLE_OFFSETS_M)
     samples = corners[keep, None, :] + offsets[None, :, None] * direction[keep, None, :]
     repeat = len(offsets)
@@ -178,9 +180,12 @@ def edges_from_profiles(
     return EdgePoints.concatenate(parts)
 
 
+#: A slice's corner that no 3-D fit refined is used only when its own uncertainty (1 sigma, both
+#: directions together) is below this.
+MAX_SLICE_CORNER_SIGMA_M = 0.0004
 #: Every this many corners of a track (slices 2 mm apart) is refined in 3-D, and stands for its
 #: neighbours either side.
-REFINE_EVERY = 3
+REFINE_EVERY = 1
 #: A refined corner must stay within this of its slice's corner ...
 REFINE_MAX_MOVE_M = 0.0015
 #: ... run within this angle of its track ...

@@ -21,9 +21,6 @@ from recon.fitting import fit_linear_robust, gather, quadric_design, weighted_pc
 from recon.scan_model import ScanModel
 from recon.types import FloatArray
 
-#: A face's height is no more accurate than this, however many points it has (see
-#: :data:`recon.methods.anchored.SCAN_ACCURACY_M`: the same figure).
-SCAN_ACCURACY_M = 0.15e-3
 #: The seed: this many dense points nearest to the path point (about 15-30 mm^2 of a face).
 SEED_POINTS = 32
 #: Seed points lie within this height of the face the cross-section shows under the point.
@@ -152,7 +149,7 @@ def fit_faces(
     count = np.count_nonzero(used, axis=1)
     gap2 = np.where(used, (u - at[:, :1]) ** 2 + (v - at[:, 1:2]) ** 2, np.inf).min(axis=1)
     gap = np.sqrt(gap2)
-    variance = fit.rms**2 * np.minimum(fit.leverage(design_at), 1.0) + SCAN_ACCURACY_M**2
+    variance = fit.rms**2 * np.minimum(fit.leverage(design_at), 1.0)
     ok = (fit.dof >= 4) & (count >= MIN_FACE_POINTS) & (gap <= MAX_SUPPORT_GAP_M)
     return FaceFit(
         target_m=target,

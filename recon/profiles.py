@@ -68,6 +68,9 @@ VOTE_HALF_WINDOW = int(np.ceil(NORMAL_TOLERANCE_DEG / (180.0 / THETA_BINS)))
 #: A point whose normal lies mostly along the path (its face is cut at a glancing angle) does not
 #: vote: the in-slice part of its unit normal must be at least this long.
 MIN_NORMAL_IN_SLICE = 0.6
+#: A line nearly parallel to a stronger one (within this) and within three noise levels of it is
+#: the same face's noisy tail.
+DUPLICATE_ANGLE_DEG = 10.0
 #: A line whose halves each run at more than this to it is two faces, not one.
 BENT_ANGLE_DEG = 5.0
 #: Stations processed at once (bounds memory: votes are stations x points x directions).
@@ -319,6 +322,7 @@ def _profiles_chunk(stations, along, dense, normals, tree) -> Profiles:
         if not np.any(free):
             break
 
+    line_ok, members = _without_duplicates(normal, offset, rms, line_ok, members)
     normal, offset, rms, count, members = _without_crests(
         x, y, members, normal, offset, rms, count, line_ok
     )
@@ -423,8 +427,9 @@ def _refine(x, y, phi, free, inside, *, passes: int):
 
 def _straighter_half(x, y, inside, normal):
     """Where a line's two halves (split at its median point) run at more than
-    :data:`BENT_ANGLE_DEG` to it: the points of the half with the smaller scatter, and which
-    lines are bent."""
+    :data:`BENT_ANGLE_DEG` to it, and by more than their noise explains (three standard
+    deviations of the halves' directions): the points of the half with the smaller scatter,
+    and which lines are bent."""
     s = x * -normal[:, 1:] + y * normal[:, :1]
     count = np.count_nonzero(inside, axis=1)
     median = _masked_median(s, inside)
@@ -434,14 +439,25 @@ def _straighter_half(x, y, inside, normal):
     for half in (left, right):
         n_h, _, sigma_h = _total_least_squares(x, y, half)
         cos = np.abs(np.einsum("bi,bi->b", n_h, normal))
-        angle = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
-        enough = np.count_nonzero(half, axis=1) >= MIN_LINE_POINTS
-        halves.append((half, angle, sigma_h, enough))
-    (left, angle_l, sigma_l, ok_l), (right, angle_r, sigma_r, ok_r) = halves
-    bent = (count >= 2 * MIN_LINE_POINTS) & ok_l & ok_r
-    bent &= np.maximum(angle_l, angle_r) > BENT_ANGLE_DEG
+        angle = np.radians(np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))))
+        points = np.count_nonzero(half, axis=1)
+        spread = _masked_std(s, half)
+        # A direction fitted to n points spread over the given standard deviation along it is
+        # known to about sigma / (sqrt(n) spread).
+        sigma_angle = sigma_h / np.maximum(np.sqrt(np.maximum(points, 1)) * spread, 1e-12)
+        significant = (angle > np.radians(BENT_ANGLE_DEG)) & (angle > 3.0 * sigma_angle)
+        halves.append((half, significant, sigma_h, points >= MIN_LINE_POINTS))
+    (left, bent_l, sigma_l, ok_l), (right, bent_r, sigma_r, ok_r) = halves
+    bent = (count >= 2 * MIN_LINE_POINTS) & ok_l & ok_r & (bent_l | bent_r)
     keep_left = sigma_l <= sigma_r
     return np.where(keep_left[:, None], left, right), bent
+
+
+def _masked_std(values, mask):
+    w = mask.astype(np.float64)
+    total = np.maximum(w.sum(axis=1), 1e-300)
+    mean = (w * values).sum(axis=1) / total
+    return np.sqrt((w * (values - mean[:, None]) ** 2).sum(axis=1) / total)
 
 
 def _masked_median(values, mask):
@@ -470,6 +486,25 @@ def _total_least_squares(x, y, weight):
     dof = np.maximum(w.sum(axis=1) - 2, 1)
     sigma = np.sqrt((w * residual).sum(axis=1) / dof)
     return normal, rho, sigma
+
+
+def _without_duplicates(normal, offset, rms, line_ok, members):
+    """Lines that repeat an earlier, stronger one (within :data:`DUPLICATE_ANGLE_DEG` of its
+    direction and three noise levels of its offset: the noisy tail of the same face) dropped."""
+    line_ok = line_ok.copy()
+    members = members.copy()
+    lines = normal.shape[1]
+    for later in range(1, lines):
+        for earlier in range(later):
+            cos = np.abs(np.einsum("bi,bi->b", normal[:, later], normal[:, earlier]))
+            parallel = cos >= np.cos(np.radians(DUPLICATE_ANGLE_DEG))
+            sign = np.sign(np.einsum("bi,bi->b", normal[:, later], normal[:, earlier]))
+            apart = np.abs(offset[:, later] - sign * offset[:, earlier])
+            near = apart <= 3.0 * np.maximum(rms[:, later], rms[:, earlier])
+            same = line_ok[:, later] & line_ok[:, earlier] & parallel & near
+            line_ok[:, later] &= ~same
+            members[:, later] &= ~same[:, None]
+    return line_ok, members
 
 
 def _without_crests(x, y, members, normal, offset, rms, count, line_ok):
@@ -521,9 +556,22 @@ def _corners(x, y, members, normal, offset, rms, count, line_ok, pairs):
         reach = np.where(mine, d, np.inf).min(axis=2)
         arm = np.where(mine, d, -np.inf).max(axis=2)
         ok &= (reach <= CORNER_REACH_M) & (arm >= MIN_ARM_M)
-    # Each line's offset is known to rms / sqrt(count) (its direction adds little near its
-    # centre); the corner moves by that over sin(angle), from each line.
-    var_a = rms[:, i] ** 2 / np.maximum(count[:, i], 1)
-    var_b = rms[:, j] ** 2 / np.maximum(count[:, j], 1)
-    variance = (var_a + var_b) / np.maximum(sin_angle, 1e-3) ** 2
+    # Each line is known at the corner to what its points tell there: the offset's variance
+    # rms^2 / n, and the direction's, rms^2 / (n var(s)), times the lever from the points'
+    # centre out to the corner; the corner moves by that over sin(angle), from each line.
+    variances = []
+    for line in (i, j):
+        mine = members[:, line]
+        n_line = normal[:, line]  # (B, P, 2)
+        direction = np.stack([-n_line[..., 1], n_line[..., 0]], axis=-1)
+        s_points = x[:, None] * direction[..., :1] + y[:, None] * direction[..., 1:]
+        s_corner = cx * direction[..., 0] + cy * direction[..., 1]
+        weight = mine.astype(np.float64)
+        n = np.maximum(weight.sum(axis=2), 1.0)
+        mean = (weight * s_points).sum(axis=2) / n
+        spread = (weight * (s_points - mean[..., None]) ** 2).sum(axis=2) / n
+        sigma2 = rms[:, line] ** 2
+        lever = (s_corner - mean) ** 2
+        variances.append(sigma2 / n + sigma2 * lever / (n * np.maximum(spread, 1e-12)))
+    variance = (variances[0] + variances[1]) / np.maximum(sin_angle, 1e-3) ** 2
     return corner, ok, angle, np.where(ok, variance, np.inf)

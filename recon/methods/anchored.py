@@ -57,8 +57,8 @@ EDGE_NEIGHBOURS = 64
 #: ... and at least this many samples (about ten millimetres of edge).
 MIN_EDGE_SAMPLES = 10
 #: How far a scan's feature may be off where it looks precise: what the scatter of its points does
-#: not show (the views merged a little off, the depth quantised), 1 sigma. A target is never
-#: trusted beyond it (measured on the real-parts benchmark: edges fitted from hundreds of
+#: not show (the views merged a little off, the depth quantised), 1 sigma, counted in each
+#: point's uncertainty (measured on the real-parts benchmark: edges fitted from hundreds of
 #: points were still 0.1-0.2 mm off).
 SCAN_ACCURACY_M = 0.15e-3
 #: Edge samples per independent one: 3 samples per slice's corner, slices 6 mm thick every 2 mm.
@@ -181,9 +181,11 @@ def anchored_segment(
         # the third (in the plane, across the path) is the path's alone.
         components = np.where(evidence.mode == PointMode.EDGE, 2, 1)
         per_component = np.where(supported, var_path, 0.0) / components
-        blend_var = components * (
-            alpha**2 * per_component + (1.0 - alpha) ** 2 * np.where(supported, var_target, 0.0)
-        )
+        # The scan's own accuracy beyond its scatter (SCAN_ACCURACY_M) is no reason to trust it
+        # less than another scan (alpha weighs what the data show), but it is part of how far
+        # the result may be off.
+        target_var = np.where(supported, var_target, 0.0) + SCAN_ACCURACY_M**2
+        blend_var = components * (alpha**2 * per_component + (1.0 - alpha) ** 2 * target_var)
         blend_var = blend_var + np.where(components == 1, 0.5 * path_only_var, 0.0)
         variance = np.where(
             supported, weight * blend_var + (1 - weight) * path_only_var, path_only_var
@@ -587,8 +589,7 @@ def _edge_targets_within(centres, direction, model, params, degree, tracks, fact
     # overlap), so the corners' own precision bounds the target's variance from below.
     line_variance = gather(model.edges.variance_m2, idx_s, fill_index=len(model.edges))
     var_from_fits = (ws * line_variance).sum(axis=1) / np.maximum(ws.sum(axis=1), 1e-300)
-    # And the scan is no more accurate than a depth camera's fused views, whatever its scatter.
-    var = np.maximum(var_from_scatter, var_from_fits / factor) + SCAN_ACCURACY_M**2
+    var = np.maximum(var_from_scatter, var_from_fits / factor)
     # Within the samples' span, or continued at most CONTINUE_PAST_END_M past its end; the
     # continued line's uncertainty grows with the distance (its slope's).
     count = count_of(ws)

@@ -362,13 +362,17 @@ def adaptive_smoothing(
         fits.append(
             smoothing(points, int(round(half_width * factor)), degree=degree, scale=scale * factor)
         )
+    # Each window's standard deviation from the trace's noise, which the narrowest fit measures
+    # best: a wide window's own residual includes its misfit to a bend, and would widen its
+    # interval to agree with the narrow ones exactly where it should not.
+    noise2 = np.maximum(fits[0].rms_m, 1e-300) ** 2
+    sigma = [np.sqrt(noise2 * f.variance_m2 / np.maximum(f.rms_m, 1e-300) ** 2) for f in fits]
     chosen = np.zeros(n, dtype=np.int64)
     agreeing = np.ones(n, dtype=bool)
     for j in range(1, len(fits)):
         for i in range(j):
             gap = np.linalg.norm(fits[j].points_m - fits[i].points_m, axis=1)
-            bound = ADAPTIVE_GAMMA * (np.sqrt(fits[i].variance_m2) + np.sqrt(fits[j].variance_m2))
-            agreeing &= gap <= bound
+            agreeing &= gap <= ADAPTIVE_GAMMA * (sigma[i] + sigma[j])
         chosen = np.where(agreeing, j, chosen)
     rows = np.arange(n)
     stack = np.stack([f.points_m for f in fits])

@@ -5,7 +5,6 @@ import pytest
 from scipy.spatial import cKDTree
 
 from recon.edge_lines import fit_edge_lines
-from recon.edges import thin_edges
 from recon.errors import NoOverlapError
 from recon.features import (
     covariance_features,
@@ -17,6 +16,8 @@ from recon.features import (
     voxel_average,
 )
 from recon.fitting import symmetric_eig3
+from recon.scan_model import build_scan_model
+from recon.types import ReconParams, Scan
 
 
 def dihedral(
@@ -78,10 +79,12 @@ def test_a_flat_surface_has_no_edge_lines_and_few_edge_points():
     path = np.column_stack([np.linspace(-0.02, 0.02, 41), np.full(41, 0.01), np.zeros(41)])
     feats = features_of(scan, path)
     assert feats.is_edge.mean() < 0.1
-    assert (
-        len(thin_edges(feats, path, radius_m=0.016, query_spacing_m=0.004, sample_spacing_m=0.001))
-        == 0
-    )
+    model = build_scan_model(Scan(points_m=scan), path, ReconParams())
+    # Every slice holds one line (the plane) and no corner, so there is no edge.
+    profiles = model.profiles
+    assert np.all(profiles.line_ok.sum(axis=1)[: len(profiles) - 12] >= 1)
+    assert not profiles.corner_ok.any()
+    assert len(model.edges) == 0
 
 
 def test_edge_threshold_separates_faces_from_crests():
