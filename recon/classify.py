@@ -21,8 +21,8 @@ if TYPE_CHECKING:
     # pull in the scan model's Open3D and SciPy.
     from recon.scan_model import ScanModel
 
-#: A segment follows an edge when it runs within this of it, RMS over the stretch the edge is
-#: there: about 2.5 times a hand's error across the path (paper, Sec. VI: std 0.5-1 mm). A trace
+#: A segment follows an edge when it runs within this of it, median over the stretch the edge
+#: is there: about 2.5 times a hand's error across the path (paper, Sec. VI: std 0.5-1 mm). A trace
 #: alongside an edge (on a face next to a wall, a few millimetres off it) runs farther.
 EDGE_FOLLOW_DISTANCE_M = 0.0025
 #: Edge points within this distance of a segment's points are its candidate edges.
@@ -53,10 +53,10 @@ class SegmentClass:
         The edge an EDGE segment follows: the tracks of :class:`recon.edges.EdgePoints` that
         make it up (one edge found in pieces is several tracks).
     rms_to_edge_m : float
-        RMS distance of the segment to that edge, where the edge is there.
+        Typical (median) distance of the segment to that edge, where the edge is there.
     next_edge_m : float
-        How far the next candidate edge lies from the segment (RMS; inf when none): how clearly
-        the trace picked its edge.
+        How far the next candidate edge lies from the segment (median; inf when none): how
+        clearly the trace picked its edge.
     """
 
     kind: SegmentKind
@@ -81,8 +81,8 @@ def classify_segments(
 
     A segment with scan points near less than half of its points has nothing to follow. Else
     each edge of the scan near it (a track of :class:`recon.edges.EdgePoints`) is weighed as a
-    whole: along how much of the segment it runs (its coverage) and how far from the segment,
-    RMS. The segment follows the edge with the largest coverage among those that run within
+    whole: along how much of the segment it runs (its coverage) and how far from the segment
+    (median). The segment follows the edge with the largest coverage among those that run within
     :data:`EDGE_FOLLOW_DISTANCE_M` of it, if that coverage is at least ``params.edge_fraction``:
     one edge for the whole segment, never a hop from edge to edge point by point. Otherwise it
     follows a surface.
@@ -171,24 +171,27 @@ def _choose_edge(candidates, seg: slice, length: int) -> _EdgeChoice | None:
         covered = np.isfinite(here)
         if not np.any(covered):
             continue
-        rms = float(np.sqrt(np.mean(here[covered] ** 2)))
-        scored.append((track, covered, rms, here))
+        # The median: a few stray corners linked into a track do not make the trace leave it.
+        typical = float(np.median(here[covered]))
+        scored.append((track, covered, typical, here))
     following = [c for c in scored if c[2] <= EDGE_FOLLOW_DISTANCE_M]
     if not following:
         return None
     first = max(following, key=lambda c: (round(float(np.mean(c[1])), 2), -c[2]))
     tracks = [first[0]]
     covered = first[1].copy()
-    for track, mine, _, here in sorted(following, key=lambda c: -np.count_nonzero(c[1])):
+    for track, mine, typical, here in sorted(following, key=lambda c: -np.count_nonzero(c[1])):
         if track == first[0]:
             continue
         both = mine & first[1]
         if np.any(both) and np.median(np.abs(here[both] - first[3][both])) > SAME_EDGE_M:
             continue  # a parallel edge, not this one in another piece
+        if typical > max(SAME_EDGE_SLACK * first[2], SAME_EDGE_M):
+            continue  # where the edge is not, another one farther from the trace than it
         tracks.append(track)
         covered |= mine
-    distances = np.where(covered, np.min([c[3] for c in scored if c[0] in tracks], axis=0), 0.0)
-    rms = float(np.sqrt(np.sum(distances**2) / max(np.count_nonzero(covered), 1)))
+    distances = np.min([c[3] for c in scored if c[0] in tracks], axis=0)
+    rms = float(np.median(distances[covered])) if np.any(covered) else float("inf")
     others = [
         c[2] for c in scored if c[0] not in tracks and np.count_nonzero(c[1]) >= 0.25 * length
     ]
@@ -198,8 +201,11 @@ def _choose_edge(candidates, seg: slice, length: int) -> _EdgeChoice | None:
 
 
 #: Two tracks seen from a segment within this of each other (median, where both are there) are
-#: one edge.
-SAME_EDGE_M = 0.0008
+#: one edge ...
+SAME_EDGE_M = 0.0012
+#: ... and a track where the first is not joins it only if the segment runs no farther from it
+#: than this many times (or :data:`SAME_EDGE_M`) from the first.
+SAME_EDGE_SLACK = 1.5
 
 
 #: Once registered, a path that follows an edge runs within a hand's error of it: a segment whose

@@ -188,6 +188,8 @@ MAX_SLICE_CORNER_SIGMA_M = 0.0004
 REFINE_EVERY = 1
 #: A refined corner must stay within this of its slice's corner ...
 REFINE_MAX_MOVE_M = 0.0015
+#: ... and within three of the slice corner's standard deviations of it, give or take this ...
+REFINE_SLACK_M = 0.0002
 #: ... run within this angle of its track ...
 REFINE_MAX_TURN_DEG = 30.0
 #: ... scatter no more than this many times the slice's lines ...
@@ -227,7 +229,11 @@ def _refined(profiles, station, pair, corners, direction, track, features, trees
     )
     moved = np.linalg.norm(fit.points_m - query, axis=1)
     turn = np.abs(np.einsum("ni,ni->n", fit.directions, direction[chosen]))
-    ok = fit.ok & (moved <= REFINE_MAX_MOVE_M) & (turn >= np.cos(np.radians(REFINE_MAX_TURN_DEG)))
+    # Within what the slice's corner is known to: a ball too large for a tight bend, or a face
+    # that curves across it, pulls the fit off the corner the slice saw.
+    slice_sigma = np.sqrt(profiles.corner_variance_m2[b, p])
+    agrees = moved <= np.minimum(REFINE_MAX_MOVE_M, 3.0 * slice_sigma + REFINE_SLACK_M)
+    ok = fit.ok & agrees & (turn >= np.cos(np.radians(REFINE_MAX_TURN_DEG)))
     ok &= _faces_kept(fit, normal3(i), normal3(j))
     # The ball's faces must be as flat as the slice's lines: a third face taken in (a small
     # part's next feature, a shallow crease's neighbour) shows as a larger scatter.

@@ -73,6 +73,8 @@ MIN_NORMAL_IN_SLICE = 0.6
 DUPLICATE_ANGLE_DEG = 10.0
 #: A line whose halves each run at more than this to it is two faces, not one.
 BENT_ANGLE_DEG = 5.0
+#: Supported corners of one slice this close are one corner (the strongest is kept).
+CLOSE_CORNERS_M = 0.0025
 #: Stations processed at once (bounds memory: votes are stations x points x directions).
 STATION_CHUNK = 64
 
@@ -323,13 +325,17 @@ def _profiles_chunk(stations, along, dense, normals, tree) -> Profiles:
             break
 
     line_ok, members = _without_duplicates(normal, offset, rms, line_ok, members)
+    # Support is judged on every point a line took (a crest's points reach its corner); the
+    # lines themselves are refitted without the points two lines share.
+    support = members
     normal, offset, rms, count, members = _without_crests(
         x, y, members, normal, offset, rms, count, line_ok
     )
     pairs = _pairs()
     corner, corner_ok, angle, corner_var = _corners(
-        x, y, members, normal, offset, rms, count, line_ok, pairs
+        x, y, members, support, normal, offset, rms, count, line_ok, pairs
     )
+    corner_ok = _strongest_of_close_corners(corner, corner_ok, count, pairs)
     return Profiles(
         origin_m=stations,
         along=along,
@@ -488,6 +494,25 @@ def _total_least_squares(x, y, weight):
     return normal, rho, sigma
 
 
+def _strongest_of_close_corners(corner, corner_ok, count, pairs):
+    """Of supported corners within :data:`CLOSE_CORNERS_M` of each other in one slice (a corner
+    rounded by the slice's thickness can grow a short third line across it), the one between
+    the two best-populated lines only."""
+    strength = np.minimum(count[:, pairs[:, 0]], count[:, pairs[:, 1]]).astype(np.float64)
+    strength = np.where(corner_ok, strength, -1.0)
+    ok = corner_ok.copy()
+    for p in range(len(pairs)):
+        for q in range(len(pairs)):
+            if p == q:
+                continue
+            close = np.linalg.norm(corner[:, p] - corner[:, q], axis=1) <= CLOSE_CORNERS_M
+            weaker = (strength[:, p] < strength[:, q]) | (
+                (strength[:, p] == strength[:, q]) & (p > q)
+            )
+            ok[:, p] &= ~(close & corner_ok[:, q] & weaker)
+    return ok
+
+
 def _without_duplicates(normal, offset, rms, line_ok, members):
     """Lines that repeat an earlier, stronger one (within :data:`DUPLICATE_ANGLE_DEG` of its
     direction and three noise levels of its offset: the noisy tail of the same face) dropped."""
@@ -535,7 +560,7 @@ def _without_crests(x, y, members, normal, offset, rms, count, line_ok):
     return normal, offset, rms, count, members
 
 
-def _corners(x, y, members, normal, offset, rms, count, line_ok, pairs):
+def _corners(x, y, members, support, normal, offset, rms, count, line_ok, pairs):
     """Where each pair of lines crosses, and whether both lines' points reach it."""
     i, j = pairs[:, 0], pairs[:, 1]
     na, nb = normal[:, i], normal[:, j]  # (B, P, 2)
@@ -551,7 +576,7 @@ def _corners(x, y, members, normal, offset, rms, count, line_ok, pairs):
     ok &= cx * cx + cy * cy <= PROFILE_RADIUS_M**2
     # Both lines' own points reach the corner and run on from it.
     for line in (i, j):
-        mine = members[:, line]  # (B, P, K)
+        mine = support[:, line]  # (B, P, K)
         d = np.hypot(x[:, None] - cx[..., None], y[:, None] - cy[..., None])
         reach = np.where(mine, d, np.inf).min(axis=2)
         arm = np.where(mine, d, -np.inf).max(axis=2)

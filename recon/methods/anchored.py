@@ -435,8 +435,9 @@ MAX_LIFT_OFF_LENGTH_M = 0.06
 LIFT_OFF_SAME_FACE_M = 0.0018
 #: The way down is clear when no scan point lies within this of it ...
 LINE_OF_SIGHT_M = 0.0008
-#: ... but for its last stretch, where it reaches the feature.
-LIFT_OFF_LANDING_M = 0.0015
+#: ... but for its last stretch, where it reaches the feature and the scan's scatter about it (a
+#: depth camera's surface scatters by a millimetre or more) would block a clear way.
+LIFT_OFF_LANDING_M = 0.0025
 
 
 def _take(out: Evidence, accept, target, variance, mode, reason, count, residual) -> None:
