@@ -49,20 +49,20 @@ class SegmentClass:
         (0 for a segment with no scan near it).
     fell_back : bool
         The scan was near but the path disagreed with it (:func:`check_consistency`): path only.
-    tracks : tuple of int, or None
-        The edge an EDGE segment follows: the tracks of :class:`recon.edges.EdgePoints` that
-        make it up (one edge found in pieces is several tracks).
+    corners : tuple of int, or None
+        The edge an EDGE segment follows: the corners (:attr:`recon.edges.EdgePoints.corner`)
+        chosen along it.
     rms_to_edge_m : float
         Typical (median) distance of the segment to that edge, where the edge is there.
     next_edge_m : float
-        How far the next candidate edge lies from the segment (median; inf when none): how
-        clearly the trace picked its edge.
+        How far the next candidate corner lay from the chosen one (median where there was one;
+        inf when never): how clearly the trace picked its edge.
     """
 
     kind: SegmentKind
     edge_fraction: float
     fell_back: bool = False
-    tracks: tuple[int, ...] | None = None
+    corners: tuple[int, ...] | None = None
     rms_to_edge_m: float = float("nan")
     next_edge_m: float = float("nan")
 
@@ -80,12 +80,11 @@ def classify_segments(
     """Per segment: which edge it follows, else a surface, else nothing of the scan.
 
     A segment with scan points near less than half of its points has nothing to follow. Else
-    each edge of the scan near it (a track of :class:`recon.edges.EdgePoints`) is weighed as a
-    whole: along how much of the segment it runs (its coverage) and how far from the segment
-    (median). The segment follows the edge with the largest coverage among those that run within
-    :data:`EDGE_FOLLOW_DISTANCE_M` of it, if that coverage is at least ``params.edge_fraction``:
-    one edge for the whole segment, never a hop from edge to edge point by point. Otherwise it
-    follows a surface.
+    the corners of the scan near it (:class:`recon.edges.EdgePoints`) are chosen along it as one
+    (:func:`_choose_edge`: near the trace, and without hopping from one edge to the next one
+    over); the segment follows them if they run along at least ``params.edge_fraction`` of it,
+    and a surface otherwise. Its points without a corner then take the height of the face
+    under them.
 
     Parameters
     ----------
@@ -119,7 +118,7 @@ def classify_segments(
                 SegmentClass(
                     SegmentKind.EDGE,
                     choice.coverage,
-                    tracks=choice.tracks,
+                    corners=choice.corners,
                     rms_to_edge_m=choice.rms_m,
                     next_edge_m=choice.next_m,
                 )
@@ -132,80 +131,134 @@ def classify_segments(
 
 @dataclass(frozen=True)
 class _EdgeChoice:
-    tracks: tuple[int, ...]
+    corners: tuple[int, ...]
     coverage: float
     rms_m: float
     next_m: float
 
 
+#: Corners within this of a path point are its candidates (at most :data:`CANDIDATES`).
+EDGE_CANDIDATE_REACH_M = 0.006
+CANDIDATES = 6
+#: The choice of corners along a segment (:func:`_choose_edge`) weighs a point's distance to its
+#: corner by the hand's error across the path ...
+FOLLOW_SIGMA_M = 0.0008
+#: ... and the change of that offset from one point to the next by this (a slowly drifting hand
+#: on one edge changes it by a few hundredths of a millimetre a step; the scan's corners scatter
+#: by a few tenths; the next edge over is millimetres away) ...
+OFFSET_STEP_SIGMA_M = 0.00035
+#: ... a point with no corner costs what one this far from the trace would ...
+NO_CORNER_COST_M = 0.0025
+#: ... and leaving or joining the scan's edge costs as much as this many squared sigmas.
+ENTER_COST = 4.0
+
+
 def _edge_candidates(points_m: FloatArray, model: ScanModel):
-    """Per point and track: the distance to the track's nearest edge point within
-    :data:`EDGE_CANDIDATE_REACH_M` (a dict of track -> (N,) distances, inf where absent)."""
-    if model.edge_tree is None:
-        return {}
-    k = min(48, len(model.edges))
-    dist, idx = model.edge_tree.query(
-        points_m, k=k, distance_upper_bound=EDGE_CANDIDATE_REACH_M, workers=-1
-    )
-    if k == 1:
-        dist, idx = dist[:, None], idx[:, None]
-    tracks = gather(model.edges.track, idx, fill_index=len(model.edges))
-    present = np.isfinite(dist)
-    out = {}
-    for track in np.unique(tracks[present]):
-        out[int(track)] = np.where(present & (tracks == track), dist, np.inf).min(axis=1)
-    return out
+    """Per point, the corners of the scan near it: up to :data:`CANDIDATES` distinct corners
+    within :data:`EDGE_CANDIDATE_REACH_M`, nearest first.
+
+    Returns
+    -------
+    ids : ndarray of shape (N, C), int
+        :attr:`recon.edges.EdgePoints.corner` of each candidate (-2 where there is none).
+    offsets : ndarray of shape (N, C, 3)
+        From the point to the corner's nearest sample.
+    distances : ndarray of shape (N, C)
+        Their lengths (inf where there is none).
+    """
+    n = len(points_m)
+    ids = np.full((n, CANDIDATES), -2, np.int64)
+    offsets = np.zeros((n, CANDIDATES, 3))
+    distances = np.full((n, CANDIDATES), np.inf)
+    if model.edge_tree is None or n == 0:
+        return ids, offsets, distances
+    edges = model.edges
+    k = min(64, len(edges))
+    for start in range(0, n, 2048):
+        rows = slice(start, min(start + 2048, n))
+        dist, idx = model.edge_tree.query(
+            points_m[rows], k=k, distance_upper_bound=EDGE_CANDIDATE_REACH_M, workers=-1
+        )
+        if k == 1:
+            dist, idx = dist[:, None], idx[:, None]
+        present = np.isfinite(dist)
+        corner = np.where(present, gather(edges.corner, idx, fill_index=len(edges)), -3)
+        # The first (nearest) sample of each corner in the row.
+        seen_before = np.triu(corner[:, :, None] == corner[:, None, :], k=1).any(axis=1)
+        first = present & ~seen_before
+        order = np.argsort(~first, axis=1, kind="stable")[:, :CANDIDATES]
+        take = np.take_along_axis(first, order, 1)
+        chosen_idx = np.take_along_axis(idx, order, 1)
+        ids[rows, : order.shape[1]] = np.where(take, np.take_along_axis(corner, order, 1), -2)
+        d = np.take_along_axis(dist, order, 1)
+        distances[rows, : order.shape[1]] = np.where(take, d, np.inf)
+        sample = gather(edges.points_m, chosen_idx, fill_index=len(edges))
+        offsets[rows, : order.shape[1]] = np.where(
+            take[..., None], sample - points_m[rows][:, None, :], 0.0
+        )
+    return ids, offsets, distances
 
 
 def _choose_edge(candidates, seg: slice, length: int) -> _EdgeChoice | None:
-    """The edge a segment follows (see :func:`classify_segments`), or None.
+    """The corners a segment follows, chosen along it as one: the most likely sequence of
+    corners (or none) point by point, where a point pays for its distance to its corner (the
+    hand's error), for the change of that offset from the previous point (an edge does not hop
+    to the next one over), and for having no corner; a Viterbi pass over the segment.
 
-    The track that runs along most of the segment within :data:`EDGE_FOLLOW_DISTANCE_M` of it
-    is the edge; other such tracks join it where they continue it (where both are there, they
-    lie within :data:`SAME_EDGE_M` of each other as seen from the segment): one edge the scan
-    showed in pieces.
+    Returns
+    -------
+    _EdgeChoice or None
+        The corners chosen (their ids), the share of the segment that has one,
+        the median distance to them, and the median distance from them to the next candidate
+        corner where there was one (inf when never); None when no point has a corner.
     """
-    scored = []
-    for track, distance in candidates.items():
-        here = distance[seg]
-        covered = np.isfinite(here)
-        if not np.any(covered):
-            continue
-        # The median: a few stray corners linked into a track do not make the trace leave it.
-        typical = float(np.median(here[covered]))
-        scored.append((track, covered, typical, here))
-    following = [c for c in scored if c[2] <= EDGE_FOLLOW_DISTANCE_M]
-    if not following:
+    ids, offsets, distances = (a[seg] for a in candidates)
+    n = len(ids)
+    if n == 0 or not np.isfinite(distances).any():
         return None
-    first = max(following, key=lambda c: (round(float(np.mean(c[1])), 2), -c[2]))
-    tracks = [first[0]]
-    covered = first[1].copy()
-    for track, mine, typical, here in sorted(following, key=lambda c: -np.count_nonzero(c[1])):
-        if track == first[0]:
-            continue
-        both = mine & first[1]
-        if np.any(both) and np.median(np.abs(here[both] - first[3][both])) > SAME_EDGE_M:
-            continue  # a parallel edge, not this one in another piece
-        if typical > max(SAME_EDGE_SLACK * first[2], SAME_EDGE_M):
-            continue  # where the edge is not, another one farther from the trace than it
-        tracks.append(track)
-        covered |= mine
-    distances = np.min([c[3] for c in scored if c[0] in tracks], axis=0)
-    rms = float(np.median(distances[covered])) if np.any(covered) else float("inf")
-    others = [
-        c[2] for c in scored if c[0] not in tracks and np.count_nonzero(c[1]) >= 0.25 * length
-    ]
-    return _EdgeChoice(
-        tuple(tracks), float(np.mean(covered)), rms, min(others) if others else float("inf")
+    c = ids.shape[1]
+    none = c
+    emit = np.concatenate(
+        [
+            np.where(np.isfinite(distances), (distances / FOLLOW_SIGMA_M) ** 2, np.inf),
+            np.full((n, 1), (NO_CORNER_COST_M / FOLLOW_SIGMA_M) ** 2),
+        ],
+        axis=1,
     )
-
-
-#: Two tracks seen from a segment within this of each other (median, where both are there) are
-#: one edge ...
-SAME_EDGE_M = 0.0012
-#: ... and a track where the first is not joins it only if the segment runs no farther from it
-#: than this many times (or :data:`SAME_EDGE_M`) from the first.
-SAME_EDGE_SLACK = 1.5
+    cost = emit[0].copy()
+    back = np.zeros((n, c + 1), np.int64)
+    for i in range(1, n):
+        step = offsets[i][None, :, :] - offsets[i - 1][:, None, :]  # (from, to, 3)
+        move = np.einsum("abk,abk->ab", step, step) / OFFSET_STEP_SIGMA_M**2
+        trans = np.full((c + 1, c + 1), ENTER_COST)
+        trans[:c, :c] = move
+        trans[none, none] = 0.0
+        total = cost[:, None] + trans
+        back[i] = np.argmin(total, axis=0)
+        cost = total[back[i], np.arange(c + 1)] + emit[i]
+    state = np.empty(n, np.int64)
+    state[-1] = int(np.argmin(cost))
+    for i in range(n - 1, 0, -1):
+        state[i - 1] = back[i, state[i]]
+    on = state != none
+    if not np.any(on):
+        return None
+    rows = np.flatnonzero(on)
+    chosen = ids[rows, state[rows]]
+    typical = float(np.median(distances[rows, state[rows]]))
+    # How far the next candidate was, where there was one: how clearly the trace chose.
+    others = []
+    for i, slot in zip(rows, state[rows], strict=True):
+        rest = [j for j in range(c) if j != slot and np.isfinite(distances[i, j])]
+        if rest:
+            gaps = np.linalg.norm(offsets[i, rest] - offsets[i, slot], axis=1)
+            others.append(float(gaps.min()))
+    return _EdgeChoice(
+        tuple(sorted({int(x) for x in chosen})),
+        float(np.count_nonzero(on)) / length,
+        typical,
+        float(np.median(others)) if others else float("inf"),
+    )
 
 
 #: Once registered, a path that follows an edge runs within a hand's error of it: a segment whose

@@ -54,6 +54,10 @@ class EdgePoints:
         Points on the smaller of the two faces.
     track : ndarray of shape (E,), int
         Which edge the point belongs to (-1: not known, e.g. a corner's edge lines filled in).
+    corner : ndarray of shape (E,), int
+        The corner (of one slice, or refined in 3-D) the point was sampled from: a segment
+        chooses the corners it follows (:mod:`recon.classify`), and its edge targets use their
+        points alone (-1: not known, used by every segment along it).
     variance_m2 : ndarray of shape (E,)
         Variance of the point's position across the edge, both directions together.
     """
@@ -64,11 +68,14 @@ class EdgePoints:
     n_points: NDArray[np.int64]
     track: NDArray[np.int64] | None = None
     variance_m2: FloatArray | None = None
+    corner: NDArray[np.int64] | None = None
 
     def __post_init__(self) -> None:
         n = len(self.points_m)
         if self.track is None:
             object.__setattr__(self, "track", np.full(n, -1, np.int64))
+        if self.corner is None:
+            object.__setattr__(self, "corner", np.full(n, -1, np.int64))
         if self.variance_m2 is None:
             legacy = EDGE_VARIANCE_FACTOR * self.residual_m**2 / np.maximum(self.n_points, 1)
             object.__setattr__(self, "variance_m2", np.asarray(legacy, dtype=np.float64))
@@ -90,6 +97,7 @@ class EdgePoints:
             n_points=self.n_points[keep],
             track=self.track[keep],
             variance_m2=self.variance_m2[keep],
+            corner=self.corner[keep],
         )
 
     @classmethod
@@ -106,6 +114,7 @@ class EdgePoints:
                     "n_points",
                     "track",
                     "variance_m2",
+                    "corner",
                 )
             }
         )
@@ -175,6 +184,7 @@ def edges_from_profiles(
             n_points=np.repeat(count[keep].astype(np.int64), repeat),
             track=np.repeat(track[keep], repeat),
             variance_m2=np.repeat(variance[keep], repeat),
+            corner=np.repeat(np.flatnonzero(keep), repeat),
         )
     )
     return EdgePoints.concatenate(parts)
@@ -269,6 +279,8 @@ def _refined(profiles, station, pair, corners, direction, track, features, trees
             variance_m2=np.repeat(
                 EDGE_VARIANCE_FACTOR * residual**2 / np.maximum(count, 1), repeat
             ),
+            # A refined corner is its own corner, numbered after the slices' ones.
+            corner=np.repeat(len(corners) + good, repeat),
         ),
         covered,
     )

@@ -324,7 +324,7 @@ def reconstruct(
                 params,
                 half_width,
                 prior_variance_m2=None if prior is None else prior[start:stop],
-                tracks=segment_class.tracks,
+                corners=segment_class.corners,
             )
         )
         if kind == SegmentKind.PATH and model is not None:

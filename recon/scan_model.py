@@ -76,6 +76,7 @@ _EDGE_ARRAYS = (
 _EDGE_ARRAYS_V2 = (
     ("edge_track", "track", np.int64),
     ("edge_variance_m2", "variance_m2", np.float64),
+    ("edge_corner", "corner", np.int64),
 )
 _MODEL_SCALARS = ("edge_fit_radius_m", "edge_query_spacing_m", "edge_sample_spacing_m")
 
@@ -252,6 +253,7 @@ class ScanModel:
                     n_points=np.full(len(points_m), count, np.int64),
                     track=track,
                     variance_m2=np.full(len(points_m), variance),
+                    corner=np.full(len(points_m), -1, np.int64),
                 ),
             ]
         )
@@ -362,8 +364,8 @@ def _check_shapes(features: ScanFeatures, edges: EdgePoints) -> None:
         raise ValueError("the scan model's edge points and directions must have shape (E, 3)")
     if edges.residual_m.shape != (e,) or edges.n_points.shape != (e,):
         raise ValueError(f"the scan model's edge residuals and counts must have {e} rows")
-    if edges.track.shape != (e,) or edges.variance_m2.shape != (e,):
-        raise ValueError(f"the scan model's edge tracks and variances must have {e} rows")
+    if edges.track.shape != (e,) or edges.variance_m2.shape != (e,) or edges.corner.shape != (e,):
+        raise ValueError(f"the scan model's edge tracks, variances and corners must have {e} rows")
 
 
 def build_scan_model(scan: Scan, points_in_scan_m: FloatArray, params: ReconParams) -> ScanModel:

@@ -75,7 +75,7 @@ def anchored_segment(
     half_width: int,
     *,
     prior_variance_m2: FloatArray | None = None,
-    tracks: tuple[int, ...] | None = None,
+    corners: tuple[int, ...] | None = None,
 ) -> SegmentResult:
     """The anchored method for every point of one segment (see the module docstring).
 
@@ -96,8 +96,8 @@ def anchored_segment(
         fused variance of several demonstrations. :data:`HAND_ERROR_PRIOR_M` when not given.
         It is the uncertainty of what only the path decides (a point without a scan, the
         in-plane position on a surface).
-    tracks : tuple of int, optional
-        The edge an EDGE segment follows (its points alone form N_S).
+    corners : tuple of int, optional
+        The corners an EDGE segment follows (their points alone form N_S).
 
     Returns
     -------
@@ -147,7 +147,7 @@ def anchored_segment(
                     degree,
                     max_move_m=params.evidence_sigmas * np.sqrt(prior[rows]),
                     end_distance_m=end_distance[rows],
-                    tracks=tracks,
+                    corners=corners,
                 ),
             )
 
@@ -257,7 +257,7 @@ def weigh_evidence(
     *,
     max_move_m: FloatArray,
     end_distance_m: FloatArray | None = None,
-    tracks: tuple[int, ...] | None = None,
+    corners: tuple[int, ...] | None = None,
 ) -> Evidence:
     """The scan's target for each smoothed point, accepted only where the evidence holds.
 
@@ -285,8 +285,8 @@ def weigh_evidence(
         How far each point lies from its segment's nearer end, along it: only there may an edge
         be continued past the end of its samples (inside a segment a gap in them is bridged by
         the samples beyond it, not by a straight line). Everywhere when not given.
-    tracks : tuple of int, optional
-        The edge the segment follows.
+    corners : tuple of int, optional
+        The corners the segment follows.
 
     Returns
     -------
@@ -297,7 +297,13 @@ def weigh_evidence(
     first_failure = np.full(len(centres), PointReason.NO_FEATURE, np.int8)
     if kind == SegmentKind.EDGE:
         t, var_t, count, resid, past = _edge_targets(
-            centres, direction, model, params, degree, tracks=tracks, end_distance_m=end_distance_m
+            centres,
+            direction,
+            model,
+            params,
+            degree,
+            corners=corners,
+            end_distance_m=end_distance_m,
         )
         found = np.isfinite(var_t)
         gap, _ = model.dense_tree.query(t, workers=-1)
@@ -484,7 +490,7 @@ def ramp(supported: np.ndarray, half_width: int) -> FloatArray:
     return np.clip(distance / half_width, 0.0, 1.0) * supported
 
 
-def _edge_targets(centres, direction, model, params, degree, *, tracks=None, end_distance_m=None):
+def _edge_targets(centres, direction, model, params, degree, *, corners=None, end_distance_m=None):
     """Nearest point of the local edge curve to each smoothed path point, over the widest stretch
     of edge that does not bend it.
 
@@ -515,7 +521,7 @@ def _edge_targets(centres, direction, model, params, degree, *, tracks=None, end
         else np.asarray(end_distance_m) <= CONTINUE_PAST_END_M + SPAN_SLACK_M
     )
     fits = [
-        _edge_targets_within(centres, direction, model, params, degree, tracks, factor, near_end)
+        _edge_targets_within(centres, direction, model, params, degree, corners, factor, near_end)
         for factor in EDGE_WINDOW_FACTORS
     ]
     rows = np.arange(len(centres))
@@ -547,7 +553,7 @@ EDGE_WINDOW_FACTORS = (1, 2, 4)
 EDGE_ICI_GAMMA = 1.5
 
 
-def _edge_targets_within(centres, direction, model, params, degree, tracks, factor, near_end):
+def _edge_targets_within(centres, direction, model, params, degree, corners, factor, near_end):
     """:func:`_edge_targets` with N_S reaching ``factor`` times :data:`EDGE_SCAN_RADII` radii.
 
     A 3-D polynomial (both transverse components of the edge points' principal frame as
@@ -558,7 +564,7 @@ def _edge_targets_within(centres, direction, model, params, degree, tracks, fact
         direction,
         model,
         EDGE_SCAN_RADII * params.radius_m * factor,
-        tracks=tracks,
+        corners=corners,
         max_points=EDGE_NEIGHBOURS * factor,
     )
     frame = weighted_pca(ns, ws)

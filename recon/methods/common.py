@@ -127,7 +127,7 @@ def edge_neighbourhoods(
     model: ScanModel,
     radius_m: float,
     *,
-    tracks: tuple[int, ...] | None = None,
+    corners: tuple[int, ...] | None = None,
     max_points: int = 64,
 ) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
     """N_S on an edge: thinned edge points within ``radius_m`` that run along the path.
@@ -141,8 +141,8 @@ def edge_neighbourhoods(
     model : ScanModel
         With a non-empty thinned edge.
     radius_m : float
-    tracks : tuple of int, optional
-        Only the points of this edge (the segment's tracks, see :func:`recon.classify
+    corners : tuple of int, optional
+        Only the points of these corners (the segment's, see :func:`recon.classify
         .classify_segments`); every edge when not given.
     max_points : int
         At most this many (the nearest).
@@ -163,11 +163,11 @@ def edge_neighbourhoods(
     dirs = gather(edges.directions, idx, fill_index=len(edges))
     along = np.abs(np.einsum("bki,bi->bk", dirs, path_direction))
     weights = np.isfinite(dist) & (along >= np.cos(np.radians(EDGE_DIRECTION_TOLERANCE_DEG)))
-    if tracks is not None:
-        # Samples of no known track (a confirmed corner's edge lines, filled in up to the
-        # corner) belong to whichever edge they run along.
-        sample_track = gather(edges.track, idx, fill_index=len(edges))
-        weights &= np.isin(sample_track, tracks) | (sample_track == -1)
+    if corners is not None:
+        # Samples of no known corner (a confirmed corner's edge lines, filled in up to it)
+        # belong to whichever edge they run along.
+        sample_corner = gather(edges.corner, idx, fill_index=len(edges))
+        weights &= np.isin(sample_corner, corners) | (sample_corner == -1)
     return pts, weights.astype(np.float64), idx
 
 

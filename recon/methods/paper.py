@@ -62,7 +62,7 @@ def paper_segment(
     half_width: int,
     *,
     prior_variance_m2: FloatArray | None = None,
-    tracks: tuple[int, ...] | None = None,
+    corners: tuple[int, ...] | None = None,
 ) -> SegmentResult:
     """Eq. (4) of the paper for every point of one segment.
 
@@ -112,7 +112,7 @@ def paper_segment(
         if use_scan:
             if kind == SegmentKind.EDGE:
                 ns, ws, _ = edge_neighbourhoods(
-                    points[rows], frame.axes[:, :, 0], model, params.radius_m, tracks=tracks
+                    points[rows], frame.axes[:, :, 0], model, params.radius_m, corners=corners
                 )
             else:
                 ns = model.features.dense_points_m[knn[windows[rows]].reshape(len(x_i), -1)]
