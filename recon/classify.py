@@ -173,7 +173,7 @@ def _edge_candidates(points_m: FloatArray, model: ScanModel):
     if model.edge_tree is None or n == 0:
         return ids, offsets, distances
     edges = model.edges
-    k = min(64, len(edges))
+    k = min(32, len(edges))
     for start in range(0, n, 2048):
         rows = slice(start, min(start + 2048, n))
         dist, idx = model.edge_tree.query(

@@ -145,7 +145,12 @@ _PRODUCTS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
 def neighbour_balls(
-    points_m: FloatArray, tree: cKDTree, *, radius_m: float, max_neighbours: int = 48
+    points_m: FloatArray,
+    tree: cKDTree,
+    *,
+    radius_m: float,
+    max_neighbours: int = 48,
+    rows: np.ndarray | None = None,
 ):
     """Each point's ball: its nearest ``max_neighbours`` points within ``radius_m`` (a hybrid
     search, as Open3D's ``estimate_covariances``), itself included.
@@ -161,6 +166,8 @@ def neighbour_balls(
         Over ``points_m``.
     radius_m : float
     max_neighbours : int
+    rows : ndarray of shape (S,), int, optional
+        Only these points' balls (their rows of the matrix; the others empty), increasing.
 
     Returns
     -------
@@ -171,15 +178,20 @@ def neighbour_balls(
 
     m = len(points_m)
     k = min(max_neighbours, m)
-    rows, columns = [], []
-    for start in range(0, m, NEIGHBOUR_CHUNK):
-        query = points_m[start : start + NEIGHBOUR_CHUNK]
+    wanted = np.arange(m) if rows is None else np.asarray(rows, dtype=np.int64)
+    counts, columns = [], []
+    for start in range(0, len(wanted), NEIGHBOUR_CHUNK):
+        query = points_m[wanted[start : start + NEIGHBOUR_CHUNK]]
         distance, index = tree.query(query, k=k, distance_upper_bound=radius_m, workers=-1)
         inside = np.isfinite(distance.reshape(len(query), k))
-        rows.append(inside.sum(axis=1))
+        counts.append(inside.sum(axis=1))
         columns.append(index.reshape(len(query), k)[inside].astype(np.int32))
-    per_row = np.concatenate(rows) if rows else np.zeros(0, np.int64)
+    per_row = np.zeros(m, np.int64)
+    if counts:
+        per_row[wanted] = np.concatenate(counts)
     row_starts = np.concatenate(([0], np.cumsum(per_row)))
+    if rows is not None and len(wanted) and np.any(np.diff(wanted) <= 0):
+        raise ValueError("rows must be increasing")
     index = np.concatenate(columns) if columns else np.zeros(0, np.int32)
     return csr_matrix((np.ones(len(index)), index, row_starts), shape=(m, m))
 

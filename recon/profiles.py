@@ -36,7 +36,7 @@ PROFILE_RADIUS_M = 0.012
 #: Dense points gathered per station before the slice is cut from them.
 PROFILE_NEIGHBOURS = 768
 #: The Hough transform's resolution: line directions ...
-THETA_BINS = 90
+THETA_BINS = 30
 #: ... and offsets.
 RHO_BIN_M = 0.0005
 #: At most this many lines per slice.
@@ -61,10 +61,12 @@ MIN_ARM_M = 0.002
 #: The peak of the Hough transform is sought over bands of this many offset bins (1.5 mm: about
 #: the width of a face's points at a depth camera's noise).
 PEAK_BAND_BINS = 3
-#: A point votes only for lines whose normal is within this of its own (its face's) ...
+#: A point belongs to a line only if its normal (its face's) is within this of the line's ...
 NORMAL_TOLERANCE_DEG = 35.0
-#: ... which is this many direction bins either side.
-VOTE_HALF_WINDOW = int(np.ceil(NORMAL_TOLERANCE_DEG / (180.0 / THETA_BINS)))
+#: ... and votes only for lines in its own normal's direction bin and this many either side (the
+#: peak needs no more: the refinement finds the line's direction; measured on the real-parts
+#: benchmark, voting across the whole tolerance found the same corners at 3.5 times the cost).
+VOTE_HALF_WINDOW = 1
 #: A point whose normal lies mostly along the path (its face is cut at a glancing angle) does not
 #: vote: the in-slice part of its unit normal must be at least this long.
 MIN_NORMAL_IN_SLICE = 0.6

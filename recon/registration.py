@@ -189,11 +189,20 @@ def _try_edge(points, model, bounds, params, T_init) -> _EdgeTry | None:
 
 
 def _following(points_scan_m, model, bounds, params) -> np.ndarray:
-    """Per point: on a segment that follows the scan's edge (scan frame)."""
-    classes = classify_segments(points_scan_m, bounds, model, params)
+    """Per point: on a segment that follows the scan's edge (scan frame): its points lie within
+    :data:`EDGE_FOLLOW_DISTANCE_M` of the thinned edge, on median, along at least
+    ``params.edge_fraction`` of it. (A quick look for choosing the registration's target; which
+    corners a segment follows is decided once registered, by :func:`classify_segments`.)"""
     on_edge = np.zeros(len(points_scan_m), dtype=bool)
-    for (start, stop), segment_class in zip(bounds, classes, strict=True):
-        on_edge[start:stop] |= segment_class.kind == SegmentKind.EDGE
+    if model.edge_tree is None:
+        return on_edge
+    dist, _ = model.edge_tree.query(
+        points_scan_m, distance_upper_bound=EDGE_FOLLOW_DISTANCE_M, workers=-1
+    )
+    near = np.isfinite(dist)
+    for start, stop in bounds:
+        if np.mean(near[start:stop]) >= max(params.edge_fraction, 0.5):
+            on_edge[start:stop] = True
     return on_edge
 
 

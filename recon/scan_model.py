@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 
 from recon.edges import EdgePoints, stations_along, thin_edges
 from recon.features import ScanFeatures, ball_covariances, neighbour_balls, prepare_scan
-from recon.fitting import symmetric_eig3
+from recon.fitting import gather, symmetric_eig3
 from recon.profiles import Profiles, find_profiles
 from recon.types import FloatArray, ReconParams, Scan
 
@@ -39,6 +39,9 @@ FINE_NORMAL_NEIGHBOURS = 16
 FINE_NORMAL_RADIUS_M = 0.004
 #: ... at least this many of them ...
 MIN_FINE_NORMAL_POINTS = 6
+#: Small-scale normals are computed only this near the slices along the path (their radius, and
+#: the faces' seeds nearby).
+FINE_NORMAL_REACH_M = 0.016
 #: ... whose smallest spread is clearly the smallest: below the middle one by this share of it.
 PLANE_EIGEN_GAP = 0.3
 #: A point's face is looked up in the nearest slice within this distance ...
@@ -143,22 +146,37 @@ class ScanModel:
         """Unit normals of the dense points at a small scale (sign arbitrary, shape (D, 3)): the
         plane through each point's :data:`FINE_NORMAL_NEIGHBOURS` nearest dense points within
         :data:`FINE_NORMAL_RADIUS_M`, which tells a wall a few millimetres tall from the faces
-        above and below it (the curvature ball's normals blend them). Zero where the ball shows
-        no plane (too few points, or no clearly smallest spread: a lone point, a line of them),
-        which no rotation of the data could make the same twice."""
+        above and below it (the curvature ball's normals blend them).
+
+        Zero where the ball shows no plane (too few points, or no clearly smallest spread: a
+        lone point, a line of them), which no rotation of the data could make the same twice;
+        and for the points farther than :data:`FINE_NORMAL_REACH_M` from the path's slices,
+        which nothing asks about (computed only when there are slices).
+        """
         dense = self.features.dense_points_m
+        wanted = np.arange(len(dense))
+        if self.profiles is not None and len(self.profiles):
+            gap, _ = cKDTree(self.profiles.origin_m).query(
+                dense, distance_upper_bound=FINE_NORMAL_REACH_M, workers=-1
+            )
+            wanted = np.flatnonzero(np.isfinite(gap))
+        normals = np.zeros_like(dense)
+        if len(wanted) == 0:
+            return normals
         balls = neighbour_balls(
             dense,
             self.dense_tree,
             radius_m=FINE_NORMAL_RADIUS_M,
             max_neighbours=FINE_NORMAL_NEIGHBOURS,
+            rows=wanted,
         )
         covariances, counts = ball_covariances(dense, balls)
-        values, normals = symmetric_eig3(covariances)
+        values, vectors = symmetric_eig3(covariances)
         planar = (counts >= MIN_FINE_NORMAL_POINTS) & (
             values[:, 1] - values[:, 0] >= PLANE_EIGEN_GAP * np.maximum(values[:, 1], 1e-30)
         )
-        return np.where(planar[:, None], normals, 0.0)
+        normals[wanted] = np.where(planar[:, None], vectors, 0.0)
+        return normals
 
     def faces_under(self, points_m: FloatArray) -> tuple[FloatArray, FloatArray, np.ndarray]:
         """The face each point lies over, from the nearest cross-section: the line of that
