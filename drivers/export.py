@@ -22,6 +22,7 @@ from recon.types import (
     JointTrajectory,
     Phase,
     PointMode,
+    PointReason,
     ReconstructedPath,
     Reconstruction,
     piece_labels,
@@ -37,6 +38,7 @@ DIAGNOSTIC_COLUMNS = PER_POINT_FIELDS[PER_POINT_FIELDS.index("displacement_m") :
 #: printf formats of the diagnostic columns that are not numbers to 9 digits.
 DIAGNOSTIC_FORMATS = {
     "mode": "%s",
+    "reason": "%s",
     "segment": "%d",
     "n_path": "%d",
     "n_surface": "%d",
@@ -56,9 +58,12 @@ def reconstruction_csv_text(arrays: dict) -> str:
     """The CSV of a reconstruction from its arrays (the fields of :class:`Reconstruction`).
 
     ``mode`` is written as a word (path, surface, edge, unchanged); NaN residuals (no such fit)
-    as empty cells. ``uncertainty_m`` is each point's 1-sigma uncertainty across the path.
+    as empty cells. ``uncertainty_m`` is each point's 1-sigma uncertainty across the path;
+    ``reason`` a word where the scan's evidence failed (``far_from_trace``, ``no_feature``, ...),
+    or an edge was continued past its end (``continued``), empty elsewhere.
     """
     labels = {int(m): m.label for m in PointMode}
+    reason_labels = {int(r): r.label for r in PointReason}
     n = len(arrays["points_m"])
     t, q = arrays.get("t_s"), arrays.get("orientations_xyzw")
     # Reconstructions stored before they were kept have no piece (one piece) and no uncertainty
@@ -69,6 +74,14 @@ def reconstruction_csv_text(arrays: dict) -> str:
         "piece": np.zeros(n, np.int64) if arrays.get("piece") is None else arrays["piece"],
         "uncertainty_m": (
             np.full(n, np.nan) if arrays.get("uncertainty_m") is None else arrays["uncertainty_m"]
+        ),
+        # Why the scan was not used where the segment claimed it ("" where it was), or that an
+        # edge was continued past its end; empty for reconstructions stored before it was kept.
+        "reason": np.array(
+            [""] * n
+            if arrays.get("reason") is None
+            else [reason_labels.get(int(r), str(int(r))) for r in arrays["reason"]],
+            dtype=object,
         ),
     }
     # (header, values, printf format) per column, in the file's order.

@@ -29,17 +29,24 @@ from recon.corners import (
     judge_without_scan,
     lines_to_edge_samples,
 )
-from recon.errors import DegenerateInputError, TouchesInsufficientError, UnitsMismatchError
+from recon.errors import DegenerateInputError, UnitsMismatchError
 from recon.fusion import fuse_traces
 from recon.icp import RigidMotion
 from recon.methods.anchored import anchored_segment
 from recon.methods.common import HAND_ERROR_PRIOR_M, SegmentResult
 from recon.methods.paper import paper_segment
-from recon.registration import feature_information, register_to_model
+from recon.registration import register_to_model
 from recon.resample import ResampledPath, resample_equidistant
 from recon.scan_model import ScanModel, build_scan_model
 from recon.segment import split_at
-from recon.touches import TouchRegistration, motions_missing, register_touches
+from recon.touches import (
+    INITIAL_GUESS_SIGMA_M,
+    ROUGH_GUESS_SIGMA_M,
+    TouchRegistration,
+    judge_at_path,
+    register_touches,
+)
+from recon.touches import touch_advice as motion_advice
 from recon.transforms import apply_transform, check_rigid, invert_transform
 from recon.types import (
     CornerReport,
@@ -332,6 +339,9 @@ def reconstruct(
                 results[-1].reason[:] = PointReason.SEGMENT_DISAGREES
             else:
                 notes.append(f"segment {len(segments) - 1} has no scan near it: path only")
+        segments[-1] = _with_evidence(segments[-1], segment_class, results[-1])
+    if model is not None:
+        notes += evidence_notes(segments, results, resampled.arc_length_m)
     join_at_corners(
         bounds,
         results,
@@ -367,6 +377,75 @@ def reconstruct(
         demonstrations=() if fused is None else fused.traces,
         prior=prior,
     )
+
+
+def _with_evidence(segment: Segment, segment_class, result: SegmentResult) -> Segment:
+    """The segment with its edge's evidence and the share of its points that fell back."""
+    fell = np.isin(result.reason, [int(r) for r in PointReason if r.fallen_back])
+    distance = segment_class.rms_to_edge_m
+    next_edge = segment_class.next_edge_m
+    return replace(
+        segment,
+        edge_distance_m=float(distance) if np.isfinite(distance) else None,
+        next_edge_m=float(next_edge) if np.isfinite(next_edge) else None,
+        fallen_back=float(np.mean(fell)) if len(fell) else 0.0,
+    )
+
+
+def evidence_notes(
+    segments: list[Segment], results: list[SegmentResult], arc_m: FloatArray
+) -> list[str]:
+    """What the summary says of where the scan's evidence failed and of the ends.
+
+    Parameters
+    ----------
+    segments : list of Segment
+        With their evidence (see :func:`_with_evidence`).
+    results : list of SegmentResult
+        One per segment.
+    arc_m : ndarray of shape (N,)
+        Arc length of the resampled points.
+
+    Returns
+    -------
+    list of str
+        A line per segment whose points fell back more than :data:`recon.types.DISTRUST_SHARE`
+        ("scan not trusted here", with where and why), and a line per end that was continued
+        past the end of the scan's edge or left to the trace there.
+    """
+    notes = []
+    mm = 1e3
+    for index, (segment, result) in enumerate(zip(segments, results, strict=True)):
+        if not segment.scan_trusted:
+            reasons = np.bincount(result.reason.astype(np.int64), minlength=len(PointReason))
+            why = ", ".join(
+                f"{count} {PointReason(code).label.replace('_', ' ')}"
+                for code, count in enumerate(reasons)
+                if count and PointReason(code).fallen_back
+            )
+            notes.append(
+                f"segment {index} (points {segment.start}-{segment.stop - 1}, "
+                f"{arc_m[segment.start] * mm:.0f}-{arc_m[segment.stop - 1] * mm:.0f} mm along "
+                f"the path): scan not trusted here, {segment.fallen_back * 100:.0f} % of its "
+                f"points kept the trace ({why}); the scan does not show its feature clearly "
+                "there (look at the scan, or trace it again)"
+            )
+    for label, result, rows in (
+        ("start", results[0], slice(0, None)),
+        ("end", results[-1], slice(None, None, -1)),
+    ):
+        reasons = result.reason[rows]
+        for code, words in (
+            (PointReason.CONTINUED, "continued along the scan's edge line"),
+            (PointReason.PAST_END, "left to the trace (beyond the bounded continuation)"),
+        ):
+            run = int(np.argmax(reasons != code)) if np.any(reasons != code) else len(reasons)
+            if run and reasons[0] == code:
+                notes.append(
+                    f"the trace runs on past the scan's edge at its {label}: its last {run} "
+                    f"points there were {words}"
+                )
+    return notes
 
 
 def _prior_from_fusion(fused, resampled: ResampledPath) -> FloatArray:
@@ -580,8 +659,9 @@ def touch_registration(
     *,
     T_scan_tracker_init: FloatArray | None = None,
 ) -> Registration:
-    """The touches' transform as the reconstruction's registration, once it is checked to fix
-    every motion the trace's features need.
+    """The touches' transform as the reconstruction's registration, once it is checked to place
+    this path within ``params.uncertainty_tolerance_m`` (1 sigma, across its features; the rule of
+    :func:`recon.touches.touch_uncertainty`, the same as a calibration's).
 
     Parameters
     ----------
@@ -598,29 +678,20 @@ def touch_registration(
     Returns
     -------
     Registration
-        Target ``"touches"``; ``rmse_m`` and ``n_pairs`` of the touches used.
+        Target ``"touches"``; ``rmse_m`` and ``n_pairs`` of the touches used; its covariance is
+        the touches' (of the motions they solve for), so the reconstruction's uncertainty carries
+        what they leave at the path.
 
     Raises
     ------
     TouchesInsufficientError
-        A motion the trace's features need is left free by the touches.
+        The touches leave more than the tolerance at the path; the message names each poorly
+        pinned motion with the millimetres it leaves and what to touch.
     """
-    motion = RigidMotion.around(points_tracker_m)
-    info = feature_information(
-        points_tracker_m,
-        model,
-        bounds,
-        params,
-        T_scan_tracker=touches.T_scan_tracker,
-        motion=motion,
-    )
-    missing = motions_missing(touches, info, motion=motion)
-    if missing:
-        raise TouchesInsufficientError(
-            f"the touches fix {touches.fixed_motions} of the 6 motions and leave free "
-            f"{'; '.join(missing)}, which this trace's features need fixed: "
-            f"{touch_advice(missing)}, or reconstruct without the touches"
-        )
+    judged = judge_at_path(touches, points_tracker_m, model, bounds, params)
+    # The reconstruction's own tolerance: its summary names every stretch of the path whose
+    # uncertainty exceeds it, and touches that alone exceed it would put the path there.
+    judged.check(params.uncertainty_tolerance_m, remedy=WITHOUT_TOUCHES)
     T = touches.T_scan_tracker
     init = np.eye(4) if T_scan_tracker_init is None else check_rigid(T_scan_tracker_init)
     moved = np.linalg.norm(
@@ -641,8 +712,8 @@ def touch_registration(
         covariance=covariance,
         motion_centre_m=scan_motion.centre_m,
         motion_length_m=scan_motion.length_m,
-        reason=f"{n_used} touches of the workpiece fix {touches.fixed_motions} motions, every one "
-        "this trace's features need"
+        reason=f"{n_used} touches of the workpiece place this path to {judged.summary()}, "
+        f"within the {params.uncertainty_tolerance_m * 1e3:.2f} mm tolerance"
         # No touch left over: the fit passes through every touch, so a residual of 0 checks
         # nothing and a touch that slipped would go unnoticed.
         + (
@@ -653,6 +724,10 @@ def touch_registration(
         )
         + (f" ({'; '.join(touches.notes)})" if touches.notes else ""),
     )
+
+
+#: What else can be done with touches that leave too much at the path.
+WITHOUT_TOUCHES = "or do without the touches (the scan is then registered to the trace)"
 
 
 def touches_for_trace(
@@ -667,7 +742,8 @@ def touches_for_trace(
 ) -> TouchRegistration:
     """The scanner registered by touches, started from a stored calibration or, without one,
     from registering the trace to the scan as a reconstruction does; checked (unless ``check``
-    is False) to fix every motion the trace's features need.
+    is False) to place the trace within ``params.uncertainty_tolerance_m``, by the rule a
+    reconstruction applies (:func:`touch_registration`).
 
     Parameters
     ----------
@@ -685,38 +761,40 @@ def touches_for_trace(
     Returns
     -------
     TouchRegistration
+        With its ``judgement`` at the trace when checked.
 
     Raises
     ------
     RegistrationError
-        The touches could not be registered, or (``TouchesInsufficientError``) they leave free a
-        motion the trace's features need.
+        The touches could not be registered, or (``TouchesInsufficientError``) they leave more
+        than the tolerance at the trace.
     """
     params = params or ReconParams()
     plan = plan_segments(trace, params)
     points = plan.resampled.points_m
-    start = T_scan_tracker_init
+    start, guess_sigma_m = T_scan_tracker_init, INITIAL_GUESS_SIGMA_M
     if start is None:
         start = prepare_scan_model(points, scan, plan.bounds, params).T_scan_tracker
+        guess_sigma_m = ROUGH_GUESS_SIGMA_M  # it keeps the rigid part of the hand's drift
     touches = register_touches(
-        touches_tracker_m, scan.points_m, T_scan_tracker_init=start, touch_sigma_m=touch_sigma_m
+        touches_tracker_m,
+        scan.points_m,
+        T_scan_tracker_init=start,
+        touch_sigma_m=touch_sigma_m,
+        initial_sigma_m=guess_sigma_m,
     )
     if check:
         model = build_scan_model(scan, apply_transform(touches.T_scan_tracker, points), params)
-        touch_registration(points, touches, model, plan.bounds, params)
+        judged = judge_at_path(touches, points, model, plan.bounds, params)
+        judged.check(params.uncertainty_tolerance_m, remedy=WITHOUT_TOUCHES)
+        touches = replace(touches, judgement=judged)
     return touches
 
 
 def touch_advice(missing: list[str]) -> str:
-    """What to touch to fix the missing motions (see :func:`recon.touches.motions_missing`)."""
-    advice = []
-    for motion in missing:
-        if motion.startswith("sliding along"):
-            advice.append(f"touch a face that faces {motion.removeprefix('sliding ')}")
-        else:
-            axis = motion.removeprefix("turning about ")
-            advice.append(f"touch points farther apart across the axis {axis}")
-    return "; ".join(advice)
+    """What to touch to pin motions the touches do not pin at all (in words, as
+    :meth:`recon.icp.RigidMotion.describe` gives them); see :func:`recon.touches.touch_advice`."""
+    return "; ".join(motion_advice(motion) for motion in missing)
 
 
 def uncertainty_notes(

@@ -534,6 +534,11 @@ class PointReason(enum.IntEnum):
         )
 
 
+#: A segment where more than this share of the points fell back to the trace is one where the
+#: scan is not trusted (said in the summary).
+DISTRUST_SHARE = 0.05
+
+
 @dataclass(frozen=True)
 class Segment:
     """A run of path points between corners, reconstructed on its own.
@@ -542,12 +547,27 @@ class Segment:
     share their corner point, which belongs to the later one in ``Reconstruction.segment``.
     ``kind`` is a :class:`recon.classify.SegmentKind`, a string enum: ``dataclasses.asdict`` of a
     segment serialises to JSON as ``"edge"``, ``"surface"`` or ``"path"``.
+
+    The evidence for an edge segment's choice: ``edge_fraction`` (the share of the segment the
+    chosen edge runs along), ``edge_distance_m`` (how far the trace ran from it, median) and
+    ``next_edge_m`` (how far the next candidate edge lay from it, median; None when there was
+    none). ``fallen_back`` is the share of its points where the scan's evidence failed and the
+    trace was kept; a segment with more than :data:`DISTRUST_SHARE` of them is one where the
+    scan is not trusted.
     """
 
     start: int
     stop: int
     kind: SegmentKind
     edge_fraction: float
+    edge_distance_m: float | None = None
+    next_edge_m: float | None = None
+    fallen_back: float = 0.0
+
+    @property
+    def scan_trusted(self) -> bool:
+        """Whether the scan's evidence held along the segment (see :data:`DISTRUST_SHARE`)."""
+        return self.fallen_back <= DISTRUST_SHARE
 
     def __post_init__(self) -> None:
         # Imported here: recon.classify imports this module. A plain string is accepted (a

@@ -308,7 +308,16 @@ class SegmentSummary(BaseModel):
     start: int
     stop: int
     kind: Literal["edge", "surface", "path"]
-    edge_fraction: float
+    edge_fraction: float = Field(..., description="share of the segment its chosen edge runs along")
+    edge_distance_m: float | None = Field(
+        None, description="how far the trace ran from its edge (median; null: no edge)"
+    )
+    next_edge_m: float | None = Field(
+        None, description="how far the next candidate edge lay from it (median; null: none)"
+    )
+    fallen_back: float = Field(
+        0.0, description="share of its points where the scan's evidence failed (the trace kept)"
+    )
 
 
 class RegistrationSummary(BaseModel):
@@ -351,6 +360,10 @@ class DemonstrationSummary(BaseModel):
 class ReconstructionSummary(_Summary):
     n_points: int
     modes: dict[str, int] = Field(..., description="points per mode: path, surface, edge, ...")
+    reasons: dict[str, int] = Field(
+        default_factory=dict,
+        description="points per reason where the scan's evidence failed or an edge was continued",
+    )
     mean_displacement_m: float
     max_displacement_m: float
     segments: list[SegmentSummary]

@@ -192,6 +192,7 @@ class TouchOutcome:
     Attributes
     ----------
     registration : recon.touches.TouchRegistration
+        With its ``judgement`` (what the touches leave at the path, or near them) when checked.
     dwells : list of recon.touches.Dwell
     notes : list of str
         Rests left out, touches left out.
@@ -204,6 +205,7 @@ class TouchOutcome:
     def as_json(self) -> dict:
         """What the calibration file and the API keep beside the matrix."""
         reg = self.registration
+        judged = reg.judgement
         return {
             "source": "touches",
             "touches_m": np.asarray(reg.touches_m).tolist(),
@@ -212,6 +214,20 @@ class TouchOutcome:
             "touches_used": [bool(v) for v in reg.used],
             "fixed_motions": reg.fixed_motions,
             "free_motions": list(reg.free_motions),
+            # The rule the calibration passed (recon.touches.touch_uncertainty): the largest
+            # 1-sigma error the touches leave where they were judged, and each motion's share.
+            "uncertainty_m": None if judged is None else _jsonable_or_none(judged.worst_m),
+            "judged": None if judged is None else judged.where,
+            "motions": []
+            if judged is None
+            else [
+                {
+                    "motion": m.motion,
+                    "uncertainty_m": _jsonable_or_none(m.at_path_m),
+                    "pinned_by_touches": m.solved,
+                }
+                for m in judged.motions
+            ],
             "notes": list(self.notes) + list(reg.notes),
         }
 
@@ -223,10 +239,11 @@ class TouchOutcome:
 
     def lines(self) -> list[str]:
         reg, mm = self.registration, 1e3
+        first = f"{len(self.dwells)} touches found, {int(np.sum(reg.used))} used"
+        if reg.judgement is not None:
+            first += f"; they place the scan to {reg.judgement.summary()}"
         lines = [
-            f"{len(self.dwells)} touches found, {int(np.sum(reg.used))} used; they fix "
-            f"{reg.fixed_motions} of the 6 motions"
-            + (f" (free: {'; '.join(reg.free_motions)})" if reg.free_motions else ""),
+            first,
             "residual per touch (mm): "
             + ", ".join(
                 "-" if not np.isfinite(v) else f"{v * mm:+.3f}" + ("" if used else " (left out)")
@@ -239,7 +256,9 @@ class TouchOutcome:
 def touch_calibration(
     touches, scan, *, trace=None, params=None, T_scan_tracker_init=None, check=True
 ) -> TouchOutcome:
-    """The scanner registered by touches (see :mod:`recon.touches`).
+    """The scanner registered by touches (see :mod:`recon.touches`), judged by the rule a
+    reconstruction applies (:func:`recon.touches.touch_uncertainty`): accepted when the 1-sigma
+    error they leave is within ``params.uncertainty_tolerance_m``.
 
     Parameters
     ----------
@@ -248,26 +267,35 @@ def touch_calibration(
     scan : recon.types.Scan
     trace : recon.types.Recording, optional
         The path these touches are for: without ``T_scan_tracker_init`` the touches start from
-        registering it to the scan, and the result is refused if it leaves free a motion this
-        trace's features need.
+        registering it to the scan, and they are judged at it, across its features. Without
+        it they are judged over the scanned workpiece around them, in every direction (a path
+        there may need any of them).
     params : recon.types.ReconParams, optional
     T_scan_tracker_init : ndarray of shape (4, 4), optional
         Where to start (identity when neither it nor a trace is given).
     check : bool
-        With a trace, refuse touches that leave free a motion its features need (a
-        reconstruction checks again against the path it reconstructs, and passes False).
+        Refuse touches that leave more than the tolerance (a reconstruction checks again against
+        the path it reconstructs, and passes False).
 
     Raises
     ------
     recon.errors.DegenerateInputError
         No sample times, or fewer than three rests.
     recon.errors.RegistrationError
-        Too few touches on the scanned surface; (TouchesInsufficientError) too few motions
-        fixed for the trace.
+        Too few touches on the scanned surface; (TouchesInsufficientError) they leave more than
+        the tolerance, each poorly pinned motion named with its millimetres.
     """
     from recon.reconstruct import touches_for_trace
-    from recon.touches import register_touches, touches_in
+    from recon.touches import (
+        INITIAL_GUESS_SIGMA_M,
+        ROUGH_GUESS_SIGMA_M,
+        judge_near_touches,
+        register_touches,
+        touches_in,
+    )
+    from recon.types import ReconParams
 
+    params = params or ReconParams()
     found = touches_in(touches.points_m, touches.t_s)
     init = None if T_scan_tracker_init is None else np.asarray(T_scan_tracker_init, np.float64)
     if trace is not None:
@@ -286,7 +314,17 @@ def touch_calibration(
             scan.points_m,
             T_scan_tracker_init=np.eye(4) if init is None else init,
             touch_sigma_m=found.sigma_m,
+            # The frames as given are a rougher guess than a stored calibration.
+            initial_sigma_m=ROUGH_GUESS_SIGMA_M if init is None else INITIAL_GUESS_SIGMA_M,
         )
+        if check:
+            judged = judge_near_touches(registration, scan.points_m)
+            judged.check(
+                params.uncertainty_tolerance_m,
+                remedy="or give the path these touches are for (--trace PATH_FILE), to judge "
+                "them only where it runs and in the directions its features need",
+            )
+            registration = replace(registration, judgement=judged)
     dwells, notes = found.dwells, found.notes
     return TouchOutcome(registration=registration, dwells=dwells, notes=notes)
 
@@ -311,17 +349,33 @@ class ReconstructOutcome:
 
     def summary(self) -> dict:
         """The artifact's summary (see :class:`service.artifacts.ReconstructionSummary`)."""
-        from recon.types import PointMode
+        from recon.types import PointMode, PointReason
 
         recon = self.reconstruction
         reg = recon.registration
         T = recon.T_scan_tracker
+        reasons = (
+            {}
+            if recon.reason is None
+            else {
+                r.label: int(np.count_nonzero(recon.reason == int(r)))
+                for r in PointReason
+                if r is not PointReason.NONE and np.any(recon.reason == int(r))
+            }
+        )
         return {
             "n_points": len(recon),
             "modes": {m.label: recon.count(m) for m in PointMode},
+            "reasons": reasons,
             "mean_displacement_m": float(recon.displacement_m.mean()),
             "max_displacement_m": float(recon.displacement_m.max()),
-            "segments": [asdict(s) for s in recon.segments],
+            "segments": [
+                {
+                    k: (_jsonable_or_none(v) if isinstance(v, float) else v)
+                    for k, v in asdict(s).items()
+                }
+                for s in recon.segments
+            ],
             "n_pieces": int(recon.piece[-1]) + 1,
             "T_scan_tracker": None if T is None else np.asarray(T).tolist(),
             "registration": None
@@ -375,6 +429,27 @@ class ReconstructOutcome:
                 f"uncertainty (1 sigma, across the path): {np.mean(recon.uncertainty_m) * mm:.2f} "
                 f"mm on average, {np.max(recon.uncertainty_m) * mm:.2f} mm at most"
             )
+        for index, segment in enumerate(recon.segments):
+            if segment.kind == "edge":
+                nxt = (
+                    "no other edge near it"
+                    if segment.next_edge_m is None
+                    else f"the next edge over {segment.next_edge_m * mm:.1f} mm away"
+                )
+                far = (
+                    ""
+                    if segment.edge_distance_m is None
+                    else (f", {segment.edge_distance_m * mm:.2f} mm from the trace on median")
+                )
+                lines.append(
+                    f"segment {index}: follows the scan's edge along "
+                    f"{segment.edge_fraction * 100:.0f} % of it{far}; {nxt}"
+                    + (
+                        f"; {segment.fallen_back * 100:.0f} % of its points kept the trace"
+                        if segment.fallen_back
+                        else ""
+                    )
+                )
         for corner in recon.corners:
             lines.append(f"corner at point {corner.index}: {corner.reason}")
         reg = recon.registration

@@ -4,6 +4,8 @@ What the operator records to register the scanner by touching (see :mod:`recon.t
 rests for a while on each of several points, on two or three faces, and moves between them
 through the air. The tracker's tip position carries white noise and the pivot calibration's error
 (a fixed offset in the pen's frame, so its direction in the world changes with the pen's tilt).
+:func:`touch_recording` picks the points as an operator is told to (spread over the faces);
+:func:`touches_at` touches given ones (a layout to test, such as a 3-2-1 set on a box).
 """
 
 from __future__ import annotations
@@ -108,14 +110,101 @@ def touch_recording(
         points.append(candidates[pick])
         normals.append(candidate_normals[pick])
         names.append(face.name)
+    return _record(
+        np.asarray(points),
+        np.asarray(normals),
+        tuple(names),
+        rng,
+        pivot_error=pivot_error,
+        tip_noise_m=tip_noise_m,
+        dwell_s=dwell_s,
+        rate_hz=rate_hz,
+        lift_m=lift_m,
+        speed_m_s=speed_m_s,
+    )
+
+
+def touches_at(
+    points_m: FloatArray,
+    normals: FloatArray,
+    seed: int,
+    *,
+    touch_error_m: float = 0.1 * MM,
+    tip_noise_m: float = 0.07 * MM,
+    dwell_s: tuple[float, float] = (0.5, 1.0),
+    rate_hz: float = 120.0,
+    lift_m: float = 20 * MM,
+    speed_m_s: float = 0.15,
+) -> Touches:
+    """Touch given points (a layout an operator was told, such as a 3-2-1 set on a box).
+
+    Parameters
+    ----------
+    points_m : ndarray of shape (T, 3)
+        Where the tip is meant to rest, tracker frame, on the workpiece's faces.
+    normals : ndarray of shape (T, 3)
+        The faces' outward normals there (the pen comes and goes along them).
+    seed : int
+    touch_error_m : float
+        Standard deviation per axis of each rest's error (the pivot calibration, the tip's seat):
+        one draw per touch, which no averaging over the rest removes.
+    tip_noise_m : float
+        Standard deviation per axis of the tracker's tip position while resting.
+    dwell_s, rate_hz, lift_m, speed_m_s
+        As :func:`touch_recording`'s.
+
+    Returns
+    -------
+    Touches
+        ``points_m`` are the points as given; the recording rests off them by the touch error.
+    """
+    points = np.asarray(points_m, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
+        raise ValueError("points_m and normals must both have shape (T, 3)")
+    rng = np.random.default_rng([seed, 7919])
+    errors = touch_error_m * rng.standard_normal(points.shape)
+    return _record(
+        points,
+        normals,
+        ("given",) * len(points),
+        rng,
+        rest_error=errors,
+        tip_noise_m=tip_noise_m,
+        dwell_s=dwell_s,
+        rate_hz=rate_hz,
+        lift_m=lift_m,
+        speed_m_s=speed_m_s,
+    )
+
+
+def _record(
+    points,
+    normals,
+    names,
+    rng,
+    *,
+    pivot_error=None,
+    rest_error=None,
+    tip_noise_m,
+    dwell_s,
+    rate_hz,
+    lift_m,
+    speed_m_s,
+) -> Touches:
+    """Rest on each point in turn (off it by the pivot error turned with the pen, or by
+    ``rest_error``), moving between them through the air."""
     dt = 1.0 / rate_hz
     samples: list[FloatArray] = []
     for k, (p, n) in enumerate(zip(points, normals, strict=True)):
-        # The pen leans 10-30 degrees off the face's normal, about a random horizontal axis.
-        tilt = Rotation.from_rotvec(
-            np.radians(rng.uniform(10, 30)) * _unit(np.cross(n, rng.standard_normal(3)))
-        )
-        rest = p + tilt.apply(pivot_error)
+        if rest_error is None:
+            # The pen leans 10-30 degrees off the face's normal, about a random horizontal axis.
+            tilt = Rotation.from_rotvec(
+                np.radians(rng.uniform(10, 30)) * _unit(np.cross(n, rng.standard_normal(3)))
+            )
+            rest = p + tilt.apply(pivot_error)
+        else:
+            rest = p + rest_error[k]
         count = int(rng.uniform(*dwell_s) * rate_hz)
         samples.append(rest + tip_noise_m * rng.standard_normal((count, 3)))
         if k + 1 < len(points):

@@ -1,4 +1,5 @@
-"""Pivot and point-pair calibrations against known ground truth and independent methods."""
+"""Pivot and point-pair calibrations against known ground truth and independent methods, and the
+scanner calibrated by touches (`calibrate scan`), judged by the rule a reconstruction applies."""
 
 from __future__ import annotations
 
@@ -7,8 +8,16 @@ import open3d as o3d
 import pytest
 from scipy.spatial.transform import Rotation
 
+from recon import scenes
 from recon.calibrate import fit_point_pairs, pivot_calibration
-from recon.errors import DegenerateInputError
+from recon.errors import DegenerateInputError, TouchesInsufficientError
+from recon.metrics import score_path
+from recon.scenes.touches import touches_at
+from recon.transforms import apply_transform, invert_transform
+from service.pipelines import touch_calibration
+from tests.recon.test_touches import TOP, three_two_one
+
+MM = 1e-3
 
 TIP_M = np.array([0.004, -0.007, 0.142])
 PIVOT_M = np.array([0.31, 0.18, 0.052])
@@ -163,3 +172,71 @@ def test_point_pair_bad_arguments():
         fit_point_pairs(np.where(a > 0.5, np.nan, a), b)
     with pytest.raises(ValueError, match="tolerance_m"):
         fit_point_pairs(a, b, tolerance_m=0)
+
+
+# -- the scanner calibrated by touches (service.pipelines.touch_calibration: `calibrate scan`) --
+
+
+def test_a_3_2_1_set_is_stored_by_the_calibration_as_the_reconstruction_takes_it():
+    """The issue's 3-2-1 set (see test_touches): the reconstruction used to refuse it while the
+    calibration stored it unjudged. Now both judge it by what it leaves, 0.4-0.5 mm: with the
+    trace at the path across its features, without one over the box near the touches in every
+    direction; both accept it and say so in millimetres. The stored transform puts the path
+    within half a millimetre of the truth."""
+    for seed in (0, 1):
+        scene = scenes.box_corner(seed)
+        touch = touches_at(*three_two_one(15), seed)
+        alone = touch_calibration(touch.recording, scene.scan)
+        traced = touch_calibration(touch.recording, scene.scan, trace=scene.recording)
+        for outcome, where in ((alone, "no path given"), (traced, "at the traced path")):
+            judged = outcome.registration.judgement
+            assert judged.worst_m < 0.5 * MM and where in judged.where, (seed, where)
+            line = outcome.lines()[0]
+            assert line.startswith("6 touches found, 6 used; they place the scan to 0.4")
+            assert "mm (1 sigma, at most)" in line and "most from turning about" in line
+            saved = outcome.as_json()
+            assert saved["uncertainty_m"] == pytest.approx(judged.worst_m)
+            assert saved["motions"][0]["motion"].startswith("turning about")
+            error = invert_transform(outcome.registration.T_scan_tracker) @ scene.T_scan_tracker
+            moved = apply_transform(error, scene.truth_m)
+            assert score_path(moved, scene.truth_m).max_m < 0.5 * MM, (seed, where)
+
+
+def test_a_well_spread_3_2_1_set_is_stored_without_a_path():
+    """The scene's 3-2-1 touches (three on the top, two on the front, one on the right, spread
+    out as an operator is told; 0.1 mm tip noise), without a trace to judge by."""
+    for seed in range(3):
+        scene = scenes.box_corner(seed)
+        touch = scenes.touch_recording(scene, seed, tip_noise_m=0.1 * MM)
+        assert touch.faces == ("top", "top", "top", "front", "right", "front")
+        outcome = touch_calibration(touch.recording, scene.scan)
+        assert outcome.registration.judgement.worst_m < 0.45 * MM
+
+
+@pytest.mark.parametrize(
+    "touch, words",
+    [("top only", "sliding along"), ("shallow triangle", "turning about")],
+)
+def test_touches_that_leave_too_much_are_refused_by_the_calibration_too(touch, words):
+    """The touch sets the reconstruction refuses (see test_touches) are refused by the
+    calibration, with a trace as without one, naming the motion and its millimetres; without a
+    trace it says where it judged and that a trace narrows that."""
+    scene = scenes.box_corner(2)
+    if touch == "top only":
+        rng = np.random.default_rng(5)
+        points = np.column_stack([rng.uniform(10, 90, 5), rng.uniform(10, 70, 5), np.zeros(5)])
+        recording = touches_at(points * MM, np.tile(TOP, (5, 1)), 2).recording
+    else:
+        recording = touches_at(*three_two_one(10), 2).recording
+    for trace in (None, scene.recording):
+        with pytest.raises(TouchesInsufficientError) as refused:
+            touch_calibration(recording, scene.scan, trace=trace)
+        message = str(refused.value)
+        assert f"{words} (" in message and " mm" in message
+        leaves = float(message.split(" leaves ")[1].split(" mm")[0])
+        assert leaves > 0.5, message
+        if trace is None:
+            assert "over the scanned workpiece around the touches (no path given" in message
+            assert "give the path these touches are for (--trace PATH_FILE)" in message
+        else:
+            assert "at the traced path, across its features" in message

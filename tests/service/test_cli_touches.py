@@ -44,11 +44,15 @@ def test_calibrate_scan_finds_the_touches_and_writes_a_calibration_the_others_re
         "--trace", folder / "trace.csv", "--out", out,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
-    assert "6 touches found, 6 used; they fix 6 of the 6 motions" in result.stdout
+    # What the touches leave at the path, in millimetres (recon.touches.touch_uncertainty).
+    assert "6 touches found, 6 used; they place the scan to 0." in result.stdout
+    assert "mm (1 sigma, at most) at the traced path, across its features" in result.stdout
     assert "residual per touch (mm):" in result.stdout
     calibration = read_calibration(out, expect="T_scan_tracker")
     saved = json.loads(out.read_text())
     assert saved["fixed_motions"] == 6 and len(saved["touches_m"]) == 6
+    assert 0 < saved["uncertainty_m"] < 0.5 * MM
+    assert saved["judged"] == "at the traced path, across its features"
     assert saved["source"] == "touches.csv"
     # Against ground truth: the scanner's error at the traced feature.
     error = invert_transform(calibration.matrix) @ scene.T_scan_tracker
@@ -74,17 +78,24 @@ def test_touches_on_one_face_are_refused_for_a_path_along_two_edges(files):
         "--trace", folder / "trace.csv", "--out", out,
     )  # fmt: skip
     assert result.returncode == 1
-    assert "fix 3 of the 6 motions and leave free" in result.stderr
+    assert "(1 sigma) at the traced path, across its features, more than the 0.50 mm" in (
+        result.stderr
+    )
+    assert "sliding along (" in result.stderr and " mm (the touches pin it too little" in (
+        result.stderr
+    )
     assert "touch a face that faces" in result.stderr
     assert not out.exists()
-    # Without a trace to judge by, the calibration is written, its free motions named.
+    # Without a trace to judge by, the same rule over the scanned box around the touches, in
+    # every direction: refused too, saying where it judged.
     result = run(
         "calibrate", "scan", folder / "top_only.csv", "--scan", folder / "scan.ply",
         "--out", out,
     )  # fmt: skip
-    assert result.returncode == 0, result.stderr
-    assert "fix 3 of the 6 motions (free: " in result.stdout
-    assert json.loads(out.read_text())["fixed_motions"] == 3
+    assert result.returncode == 1
+    assert "over the scanned workpiece around the touches (no path given" in result.stderr
+    assert "give the path these touches are for (--trace PATH_FILE)" in result.stderr
+    assert not out.exists()
 
 
 def test_reconstruct_fuses_demonstrations_and_registers_by_touches(files):
@@ -99,9 +110,9 @@ def test_reconstruct_fuses_demonstrations_and_registers_by_touches(files):
     assert "traced the other way round and turned" in result.stdout
     assert "scanner registered by touches" in result.stdout
     header = out.read_text().splitlines()[0].split(",")
-    assert header[-1] == "uncertainty_m"
-    table = np.genfromtxt(out, delimiter=",", skip_header=1)
-    points, uncertainty = table[:, :3], table[:, -1]
+    column = header.index("uncertainty_m")
+    table = np.genfromtxt(out, delimiter=",", skip_header=1, usecols=range(column + 1))
+    points, uncertainty = table[:, :3], table[:, column]
     assert np.all(np.isfinite(uncertainty)) and np.all(uncertainty > 0)
     raw = score_path(scene.recording.points_m, scene.truth_m)
     ours = score_path(points, scene.truth_m)

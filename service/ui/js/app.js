@@ -484,6 +484,17 @@ function renderReconstruction() {
     if (reg.path_moved_mean_m != null) rows.push(["path moved by it", `${mm(reg.path_moved_mean_m)} on average, ${mm(reg.path_moved_max_m)} at most`]);
   }
   rows.push(["segments", sm.segments.map((g) => `${g.kind} (points ${g.start}–${g.stop - 1})`).join(", ") || "–"]);
+  for (const [i, g] of sm.segments.entries()) {
+    if (g.kind !== "edge" && !g.fallen_back) continue;
+    const parts = [];
+    if (g.kind === "edge") parts.push(`the scan's edge along ${(g.edge_fraction * 100).toFixed(0)} %`);
+    if (g.edge_distance_m != null) parts.push(`${mm(g.edge_distance_m)} from the trace on median`);
+    if (g.kind === "edge") parts.push(g.next_edge_m == null ? "no other edge near" : `the next edge ${mm(g.next_edge_m, 1)} away`);
+    if (g.fallen_back) parts.push(`${(g.fallen_back * 100).toFixed(0)} % of its points kept the trace${g.fallen_back > 0.05 ? ": scan not trusted here" : ""}`);
+    rows.push([`segment ${i} evidence`, parts.join("; ")]);
+  }
+  const reasons = Object.entries(sm.reasons || {});
+  if (reasons.length) rows.push(["points off the scan's evidence", reasons.map(([r, n]) => `${n} ${r.replaceAll("_", " ")}`).join(", ")]);
   for (const c of sm.corners || []) rows.push([`turn at point ${c.index}`, `${c.split ? "corner" : "not split"}: ${c.reason}`]);
   if (sm.demonstrations && sm.demonstrations.length) {
     const used = sm.demonstrations.filter((d) => d.used).length;
@@ -592,6 +603,16 @@ function renderRun() {
 // -- the workspace's readouts: a picked point, an execution against its plan -------------------
 
 const MODE_WORDS = { path: "the trace alone", surface: "a surface of the scan", edge: "an edge of the scan", unchanged: "unchanged (too few points for a fit)" };
+/** Why the scan's evidence was not used at a point (the CSV's reason column), in words. */
+const REASON_WORDS = {
+  no_feature: "the scan shows no such feature here: the trace was kept",
+  far_from_trace: "the scan's feature is farther than the hand's error explains: the trace was kept",
+  off_evidence: "the fitted feature is not where the scan's points are: the trace was kept",
+  segment_disagrees: "the whole segment runs far from the scan: the trace was kept",
+  one_face: "no edge found here: the height comes from the face under the point",
+  continued: "past the end of the scan's edge: its line continued",
+  past_end: "too far past the end of the scan's edge: the trace was kept",
+};
 
 function showPick(picked) {
   const box = $("#pick-readout");
@@ -605,6 +626,7 @@ function showPick(picked) {
       `fit residuals: path ${mm(d.residual_path_m, 3)}, surface ${mm(d.residual_surface_m, 3)}`,
       `neighbours: ${d.n_path} path, ${d.n_surface} scan`, `alpha ${Number.isFinite(d.alpha) ? d.alpha.toFixed(2) : "–"}`);
     if (Number.isFinite(d.uncertainty_m)) parts.push(`uncertainty ±${mm(d.uncertainty_m, 2)} (1σ)`);
+    if (d.reason) parts.push(REASON_WORDS[d.reason] || d.reason);
   }
   if (picked.time_s != null) parts.push(`at ${picked.time_s.toFixed(2)} s of the plan`);
   if (picked.difference_m != null) parts.push(`${mm(picked.difference_m, 3)} from the current reconstruction`);

@@ -45,7 +45,7 @@ function parseCsv(text, wanted, every = 1, textColumns = []) {
 }
 
 /** The reconstruction's per-point diagnostics the pendant shows on a click. */
-const DIAGNOSTICS = ["displacement_m", "mode", "segment", "n_path", "n_surface", "residual_path_m", "residual_surface_m", "alpha", "uncertainty_m"];
+const DIAGNOSTICS = ["displacement_m", "mode", "segment", "n_path", "n_surface", "residual_path_m", "residual_surface_m", "alpha", "uncertainty_m", "reason"];
 const MODE_COLOURS = { edge: [0.85, 0.1, 0.1], surface: [0.1, 0.55, 0.2], path: [0.15, 0.3, 0.9], unchanged: [0.5, 0.5, 0.5] };
 const PHASE_COLOURS = { transit: [0.55, 0.6, 0.75], approach: [0.95, 0.55, 0.1], process: [0.12, 0.47, 1.0], retract: [0.95, 0.55, 0.1], return: [0.55, 0.6, 0.75] };
 
@@ -289,7 +289,7 @@ export class Workspace {
     } else this.clear("trace");
 
     if (rec) {
-      const csv = parseCsv(await api(`/sessions/${sid}/reconstructions/${rec.id}/csv`), ["x", "y", "z", ...DIAGNOSTICS], 1, ["mode"]);
+      const csv = parseCsv(await api(`/sessions/${sid}/reconstructions/${rec.id}/csv`), ["x", "y", "z", ...DIAGNOSTICS], 1, ["mode", "reason"]);
       if (!current()) return;
       this.reconstruction = { id: rec.id, ...csv };
       this.layer("reconstruction", "points", transformed(interleave(csv), baseTracker), new Float32Array(csv.n * 3));
