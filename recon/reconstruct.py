@@ -32,7 +32,7 @@ from recon.corners import (
 from recon.errors import DegenerateInputError, UnitsMismatchError
 from recon.fusion import fuse_traces
 from recon.icp import RigidMotion
-from recon.methods.anchored import anchored_segment
+from recon.methods.anchored import CONTINUE_PAST_END_M, anchored_segment
 from recon.methods.common import HAND_ERROR_PRIOR_M, SegmentResult
 from recon.methods.paper import paper_segment
 from recon.registration import register_to_model
@@ -62,7 +62,7 @@ from recon.types import (
 )
 
 #: One segment's reconstruction: ``method(points, kind, model or None, params, N_P half-width, *,
-#: prior_variance_m2)`` -> SegmentResult (see :func:`recon.methods.anchored.anchored_segment`).
+#: prior_variance_m2, placement_variance_m2, corners)`` -> SegmentResult (see :func:`recon.methods.anchored.anchored_segment`).
 SegmentMethod = Callable[..., SegmentResult]
 #: The methods by ``ReconParams.method``.
 METHODS: dict[Method, SegmentMethod] = {"paper": paper_segment, "anchored": anchored_segment}
@@ -310,6 +310,9 @@ def reconstruct(
     else:
         classes = [PATH_ONLY] * len(bounds)
 
+    # How far off the scan is placed under each point, apart from the hand's error (a registration
+    # to the trace took the hand's rigid drift into the transform: what is left is in the prior).
+    placement_variance = transform_sigma_m(registration, points) ** 2
     results = []
     segments = []
     method = METHODS[params.method]
@@ -331,6 +334,7 @@ def reconstruct(
                 params,
                 half_width,
                 prior_variance_m2=None if prior is None else prior[start:stop],
+                placement_variance_m2=placement_variance[start:stop],
                 corners=segment_class.corners,
             )
         )
@@ -430,21 +434,29 @@ def evidence_notes(
                 f"points kept the trace ({why}); the scan does not show its feature clearly "
                 "there (look at the scan, or trace it again)"
             )
-    for label, result, rows in (
-        ("start", results[0], slice(0, None)),
-        ("end", results[-1], slice(None, None, -1)),
+    for label, which, reasons in (
+        ("start", "first", results[0].reason),
+        ("end", "last", results[-1].reason[::-1]),
     ):
-        reasons = result.reason[rows]
-        for code, words in (
-            (PointReason.CONTINUED, "continued along the scan's edge line"),
-            (PointReason.PAST_END, "left to the trace (beyond the bounded continuation)"),
-        ):
-            run = int(np.argmax(reasons != code)) if np.any(reasons != code) else len(reasons)
-            if run and reasons[0] == code:
-                notes.append(
-                    f"the trace runs on past the scan's edge at its {label}: its last {run} "
-                    f"points there were {words}"
-                )
+        # The run of points past the edge's end, from the path's end inward.
+        beyond = (reasons == PointReason.CONTINUED) | (reasons == PointReason.PAST_END)
+        run = len(beyond) if beyond.all() else int(np.argmin(beyond))
+        if not run:
+            continue
+        continued = int(np.count_nonzero(reasons[:run] == PointReason.CONTINUED))
+        left = run - continued
+        done = []
+        if continued:
+            done.append(f"{continued} continued along the scan's edge line")
+        if left:
+            done.append(
+                f"{left} left to the trace (beyond the "
+                f"{CONTINUE_PAST_END_M * mm:.0f} mm it is continued)"
+            )
+        notes.append(
+            f"the trace runs on past the scan's edge at its {label}: of its {which} {run} "
+            f"point{'s' if run > 1 else ''}, {' and '.join(done)}"
+        )
     return notes
 
 
@@ -454,6 +466,26 @@ def _prior_from_fusion(fused, resampled: ResampledPath) -> FloatArray:
     arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(fused_points, axis=0), axis=1))))
     variance = np.interp(resampled.arc_length_m, arc, fused.variance_m2)
     return variance * (2.0 / 3.0)
+
+
+def transform_sigma_m(registration: Registration | None, points_tracker_m: FloatArray) -> FloatArray:
+    """1-sigma error the registration's covariance alone gives each point (zero when unknown).
+
+    Parameters
+    ----------
+    registration : Registration or None
+    points_tracker_m : ndarray of shape (N, 3)
+
+    Returns
+    -------
+    ndarray of shape (N,), metres
+    """
+    points = np.asarray(points_tracker_m, dtype=np.float64)
+    if registration is None or registration.covariance is None:
+        return np.zeros(len(points))
+    motion = RigidMotion(registration.motion_centre_m, registration.motion_length_m)
+    in_scan = apply_transform(registration.T_scan_tracker, points)
+    return motion.point_sigma(registration.covariance, in_scan)
 
 
 def registration_sigma_m(
@@ -478,12 +510,8 @@ def registration_sigma_m(
     ndarray of shape (N,), metres
     """
     points = np.asarray(points_tracker_m, dtype=np.float64)
-    if registration is None or registration.covariance is None:
-        return np.zeros(len(points))
-    motion = RigidMotion(registration.motion_centre_m, registration.motion_length_m)
-    in_scan = apply_transform(registration.T_scan_tracker, points)
-    sigma = motion.point_sigma(registration.covariance, in_scan)
-    if registration.target != "touches":
+    sigma = transform_sigma_m(registration, points)
+    if registration is not None and registration.target != "touches":
         # Registered to the trace itself: the rigid part of the hand's slow drift went into the
         # transform, and the residuals cannot show it (measured: the transform's error at the
         # path was 2-4 times what the residuals' covariance gives). It is as large as the

@@ -75,6 +75,7 @@ def anchored_segment(
     half_width: int,
     *,
     prior_variance_m2: FloatArray | None = None,
+    placement_variance_m2: FloatArray | None = None,
     corners: tuple[int, ...] | None = None,
 ) -> SegmentResult:
     """The anchored method for every point of one segment (see the module docstring).
@@ -96,6 +97,10 @@ def anchored_segment(
         fused variance of several demonstrations. :data:`HAND_ERROR_PRIOR_M` when not given.
         It is the uncertainty of what only the path decides (a point without a scan, the
         in-plane position on a surface).
+    placement_variance_m2 : ndarray of shape (n,), optional
+        How far off the scan is placed under each point (the registration's uncertainty there,
+        registered by touches: independent of the hand's error). With ``prior_variance_m2``,
+        what a point's move onto the scan's evidence may be explained by.
     corners : tuple of int, optional
         The corners an EDGE segment follows (their points alone form N_S).
 
@@ -105,6 +110,8 @@ def anchored_segment(
     """
     n = len(points)
     prior = prior_variance(prior_variance_m2, n)
+    # The trace is off the scan's evidence by the hand's error and by the scan's placement.
+    explained_variance = prior if placement_variance_m2 is None else prior + placement_variance_m2
     windows = window_indices(n, half_width)
     degree = min(params.degree, windows.shape[1] - 2)
     scale = params.radius_m
@@ -145,7 +152,7 @@ def anchored_segment(
                     model,
                     params,
                     degree,
-                    max_move_m=params.evidence_sigmas * np.sqrt(prior[rows]),
+                    max_move_m=params.evidence_sigmas * np.sqrt(explained_variance[rows]),
                     end_distance_m=end_distance[rows],
                     corners=corners,
                 ),
@@ -400,15 +407,30 @@ def _explained(centres, targets, max_move_m, model, candidate, normals=None) -> 
 
 
 def _scan_along(starts: FloatArray, ends: FloatArray, model: ScanModel) -> np.ndarray:
-    """Whether the scan has a point within :data:`LIFT_OFF_SAME_FACE_M` of every millimetre of
-    the straight way from each start to its end (both on one face, with no step between)."""
+    """Whether the scan runs along the straight way from each start to its end (both on one
+    face, with no step between): a point within :data:`LIFT_OFF_SAME_FACE_M` of every
+    millimetre of it but for gaps of at most :data:`LIFT_OFF_SCAN_GAP_M`."""
     length = float(np.max(np.linalg.norm(ends - starts, axis=1), initial=0.0))
-    steps = np.linspace(0.0, 1.0, int(np.ceil(length / 0.001)) + 2)
+    spacing_m = 0.001
+    steps = np.linspace(0.0, 1.0, int(np.ceil(length / spacing_m)) + 2)
     probes = starts[:, None, :] + steps[None, :, None] * (ends - starts)[:, None, :]
     gap, _ = model.dense_tree.query(
         probes.reshape(-1, 3), distance_upper_bound=LIFT_OFF_SAME_FACE_M, workers=-1
     )
-    return np.isfinite(gap).reshape(len(starts), len(steps)).all(axis=1)
+    covered = np.isfinite(gap).reshape(len(starts), len(steps))
+    # Probes are at most spacing_m apart along each way (less along shorter ones).
+    allowed = int(LIFT_OFF_SCAN_GAP_M / spacing_m)
+    return _longest_false_run(covered) <= allowed
+
+
+def _longest_false_run(flags: np.ndarray) -> np.ndarray:
+    """Per row of ``flags`` (R, S), bool: the length of its longest run of False, (R,), int."""
+    longest = np.zeros(len(flags), dtype=np.int64)
+    run = np.zeros(len(flags), dtype=np.int64)
+    for column in (~flags).T:
+        run = np.where(column, run + 1, 0)
+        longest = np.maximum(longest, run)
+    return longest
 
 
 def _in_free_air(starts: FloatArray, targets: FloatArray, model: ScanModel) -> np.ndarray:
@@ -439,6 +461,10 @@ MAX_LIFT_OFF_LENGTH_M = 0.06
 #: lifted point's target (a step of a few millimetres leaves a gap; the scan's own gaps between
 #: points, about a millimetre, do not).
 LIFT_OFF_SAME_FACE_M = 0.0018
+#: ... a random scan of about a point per square millimetre leaves such a gap now and then (on
+#: the lift-off plate: one or two probes of the thousands along the ways), a step of a few
+#: millimetres a gap several millimetres long.
+LIFT_OFF_SCAN_GAP_M = 0.002
 #: The way down is clear when no scan point lies within this of it ...
 LINE_OF_SIGHT_M = 0.0008
 #: ... but for its last stretch, where it reaches the feature and the scan's scatter about it (a

@@ -62,6 +62,7 @@ def paper_segment(
     half_width: int,
     *,
     prior_variance_m2: FloatArray | None = None,
+    placement_variance_m2: FloatArray | None = None,
     corners: tuple[int, ...] | None = None,
 ) -> SegmentResult:
     """Eq. (4) of the paper for every point of one segment.
@@ -82,6 +83,10 @@ def paper_segment(
         How far off the trace is known to be, across the path (see
         :func:`recon.methods.anchored.anchored_segment`). Eq. (4) takes the point's position
         from the path (only the scan's shape enters), so this stays in every point's variance.
+    placement_variance_m2 : ndarray of shape (n,), optional
+        Not used: Eq. (4) accepts the scan's evidence wherever it is.
+    corners : tuple of int, optional
+        Not used: N_S is the whole thinned edge near each point.
 
     Returns
     -------
