@@ -67,6 +67,11 @@ NORMAL_TOLERANCE_DEG = 35.0
 #: peak needs no more: the refinement finds the line's direction; measured on the real-parts
 #: benchmark, voting across the whole tolerance found the same corners at 3.5 times the cost).
 VOTE_HALF_WINDOW = 1
+#: A line whose points lean off it by more than this (median; a face's small-scale normals
+#: scatter by a few degrees, a ramp bridging a low step leans 20-30) ...
+RAMP_ANGLE_DEG = 15.0
+#: ... in two runs with a gap of more than this between is a ramp, not a face.
+RAMP_GAP_M = 0.0012
 #: A point whose normal lies mostly along the path (its face is cut at a glancing angle) does not
 #: vote: the in-slice part of its unit normal must be at least this long.
 MIN_NORMAL_IN_SLICE = 0.6
@@ -313,6 +318,7 @@ def _profiles_chunk(stations, along, dense, normals, tree) -> Profiles:
         hi = np.where(inside, s, -np.inf).max(axis=1)
         n_in = np.count_nonzero(inside, axis=1)
         ok = (n_in >= MIN_LINE_POINTS) & (hi - lo >= MIN_LINE_LENGTH_M)
+        ok &= _not_a_ramp(phi, n0, s, inside)
         normal[:, line] = n0
         offset[:, line] = rho0
         count[:, line] = n_in
@@ -337,6 +343,7 @@ def _profiles_chunk(stations, along, dense, normals, tree) -> Profiles:
     corner, corner_ok, angle, corner_var = _corners(
         x, y, members, support, normal, offset, rms, count, line_ok, pairs
     )
+    corner_ok = _without_cut_off_corners(corner, corner_ok, pairs)
     corner_ok = _strongest_of_close_corners(corner, corner_ok, count, pairs)
     return Profiles(
         origin_m=stations,
@@ -411,6 +418,24 @@ def _votes(x, y, phi, weight, n_rho) -> FloatArray:
     acc = np.bincount(flat, weights=(w * (1.0 - frac)).ravel(), minlength=size)
     acc += np.bincount(flat + 1, weights=(w * frac).ravel(), minlength=size)
     return acc.reshape(b, THETA_BINS, n_rho)
+
+
+def _not_a_ramp(phi: FloatArray, normal: FloatArray, s: FloatArray, inside) -> NDArray[np.bool_]:
+    """Per station, False where the line is a ramp across a low step rather than a face: its
+    points (``inside``, (B, K)) lean off it, the median angle between their normals (``phi``)
+    and its ``normal`` (B, 2) above :data:`RAMP_ANGLE_DEG`, and they come in two runs along it
+    (``s``, (B, K)) with a gap of more than :data:`RAMP_GAP_M` between (the step's riser, whose
+    points face elsewhere). A narrow face (a thin wall's top) leans as much in small-scale
+    normals blended over its edges, but its points run on without a gap."""
+    line_phi = np.mod(np.arctan2(normal[:, 1], normal[:, 0]), np.pi)
+    off = np.abs(phi - line_phi[:, None])
+    off = np.minimum(off, np.pi - off)
+    leaning = _masked_median(off, inside) > np.radians(RAMP_ANGLE_DEG)
+    ordered = np.sort(np.where(inside, s, np.inf), axis=1)
+    with np.errstate(invalid="ignore"):  # inf - inf past the last point: no step
+        steps = np.diff(ordered, axis=1)
+    gap = np.where(np.isfinite(steps), steps, 0.0).max(axis=1, initial=0.0)
+    return ~(leaning & (gap > RAMP_GAP_M))
 
 
 def _along_line(phi: FloatArray, normal: FloatArray) -> NDArray[np.bool_]:
@@ -494,6 +519,30 @@ def _total_least_squares(x, y, weight):
     dof = np.maximum(w.sum(axis=1) - 2, 1)
     sigma = np.sqrt((w * residual).sum(axis=1) / dof)
     return normal, rho, sigma
+
+
+def _without_cut_off_corners(corner, corner_ok, pairs):
+    """Corners a third line cuts off dropped: where lines i and j would meet, but a line k
+    crosses both near there, at supported corners at least :data:`CLOSE_CORNERS_M` apart, the
+    part is chamfered (k is the chamfer's face) and the meeting of i and j lies in the air; the
+    edges are k's two corners. (Closer together, k is a corner rounded by the slice's
+    thickness, left to :func:`_strongest_of_close_corners`.)"""
+    index = {tuple(pair): p for p, pair in enumerate(pairs.tolist())}
+    lines = int(pairs.max()) + 1 if len(pairs) else 0
+    ok = corner_ok.copy()
+    for p, (i, j) in enumerate(pairs.tolist()):
+        for k in range(lines):
+            if k in (i, j):
+                continue
+            ik, jk = index[tuple(sorted((i, k)))], index[tuple(sorted((j, k)))]
+            both = corner_ok[:, ik] & corner_ok[:, jk]
+            span = np.linalg.norm(corner[:, ik] - corner[:, jk], axis=1)
+            reach = np.maximum(
+                np.linalg.norm(corner[:, ik] - corner[:, p], axis=1),
+                np.linalg.norm(corner[:, jk] - corner[:, p], axis=1),
+            )
+            ok[:, p] &= ~(both & (span >= CLOSE_CORNERS_M) & (reach <= CORNER_REACH_M))
+    return ok
 
 
 def _strongest_of_close_corners(corner, corner_ok, count, pairs):

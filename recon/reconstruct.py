@@ -62,7 +62,8 @@ from recon.types import (
 )
 
 #: One segment's reconstruction: ``method(points, kind, model or None, params, N_P half-width, *,
-#: prior_variance_m2, placement_variance_m2, corners)`` -> SegmentResult (see :func:`recon.methods.anchored.anchored_segment`).
+#: prior_variance_m2, placement_variance_m2, corners)`` -> SegmentResult (see
+#: :func:`recon.methods.anchored.anchored_segment`).
 SegmentMethod = Callable[..., SegmentResult]
 #: The methods by ``ReconParams.method``.
 METHODS: dict[Method, SegmentMethod] = {"paper": paper_segment, "anchored": anchored_segment}
@@ -468,7 +469,9 @@ def _prior_from_fusion(fused, resampled: ResampledPath) -> FloatArray:
     return variance * (2.0 / 3.0)
 
 
-def transform_sigma_m(registration: Registration | None, points_tracker_m: FloatArray) -> FloatArray:
+def transform_sigma_m(
+    registration: Registration | None, points_tracker_m: FloatArray
+) -> FloatArray:
     """1-sigma error the registration's covariance alone gives each point (zero when unknown).
 
     Parameters

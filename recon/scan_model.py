@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 
 from recon.edges import EdgePoints, stations_along, thin_edges
 from recon.features import ScanFeatures, ball_covariances, neighbour_balls, prepare_scan
-from recon.fitting import gather, symmetric_eig3
+from recon.fitting import symmetric_eig3
 from recon.profiles import Profiles, find_profiles
 from recon.types import FloatArray, ReconParams, Scan
 

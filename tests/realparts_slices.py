@@ -30,6 +30,15 @@ def slice_indices(recon_points_m, truth_m, count: int = 5) -> list[int]:
     return chosen
 
 
+def _section(points, width_m, frame):
+    """The points within ``width_m`` of the slice's plane (and its half-width of its centre),
+    in the slice's axes, millimetres (K, 2)."""
+    centre, tangent, a, b, half_width_m = frame
+    rel = points - centre
+    near = (np.abs(rel @ tangent) < width_m) & (np.linalg.norm(rel, axis=1) < half_width_m)
+    return np.column_stack([rel[near] @ a, rel[near] @ b]) / MM
+
+
 def plot_slices(scene, recons: dict, part, path, *, indices=None, half_width_m=12 * MM):
     """One panel per slice: scan points near the plane (grey), the part's section (black), the
     true curve (green), the trace (blue) and each reconstruction (one colour each).
@@ -79,22 +88,18 @@ def plot_slices(scene, recons: dict, part, path, *, indices=None, half_width_m=1
         a /= np.linalg.norm(a)
         b = np.cross(tangent, a)
 
-        def section(points, width):
-            rel = points - centre
-            near = (np.abs(rel @ tangent) < width) & (np.linalg.norm(rel, axis=1) < half_width_m)
-            return np.column_stack([rel[near] @ a, rel[near] @ b]) / MM
-
-        s = section(scan, 0.75 * MM)
+        frame = (centre, tangent, a, b, half_width_m)
+        s = _section(scan, 0.75 * MM, frame)
         ax.scatter(s[:, 0], s[:, 1], s=2, c="0.6", label="scan")
-        m = section(surface, 0.1 * MM)
+        m = _section(surface, 0.1 * MM, frame)
         ax.scatter(m[:, 0], m[:, 1], s=0.5, c="k", label="part")
         ax.scatter([0], [0], marker="*", s=120, c="tab:green", label="true curve", zorder=5)
-        trace = section(first.input_points_m, 0.6 * MM)
+        trace = _section(first.input_points_m, 0.6 * MM, frame)
         ax.scatter(
             trace[:, 0], trace[:, 1], marker="o", s=40, c="tab:blue", label="trace", zorder=5
         )
         for colour, (label, recon) in zip(colours, recons.items(), strict=False):
-            r = section(recon.points_m, 0.6 * MM)
+            r = _section(recon.points_m, 0.6 * MM, frame)
             ax.scatter(r[:, 0], r[:, 1], marker="x", s=60, c=colour, label=label, zorder=6)
         error = distance_to_curve(first.points_m[index : index + 1], scene.truth_m)[0]
         ax.set_title(f"point {index}: {error / MM:.2f} mm off", fontsize=9)
