@@ -188,10 +188,11 @@ def test_beside_a_step_s_foot_the_height_comes_from_the_floor(seed, offset_m):
     centres = along_x(-offset_m, 0.0008)
     model = model_for(scan, centres)
     fit = fit_faces(centres, model, radius_m=0.008, neighbours=400, scale_m=0.004)
-    assert fit.ok.all()
-    assert np.abs(fit.target_m[:, 2]).max() < 0.25 * MM
+    # Where the fit grew over the riser instead, it says so (the point then keeps the trace).
+    assert np.mean(fit.ok) >= 0.9
+    assert np.abs(fit.target_m[fit.ok, 2]).max() < 0.25 * MM
     # The floor's normal, not the step's.
-    assert np.median(np.abs(fit.normal[:, 2])) > 0.995
+    assert np.abs(fit.normal[fit.ok, 2]).min() > np.cos(np.radians(25))
 
 
 @pytest.mark.xfail(
