@@ -47,8 +47,6 @@ class SegmentClass:
     edge_fraction : float
         Mean fraction of edge points among the scan points nearest to the segment's points
         (0 for a segment with no scan near it).
-    fell_back : bool
-        The scan was near but the path disagreed with it (:func:`check_consistency`): path only.
     corners : tuple of int, or None
         The edge an EDGE segment follows: the corners (:attr:`recon.edges.EdgePoints.corner`)
         chosen along it.
@@ -61,7 +59,6 @@ class SegmentClass:
 
     kind: SegmentKind
     edge_fraction: float
-    fell_back: bool = False
     corners: tuple[int, ...] | None = None
     rms_to_edge_m: float = float("nan")
     next_edge_m: float = float("nan")
@@ -259,61 +256,3 @@ def _choose_edge(candidates, seg: slice, length: int) -> _EdgeChoice | None:
         typical,
         float(np.median(others)) if others else float("inf"),
     )
-
-
-#: Once registered, a path that follows an edge runs within a hand's error of it: a segment whose
-#: median distance from the thinned edge (or from the surface, along its normal) is above this
-#: is not where the scan says its feature is (a wrong registration, another edge), and leaning it
-#: onto the scan could make it worse than it came in. A hand's error reaches 2-5 mm at most
-#: (paper, Sec. VI); a sloppy trace on a calibrated scanner was measured at 1.6 mm on median.
-CONSISTENT_DISTANCE_M = 0.003
-
-
-def check_consistency(
-    points_m: FloatArray,
-    bounds: list[tuple[int, int]],
-    classes: list[SegmentClass],
-    model: ScanModel,
-) -> tuple[list[SegmentClass], list[str]]:
-    """Segments whose registered path does not agree with the scan fall back to the path alone.
-
-    Parameters
-    ----------
-    points_m : ndarray of shape (N, 3)
-        The registered path, scan frame.
-    bounds : list of (start, stop)
-    classes : list of SegmentClass
-        From :func:`classify_segments`.
-    model : ScanModel
-
-    Returns
-    -------
-    classes : list of SegmentClass
-        Path-only (``fell_back``) for every segment that failed the check.
-    notes : list of str
-        One per fallback, saying why and what to check.
-    """
-    out, notes = [], []
-    for index, ((start, stop), segment_class) in enumerate(zip(bounds, classes, strict=True)):
-        here = points_m[start:stop]
-        distance = None
-        if segment_class.kind == SegmentKind.EDGE and model.edge_tree is not None:
-            distance, _ = model.edge_tree.query(here, workers=-1)
-            feature = "edge"
-        elif segment_class.kind == SegmentKind.SURFACE:
-            _, nearest = model.coarse_tree.query(here, workers=-1)
-            normals = model.features.normals[nearest]
-            offset = here - model.features.points_m[nearest]
-            distance = np.abs(np.einsum("ij,ij->i", offset, normals))
-            feature = "surface"
-        if distance is None or np.median(distance) <= CONSISTENT_DISTANCE_M:
-            out.append(segment_class)
-            continue
-        out.append(SegmentClass(SegmentKind.PATH, segment_class.edge_fraction, fell_back=True))
-        notes.append(
-            f"segment {index} runs {np.median(distance) * 1e3:.1f} mm from the scan's {feature} "
-            f"on median once registered (a hand stays within "
-            f"{CONSISTENT_DISTANCE_M * 1e3:.1f} mm): the scan was not used there, the path was "
-            "smoothed on its own; check the registration or the calibration"
-        )
-    return out, notes

@@ -340,10 +340,7 @@ def reconstruct(
             )
         )
         if kind == SegmentKind.PATH and model is not None:
-            if segment_class.fell_back:
-                results[-1].reason[:] = PointReason.SEGMENT_DISAGREES
-            else:
-                notes.append(f"segment {len(segments) - 1} has no scan near it: path only")
+            notes.append(f"segment {len(segments) - 1} has no scan near it: path only")
         segments[-1] = _with_evidence(segments[-1], segment_class, results[-1])
     if model is not None:
         notes += evidence_notes(segments, results, resampled.arc_length_m)

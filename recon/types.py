@@ -513,7 +513,9 @@ class PointReason(enum.IntEnum):
     NO_FEATURE = 1  #: the scan shows no such feature here (nothing fitted, too few points)
     FAR_FROM_TRACE = 2  #: the feature is farther from the trace than the hand's error explains
     OFF_EVIDENCE = 3  #: the fitted feature is not where the scan's points are (too far from them)
-    SEGMENT_DISAGREES = 4  #: the whole segment runs far from the scan (registration, calibration)
+    #: the whole segment ran far from the scan (no longer produced: judged point by point as
+    #: FAR_FROM_TRACE; kept so records that hold it still read)
+    SEGMENT_DISAGREES = 4
     ONE_FACE = 5  #: the edge was not found here; the height comes from the one face under it
     CONTINUED = 6  #: past the end of the scan's feature, continued along its line
     PAST_END = 7  #: farther past the end of the scan's feature than it is continued

@@ -21,6 +21,10 @@ and curvature, the small-scale normals (``ScanModel.fine_normals``, computed onc
 scan and tested with the scan model) and the cross-sections (``ScanModel.profiles``).
 Constants (thresholds, radii) are imported from the recon modules.
 
+Where the batched code's answer for a point depends on the other points it is batched with, this
+one follows the docstrings instead (see :func:`_scan_along` and :func:`_lifted_off`); the scenes
+of the test do not tell the two apart.
+
 Re-implemented here, per point, without ``recon.fitting``, ``path_fit``, ``adaptive_smoothing``,
 ``edge_neighbourhoods``, ``weigh_evidence``, ``fit_faces`` or ``ScanModel.faces_under``:
 
@@ -32,10 +36,12 @@ Re-implemented here, per point, without ``recon.fitting``, ``path_fit``, ``adapt
   over three reaches, the corner filter, the robust 3-D polynomial, the continued line past the
   samples' ends near a segment's ends, the window chosen by the intersection of confidence
   intervals); the one face under a point (the cross-section's line under it or the flattest
-  voxel, the seed, two stages of growth, the quadric); the checks that the move is explained by
-  the hand's error (support under an edge target, the distance, lift-offs off a face: the run
-  flanked by the trace on the face, the scan along the way, the free air above it); the ramp
-  at the ends of the evidence, the drift estimate, the blend and the variance.
+  voxel, the seed, two stages of growth, the quadric, the point's foot on it along its own
+  normal, the check that it faces the way the face under the point does); the checks that the
+  move is explained by the hand's error and the scan's placement (support under an edge target,
+  the distance, lift-offs off a face: the run flanked by the trace on the face, the scan along
+  the way, the free air above it); the ramp at the ends of the evidence, the drift estimate, the
+  blend and the variance.
 """
 
 from __future__ import annotations
@@ -49,6 +55,7 @@ import numpy as np
 from recon import reconstruct as R
 from recon.classify import PATH_ONLY, SegmentKind, classify_segments
 from recon.faces import (
+    FOOT_ITERATIONS,
     HEIGHT_FLOOR_M,
     MAX_SUPPORT_GAP_M,
     MIN_FACE_POINTS,
@@ -106,6 +113,12 @@ def _quadric(u, v, scale: float) -> np.ndarray:
     a = np.atleast_1d(np.asarray(u, dtype=np.float64)) / scale
     b = np.atleast_1d(np.asarray(v, dtype=np.float64)) / scale
     return np.column_stack([np.ones_like(a), a, b, a * a, a * b, b * b])
+
+
+def _quadric_gradient(u: float, v: float, scale: float) -> np.ndarray:
+    """d/du and d/dv of :func:`_quadric`'s row at (u, v), shape (2, 6)."""
+    a, b = u / scale, v / scale
+    return np.array([[0, 1, 0, 2 * a, b, 0], [0, 0, 1, 0, a, 2 * b]], dtype=np.float64) / scale
 
 
 @dataclass
@@ -368,7 +381,9 @@ def _face(centre: np.ndarray, model, params: ReconParams):
     Returns
     -------
     SimpleNamespace
-        ``target`` (3,), ``normal`` (3,), ``variance`` (inf where not ok), ``ok``.
+        ``target`` (3,): the point's foot on the quadric; ``variance`` of its height (inf where
+        not ok); ``ok``: enough points, one near the target, facing the way the face under the
+        point does.
     """
     scale = params.radius_m
     dense = model.features.dense_points_m
@@ -382,10 +397,13 @@ def _face(centre: np.ndarray, model, params: ReconParams):
     reference, foot, found = _face_under(centre, model)
     if not found:
         reference = _flattest_normal(centre, model)
-    agree = np.abs(normals @ reference) >= np.cos(np.radians(NORMAL_TOLERANCE_DEG))
+    cos_tolerance = np.cos(np.radians(NORMAL_TOLERANCE_DEG))
+    agree = np.abs(normals @ reference) >= cos_tolerance
     level = np.ones(len(idx), bool)
     if found:
         level = np.abs((points - foot) @ reference) <= SEED_HEIGHT_M
+    # The seed: the nearest points that face that way (and lie on that face). Without any, the
+    # frame is the empty one of _pca (never seen on the real parts), as the batched PCA's is.
     seed = np.zeros(len(idx), bool)
     seed[np.flatnonzero(agree & level)[:SEED_POINTS]] = True
     mean, axes, variances = _pca(points[seed])
@@ -398,24 +416,34 @@ def _face(centre: np.ndarray, model, params: ReconParams):
         & (rho2 <= STAGE_ONE_RADIUS_M**2)
         & (np.abs(h[:, 0]) <= 3.0 * seed_sigma + rho2 / (2.0 * MIN_FACE_RADIUS_M))
     )
+    # Stage one: the seed's plane grown within STAGE_ONE_RADIUS_M (allowing a face that curves);
+    # stage two: the first stage's quadric grown over the whole neighbourhood.
     design = _quadric(u, v, scale)
     fit, _ = _robust(design, h, stage_one, floor=HEIGHT_FLOOR_M)
     residual = np.abs(h - design @ fit.coef)[:, 0]
     stage_two = agree & (residual <= 3.0 * max(fit.rms, HEIGHT_FLOOR_M))
     fit, used = _robust(design, h, stage_two, floor=HEIGHT_FLOOR_M)
+    # The point's foot on the quadric: from straight down the seed frame's axis, FOOT_ITERATIONS
+    # steps onto the tangent plane where the last one landed (the quadric's normal through the
+    # point, not the seed patch's, which tilts in the scan's noise).
     at = (centre - mean) @ axes
-    row = _quadric(at[0], at[1], scale)[0]
-    target = mean + axes @ np.r_[at[0], at[1], fit.at(row)]
-    c = fit.coef[:, 0]
-    a, b = at[0] / scale, at[1] / scale
-    slope = np.array([c[1] + 2 * c[3] * a + c[4] * b, c[2] + c[4] * a + 2 * c[5] * b]) / scale
-    normal = axes @ np.r_[-slope, 1.0]
-    normal /= np.linalg.norm(normal)
+    foot = at[:2].copy()
+    for _ in range(FOOT_ITERATIONS):
+        on_face = np.r_[foot, fit.at(_quadric(foot[0], foot[1], scale)[0])[0]]
+        normal = np.r_[-(_quadric_gradient(foot[0], foot[1], scale) @ fit.coef[:, 0]), 1.0]
+        normal /= np.linalg.norm(normal)
+        foot = (at - ((at - on_face) @ normal) * normal)[:2]
+    row = _quadric(foot[0], foot[1], scale)[0]
+    target = mean + axes @ np.r_[foot, fit.at(row)]
     count = int(np.count_nonzero(used))
-    gap = np.sqrt(np.min((u[used] - at[0]) ** 2 + (v[used] - at[1]) ** 2, initial=np.inf))
-    ok = fit.dof >= 4 and count >= MIN_FACE_POINTS and gap <= MAX_SUPPORT_GAP_M
+    gap = np.sqrt(np.min((u[used] - foot[0]) ** 2 + (v[used] - foot[1]) ** 2, initial=np.inf))
+    # It is the face under the point only if it faces that face's way at the target (seeded by
+    # a few points, the fit may have grown over a neighbouring face instead).
+    normal = axes @ np.r_[-(_quadric_gradient(foot[0], foot[1], scale) @ fit.coef[:, 0]), 1.0]
+    facing = abs(normal @ reference) / np.linalg.norm(normal) >= cos_tolerance
+    ok = fit.dof >= 4 and count >= MIN_FACE_POINTS and gap <= MAX_SUPPORT_GAP_M and facing
     variance = fit.rms**2 * min(fit.leverage(row), 1.0)
-    return SimpleNamespace(target=target, normal=normal, variance=variance if ok else np.inf, ok=ok)
+    return SimpleNamespace(target=target, variance=variance if ok else np.inf, ok=ok)
 
 
 # --- Whether a move is what the trace's error explains ---------------------------------------
@@ -424,17 +452,23 @@ def _face(centre: np.ndarray, model, params: ReconParams):
 def _scan_along(start: np.ndarray, end: np.ndarray, model) -> bool:
     """Whether the scan runs along the straight way from ``start`` to ``end`` (one face, no step
     between): a point within ``LIFT_OFF_SAME_FACE_M`` of every millimetre of it, but for gaps of
-    at most ``LIFT_OFF_SCAN_GAP_M`` (a random scan's own)."""
+    at most ``LIFT_OFF_SCAN_GAP_M`` (a random scan's own).
+
+    Each way is probed along its own length, at most a millimetre apart, as the docstring of
+    ``recon.methods.anchored._scan_along`` says. (The batched code probes every way of a run as
+    densely as its longest needs and still allows two missing probes, so on a shorter way the gap
+    it allows shrinks with the run's longest way: a point's answer depends on its neighbours.)
+    """
     length = float(np.linalg.norm(end - start))
     probes_apart_m = 0.001
     allowed = int(A.LIFT_OFF_SCAN_GAP_M / probes_apart_m)
     missing = 0
     for s in np.linspace(0.0, 1.0, int(np.ceil(length / probes_apart_m)) + 2):
-        probe = start + s * (end - start)
-        missing = (
-            missing + 1 if _clear_within(model.dense_tree, probe, A.LIFT_OFF_SAME_FACE_M) else 0
+        uncovered = _clear_within(
+            model.dense_tree, start + s * (end - start), A.LIFT_OFF_SAME_FACE_M
         )
-        if missing > allowed:
+        missing = missing + 1 if uncovered else 0
+        if missing > allowed:  # more than LIFT_OFF_SCAN_GAP_M without the scan
             return False
     return True
 
@@ -457,11 +491,15 @@ def _lifted_off(centres, targets, near, lifted, model) -> np.ndarray:
     """Which of the ``lifted`` points (beyond the hand's error, within ``MAX_LIFT_OFF_M`` of
     their face) are a lift-off: a run of them no longer than ``MAX_LIFT_OFF_LENGTH_M``, flanked
     on each side the segment has by a point ``near`` its face, the scan running from each flank's
-    target to the lifted one's, and free air between the lifted point and its target."""
+    target to the lifted one's, and free air between the lifted point and its target.
+
+    The runs are the whole segment's (the batched code takes them within each chunk of
+    ``recon.methods.common.CHUNK`` points, which only a segment longer than that tells apart).
+    """
     n = len(centres)
     out = np.zeros(n, bool)
     if n < 2:
-        return out
+        return out  # a lone point has no flank on the face
     spacing = float(np.median(np.linalg.norm(np.diff(centres, axis=0), axis=1)))
     longest = max(1, int(round(A.MAX_LIFT_OFF_LENGTH_M / max(spacing, 1e-9))))
     i = 0
@@ -510,7 +548,8 @@ def _evidence(smoothed, directions, kind, model, params, degree, max_move_m, end
             support = model.dense_tree.query(t)[0] <= A.EDGE_SUPPORT_M or past > 0
             if found and support and np.linalg.norm(t - smoothed[i]) <= max_move_m[i]:
                 target[i], variance[i], mode[i], todo[i] = t, var, PointMode.EDGE, False
-                reason[i] = PointReason.CONTINUED if past > A.CONTINUED_NOTE_M else 0
+                far_past = past > A.CONTINUED_NOTE_M
+                reason[i] = PointReason.CONTINUED if far_past else PointReason.NONE
             elif not found:
                 ended = past > A.CONTINUE_PAST_END_M
                 failure[i] = PointReason.PAST_END if ended else PointReason.NO_FEATURE
@@ -524,7 +563,8 @@ def _evidence(smoothed, directions, kind, model, params, degree, max_move_m, end
     lifted = candidate & ~near & (move <= A.MAX_LIFT_OFF_M)
     accept = near | _lifted_off(smoothed, face_target, near, lifted, model)
     for i in np.flatnonzero(accept):
-        target[i], variance[i], mode[i], todo[i] = faces[i].target, faces[i].variance, 1, False
+        target[i], variance[i], todo[i] = faces[i].target, faces[i].variance, False
+        mode[i] = PointMode.SURFACE
         reason[i] = PointReason.ONE_FACE if kind == SegmentKind.EDGE else PointReason.NONE
     if kind == SegmentKind.SURFACE:
         failure = np.where(candidate, PointReason.FAR_FROM_TRACE, PointReason.NO_FEATURE)
@@ -596,6 +636,8 @@ def paper_segment_loop(
         alpha, f_s, var_s = 1.0, 0.0, 0.0
         if use_scan:
             if kind == SegmentKind.EDGE:
+                # The segment's corners filter N_S, as recon.methods.paper.paper_segment does
+                # (although its docstring says ``corners`` is not used).
                 idx = _edge_samples(
                     points[i], axes[:, 0], model, params.radius_m, corners, max_points=64
                 )
@@ -718,8 +760,7 @@ def anchored_segment_loop(
         # path's alone. The scan's accuracy beyond its scatter counts in the variance only.
         components = 2 if evidence.mode[i] == PointMode.EDGE else 1
         scan_var = var_target[i] + A.SCAN_ACCURACY_M**2
-        blend = components * (alpha[i] ** 2 * var_path[i] / components)
-        blend += components * (1.0 - alpha[i]) ** 2 * scan_var
+        blend = alpha[i] ** 2 * var_path[i] + components * (1.0 - alpha[i]) ** 2 * scan_var
         if components == 1:
             blend += 0.5 * path_only_var[i]
         variance[i] = weight[i] * blend + (1.0 - weight[i]) * path_only_var[i]
@@ -740,6 +781,16 @@ def reconstruct_loop_details(
     touches=None,
 ) -> SimpleNamespace:
     """:func:`reconstruct_loop` with what it found per point.
+
+    Parameters
+    ----------
+    path : Recording, ndarray of shape (N, 3), metres, or sequence of Recording
+        Several recordings are fused first, as ``recon.reconstruct.reconstruct`` does.
+    scan : Scan or None
+    params : ReconParams
+    T_scan_tracker_init : ndarray of shape (4, 4), optional
+    touches : TouchRegistration, optional
+        The scanner registered by touches (its transform used as it is).
 
     Returns
     -------
@@ -789,7 +840,12 @@ def reconstruct_loop_details(
         if len(seg) < 3:
             m = len(seg)
             results.append(
-                _result(seg.copy(), np.ones(m), np.full(m, HAND_ERROR_PRIOR_M**2), [3] * m)
+                _result(
+                    seg.copy(),
+                    np.ones(m),
+                    np.full(m, HAND_ERROR_PRIOR_M**2),
+                    np.full(m, PointMode.UNCHANGED, np.int8),
+                )
             )
             continue
         result = loop(
@@ -802,8 +858,6 @@ def reconstruct_loop_details(
             placement_variance_m2=placement[start:stop],
             corners=segment_class.corners,
         )
-        if segment_class.kind == SegmentKind.PATH and segment_class.fell_back:
-            result.reason[:] = PointReason.SEGMENT_DISAGREES
         results.append(result)
     R.join_at_corners(
         bounds,

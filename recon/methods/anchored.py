@@ -319,7 +319,14 @@ def weigh_evidence(
         on_evidence = found & ((gap <= EDGE_SUPPORT_M) | (past > 0))
         near = _explained(centres, t, max_move_m, model, on_evidence)
         accept = on_evidence & near
-        ended = ~found & (past > CONTINUE_PAST_END_M)
+        # Past the end of the edge's samples near the segment's end: the trace ran on past the
+        # feature. Elsewhere, no samples near is no feature.
+        near_end = (
+            np.ones(len(centres), dtype=bool)
+            if end_distance_m is None
+            else np.asarray(end_distance_m) <= CONTINUE_PAST_END_M + SPAN_SLACK_M
+        )
+        ended = ~found & np.isfinite(past) & (past > CONTINUE_PAST_END_M) & near_end
         first_failure = np.where(
             ended,
             PointReason.PAST_END,
@@ -409,17 +416,24 @@ def _explained(centres, targets, max_move_m, model, candidate, normals=None) -> 
 def _scan_along(starts: FloatArray, ends: FloatArray, model: ScanModel) -> np.ndarray:
     """Whether the scan runs along the straight way from each start to its end (both on one
     face, with no step between): a point within :data:`LIFT_OFF_SAME_FACE_M` of every
-    millimetre of it but for gaps of at most :data:`LIFT_OFF_SCAN_GAP_M`."""
-    length = float(np.max(np.linalg.norm(ends - starts, axis=1), initial=0.0))
-    spacing_m = 0.001
-    steps = np.linspace(0.0, 1.0, int(np.ceil(length / spacing_m)) + 2)
-    probes = starts[:, None, :] + steps[None, :, None] * (ends - starts)[:, None, :]
+    millimetre of it but for gaps of at most :data:`LIFT_OFF_SCAN_GAP_M`.
+
+    Each way is probed every :data:`LIFT_OFF_PROBE_M` along its own length (whatever the others
+    batched with it measure), and at its end.
+    """
+    lengths = np.linalg.norm(ends - starts, axis=1)
+    count = np.ceil(lengths / LIFT_OFF_PROBE_M).astype(np.int64) + 1  # probes per way
+    steps = np.arange(int(count.max(initial=1)))
+    # Probe k of a way at k millimetres, the last at its end; past it (shorter ways) none.
+    along = np.minimum(steps[None, :] * LIFT_OFF_PROBE_M, lengths[:, None])
+    own = steps[None, :] < count[:, None]
+    unit = (ends - starts) / np.maximum(lengths, 1e-12)[:, None]
+    probes = starts[:, None, :] + along[..., None] * unit[:, None, :]
     gap, _ = model.dense_tree.query(
         probes.reshape(-1, 3), distance_upper_bound=LIFT_OFF_SAME_FACE_M, workers=-1
     )
-    covered = np.isfinite(gap).reshape(len(starts), len(steps))
-    # Probes are at most spacing_m apart along each way (less along shorter ones).
-    allowed = int(LIFT_OFF_SCAN_GAP_M / spacing_m)
+    covered = np.isfinite(gap).reshape(probes.shape[:2]) | ~own
+    allowed = int(round(LIFT_OFF_SCAN_GAP_M / LIFT_OFF_PROBE_M))
     return _longest_false_run(covered) <= allowed
 
 
@@ -465,6 +479,8 @@ LIFT_OFF_SAME_FACE_M = 0.0018
 #: the lift-off plate: one or two probes of the thousands along the ways), a step of a few
 #: millimetres a gap several millimetres long.
 LIFT_OFF_SCAN_GAP_M = 0.002
+#: The ways are probed this far apart.
+LIFT_OFF_PROBE_M = 0.001
 #: The way down is clear when no scan point lies within this of it ...
 LINE_OF_SIGHT_M = 0.0008
 #: ... but for its last stretch, where it reaches the feature and the scan's scatter about it (a

@@ -86,7 +86,8 @@ def paper_segment(
     placement_variance_m2 : ndarray of shape (n,), optional
         Not used: Eq. (4) accepts the scan's evidence wherever it is.
     corners : tuple of int, optional
-        Not used: N_S is the whole thinned edge near each point.
+        The corners an EDGE segment follows (chosen by :func:`recon.classify.classify_segments`):
+        N_S is the thinned edge near each point of those corners only.
 
     Returns
     -------

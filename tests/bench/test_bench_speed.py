@@ -153,7 +153,7 @@ STAGES = (
     ("edge lines (thinning)", ("thin_edges",)),
     ("registration (edge and surface ICP)", ("register_to_model",)),
     ("corners", ("judge_corners", "with_corner_edges")),
-    ("classify", ("classify_segments", "check_consistency")),
+    ("classify", ("classify_segments",)),
     ("per-point fits", ("anchored_segment",)),
     ("uncertainty, assembly", ("_assemble",)),
     ("write the CSV", ("write_reconstruction_csv",)),
