@@ -10,10 +10,12 @@ import numpy as np
 import pytest
 
 from drivers.export import DIAGNOSTIC_COLUMNS, QUATERNION_COLUMNS, reconstruction_csv_text
-from recon.types import PointMode
+from recon.types import PointMode, PointReason
 
 
-def _arrays(n: int, *, times: bool, quaternions: bool, uncertainty: bool, seed: int = 0):
+def _arrays(
+    n: int, *, times: bool, quaternions: bool, uncertainty: bool, reason: bool = True, seed: int = 0
+):
     rng = np.random.default_rng(seed)
     arrays = {
         "points_m": rng.normal(scale=0.3, size=(n, 3)),
@@ -38,6 +40,8 @@ def _arrays(n: int, *, times: bool, quaternions: bool, uncertainty: bool, seed: 
         arrays["orientations_xyzw"] = q / np.linalg.norm(q, axis=1, keepdims=True)
     if uncertainty:
         arrays["uncertainty_m"] = rng.exponential(3e-4, n)
+    if reason:
+        arrays["reason"] = rng.integers(0, len(PointReason), n).astype(np.int8)
     # Values that print differently in %g than in repr: tiny, huge, negative zero, integral.
     arrays["points_m"][0] = (1e-12, -0.0, 12345.0)
     return arrays
@@ -46,6 +50,7 @@ def _arrays(n: int, *, times: bool, quaternions: bool, uncertainty: bool, seed: 
 def _row_by_row(arrays: dict) -> str:
     """The straightforward writer: csv.writer, one f-string per number."""
     labels = {int(m): m.label for m in PointMode}
+    reasons = {int(r): r.label for r in PointReason}
     n = len(arrays["points_m"])
     t, q = arrays.get("t_s"), arrays.get("orientations_xyzw")
     unc = arrays.get("uncertainty_m", np.full(n, np.nan))
@@ -76,6 +81,7 @@ def _row_by_row(arrays: dict) -> str:
             number(arrays["alpha"][i]),
             str(int(arrays["piece"][i])),
             number(unc[i]),
+            reasons[int(arrays["reason"][i])] if "reason" in arrays else "",
         ]
         writer.writerow(row)
     return buffer.getvalue()
@@ -84,8 +90,13 @@ def _row_by_row(arrays: dict) -> str:
 @pytest.mark.parametrize("times", [False, True])
 @pytest.mark.parametrize("quaternions", [False, True])
 @pytest.mark.parametrize("uncertainty", [False, True])
-def test_the_block_writer_writes_what_a_row_by_row_writer_writes(times, quaternions, uncertainty):
-    arrays = _arrays(500, times=times, quaternions=quaternions, uncertainty=uncertainty)
+@pytest.mark.parametrize("reason", [False, True])
+def test_the_block_writer_writes_what_a_row_by_row_writer_writes(
+    times, quaternions, uncertainty, reason
+):
+    arrays = _arrays(
+        500, times=times, quaternions=quaternions, uncertainty=uncertainty, reason=reason
+    )
     assert reconstruction_csv_text(arrays) == _row_by_row(arrays)
 
 
