@@ -30,8 +30,10 @@ class RegistrationError(ReconError):
 
 
 class TouchesInsufficientError(RegistrationError):
-    """Touches of the workpiece that leave free a motion the traced feature needs fixed (all on
-    one face for a path along an edge, say); the message names the motion and where to touch."""
+    """Touches of the workpiece that leave the scan's placement uncertain by more than the
+    tolerance (1 sigma) where it matters: at the path, across its features (all touches on one
+    face for a path along an edge, say). The message names each poorly pinned motion, the
+    millimetres it leaves and where to touch."""
 
 
 class PoorFitError(ReconError):

@@ -255,7 +255,8 @@ def reconstruct(
     DegenerateInputError, NoOverlapError, UnitsMismatchError, RegistrationError
         See :mod:`recon.errors`.
     TouchesInsufficientError
-        The touches leave free a motion the traced features need fixed.
+        The touches leave the scan's placement uncertain by more than
+        ``params.uncertainty_tolerance_m`` (1 sigma) at the path, across its features.
     """
     params = params or ReconParams()
     notes: list[str] = []

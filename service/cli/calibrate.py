@@ -69,7 +69,8 @@ def add_parser(commands) -> None:
         "pen's tip rests 0.3 s or more on each of 3 or more points of the workpiece, on two or "
         "three faces, and moves between them. The rests are found and averaged, and registered "
         "point to plane to the scan's surface; the result names the residual of every touch "
-        "and the motions the touches fix (those they leave free keep the initial guess). "
+        "and the motions the touches fix (those they leave free keep the initial guess); it is "
+        "refused where the placement they leave is uncertain by more than 1 mm (1 sigma). "
         "Pass the file to reconstruct or plan with --scan-from-tracker (and --no-register).",
     )
     scan.add_argument("touches", metavar="TOUCHES_FILE")
@@ -87,7 +88,8 @@ def add_parser(commands) -> None:
         "--trace",
         metavar="PATH_FILE",
         help="the path the calibration is for: the initial guess comes from registering it, "
-        "and the calibration is refused if the touches leave free a motion its features need",
+        "and the touches are judged by the millimetres of placement they leave at it, across "
+        "its features (else near the touches)",
     )
     scan.add_argument("--out", required=True, metavar="T_scan_tracker.json")
     scan.set_defaults(handler=run_scan)
