@@ -330,7 +330,9 @@ def check_cell(arm, trajectory: JointTrajectory, cell, params: PlanParams):
         margin_m=params.clearance_m,
         contact_zone=ContactZone(
             path_m=trajectory.tcp_m[process], piece=np.unique(run[process], return_inverse=True)[1]
-        ),
+        )
+        if process.any()
+        else None,  # no process samples: the tool may touch the workpiece nowhere
         t_s=trajectory.t_s,
     )
 
@@ -408,6 +410,8 @@ def _whole_motion(
     joint_move = {
         "speed_scale": params.transit_speed_scale,
         "acceleration_scale": params.transit_acceleration_scale,
+        "tcp_speed_max_m_s": params.transit_tcp_speed_m_s,
+        "T_flange_tcp": params.T_flange_tcp,
     }
     phases: list[motion.PhaseSamples] = []
     q_here = q_start

@@ -368,6 +368,9 @@ class PlanParams:
         TCP speed of the approach and retract lines.
     transit_speed_scale, transit_acceleration_scale : float
         Fractions of the joint limits for the joint moves (transit and return).
+    transit_tcp_speed_m_s : float
+        The joint moves' largest TCP speed (a real arm's server caps every phase's TCP speed;
+        the transit would otherwise reach 0.3-0.7 m/s at the joint scales alone).
     return_to_start : bool
         Move back to the start joints after the retract.
     payload_kg : float
@@ -431,6 +434,9 @@ class PlanParams:
     )
     transit_acceleration_scale: float = param(
         0.3, gt=0, le=1, help="fraction of the joint accelerations for the transit and return"
+    )
+    transit_tcp_speed_m_s: float = param(
+        0.25, gt=0, le=1.0, unit="m/s", help="largest TCP speed of the transit and return"
     )
     return_to_start: bool = param(False, help="move back to the start joints at the end")
     payload_kg: float = param(0.0, ge=0, le=35, unit="kg", help="the payload's mass")

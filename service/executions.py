@@ -14,16 +14,24 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pydantic import ValidationError
 
 from drivers.robot.base import backend_config, create_backend
 from recon.types import Phase
 from service import tasks
 from service.arm_runner import ExecutionRunner
-from service.artifacts import ID_PREFIX, ExecutionCodec
+from service.artifacts import ID_PREFIX, ExecutionCodec, ReconstructionCodec, ScanCodec
 from service.core import Services
 from service.errors import ApiError, not_found
-from service.gate import check_real_arm
-from service.pipelines import ExecutionOutcome
+from service.gate import (
+    CellHere,
+    CellUnknown,
+    UnreadableTrajectory,
+    check_here,
+    check_real_arm,
+    check_request,
+)
+from service.pipelines import ExecutionOutcome, cell_for
 from service.schemas import ExecutionCreate
 from service.store import FINISHED, ArtifactRow, JobRow, new_id
 
@@ -117,21 +125,30 @@ def arm_owner(services: Services) -> str | None:
 
 def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
     settings = services.settings
-    loaded = tasks.load_trajectory(services.store.path_of(trajectory), trajectory.summary)
+    check_request(settings, confirm=request.confirm)
     tool = _tool_of(trajectory)
+    # The samples are judged here, against this arm and this cell, before the lock (the check
+    # takes a fraction of a second); the runner is given the very arrays judged.
+    checked = check_here(
+        settings,
+        trajectory,
+        _load_for_gate(services, trajectory),
+        _cell_here(services, trajectory, tool),
+    )
+    loaded = checked.trajectory
     # One owner: deciding and taking the arm happen under one lock, so two requests that
     # arrive together cannot both pass the gate.
     with services.live.lock:
         check_real_arm(
             settings,
-            trajectory,
+            checked,
             services.store.artifacts(session_id, "execution"),
+            dry_runs_made_here=_dry_runs_made_here(services, session_id),
             confirm=request.confirm,
             mode=request.mode,
             tolerance_m=request.tolerance_m,
             owner=arm_owner(services),
             arm=services.robot.poll(),  # read now: the arm may have been jogged a moment ago
-            q_start_rad=loaded.q_rad[0],
         )
         config = backend_config("ur_rtde", host=settings.ur_host, robot=settings.ur_robot)
         job = services.store.create_job(
@@ -151,6 +168,93 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
         services.live.executions[out_id] = runner
     runner.start()
     return services.store.job(job.id)
+
+
+def _load_for_gate(services: Services, trajectory: ArtifactRow):
+    """The trajectory's arrays, or the gate's refusal if they cannot be read."""
+    try:
+        return tasks.load_trajectory(services.store.path_of(trajectory), trajectory.summary)
+    except (OSError, ValueError, KeyError, ValidationError) as exc:
+        raise UnreadableTrajectory(
+            f"the samples of trajectory {trajectory.id} cannot be read ({type(exc).__name__}: "
+            f"{str(exc)[:200]}); plan it again"
+        ) from None
+
+
+def _dry_runs_made_here(services: Services, session_id: str) -> set[str]:
+    """Executions produced by jobs of this data folder's service (a bundle carries no jobs)."""
+    return {
+        str(job.params.get("execution_id"))
+        for job in services.store.jobs(session_id)
+        if job.kind == "execution"
+        and job.state == "succeeded"
+        and job.params.get("backend") == "sim"
+    }
+
+
+def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> CellHere:
+    """This server's cell (its planes and keep-out boxes, never the plan's stored copy) with the
+    scan the trajectory was planned along, placed as it was planned.
+
+    Raises
+    ------
+    CellUnknown
+        The plan names a scan that cannot be read or placed: the check cannot decide.
+    UnreadableTrajectory
+        The plan's tool (radius, clearance, TCP) is not a valid one.
+    """
+    from recon.transforms import transform_from_pose
+    from recon.types import PlanParams
+
+    store, settings = services.store, services.settings
+    summary = trajectory.summary if isinstance(trajectory.summary, dict) else {}
+    scan = T_scan_tracker = None
+    scan_id = trajectory.inputs.get("scan_id")
+    if scan_id is not None:
+        try:
+            scan_row = store.artifact(str(scan_id), kind="scan", session_id=trajectory.session_id)
+            recon_row = store.artifact(
+                str(trajectory.inputs.get("reconstruction_id")), kind="reconstruction"
+            )
+            if scan_row is None or recon_row is None:
+                raise LookupError("the scan or the reconstruction is no longer stored")
+            scan = ScanCodec.decode(tasks.load_arrays(store.path_of(scan_row)))
+            T_scan_tracker = ReconstructionCodec.decode(
+                tasks.load_arrays(store.path_of(recon_row))
+            ).T_scan_tracker
+            if T_scan_tracker is None:
+                raise LookupError("the reconstruction does not say where the scan was")
+        except (OSError, ValueError, KeyError, LookupError) as exc:
+            raise CellUnknown(
+                f"the scan this trajectory was planned along cannot be placed here ({exc}), so "
+                "its motion cannot be checked against the workpiece: reconstruct and plan again"
+            ) from None
+    try:
+        params = PlanParams(
+            robot=settings.ur_robot,
+            tool_radius_m=trajectory.params.get("tool_radius_m", PlanParams.tool_radius_m),
+            clearance_m=trajectory.params.get("clearance_m", PlanParams.clearance_m),
+        )
+        T_flange_tcp = transform_from_pose(np.asarray(tool[0], dtype=np.float64))
+        T_base_tracker = summary.get("T_base_tracker")
+        cell = cell_for(
+            scan,
+            T_scan_tracker,
+            None if T_base_tracker is None else np.asarray(T_base_tracker, dtype=np.float64),
+            settings.keep_out_boxes,
+            settings.cell_planes,
+        )
+    except (TypeError, ValueError) as exc:
+        raise UnreadableTrajectory(
+            f"the tool or placement of trajectory {trajectory.id} is not a valid one ({exc}); "
+            "plan it again"
+        ) from None
+    return CellHere(
+        cell=cell,
+        T_flange_tcp=T_flange_tcp,
+        tool_radius_m=params.tool_radius_m,
+        clearance_m=params.clearance_m,
+    )
 
 
 def _tool_of(trajectory: ArtifactRow) -> tuple:

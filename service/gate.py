@@ -1,14 +1,24 @@
 """The real-arm gate: whether a trajectory may move the configured arm, and if not, why.
 
-A real arm moves only when every check passes: an arm is configured, the trajectory was planned
-for that model, the request says ``"confirm": true``, its speed is within the server's cap, the
-same trajectory passed a dry run in the same mode (and, for movePath, the same tolerance), no
-other execution owns the arm, and the arm's state, read just now, is known, free of stops, in
-remote control and at the trajectory's first sample.
-The gate reads typed summaries, strictly (no coercion: ``"yes"`` is not ``true``), and fails
-closed: a stored dry run whose summary is not a complete
-:class:`~service.artifacts.ExecutionSummary` (an older or damaged record, a missing field) does
-not count as passed, and a trajectory whose summary cannot be read is refused.
+A real arm moves only when every check passes, in two steps.
+
+:func:`check_here` judges **the samples the runner will send**, in this process, against this
+arm and this cell, whatever is stored about them: the configured model's joint ranges, speeds
+and accelerations, a start and an end at rest, the server's TCP speed cap on every sample of
+every phase (forward kinematics of the samples, with the TCP the controller will be given), and
+a collision check of the whole motion against this server's mounting plane, cell planes and
+keep-out boxes and the scanned workpiece the trajectory was planned along. A stored summary,
+clearance or "passed" is never what decides: a trajectory imported from another site, forged or
+written by an older version is judged like one planned a moment ago. What it returns
+(:class:`CheckedHere`) holds the very arrays it checked; the runner is given those.
+
+:func:`check_real_arm` then decides the rest under the arm's lock: an arm is configured, the
+request says ``"confirm": true``, the same trajectory passed a dry run **made by this data
+folder's service** in the same mode (and, for movePath, the same tolerance; a dry run imported
+with a bundle has no job here and does not count), no other execution owns the arm, and the
+arm's state, read just now, is known, free of stops, in remote control and at the trajectory's
+first sample. Stored dry-run summaries are read strictly (no coercion: ``"yes"`` is not
+``true``) and fail closed.
 
 Each refusal is its own exception class, mapped to 409 and a stable code in
 :mod:`service.errors`, so "why was the arm refused?" has one answer in one place.
@@ -17,7 +27,8 @@ Each refusal is its own exception class, mapped to 409 and a stable code in
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Set
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -25,7 +36,8 @@ from pydantic import ValidationError
 
 from drivers.robot.base import START_TOLERANCE_RAD
 from recon import kinematics
-from recon.types import FloatArray
+from recon.collision import Cell
+from recon.types import FloatArray, JointTrajectory
 from service.artifacts import ExecutionSummary, TrajectorySummary
 from service.settings import Settings
 from service.store import ArtifactRow
@@ -93,6 +105,180 @@ class StartMoved(RealArmRefused):
     """The arm is not where the trajectory starts (it was moved since the plan)."""
 
 
+class SamplesOutsideLimits(RealArmRefused):
+    """The samples to be sent break a limit of this arm or this server (joint range, speed,
+    acceleration, rest at the ends, the TCP speed cap)."""
+
+
+class CollidesHere(RealArmRefused):
+    """The samples, checked here against this cell, collide or come closer than the margin."""
+
+
+class CellUnknown(RealArmRefused):
+    """What the motion must be checked against cannot be put together (the scan it was planned
+    along is missing or cannot be placed): a check that cannot decide refuses."""
+
+
+@dataclass(frozen=True)
+class CellHere:
+    """This server's cell and the tool, as the gate checks a motion against them (base frame).
+
+    Attributes
+    ----------
+    cell : recon.collision.Cell
+        The mounting plane is always part of it; this server's cell planes and keep-out boxes,
+        and the scan the trajectory was planned along.
+    T_flange_tcp : ndarray of shape (4, 4)
+        The TCP the controller will be given.
+    tool_radius_m, clearance_m : float
+        The tool's capsule radius and the clearance required, as planned.
+    """
+
+    cell: Cell
+    T_flange_tcp: FloatArray
+    tool_radius_m: float
+    clearance_m: float
+
+
+@dataclass(frozen=True)
+class CheckedHere:
+    """A trajectory whose samples passed every check of :func:`check_here`: the runner is
+    given ``trajectory``, the very arrays that were checked.
+
+    Attributes
+    ----------
+    trajectory_id : str
+    trajectory : recon.types.JointTrajectory
+    summary : TrajectorySummary
+    min_clearance_m : float
+        The smallest clearance of the arm and tool to the cell found here.
+    fastest_tcp_m_s : float
+        The largest TCP speed of any sample.
+    """
+
+    trajectory_id: str
+    trajectory: JointTrajectory
+    summary: TrajectorySummary
+    min_clearance_m: float
+    fastest_tcp_m_s: float
+
+
+def check_request(settings: Settings, *, confirm: bool) -> None:
+    """The cheap checks first: a real arm is configured and the request confirms the motion.
+
+    Raises
+    ------
+    NoRobotConfigured, ConfirmationRequired
+    """
+    if settings.ur_host is None:
+        raise NoRobotConfigured(
+            "no real arm is configured (TEACHPATH_UR_HOST); use backend 'sim' for a dry run"
+        )
+    if confirm is not True:
+        raise ConfirmationRequired('moving a real arm needs "confirm": true in the request')
+
+
+def check_here(
+    settings: Settings, trajectory: ArtifactRow, loaded: JointTrajectory, here: CellHere
+) -> CheckedHere:
+    """Check the samples that would be sent against this arm and this cell, in this process.
+
+    Parameters
+    ----------
+    settings : Settings
+        The configured arm (``ur_robot``) and the TCP speed cap (``max_speed_m_s``).
+    trajectory : ArtifactRow
+        The stored trajectory (its summary is read only to name what it was planned for).
+    loaded : JointTrajectory
+        Its arrays, as the runner will send them.
+    here : CellHere
+
+    Returns
+    -------
+    CheckedHere
+
+    Raises
+    ------
+    UnreadableTrajectory, TrajectoryForAnotherRobot, SpeedCapExceeded, SamplesOutsideLimits,
+    CollidesHere
+    """
+    from recon.plan import check_cell
+    from recon.sample_check import sample_problems, tcp_speeds_m_s
+    from recon.types import PlanParams
+
+    if settings.ur_host is None:
+        raise NoRobotConfigured(
+            "no real arm is configured (TEACHPATH_UR_HOST); use backend 'sim' for a dry run"
+        )
+    summary = trajectory_summary(trajectory)
+    if summary.robot != settings.ur_robot or loaded.robot != settings.ur_robot:
+        raise TrajectoryForAnotherRobot(
+            f"the trajectory was planned for a {summary.robot}; the configured arm is a "
+            f"{settings.ur_robot}: plan it again for this arm"
+        )
+    speed = summary.requested_speed_m_s
+    if not (math.isfinite(speed) and speed <= settings.max_speed_m_s):
+        raise SpeedCapExceeded(
+            f"the trajectory runs at {speed} m/s; this server allows at most "
+            f"{settings.max_speed_m_s} m/s on a real arm"
+        )
+    arm_model = kinematics.model(settings.ur_robot)
+    problems = sample_problems(
+        arm_model,
+        loaded.t_s,
+        loaded.q_rad,
+        tcp_speed_max_m_s=settings.max_speed_m_s,
+        T_flange_tcp=here.T_flange_tcp,
+    )
+    if problems:
+        first = problems[0]
+        raise SamplesOutsideLimits(
+            f"the samples to be sent break {len(problems)} limit(s) of this arm or server; "
+            f"first: {first.message}"
+            + ("" if first.sample < 0 else f" (sample {first.sample}, t={first.t_s:.3f} s)")
+            + ". Plan it again here (for a TCP speed cap: transit_tcp_speed_m_s and speed_m_s "
+            f"at most {settings.max_speed_m_s} m/s)",
+            detail={"checks": [p.check for p in problems], "sample": first.sample},
+        )
+    tcp_m = (kinematics.forward(arm_model, loaded.q_rad) @ here.T_flange_tcp)[:, :3, 3]
+    as_sent = replace(loaded, tcp_m=tcp_m)  # the contact zone from the samples, not a stored copy
+    params = PlanParams(
+        robot=settings.ur_robot,
+        tool_radius_m=here.tool_radius_m,
+        clearance_m=here.clearance_m,
+        tcp_pose=tuple(float(v) for v in _pose_of(here.T_flange_tcp)),
+    )
+    report = check_cell(arm_model, as_sent, here.cell, params)
+    if report.first_collision is not None:
+        first = report.first_collision
+        raise CollidesHere(
+            f"checked here against this cell, the motion collides: {first.describe()}. Plan it "
+            "again here (a plan made elsewhere does not know this cell's keep-out boxes)",
+            detail={
+                "sample": first.sample,
+                "obstacle": first.obstacle,
+                "clearance_m": float(first.clearance_m),
+                "margin_m": float(first.margin_m),
+            },
+        )
+    return CheckedHere(
+        trajectory_id=trajectory.id,
+        trajectory=loaded,
+        summary=summary,
+        min_clearance_m=float(np.min(report.clearance_m)),
+        fastest_tcp_m_s=float(
+            np.max(tcp_speeds_m_s(arm_model, loaded.q_rad, T_flange_tcp=here.T_flange_tcp))
+        ),
+    )
+
+
+def _pose_of(T: FloatArray) -> list[float]:
+    """x, y, z (m), rx, ry, rz (rotation vector) of a 4x4 transform."""
+    from recon.transforms import pose_from_transform
+
+    return [float(v) for v in pose_from_transform(np.asarray(T, dtype=np.float64))]
+
+
 def trajectory_summary(trajectory: ArtifactRow) -> TrajectorySummary:
     """The trajectory's typed summary, or a refusal if it cannot be read."""
     try:
@@ -105,12 +291,21 @@ def trajectory_summary(trajectory: ArtifactRow) -> TrajectorySummary:
 
 
 def passed_dry_run(
-    dry_runs: Iterable[ArtifactRow], trajectory_id: str, *, mode: str, tolerance_m: float
+    dry_runs: Iterable[ArtifactRow],
+    trajectory_id: str,
+    *,
+    mode: str,
+    tolerance_m: float,
+    made_here: Set[str],
 ) -> bool:
     """Whether one of ``dry_runs`` is a completed, fault-free dry run of this trajectory, run the
-    way it is to run now."""
+    way it is to run now, by this data folder's service.
+
+    ``made_here``: the ids of the executions a job of this service produced (a bundle carries
+    no jobs, so a dry run imported from elsewhere, genuine or not, is never among them).
+    """
     for row in dry_runs:
-        if row.inputs.get("trajectory_id") != trajectory_id:
+        if row.inputs.get("trajectory_id") != trajectory_id or row.id not in made_here:
             continue
         try:
             summary = ExecutionSummary.model_validate(row.summary, strict=True)
@@ -128,68 +323,57 @@ def passed_dry_run(
 
 def check_real_arm(
     settings: Settings,
-    trajectory: ArtifactRow,
+    checked: CheckedHere,
     dry_runs: Iterable[ArtifactRow],
     *,
+    dry_runs_made_here: Set[str],
     confirm: bool,
     mode: str,
     tolerance_m: float,
     owner: str | None,
     arm: Reading,
-    q_start_rad: FloatArray,
-) -> TrajectorySummary:
-    """Refuse, naming why, unless the configured arm may run ``trajectory`` now.
+) -> None:
+    """Refuse, naming why, unless the configured arm may run the checked trajectory now.
 
     Parameters
     ----------
+    checked : CheckedHere
+        The trajectory as :func:`check_here` passed it (the samples were judged in this
+        process against this arm and cell).
+    dry_runs : iterable of ArtifactRow
+        The session's executions.
+    dry_runs_made_here : set of str
+        Ids of executions that jobs of this service produced (see :func:`passed_dry_run`).
     owner : str or None
         The execution that owns the arm now, if any.
     arm : Reading
         The arm's latest reading (:class:`service.robot.Reading`).
-    q_start_rad : ndarray of shape (6,)
-        Where the trajectory starts.
-
-    Returns
-    -------
-    TrajectorySummary
-        The trajectory's summary, read once for the runner.
 
     Raises
     ------
     RealArmRefused
         A subclass per reason.
     """
-    if settings.ur_host is None:
-        raise NoRobotConfigured(
-            "no real arm is configured (TEACHPATH_UR_HOST); use backend 'sim' for a dry run"
-        )
-    summary = trajectory_summary(trajectory)
-    if summary.robot != settings.ur_robot:
-        raise TrajectoryForAnotherRobot(
-            f"the trajectory was planned for a {summary.robot}; the configured arm is a "
-            f"{settings.ur_robot}"
-        )
-    if confirm is not True:
-        raise ConfirmationRequired('moving a real arm needs "confirm": true in the request')
-    speed = summary.requested_speed_m_s
-    if not (math.isfinite(speed) and speed <= settings.max_speed_m_s):
-        raise SpeedCapExceeded(
-            f"the trajectory runs at {speed} m/s; this server allows at most "
-            f"{settings.max_speed_m_s} m/s on a real arm"
-        )
-    if not passed_dry_run(dry_runs, trajectory.id, mode=mode, tolerance_m=tolerance_m):
+    check_request(settings, confirm=confirm)
+    if not passed_dry_run(
+        dry_runs,
+        checked.trajectory_id,
+        mode=mode,
+        tolerance_m=tolerance_m,
+        made_here=dry_runs_made_here,
+    ):
         raise DryRunRequired(
-            f"this trajectory has not passed a dry run in mode {mode!r}"
+            f"this trajectory has not passed a dry run here in mode {mode!r}"
             + (" with the same tolerance_m" if mode == "movepath" else "")
-            + ": execute it with backend 'sim' first"
+            + ": execute it with backend 'sim' first (a dry run imported with a bundle does "
+            "not count: run it again here)"
         )
     if owner is not None:
         raise ArmBusy(
             f"execution {owner} is running on the arm: wait for it to end or stop it first",
             detail={"execution_id": owner},
         )
-    check_arm_state(arm, q_start_rad, robot=settings.ur_robot)
-    return summary
+    check_arm_state(arm, checked.trajectory.q_rad[0], robot=settings.ur_robot)
 
 
 def check_arm_state(arm: Reading, q_start_rad: FloatArray, *, robot: str) -> None:

@@ -253,6 +253,7 @@ TRAJECTORY_PARAMS = (
     "approach_speed_m_s",
     "transit_speed_scale",
     "transit_acceleration_scale",
+    "transit_tcp_speed_m_s",
     "return_to_start",
     "payload_kg",
     "payload_cog_m",

@@ -31,6 +31,12 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
     session = services.session(session_id)
     recon = services.artifact(session_id, "reconstruction", request.reconstruction_id)
     params = request.plan_params()  # refuses bad combinations now, not in the worker
+    if "transit_tcp_speed_m_s" not in request.model_fields_set:
+        # The joint moves keep to this server's TCP speed cap, which the real-arm gate checks on
+        # every sample: a plan made here with the defaults can run on the arm.
+        params["transit_tcp_speed_m_s"] = min(
+            params["transit_tcp_speed_m_s"], services.settings.max_speed_m_s
+        )
     start_from = "given"
     if params["start_q_rad"] is None:
         # The plan starts where the arm is (a real arm's joints now, the sim's home).

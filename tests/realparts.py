@@ -63,8 +63,18 @@ class Variant:
     run: Callable[[Scene, int], Reconstruction | np.ndarray]
 
 
+class NoRoomToTouch(Exception):
+    """The part has no three faces with room for a touch away from their borders: the touches
+    variant cannot be staged on it (a limit of the bench's scene, not a refusal of the method)."""
+
+
 def _touches(scene: Scene, seed: int):
-    recording = touch_recording(scene, seed, n_touches=7).recording
+    try:
+        recording = touch_recording(scene, seed, n_touches=7).recording
+    except ValueError as error:
+        if "no room" not in str(error):
+            raise
+        raise NoRoomToTouch(f"no touches staged: {error}") from None
     found = touches_in(recording.points_m, recording.t_s)
     return register_touches(
         found.points_m,
@@ -180,7 +190,7 @@ def score(scene: Scene, variant: str, seed: int) -> CurveScore:
     nan = float("nan")
     try:
         out = VARIANTS[variant].run(scene, seed)
-    except ReconError as error:
+    except (ReconError, NoRoomToTouch) as error:
         return CurveScore(
             scene.name, variant, nan, nan, nan, nan, raw.mean_m, raw.max_m,
             savgol.stats.mean_m, nan, 0, nan, 0, refused=str(error),
@@ -212,15 +222,28 @@ def score(scene: Scene, variant: str, seed: int) -> CurveScore:
     )
 
 
-def run(cases, seeds, kinds=("edge",), variants=("trace", "known", "path")) -> list[CurveScore]:
-    """Every variant on every case, seed and trace kind."""
+def run(
+    cases, seeds, kinds=("edge",), variants=("trace", "known", "path"), skipped=None
+) -> list[CurveScore]:
+    """Every variant on every case, seed and trace kind.
+
+    A face trace needs a flat stretch of face beside the curve; where a part has none, the case
+    is left out of that kind and ``(case name, reason)`` appended to ``skipped`` (if given).
+    """
     out = []
     for case in cases:
         for kind in kinds:
             if kind == "past_ends" and case.closed:
                 continue  # a loop's stretch has no feature ends to run past
             for seed in seeds:
-                scene = scene_of(case, seed, kind)
+                try:
+                    scene = scene_of(case, seed, kind)
+                except ValueError as error:
+                    if kind != "face":
+                        raise
+                    if skipped is not None:
+                        skipped.append((case.name, str(error)))
+                    break  # the face is the same for every seed
                 for variant in variants:
                     out.append(replace(score(scene, variant, seed), scene=f"{scene.name}/{seed}"))
     return out

@@ -51,7 +51,14 @@ def test_real_parts():
             f"| {profile.dihedral_deg:.0f} deg | {c.case.length_m * 1e3:.0f} mm "
             f"| {c.defined * 100:.0f} % |"
         )
-    scores = run([c.case for c in choices], range(SEEDS), kinds=KINDS, variants=VARIANTS)
+    skipped: list[tuple[str, str]] = []
+    scores = run(
+        [c.case for c in choices], range(SEEDS), kinds=KINDS, variants=VARIANTS, skipped=skipped
+    )
+    if skipped:
+        print("\nNo face trace (no flat stretch of face beside the curve):\n")
+        for _name, reason in skipped:
+            print(f"- {reason}")
 
     def curve_of(score):
         return score.scene.split(":")[0]

@@ -8,8 +8,13 @@ import numpy as np
 import pytest
 
 from drivers.robot.monitor import ArmState
+from recon import kinematics, motion
+from recon.collision import Box, Cell
 from recon.kinematics import HOME_Q_RAD
+from recon.transforms import transform_from_pose
+from recon.types import DEFAULT_TCP_POSE, JointTrajectory
 from service import gate
+from service.artifacts import TrajectorySummary
 from service.robot import Reading
 from service.settings import Settings
 from service.store import ArtifactRow
@@ -74,6 +79,36 @@ def arm_at(q, **state) -> Reading:
     return Reading(ArmState(backend="ur_rtde", reachable=True, **fields), time.monotonic(), None)
 
 
+def a_trajectory(robot: str = "ur5e") -> JointTrajectory:
+    """A real motion from the start: a joint move at the transit's default limits and cap."""
+    arm = kinematics.model(robot)
+    move = motion.joint_move(
+        arm,
+        np.array(START),
+        np.array(START) + [0.4, -0.2, 0.3, 0.1, 0.0, 0.2],
+        speed_scale=0.3,
+        acceleration_scale=0.3,
+        tcp_speed_max_m_s=0.1,
+        T_flange_tcp=TOOL,
+    )
+    return motion.assemble(arm, [move], T_flange_tcp=TOOL, requested_speed_m_s=0.05)
+
+
+TOOL = transform_from_pose(np.array(DEFAULT_TCP_POSE))
+EMPTY_CELL = gate.CellHere(cell=Cell(), T_flange_tcp=TOOL, tool_radius_m=0.02, clearance_m=0.01)
+
+
+def checked(trajectory_id: str = "trj_1") -> gate.CheckedHere:
+    loaded = a_trajectory()
+    return gate.CheckedHere(
+        trajectory_id=trajectory_id,
+        trajectory=loaded,
+        summary=TrajectorySummary.model_validate(TRAJECTORY_SUMMARY),
+        min_clearance_m=1.0,
+        fastest_tcp_m_s=0.1,
+    )
+
+
 def check(
     settings,
     trajectory,
@@ -84,18 +119,22 @@ def check(
     tolerance_m=5e-4,
     owner=None,
     arm=None,
+    made_here=None,
 ):
-    return gate.check_real_arm(
+    """The whole gate as the service runs it: the samples here, then the rest."""
+    here = gate.check_here(settings, trajectory, a_trajectory(), EMPTY_CELL)
+    gate.check_real_arm(
         settings,
-        trajectory,
+        here,
         dry_runs,
+        dry_runs_made_here={r.id for r in dry_runs} if made_here is None else made_here,
         confirm=confirm,
         mode=mode,
         tolerance_m=tolerance_m,
         owner=owner,
         arm=arm_at(START) if arm is None else arm,
-        q_start_rad=np.array(START),
     )
+    return here.summary
 
 
 def test_a_passed_dry_run_in_the_same_mode_lets_the_arm_run(settings, trajectory):
@@ -224,7 +263,94 @@ def test_every_refusal_has_its_own_code():
         gate.ArmInEmergencyStop,
         gate.RemoteControlOff,
         gate.StartMoved,
+        gate.SamplesOutsideLimits,
+        gate.CollidesHere,
+        gate.CellUnknown,
     ]
     codes = [classify(cls("x")) for cls in refusals]
     assert all(status == 409 for status, _ in codes)
     assert len({code for _, code in codes}) == len(refusals)
+
+
+def test_a_dry_run_not_made_here_does_not_count(settings, trajectory):
+    """An imported dry run (no job of this service made it) proves nothing here."""
+    with pytest.raises(gate.DryRunRequired, match="imported"):
+        check(settings, trajectory, [row("exe_1", passed_dry_run())], made_here=set())
+
+
+# -- the samples, judged here -----------------------------------------------------------------
+
+
+def retimed(trajectory: JointTrajectory, factor: float) -> JointTrajectory:
+    """The same joint path run ``factor`` times faster, on the controller's grid (a forgery)."""
+    from dataclasses import replace
+
+    t = trajectory.t_s / factor
+    grid = np.arange(int(np.ceil(t[-1] * 500)) + 1) / 500
+    q = np.stack([np.interp(grid, t, trajectory.q_rad[:, j]) for j in range(6)], axis=1)
+    zeros = np.zeros_like(q)
+    return replace(
+        trajectory,
+        t_s=grid,
+        q_rad=q,
+        qd_rad_s=zeros,
+        qdd_rad_s2=zeros,
+        tcp_m=np.zeros((len(grid), 3)),
+        tcp_rotvec=np.zeros((len(grid), 3)),
+        arc_length_m=np.zeros(len(grid)),
+        phase=None,
+    )
+
+
+def test_the_samples_of_a_planned_motion_pass(settings, trajectory):
+    here = gate.check_here(settings, trajectory, a_trajectory(), EMPTY_CELL)
+    assert here.trajectory_id == "trj_1"
+    assert 0.05 < here.fastest_tcp_m_s <= 0.1  # the transit's cap held, seen on the samples
+
+
+def test_samples_faster_than_the_arm_or_the_cap_are_refused_whatever_the_summary_says(
+    settings, trajectory
+):
+    """The forged bundle: arrays run several times faster than planned, a summary that says
+    0.05 m/s. The samples decide."""
+    fast = retimed(a_trajectory(), 40.0)
+    with pytest.raises(gate.SamplesOutsideLimits) as refused:
+        gate.check_here(settings, trajectory, fast, EMPTY_CELL)
+    assert {"speed", "tcp_speed"} <= set(refused.value.detail["checks"])
+    assert "mm/s" in str(refused.value) or "rad/s" in str(refused.value)
+
+
+def test_a_transit_above_the_servers_tcp_cap_is_refused(tmp_path, trajectory):
+    """Joint speeds within the arm's limits, the TCP faster than this server allows."""
+    slow_cap = Settings(data_dir=tmp_path, ur_host="127.0.0.9", ur_robot="ur5e", max_speed_m_s=0.05)
+    with pytest.raises(gate.SamplesOutsideLimits, match="50 mm/s cap") as refused:
+        gate.check_here(slow_cap, trajectory, a_trajectory(), EMPTY_CELL)
+    assert refused.value.detail["checks"] == ["tcp_speed"]
+
+
+def test_samples_off_the_controllers_grid_are_refused(settings, trajectory):
+    from dataclasses import replace
+
+    planned = a_trajectory()
+    stretched = replace(planned, t_s=planned.t_s * 1.5)
+    with pytest.raises(gate.SamplesOutsideLimits, match="every 2 ms"):
+        gate.check_here(settings, trajectory, stretched, EMPTY_CELL)
+
+
+def test_a_keep_out_box_of_this_cell_on_the_motion_is_refused(settings, trajectory):
+    """A plan made in a cell without this box (imported) collides here."""
+    planned = a_trajectory()
+    tcp = (kinematics.forward(kinematics.model("ur5e"), planned.q_rad) @ TOOL)[:, :3, 3]
+    middle = tcp[len(tcp) // 2]
+    box = Box(min_m=middle - 0.03, max_m=middle + 0.03, name="keep-out box 1")
+    cell = gate.CellHere(
+        cell=Cell(boxes=(box,)), T_flange_tcp=TOOL, tool_radius_m=0.02, clearance_m=0.01
+    )
+    with pytest.raises(gate.CollidesHere, match="keep-out box 1") as refused:
+        gate.check_here(settings, trajectory, planned, cell)
+    assert refused.value.detail["obstacle"] == "keep-out box 1"
+
+
+def test_a_trajectory_for_another_arm_is_refused_even_if_the_summary_agrees(settings, trajectory):
+    with pytest.raises(gate.TrajectoryForAnotherRobot):
+        gate.check_here(settings, trajectory, a_trajectory("ur10e"), EMPTY_CELL)

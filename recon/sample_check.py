@@ -1,0 +1,216 @@
+"""Whether the joint samples an arm is about to be sent keep that arm's limits.
+
+The real-arm gate runs this on the very arrays it will stream (servoj) or turn into waypoints
+(movePath), in its own process, whatever a stored summary says about them: a trajectory read
+from disk, imported from another site or made by an older version is judged the same way.
+
+Every check works on the samples as the controller sees them, by finite differences on the
+controller's grid: the joints' positions within their ranges, their speeds and accelerations
+within the arm's limits, a start and an end at rest, and the TCP's speed (forward kinematics of
+the samples, whatever phase a sample is labelled with) within a cap. A sampled profile is judged
+against its limit with a small tolerance for the sampling itself (:data:`SPEED_TOLERANCE`,
+:data:`ACCELERATION_TOLERANCE`); a planned trajectory keeps well inside them (the planner's own
+check is analytic, to 0.1 %).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from recon import kinematics
+from recon.kinematics import URModel
+from recon.types import FloatArray
+
+#: Fraction by which a sampled joint or TCP speed may exceed its limit (finite differences of a
+#: planned profile stay within 0.5 % of it).
+SPEED_TOLERANCE = 0.02
+#: Fraction by which a sampled joint acceleration (second differences) may exceed its limit.
+ACCELERATION_TOLERANCE = 0.05
+#: The samples' spacing may differ from the controller's period by this much (float rounding of
+#: a cumulative time axis is ~1e-12 s).
+PERIOD_TOLERANCE_S = 1e-6
+#: A start or end "at rest": the first and last step move no joint by more than what the arm's
+#: acceleration allows from standstill in one period, times this factor.
+REST_FACTOR = 2.0
+
+
+@dataclass(frozen=True)
+class SampleProblem:
+    """One limit the samples break, where first, and by how much.
+
+    Attributes
+    ----------
+    check : str
+        Stable name: ``shape``, ``period``, ``position``, ``speed``, ``acceleration``, ``rest``,
+        ``tcp_speed``.
+    sample : int
+        The first sample that breaks it (-1: the arrays as a whole).
+    t_s : float
+        Its time (NaN where there is none).
+    message : str
+        What is wrong, in words an operator can act on.
+    """
+
+    check: str
+    sample: int
+    t_s: float
+    message: str
+
+
+def sample_problems(
+    arm: URModel,
+    t_s: FloatArray,
+    q_rad: FloatArray,
+    *,
+    tcp_speed_max_m_s: float,
+    T_flange_tcp: FloatArray,
+    rate_hz: float | None = None,
+) -> list[SampleProblem]:
+    """Every limit the samples break (the first sample of each), or an empty list.
+
+    Parameters
+    ----------
+    arm : URModel
+        The arm that will run them (the server's configured model, not the one the trajectory
+        names).
+    t_s : ndarray of shape (K,)
+        Sample times, seconds.
+    q_rad : ndarray of shape (K, 6)
+        Joint positions, radians.
+    tcp_speed_max_m_s : float
+        The largest TCP speed allowed on any sample.
+    T_flange_tcp : ndarray of shape (4, 4)
+        The TCP the controller will be given, in the flange frame.
+    rate_hz : float, optional
+        The rate the samples are sent at (default the arm's control rate).
+
+    Returns
+    -------
+    list of SampleProblem
+        Empty when every check passes. Arrays of the wrong shape or with non-finite values
+        return one ``shape`` problem and nothing else is judged.
+    """
+    t = np.asarray(t_s)
+    q = np.asarray(q_rad)
+    shape = _shape_problem(t, q)
+    if shape is not None:
+        return [shape]
+    t = t.astype(np.float64)
+    q = q.astype(np.float64)
+    period_s = 1.0 / float(rate_hz or arm.control_rate_hz)
+    problems: list[SampleProblem] = []
+
+    dt = np.diff(t)
+    off = np.abs(dt - period_s) > PERIOD_TOLERANCE_S
+    if off.any():
+        i = int(np.argmax(off))
+        problems.append(
+            SampleProblem(
+                "period",
+                i + 1,
+                float(t[i + 1]),
+                f"sample {i + 1} comes {dt[i] * 1e3:.4g} ms after the one before; the controller "
+                f"takes one every {period_s * 1e3:.4g} ms: plan it again for the {arm.name}",
+            )
+        )
+        return problems  # speeds on a wrong grid would be judged wrongly
+
+    low, high = q < arm.q_min_rad - 1e-9, q > arm.q_max_rad + 1e-9
+    outside = low | high
+    if outside.any():
+        i, j = np.unravel_index(int(np.argmax(outside)), outside.shape)
+        problems.append(
+            SampleProblem(
+                "position",
+                int(i),
+                float(t[i]),
+                f"joint {j + 1} is at {np.degrees(q[i, j]):.1f} deg, outside its range "
+                f"[{np.degrees(arm.q_min_rad[j]):.0f}, {np.degrees(arm.q_max_rad[j]):.0f}] deg",
+            )
+        )
+
+    speed = np.abs(np.diff(q, axis=0)) / period_s  # (K-1, 6), rad/s
+    ratio = speed / arm.qd_max_rad_s
+    if ratio.max() > 1.0 + SPEED_TOLERANCE:
+        i, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+        problems.append(
+            SampleProblem(
+                "speed",
+                int(i) + 1,
+                float(t[i + 1]),
+                f"joint {j + 1} moves at {speed[i, j]:.3f} rad/s, {ratio[i, j] * 100:.0f} % of "
+                f"the {arm.name}'s {arm.qd_max_rad_s[j]:.3f} rad/s",
+            )
+        )
+
+    if len(q) >= 3:
+        acceleration = np.abs(np.diff(q, n=2, axis=0)) / period_s**2  # (K-2, 6), rad/s^2
+        ratio = acceleration / arm.qdd_max_rad_s2
+        if ratio.max() > 1.0 + ACCELERATION_TOLERANCE:
+            i, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+            problems.append(
+                SampleProblem(
+                    "acceleration",
+                    int(i) + 1,
+                    float(t[i + 1]),
+                    f"joint {j + 1} accelerates at {acceleration[i, j]:.2f} rad/s^2, "
+                    f"{ratio[i, j] * 100:.0f} % of the {arm.qdd_max_rad_s2[j]:.2f} rad/s^2 "
+                    "planning limit",
+                )
+            )
+
+    rest_step = REST_FACTOR * arm.qdd_max_rad_s2 * period_s**2
+    for where, step, sample in (("starts", q[1] - q[0], 0), ("ends", q[-1] - q[-2], len(q) - 1)):
+        if np.any(np.abs(step) > rest_step):
+            j = int(np.argmax(np.abs(step) / rest_step))
+            problems.append(
+                SampleProblem(
+                    "rest",
+                    sample,
+                    float(t[sample]),
+                    f"the motion {where} with joint {j + 1} moving at "
+                    f"{abs(step[j]) / period_s:.3f} rad/s: a motion must start and end at rest",
+                )
+            )
+
+    tcp_speed = tcp_speeds_m_s(arm, q, T_flange_tcp=T_flange_tcp, rate_hz=1.0 / period_s)
+    if tcp_speed.max() > tcp_speed_max_m_s * (1.0 + SPEED_TOLERANCE):
+        i = int(np.argmax(tcp_speed))
+        problems.append(
+            SampleProblem(
+                "tcp_speed",
+                i + 1,
+                float(t[i + 1]),
+                f"the TCP moves at {tcp_speed[i] * 1e3:.0f} mm/s, above the "
+                f"{tcp_speed_max_m_s * 1e3:.0f} mm/s cap",
+            )
+        )
+    return problems
+
+
+def tcp_speeds_m_s(
+    arm: URModel, q_rad: FloatArray, *, T_flange_tcp: FloatArray, rate_hz: float | None = None
+) -> FloatArray:
+    """The TCP's speed between consecutive samples, m/s, shape (K-1,)."""
+    period_s = 1.0 / float(rate_hz or arm.control_rate_hz)
+    q = np.asarray(q_rad, dtype=np.float64)
+    tcp = (kinematics.forward(arm, q) @ np.asarray(T_flange_tcp, dtype=np.float64))[:, :3, 3]
+    return np.linalg.norm(np.diff(tcp, axis=0), axis=1) / period_s
+
+
+def _shape_problem(t: np.ndarray, q: np.ndarray) -> SampleProblem | None:
+    def problem(message: str) -> SampleProblem:
+        return SampleProblem("shape", -1, float("nan"), message + ": plan it again")
+
+    if t.ndim != 1 or q.ndim != 2 or q.shape != (len(t), 6):
+        return problem(f"the samples have shapes {t.shape} (times) and {q.shape} (joints)")
+    if len(t) < 2:
+        return problem(f"the trajectory has {len(t)} sample(s)")
+    real = (np.floating, np.integer)
+    if not all(any(np.issubdtype(a.dtype, kind) for kind in real) for a in (t, q)):
+        return problem("the samples are not numbers")
+    if not (np.isfinite(t).all() and np.isfinite(q).all()):
+        return problem("the samples hold values that are not finite numbers")
+    return None
