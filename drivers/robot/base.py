@@ -318,9 +318,12 @@ class RobotBackend(ABC):
         Preconditions, stop and faults as :meth:`execute`.
         """
         self._begin(trajectory)
-        path = coarse_waypoints(self.arm, trajectory, tolerance_m=tolerance_m, blend_m=blend_m)
         self.last_record = None
         try:
+            path = coarse_waypoints(self.arm, trajectory, tolerance_m=tolerance_m, blend_m=blend_m)
+            # Computing the waypoints takes a moment: a stop that came meanwhile wins (the
+            # worker checks again right before it sends the path).
+            self._require_not_stopped()
             t_s, q_actual, completed, fault = self._execute_path(path, on_progress, journal)
             planned_index = np.minimum(
                 np.searchsorted(trajectory.t_s - trajectory.t_s[0], t_s), len(trajectory) - 1

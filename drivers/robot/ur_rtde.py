@@ -566,6 +566,8 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
 
     def move_j(self, q, speed, acceleration) -> None:
         self._safety()
+        if self.stop_event.is_set():
+            return  # a stop came before the command: nothing is sent
         if not self.control.moveJ(q, speed, acceleration, True):
             self._refused()
             raise ConnectionLostError(
@@ -694,6 +696,9 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
                     [*q, speed, acceleration, blend],
                 )
             )
+        if self.stop_event.is_set():
+            # A stop came while the path was built or sent here: the command is never sent.
+            return [], [], False, "stopped on request"
         if not self.control.movePath(path, True):
             self._refused()
             raise ConnectionLostError(

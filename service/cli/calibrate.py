@@ -70,7 +70,7 @@ def add_parser(commands) -> None:
         "three faces, and moves between them. The rests are found and averaged, and registered "
         "point to plane to the scan's surface; the result names the residual of every touch "
         "and the motions the touches fix (those they leave free keep the initial guess); it is "
-        "refused where the placement they leave is uncertain by more than 1 mm (1 sigma). "
+        "refused where the placement they leave is uncertain by more than 0.5 mm (1 sigma). "
         "Pass the file to reconstruct or plan with --scan-from-tracker (and --no-register).",
     )
     scan.add_argument("touches", metavar="TOUCHES_FILE")

@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from drivers.errors import (
     ConnectionLostError,
     EmergencyStopError,
+    MotionStoppedError,
     ProtectiveStopError,
     RobotTimeoutError,
 )
@@ -609,6 +610,52 @@ def _inject_at(fake, fraction_wanted, command, **arguments):
             done.append(fake.control(command, **arguments))
 
     return on_progress
+
+
+@pytest.mark.timeout(60)
+def test_a_stop_while_the_waypoints_are_computed_sends_no_move_path(fake_ur, robot, monkeypatch):
+    """The stop race of movePath: a stop acknowledged while the waypoints are being computed
+    (before the fix, movePath followed 100-580 ms later and the arm moved before it stopped).
+    The stop is requested from inside the waypoint computation, so the race is certain."""
+    import drivers.robot.base as base
+
+    trajectory = line_process("ur5e", 0.1)
+    real_waypoints = base.coarse_waypoints
+
+    def stopped_meanwhile(*args, **kwargs):
+        path = real_waypoints(*args, **kwargs)
+        robot.stop()  # the operator's Stop, acknowledged while this runs
+        return path
+
+    monkeypatch.setattr(base, "coarse_waypoints", stopped_meanwhile)
+    q_before = np.array(fake_ur.control("status")["q_rad"])
+    with pytest.raises(MotionStoppedError):
+        robot.execute_path(trajectory, tolerance_m=5e-4)
+    status = fake_ur.control("status")
+    assert status["path_moves"] == 0  # no movePath reached the controller
+    assert np.abs(np.array(status["q_rad"]) - q_before).max() == 0.0  # not a microradian
+
+
+@pytest.mark.timeout(60)
+def test_the_worker_checks_the_latched_stop_right_before_it_sends_move_path(fake_ur, robot):
+    """The last check is in the process that talks to the arm: with the stop already latched
+    there, the worker never sends the path, whatever the caller did before."""
+    from drivers.robot.ur_rtde import MovePath
+
+    trajectory = line_process("ur5e", 0.1)
+    robot._worker.stop_event.set()  # latched in the worker, not yet seen by the caller
+    times, actual, completed, fault = robot._call(
+        MovePath(
+            trajectory.q_rad[::200].tolist(),
+            [0.5] * len(trajectory.q_rad[::200]),
+            1.0,
+            [0.0] * len(trajectory.q_rad[::200]),
+            None,
+        ),
+        timeout_s=10.0,
+    )
+    assert (times, completed, fault) == ([], False, "stopped on request")
+    assert fake_ur.control("status")["path_moves"] == 0
 
 
 @pytest.mark.timeout(60)
