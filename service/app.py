@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 from contextlib import asynccontextmanager
@@ -31,6 +30,7 @@ from service.api.deps import require_token
 from service.api.links import add_links
 from service.core import Services
 from service.demo import create_demo_session
+from service.guards import BodyLimit, TokenGate
 from service.jobs import JobManager
 from service.robot import RobotWatch
 from service.schemas import ErrorBody
@@ -38,63 +38,6 @@ from service.settings import Settings
 from service.store import HEARTBEAT_S, Store
 
 log = logging.getLogger("teachpath.service")
-
-
-class BodyLimit:
-    """Refuses request bodies above a size with 413, before they are read into memory.
-
-    A declared Content-Length above the limit is refused at once; a chunked body is counted as
-    it arrives.
-    """
-
-    def __init__(self, app, max_bytes: int) -> None:
-        self.app, self.max_bytes = app, max_bytes
-
-    async def __call__(self, scope, receive, send):
-        if scope["type"] != "http":
-            return await self.app(scope, receive, send)
-        declared = dict(scope.get("headers") or []).get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
-            return await self._refuse(send)
-        received = 0
-
-        async def counted():
-            nonlocal received
-            message = await receive()
-            if message["type"] == "http.request":
-                received += len(message.get("body", b""))
-                if received > self.max_bytes:
-                    raise _TooLarge()
-            return message
-
-        try:
-            await self.app(scope, counted, send)
-        except _TooLarge:
-            await self._refuse(send)
-
-    async def _refuse(self, send):
-        body = json.dumps(
-            {
-                "code": "upload_too_large",
-                "message": f"the request body exceeds {self.max_bytes // (1024 * 1024)} MB",
-                "detail": None,
-            }
-        ).encode()
-        await send(
-            {
-                "type": "http.response.start",
-                "status": 413,
-                "headers": [
-                    (b"content-type", b"application/json"),
-                    (b"content-length", str(len(body)).encode()),
-                ],
-            }
-        )
-        await send({"type": "http.response.body", "body": body})
-
-
-class _TooLarge(Exception):
-    pass
 
 
 def _recover(services: Services) -> None:
@@ -212,7 +155,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             allow_headers=["Authorization", "Content-Type"],
         )
     # Multipart framing adds a little to the file itself.
-    app.add_middleware(BodyLimit, max_bytes=int(settings.max_upload_mb * 1024 * 1024) + 65536)
+    app.add_middleware(
+        BodyLimit,
+        max_bytes=int(settings.max_upload_mb * 1024 * 1024) + 65536,
+        max_json_bytes=int(settings.max_json_kb * 1024),
+    )
+    # Outermost: who sends a body is known before any of it is received (service/guards.py).
+    app.add_middleware(
+        TokenGate, token=lambda: getattr(getattr(app.state, "services", None), "token", None)
+    )
 
     app.include_router(health.router)
     protected = [Depends(require_token)]

@@ -20,6 +20,8 @@ from recon import errors as recon_errors
 from service import bundles, gate
 from service.store import SessionDeletedError, StorageError
 
+#: A 422 lists at most this many problems (a document with 20,000 unknown keys has as many).
+MAX_LISTED_PROBLEMS = 20
 log = logging.getLogger("teachpath.service")
 
 
@@ -165,16 +167,19 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, error: RequestValidationError):
+        errors = error.errors()
         problems = [
             {"where": ".".join(str(p) for p in e.get("loc", ())), "problem": e.get("msg")}
-            for e in error.errors()
+            for e in errors[:MAX_LISTED_PROBLEMS]
         ]
         first = problems[0] if problems else {"where": "request", "problem": "invalid"}
+        more = len(errors) - len(problems)
         return respond(
             422,
             {
                 "code": "invalid_request",
-                "message": f"{first['where']}: {first['problem']}",
+                "message": f"{first['where']}: {first['problem']}"
+                + (f" (and {len(errors) - 1} more problems)" if more > 0 else ""),
                 "detail": problems,
             },
         )

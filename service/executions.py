@@ -320,6 +320,20 @@ class StopOutcome:
     already_ended: bool
 
 
+def latch_stop(services: Services, execution_id: str) -> bool:
+    """Latch the stop of an execution running on this instance's arm, at once.
+
+    Touches neither the database nor a thread pool (a dictionary read and two events set), so
+    the stop route calls it on the event loop before anything else. Returns whether a runner of
+    that execution was found here.
+    """
+    runner = services.live.executions.get(execution_id)
+    if runner is None:
+        return False
+    runner.stop()
+    return True
+
+
 def stop(services: Services, execution_id: str) -> StopOutcome:
     """Stop the arm of a running execution (it decelerates, and nothing moves after), or
     cancel one not yet started; says whether the execution had already ended."""

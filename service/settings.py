@@ -31,6 +31,9 @@ class Settings(BaseSettings):
         "start and kept in data_dir/token (mode 0600)",
     )
     max_upload_mb: float = Field(200.0, gt=0, description="largest accepted upload")
+    max_json_kb: float = Field(
+        256.0, ge=16, le=65536, description="largest accepted JSON request body (KB)"
+    )
     # Two uploads of the largest size at once. Each byte in flight costs this process a little
     # more than a byte (the upload, and its copy on the way to the parse's worker; the parsed
     # arrays stay out of it): 20 uploads of 24 MB at once took it from 135 MB to 742 MB without

@@ -5,6 +5,8 @@ from __future__ import annotations
 import csv
 import io
 
+import anyio
+import anyio.to_thread
 import numpy as np
 from fastapi import APIRouter, Query, Request, Response
 
@@ -67,10 +69,20 @@ def execution_review(
     return gzip_json(review(trajectory, samples, max_samples=max_samples), request)
 
 
+#: Threads for a stop's bookkeeping, apart from the pool ordinary requests share: a stop is
+#: answered even while every one of those is busy.
+STOP_THREADS = anyio.CapacityLimiter(4)
+
+
 @stop_router.post("/{execution_id}/stop", response_model=StopOut)
-def stop_execution(execution_id: str, services: ServicesDep) -> dict:
+async def stop_execution(execution_id: str, services: ServicesDep) -> dict:
     """Stop the arm (decelerating; nothing of this execution moves afterwards) or cancel an
     execution that has not started; says whether it had already ended."""
-    outcome = executions.stop(services, execution_id)
+    # Latched first, on the event loop: no database, no worker thread, nothing an ordinary
+    # request can hold stands between the request and the arm's stop.
+    executions.latch_stop(services, execution_id)
+    outcome = await anyio.to_thread.run_sync(
+        executions.stop, services, execution_id, limiter=STOP_THREADS
+    )
     job = JobOut.model_validate(outcome.job).model_dump()
     return {**job, "already_ended": outcome.already_ended}
