@@ -12,7 +12,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from service.errors import not_found
+from service.errors import ApiError, not_found
 from service.jobs import JobManager
 from service.parse_lane import ParseLane
 from service.robot import RobotWatch
@@ -102,12 +102,31 @@ class Services:
 
     def delete_session(self, session_id: str) -> None:
         """Soft-delete a session: it disappears from the API, its data stays on disk. Its
-        queued jobs are cancelled, its running ones discard their results, its captures stop
-        (their samples are not kept) and an arm moving for it stops."""
+        queued jobs are cancelled, its running ones discard their results and its captures stop
+        (their samples are not kept). A session whose execution is running on the arm is not
+        deleted (409 ``session_owns_arm``): stop it first; its record must land somewhere."""
         from service.store import now
 
         self.session(session_id)
-        self.store.update_session(session_id, deleted_at=now())
+        with self.live.lock:
+            moving = [
+                execution_id
+                for execution_id, runner in self.live.executions.items()
+                if runner.running
+                and self._job_session(self.live.execution_jobs.get(execution_id)) == session_id
+            ]
+            if moving:
+                # Deleting under a running arm would leave its record without a session.
+                raise ApiError(
+                    409,
+                    "session_owns_arm",
+                    f"execution {moving[0]} of this session is running on the arm: stop it "
+                    f"(POST /executions/{moving[0]}/stop), wait for it to end, then delete the "
+                    "session",
+                    detail={"execution_id": moving[0]},
+                )
+            # Under the lock: an execution starting now finds the session deleted.
+            self.store.update_session(session_id, deleted_at=now())
         self.jobs.cancel_session(session_id)
         with self.live.lock:
             executions = [

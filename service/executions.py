@@ -139,6 +139,7 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
     # One owner: deciding and taking the arm happen under one lock, so two requests that
     # arrive together cannot both pass the gate.
     with services.live.lock:
+        services.session(session_id)  # not deleted meanwhile (deleting checks under this lock)
         check_real_arm(
             settings,
             checked,

@@ -106,8 +106,8 @@ def get_session(session_id: str, services: ServicesDep):
 @router.delete("/{session_id}", status_code=204)
 def delete_session(session_id: str, services: ServicesDep) -> Response:
     """Soft delete: the session disappears from the API, its data stays on disk. Its jobs are
-    cancelled (a running one's result is discarded), its captures and an arm moving for it
-    stop."""
+    cancelled (a running one's result is discarded) and its captures stop. Refused (409
+    session_owns_arm) while an execution of the session runs on the arm: stop it first."""
     services.delete_session(session_id)
     return Response(status_code=204)
 

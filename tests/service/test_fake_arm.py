@@ -96,6 +96,24 @@ def test_a_confirmed_execution_runs_on_the_controller(arm, fake_ur):
     assert np.abs(q_now - q_end).max() < 2e-3
 
 
+def test_a_session_that_owns_the_arm_is_not_deleted_until_its_run_ends(arm, fake_ur):
+    """Deleting under a running arm crashed the runner (job "running" until restart, journal
+    unrecoverable): now refused, named, and possible once the run has ended."""
+    client, sid, trajectory_id, q_start = arm
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    job = _execute_until(client, sid, trajectory_id, progress=0.3)
+    execution_id = job["params"]["execution_id"]
+    refused = client.delete(f"/sessions/{sid}")
+    assert refused.status_code == 409 and refused.json()["code"] == "session_owns_arm"
+    assert execution_id in refused.json()["message"]
+    assert client.get(f"/sessions/{sid}").status_code == 200  # still there, nothing changed
+    assert client.post(f"/executions/{execution_id}/stop").status_code == 200
+    job = wait(client, job, timeout_s=60)
+    execution = client.get(f"/sessions/{sid}/executions/{execution_id}").json()
+    assert execution["summary"]["n_samples"] > 0  # the record of what moved is kept
+    assert client.get("/health").json()["jobs_running"] == 0
+
+
 def test_a_protective_stop_fails_the_job_with_its_code_and_keeps_the_record(arm, fake_ur):
     client, sid, trajectory_id, q_start = arm
     fake_ur.control("reset", q_rad=q_start.tolist())
