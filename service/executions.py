@@ -368,8 +368,9 @@ def stop(services: Services, execution_id: str) -> StopOutcome:
         )
     if runner is not None:
         runner.stop()  # latched, whether it moves yet or not
-    elif job.state == "queued":
-        services.jobs.cancel(job_id)
+    elif not already_ended:
+        # A dry run (a pool job): stopped, it ends cancelled and never counts as passed.
+        services.jobs.discard(job_id)
     return StopOutcome(job=services.store.job(job_id), already_ended=already_ended)
 
 

@@ -74,6 +74,7 @@ class _Pending:
     future: Future
     generation: int  # of the pool it was handed to
     outputs: tuple[str, ...]  # the files its worker writes, removed when nothing records them
+    discarded: bool = False  # stopped while running: its result is not recorded
 
 
 class JobManager:
@@ -159,6 +160,18 @@ class JobManager:
                 "cancelled; stop the execution instead if it moves a robot",
             )
         return self.store.job(job_id)
+
+    def discard(self, job_id: str) -> bool:
+        """Stop a job's result from being recorded: queued, it is cancelled; running, it ends
+        ``cancelled`` when its worker returns, with nothing recorded (a stopped dry run never
+        counts as passed). Returns whether the job was unfinished here."""
+        with self._lock:
+            pending = self._pending.get(job_id)
+            if pending is None:
+                return False
+            pending.discarded = True
+        pending.future.cancel()
+        return True
 
     def cancel_session(self, session_id: str) -> int:
         """Cancel the session's queued jobs; its running ones end ``cancelled`` when they
@@ -263,6 +276,17 @@ class JobManager:
                 )
             elif future.cancelled():
                 self.store.update_job(job_id, state="cancelled", finished_at=now())
+            elif pending.discarded:
+                self.store.update_job(
+                    job_id,
+                    state="cancelled",
+                    finished_at=now(),
+                    error={
+                        "code": "stopped",
+                        "message": "stopped on request while it ran; its result was discarded",
+                        "detail": None,
+                    },
+                )
             elif isinstance(future.exception(), BrokenProcessPool):
                 self.store.update_job(job_id, state="failed", error=WORKER_DIED, finished_at=now())
             elif future.exception() is not None:

@@ -13,6 +13,7 @@ from fastapi import APIRouter
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
+from service import executions
 from service.api.deps import ServicesDep
 from service.errors import not_found
 from service.schemas import JobOut
@@ -46,8 +47,12 @@ def list_jobs(session_id: str, services: ServicesDep):
 
 @router.post("/{job_id}/cancel", response_model=JobOut)
 def cancel_job(job_id: str, services: ServicesDep):
-    """Cancel a job that has not started (409 once it runs or has finished)."""
-    _job(services, job_id)
+    """Cancel a job that has not started (409 once it runs or has finished). An execution is
+    stopped instead, running or not (as ``POST /executions/{id}/stop``)."""
+    job = _job(services, job_id)
+    execution_id = job.params.get("execution_id") if job.kind == "execution" else None
+    if execution_id is not None and job.state not in FINISHED:
+        return executions.stop(services, str(execution_id)).job
     return services.jobs.cancel(job_id)
 
 

@@ -232,3 +232,55 @@ def test_confirm_is_only_the_json_boolean(app_client):
             headers={"Content-Type": "application/json"},
         )
         assert response.status_code == 422, (value, response.text)
+
+
+def test_a_dry_run_stopped_while_it_runs_ends_cancelled_and_never_counts(app_client, tmp_path):
+    """Stopping a running dry run answered 200, yet the dry run completed and counted as passed.
+    Now its result is discarded: the job ends cancelled, nothing is recorded."""
+    services, client = app_client
+    sid = client.post("/sessions", json={"name": "dry"}).json()["id"]
+    recorded = []
+    pid_file = tmp_path / "pid"
+    job = services.jobs.submit(
+        sid,
+        "execution",
+        {"backend": "sim", "mode": "servoj", "execution_id": "exe_stopped00001"},
+        Sleep(1.5, pid_file=str(pid_file)),
+        lambda summary: recorded.append(summary) or {"execution_id": "exe_stopped00001"},
+    )
+    _until(pid_file.exists, what="the dry run starting")
+    stopped = client.post("/executions/exe_stopped00001/stop")
+    assert stopped.status_code == 200 and stopped.json()["already_ended"] is False
+    row = _until(
+        lambda: (r := client.get(f"/jobs/{job.id}").json())["state"]
+        in ("succeeded", "failed", "cancelled")
+        and r,
+        what="the dry run ending",
+    )
+    assert row["state"] == "cancelled" and row["error"]["code"] == "stopped", row
+    assert recorded == []  # never recorded, so never a passed dry run
+
+
+def test_cancelling_a_running_execution_stops_it_instead_of_saying_it_finished(
+    app_client, tmp_path
+):
+    services, client = app_client
+    sid = client.post("/sessions", json={"name": "cancel"}).json()["id"]
+    pid_file = tmp_path / "pid"
+    job = services.jobs.submit(
+        sid,
+        "execution",
+        {"backend": "sim", "mode": "servoj", "execution_id": "exe_cancelled0001"},
+        Sleep(1.5, pid_file=str(pid_file)),
+        lambda summary: {"execution_id": "exe_cancelled0001"},
+    )
+    _until(pid_file.exists, what="the execution starting")
+    answer = client.post(f"/jobs/{job.id}/cancel")
+    assert answer.status_code == 200, answer.text
+    row = _until(
+        lambda: (r := client.get(f"/jobs/{job.id}").json())["state"]
+        in ("succeeded", "failed", "cancelled")
+        and r,
+        what="the execution ending",
+    )
+    assert row["state"] == "cancelled"
