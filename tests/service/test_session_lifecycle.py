@@ -252,9 +252,11 @@ def test_a_dry_run_stopped_while_it_runs_ends_cancelled_and_never_counts(app_cli
     stopped = client.post("/executions/exe_stopped00001/stop")
     assert stopped.status_code == 200 and stopped.json()["already_ended"] is False
     row = _until(
-        lambda: (r := client.get(f"/jobs/{job.id}").json())["state"]
-        in ("succeeded", "failed", "cancelled")
-        and r,
+        lambda: (
+            (r := client.get(f"/jobs/{job.id}").json())["state"]
+            in ("succeeded", "failed", "cancelled")
+            and r
+        ),
         what="the dry run ending",
     )
     assert row["state"] == "cancelled" and row["error"]["code"] == "stopped", row
@@ -278,9 +280,11 @@ def test_cancelling_a_running_execution_stops_it_instead_of_saying_it_finished(
     answer = client.post(f"/jobs/{job.id}/cancel")
     assert answer.status_code == 200, answer.text
     row = _until(
-        lambda: (r := client.get(f"/jobs/{job.id}").json())["state"]
-        in ("succeeded", "failed", "cancelled")
-        and r,
+        lambda: (
+            (r := client.get(f"/jobs/{job.id}").json())["state"]
+            in ("succeeded", "failed", "cancelled")
+            and r
+        ),
         what="the execution ending",
     )
     assert row["state"] == "cancelled"
