@@ -128,6 +128,27 @@ APPROACH_LIFTS = (1.0, 2.0, 4.0, 8.0)
 MAX_APPROACH_M = 0.5
 
 
+#: The longest process a plan may take at its requested speed: the samples (500 Hz) of a longer
+#: one are a burden to store, check and stream (3,600 s: 1.8 million samples, 0.3 GB of CSV)
+#: and no demonstrated path needs it.
+MAX_PROCESS_DURATION_S = 3600.0
+
+
+def _check_duration(points_m: FloatArray, pieces, speed_m_s: float) -> None:
+    """Refuse, before any work, a path that would take longer than the bound at its speed."""
+    length_m = sum(
+        float(np.linalg.norm(np.diff(points_m[rows], axis=0), axis=1).sum()) for rows in pieces
+    )
+    duration_s = length_m / speed_m_s
+    if duration_s > MAX_PROCESS_DURATION_S:
+        raise ValueError(
+            f"the path ({length_m:.3f} m) would take {duration_s:.0f} s at speed_m_s "
+            f"{speed_m_s:g}, more than the {MAX_PROCESS_DURATION_S:.0f} s a plan may take: "
+            f"raise speed_m_s to at least {length_m / MAX_PROCESS_DURATION_S:.4f} m/s, or plan "
+            "the path in parts"
+        )
+
+
 def plan_path(
     points_tracker_m: FloatArray,
     *,
@@ -175,6 +196,7 @@ def plan_path(
     T = np.eye(4) if T_base_tracker is None else check_rigid(T_base_tracker, name="T_base_tracker")
     points = np.asarray(points_tracker_m, dtype=np.float64)
     pieces = piece_slices(piece_labels(piece, len(points)))
+    _check_duration(points, pieces, params.speed_m_s)
     source = _orientation_source(params, normals, pen_xyzw)
     tools = [
         _process_tool_path(points[rows], T, params, source, _rows(normals, rows), pen_xyzw, rows)

@@ -257,8 +257,8 @@ class ReconParams:
         keeps the smoothed trace (said per point in ``reason``).
     """
 
-    spacing_m: float = param(0.001, gt=0, le=0.01, unit="m", help="resampling step")
-    radius_m: float = param(0.008, gt=0, le=0.2, unit="m", help="reconstruction radius r")
+    spacing_m: float = param(0.001, ge=1e-4, le=0.01, unit="m", help="resampling step")
+    radius_m: float = param(0.008, ge=5e-4, le=0.2, unit="m", help="reconstruction radius r")
     degree: int = param(2, ge=1, le=5, help="polynomial degree")
     alpha: float | Literal["auto"] = param(
         "auto", ge=0, le=1, help="weight of the path against the scan (1: path only), or auto"
@@ -268,49 +268,53 @@ class ReconParams:
         "anchored", help="paper: the paper's Eq. (4); anchored: ours, using the scan's position"
     )
     corner_angle_deg: float = param(
-        50.0, gt=0, le=180, unit="deg", help="turning angle that splits the path at a corner"
+        50.0, ge=1, le=180, unit="deg", help="turning angle that splits the path at a corner"
     )
     corner_scale_m: float = param(
-        0.004, gt=0, le=0.05, unit="m", help="chord over which the turning angle is measured"
+        0.004, ge=5e-4, le=0.05, unit="m", help="chord over which the turning angle is measured"
     )
     register: bool = True
     icp_max_distance_m: float = param(
-        0.010, gt=0, le=0.1, unit="m", help="largest path-to-scan distance ICP pairs over"
+        0.010, ge=1e-4, le=0.1, unit="m", help="largest path-to-scan distance ICP pairs over"
     )
     crop_margin_m: float = param(
-        0.020, gt=0, le=0.2, unit="m", help="scan points farther from the path are left out"
+        0.020, ge=1e-3, le=0.2, unit="m", help="scan points farther from the path are left out"
     )
     voxel_m: float = param(
         0.002, ge=0, le=0.05, unit="m", help="voxel the cropped scan is averaged to (0: none)"
     )
     curvature_radius_m: float = param(
-        0.008, gt=0, le=0.1, unit="m", help="ball of the scan's normals and curvature"
+        0.008, ge=5e-4, le=0.1, unit="m", help="ball of the scan's normals and curvature"
     )
     edge_curvature: float | None = param(
         None, gt=0, lt=1 / 3, help="surface variation above which a scan point is an edge"
     )
     edge_fraction: float = param(
-        0.25, gt=0, le=1, help="share of a segment an edge must run along for it to follow it"
+        0.25, ge=0.01, le=1, help="share of a segment an edge must run along for it to follow it"
     )
     surface_k: int = param(
         10, ge=3, le=1000, help="nearest scan points per path point on a surface"
     )
     uncertainty_tolerance_m: float = param(
         0.0005,
-        gt=0,
+        ge=1e-5,
         le=0.01,
         unit="m",
         help="the summary names the stretches whose 1-sigma uncertainty exceeds this",
     )
     evidence_sigmas: float = param(
         3.0,
-        gt=0,
+        ge=0.5,
         le=20,
         help="the scan moves a point at most this many of the trace's standard deviations",
     )
 
     def __post_init__(self) -> None:
         check_bounds(self)
+        if 0 < self.voxel_m < MIN_VOXEL_M:
+            raise ValueError(
+                f"voxel_m must be 0 (no averaging) or at least {MIN_VOXEL_M} m, got {self.voxel_m}"
+            )
         if self.radius_m < 2 * self.spacing_m:
             raise ValueError(
                 f"radius_m ({self.radius_m}) must be at least twice spacing_m ({self.spacing_m}) "
@@ -322,6 +326,10 @@ class ReconParams:
         """Whether the scan can influence the result at all (alpha = 1 means path only)."""
         return self.alpha == "auto" or self.alpha < 1.0
 
+
+#: The finest voxel the scan is averaged to (finer than a depth camera resolves is no averaging,
+#: and a vanishing one overflows the voxel grid's indices).
+MIN_VOXEL_M = 1e-4
 
 Orientation = Literal["auto", "scan", "pen", "fixed"]
 #: The TCP a plan assumes unless told: a straight tool 10 cm along the flange's z axis.
@@ -386,7 +394,7 @@ class PlanParams:
     robot: str = param(
         "ur5e", help="UR model (ur3e, ur5e, ur10e, ur16e, ur20, ur30, ur3, ur5, ur10)"
     )
-    speed_m_s: float = param(0.05, gt=0, le=2.0, unit="m/s", help="requested TCP speed")
+    speed_m_s: float = param(0.05, ge=0.001, le=2.0, unit="m/s", help="requested TCP speed")
     orientation: Orientation = param(
         "auto", help="tool axis from the scan's normals, the pen, or fixed; auto picks in order"
     )
@@ -408,10 +416,10 @@ class PlanParams:
         help="the TCP in the flange frame as on UR's pendant: x,y,z (m), rx,ry,rz (rad)",
     )
     velocity_scale: float = param(
-        1.0, gt=0, le=1, help="fraction of the arm's joint speed limits to plan within"
+        1.0, ge=0.01, le=1, help="fraction of the arm's joint speed limits to plan within"
     )
     acceleration_scale: float = param(
-        1.0, gt=0, le=1, help="fraction of the arm's joint acceleration limits to plan within"
+        1.0, ge=0.01, le=1, help="fraction of the arm's joint acceleration limits to plan within"
     )
     start_q_rad: tuple[float, float, float, float, float, float] | None = param(
         None,
@@ -427,16 +435,16 @@ class PlanParams:
         0.05, ge=0.005, le=0.5, unit="m", help="approach and retract height along the tool axis"
     )
     approach_speed_m_s: float = param(
-        0.05, gt=0, le=0.25, unit="m/s", help="TCP speed of the approach and retract"
+        0.05, ge=0.001, le=0.25, unit="m/s", help="TCP speed of the approach and retract"
     )
     transit_speed_scale: float = param(
-        0.3, gt=0, le=1, help="fraction of the joint speed limits for the transit and return"
+        0.3, ge=0.01, le=1, help="fraction of the joint speed limits for the transit and return"
     )
     transit_acceleration_scale: float = param(
-        0.3, gt=0, le=1, help="fraction of the joint accelerations for the transit and return"
+        0.3, ge=0.01, le=1, help="fraction of the joint accelerations for the transit and return"
     )
     transit_tcp_speed_m_s: float = param(
-        0.25, gt=0, le=1.0, unit="m/s", help="largest TCP speed of the transit and return"
+        0.25, ge=0.005, le=1.0, unit="m/s", help="largest TCP speed of the transit and return"
     )
     return_to_start: bool = param(False, help="move back to the start joints at the end")
     payload_kg: float = param(0.0, ge=0, le=35, unit="kg", help="the payload's mass")
@@ -444,7 +452,7 @@ class PlanParams:
         (0.0, 0.0, 0.0), ge=-0.5, le=0.5, unit="m", help="the payload's centre of gravity"
     )
     tool_radius_m: float = param(
-        0.01, gt=0, le=0.2, unit="m", help="radius of the tool's body (collision check)"
+        0.01, ge=5e-4, le=0.2, unit="m", help="radius of the tool's body (collision check)"
     )
     clearance_m: float = param(
         0.01, ge=0, le=0.1, unit="m", help="distance the arm and tool keep from obstacles"
