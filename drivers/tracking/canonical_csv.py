@@ -18,6 +18,10 @@ POSITION_COLUMNS = ("x", "y", "z")
 QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw")
 
 
+#: The most columns a trace CSV may have (a 200,000-column file held a parse slot for 300 s).
+MAX_COLUMNS = 256
+
+
 def read_trace_csv(
     source: str | Path | bytes, *, units: str = "m", name: str | None = None
 ) -> Recording:
@@ -54,6 +58,12 @@ def read_trace_csv(
     rows = [row for row in rows if any(cell.strip() for cell in row)]
     if not rows:
         raise InputFileError(f"{name} is empty; expected a CSV with a header row x,y,z")
+    if len(rows[0]) > MAX_COLUMNS:
+        raise InputFileError(
+            f"{name} has {len(rows[0])} columns; a trace file has at most {MAX_COLUMNS} "
+            "(x,y,z, optionally t and qx,qy,qz,qw, and a few more): export the pen's columns "
+            "only"
+        )
     header = [cell.strip().lower() for cell in rows[0]]
     missing = [c for c in POSITION_COLUMNS if c not in header]
     if missing:
@@ -83,7 +93,11 @@ def read_trace_csv(
             f"{name} has {int(bad.sum())} rows with NaN or infinite values (first on line "
             f"{line}); remove those samples or fill the gaps before reconstructing"
         )
-    column = {label: data[:, header.index(label)] for label in header}
+    first: dict[str, int] = {}
+    for index, label in enumerate(header):
+        first.setdefault(label, index)  # a repeated name: its first column, as before
+    wanted = (*POSITION_COLUMNS, "t", *QUATERNION_COLUMNS)
+    column = {label: data[:, first[label]] for label in wanted if label in first}
     points = np.column_stack([column[c] for c in POSITION_COLUMNS]) * scale
     times = column.get("t")
     if times is not None and np.any(np.diff(times) <= 0):

@@ -270,3 +270,28 @@ def test_a_long_header_is_quoted_in_part():
     message = str(error.value)
     assert "in its header ('channel_0', 'channel_1'" in message
     assert "'channel_7' … and 292 more)" in message and len(message) < 300
+
+
+def test_a_csv_with_200k_columns_is_refused_at_once_naming_the_limit():
+    """The quadratic column lookup held a parse slot for 300 s on this file (2.7 MB)."""
+    import time
+
+    from drivers.tracking.canonical_csv import MAX_COLUMNS
+
+    header = ",".join(["x", "y", "z"] + [f"c{i}" for i in range(200_000)])
+    row = ",".join(["0.1"] * 200_003)
+    content = f"{header}\n{row}\n{row}\n".encode()
+    start = time.process_time()
+    with pytest.raises(
+        InputFileError, match=f"200003 columns; a trace file has at most {MAX_COLUMNS}"
+    ):
+        read_trace_csv(content)
+    print(f"refused in {time.process_time() - start:.2f} s of CPU")
+
+
+def test_many_extra_columns_within_the_limit_are_read_and_the_first_of_a_repeated_name_wins():
+    header = ",".join(["x", "y", "z", "t", "x"] + [f"extra{i}" for i in range(200)])
+    rows = [",".join(["1", "2", "3", str(i), "9"] + ["0"] * 200) for i in range(3)]
+    recording = read_trace_csv(("\n".join([header, *rows]) + "\n").encode(), units="m")
+    assert recording.points_m.tolist() == [[1.0, 2.0, 3.0]] * 3
+    assert recording.t_s.tolist() == [0.0, 1.0, 2.0]
