@@ -26,6 +26,7 @@ import numpy as np
 from drivers.errors import InputFileError, clipped
 from drivers.files import atomic_path
 from drivers.units import metres_per
+from recon.calibrate import MAX_TIP_OFFSET_M
 from recon.transforms import check_rigid
 from recon.types import FloatArray
 
@@ -142,7 +143,7 @@ def read_tip_calibration(source: str | Path | bytes, *, label: str | None = None
     ------
     InputFileError
         Unreadable JSON, another kind of calibration, a missing or non-finite offset, unknown
-        units, or an offset longer than 1 m (units wrong).
+        units, or an offset longer than a pen's 0.5 m (units wrong).
     """
     label = label or ("upload" if isinstance(source, bytes) else str(source))
     data = _load_json(source, label)
@@ -158,9 +159,10 @@ def read_tip_calibration(source: str | Path | bytes, *, label: str | None = None
         raise InputFileError(f"{label}: {exc}") from None
     if offset.shape != (3,) or not np.all(np.isfinite(offset)):
         raise InputFileError(f'{label}: "offset" must be 3 finite numbers')
-    if np.linalg.norm(offset) > 1.0:
+    if np.linalg.norm(offset) > MAX_TIP_OFFSET_M:
         raise InputFileError(
-            f"{label}: a tip {np.linalg.norm(offset):.1f} m from the rigid body; are the units "
+            f"{label}: a tip {np.linalg.norm(offset) * 1e3:.0f} mm from the rigid body, more "
+            f"than a pen's {MAX_TIP_OFFSET_M * 1e3:.0f} mm; are the units "
             'right (metres unless the file says "units": "mm")?'
         )
     return TipCalibration(

@@ -31,6 +31,9 @@ MIN_PAIR_SPREAD_M = 1e-3
 MAX_PAIR_COORDINATE_M = 50.0
 #: A hand-held pen's tip lies within this of its rigid body (m).
 MAX_TIP_OFFSET_M = 0.5
+#: A pivot whose tip wandered more than this (RMS, m) did not pivot at all: no override stores it
+#: (``accept_poor_fit`` widens the tolerance up to here, never beyond).
+MAX_PIVOT_RMS_M = 0.01
 
 
 @dataclass(frozen=True)
@@ -67,17 +70,31 @@ class PivotCalibration:
         return pivot_fit_problem(self.tip_offset_m, self.residual_rms_m, tolerance_m)
 
 
+def pivot_fit_impossible(tip_offset_m: FloatArray, residual_rms_m: float) -> str | None:
+    """Why a pivot with this tip offset (3,) and RMS residual (m) is physically no pen's (and is
+    never stored, whatever the override), or None."""
+    length_m = float(np.linalg.norm(tip_offset_m))
+    if not np.isfinite(length_m) or length_m > MAX_TIP_OFFSET_M:
+        return (
+            f"the tip is {length_m * 1e3:.0f} mm from the rigid body, more than a pen's "
+            f"{MAX_TIP_OFFSET_M * 1e3:.0f} mm: the tip slipped, or the units are wrong"
+        )
+    if not np.isfinite(residual_rms_m) or residual_rms_m > MAX_PIVOT_RMS_M:
+        return (
+            f"the tip wandered {residual_rms_m * 1e3:.1f} mm RMS, more than the "
+            f"{MAX_PIVOT_RMS_M * 1e3:.0f} mm of any pivot: the tip was not held on one point"
+        )
+    return None
+
+
 def pivot_fit_problem(
     tip_offset_m: FloatArray, residual_rms_m: float, tolerance_m: float
 ) -> str | None:
     """Why a pivot with this tip offset (3,) and RMS residual (m) is not to be trusted at
     ``tolerance_m``, or None."""
-    length_m = float(np.linalg.norm(tip_offset_m))
-    if length_m > MAX_TIP_OFFSET_M:
-        return (
-            f"the tip is {length_m * 1e3:.0f} mm from the rigid body, more than a pen's "
-            f"{MAX_TIP_OFFSET_M * 1e3:.0f} mm: the tip slipped, or the units are wrong"
-        )
+    impossible = pivot_fit_impossible(tip_offset_m, residual_rms_m)
+    if impossible is not None:
+        return impossible
     if residual_rms_m > tolerance_m:
         return (
             f"the tip stayed within {residual_rms_m * 1e3:.2f} mm RMS of one point, worse than "

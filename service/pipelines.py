@@ -121,11 +121,19 @@ def pivot(
 def refuse_poor_pivot(result: dict, tolerance_m: float, accept_poor_fit: bool) -> None:
     """Raise :class:`PoorFitError` for a pivot result (:meth:`PivotOutcome.as_json`) worse than
     ``tolerance_m``, unless ``accept_poor_fit``."""
-    from recon.calibrate import pivot_fit_problem
+    from recon.calibrate import pivot_fit_impossible, pivot_fit_problem
+    from recon.errors import PoorFitError
 
-    problem = pivot_fit_problem(
-        np.asarray(result["tip_offset_m"]), float(result["residual_rms_m"]), tolerance_m
-    )
+    tip, rms = np.asarray(result["tip_offset_m"]), float(result["residual_rms_m"])
+    impossible = pivot_fit_impossible(tip, rms)
+    if impossible is not None:
+        # The override widens a tolerance within what a pen can be; it never stores nonsense.
+        raise PoorFitError(
+            f"the pivot calibration was not stored: {impossible}. No override stores it: "
+            "pivot again",
+            detail={**result, "tolerance_m": tolerance_m, "overridable": False},
+        )
+    problem = pivot_fit_problem(tip, rms, tolerance_m)
     _refuse_poor_fit(
         "pivot calibration", problem, accept_poor_fit, {**result, "tolerance_m": tolerance_m}
     )

@@ -97,8 +97,15 @@ class CalibrationIn(Strict):
     @field_validator("tip_offset_m")
     @classmethod
     def _tip(cls, value):
-        if value is not None and not all(math.isfinite(v) and abs(v) <= 1.0 for v in value):
-            raise ValueError("tip_offset_m must be finite and within 1 m of the rigid body")
+        from recon.calibrate import MAX_TIP_OFFSET_M
+
+        if value is None:
+            return value
+        if not all(math.isfinite(v) for v in value) or math.hypot(*value) > MAX_TIP_OFFSET_M:
+            raise ValueError(
+                f"tip_offset_m must be finite and within {MAX_TIP_OFFSET_M * 1e3:.0f} mm of the "
+                "rigid body (a pen's tip); is it in metres?"
+            )
         return value
 
     @model_validator(mode="after")

@@ -181,3 +181,28 @@ def test_the_cli_refuses_a_poor_base_fit_unless_accepted(tmp_path):
     accepted = run("--accept-poor-fit")
     assert accepted.returncode == 0, accepted.stderr
     assert json.loads(out.read_text())["name"] == "T_base_tracker"
+
+
+def test_no_override_stores_a_pivot_that_no_pen_makes(client, sid):
+    """accept_poor_fit stored a 996 mm RMS pivot: the override widens the tolerance up to what a
+    pivot can be (10 mm RMS), never beyond."""
+    before = client.get(f"/sessions/{sid}").json()
+    position, quat = pivot_recording(0, position_noise_m=0.03)  # the tip all over the place
+    t = np.arange(len(position)) / 240.0
+    content = _csv(Recording(points_m=position, t_s=t, orientations_xyzw=quat))
+    url = f"/sessions/{sid}/calibration/pivot"
+    response = client.post(
+        url, files={"file": ("p.csv", content)}, data={"accept_poor_fit": "true"}
+    )
+    assert response.status_code == 422 and response.json()["code"] == "poor_fit", response.text
+    assert "No override stores it" in response.json()["message"]
+    assert client.get(f"/sessions/{sid}").json() == before
+
+
+@pytest.mark.parametrize("offset", [(0.9, 0.0, 0.0), (0.3, 0.3, 0.3)])
+def test_a_tip_offset_beyond_a_pen_is_refused(client, sid, offset):
+    """0.9 m was accepted though a pen's tip lies within 0.5 m of its rigid body."""
+    before = client.get(f"/sessions/{sid}").json()
+    response = client.put(f"/sessions/{sid}/calibration", json={"tip_offset_m": list(offset)})
+    assert response.status_code == 422 and "500 mm" in response.json()["message"], response.text
+    assert client.get(f"/sessions/{sid}").json() == before
