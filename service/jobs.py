@@ -346,8 +346,10 @@ def _remove(path: str) -> None:
 
 
 def _worker_init(server_pid: int) -> None:
-    """Runs first in each worker process: end with the server, and lower its priority below
-    the server's (:func:`drivers.isolation.lower_priority`)."""
+    """Runs first in each worker process: end with the server, lower its priority below the
+    server's (:func:`drivers.isolation.lower_priority`), and make every file it writes (arrays,
+    preview pictures) private to the service's user, as the data folder is."""
+    os.umask(0o077)
     _watch_parent(server_pid)
     lower_priority()
 

@@ -39,6 +39,14 @@ def test_the_data_folder_and_every_stored_file_are_private(app_client, scene_fil
     sid = client.post("/sessions", json={"name": "private"}).json()["id"]
     client.put(f"/sessions/{sid}/recording", files={"file": ("t.csv", scene_files["trace"])})
     client.put(f"/sessions/{sid}/scan", files={"file": ("s.ply", scene_files["scan"])})
+    # A reconstruction: its arrays and its preview picture (0644 before) are written by a worker.
+    job = client.post(f"/sessions/{sid}/reconstructions", json={}).json()
+    assert _until(
+        lambda: client.get(f"/jobs/{job['id']}").json()["state"] == "succeeded",
+        timeout_s=120,
+        what="the reconstruction",
+    )
+    assert any(services.store.data_dir.rglob("*.png"))
     data = services.store.data_dir
     modes = {
         str(path.relative_to(data)): path.stat().st_mode & 0o777
