@@ -24,6 +24,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
@@ -104,7 +105,15 @@ class ExecutionRunner:
     def _progress(self, fraction: float) -> None:
         if fraction - self._last_progress >= 0.01 or fraction >= 1.0:
             self._last_progress = fraction
-            self.store.update_job(self.job_id, progress=round(0.1 + 0.9 * fraction, 4))
+            self._show_progress(round(0.1 + 0.9 * fraction, 4))
+
+    def _show_progress(self, progress: float) -> None:
+        try:
+            self.store.update_job(self.job_id, progress=progress)
+        except Exception as error:
+            # Progress is for showing: a busy or full database must never end a motion (the
+            # samples go to the journal, not to the database).
+            log.warning("progress of job %s not stored: %s", self.job_id, error)
 
     def _next(self, step: str) -> None:
         """Go on to ``step`` unless a stop was requested."""
@@ -113,7 +122,10 @@ class ExecutionRunner:
         self.step = step
 
     def _run(self) -> None:
-        self.store.update_job(self.job_id, state="running", progress=0.0, started_at=now())
+        try:
+            self.store.update_job(self.job_id, state="running", progress=0.0, started_at=now())
+        except Exception as error:
+            log.warning("job %s not marked running: %s", self.job_id, error)
         try:
             final = self._drive()
         finally:
@@ -127,7 +139,10 @@ class ExecutionRunner:
                     time.monotonic() - closing,
                 )
         # Only now is the arm released: a job that has ended owns the arm no more.
-        self.store.update_job(self.job_id, finished_at=now(), **final)
+        _retrying(
+            lambda: self.store.update_job(self.job_id, finished_at=now(), **final),
+            f"the end of job {self.job_id}",
+        )
 
     def _drive(self) -> dict:
         """Run the execution; return the job's final fields (state, result, error, progress)."""
@@ -142,7 +157,7 @@ class ExecutionRunner:
             tcp_pose, payload_kg, cog_m = self.tool
             self.backend.set_tool(tcp_pose, payload_kg=payload_kg, payload_cog_m=cog_m)
             self._next("moving")
-            self.store.update_job(self.job_id, progress=0.1)
+            self._show_progress(0.1)
             if self.mode == "movepath":
                 record = self.backend.execute_path(
                     self.trajectory,
@@ -156,29 +171,49 @@ class ExecutionRunner:
                 )
             return self._ended(record, [record.fault] if record.fault else [], started)
         except Exception as error:  # every failure ends the job, with what was recorded
-            record = record or getattr(self.backend, "last_record", None)
+            record = self._with_journal(
+                record or getattr(self.backend, "last_record", None), str(error)
+            )
             if isinstance(error, MotionStoppedError) or self._stop.is_set():
                 return self._ended(record, [str(error)], started)
             log.warning("execution job %s failed: %s", self.job_id, error)
-            try:
-                result = self.record(
-                    record, [str(error)], time.monotonic() - started, self.where(record)
-                )
-            except Exception:
-                log.exception("could not record the execution of job %s", self.job_id)
-                result = None
+            result = self._record(record, [str(error)], started, self.where(record))
             return {"state": "failed", "error": error_body(error), "result": result}
 
     def _ended(self, record: ExecutionRecord | None, faults: list[str], started: float) -> dict:
         """Record the execution; the job succeeded, or was cancelled by a stop."""
         completed = record is not None and record.completed and not self._stop.is_set()
+        if not completed:
+            record = self._with_journal(record, "; ".join(faults) or "stopped")
         stopped_in = None if completed else self.where(record)
-        result = self.record(record, faults, time.monotonic() - started, stopped_in)
+        result = self._record(record, faults, started, stopped_in)
         return {
             "state": "succeeded" if completed else "cancelled",
             "result": result,
             "progress": 1.0 if completed else self._last_progress,
         }
+
+    def _with_journal(self, record: ExecutionRecord | None, fault: str) -> ExecutionRecord | None:
+        """The record, or what the journal holds where it holds more: a fault inside the
+        backend (a protective stop, a lost link) can leave no record of the samples its worker
+        journalled, and an execution that moved must never be recorded as "before moving"."""
+        try:
+            from_journal = journal_record(self.trajectory, self.journal, fault)
+        except Exception as error:  # an unreadable journal: keep what the backend returned
+            log.warning("the journal of job %s cannot be read: %s", self.job_id, error)
+            return record
+        if from_journal is not None and (record is None or len(from_journal) > len(record)):
+            return from_journal
+        return record
+
+    def _record(self, record, faults: list[str], started: float, stopped_in) -> dict | None:
+        """Store the execution's record (retried while the database is busy); None if it
+        could not be stored, in which case the journal stays for the next start to recover."""
+        duration_s = time.monotonic() - started
+        return _retrying(
+            lambda: self.record(record, faults, duration_s, stopped_in),
+            f"the record of job {self.job_id} (its journal is kept for the next start)",
+        )
 
     def where(self, record: ExecutionRecord | None) -> str:
         """Where the execution got to: a step before motion, or the phase of its last sample."""
@@ -186,3 +221,53 @@ class ExecutionRunner:
             return f"before moving ({self.step})"
         index = int(np.clip(record.planned()[-1], 0, len(self.trajectory) - 1))
         return Phase(int(self.trajectory.phases[index])).label
+
+
+#: How long the runner keeps trying to store an execution's end while the database is busy
+#: (SQLite waits 30 s per attempt on its own); after that the journal is the record.
+RECORD_RETRY_S = 120.0
+
+
+def _retrying(write: Callable, what: str):
+    """``write()``, retried with backoff for :data:`RECORD_RETRY_S`; None if it never took."""
+    deadline, pause = time.monotonic() + RECORD_RETRY_S, 0.5
+    while True:
+        try:
+            return write()
+        except Exception as error:
+            if time.monotonic() + pause > deadline:
+                log.error("could not store %s: %s", what, error)
+                return None
+            log.warning("storing %s failed (%s); retrying in %.1f s", what, error, pause)
+            time.sleep(pause)
+            pause = min(pause * 2, 10.0)
+
+
+def journal_record(
+    trajectory: JointTrajectory, journal: str | Path, fault: str
+) -> ExecutionRecord | None:
+    """An execution's record rebuilt from its journal (each actual sample paired with the
+    planned sample at the same time), or None when the journal is absent or empty.
+
+    Raises
+    ------
+    InputFileError
+        A journal whose complete lines are not samples.
+    """
+    from drivers.robot.journal import read_journal
+
+    if not Path(journal).is_file():
+        return None
+    t_s, q, tcp = read_journal(journal)
+    if len(t_s) == 0:
+        return None
+    index = np.clip(np.searchsorted(trajectory.t_s, t_s), 0, len(trajectory) - 1)
+    return ExecutionRecord(
+        planned_index=index,
+        t_s=t_s,
+        q_planned_rad=trajectory.q_rad[index],
+        q_actual_rad=q,
+        completed=False,
+        fault=fault,
+        tcp_actual=tcp,
+    )

@@ -19,7 +19,7 @@ from pydantic import ValidationError
 from drivers.robot.base import backend_config, create_backend
 from recon.types import Phase
 from service import tasks
-from service.arm_runner import ExecutionRunner
+from service.arm_runner import ExecutionRunner, journal_record
 from service.artifacts import ID_PREFIX, ExecutionCodec, ReconstructionCodec, ScanCodec
 from service.core import Services
 from service.errors import ApiError, not_found
@@ -390,7 +390,6 @@ def recover(services: Services) -> None:
 
 def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
     from drivers.robot.base import ExecutionRecord
-    from drivers.robot.journal import read_journal
 
     store = services.store
     job = next(
@@ -408,17 +407,11 @@ def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
         return
     trajectory_row = store.artifact(job.params["trajectory_id"], kind="trajectory")
     trajectory = tasks.load_trajectory(store.path_of(trajectory_row), trajectory_row.summary)
-    t_s, q, tcp = read_journal(journal)
-    index = np.clip(np.searchsorted(trajectory.t_s, t_s), 0, len(trajectory) - 1)
-    record = ExecutionRecord(
-        planned_index=index,
-        t_s=t_s,
-        q_planned_rad=trajectory.q_rad[index],
-        q_actual_rad=q,
-        completed=False,
-        fault="the service stopped during the execution",
-        tcp_actual=tcp,
-    )
+    fault = "the service stopped during the execution"
+    record = journal_record(trajectory, journal, fault)
+    t_s = np.zeros(0) if record is None else record.t_s
+    if record is None:  # nothing was journalled: the arm never moved
+        record = ExecutionRecord(np.zeros(0), np.zeros((0, 6)), np.zeros((0, 6)), False, fault)
     request = ExecutionCreate(
         trajectory_id=trajectory_row.id,
         backend="ur_rtde",
@@ -428,7 +421,11 @@ def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
     config = backend_config(
         "ur_rtde", host=services.settings.ur_host or "unknown", robot=trajectory.robot
     )
-    where = "before moving" if len(t_s) == 0 else Phase(int(trajectory.phases[index[-1]])).label
+    where = (
+        "before moving"
+        if len(t_s) == 0
+        else Phase(int(trajectory.phases[record.planned_index[-1]])).label
+    )
     summary = _real_summary(
         trajectory,
         record,

@@ -125,8 +125,95 @@ def test_a_protective_stop_fails_the_job_with_its_code_and_keeps_the_record(arm,
     execution = client.get(f"/sessions/{sid}/executions/{execution_id}").json()
     assert not execution["summary"]["completed"]
     assert "protective stop" in " ".join(execution["summary"]["faults"]).lower()
+    # What the arm did is the record (from the journal: the backend's own record of a run a
+    # protective stop ended was empty, and it was stored as "before moving", 0 samples).
+    assert execution["summary"]["n_samples"] > 100
+    assert not job["result"]["stopped_in"].startswith("before moving")
     # The service stayed responsive throughout, and reports healthy.
     assert client.get("/health").json()["status"] == "ok"
+
+
+def test_a_busy_database_loses_nothing_the_arm_did(arm, fake_ur, monkeypatch):
+    """The database refuses writes while the arm runs and for a while after: the motion goes on
+    (progress is for showing), the record is stored once the database takes it, and until then
+    the journal is the record."""
+    import sqlalchemy.exc
+
+    from service import arm_runner
+
+    client, sid, trajectory_id, q_start = arm
+    services = client.app.state.services
+    store = services.store
+    refusals = {"progress": 0, "record": 0}
+    real_update, real_add = store.update_job, store.add_arrays_artifact
+
+    def locked(*_args, **_kwargs):
+        raise sqlalchemy.exc.OperationalError("UPDATE jobs", {}, Exception("database is locked"))
+
+    def update_job(job_id, **fields):
+        if set(fields) == {"progress"}:
+            refusals["progress"] += 1
+            locked()
+        return real_update(job_id, **fields)
+
+    def add_arrays_artifact(**kwargs):
+        if refusals["record"] < 2:  # two refusals, then the database is free again
+            refusals["record"] += 1
+            locked()
+        return real_add(**kwargs)
+
+    monkeypatch.setattr(store, "update_job", update_job)
+    monkeypatch.setattr(store, "add_arrays_artifact", add_arrays_artifact)
+    monkeypatch.setattr(arm_runner, "RECORD_RETRY_S", 30.0)
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    job = client.post(
+        f"/sessions/{sid}/executions",
+        json={"trajectory_id": trajectory_id, "backend": "ur_rtde", "confirm": True},
+    ).json()
+    job = wait(client, job, timeout_s=120)
+    assert job["state"] == "succeeded", (job["error"], job["result"])  # it ran to its end
+    assert refusals["progress"] > 0 and refusals["record"] == 2
+    execution_id = job["result"]["execution_id"]
+    execution = client.get(f"/sessions/{sid}/executions/{execution_id}").json()
+    assert execution["summary"]["completed"] and execution["summary"]["n_samples"] > 100
+    journal = store.data_dir / "journals" / f"{execution_id}.csv"
+    assert not journal.exists()  # deleted only once the record was stored
+
+
+def test_a_database_that_stays_locked_leaves_the_journal_for_the_next_start(
+    arm, fake_ur, monkeypatch
+):
+    import sqlalchemy.exc
+
+    from service import arm_runner, executions
+
+    client, sid, trajectory_id, q_start = arm
+    services = client.app.state.services
+    store = services.store
+    real_add = store.add_arrays_artifact
+
+    def locked(**_kwargs):
+        raise sqlalchemy.exc.OperationalError("INSERT", {}, Exception("database is locked"))
+
+    monkeypatch.setattr(store, "add_arrays_artifact", locked)
+    monkeypatch.setattr(arm_runner, "RECORD_RETRY_S", 1.0)
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    job = client.post(
+        f"/sessions/{sid}/executions",
+        json={"trajectory_id": trajectory_id, "backend": "ur_rtde", "confirm": True},
+    ).json()
+    job = wait(client, job, timeout_s=120)
+    execution_id = job["params"]["execution_id"]
+    journal = store.data_dir / "journals" / f"{execution_id}.csv"
+    assert journal.exists() and journal.stat().st_size > 1000  # the record, until stored
+    assert client.get(f"/sessions/{sid}/executions/{execution_id}").status_code == 404
+    # The database is free again; the next start (recover) stores the journal as the record.
+    monkeypatch.setattr(store, "add_arrays_artifact", real_add)
+    executions.recover(services)
+    execution = client.get(f"/sessions/{sid}/executions/{execution_id}").json()
+    assert execution["summary"]["n_samples"] > 100
+    assert execution["params"]["recovered_from_journal"] is True
+    assert not journal.exists()
 
 
 def test_teachpath_fake_ur_runs_by_hand_and_refuses_what_it_cannot_do():
