@@ -178,3 +178,52 @@ def test_a_protective_stop_is_shown_and_unlocked_when_the_controller_allows(
         expect(page.locator("#safety-bar")).not_to_have_class(re.compile("alarm"))
         expect(unlock).to_be_hidden()
         pendant.shot("unlocked")
+
+
+def test_an_imported_plan_must_be_dry_run_here_and_the_pendant_says_so(
+    browser, arm_server, fake_ur_process, screens, tmp_path
+):
+    """A session planned and dry-run at another site arrives as a bundle: its dry run does not
+    count on this server (the gate checks the samples here and wants a dry run made here), and
+    the operator is told so, with Run on arm disabled until the plan is dry-run here."""
+    from fastapi.testclient import TestClient
+
+    from drivers.scanning.pointcloud import write_scan
+    from drivers.tracking.canonical_csv import write_trace_csv
+    from recon import scenes
+    from recon.kinematics import HOME_Q_RAD
+    from service.app import create_app
+    from tests.service.conftest import AUTH, make_settings, planned_session, wait
+
+    fake_ur_process.control("reset")
+    scene = scenes.box_corner(0)
+    write_trace_csv(tmp_path / "trace.csv", scene.recording)
+    write_scan(tmp_path / "scan.ply", scene.scan)
+    files = {
+        k: (tmp_path / f).read_bytes() for k, f in (("trace", "trace.csv"), ("scan", "scan.ply"))
+    }
+    with TestClient(create_app(make_settings(tmp_path / "site_a")), headers=AUTH) as site_a:
+        sid, trajectories = planned_session(
+            site_a, files, [0.05], name="from site A", start_q_rad=HOME_Q_RAD
+        )
+        dry = site_a.post(f"/sessions/{sid}/executions", json={"trajectory_id": trajectories[0.05]})
+        assert wait(site_a, dry.json())["result"]["completed"]
+        bundle = site_a.get(f"/sessions/{sid}/bundle").content
+    imported = arm_server.client.post(
+        "/sessions/import", files={"file": ("site-a.zip", bundle, "application/zip")}
+    )
+    assert imported.status_code == 201, imported.text
+    with pendant_for(browser, arm_server, screens, "imported-plan") as pendant:
+        page = pendant.page
+        pendant.open()
+        page.get_by_role("button", name="from site A", exact=True).click()
+        expect(page.locator("#step-dryrun .needs")).to_contain_text(
+            "imported with the session and does not count here"
+        )
+        expect(page.locator("#step-run .needs")).to_contain_text("does not count here")
+        expect(page.get_by_role("button", name="Run on arm")).to_be_disabled()
+        pendant.shot("imported")
+        page.get_by_role("button", name="Dry run").click()
+        expect(page.locator("#step-dryrun .needs")).to_have_text("", timeout=60_000)
+        expect(page.locator("#step-run .needs")).to_contain_text("Run on arm")
+        pendant.shot("dry-run-here")

@@ -35,6 +35,7 @@ const state = {
   reconstructions: [],
   trajectories: [],
   executions: [],
+  madeHere: new Set(), // executions a job of this server made (an imported dry run is not one)
   busy: null, // the step whose job runs now
   moving: null, // {executionId, jobId} of an execution that may move the arm
   schema: null,
@@ -227,7 +228,7 @@ async function resumeJobs(sid) {
 
 async function refresh() {
   const sid = state.session.id;
-  const [session, recordings, scans, reconstructions, trajectories, executions, touches] = await Promise.all([
+  const [session, recordings, scans, reconstructions, trajectories, executions, touches, jobs] = await Promise.all([
     api(`/sessions/${sid}`),
     api(`/sessions/${sid}/recordings`),
     api(`/sessions/${sid}/scans`),
@@ -235,8 +236,13 @@ async function refresh() {
     api(`/sessions/${sid}/trajectories`),
     api(`/sessions/${sid}/executions`),
     api(`/sessions/${sid}/touches`),
+    api(`/sessions/${sid}/jobs`),
   ]);
-  Object.assign(state, { session, recordings, scans, reconstructions, trajectories, executions, touches });
+  // The server's gate counts only dry runs its own jobs made: a bundle carries no jobs.
+  const madeHere = new Set(
+    jobs.filter((j) => j.kind === "execution" && j.state === "succeeded").map((j) => j.params.execution_id),
+  );
+  Object.assign(state, { session, recordings, scans, reconstructions, trajectories, executions, touches, madeHere });
   renderSteps();
   state.capture.sessionShown(sid);
   state.workspace?.show(sid, state).catch((err) => {
@@ -256,6 +262,10 @@ const trajectory = () => {
 };
 const mode = () => $("#exec-mode").value;
 const passed = (e) => e.summary.completed === true && e.summary.faults.length === 0;
+// A passed dry run counts for the arm only if this server made it (not one imported with a bundle).
+const passedHere = (e) => Boolean(e) && passed(e) && state.madeHere.has(e.id);
+const IMPORTED_DRY_RUN =
+  "The passed dry run on record was imported with the session and does not count here: press “Dry run” to dry-run this plan on this server.";
 function dryRun(traj = trajectory(), m = mode()) {
   if (!traj) return null;
   return last(
@@ -288,9 +298,9 @@ function stepStates() {
     plan: traj
       ? { done: true, needs: "" }
       : { done: false, needs: !rec ? "Needs a reconstruction." : !s.T_base_tracker ? "Needs the calibration." : "Ready: choose the speed and press Plan." },
-    dryrun: dry && passed(dry)
+    dryrun: passedHere(dry)
       ? { done: true, needs: "" }
-      : { done: false, needs: !traj ? "Needs a plan." : dry ? "The last dry run did not pass: read its report, plan again or dry-run again." : `Ready: press “Dry run” (mode ${mode()}).` },
+      : { done: false, needs: !traj ? "Needs a plan." : dry && passed(dry) ? IMPORTED_DRY_RUN : dry ? "The last dry run did not pass: read its report, plan again or dry-run again." : `Ready: press “Dry run” (mode ${mode()}).` },
     run: runState(dry),
   };
 }
@@ -303,7 +313,8 @@ function runState(dry) {
     return { done: false, needs: `The arm is busy: execution ${owner} owns it. Wait until it ends, or press Stop.` };
   }
   if (lastRun()?.summary.completed) return { done: true, needs: "" };
-  return { done: false, needs: dry && passed(dry) ? "Ready: press “Run on arm” and confirm." : "Needs a passed dry run of this plan in this mode." };
+  if (dry && passed(dry) && !passedHere(dry)) return { done: false, needs: IMPORTED_DRY_RUN };
+  return { done: false, needs: passedHere(dry) ? "Ready: press “Run on arm” and confirm." : "Needs a passed dry run of this plan in this mode." };
 }
 
 const STEPS = [
@@ -355,7 +366,7 @@ function updateButtons() {
   set("#reconstruct-form button[type=submit]", !busy && Boolean(s?.recording_id) && Boolean(state.schema));
   set("#plan-form button[type=submit]", !busy && Boolean(reconstruction()) && Boolean(s?.T_base_tracker));
   set("#dryrun-form button[type=submit]", !busy && Boolean(traj));
-  set("#run-form button[type=submit]", !busy && Boolean(dry && passed(dry)) && !canMove());
+  set("#run-form button[type=submit]", !busy && passedHere(dry) && !canMove());
 }
 
 // -- provenance and downloads of an artifact --------------------------------------------------------
@@ -579,7 +590,7 @@ function execSummary(ex) {
   return [
     table([
       ["execution", ex.id],
-      ["result", passed(ex) ? "passed" : sm.completed ? `completed with faults` : `not completed${sm.stopped_in ? ` (stopped in ${sm.stopped_in})` : ""}`],
+      ["result", passed(ex) ? (state.madeHere.has(ex.id) ? "passed" : "passed at another site (imported): not counted here") : sm.completed ? `completed with faults` : `not completed${sm.stopped_in ? ` (stopped in ${sm.stopped_in})` : ""}`],
       ["mode", sm.mode],
       ["duration", `${seconds(sm.duration_s)} of ${seconds(sm.planned_duration_s)} planned`],
       ["largest deviation from the plan", mm(sm.max_path_deviation_m, 3)],
@@ -1015,7 +1026,7 @@ function wire() {
     const form = event.currentTarget;
     const traj = trajectory();
     const dry = dryRun(traj);
-    if (!traj || !dry || !passed(dry) || state.busy) return;
+    if (!traj || !passedHere(dry) || state.busy) return;
     if (!(await confirmRun(traj))) return;
     const body = { trajectory_id: traj.id, backend: "ur_rtde", mode: mode(), confirm: true };
     runJob("run", form, async () => {
