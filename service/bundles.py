@@ -356,8 +356,19 @@ class ImportResult:
     n_bytes: int
 
 
+#: A bundle's member may unpack to at most this many times its compressed size (beyond a small
+#: floor): arrays and uploads compress 1-10x; a bomb (2 GB of zeros in 2 MB) far more.
+MAX_COMPRESSION_RATIO = 100
+#: Members this small are not held to the ratio (a short CSV of repeated digits compresses well).
+RATIO_FLOOR_BYTES = 1 << 20
+
+
 def import_bundle(
-    store: Store, source: Path | bytes | BinaryIO, *, max_bytes: int = 8 << 30
+    store: Store,
+    source: Path | bytes | BinaryIO,
+    *,
+    max_bytes: int = 8 << 30,
+    max_file_bytes: int | None = None,
 ) -> ImportResult:
     """Import a session bundle into a data folder: all of it or nothing.
 
@@ -367,6 +378,9 @@ def import_bundle(
     source : path, bytes or binary file
     max_bytes : int
         The largest total size of the files a bundle may unpack to.
+    max_file_bytes : int, optional
+        The largest size of any one file in it (the service passes its upload limit: an array or
+        a raw upload that came in a bundle is held to the limit of one that is uploaded).
 
     Raises
     ------
@@ -386,7 +400,7 @@ def import_bundle(
         ) from None
     with bundle:
         manifest = _read_manifest(bundle)
-        files = _check_layout(bundle, manifest, max_bytes)
+        files = _check_layout(bundle, manifest, max_bytes, max_file_bytes)
         with _IMPORTING, store.presence("import") as still_here:
             existing = _existing(store, manifest)
             if existing is not None:
@@ -522,7 +536,9 @@ def _first_error(exc: Exception) -> str:
     return "nested too deeply"
 
 
-def _check_layout(bundle: zipfile.ZipFile, manifest: Manifest, max_bytes: int) -> list[FileEntry]:
+def _check_layout(
+    bundle: zipfile.ZipFile, manifest: Manifest, max_bytes: int, max_file_bytes: int | None = None
+) -> list[FileEntry]:
     """The files to unpack, after checking that ids, names and sizes are what this version
     writes and that the zip holds exactly them."""
     session = manifest.session
@@ -567,11 +583,24 @@ def _check_layout(bundle: zipfile.ZipFile, manifest: Manifest, max_bytes: int) -
         raise BundleError(f"the bundle does not match its manifest: {what}; export it again")
     total = 0
     for entry in files:
-        declared = bundle.getinfo(entry.path).file_size
+        info = bundle.getinfo(entry.path)
+        declared = info.file_size
         if declared != entry.size:
             raise BundleError(
                 f"{entry.path}: the zip says {declared} bytes, the manifest {entry.size}: the "
                 "bundle was altered; export it again"
+            )
+        if max_file_bytes is not None and declared > max_file_bytes:
+            raise BundleError(
+                f"{entry.path} unpacks to {declared} bytes, more than the {max_file_bytes} an "
+                "upload may have here (TEACHPATH_MAX_UPLOAD_MB)"
+            )
+        if declared > RATIO_FLOOR_BYTES and declared > MAX_COMPRESSION_RATIO * max(
+            info.compress_size, 1
+        ):
+            raise BundleError(
+                f"{entry.path} unpacks to {declared} bytes from {info.compress_size}: more than "
+                f"{MAX_COMPRESSION_RATIO} times, no file teachpath writes compresses so well"
             )
         total += entry.size
     if total > max_bytes:

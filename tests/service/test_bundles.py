@@ -558,3 +558,42 @@ def test_a_service_starting_during_an_import_leaves_the_files_it_writes(tmp_path
     with TestClient(create_app(settings), headers=AUTH):
         pass
     assert not pending.exists()
+
+
+def _zeros_npz(megabytes: int) -> bytes:
+    """An honest npz (members stored, headers true) of zeros: tiny once the bundle deflates it."""
+    return _npz({"points_m": np.zeros((megabytes * (1 << 20) // 24, 3))})
+
+
+def test_a_member_that_unpacks_far_beyond_its_compressed_size_is_refused(source, tmp_path):
+    """A 1.6 MB bundle held a 1.5 GB array: every check passed (the npz's headers were true)
+    and the server went to 3.3 GB. Now no member unpacks to over 100x its compressed size."""
+    bomb = _recomputed(
+        source["zip"],
+        lambda e, m: e.update({_first(m, "scan")["data"]["path"]: _zeros_npz(60)}),
+    )
+    assert len(bomb) < len(source["zip"]) + 1_000_000  # 60 MB in well under 1 MB more
+    target = tmp_path / "target"
+    before = _state(target) if target.exists() else None
+    with pytest.raises(BundleError, match="more than 100 times"):
+        import_bundle(_store(target), bomb)
+    assert before is None or _state(target) == before
+    assert _store(target).sessions() == []
+
+
+def test_the_service_holds_each_file_of_a_bundle_to_the_upload_limit(source, tmp_path):
+    """Imported through the API, a file larger than an upload may be is refused, naming the
+    setting (the test server's limit is 5 MB)."""
+    rng = np.random.default_rng(0)
+    # 7 MB unpacked that deflates about 20x: under the request's 5 MB, within the ratio.
+    big = _npz({"points_m": rng.integers(0, 4, size=(300_000, 3)).astype(np.float64)})
+    bundle = _recomputed(
+        source["zip"], lambda e, m: e.update({_first(m, "scan")["data"]["path"]: big})
+    )
+    with TestClient(create_app(make_settings(tmp_path / "d")), headers=AUTH) as client:
+        response = client.post(
+            "/sessions/import", files={"file": ("s.zip", bundle, "application/zip")}
+        )
+        assert response.status_code == 422, response.text
+        assert "TEACHPATH_MAX_UPLOAD_MB" in response.json()["message"]
+        assert client.get("/sessions").json() == []
