@@ -33,12 +33,16 @@ class LiveRunners:
         Execution id -> job id, for every execution started by this process.
     captures : dict of str to CaptureRunner
         Captures by capture id, while they run.
+    event_streams : int
+        Open ``/robot/events`` streams.
     """
 
     executions: dict = field(default_factory=dict)
     execution_jobs: dict[str, str] = field(default_factory=dict)
     captures: dict = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
+    #: Open ``/robot/events`` streams (changed on the event loop only).
+    event_streams: int = 0
 
     def stop_all(self) -> None:
         """Stop every arm and capture (at shutdown)."""

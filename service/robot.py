@@ -129,6 +129,12 @@ class RobotWatch:
         with self._lock:
             return self._reading
 
+    @property
+    def version(self) -> int:
+        """How many times the state has changed (a plain read: for the event loop, which must
+        not wait on the watch's lock)."""
+        return self._version
+
     def wait_change(self, version: int, timeout_s: float) -> tuple[int, Reading]:
         """Block until the state differs from ``version`` (or the timeout); returns the new
         version and reading."""

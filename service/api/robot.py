@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 
 from fastapi import APIRouter
-from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
 from service.api.deps import ServicesDep
+from service.errors import ApiError
 from service.executions import arm_owner
 from service.schemas import RobotOut
 
@@ -16,11 +17,23 @@ router = APIRouter(prefix="/robot", tags=["robot"])
 
 #: How long the event stream waits for a change before it repeats the state (a keep-alive).
 KEEPALIVE_S = 5.0
+#: How often a stream looks whether the state changed (on the event loop: no thread is held).
+EVENT_POLL_S = 0.05
+#: Open event streams at most (one token serves every pendant of a cell; a page holds one).
+MAX_EVENT_STREAMS = 64
 
 
 def _view(services) -> dict:
     with services.live.lock:
         owner = arm_owner(services)
+    return services.robot.view(owner)
+
+
+def _view_now(services) -> dict:
+    """The view, for the event loop: the owner from a copy of the runners (a C-level copy under
+    the GIL) instead of the lock a starting execution holds while it reads the arm."""
+    runners = dict(services.live.executions)
+    owner = next((eid for eid, runner in runners.items() if runner.running), None)
     return services.robot.view(owner)
 
 
@@ -37,16 +50,33 @@ def robot_state(services: ServicesDep) -> dict:
     responses={200: {"content": {"text/event-stream": {}}}},
 )
 async def robot_events(services: ServicesDep) -> StreamingResponse:
-    """Server-sent events: the arm's state each time it changes (and every few seconds)."""
+    """Server-sent events: the arm's state each time it changes (and every few seconds). At
+    most 64 streams are open at once (429 beyond): each is a coroutine on the event loop that
+    reads the one watch of the arm, so no stream holds a thread an ordinary request needs."""
+    live = services.live
+    if live.event_streams >= MAX_EVENT_STREAMS:
+        raise ApiError(
+            429,
+            "too_many_streams",
+            f"{MAX_EVENT_STREAMS} event streams are open already: close a pendant, or poll "
+            "GET /robot",
+        )
 
     async def stream():
+        live.event_streams += 1  # counted while it runs (on the event loop: no lock needed)
+        loop = asyncio.get_running_loop()
         version = -1
-        while True:
-            # Returns on a change, or after KEEPALIVE_S: either way the page gets the state.
-            version, _ = await run_in_threadpool(services.robot.wait_change, version, KEEPALIVE_S)
-            view = await run_in_threadpool(_view, services)
-            body = RobotOut.model_validate(view).model_dump(mode="json")
-            yield f"event: robot\ndata: {json.dumps(body)}\n\n"
+        try:
+            while True:
+                # On a change, or after KEEPALIVE_S: either way the page gets the state.
+                deadline = loop.time() + KEEPALIVE_S
+                while services.robot.version == version and loop.time() < deadline:
+                    await asyncio.sleep(EVENT_POLL_S)
+                version = services.robot.version
+                body = RobotOut.model_validate(_view_now(services)).model_dump(mode="json")
+                yield f"event: robot\ndata: {json.dumps(body)}\n\n"
+        finally:
+            live.event_streams -= 1
 
     return StreamingResponse(
         stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
