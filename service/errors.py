@@ -8,8 +8,11 @@ logged on the server).
 
 from __future__ import annotations
 
+import errno
 import logging
+import time
 
+import sqlalchemy.exc
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
@@ -22,7 +25,40 @@ from service.store import SessionDeletedError, StorageError
 
 #: A 422 lists at most this many problems (a document with 20,000 unknown keys has as many).
 MAX_LISTED_PROBLEMS = 20
+#: A storage fault (a full disk, a busy database) is answered 503 with this Retry-After (s),
+#: and keeps ``/health`` degraded for :data:`STORAGE_FAULT_WINDOW_S` after it was last seen.
+STORAGE_RETRY_AFTER_S = 10
+STORAGE_FAULT_WINDOW_S = 30.0
 log = logging.getLogger("teachpath.service")
+
+#: code -> when it was last seen (time.monotonic()), for /health.
+_storage_faults: dict[str, float] = {}
+
+
+def storage_fault(error: BaseException) -> tuple[str, str] | None:
+    """``(code, message)`` when ``error`` is the server's storage failing for a while (a full
+    disk, a locked database) rather than anything the request did; None otherwise."""
+    if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
+        return (
+            "storage_full",
+            "the server's disk is full: nothing was stored; free space in the data folder and "
+            f"retry (in {STORAGE_RETRY_AFTER_S} s)",
+        )
+    if isinstance(error, sqlalchemy.exc.OperationalError):
+        text = str(getattr(error, "orig", error)).lower()
+        if "locked" in text or "busy" in text or "could not obtain lock" in text:
+            return (
+                "database_busy",
+                "the database is busy (another process holds it): nothing was changed; retry "
+                f"in {STORAGE_RETRY_AFTER_S} s",
+            )
+    return None
+
+
+def recent_storage_faults(now_s: float | None = None) -> list[str]:
+    """The storage faults seen within the last :data:`STORAGE_FAULT_WINDOW_S` (for /health)."""
+    now_s = time.monotonic() if now_s is None else now_s
+    return sorted(c for c, at in _storage_faults.items() if now_s - at <= STORAGE_FAULT_WINDOW_S)
 
 
 class ApiError(Exception):
@@ -106,6 +142,10 @@ def classify(error: Exception) -> tuple[int, str]:
     """Status and code of an error (500 internal_error for anything unknown)."""
     if isinstance(error, ApiError):
         return error.status, error.code
+    fault = storage_fault(error)
+    if fault is not None:
+        _storage_faults[fault[0]] = time.monotonic()
+        return 503, fault[0]
     for cls, status, code in ERROR_MAP:
         if isinstance(error, cls):
             return status, code
@@ -121,6 +161,9 @@ def error_body(error: Exception) -> dict:
             "message": "internal error; the server log has the details",
             "detail": None,
         }
+    fault = storage_fault(error)
+    if fault is not None:
+        return {"code": fault[0], "message": fault[1], "detail": None}
     detail = getattr(error, "detail", None)
     return {"code": code, "message": str(error), "detail": detail}
 
@@ -200,7 +243,19 @@ def install(app: FastAPI) -> None:
         status, _ = classify(error)
         if status >= 500:
             log.error("error while serving %s %s: %s", request.method, request.url.path, error)
-        return respond(status, error_body(error))
+        headers = {"Retry-After": str(STORAGE_RETRY_AFTER_S)} if status == 503 else None
+        return respond(status, error_body(error), headers)
+
+    async def _storage_or_internal(request: Request, error: Exception):
+        # An OSError or a database error is the server's: a full disk or a busy database is a
+        # named 503 to retry; anything else a 500 (logged with its traceback).
+        if storage_fault(error) is not None:
+            return await _domain(request, error)
+        log.exception("error while serving %s %s", request.method, request.url.path)
+        return respond(500, error_body(error))
+
+    app.add_exception_handler(OSError, _storage_or_internal)
+    app.add_exception_handler(sqlalchemy.exc.OperationalError, _storage_or_internal)
 
     # Each mapped class gets its own handler: Starlette re-raises whatever reaches the
     # catch-all handler below after answering (it is for server errors).

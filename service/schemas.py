@@ -69,12 +69,19 @@ class ErrorBody(BaseModel):
 
 class Health(BaseModel):
     status: Literal["ok", "degraded"] = Field(
-        ..., description="degraded: a worker process died and its pool is being replaced"
+        ...,
+        description="degraded: a worker process died and its pool is being replaced, or the "
+        "storage failed lately (see problems)",
     )
     version: str
     versions: dict[str, str]
     robot_backends: dict[str, str]
-    jobs_running: int
+    jobs_running: int | None = Field(None, description="null while the database cannot be read")
+    problems: list[str] = Field(
+        default_factory=list,
+        description="what degrades the service now: worker_pool_replaced, storage_full, "
+        "database_busy",
+    )
 
 
 class SessionCreate(Strict):

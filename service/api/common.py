@@ -60,13 +60,28 @@ async def received(file: UploadFile, services) -> AsyncIterator[Upload]:
     limit = int(limit_mb * 1024 * 1024)
     if file.size is not None and file.size > limit:
         raise ApiError(413, "upload_too_large", f"the upload exceeds {limit_mb:g} MB")
-    with services.uploads.hold(min(file.size if file.size is not None else limit, limit)):
+    size = min(file.size if file.size is not None else limit, limit)
+    _require_room(services, size)
+    with services.uploads.hold(size):
         content = await file.read(limit + 1)
         if len(content) > limit:
             raise ApiError(413, "upload_too_large", f"the upload exceeds {limit_mb:g} MB")
         if not content:
             raise ApiError(422, "invalid_file", "the uploaded file is empty")
         yield Upload(content=content, filename=clean_filename(file.filename))
+
+
+def _require_room(services, size: int) -> None:
+    """503 ``storage_full`` when the data folder's disk has no room for an upload of ``size``
+    bytes and its arrays (kept twice over: the raw file and what it is parsed to), before the
+    upload is parsed: a parse that fails for the server's full disk is not the file's fault."""
+    import errno
+    import shutil
+
+    from service.api.health import MIN_FREE_BYTES
+
+    if shutil.disk_usage(services.store.data_dir).free < 2 * size + MIN_FREE_BYTES:
+        raise OSError(errno.ENOSPC, "no room in the data folder for this upload")
 
 
 def download(content: bytes | str, *, media_type: str, filename: str) -> Response:

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import functools
+import shutil
 from importlib import metadata
 
 from fastapi import APIRouter
 
 from service.api.deps import ServicesDep
+from service.errors import recent_storage_faults, storage_fault
 from service.schemas import Health
 
 router = APIRouter(prefix="/health", tags=["health"])
@@ -21,13 +23,35 @@ def _version(name: str) -> str:
         return "not installed"
 
 
+#: Less free space than this in the data folder is a full disk (an upload or a record would
+#: not fit).
+MIN_FREE_BYTES = 64 << 20
+
+
 @router.get("", response_model=Health)
 def health(services: ServicesDep) -> dict:
     """Liveness, versions and the robot backends' state. ``degraded`` while the worker pool is
-    being replaced after a worker died (jobs queue and run once it is back)."""
+    being replaced after a worker died (jobs queue and run once it is back), while the data
+    folder's disk is (nearly) full, and for 30 s after a request met a full disk or a busy
+    database (``problems`` names which)."""
     settings = services.settings
+    problems = ["worker_pool_replaced"] if services.jobs.degraded else []
+    problems += recent_storage_faults()
+    try:
+        if shutil.disk_usage(services.store.data_dir).free < MIN_FREE_BYTES:
+            problems.append("storage_full")
+    except OSError:
+        problems.append("storage_full")
+    try:
+        running = services.store.count_jobs("running")
+    except Exception as error:
+        fault = storage_fault(error)
+        problems.append(fault[0] if fault else "database_unreadable")
+        running = None
+    problems = sorted(set(problems))
     return {
-        "status": "degraded" if services.jobs.degraded else "ok",
+        "status": "degraded" if problems else "ok",
+        "problems": problems,
         "version": _version("teachpath"),
         "versions": {
             name: _version(name)
@@ -41,5 +65,5 @@ def health(services: ServicesDep) -> dict:
                 else "not configured"
             ),
         },
-        "jobs_running": services.store.count_jobs("running"),
+        "jobs_running": running,
     }
