@@ -12,10 +12,12 @@ Two things the reader checks that ezc3d does not say:
 
 * A truncated file: ezc3d returns the frames it could read and adjusts its frame count to match,
   so the count is compared with the file's own header and with the bytes present.
-* A header whose last-frame word disagrees with ``POINT:FRAMES`` (NDI's Optotrak software writes
-  frames 1-1149 in the header of a 29-frame file with ``POINT:FRAMES`` 29): the count that the
-  data section holds exactly is trusted, so such a file is read and a truncated one still
-  refused.
+* A header whose last-frame word disagrees with ``POINT:FRAMES``: the count that the data
+  section holds exactly is trusted, so such a file is read and a truncated one still refused.
+* A file that declares more frames than it holds but ends exactly after a complete frame, off a
+  512-byte block (NDI's Optotrak software: frames 1-1149 declared, 29 held, no padding): the
+  frames held are read and the reader's notes say so. A copy cut mid-frame or on a block is
+  refused as truncated.
 * Takes over 65535 frames: the header's frame numbers are 16-bit, so long files declare their
   length in ``POINT:LONG_FRAMES`` or ``TRIAL:ACTUAL_START_FIELD`` / ``ACTUAL_END_FIELD``. ezc3d
   1.7 stops at frame 65535 regardless; the remaining frames of a float-format (Intel) file are
@@ -76,6 +78,8 @@ class C3DTrace:
         The tracker's residual per sample (0 for interpolated samples); NaN where not seen.
     first_frame : int
         Number of the first frame (0-based), which ``t_s`` counts from.
+    notes : tuple of str
+        What the reader reconciled (a header that disagrees with the data it holds).
     """
 
     batch: SampleBatch
@@ -85,6 +89,7 @@ class C3DTrace:
     available: tuple[str, ...]
     residual_m: FloatArray
     first_frame: int = 0
+    notes: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.batch)
@@ -167,13 +172,16 @@ def read_c3d(
                 "export the take as C3D again, or as CSV"
             )
         parsed = _parse_in_child(path, marker, size, name)
+        notes: list[str] = []
         labels = tuple(str(label) for label in parsed["labels"])
         if "points" not in parsed:
             raise _no_marker(name, marker, labels)
         chosen = labels[int(parsed["index"])]
         points = parsed["points"]
         residuals = parsed["residuals"]
-        points, residuals = _check_frame_count(path, head, size, parsed, points, residuals, name)
+        points, residuals = _check_frame_count(
+            path, head, size, parsed, points, residuals, name, notes
+        )
 
     rate = float(parsed["rate"])
     if not (np.isfinite(rate) and rate > 0):
@@ -206,6 +214,7 @@ def read_c3d(
         available=labels,
         residual_m=np.where(seen, residuals * scale, np.nan),
         first_frame=first,
+        notes=tuple(notes),
     )
 
 
@@ -351,8 +360,11 @@ def _check_frame_count(
     points: np.ndarray,
     residuals: np.ndarray,
     name: str,
+    notes: list[str] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The marker's samples after checking that ezc3d read every frame the file holds."""
+    """The marker's samples after checking that ezc3d read every frame the file holds
+    (``notes`` receives what was reconciled on the way)."""
+    notes = [] if notes is None else notes
     n_read = len(points)
     layout = _raw_layout(head)
     if layout is None:
@@ -382,6 +394,24 @@ def _check_frame_count(
                 "use the CSV export"
             )
         return points, residuals
+    ends_on_a_frame = (
+        available is not None
+        and size % 512 != 0
+        and size == (layout.data_start - 1) * 512 + available * layout.frame_bytes
+    )
+    if available is not None and 0 < available < declared and ends_on_a_frame:
+        # The file ends exactly after its last complete frame, and not on a 512-byte block: an
+        # export of fewer frames than it declares (NDI's Optotrak software writes frames
+        # 1-1149 in the header and in POINT:FRAMES of a 29-frame file, unpadded), not a copy
+        # cut short (which ends mid-frame, or on a block as buffered copies do). Read what it
+        # holds and say so; a cut that happens to fall exactly on a frame is read the same way,
+        # and the note says what to do then.
+        notes.append(
+            f"the header says {declared} frames; the file holds {available} complete frames "
+            f"and ends there: the {available} were read (if the take was longer, the file was "
+            "cut: export it again)"
+        )
+        declared = available
     if available is not None and available < declared:
         raise InputFileError(
             f"{name} is truncated: it declares {declared} frames but holds {available}; copy or "

@@ -208,7 +208,15 @@ def read_motive_csv(
     table = header.columns
 
     assets = _Assets.of(table)
-    rigid_body, marker, kind = _choose(assets, rigid_body, marker, name)
+    try:
+        rigid_body, marker, kind = _choose(assets, rigid_body, marker, name)
+    except InputFileError as refusal:
+        if rigid_body or marker or assets.rigid_bodies or assets.bones or not assets.markers:
+            raise
+        # Only markers: say which of them moved, so that the pen's is easy to name.
+        raise InputFileError(
+            f"{refusal}. {_movement_ranking(raw, header, table, assets, scale, name)}"
+        ) from None
     cols = _columns_of(table, (kind,), rigid_body or marker, name)
     rotation_type = None
     if rigid_body is not None:
@@ -572,6 +580,41 @@ def _choose(
     kinds = assets.kinds[marker]
     kind = next(k for k in ("Marker", "Rigid Body Marker", "Bone Marker") if k in kinds)
     return None, marker, kind
+
+
+#: Markers whose movement is measured for a refusal that lists them (the rest are not named).
+_RANKED_MARKERS = 64
+
+
+def _movement_ranking(raw, header, table, assets: _Assets, scale: float, name: str) -> str:
+    """The markers ranked by how far they moved (the extent of what the cameras saw of each),
+    for a file that holds only markers: a pen's tip sweeps the path, the workpiece's markers
+    and stray reflections barely move."""
+    moved = []
+    for label in assets.markers[:_RANKED_MARKERS]:
+        kinds = assets.kinds[label]
+        kind = next(k for k in ("Marker", "Rigid Body Marker", "Bone Marker") if k in kinds)
+        cols = _columns_of(table, (kind,), label, name)
+        position_cols = [cols.get(("Position", axis)) for axis in "XYZ"]
+        if None in position_cols:
+            continue
+        data = _parse_body(raw, header.body_start, header.body_line, position_cols, table, name)
+        seen = np.isfinite(data).all(axis=1)
+        if not seen.any():
+            moved.append((0.0, 0.0, label))
+            continue
+        extent_mm = float(np.linalg.norm(np.ptp(data[seen], axis=0))) * scale * 1e3
+        moved.append((extent_mm, float(seen.mean()), label))
+    moved.sort(reverse=True)
+    listed = ", ".join(
+        f"{label} {extent:.0f} mm (seen in {share * 100:.0f} % of frames)"
+        for extent, share, label in moved[:5]
+    )
+    still = [label for extent, _, label in moved if extent < 5.0]
+    text = f"The markers that moved most: {listed}"
+    if still:
+        text += f"; {len(still)} moved less than 5 mm (not a pen tracing a path)"
+    return text + "."
 
 
 def _which_one(assets: _Assets, name: str) -> InputFileError:

@@ -440,6 +440,8 @@ def read_c3d_raw(
 
     trace = read_c3d(source, marker=marker, units=units, name=name)
     meta = {"units": trace.units, "marker": trace.marker, "markers": list(trace.available)}
+    if trace.notes:
+        meta["notes"] = list(trace.notes)
     return RawTrace(batch=trace.batch, format="c3d", rate_hz=trace.rate_hz, meta=meta)
 
 

@@ -190,13 +190,18 @@ def test_a_header_frame_range_that_disagrees_with_point_frames(tmp_path):
     assert len(trace) == 29 and trace.batch.valid.all()
     np.testing.assert_allclose(trace.batch.position_m, pos[:, 0], atol=ATOL_M)
     np.testing.assert_allclose(trace.batch.t_s, t, atol=1e-12)
-    # Real truncation stays detected: 20 of the 29 frames (16 bytes each) left.
+    # Real truncation stays detected: cut mid-frame (20 of the 29 frames, 16 bytes each, and a
+    # few bytes of the next), or on a 512-byte block as a buffered copy stops.
     data_start = (struct.unpack("<H", content[16:18])[0] - 1) * 512
     with pytest.raises(
         InputFileError,
         match=r"ndi.c3d is truncated: it declares 29 frames \(POINT:FRAMES; its header says "
         r"1149\) but holds 20",
     ):
-        read_c3d(ndi[: data_start + 20 * 16], name="ndi.c3d")
+        read_c3d(ndi[: data_start + 20 * 16 + 7], name="ndi.c3d")
     with pytest.raises(InputFileError, match="truncated: it declares 29 frames but holds 20"):
-        read_c3d(content[: data_start + 20 * 16], name="ndi.c3d")
+        read_c3d(content[: data_start + 20 * 16 + 7], name="ndi.c3d")
+    # Ending exactly after a frame, off a block, is how NDI writes a short export: the frames
+    # held are read, and the note says what to do if the take was longer.
+    short = read_c3d(content[: data_start + 20 * 16], name="ndi.c3d")
+    assert len(short) == 20 and "holds 20 complete frames" in short.notes[0]
