@@ -18,8 +18,9 @@ POSITION_COLUMNS = ("x", "y", "z")
 QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw")
 
 
-#: The most columns a trace CSV may have (a 200,000-column file held a parse slot for 300 s).
-MAX_COLUMNS = 256
+#: The most columns a trace CSV may have (a 200,000-column file held a parse slot for 300 s;
+#: a data logger's export of a few hundred channels is fine).
+MAX_COLUMNS = 1024
 
 
 def read_trace_csv(
