@@ -461,8 +461,10 @@ def test_an_upload_that_fails_while_stored_leaves_no_artifact(
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(services.store, "write_bytes", full_disk)
-    with pytest.raises(OSError, match="No space left"):  # the server's 500
-        client.put(f"/sessions/{sid}/recording", files={"file": ("t.csv", scene_files["trace"])})
+    full = client.put(f"/sessions/{sid}/recording", files={"file": ("t.csv", scene_files["trace"])})
+    # The server's storage, not the upload: a named 503 to retry (a 500 before).
+    assert full.status_code == 503 and full.json()["code"] == "storage_full", full.text
+    assert "Retry-After" in full.headers
     assert snapshot(client, sid) == before  # no recording listed, the session's is the same
     assert set((services.store.data_dir / "arrays").iterdir()) == arrays_before
     assert set((services.store.data_dir / "uploads").iterdir()) == uploads_before
