@@ -237,7 +237,7 @@ def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> Cell
             clearance_m=trajectory.params.get("clearance_m", PlanParams.clearance_m),
         )
         T_flange_tcp = transform_from_pose(np.asarray(tool[0], dtype=np.float64))
-        T_base_tracker = summary.get("T_base_tracker")
+        T_base_tracker = _placement_here(store, trajectory, summary.get("T_base_tracker"))
         cell = cell_for(
             scan,
             T_scan_tracker,
@@ -256,6 +256,38 @@ def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> Cell
         tool_radius_m=params.tool_radius_m,
         clearance_m=params.clearance_m,
     )
+
+
+#: A trajectory's tracker-to-base transform may differ from its session's by this much and
+#: still be the same calibration (rounding of a stored copy), metres and radians.
+SAME_PLACEMENT_M, SAME_PLACEMENT_RAD = 1e-4, 1e-4
+
+
+def _placement_here(store, trajectory: ArtifactRow, planned_with):
+    """The tracker-to-base transform the motion is checked with: the session's calibration in
+    this cell. A plan made with another one (a recalibrated cell, or a forged copy that moves the
+    workpiece away from the motion) is refused: the scan would be checked in the wrong place.
+
+    Raises
+    ------
+    CellUnknown
+    """
+    session = store.session(trajectory.session_id)
+    here = None if session is None else session.T_base_tracker
+    if here is None:
+        return planned_with  # no calibration here: the plan's own, as the plan was checked
+    here = np.asarray(here, dtype=np.float64)
+    if planned_with is not None:
+        planned = np.asarray(planned_with, dtype=np.float64)
+        moved_m = float(np.linalg.norm(here[:3, 3] - planned[:3, 3]))
+        turn = np.clip((np.trace(here[:3, :3].T @ planned[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+        if moved_m > SAME_PLACEMENT_M or float(np.arccos(turn)) > SAME_PLACEMENT_RAD:
+            raise CellUnknown(
+                f"trajectory {trajectory.id} was planned with another tracker-to-base "
+                f"calibration than this session's ({moved_m * 1e3:.1f} mm, "
+                f"{np.degrees(np.arccos(turn)):.2f} deg apart): plan it again here"
+            )
+    return here
 
 
 def _tool_of(trajectory: ArtifactRow) -> tuple:

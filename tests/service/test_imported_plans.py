@@ -164,3 +164,18 @@ def test_an_imported_dry_run_does_not_count_and_one_made_here_does(bundle, tmp_p
         # Past every check of the gate: only the arm's state, unknown at 127.0.0.9, is left.
         response = _run(client, sid, bundle["trajectory_id"])
     assert response.status_code == 409 and response.json()["code"] == "robot_unavailable"
+
+
+def test_a_plan_made_with_another_calibration_than_the_sessions_is_refused(bundle, tmp_path):
+    """The workpiece is checked where this cell's calibration puts it: a plan made with another
+    tracker-to-base transform (the cell recalibrated since, or a forged copy that moves the
+    workpiece away from the motion) is refused, not checked in the wrong place."""
+    with _site_b(tmp_path, max_speed_m_s=0.25) as client:
+        sid = _import(client, bundle["zip"])
+        calibration = np.array(client.get(f"/sessions/{sid}").json()["T_base_tracker"])
+        calibration[0, 3] += 0.05  # recalibrated: the tracker 50 mm elsewhere
+        client.put(f"/sessions/{sid}/calibration", json={"T_base_tracker": calibration.tolist()})
+        response = _run(client, sid, bundle["trajectory_id"])
+    assert response.status_code == 409 and response.json()["code"] == "cell_unknown"
+    assert "another tracker-to-base calibration" in response.json()["message"]
+    assert "50.0 mm" in response.json()["message"]
