@@ -239,7 +239,11 @@ def test_the_watchdog_logs_a_command_that_never_finishes(caplog):
     thread = threading.Thread(target=watchdog.watch, args=(c, stop), kwargs={"period_s": 0.01})
     with caplog.at_level("WARNING", logger="fake_ur.watchdog"):
         thread.start()
-        time.sleep(0.1)
+        # Until the watchdog has looked (a busy machine may not run its thread for a while):
+        # no fixed sleep, only a bound on waiting for the warning.
+        deadline = time.monotonic() + 30.0
+        while "stuck command" not in caplog.text and time.monotonic() < deadline:
+            time.sleep(0.01)
         stop.set()
         thread.join()
     assert "stuck command: move" in caplog.text
