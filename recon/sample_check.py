@@ -67,6 +67,7 @@ def sample_problems(
     tcp_speed_max_m_s: float,
     T_flange_tcp: FloatArray,
     rate_hz: float | None = None,
+    tcp_m: FloatArray | None = None,
 ) -> list[SampleProblem]:
     """Every limit the samples break (the first sample of each), or an empty list.
 
@@ -85,6 +86,9 @@ def sample_problems(
         The TCP the controller will be given, in the flange frame.
     rate_hz : float, optional
         The rate the samples are sent at (default the arm's control rate).
+    tcp_m : ndarray of shape (K, 3), optional
+        The TCP positions of the samples (forward kinematics with ``T_flange_tcp``), when the
+        caller has them already.
 
     Returns
     -------
@@ -132,34 +136,31 @@ def sample_problems(
         )
 
     speed = np.abs(np.diff(q, axis=0)) / period_s  # (K-1, 6), rad/s
-    ratio = speed / arm.qd_max_rad_s
-    if ratio.max() > 1.0 + SPEED_TOLERANCE:
-        i, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+    over = _first_over(speed, arm.qd_max_rad_s, SPEED_TOLERANCE)
+    if over is not None:
+        i, j, share = over
         problems.append(
             SampleProblem(
                 "speed",
-                int(i) + 1,
+                i + 1,
                 float(t[i + 1]),
-                f"joint {j + 1} moves at {speed[i, j]:.3f} rad/s, {ratio[i, j] * 100:.0f} % of "
+                f"joint {j + 1} moves at {speed[i, j]:.3f} rad/s, {share * 100:.0f} % of "
                 f"the {arm.name}'s {arm.qd_max_rad_s[j]:.3f} rad/s",
             )
         )
-
-    if len(q) >= 3:
-        acceleration = np.abs(np.diff(q, n=2, axis=0)) / period_s**2  # (K-2, 6), rad/s^2
-        ratio = acceleration / arm.qdd_max_rad_s2
-        if ratio.max() > 1.0 + ACCELERATION_TOLERANCE:
-            i, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
-            problems.append(
-                SampleProblem(
-                    "acceleration",
-                    int(i) + 1,
-                    float(t[i + 1]),
-                    f"joint {j + 1} accelerates at {acceleration[i, j]:.2f} rad/s^2, "
-                    f"{ratio[i, j] * 100:.0f} % of the {arm.qdd_max_rad_s2[j]:.2f} rad/s^2 "
-                    "planning limit",
-                )
+    acceleration = np.abs(np.diff(q, n=2, axis=0)) / period_s**2  # (K-2, 6), rad/s^2
+    over = _first_over(acceleration, arm.qdd_max_rad_s2, ACCELERATION_TOLERANCE)
+    if over is not None:
+        i, j, share = over
+        problems.append(
+            SampleProblem(
+                "acceleration",
+                i + 1,
+                float(t[i + 1]),
+                f"joint {j + 1} accelerates at {acceleration[i, j]:.2f} rad/s^2, "
+                f"{share * 100:.0f} % of the {arm.qdd_max_rad_s2[j]:.2f} rad/s^2 planning limit",
             )
+        )
 
     rest_step = REST_FACTOR * arm.qdd_max_rad_s2 * period_s**2
     for where, step, sample in (("starts", q[1] - q[0], 0), ("ends", q[-1] - q[-2], len(q) - 1)):
@@ -175,7 +176,9 @@ def sample_problems(
                 )
             )
 
-    tcp_speed = tcp_speeds_m_s(arm, q, T_flange_tcp=T_flange_tcp, rate_hz=1.0 / period_s)
+    tcp_speed = tcp_speeds_m_s(
+        arm, q, T_flange_tcp=T_flange_tcp, rate_hz=1.0 / period_s, tcp_m=tcp_m
+    )
     if tcp_speed.max() > tcp_speed_max_m_s * (1.0 + SPEED_TOLERANCE):
         i = int(np.argmax(tcp_speed))
         problems.append(
@@ -190,13 +193,36 @@ def sample_problems(
     return problems
 
 
-def tcp_speeds_m_s(
-    arm: URModel, q_rad: FloatArray, *, T_flange_tcp: FloatArray, rate_hz: float | None = None
-) -> FloatArray:
-    """The TCP's speed between consecutive samples, m/s, shape (K-1,)."""
-    period_s = 1.0 / float(rate_hz or arm.control_rate_hz)
+def _first_over(values: FloatArray, limit: FloatArray, tolerance: float):
+    """``(row, joint, share of the limit)`` of the largest value above ``limit * (1 +
+    tolerance)`` in ``values`` (R, 6), or None (also for no rows)."""
+    if len(values) == 0:
+        return None
+    ratio = values / limit
+    i, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+    if ratio[i, j] <= 1.0 + tolerance:
+        return None
+    return int(i), int(j), float(ratio[i, j])
+
+
+def tcp_positions_m(arm: URModel, q_rad: FloatArray, T_flange_tcp: FloatArray) -> FloatArray:
+    """The TCP's position at each sample (forward kinematics), shape (K, 3), metres."""
     q = np.asarray(q_rad, dtype=np.float64)
-    tcp = (kinematics.forward(arm, q) @ np.asarray(T_flange_tcp, dtype=np.float64))[:, :3, 3]
+    return (kinematics.forward(arm, q) @ np.asarray(T_flange_tcp, dtype=np.float64))[:, :3, 3]
+
+
+def tcp_speeds_m_s(
+    arm: URModel,
+    q_rad: FloatArray,
+    *,
+    T_flange_tcp: FloatArray | None = None,
+    rate_hz: float | None = None,
+    tcp_m: FloatArray | None = None,
+) -> FloatArray:
+    """The TCP's speed between consecutive samples, m/s, shape (K-1,): from ``tcp_m`` (K, 3)
+    when the caller has the positions, else by forward kinematics with ``T_flange_tcp``."""
+    period_s = 1.0 / float(rate_hz or arm.control_rate_hz)
+    tcp = tcp_positions_m(arm, q_rad, T_flange_tcp) if tcp_m is None else tcp_m
     return np.linalg.norm(np.diff(tcp, axis=0), axis=1) / period_s
 
 

@@ -163,6 +163,13 @@ class CheckedHere:
     fastest_tcp_m_s: float
 
 
+def _require_arm(settings: Settings) -> None:
+    if settings.ur_host is None:
+        raise NoRobotConfigured(
+            "no real arm is configured (TEACHPATH_UR_HOST); use backend 'sim' for a dry run"
+        )
+
+
 def check_request(settings: Settings, *, confirm: bool) -> None:
     """The cheap checks first: a real arm is configured and the request confirms the motion.
 
@@ -170,10 +177,7 @@ def check_request(settings: Settings, *, confirm: bool) -> None:
     ------
     NoRobotConfigured, ConfirmationRequired
     """
-    if settings.ur_host is None:
-        raise NoRobotConfigured(
-            "no real arm is configured (TEACHPATH_UR_HOST); use backend 'sim' for a dry run"
-        )
+    _require_arm(settings)
     if confirm is not True:
         raise ConfirmationRequired('moving a real arm needs "confirm": true in the request')
 
@@ -203,13 +207,10 @@ def check_here(
     CollidesHere
     """
     from recon.plan import check_cell
-    from recon.sample_check import sample_problems, tcp_speeds_m_s
+    from recon.sample_check import sample_problems, tcp_positions_m, tcp_speeds_m_s
     from recon.types import PlanParams
 
-    if settings.ur_host is None:
-        raise NoRobotConfigured(
-            "no real arm is configured (TEACHPATH_UR_HOST); use backend 'sim' for a dry run"
-        )
+    _require_arm(settings)
     summary = trajectory_summary(trajectory)
     if summary.robot != settings.ur_robot or loaded.robot != settings.ur_robot:
         raise TrajectoryForAnotherRobot(
@@ -223,12 +224,15 @@ def check_here(
             f"{settings.max_speed_m_s} m/s on a real arm"
         )
     arm_model = kinematics.model(settings.ur_robot)
+    # The TCP's positions once: for the speed cap, the contact zone and the fastest speed.
+    tcp_m = tcp_positions_m(arm_model, loaded.q_rad, here.T_flange_tcp)
     problems = sample_problems(
         arm_model,
         loaded.t_s,
         loaded.q_rad,
         tcp_speed_max_m_s=settings.max_speed_m_s,
         T_flange_tcp=here.T_flange_tcp,
+        tcp_m=tcp_m,
     )
     if problems:
         first = problems[0]
@@ -240,7 +244,6 @@ def check_here(
             f"at most {settings.max_speed_m_s} m/s)",
             detail={"checks": [p.check for p in problems], "sample": first.sample},
         )
-    tcp_m = (kinematics.forward(arm_model, loaded.q_rad) @ here.T_flange_tcp)[:, :3, 3]
     as_sent = replace(loaded, tcp_m=tcp_m)  # the contact zone from the samples, not a stored copy
     params = PlanParams(
         robot=settings.ur_robot,
@@ -266,9 +269,7 @@ def check_here(
         trajectory=loaded,
         summary=summary,
         min_clearance_m=float(np.min(report.clearance_m)),
-        fastest_tcp_m_s=float(
-            np.max(tcp_speeds_m_s(arm_model, loaded.q_rad, T_flange_tcp=here.T_flange_tcp))
-        ),
+        fastest_tcp_m_s=float(np.max(tcp_speeds_m_s(arm_model, loaded.q_rad, tcp_m=tcp_m))),
     )
 
 

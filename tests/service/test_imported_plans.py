@@ -8,10 +8,8 @@ refused for what it found, and nothing is ever sent.
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
-import zipfile
 
 import numpy as np
 import pytest
@@ -22,6 +20,7 @@ from recon.kinematics import HOME_Q_RAD
 from service.app import create_app
 from service.bundles import MANIFEST_NAME
 from tests.service.conftest import AUTH, make_settings, planned_session, wait
+from tests.service.test_bundles import _entries, _npz, _recomputed
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -41,19 +40,6 @@ def bundle(tmp_path_factory, scene_files):
         assert wait(a, dry.json())["result"]["completed"]
         content = a.get(f"/sessions/{sid}/bundle").content
     return {"zip": content, "sid": sid, "trajectory_id": trajectory_id}
-
-
-def _entries(content: bytes) -> dict[str, bytes]:
-    with zipfile.ZipFile(io.BytesIO(content)) as archive:
-        return {info.filename: archive.read(info) for info in archive.infolist()}
-
-
-def _rezip(entries: dict[str, bytes]) -> bytes:
-    out = io.BytesIO()
-    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as archive:
-        for name, data in entries.items():
-            archive.writestr(name, data)
-    return out.getvalue()
 
 
 def _trajectory_arrays(content: bytes, trajectory_id: str) -> tuple[str, dict]:
@@ -83,17 +69,7 @@ def _forged(content: bytes, trajectory_id: str, factor: float) -> bytes:
             resampled[name] = values[np.searchsorted(t, grid).clip(0, len(t) - 1)]
         else:
             resampled[name] = np.interp(grid, t, values)
-    entries = _entries(content)
-    out = io.BytesIO()
-    np.savez(out, **resampled)
-    entries[path] = out.getvalue()
-    manifest = json.loads(entries[MANIFEST_NAME])
-    for artifact in manifest["artifacts"]:
-        for entry in [artifact["data"], *artifact["files"]]:
-            entry["sha256"] = hashlib.sha256(entries[entry["path"]]).hexdigest()
-            entry["size"] = len(entries[entry["path"]])
-    entries[MANIFEST_NAME] = json.dumps(manifest).encode()
-    return _rezip(entries)
+    return _recomputed(content, lambda entries, manifest: entries.update({path: _npz(resampled)}))
 
 
 def _site_b(tmp_path, **settings):

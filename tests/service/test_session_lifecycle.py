@@ -14,6 +14,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.capture_runner import HEADER
+from service.store import FINISHED
 from tests.service.conftest import AUTH, ON_POSTGRES, make_settings
 from tests.service.job_targets import Pid, Sleep
 
@@ -25,6 +26,14 @@ def _until(predicate, timeout_s=30.0, what="the condition"):
             return value
         time.sleep(0.05)
     raise AssertionError(f"{what} did not happen within {timeout_s} s")
+
+
+def _finished(client, job_id: str, *, what: str) -> dict:
+    """The job once it has finished (bounded wait)."""
+    return _until(
+        lambda: (r := client.get(f"/jobs/{job_id}").json())["state"] in FINISHED and r,
+        what=what,
+    )
 
 
 @pytest.fixture
@@ -259,14 +268,7 @@ def test_a_dry_run_stopped_while_it_runs_ends_cancelled_and_never_counts(app_cli
     _until(pid_file.exists, what="the dry run starting")
     stopped = client.post("/executions/exe_stopped00001/stop")
     assert stopped.status_code == 200 and stopped.json()["already_ended"] is False
-    row = _until(
-        lambda: (
-            (r := client.get(f"/jobs/{job.id}").json())["state"]
-            in ("succeeded", "failed", "cancelled")
-            and r
-        ),
-        what="the dry run ending",
-    )
+    row = _finished(client, job.id, what="the dry run ending")
     assert row["state"] == "cancelled" and row["error"]["code"] == "stopped", row
     assert recorded == []  # never recorded, so never a passed dry run
 
@@ -287,12 +289,5 @@ def test_cancelling_a_running_execution_stops_it_instead_of_saying_it_finished(
     _until(pid_file.exists, what="the execution starting")
     answer = client.post(f"/jobs/{job.id}/cancel")
     assert answer.status_code == 200, answer.text
-    row = _until(
-        lambda: (
-            (r := client.get(f"/jobs/{job.id}").json())["state"]
-            in ("succeeded", "failed", "cancelled")
-            and r
-        ),
-        what="the execution ending",
-    )
+    row = _finished(client, job.id, what="the execution ending")
     assert row["state"] == "cancelled"
