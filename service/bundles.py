@@ -30,6 +30,7 @@ import secrets
 import threading
 import zipfile
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -65,6 +66,13 @@ SESSION_ID = re.compile(rf"ses_{_HEX}")
 _FILE_PATTERNS = ("arrays/{id}.npz", "arrays/{id}.png")
 #: An upload's kept name (``service.uploads.storage_name``): never a dot-file, which export skips.
 _UPLOAD_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,199}")
+
+
+#: Reads an artifact's raw upload again as an upload is read: (kind, params, bytes, file name)
+#: -> its arrays (see :func:`service.inputs.reread_upload`); raises what the reader says.
+Reread = Callable[[str, dict, bytes, str], dict]
+#: The kinds whose artifacts keep the file they were read from (and only one).
+UPLOAD_KINDS = ("recording", "touches", "scan")
 
 
 class BundleError(ValueError):
@@ -369,6 +377,7 @@ def import_bundle(
     *,
     max_bytes: int = 8 << 30,
     max_file_bytes: int | None = None,
+    reread: Reread | None = None,
 ) -> ImportResult:
     """Import a session bundle into a data folder: all of it or nothing.
 
@@ -381,6 +390,10 @@ def import_bundle(
     max_file_bytes : int, optional
         The largest size of any one file in it (the service passes its upload limit: an array or
         a raw upload that came in a bundle is held to the limit of one that is uploaded).
+    reread : callable, optional
+        Reads each raw upload again, as an upload of it would be read (the service passes its
+        readers and limits); the arrays it gives must be the bundle's own, bit for bit. Without
+        it, raw uploads are only checked against their checksums.
 
     Raises
     ------
@@ -405,7 +418,7 @@ def import_bundle(
             existing = _existing(store, manifest)
             if existing is not None:
                 return existing
-            written = _unpack(store, bundle, files, manifest, still_here)
+            written = _unpack(store, bundle, files, manifest, still_here, reread)
             try:
                 _record(store, manifest)
             except IntegrityError:
@@ -428,6 +441,41 @@ def import_bundle(
         n_artifacts=len(manifest.artifacts),
         n_files=len(files),
         n_bytes=sum(entry.size for entry in files),
+    )
+
+
+#: A bundle may unpack to this many uploads' worth of files in all (each file at most one
+#: upload's worth): a 2.5 MB bundle unpacked to 2 GB under the old 8 GiB bound.
+BUNDLE_FILES = 8
+
+
+def import_under(store: Store, source: Path | bytes | BinaryIO, settings) -> ImportResult:
+    """Import a bundle as this server takes one (the service and the CLI alike): each file held
+    to the upload limit (``settings.max_upload_mb``), the whole to :data:`BUNDLE_FILES` times
+    that, and each raw upload read again by the readers and limits of an upload.
+
+    Parameters
+    ----------
+    store : Store
+    source : path, bytes or binary file
+    settings : service.settings.Settings
+
+    Raises
+    ------
+    BundleError, BundleConflictError
+        See :func:`import_bundle`.
+    """
+    from functools import partial
+
+    from service.inputs import reread_upload
+
+    limit = int(settings.max_upload_mb * 1024 * 1024)
+    return import_bundle(
+        store,
+        source,
+        max_bytes=BUNDLE_FILES * limit,
+        max_file_bytes=limit,
+        reread=partial(reread_upload, settings),
     )
 
 
@@ -564,6 +612,12 @@ def _check_layout(
                 and _UPLOAD_NAME.fullmatch(upload[2])
             ):
                 raise BundleError(f"{entry.path!r} is not a file teachpath keeps for {artifact.id}")
+        n_uploads = sum(entry.path.startswith("uploads/") for entry in artifact.files)
+        if n_uploads > (1 if artifact.kind in UPLOAD_KINDS else 0):
+            raise BundleError(
+                f"{artifact.id} ({artifact.kind}) lists {n_uploads} uploaded files: a "
+                f"{artifact.kind} keeps {'one' if artifact.kind in UPLOAD_KINDS else 'none'}"
+            )
         files += [artifact.data, *artifact.files]
     paths = [entry.path for entry in files]
     if len(set(paths)) != len(paths):
@@ -649,6 +703,7 @@ def _unpack(
     files: list[FileEntry],
     manifest: Manifest,
     still_here=lambda: None,
+    reread: Reread | None = None,
 ) -> list[Path]:
     """Copy the files out under temporary names, checking each against its size and checksum
     and each artifact's arrays and summary against its kind, then rename them into place.
@@ -685,7 +740,7 @@ def _unpack(
         _remove(staged)
         raise
     try:
-        _check_contents(staged, files, manifest)
+        _check_contents(staged, files, manifest, reread, still_here)
     except BaseException:
         _remove(staged)
         raise
@@ -718,10 +773,16 @@ def _place(staged: list[tuple[Path, Path]], files: list[FileEntry]) -> list[Path
 
 
 def _check_contents(
-    staged: list[tuple[Path, Path]], files: list[FileEntry], manifest: Manifest
+    staged: list[tuple[Path, Path]],
+    files: list[FileEntry],
+    manifest: Manifest,
+    reread: Reread | None = None,
+    still_here=lambda: None,
 ) -> None:
-    """Each artifact's arrays and summary as its kind has them: a bundle whose checksums were
-    recomputed after an edit must not store what the service cannot read back."""
+    """Each artifact's arrays and summary as its kind has them, and its raw upload read again
+    into those very arrays: a bundle whose checksums were recomputed after an edit must not
+    store what the service cannot read back, nor a raw file that is not what the arrays came
+    from."""
     import numpy as np
 
     where = {entry.path: tmp for (tmp, _), entry in zip(staged, files, strict=True)}
@@ -739,6 +800,60 @@ def _check_contents(
                 f"{artifact.id} ({artifact.kind}) does not hold what a {artifact.kind} holds: "
                 f"{_first_error(exc) if isinstance(exc, ValidationError) else str(exc)[:200]}"
             ) from None
+        uploads = [entry for entry in artifact.files if entry.path.startswith("uploads/")]
+        if uploads and reread is not None:
+            _check_upload(artifact, uploads[0], where[uploads[0].path], arrays, reread, manifest)
+            still_here()
+
+
+def _check_upload(
+    artifact: ArtifactEntry,
+    upload: FileEntry,
+    raw_path: Path,
+    arrays: dict,
+    reread: Reread,
+    manifest: Manifest,
+) -> None:
+    """The raw upload read again as an upload (same readers, options and limits) gives the
+    artifact's arrays, bit for bit.
+
+    Raises
+    ------
+    BundleError
+    """
+    import numpy as np
+
+    name = upload.path.rsplit("/", 1)[-1]
+    try:
+        fresh = reread(artifact.kind, artifact.params, raw_path.read_bytes(), name)
+    except BundleError:
+        raise
+    except Exception as exc:  # noqa: BLE001 -- any reader's refusal refuses the bundle, said
+        raise BundleError(
+            f"{artifact.id}'s original file {name[:100]!r} cannot be read as an upload here: "
+            f"{str(exc)[:300]}"
+        ) from None
+    differs = sorted(
+        key
+        for key in set(arrays) | set(fresh)
+        if key not in arrays
+        or key not in fresh
+        or arrays[key].shape != fresh[key].shape
+        or arrays[key].dtype != fresh[key].dtype
+        or not np.array_equal(arrays[key], fresh[key], equal_nan=arrays[key].dtype.kind in "fc")
+    )
+    if differs:
+        older = manifest.teachpath_version != teachpath_version()
+        raise BundleError(
+            f"{artifact.id}'s arrays are not what its original file {name[:100]!r} reads as "
+            f"({', '.join(differs[:5])} differ): the bundle was altered"
+            + (
+                f", or teachpath {manifest.teachpath_version} that wrote it read the file "
+                "otherwise; upload the original file into a new session instead"
+                if older
+                else "; export it again"
+            )
+        )
 
 
 def _check_npz(path: Path) -> None:
@@ -798,6 +913,7 @@ def _record(store: Store, manifest: Manifest) -> None:
 
 
 __all__ = [
+    "BUNDLE_FILES",
     "BUNDLE_SCHEMA",
     "BundleReader",
     "BundleConflictError",

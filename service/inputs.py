@@ -106,17 +106,12 @@ async def add_recording(
     summary = await _parsed(
         services,
         artifact_id,
-        tasks.ParseRecording(
-            kind=kind,
-            content=upload.content,
-            filename=upload.filename,
-            format=options.format,
-            units=options.units,
-            rigid_body=options.rigid_body,
-            marker=options.marker,
+        trace_task(
+            services.settings,
+            kind,
+            upload,
+            options,
             tip_offset_m=tip,
-            piece=options.piece,
-            parse_limits=trace_parse_limits(services.settings),
             out_path=services.array_path(artifact_id),
         ),
     )
@@ -185,22 +180,16 @@ async def add_scan(
 ) -> ArtifactRow:
     """Parse an uploaded scan and make it the session's scan."""
     await run_in_threadpool(services.session, session_id)
-    settings = services.settings
-    # A client may lower the reader's resource limits, not raise them past the server's.
-    limits = {option: getattr(settings, name) for option, (name, _) in SCAN_LIMIT_SETTINGS.items()}
     artifact_id = new_id(ID_PREFIX["scan"])
     summary = await _parsed(
         services,
         artifact_id,
-        tasks.ParseScan(
-            content=upload.content,
-            filename=upload.filename,
+        scan_task(
+            services.settings,
+            upload,
             format=format,
             units=units,
             options=options,
-            limits=limits,
-            limit_names={option: env for option, (_, env) in SCAN_LIMIT_SETTINGS.items()},
-            parse_limits=scan_parse_limits(settings),
             out_path=services.array_path(artifact_id),
         ),
     )
@@ -208,6 +197,108 @@ async def add_scan(
     return await run_in_threadpool(
         _store_upload, services, session_id, "scan", artifact_id, upload, params, summary
     )
+
+
+def trace_task(
+    settings: Settings,
+    kind: str,
+    upload: Upload,
+    options: TraceOptions,
+    *,
+    tip_offset_m: tuple[float, float, float] | None,
+    out_path: str | None = None,
+) -> tasks.ParseRecording:
+    """The parse of a trace upload (``kind`` "recording" or "touches") within the settings'
+    limits."""
+    return tasks.ParseRecording(
+        kind=kind,
+        content=upload.content,
+        filename=upload.filename,
+        format=options.format,
+        units=options.units,
+        rigid_body=options.rigid_body,
+        marker=options.marker,
+        tip_offset_m=tip_offset_m,
+        piece=options.piece,
+        parse_limits=trace_parse_limits(settings),
+        out_path=out_path,
+    )
+
+
+def scan_task(
+    settings: Settings,
+    upload: Upload,
+    *,
+    format: str | None,
+    units: str,
+    options: dict | None,
+    out_path: str | None = None,
+) -> tasks.ParseScan:
+    """The parse of a scan upload within the settings' limits."""
+    return tasks.ParseScan(
+        content=upload.content,
+        filename=upload.filename,
+        format=format,
+        units=units,
+        options=options,
+        # A client may lower the reader's resource limits, not raise them past the server's.
+        limits={
+            option: getattr(settings, name) for option, (name, _) in SCAN_LIMIT_SETTINGS.items()
+        },
+        limit_names={option: env for option, (_, env) in SCAN_LIMIT_SETTINGS.items()},
+        parse_limits=scan_parse_limits(settings),
+        out_path=out_path,
+    )
+
+
+def reread_upload(
+    settings: Settings, kind: str, params: dict, content: bytes, filename: str
+) -> dict:
+    """An upload's arrays as reading its bytes again here gives them: the same readers, options
+    and limits (child process, memory, time) as an upload of that file. For files that come from
+    elsewhere (a bundle's raw uploads are held to what an upload is).
+
+    Parameters
+    ----------
+    settings : Settings
+    kind : {"recording", "touches", "scan"}
+    params : dict
+        The artifact's recorded reading options (format, units, marker, tip offset, ...).
+    content : bytes
+    filename : str
+
+    Returns
+    -------
+    dict of str to numpy.ndarray
+        The artifact's arrays as the reader gives them.
+
+    Raises
+    ------
+    InputFileError, ReconError, ValueError
+        What the reader says of the file (an unreadable one, a limit passed, options that are
+        not a reader's).
+    """
+    upload = Upload(content=content, filename=filename)
+    if kind == "scan":
+        task = scan_task(
+            settings,
+            upload,
+            format=params.get("format"),
+            units=params.get("units") or "m",
+            options=params.get("options"),
+        )
+    elif kind in ("recording", "touches"):
+        options = TraceOptions(
+            **{key: params.get(key) for key in ("format", "units", "rigid_body", "marker", "piece")}
+        )
+        tip = params.get("tip_offset_m")
+        task = trace_task(
+            settings, kind, upload, options, tip_offset_m=None if tip is None else tuple(tip)
+        )
+    else:
+        raise ValueError(f"a {kind} keeps no uploaded file")
+    arrays, _ = task.run()
+    return arrays
 
 
 def set_calibration(services: Services, session_id: str, request: CalibrationIn) -> SessionRow:

@@ -247,6 +247,10 @@ LINKS: dict[tuple[str, str, int], list[Link]] = {
         *_execution(body("session_id"), body("result/execution_id")),
         _stop_execution(body("params/execution_id")),
     ],
+    # An imported session: its lists lead to its imported plans and dry runs (never runnable on
+    # the arm as they came, see service/gate.py).
+    ("POST", "/sessions/import", 201): _session(body("session/id")),
+    ("POST", "/sessions/import", 200): _session(body("session/id")),
     ("POST", SESSION + "/captures", 201): _capture(body("session_id"), body("id")),
     ("GET", CAPTURE, 200): [
         *_capture(body("session_id"), body("id"))[1:],

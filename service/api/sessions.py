@@ -38,11 +38,6 @@ def list_sessions(services: ServicesDep):
     return services.store.sessions()
 
 
-#: A bundle may unpack to this many uploads' worth of files in all (each file at most one
-#: upload's worth): a 2.5 MB bundle unpacked to 2 GB under the old 8 GiB bound.
-BUNDLE_FILES = 8
-
-
 @router.post(
     "/import",
     status_code=201,
@@ -59,17 +54,13 @@ async def import_session(
     with the same content is left as it is (200, ``created`` false); one with the same id and
     other content is refused (409 ``bundle_conflict``). Each file in it is held to the upload
     limit, the whole to eight times that, and no member may unpack to over 100 times its
-    compressed size."""
-    from service.bundles import import_bundle
+    compressed size. Each raw upload in it is read again as an upload of it would be (the same
+    readers and limits) and must give the bundle's arrays."""
+    from service.bundles import import_under
 
     async with received(file, services) as upload:
-        limit = int(services.settings.max_upload_mb * 1024 * 1024)
         result = await run_in_threadpool(
-            import_bundle,
-            services.store,
-            upload.content,
-            max_bytes=BUNDLE_FILES * limit,
-            max_file_bytes=limit,
+            import_under, services.store, upload.content, services.settings
         )
     if not result.created:
         response.status_code = 200

@@ -44,11 +44,16 @@ def _data_dir(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data-dir", help="the service's data folder (default ./teachpath_data)")
 
 
-def _store(args: argparse.Namespace, *, must_exist: bool):
+def _settings(args: argparse.Namespace):
     from service.settings import Settings
+
+    return Settings(**({"data_dir": args.data_dir} if args.data_dir else {}))
+
+
+def _store(args: argparse.Namespace, *, must_exist: bool):
     from service.store import Store
 
-    settings = Settings(**({"data_dir": args.data_dir} if args.data_dir else {}))
+    settings = _settings(args)
     if (
         must_exist
         and not (settings.data_dir / "teachpath.db").is_file()
@@ -77,14 +82,15 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def run_import(args: argparse.Namespace) -> int:
-    from service.bundles import import_bundle
+    from service.bundles import import_under
 
     source = Path(args.bundle)
     if not source.is_file():
         raise ValueError(f"{source} is not a file")
     store = _store(args, must_exist=False)
     with source.open("rb") as handle:
-        result = import_bundle(store, handle)
+        # The limits and readers of the service's import: a bundle is no more trusted here.
+        result = import_under(store, handle, _settings(args))
     if result.created:
         print(
             f"imported session {result.session_id}: {result.n_artifacts} artifacts, "

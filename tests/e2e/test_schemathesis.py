@@ -9,6 +9,11 @@ type must be one the spec documents for the operation:
   (a session created, the session listed first, a job's result, an artifact listed) go into the
   next requests. The first session is seeded with a recording, a scan, a reconstruction, a
   trajectory and a dry run, so the chains reach real artifacts and finished jobs.
+
+The server's arm is the fake UR controller, so executions the fuzzer asks for on the arm reach
+the real-arm gate and the runner; and a session made elsewhere is imported as a bundle (with its
+plan and its passed dry run) before the runs, so the chains reach imported plans too. Whatever
+the runs did, no imported plan ever ran on the arm.
 """
 
 from __future__ import annotations
@@ -20,10 +25,17 @@ import subprocess
 import sys
 from pathlib import Path
 
+from fastapi.testclient import TestClient
+
 from service.api.links import LINKS
+from service.app import create_app
+from tests.drivers import fake_ur_fixture
 from tests.e2e.test_server_flow import TOKEN
 from tests.server_process import Server
-from tests.service.conftest import T_BASE_TRACKER
+from tests.service.conftest import AUTH, T_BASE_TRACKER, make_settings, planned_session
+
+fake_ur_process = fake_ur_fixture.fake_ur_process
+fake_ur = fake_ur_fixture.fake_ur
 
 #: Time budgets of the two runs (the whole test stays within about a minute and a half; the
 #: stateful run covered 56 links of 108 in 60 s, 25 are required).
@@ -111,6 +123,15 @@ def _seed(server: Server, scene_files) -> str:
     return sid
 
 
+def _bundle_from_elsewhere(folder: Path, scene_files) -> tuple[bytes, str]:
+    """A session planned and dry-run in another data folder, as a bundle; its id."""
+    with TestClient(create_app(make_settings(folder)), headers=AUTH) as client:
+        sid, trajectories = planned_session(client, scene_files, [0.05], name="from elsewhere")
+        dry = client.post(f"/sessions/{sid}/executions", json={"trajectory_id": trajectories[0.05]})
+        assert dry.status_code == 202, dry.text
+        return client.get(f"/sessions/{sid}/bundle").content, sid
+
+
 def _followed_links(report: Path) -> dict[str, collections.Counter]:
     """Link -> the statuses of the requests the stateful run made by following it."""
     followed: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
@@ -130,11 +151,23 @@ def _output(result) -> str:
     return result.stdout[-6000:] + result.stderr[-2000:]
 
 
-def test_no_server_errors_and_documented_responses(tmp_path, scene_files):
-    server = Server(tmp_path / "data", token=TOKEN)
+def test_no_server_errors_and_documented_responses(tmp_path, scene_files, fake_ur_process, fake_ur):
+    bundle, imported = _bundle_from_elsewhere(tmp_path / "elsewhere", scene_files)
+    server = Server(
+        tmp_path / "data",
+        token=TOKEN,
+        settings={"TEACHPATH_UR_HOST": fake_ur_process.host, "TEACHPATH_UR_ROBOT": "ur5e"},
+    )
     try:
-        # First, so it is the one `GET /sessions` lists first (its link's `0/id`).
+        # The fuzzer sends no valid bundle: the import is made here, first, so that the
+        # imported session (made earlier, elsewhere) is the one `GET /sessions` lists first and
+        # its link's `0/id` leads the chains to the imported plan and dry run.
+        response = server.client.post(
+            "/sessions/import", files={"file": ("elsewhere.zip", bundle, "application/zip")}
+        )
+        assert response.status_code == 201, response.text
         _seed(server, scene_files)
+        assert server.client.get("/sessions").json()[0]["id"] == imported
         fuzz = server.client.post("/sessions", json={"name": "fuzz"}).json()["id"]
 
         config = tmp_path / "stateless.toml"
@@ -188,6 +221,14 @@ def test_no_server_errors_and_documented_responses(tmp_path, scene_files):
             and "{artifact_id}" in link.rsplit(" -> ", 1)[-1]
         }
         assert found, (dict(followed), _output(result))
+        # The chains asked to run the imported plan, and it never ran on the arm: every
+        # execution of the imported session is a dry run (the bundle's, or one made here).
+        runs = [
+            link for link in followed if link.endswith("POST /sessions/{session_id}/executions")
+        ]
+        assert runs, dict(followed)
+        for execution in server.client.get(f"/sessions/{imported}/executions").json():
+            assert execution["summary"]["backend"] == "sim", execution
         # Shown with `pytest -s`: what the stateful run reached.
         print(f"stateful: {scenarios.group(1)} scenarios, links {covered}/{declared} covered")
         for link in sorted(followed):

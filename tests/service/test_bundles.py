@@ -597,3 +597,110 @@ def test_the_service_holds_each_file_of_a_bundle_to_the_upload_limit(source, tmp
         assert response.status_code == 422, response.text
         assert "TEACHPATH_MAX_UPLOAD_MB" in response.json()["message"]
         assert client.get("/sessions").json() == []
+
+
+def _upload_of(manifest, kind) -> str:
+    return next(
+        f["path"] for f in _first(manifest, kind)["files"] if f["path"].startswith("uploads/")
+    )
+
+
+def _shifted_trace(csv: bytes) -> bytes:
+    """The trace with its tenth sample moved by 1 mm: a valid file, not the one the arrays
+    came from."""
+    lines = csv.decode().splitlines(keepends=True)
+    header = next(i for i, line in enumerate(lines) if line[:1].isdigit() or line[:1] == "-")
+    fields = lines[header + 10].rstrip("\n").split(",")
+    fields[1] = repr(float(fields[1]) + 0.001)
+    lines[header + 10] = ",".join(fields) + "\n"
+    return "".join(lines).encode()
+
+
+RAW_UPLOAD_CASES = {
+    # A raw file that reads, but into other arrays than the bundle's: a forgery (or a mix-up).
+    "a trace that is not the arrays' trace": (
+        "recording",
+        lambda raw: _shifted_trace(raw),
+        "are not what its original file",
+    ),
+    "a scan that is not the arrays' scan": (
+        "scan",
+        lambda raw: raw[: len(raw) // 2],
+        "cannot be read as an upload here",
+    ),
+    "bytes no reader reads": (
+        "recording",
+        lambda raw: bytes(range(256)) * 64,
+        "cannot be read as an upload here",
+    ),
+    # Hostile: 200k columns held a parse slot 300 s; as a bundle's raw file it is read by the
+    # same reader, within the same bounds.
+    "a CSV of 200k columns": (
+        "recording",
+        lambda raw: (",".join(f"c{i}" for i in range(200_000)) + "\n").encode(),
+        "columns",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", RAW_UPLOAD_CASES)
+def test_a_raw_upload_in_a_bundle_is_read_again_as_an_upload_and_must_give_its_arrays(
+    source, tmp_path, case
+):
+    """A bundle's raw files were only checksummed: a forged bundle could carry any bytes as
+    "the original file". Each is read again by the upload's reader, options and limits, and
+    must give the bundle's own arrays; otherwise nothing is imported, and the reason is said."""
+    kind, edit, message = RAW_UPLOAD_CASES[case]
+
+    def swap(entries, manifest):
+        path = _upload_of(manifest, kind)
+        entries[path] = edit(entries[path])
+
+    forged = _recomputed(source["zip"], swap)
+    with TestClient(create_app(make_settings(tmp_path / "d")), headers=AUTH) as client:
+        response = client.post(
+            "/sessions/import", files={"file": ("s.zip", forged, "application/zip")}
+        )
+        assert response.status_code == 422, response.text
+        body = response.json()
+        assert body["code"] == "bundle_invalid"
+        assert message in body["message"], body["message"]
+        assert client.get("/sessions").json() == []
+    assert not list((tmp_path / "d" / "uploads").iterdir())
+    assert not list((tmp_path / "d" / "arrays").iterdir())
+
+
+def test_the_cli_reads_a_bundles_raw_uploads_again_too(source, tmp_path, capsys):
+    forged = _recomputed(
+        source["zip"],
+        lambda e, m: e.update(
+            {_upload_of(m, "recording"): _shifted_trace(e[_upload_of(m, "recording")])}
+        ),
+    )
+    bundle = tmp_path / "forged.zip"
+    bundle.write_bytes(forged)
+    assert main(["bundle", "import", str(bundle), "--data-dir", str(tmp_path / "cell")]) == 1
+    assert "are not what its original file" in capsys.readouterr().err
+    assert _store(tmp_path / "cell").sessions() == []
+
+
+def test_an_artifact_may_keep_one_raw_upload_and_only_if_its_kind_has_one(source, tmp_path):
+    def second_upload(entries, manifest):
+        artifact = _first(manifest, "recording")
+        path = f"uploads/{artifact['id']}/again.csv"
+        entries[path] = entries[_upload_of(manifest, "recording")]
+        artifact["files"].append({"path": path, "sha256": "0" * 64, "size": 0})
+
+    def upload_on_a_plan(entries, manifest):
+        artifact = _first(manifest, "trajectory")
+        path = f"uploads/{artifact['id']}/plan.csv"
+        entries[path] = b"t,x\n0,0\n"
+        artifact["files"].append({"path": path, "sha256": "0" * 64, "size": 0})
+
+    for edit, message in (
+        (second_upload, "lists 2 uploaded files"),
+        (upload_on_a_plan, "keeps none"),
+    ):
+        with pytest.raises(BundleError, match=message):
+            import_bundle(_store(tmp_path / "t"), _recomputed(source["zip"], edit))
+    assert _store(tmp_path / "t").sessions() == []
