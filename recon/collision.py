@@ -82,20 +82,26 @@ found by golden-section search to 1e-7 of the segment's length.
 Contact exemption
 -----------------
 During the process phase the tool touches the workpiece on purpose. Given a :class:`ContactZone`
-(the planned TCP positions of the process phase and a zone radius), the scan points within the
-*contact radius* of the process path are ignored for the tool during the process phase and during
-the last (approach) and first (retract) contact radius of TCP travel. The contact radius is
-``zone + tip radius + margin + tolerance``: the tool's tip (for a capsule tool, the half sphere of
-its radius around the TCP) necessarily lies that close to the surface it works on, and the check's
-own conservatism (:attr:`CollisionReport.tolerance_m`) must not turn the intended contact into a
-reported one. With the defaults (20 mm tool radius, 5 mm zone, 10 mm margin) that is about 43 mm:
-an upright tool on the path is clear, while a tool body that leans more than about 25 degrees
-still meets the surface outside that tube, as a real 20 mm rod would (give a thin tip as a
-:class:`SphereTool` for steep tools). Wrist 3 is exempted too when the tool is so short that
+(the planned TCP positions of the process phase, the tool's axis at each, and a zone radius), the
+scan points that are within the *contact radius* of the process path **and** no higher than the
+*contact band* above the tip (measured along the tool's axis there) are ignored for the tool
+during the process phase and during the last (approach) and first (retract) contact radius of
+TCP travel. The contact radius is ``zone + tip radius + margin + tolerance``: the tool's tip (for
+a capsule tool, the half sphere of its radius around the TCP) necessarily lies that close to the
+surface it works on, and the check's own conservatism (:attr:`CollisionReport.tolerance_m`) must
+not turn the intended contact into a reported one. The band is ``zone + margin + tolerance``
+(about 21 mm with the defaults), whatever the tool's radius: the surface the tip works on lies
+within it, a fixture that rises beside the path does not, and the tool's body is checked against
+that fixture in full (a 45 mm tool passed a clamp 20 mm beside the path while the whole tube,
+which grew with the tool, was exempt). What is lower than the band within the tube is taken for
+the workpiece. With the defaults (20 mm tool radius, 5 mm zone, 10 mm margin) the tube is about
+43 mm: an upright tool on the path is clear, while a tool body that leans more than about 25
+degrees still meets the surface outside that tube, as a real 20 mm rod would (give a thin tip as
+a :class:`SphereTool` for steep tools). Wrist 3 is exempted too when the tool is so short that
 wrist 3's capsule reaches within the contact radius of the TCP; wrist 2 and the links above never
-are. Everywhere else, and always for the other links, the scan counts in full (the exempt
-points are found around points of the path a quarter of the contact radius apart, so the tube
-exempted is never wider than stated).
+are. Everywhere else, and always for the other links, the scan counts in full (the exempt points
+are found around points of the path a quarter of the contact radius apart, so the tube exempted
+is never wider than stated).
 
 What is not checked: self-collision between links (tool against base, forearm against upper arm),
 cables and dress packs, and the payload; the arm is assumed to follow its samples (no overshoot).
@@ -749,12 +755,17 @@ def _voxel_downsample(points: FloatArray, voxel_m: float) -> tuple[FloatArray, f
 
 @dataclass(frozen=True)
 class ContactZone:
-    """Where the tool may touch the scanned workpiece: along the process path.
+    """Where the tool may touch the scanned workpiece: along the process path, on what lies no
+    higher than a band above the tip.
 
     Attributes
     ----------
     path_m : ndarray of shape (N, 3), metres, base frame
         The planned TCP positions of the process phase.
+    tool_axes : ndarray of shape (N, 3), base frame
+        At each of them, the unit vector from the TCP along the tool towards the flange:
+        heights above the tip are measured along it (a clamp that rises beside the path is not
+        the surface the tip works on).
     radius_m : float
         Tolerance of the contact around the path (the tool's tip radius and the margin are added,
         see the module docstring).
@@ -764,6 +775,7 @@ class ContactZone:
     """
 
     path_m: FloatArray
+    tool_axes: FloatArray
     radius_m: float = 0.005
     piece: NDArray | None = None
 
@@ -773,19 +785,79 @@ class ContactZone:
         p = np.array(self.path_m, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0 or not np.all(np.isfinite(p)):
             raise ValueError(f"contact path_m must be finite with shape (N, 3), got {p.shape}")
+        axes = np.array(self.tool_axes, dtype=np.float64)
+        if axes.shape != p.shape or not np.all(np.isfinite(axes)):
+            raise ValueError(
+                f"contact tool_axes must be finite with shape {p.shape}, got {axes.shape}"
+            )
+        norms = np.linalg.norm(axes, axis=1)
+        if not np.all(norms > 0):
+            raise ValueError("contact tool_axes must be non-zero vectors")
+        axes = axes / norms[:, None]
         if not (np.isfinite(self.radius_m) and self.radius_m >= 0):
             raise ValueError(f"contact radius_m must be >= 0, got {self.radius_m}")
-        p.setflags(write=False)
-        object.__setattr__(self, "path_m", p)
+        for name, array in (("path_m", p), ("tool_axes", axes)):
+            array.setflags(write=False)
+            object.__setattr__(self, name, array)
         object.__setattr__(self, "piece", piece_labels(self.piece, len(p)))
+
+    @classmethod
+    def of_process(
+        cls,
+        arm: URModel | str,
+        q_rad: FloatArray,
+        T_flange_tcp: FloatArray,
+        *,
+        radius_m: float = 0.005,
+        piece: NDArray | None = None,
+    ) -> ContactZone:
+        """The zone of a process path given as the arm's configurations along it.
+
+        Parameters
+        ----------
+        arm : URModel or str
+        q_rad : ndarray of shape (N, 6), radians
+            The process phase's samples.
+        T_flange_tcp : ndarray of shape (4, 4)
+        radius_m : float
+        piece : ndarray of shape (N,), int, optional
+
+        Returns
+        -------
+        ContactZone
+            The TCP's positions, and the tool's axis from the TCP to the flange (the capsule's;
+            for a TCP at the flange, which has none, the flange's z backwards).
+        """
+        flange = joint_frames(_arm(arm), _as_q(q_rad))[:, 6]
+        tcp = flange @ check_rigid(T_flange_tcp, name="T_flange_tcp")
+        towards_flange = flange[:, :3, 3] - tcp[:, :3, 3]
+        has_length = np.linalg.norm(towards_flange, axis=1)[:, None] > 1e-6
+        return cls(
+            path_m=tcp[:, :3, 3],
+            tool_axes=np.where(has_length, towards_flange, -flange[:, :3, 2]),
+            radius_m=radius_m,
+            piece=piece,
+        )
 
     def points(self, spacing_m: float) -> FloatArray:
         """Points along each piece at most ``spacing_m`` apart, shape (K, 3)."""
+        return self.points_and_axes(spacing_m)[0]
+
+    def points_and_axes(self, spacing_m: float) -> tuple[FloatArray, FloatArray]:
+        """Points along each piece at most ``spacing_m`` apart (K, 3), and the tool's axis at
+        each (K, 3, unit; interpolated between the path's points)."""
         from recon.types import piece_slices
 
-        return np.concatenate(
-            [_resample_polyline(self.path_m[rows], spacing_m) for rows in piece_slices(self.piece)]
-        )
+        points, axes = [], []
+        for rows in piece_slices(self.piece):
+            resampled, at = _resample_polyline(self.path_m[rows], spacing_m, with_position=True)
+            points.append(resampled)
+            local = self.tool_axes[rows]
+            axis = np.column_stack(
+                [np.interp(at, np.arange(len(local)), local[:, k]) for k in range(3)]
+            )
+            axes.append(axis / np.linalg.norm(axis, axis=1)[:, None])
+        return np.concatenate(points), np.concatenate(axes)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1123,16 +1195,20 @@ def _interpolate(q: FloatArray, u: FloatArray) -> FloatArray:
     return q[i0] + frac * (q[i0 + 1] - q[i0])
 
 
-def _resample_polyline(path: FloatArray, spacing_m: float) -> FloatArray:
-    """Points on a polyline (N, 3), at most ``spacing_m`` apart along it, both ends included."""
-    if len(path) == 1:
-        return path
+def _resample_polyline(path: FloatArray, spacing_m: float, *, with_position: bool = False):
+    """Points on a polyline (N, 3), at most ``spacing_m`` apart along it, both ends included;
+    with ``with_position``, also each one's fractional index into ``path`` (K,)."""
     s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
     if s[-1] == 0:
-        return path[:1]
+        return (path[:1], np.zeros(1)) if with_position else path[:1]
     n = int(np.ceil(s[-1] / spacing_m)) + 1
     targets = np.linspace(0.0, s[-1], n)
-    return np.column_stack([np.interp(targets, s, path[:, k]) for k in range(3)])
+    points = np.column_stack([np.interp(targets, s, path[:, k]) for k in range(3)])
+    if not with_position:
+        return points
+    # Repeated points (zero-length steps) would make s non-increasing for the inverse lookup.
+    keep = np.r_[True, np.diff(s) > 0]
+    return points, np.interp(targets, s[keep], np.flatnonzero(keep).astype(np.float64))
 
 
 def _travel_windows(
@@ -1292,14 +1368,20 @@ def check_motion(
         exempt = (phase == Phase.PROCESS) | _travel_windows(arm, q, phase, T_ft, contact_radius)
         if cell.has_scan and exempt.any():
             # Points on the path a quarter of the radius apart: what is within the radius of
-            # them is within the radius of the path (the tube exempted is never wider).
-            on_path = contact_zone.points(contact_radius / 4)
+            # them is within the radius of the path (the tube exempted is never wider). Of
+            # those, only what lies no higher than the band above the tip, along the tool's
+            # axis there: the surface the tip works on, never a fixture rising beside it.
+            on_path, axes = contact_zone.points_and_axes(contact_radius / 4)
+            band = contact_zone.radius_m + margin_m + worst_tolerance
             pts = cell.scan_m
             near = cell._tree.query_ball_point(on_path, contact_radius, workers=workers)
             touched = np.zeros(len(pts), dtype=bool)
-            hits = [np.asarray(h, dtype=np.int64) for h in near if len(h)]
-            if hits:
-                touched[np.concatenate(hits)] = True
+            counts = np.fromiter((len(h) for h in near), dtype=np.int64, count=len(near))
+            if counts.sum():
+                hit = np.concatenate([np.asarray(h, dtype=np.int64) for h in near if len(h)])
+                at = np.repeat(np.arange(len(near)), counts)
+                height = np.einsum("ij,ij->i", pts[hit] - on_path[at], axes[at])
+                touched[hit[height <= band]] = True
             rest = pts[~touched]
             tree = cKDTree(rest, balanced_tree=False, compact_nodes=False) if len(rest) else None
             # Only the configurations that bound an exempt sample period need the exempt scan.

@@ -342,6 +342,14 @@ def check_cell(arm, trajectory: JointTrajectory, cell, params: PlanParams):
 
     process = trajectory.phases == int(Phase.PROCESS)
     run = np.cumsum(np.r_[True, np.diff(process.astype(np.int8)) != 0])  # 1, 2, ... per run
+    zone = None  # no process samples: the tool may touch the workpiece nowhere
+    if process.any():
+        zone = ContactZone.of_process(
+            arm,
+            trajectory.q_rad[process],
+            params.T_flange_tcp,
+            piece=np.unique(run[process], return_inverse=True)[1],
+        )
     return check_motion(
         arm,
         trajectory.q_rad,
@@ -350,11 +358,7 @@ def check_cell(arm, trajectory: JointTrajectory, cell, params: PlanParams):
         T_flange_tcp=params.T_flange_tcp,
         tool=CapsuleTool(radius_m=params.tool_radius_m),
         margin_m=params.clearance_m,
-        contact_zone=ContactZone(
-            path_m=trajectory.tcp_m[process], piece=np.unique(run[process], return_inverse=True)[1]
-        )
-        if process.any()
-        else None,  # no process samples: the tool may touch the workpiece nowhere
+        contact_zone=zone,
         t_s=trajectory.t_s,
     )
 

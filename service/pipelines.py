@@ -760,8 +760,14 @@ def plan(
 
 def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=(), cell_planes=()):
     """The cell a plan is checked against (base frame): the mounting surface (the base's z = 0
-    plane), other planes of the cell, the keep-out boxes and, when the scan's place is known,
-    the scanned workpiece."""
+    plane), other planes of the cell, the keep-out boxes and the scanned workpiece.
+
+    Raises
+    ------
+    ValueError
+        A scan whose place (``T_scan_tracker``) is unknown: it is never left out of the check
+        silently (register the path to it, or give the transform).
+    """
     from recon.collision import Box, Cell, HalfSpace
     from recon.transforms import apply_transform, invert_transform
 
@@ -770,7 +776,13 @@ def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=(), cell_plane
         for index, box in enumerate(keep_out_boxes)
     )
     points = None
-    if scan is not None and T_scan_tracker is not None:
+    if scan is not None and T_scan_tracker is None:
+        raise ValueError(
+            "the scan's place relative to the tracker (T_scan_tracker) is unknown, so the "
+            "motion cannot be checked against the workpiece: plan along a reconstruction made "
+            "with the scan, give the transform (--scan-from-tracker), or leave the scan out"
+        )
+    if scan is not None:
         T_base = np.eye(4) if T_base_tracker is None else np.asarray(T_base_tracker)
         T_base_scan = T_base @ invert_transform(np.asarray(T_scan_tracker, dtype=np.float64))
         points = apply_transform(T_base_scan, np.asarray(scan.points_m))

@@ -131,22 +131,28 @@ def run(args: argparse.Namespace) -> int:
     given = read_matrix(args.scan_from_tracker, "T_scan_tracker")
     wants_scan = args.scan and params.orientation in ("auto", "scan")
     scan = read_scan_for(args) if args.scan else None  # the tool axis, and the collision check
-    if given is not None or (wants_scan and scan_model is None):
-        # A transform given by hand, or no stored model: build one from the scan file.
-        scan_model = None
-        if wants_scan:
-            placed = pipelines.place_scan(
-                scan, replace(path, T_scan_tracker=given), recon_params=recon_params
+    # A scan given is always checked against: its place is the transform given, the one the
+    # reconstruction recorded, or found here by registering the path to it (never dropped).
+    if not wants_scan:
+        scan_model = None  # the tool axis does not come from the scan
+    if scan is not None and given is not None and not wants_scan:
+        path = replace(path, T_scan_tracker=given)
+    elif scan is not None and (
+        given is not None or path.T_scan_tracker is None or scan_model is None and wants_scan
+    ):
+        # A transform given by hand, or none stored, or no stored model: build one here.
+        known = given if given is not None else path.T_scan_tracker
+        placed = pipelines.place_scan(
+            scan, replace(path, T_scan_tracker=known), recon_params=recon_params
+        )
+        if placed.registration is not None:
+            note(
+                f"registered the path to the scan to place it ({args.recon_file} came without "
+                "the arrays `teachpath reconstruct` writes beside it); pass "
+                "--scan-from-tracker to use a known transform"
             )
-            if placed.registration is not None:
-                note(
-                    f"registered the path to the scan to find its normals ({args.recon_file} "
-                    "came without the arrays `teachpath reconstruct` writes beside it); pass "
-                    "--scan-from-tracker to use a known transform"
-                )
-            path, scan_model = replace(path, T_scan_tracker=placed.T_scan_tracker), placed.model
-    elif not wants_scan:
-        scan_model = None
+        path = replace(path, T_scan_tracker=placed.T_scan_tracker)
+        scan_model = placed.model if wants_scan else None
     outcome = pipelines.plan(
         path,
         params=params,

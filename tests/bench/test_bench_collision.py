@@ -110,7 +110,7 @@ def test_collision_check_speed():
         f"| scan preprocessing (1M points, 2 mm voxels) | - | - | {med:.3f} | {lo:.3f} | {hi:.3f} |"
     )
     q, phase, T_ft, process = _plan(arm)
-    zone = ContactZone(process, radius_m=0.005)
+    zone = ContactZone.of_process(arm, q[phase == Phase.PROCESS], T_ft)
     for copies in (1, 10):
         qq, pp = np.tile(q, (copies, 1)), np.tile(phase, copies)
         t = np.arange(len(qq)) / RATE_HZ

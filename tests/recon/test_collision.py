@@ -343,7 +343,8 @@ def _contact_plan(arm, tilt_deg, *, branch=None, rate_hz=500.0, speed_m_s=0.05):
 def test_the_tool_may_touch_the_process_path_only_in_the_process_phases(workpiece_cell):
     arm = model("ur5e")
     joints, phase, T_ft, process, t = _contact_plan(arm, 0.0)
-    zone = ContactZone(process, radius_m=0.005)
+    zone = ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft)
+    assert np.allclose(zone.path_m, process)
     kw = dict(T_flange_tcp=T_ft, tool=CapsuleTool(0.02), margin_m=0.01, t_s=t)
     ok = check_motion(arm, joints.q_rad, phase, workpiece_cell, contact_zone=zone, **kw)
     assert ok.clear, ok.lines()
@@ -383,7 +384,7 @@ def test_a_tool_tilted_into_the_workpiece_is_reported_as_the_tool(workpiece_cell
         T_flange_tcp=T_ft,
         tool=CapsuleTool(0.02),
         margin_m=0.01,
-        contact_zone=ContactZone(process, radius_m=0.005),
+        contact_zone=ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft),
         t_s=t,
     )
     hit = report.first_collision
@@ -613,7 +614,8 @@ def test_a_short_tool_exempts_wrist_3_and_a_single_sample_is_checked():
     arm = model("ur5e")
     q = np.array([[0.0, -1.2, 1.6, -2.0, -1.57, 0.0]])
     flange = forward(arm, q)[0]
-    zone = ContactZone((flange @ _tcp_transform(0.01))[None, :3, 3], 0.005)
+    zone = ContactZone.of_process(arm, q, _tcp_transform(0.01))
+    assert np.allclose(zone.path_m[0], (flange @ _tcp_transform(0.01))[:3, 3])
     short = check_motion(
         arm,
         q,
@@ -630,3 +632,70 @@ def test_a_short_tool_exempts_wrist_3_and_a_single_sample_is_checked():
         arm, q, [Phase.PROCESS], Cell(), T_flange_tcp=_tcp_transform(0.25), contact_zone=zone
     )
     assert long_tool.exempt_links == ("tool",)
+
+
+# --- the contact exemption covers the tip's surface, never a fixture beside the path ----------
+
+CLAMP_HEIGHT_M = 0.03
+
+
+def _clamped_cell(gap_m: float) -> tuple[Cell, tuple]:
+    """The workpiece and a 30 mm clamp on its top whose face is ``gap_m`` beside the process
+    line (x = 0.45), both scanned; the clamp's box."""
+    top = WORKPIECE_HI[2]
+    lo = (0.45 + gap_m, -0.20, top)
+    hi = (0.45 + gap_m + 0.04, -0.10, top + CLAMP_HEIGHT_M)
+    scan = np.vstack([_box_scan(WORKPIECE_LO, WORKPIECE_HI, 0.002), _box_scan(lo, hi, 0.002)])
+    return Cell(scan_points_m=scan, voxel_m=0.002), (np.array(lo), np.array(hi))
+
+
+def _independent_clearance(arm, q, T_ft, radius_m, box) -> float:
+    """The tool's least clearance to the clamp, computed apart from recon.collision: the tool's
+    axis (flange to TCP) sampled every 0.5 mm at every sample, exact distances to the box."""
+    lo, hi = box
+    flange = forward(arm, q)
+    tcp = (flange @ T_ft)[:, :3, 3]
+    s = np.linspace(0.0, 1.0, int(np.ceil(np.linalg.norm(T_ft[:3, 3]) / 0.0005)) + 1)
+    axis = flange[:, None, :3, 3] + s[None, :, None] * (tcp - flange[:, :3, 3])[:, None, :]
+    outside = np.maximum(np.maximum(lo - axis, axis - hi), 0.0)
+    return float(np.linalg.norm(outside, axis=-1).min()) - radius_m
+
+
+@pytest.mark.parametrize("radius_mm", [20, 30, 45])
+@pytest.mark.parametrize("gap_mm", [20, 35, 50, 70])
+def test_a_thick_tool_beside_a_clamp_is_refused_exactly_where_it_touches(radius_mm, gap_mm):
+    """A 45 mm tool passed through a clamp 20 mm beside the path: every scan point within the
+    contact tube (which grows with the tool) was exempt for the whole tool. Now only what lies
+    no higher than the band above the tip is; the clamp's upper part counts in full. Each case
+    is judged against an independent distance computation: refused where the tool comes within
+    the margin of the clamp, clear where it stays farther than the margin plus the check's
+    stated tolerance (between the two, either answer is right)."""
+    arm = model("ur5e")
+    joints, phase, T_ft, _, t = _contact_plan(arm, 0.0)
+    cell, box = _clamped_cell(gap_mm / 1000)
+    radius_m, margin_m = radius_mm / 1000, 0.01
+    report = check_motion(
+        arm,
+        joints.q_rad,
+        phase,
+        cell,
+        T_flange_tcp=T_ft,
+        tool=CapsuleTool(radius_m),
+        margin_m=margin_m,
+        contact_zone=ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft),
+        t_s=t,
+    )
+    truth = _independent_clearance(arm, joints.q_rad, T_ft, radius_m, box)
+    print(
+        f"\ntool r {radius_mm} mm, clamp {gap_mm} mm beside the path: independent clearance "
+        f"{truth * 1e3:.1f} mm; check: {'clear' if report.clear else 'refused'}"
+        f" (smallest {report.clearance_m.min() * 1e3:.1f} mm, tolerance "
+        f"{report.tolerance_m * 1e3:.1f} mm)"
+    )
+    if truth < margin_m:
+        assert not report.clear
+        hit = report.first_collision
+        assert hit.link == "tool" and hit.kind == ObstacleKind.SCAN
+        assert hit.point_m[2] > WORKPIECE_HI[2] + 0.01  # the clamp, above the band
+    elif truth > margin_m + report.tolerance_m:
+        assert report.clear, report.lines()

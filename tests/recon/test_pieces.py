@@ -131,7 +131,8 @@ def test_a_path_in_two_pieces_lifts_transits_and_approaches_between_them():
 
 def test_the_contact_zone_follows_each_piece_and_not_the_gap():
     path = np.array([[0.0, 0, 0], [0.01, 0, 0], [0.09, 0, 0], [0.1, 0, 0]])
-    one = ContactZone(path_m=path).points(0.001)
-    two = ContactZone(path_m=path, piece=[0, 0, 1, 1]).points(0.001)
+    up = np.tile([0.0, 0.0, 1.0], (len(path), 1))
+    one = ContactZone(path_m=path, tool_axes=up).points(0.001)
+    two = ContactZone(path_m=path, tool_axes=up, piece=[0, 0, 1, 1]).points(0.001)
     assert np.abs(one[:, 0] - 0.05).min() < 1e-3  # one piece: the zone covers the middle
     assert np.abs(two[:, 0] - 0.05).min() > 0.039  # two: nothing between 10 and 90 mm

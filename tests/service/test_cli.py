@@ -443,3 +443,37 @@ def test_plan_and_dry_run_bad_input(reconstructed, tmp_path, make_args, message)
     assert len(lines) == 1, result.stderr
     assert re.search(message, lines[0]), lines[0]
     assert not (tmp_path / "o.csv").exists()
+
+
+@pytest.mark.parametrize("placement", ["registered", "given"])
+def test_a_scan_given_is_always_in_the_collision_check(inputs, reconstructed, tmp_path, placement):
+    """`plan PATH.csv --scan S --orientation fixed` (a CSV without its .npz) checked against the
+    mounting plane only: the scan, given, was left out. Now it is placed (registered, or by the
+    transform given) and checked, whatever the tool axis comes from."""
+    alone = tmp_path / "alone.csv"
+    alone.write_bytes((reconstructed / "recon.csv").read_bytes())  # without recon.npz
+    extra = []
+    if placement == "given":
+        (tmp_path / "S.json").write_text(
+            '{"name": "T_scan_tracker", "matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}'
+        )
+        extra = ["--scan-from-tracker", tmp_path / "S.json"]
+    result = run(
+        "plan", alone, "--scan", inputs / "scan.ply", "--orientation", "fixed",
+        "--speed-m-s", "0.05", "--base-from-tracker", reconstructed / "T.json", *extra,
+        "--out", tmp_path / "t.csv",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert re.search(r"against: mounting plane, scan \(\d+ points\)", result.stdout), result.stdout
+    assert ("registered the path to the scan" in result.stderr) == (placement == "registered")
+
+
+def test_a_scan_whose_place_is_unknown_is_refused_not_left_out():
+    from recon.types import Scan
+    from service.pipelines import cell_for
+
+    scan = Scan(points_m=np.tile([0.4, 0.0, 0.1], (10, 1)))
+    with pytest.raises(ValueError, match="cannot be checked against the workpiece"):
+        cell_for(scan, None, None)
+    assert cell_for(scan, np.eye(4), None).has_scan
+    assert not cell_for(None, None, None).has_scan
