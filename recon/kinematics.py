@@ -660,7 +660,16 @@ def _into_limits(arm: URModel, q: FloatArray, q_near: FloatArray | None):
     q = q.copy()
     for j in range(6):
         if not (np.isfinite(arm.q_min_rad[j]) and np.isfinite(arm.q_max_rad[j])):
-            continue  # a joint that turns without limit needs no shifting
+            # A joint that turns without limit (UR3/UR3e wrist 3) fits anywhere, but it too is
+            # taken the whole turns nearest ``q_near`` (or zero): skipped, a retract line met
+            # the path 360 deg apart on the UR3e.
+            target = (
+                q_near[j] - q[0, j]
+                if q_near is not None
+                else -0.5 * (q[:, j].min() + q[:, j].max())
+            )
+            q[:, j] += np.round(target / (2 * np.pi)) * 2 * np.pi
+            continue
         lo, hi = q[:, j].min(), q[:, j].max()
         k_min = np.ceil((arm.q_min_rad[j] - lo) / (2 * np.pi))
         k_max = np.floor((arm.q_max_rad[j] - hi) / (2 * np.pi))

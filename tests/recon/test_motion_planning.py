@@ -191,3 +191,22 @@ def test_a_summary_lists_the_slowest_speed_drops_and_counts_the_rest():
     assert "40 in all over 830 mm of path" in lines[-1]
     listed = [float(line.split("down to ")[1].split()[0]) for line in lines[:-1]]
     assert f"none below {max(listed):.1f} mm/s" in lines[-1]
+
+
+@pytest.mark.parametrize("robot", ["ur3e", "ur3"])
+@pytest.mark.parametrize("start_deg", [-180, -90, -45, 90])
+def test_the_ur3s_endless_wrist_3_plans_a_half_circle_the_ur5e_plans(robot, start_deg):
+    """A 180-degree arc of 80 mm radius 0.3 m in front of the base: the UR5e planned it, the
+    UR3e refused ("the retract line does not join the path (360.00 deg apart)") on five of
+    eight start angles: its endless wrist 3 was never shifted by whole turns towards the joined
+    phase. Now it plans, and the retract joins the path exactly."""
+    a = np.radians(np.linspace(start_deg, start_deg + 180, 181))
+    points = np.column_stack([0.30 + 0.08 * np.cos(a), 0.08 * np.sin(a), np.full_like(a, 0.05)])
+    plan = plan_path(points, params=PlanParams(robot=robot, speed_m_s=0.05))
+    q, phases = plan.trajectory.q_rad, plan.trajectory.phases
+    assert np.abs(np.diff(q, axis=0)).max() < 0.05  # continuous: no turn skipped at a join
+    process = np.flatnonzero(phases == int(Phase.PROCESS))
+    print(
+        f"\n{robot}, arc from {start_deg} deg: wrist 3 over the process "
+        f"{np.degrees(q[process, 5].min()):.0f}..{np.degrees(q[process, 5].max()):.0f} deg"
+    )
