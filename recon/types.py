@@ -381,9 +381,12 @@ class PlanParams:
         the transit would otherwise reach 0.3-0.7 m/s at the joint scales alone).
     return_to_start : bool
         Move back to the start joints after the retract.
-    payload_kg : float
+    payload_kg : float or None
+        The payload's mass to set before motion; None: not set, the controller's installation
+        keeps its own (read from it and shown when a real arm runs). Never a silent zero: a
+        zero set over an installed gripper misjudges its weight and trips protective stops.
     payload_cog_m : tuple of 3 floats
-        The payload's centre of gravity in the flange frame.
+        The payload's centre of gravity in the flange frame (with ``payload_kg`` only).
     tool_radius_m : float
         Radius of the tool's body from the flange to the TCP, for the collision check.
     clearance_m : float
@@ -447,7 +450,14 @@ class PlanParams:
         0.25, ge=0.005, le=1.0, unit="m/s", help="largest TCP speed of the transit and return"
     )
     return_to_start: bool = param(False, help="move back to the start joints at the end")
-    payload_kg: float = param(0.0, ge=0, le=35, unit="kg", help="the payload's mass")
+    payload_kg: float | None = param(
+        None,
+        ge=0,
+        le=35,
+        unit="kg",
+        help="the payload's mass to set before motion (default: not set, the controller's "
+        "installation keeps its own)",
+    )
     payload_cog_m: tuple[float, float, float] = param(
         (0.0, 0.0, 0.0), ge=-0.5, le=0.5, unit="m", help="the payload's centre of gravity"
     )
@@ -469,7 +479,7 @@ class PlanParams:
             raise ValueError("give the TCP as tcp_pose or as tcp_offset_m, not both")
         if any(abs(v) > 1.0 for v in self.tcp_pose[:3]):
             raise ValueError(f"the TCP must be within 1 m of the flange, got {self.tcp_pose[:3]}")
-        if self.payload_kg > arm.payload_kg:
+        if self.payload_kg is not None and self.payload_kg > arm.payload_kg:
             raise ValueError(
                 f"payload_kg {self.payload_kg} is above the {arm.name}'s {arm.payload_kg} kg"
             )

@@ -291,14 +291,15 @@ def _placement_here(store, trajectory: ArtifactRow, planned_with):
 
 
 def _tool_of(trajectory: ArtifactRow) -> tuple:
-    """The TCP pose and payload a trajectory was planned with (for the controller)."""
+    """The TCP pose and payload a trajectory was planned with (for the controller; a payload
+    of None is not set: the installation's stays)."""
     params = trajectory.params
     tcp = params.get("tcp_pose") or [*(params.get("tcp_offset_m") or (0.0, 0.0, 0.0)), 0, 0, 0]
     if not any(tcp):
         tcp = [*(params.get("tcp_offset_m") or (0.0, 0.0, 0.0)), 0.0, 0.0, 0.0]
     return (
         [float(v) for v in tcp],
-        float(params.get("payload_kg") or 0.0),
+        None if params.get("payload_kg") is None else float(params["payload_kg"]),
         [float(v) for v in params.get("payload_cog_m") or (0.0, 0.0, 0.0)],
     )
 

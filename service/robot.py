@@ -167,6 +167,7 @@ class RobotWatch:
             **asdict(state),
             "q_rad": None if state.q_rad is None else list(state.q_rad),
             "tcp_pose": None if state.tcp_pose is None else list(state.tcp_pose),
+            "payload_cog_m": None if state.payload_cog_m is None else list(state.payload_cog_m),
             "real_arm": self.backend != "sim",
             "robot": self.settings.ur_robot,
             "host": self.settings.ur_host,

@@ -443,6 +443,11 @@ class RobotOut(BaseModel):
     program_running: bool
     q_rad: list[float] | None
     tcp_pose: list[float] | None = Field(None, description="x, y, z (m), rx, ry, rz; base")
+    payload_kg: float | None = Field(
+        None,
+        description="the controller's active payload (what a plan that sets none runs with)",
+    )
+    payload_cog_m: list[float] | None = Field(None, description="its centre of gravity, flange")
     error: str | None
     age_s: float | None = Field(None, description="how old the reading is")
     unlock_in_s: float | None = Field(

@@ -243,12 +243,13 @@ class RobotBackend(ABC):
         self,
         tcp_pose: FloatArray,
         *,
-        payload_kg: float = 0.0,
+        payload_kg: float | None = None,
         payload_cog_m: FloatArray = (0.0, 0.0, 0.0),
     ) -> None:
         """Tell the controller the tool: its TCP in the flange frame (x, y, z, rx, ry, rz, as on
-        UR's pendant) and its payload (mass, centre of gravity in the flange frame). Before
-        motion: the controller's TCP pose readings and its payload compensation follow it.
+        UR's pendant) and its payload (mass, centre of gravity in the flange frame; a mass of
+        None sets none: the installation's payload stays). Before motion: the controller's TCP
+        pose readings and its payload compensation follow it.
 
         Raises
         ------
@@ -258,14 +259,18 @@ class RobotBackend(ABC):
         cog = np.asarray(payload_cog_m, dtype=np.float64)
         if pose.shape != (6,) or not np.all(np.isfinite(pose)) or np.abs(pose[:3]).max() > 1.0:
             raise ValueError(f"tcp_pose must be 6 finite numbers within 1 m, got {tcp_pose!r}")
-        if not (0.0 <= payload_kg <= self.arm.payload_kg) or cog.shape != (3,):
+        if (
+            payload_kg is not None
+            and not (0.0 <= payload_kg <= self.arm.payload_kg)
+            or cog.shape != (3,)
+        ):
             raise ValueError(
                 f"the payload must be 0..{self.arm.payload_kg} kg with a 3-vector centre of "
                 f"gravity, got {payload_kg!r}, {payload_cog_m!r}"
             )
         with self._lock:
             self._require_enabled()
-            self._set_tool(pose, float(payload_kg), cog)
+            self._set_tool(pose, None if payload_kg is None else float(payload_kg), cog)
             self.tcp_pose = pose
 
     def execute(
@@ -486,7 +491,9 @@ class RobotBackend(ABC):
         completed, and why not."""
 
     @abstractmethod
-    def _set_tool(self, tcp_pose: FloatArray, payload_kg: float, cog_m: FloatArray) -> None: ...
+    def _set_tool(
+        self, tcp_pose: FloatArray, payload_kg: float | None, cog_m: FloatArray
+    ) -> None: ...
 
     @abstractmethod
     def _stop(self) -> None:

@@ -70,6 +70,10 @@ class ArmState:
     q_rad : tuple of 6 floats, or None
     tcp_pose : tuple of 6 floats, or None
         The active TCP, base frame: x, y, z (m), rx, ry, rz (rotation vector).
+    payload_kg : float or None
+        The controller's active payload (its installation's, or the last one set).
+    payload_cog_m : tuple of 3 floats, or None
+        Its centre of gravity, flange frame.
     error : str or None
     """
 
@@ -83,6 +87,8 @@ class ArmState:
     program_running: bool = False
     q_rad: tuple[float, ...] | None = None
     tcp_pose: tuple[float, ...] | None = None
+    payload_kg: float | None = None
+    payload_cog_m: tuple[float, ...] | None = None
     error: str | None = None
 
     @classmethod

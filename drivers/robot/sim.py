@@ -172,8 +172,9 @@ class SimBackend(RobotBackend):
             self.clock.sleep_until(self.clock.now() + self._dt)
             self._advance(self.clock.now(), target=q if not self._stopping else self._q)
 
-    def _set_tool(self, tcp_pose: FloatArray, payload_kg: float, cog_m: FloatArray) -> None:
-        self.payload_kg, self.payload_cog_m = payload_kg, cog_m
+    def _set_tool(self, tcp_pose: FloatArray, payload_kg: float | None, cog_m: FloatArray) -> None:
+        if payload_kg is not None:  # None: the payload set before stays, as on a controller
+            self.payload_kg, self.payload_cog_m = payload_kg, cog_m
 
     def _execute(
         self,

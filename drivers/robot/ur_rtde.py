@@ -158,7 +158,7 @@ class SetTool(Command):
     gravity in the flange frame, m)."""
 
     tcp_pose: list[float]
-    payload_kg: float
+    payload_kg: float | None  # None: not set (the installation's stays)
     cog_m: list[float]
 
 
@@ -279,7 +279,7 @@ class URRtdeBackend(RobotBackend):
             timeout_s=self._motion_bound_s(expected),
         )
 
-    def _set_tool(self, tcp_pose: FloatArray, payload_kg: float, cog_m: FloatArray) -> None:
+    def _set_tool(self, tcp_pose: FloatArray, payload_kg: float | None, cog_m: FloatArray) -> None:
         self._call(SetTool(list(map(float, tcp_pose)), payload_kg, list(map(float, cog_m))))
 
     def _execute(
@@ -585,7 +585,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         if not self.control.setTcp(tcp_pose):
             self._refused()
             raise ConnectionLostError("the controller refused setTcp; reconnect")
-        if not self.control.setPayload(payload_kg, cog_m):
+        if payload_kg is not None and not self.control.setPayload(payload_kg, cog_m):
             self._refused()
             raise ConnectionLostError("the controller refused setPayload; reconnect")
 

@@ -148,6 +148,9 @@ class URStateServer(WorkerServer):  # pragma: no cover - runs in the worker proc
             "program_running": bool(d.running()),
             "q_rad": tuple(float(v) for v in r.getActualQ()),
             "tcp_pose": tuple(float(v) for v in r.getActualTCPPose()),
+            # What the arm runs with when a plan sets no payload: shown before a run.
+            "payload_kg": float(r.getPayload()),
+            "payload_cog_m": tuple(float(v) for v in r.getPayloadCog()),
         }
 
     def unlock(self) -> None:

@@ -118,7 +118,7 @@ def urscript_program(
     trajectory: JointTrajectory,
     *,
     tcp_pose: FloatArray,
-    payload_kg: float = 0.0,
+    payload_kg: float | None = None,
     payload_cog_m: FloatArray = (0.0, 0.0, 0.0),
     mode: Mode = "servoj",
     tolerance_m: float = 5e-4,
@@ -135,7 +135,8 @@ def urscript_program(
     tcp_pose : array_like of shape (6,)
         The TCP in the flange frame, x, y, z (m), rx, ry, rz (rotation vector).
     payload_kg, payload_cog_m :
-        The payload and its centre of gravity in the flange frame.
+        The payload and its centre of gravity in the flange frame; ``payload_kg`` None: the
+        program sets none (the installation's stays, and a comment says so).
     mode : {"servoj", "movep"}
         The path as every planned sample, or as blended moves within ``tolerance_m``.
     header : list of str
@@ -160,7 +161,9 @@ def urscript_program(
         "# it starts where the plan starts: the arm must stand at the start joints below",
         f"def {name}():",
         f"  set_tcp({_pose(tcp_pose)})",
-        f"  set_payload({payload_kg:.4f}, {_list(payload_cog_m)})",
+        f"  set_payload({payload_kg:.4f}, {_list(payload_cog_m)})"
+        if payload_kg is not None
+        else "  # payload: not set here, the installation's is kept (plan with payload_kg)",
     ]
     # The start check, joint by joint (scalar arithmetic only: URScript has no list maths).
     message = (

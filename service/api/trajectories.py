@@ -109,7 +109,7 @@ def trajectory_urscript(
     program = urscript_program(
         trajectory,
         tcp_pose=summary.tcp_pose or (0.0,) * 6,
-        payload_kg=summary.payload_kg or 0.0,
+        payload_kg=summary.payload_kg,
         payload_cog_m=summary.payload_cog_m or (0.0, 0.0, 0.0),
         mode=mode,
         tolerance_m=tolerance_m,

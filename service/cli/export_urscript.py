@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     program = urscript_program(
         read.trajectory,
         tcp_pose=meta.get("tcp_pose") or (0.0,) * 6,
-        payload_kg=meta.get("payload_kg") or 0.0,
+        payload_kg=meta.get("payload_kg"),
         payload_cog_m=meta.get("payload_cog_m") or (0.0, 0.0, 0.0),
         mode=args.mode,
         tolerance_m=args.tolerance_m,
@@ -49,5 +49,13 @@ def run(args: argparse.Namespace) -> int:
     )
     with atomic_path(out) as tmp:
         tmp.write_text(program)
-    print(f"wrote {out} ({program.count(chr(10))} lines, {args.mode})")
+    payload = meta.get("payload_kg")
+    print(
+        f"wrote {out} ({program.count(chr(10))} lines, {args.mode}); payload: "
+        + (
+            "not set, the installation's is kept (plan with --payload-kg to set it)"
+            if payload is None
+            else f"{payload:g} kg set"
+        )
+    )
     return 0

@@ -624,3 +624,34 @@ def test_an_exported_motion_over_two_pieces_runs_both_with_the_lift_between():
     assert off.max() < 3e-3, off.max()
     for piece in (first, second):
         assert distance_to_curve(piece, tcp_run).max() < 1e-3
+
+
+def test_an_exported_program_sets_the_payload_given_and_never_a_silent_zero():
+    """Every exported program had `set_payload(0.0000, ...)`: it overrode the installation's
+    payload (a gripper's kilograms) with nothing. A plan without a payload sets none (the
+    installation's stays, and the program says so); one with a payload sets it."""
+    from drivers.robot.urscript import urscript_program
+    from recon import motion
+    from recon.transforms import transform_from_pose as T_of
+
+    plan = motion.assemble(
+        ARM,
+        [
+            motion.joint_move(
+                ARM, HOME, HOME + [0.3, 0, 0, 0, 0, 0], speed_scale=0.5, acceleration_scale=0.5
+            )
+        ],
+        T_flange_tcp=T_of(TCP),
+        requested_speed_m_s=0.05,
+    )
+    kept = urscript_program(plan, tcp_pose=TCP)
+    assert "set_payload(" not in kept and "installation's is kept" in kept
+    c = started(kept)
+    c.set_payload(2.0, [0, 0, 0.05], None)  # the installation's
+    assert run(c, max_s=60).state == "finished"
+    assert c.payload_kg == 2.0 and c.payload_cog_m.tolist() == [0, 0, 0.05]
+    given = urscript_program(plan, tcp_pose=TCP, payload_kg=1.2, payload_cog_m=(0, 0, 0.04))
+    assert "set_payload(1.2000, [0.000000, 0.000000, 0.040000])" in given
+    c = started(given)
+    assert run(c, max_s=60).state == "finished"
+    assert c.payload_kg == 1.2

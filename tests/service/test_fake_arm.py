@@ -77,6 +77,14 @@ def test_a_confirmed_execution_runs_on_the_controller(arm, fake_ur):
     client, sid, trajectory_id, q_start = arm
     # The arm stands where the plan starts (where it stood when it was planned).
     fake_ur.control("reset", q_rad=q_start.tolist())
+    # The installation's payload (a 2 kg gripper): a plan that sets none must keep it. It was
+    # overwritten with 0 kg before every run.
+    program = "def installation():\n  set_payload(2.0, [0, 0, 0.05])\nend\n"
+    assert fake_ur.wait_program(fake_ur.send_program(program))["state"] == "finished"
+    shown = client.get("/robot").json()
+    assert shown["payload_kg"] == 2.0 and shown["payload_cog_m"] == [0, 0, 0.05]
+    plan = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}").json()
+    assert plan["summary"]["payload_kg"] is None
     job = wait(client, _execute(client, sid, trajectory_id), timeout_s=120)
     assert job["state"] == "succeeded", job
     execution_id = job["result"]["execution_id"]
@@ -92,8 +100,9 @@ def test_a_confirmed_execution_runs_on_the_controller(arm, fake_ur):
     # The controller's arm ended where the plan ends.
     csv = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}/csv").text
     q_end = np.array(csv.strip().splitlines()[-1].split(",")[1:7], dtype=float)
-    q_now = np.array(fake_ur.control("status")["q_rad"])
-    assert np.abs(q_now - q_end).max() < 2e-3
+    status = fake_ur.control("status")
+    assert np.abs(np.array(status["q_rad"]) - q_end).max() < 2e-3
+    assert status["payload_kg"] == 2.0  # the installation's, kept
 
 
 def test_a_session_that_owns_the_arm_is_not_deleted_until_its_run_ends(arm, fake_ur):

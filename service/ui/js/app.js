@@ -856,6 +856,14 @@ function paramInput(name, spec) {
     input.dataset.items = JSON.stringify(spec.prefixItems.map((s) => [s.minimum, s.maximum]));
     return input;
   }
+  if (spec.anyOf && spec.anyOf.some((s) => s.type === "null")) {
+    // A number that may be left out (empty: not given, e.g. the payload: the controller's stays).
+    const number = spec.anyOf.find((s) => s.type === "number") || {};
+    const input = numberField(name, number);
+    input.value = spec.default ?? "";
+    input.placeholder = "not set";
+    return input;
+  }
   if (spec.anyOf) {
     // A number or a word ("auto"): typed as text, checked against both.
     const number = spec.anyOf.find((s) => s.type === "number");
@@ -880,7 +888,8 @@ function buildParams(schema, schemaName, fields, box, prefix) {
     if (!spec) continue;
     const input = paramInput(name, spec);
     input.id = `${prefix}-${name}`;
-    input.dataset.kind = spec.prefixItems ? "tuple" : spec.type || (spec.anyOf ? "mixed" : "string");
+    const nullable = spec.anyOf?.some((s) => s.type === "null");
+    input.dataset.kind = spec.prefixItems ? "tuple" : nullable ? "optional-number" : spec.type || (spec.anyOf ? "mixed" : "string");
     box.append(el("label", { for: input.id }, el("span", { class: "name", text: name }), input,
       el("span", { class: "hint", text: spec.description || "" })));
   }
@@ -900,6 +909,7 @@ function paramsBody(form, fields) {
     const kind = input.dataset.kind;
     if (input.type === "checkbox") body[name] = input.checked;
     else if (kind === "number" || kind === "integer") body[name] = Number(input.value);
+    else if (kind === "optional-number") { if (input.value.trim() !== "") body[name] = Number(input.value); }
     else if (kind === "mixed") body[name] = input.value === input.dataset.word ? input.value : Number(input.value);
     else if (kind === "tuple") {
       const ranges = JSON.parse(input.dataset.items);
@@ -930,6 +940,24 @@ function updatePlanSpeed() {
 
 // -- run on the arm: behind a confirmation ---------------------------------------------------------
 
+/** The TCP (flange frame) as an operator checks it on PolyScope: mm and degrees. */
+function tcpText(pose) {
+  if (!pose) return "–";
+  const [x, y, z, rx, ry, rz] = pose;
+  const deg = (v) => (v * 180 / Math.PI).toFixed(1);
+  return `x ${(x * 1000).toFixed(1)}, y ${(y * 1000).toFixed(1)}, z ${(z * 1000).toFixed(1)} mm; rx ${deg(rx)}, ry ${deg(ry)}, rz ${deg(rz)} deg`;
+}
+
+/** The payload the arm will run with: the plan's, or (none set) the controller's, read now. */
+function payloadText(sm, robot) {
+  if (sm.payload_kg != null) {
+    const cog = (sm.payload_cog_m || [0, 0, 0]).map((v) => (v * 1000).toFixed(0)).join(", ");
+    return `${sm.payload_kg} kg set before motion (centre of gravity ${cog} mm)`;
+  }
+  if (robot?.payload_kg != null) return `not set by the plan: the controller's ${robot.payload_kg} kg stays`;
+  return "not set by the plan: the controller's own stays";
+}
+
 function confirmRun(traj) {
   const sm = traj.summary;
   const robot = state.robot;
@@ -942,6 +970,8 @@ function confirmRun(traj) {
     ["starts from", startFrom(sm.start_from)],
     ["approach", `${mm(sm.approach_m, 0)} along the tool axis`],
     ["configuration", sm.configuration || "–"],
+    ["TCP", tcpText(sm.tcp_pose)],
+    ["payload", payloadText(sm, robot)],
   ];
   $("#confirm-table").replaceChildren(...rows.map(([k, v]) => el("tr", {}, el("th", { text: k }), el("td", { text: v }))));
   const dialog = $("#confirm-dialog");
