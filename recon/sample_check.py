@@ -176,6 +176,8 @@ def sample_problems(
                 )
             )
 
+    if np.isinf(tcp_speed_max_m_s):
+        return problems  # no cap to judge the TCP against (a file checked offline)
     tcp_speed = tcp_speeds_m_s(
         arm, q, T_flange_tcp=T_flange_tcp, rate_hz=1.0 / period_s, tcp_m=tcp_m
     )
@@ -191,6 +193,48 @@ def sample_problems(
             )
         )
     return problems
+
+
+def require_within_limits(trajectory, *, what: str) -> None:
+    """Refuse a trajectory whose samples break its arm's limits, before it is used: joint
+    ranges, speeds and accelerations on the controller's grid, continuity, a start and an end
+    at rest (:func:`sample_problems` without a TCP cap). For every consumer of a trajectory
+    file (the dry run, the URScript export): a file is not trusted for having been planned.
+
+    Parameters
+    ----------
+    trajectory : recon.types.JointTrajectory
+    what : str
+        What was about to be done with it, for the message ("dry-run it", "export it").
+
+    Raises
+    ------
+    InfeasibleTrajectoryError
+        Naming each broken limit's first sample, its time and joint.
+    """
+    from recon.errors import InfeasibleTrajectoryError
+
+    arm = kinematics.model(trajectory.robot)
+    problems = sample_problems(
+        arm,
+        trajectory.t_s,
+        trajectory.q_rad,
+        tcp_speed_max_m_s=float("inf"),
+        T_flange_tcp=np.eye(4),
+        rate_hz=1.0 / trajectory.period_s,
+    )
+    if problems:
+        said = "; ".join(
+            f"sample {p.sample}"
+            + ("" if np.isnan(p.t_s) else f" ({p.t_s:.3f} s)")
+            + f": {p.message}"
+            for p in problems
+        )
+        raise InfeasibleTrajectoryError(
+            f"the trajectory's samples break the {arm.name}'s limits, so teachpath will not "
+            f"{what}: {said}. Plan it again (a planned trajectory keeps them); an edited or "
+            "damaged file is not run"
+        )
 
 
 def _first_over(values: FloatArray, limit: FloatArray, tolerance: float):

@@ -826,11 +826,19 @@ class ExecutionOutcome:
 
 
 def dry_run(trajectory, *, mode: str = "servoj", tolerance_m: float = 5e-4) -> ExecutionOutcome:
-    """Execute ``trajectory`` on the simulated arm, faster than real time."""
+    """Execute ``trajectory`` on the simulated arm, faster than real time.
+
+    Raises
+    ------
+    InfeasibleTrajectoryError
+        Its samples break the arm's limits (checked first: a file is not trusted).
+    """
     from drivers.robot.base import backend_config, create_backend
     from drivers.robot.clock import FakeClock
     from drivers.robot.dryrun import dry_run as run
+    from recon.sample_check import require_within_limits
 
+    require_within_limits(trajectory, what="dry-run it")
     config = backend_config("sim", robot=trajectory.robot, q_start_rad=tuple(trajectory.q_rad[0]))
     sim = create_backend(config, clock=FakeClock())
     report = run(trajectory, backend=sim, mode=mode, tolerance_m=tolerance_m)

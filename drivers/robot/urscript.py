@@ -148,9 +148,14 @@ def urscript_program(
     ------
     ValueError
         An unknown mode, or a tolerance that is not positive.
+    InfeasibleTrajectoryError
+        The samples break the arm's limits (a spike, a jump, a joint out of range).
     """
+    from recon.sample_check import require_within_limits
+
     if mode not in ("servoj", "movep"):
         raise ValueError(f"mode must be 'servoj' or 'movep', got {mode!r}")
+    require_within_limits(trajectory, what="export it")
     if not tolerance_m > 0:
         raise ValueError(f"tolerance_m must be positive, got {tolerance_m}")
     arm = kinematics.model(trajectory.robot)

@@ -477,3 +477,36 @@ def test_a_scan_whose_place_is_unknown_is_refused_not_left_out():
         cell_for(scan, None, None)
     assert cell_for(scan, np.eye(4), None).has_scan
     assert not cell_for(None, None, None).has_scan
+
+
+def test_a_trajectory_file_with_a_spike_is_refused_by_dry_run_and_export(
+    inputs, reconstructed, tmp_path
+):
+    """A 0.3 rad one-sample spike (about 150 rad/s) passed `dry-run` ("completed") and
+    `export-urscript`: the file was trusted. Each consumer checks the samples against the arm's
+    limits first and names the sample and the joint."""
+    traj = tmp_path / "traj.csv"
+    planned = run(
+        "plan", reconstructed / "recon.csv", "--scan", inputs / "scan.ply", "--speed-m-s", "0.05",
+        "--base-from-tracker", reconstructed / "T.json", "--out", traj,
+    )  # fmt: skip
+    assert planned.returncode == 0, planned.stderr
+    lines = traj.read_text().splitlines()
+    row = 2 + 1000  # a sample in the middle (after the metadata and header lines)
+    fields = lines[row].split(",")
+    fields[3] = repr(float(fields[3]) + 0.3)  # joint 3 (q2) jumps 0.3 rad for one sample
+    lines[row] = ",".join(fields)
+    spiked = tmp_path / "spiked.csv"
+    spiked.write_text("\n".join(lines) + "\n")
+    for command in (
+        ["dry-run", spiked],
+        ["export-urscript", spiked, "--out", tmp_path / "p.script"],
+    ):
+        result = run(*command)
+        assert result.returncode == 1, (command, result.stdout)
+        assert "break the ur5e's limits" in result.stderr, result.stderr
+        assert "sample 1000" in result.stderr and "joint 3 moves at" in result.stderr
+    assert not (tmp_path / "p.script").exists()
+    # The file as planned passes both.
+    assert run("dry-run", traj).returncode == 0
+    assert run("export-urscript", traj, "--out", tmp_path / "ok.script").returncode == 0
