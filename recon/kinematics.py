@@ -260,6 +260,34 @@ def _dh(theta: FloatArray, d: float, a: float, alpha: float) -> FloatArray:
     return T
 
 
+#: The arm's points whose speed the cap bounds besides the TCP: the origins of DH frames 2..6,
+#: on the axes of the elbow, the three wrist joints and at the flange. A link is rigid, so the
+#: speed along its axis is largest at one of its ends (the speed field is affine in position):
+#: with the TCP they bound the speed of every point on the chain's axes. UR's safety limits
+#: bound the elbow's and the tool's speed alike.
+SPEED_POINT_FRAMES = (2, 3, 4, 5, 6)
+SPEED_POINT_NAMES = ("elbow", "wrist 1", "wrist 2", "wrist 3", "flange", "TCP")
+
+
+def speed_points_m(arm: URModel, q_rad: FloatArray, T_flange_tcp: FloatArray) -> FloatArray:
+    """The points whose speed a cap bounds (:data:`SPEED_POINT_NAMES`), base frame.
+
+    Parameters
+    ----------
+    arm : URModel
+    q_rad : ndarray of shape (..., 6)
+    T_flange_tcp : ndarray of shape (4, 4)
+
+    Returns
+    -------
+    ndarray of shape (..., 6, 3), metres
+    """
+    frames = joint_frames(arm, q_rad)
+    tcp = frames[..., 6, :, :] @ np.asarray(T_flange_tcp, dtype=np.float64)
+    first, last = SPEED_POINT_FRAMES[0], SPEED_POINT_FRAMES[-1]  # consecutive frames
+    return np.concatenate([frames[..., first : last + 1, :3, 3], tcp[..., None, :3, 3]], axis=-2)
+
+
 def forward(arm: URModel, q_rad: FloatArray) -> FloatArray:
     """Flange poses for joint vectors.
 

@@ -130,8 +130,9 @@ def joint_move(
     every joint allows: ``ds/dt <= v_j / |dq_j|`` and ``d2s/dt2 <= a_j / |dq_j|`` with ``v_j``,
     ``a_j`` the arm's limits times the scales. A move of zero length is one sample.
 
-    With ``tcp_speed_max_m_s`` the rate is also held so that the TCP (``T_flange_tcp`` from the
-    flange) never moves faster: its speed is ``|dx/ds| * ds/dt``, and ``|dx/ds|`` is taken at its
+    With ``tcp_speed_max_m_s`` the rate is also held so that neither the TCP (``T_flange_tcp``
+    from the flange) nor the elbow or a wrist (:func:`recon.kinematics.speed_points_m`) ever
+    moves faster: a point's speed is ``|dx/ds| * ds/dt``, and ``|dx/ds|`` is taken at its
     largest along the move (:data:`TCP_SPEED_SEGMENTS` chords, with a margin for the chords'
     shortfall against the tangent).
 
@@ -176,13 +177,15 @@ TCP_SPEED_MARGIN = 0.97
 
 
 def _rate_for_tcp_speed(arm, q0, delta, tcp_speed_max_m_s: float, T_flange_tcp) -> float:
-    """The largest ds/dt at which the TCP keeps below ``tcp_speed_max_m_s`` along q0 + s delta."""
+    """The largest ds/dt at which the TCP, the elbow and the wrists (every point of
+    :func:`recon.kinematics.speed_points_m`) keep below ``tcp_speed_max_m_s`` along
+    q0 + s delta: a real arm's cap is on all of them, as UR's safety limits are."""
     if not tcp_speed_max_m_s > 0:
         raise ValueError(f"tcp_speed_max_m_s must be positive, got {tcp_speed_max_m_s}")
     T = np.eye(4) if T_flange_tcp is None else np.asarray(T_flange_tcp, dtype=np.float64)
     s = np.linspace(0.0, 1.0, TCP_SPEED_SEGMENTS + 1)
-    tcp = (kinematics.forward(arm, q0 + s[:, None] * delta) @ T)[:, :3, 3]
-    per_s = float(np.max(np.linalg.norm(np.diff(tcp, axis=0), axis=1))) * TCP_SPEED_SEGMENTS
+    points = kinematics.speed_points_m(arm, q0 + s[:, None] * delta, T)  # (S, P, 3)
+    per_s = float(np.max(np.linalg.norm(np.diff(points, axis=0), axis=-1))) * TCP_SPEED_SEGMENTS
     if per_s <= 0.0:
         return float("inf")  # the TCP stays put (a turn of the last joint about the tool axis)
     return TCP_SPEED_MARGIN * tcp_speed_max_m_s / per_s
@@ -226,11 +229,13 @@ def line_move(
     velocity_scale: float,
     acceleration_scale: float,
     phase: Phase,
+    point_speed_max_m_s: float | None = None,
 ) -> PhaseSamples:
     """A straight TCP line in one IK branch, joined to a neighbouring phase's joints exactly.
 
     Exactly one of ``q_end_rad`` (the line ends where the next phase starts: the approach) and
-    ``q_start_rad`` (it starts where the previous phase ends: the retract) is given.
+    ``q_start_rad`` (it starts where the previous phase ends: the retract) is given; with
+    ``point_speed_max_m_s`` the elbow, wrists and flange keep below it too.
 
     Raises
     ------
@@ -259,7 +264,14 @@ def line_move(
     limits = limits_for(
         arm, speed_m_s, velocity_scale=velocity_scale, acceleration_scale=acceleration_scale
     )
-    timed = time_parameterize(arm, joints, tool, limits, T_flange_tcp=T_flange_tcp)
+    timed = time_parameterize(
+        arm,
+        joints,
+        tool,
+        limits,
+        T_flange_tcp=T_flange_tcp,
+        point_speed_max_m_s=point_speed_max_m_s,
+    )
     # toppra's end samples hold the waypoints to rounding: put them exactly on the joins.
     q = np.array(timed.q_rad)
     if q_end_rad is not None:

@@ -227,7 +227,16 @@ def plan_path(
             raise InfeasibleTrajectoryError(f"piece {k} of the path: {error}") from error
         allowed, q_near = (joints.branch,), joints.q_rad[-1]
         joints_per_piece.append(joints)
-        processes.append(time_parameterize(arm, joints, tool, limits, T_flange_tcp=T_flange_tcp))
+        processes.append(
+            time_parameterize(
+                arm,
+                joints,
+                tool,
+                limits,
+                T_flange_tcp=T_flange_tcp,
+                point_speed_max_m_s=params.point_speed_max_m_s,
+            )
+        )
     tool, joints = _joined_tools(tools), _joined_joints(joints_per_piece)
     offsets_m = tool.arc_length_m[[rows.start for rows in pieces]]
     heights = [params.approach_m * lift for lift in APPROACH_LIFTS]
@@ -472,6 +481,7 @@ def _approach_and_retract(arm, process, branch, approach_m, params):
         "speed_m_s": params.approach_speed_m_s,
         "velocity_scale": params.velocity_scale,
         "acceleration_scale": params.acceleration_scale,
+        "point_speed_max_m_s": params.point_speed_max_m_s,
     }
     approach = motion.line_move(
         arm,

@@ -44,7 +44,7 @@ class SampleProblem:
     ----------
     check : str
         Stable name: ``shape``, ``period``, ``position``, ``speed``, ``acceleration``, ``rest``,
-        ``tcp_speed``.
+        ``tcp_speed``, ``link_speed`` (the elbow, a wrist or the flange over the cap).
     sample : int
         The first sample that breaks it (-1: the arrays as a whole).
     t_s : float
@@ -190,6 +190,21 @@ def sample_problems(
                 float(t[i + 1]),
                 f"the TCP moves at {tcp_speed[i] * 1e3:.0f} mm/s, above the "
                 f"{tcp_speed_max_m_s * 1e3:.0f} mm/s cap",
+            )
+        )
+    # The cap is on every point of the arm, as UR's safety limits are on the elbow's speed.
+    points = kinematics.speed_points_m(arm, q, T_flange_tcp)[:, :-1]  # (K, 5, 3): not the TCP
+    point_speed = np.linalg.norm(np.diff(points, axis=0), axis=-1) / period_s  # (K-1, 5)
+    if point_speed.max() > tcp_speed_max_m_s * (1.0 + SPEED_TOLERANCE):
+        i, k = np.unravel_index(int(np.argmax(point_speed)), point_speed.shape)
+        problems.append(
+            SampleProblem(
+                "link_speed",
+                int(i) + 1,
+                float(t[i + 1]),
+                f"the {kinematics.SPEED_POINT_NAMES[k]} moves at {point_speed[i, k] * 1e3:.0f} "
+                f"mm/s, above the {tcp_speed_max_m_s * 1e3:.0f} mm/s cap (it holds for every "
+                "point of the arm)",
             )
         )
     return problems

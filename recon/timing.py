@@ -93,6 +93,7 @@ def time_parameterize(
     *,
     T_flange_tcp: FloatArray | None = None,
     rate_hz: float | None = None,
+    point_speed_max_m_s: float | None = None,
 ) -> JointTrajectory:
     """The fastest trajectory along ``joints`` within ``limits``, sampled at the controller rate.
 
@@ -108,6 +109,12 @@ def time_parameterize(
         The tool's TCP relative to the flange, for the planned TCP poses.
     rate_hz : float, optional
         Sample rate; default the arm's controller rate.
+    point_speed_max_m_s : float, optional
+        The largest speed of the elbow, the wrists and the flange
+        (:func:`recon.kinematics.speed_points_m`; the TCP keeps ``limits.speed_m_s``): the
+        path speed is held below it divided by how fast those points move per metre of TCP
+        path, a bound that varies along the path (a tool turning about its tip moves the
+        flange faster than the tip).
 
     Returns
     -------
@@ -142,10 +149,14 @@ def time_parameterize(
     big = 1e6  # the arc-length coordinate has no acceleration limit
     planned_acc = ACCELERATION_HEADROOM * limits.qdd_max_rad_s2
     alim = np.vstack([np.column_stack([-planned_acc, planned_acc]), [[-big, big]]])
-    constraints = [
-        toppra.constraint.JointVelocityConstraint(vlim),
-        toppra.constraint.JointAccelerationConstraint(alim),
-    ]
+    velocity = toppra.constraint.JointVelocityConstraint(vlim)
+    point_bound = None
+    if point_speed_max_m_s is not None:
+        point_bound = PointSpeedBound.along(
+            arm, path, s[-1], limits.speed_m_s, point_speed_max_m_s, T_flange_tcp
+        )
+        velocity = point_bound.constraint(vlim)
+    constraints = [velocity, toppra.constraint.JointAccelerationConstraint(alim)]
     n_grid = int(max(50, GRID_PER_M * s[-1]))
     failure = "toppra found no feasible parametrisation"
     for _ in range(3):
@@ -159,12 +170,79 @@ def time_parameterize(
         samples = _sample(path, ConstAccelTiming(data.gridpoints, data.sd_vec), rate)
         failure = _check(samples, limits)
         if failure is None:
-            return _assemble(arm, samples, limits, joints, tool, T_flange_tcp)
+            return _assemble(arm, samples, limits, joints, tool, T_flange_tcp, point_bound)
         n_grid *= 2
     raise InfeasibleTrajectoryError(
         f"no trajectory within the {arm.name}'s limits at {limits.speed_m_s} m/s: {failure}. "
         "Lower the speed, smooth the tool orientation or move the path away from singularities"
     )
+
+
+#: Spacing (m of TCP path) at which the arm's points' speed per metre of path is sampled for
+#: their varying bound, and the margin kept below the cap (the samples' finite differences and
+#: the interpolation between these stations).
+POINT_SPEED_STATION_M = 0.001
+POINT_SPEED_MARGIN = 0.95
+
+
+@dataclass(frozen=True)
+class PointSpeedBound:
+    """The path speed (TCP, m/s) at which no point of
+    :func:`recon.kinematics.speed_points_m` but the TCP moves faster than a cap, station by
+    station along the path.
+
+    Attributes
+    ----------
+    stations_m : ndarray of shape (S,)
+        Path positions (m of TCP path).
+    bound_m_s : ndarray of shape (S,)
+        The largest path speed there (at most the requested one).
+    binding : ndarray of shape (S,), int
+        Which point sets it (an index into :data:`recon.kinematics.SPEED_POINT_NAMES`).
+    cap_m_s : float
+    """
+
+    stations_m: FloatArray
+    bound_m_s: FloatArray
+    binding: np.ndarray
+    cap_m_s: float
+
+    @classmethod
+    def along(cls, arm, path, length_m, speed_m_s, cap_m_s, T_flange_tcp) -> PointSpeedBound:
+        from recon.kinematics import speed_points_m
+
+        if not cap_m_s > 0:
+            raise ValueError(f"point_speed_max_m_s must be positive, got {cap_m_s}")
+        T = np.eye(4) if T_flange_tcp is None else np.asarray(T_flange_tcp, dtype=np.float64)
+        n = max(3, int(np.ceil(length_m / POINT_SPEED_STATION_M)) + 1)
+        stations = np.linspace(0.0, length_m, n)
+        points = speed_points_m(arm, path(stations)[:, :6], T)[:, :-1]  # (S, 5, 3): not the TCP
+        chord = np.linalg.norm(np.diff(points, axis=0), axis=-1) / np.diff(stations)[:, None]
+        # A station takes the larger of the chords on its two sides (the bound holds across).
+        per_m = np.maximum(np.vstack([chord, chord[-1:]]), np.vstack([chord[:1], chord]))
+        worst = per_m.max(axis=1)
+        bound = np.minimum(speed_m_s, POINT_SPEED_MARGIN * cap_m_s / np.maximum(worst, 1e-9))
+        return cls(stations, bound, per_m.argmax(axis=1), float(cap_m_s))
+
+    def at(self, s_m: float) -> tuple[float, int]:
+        """The bound at path position ``s_m`` (the lower of the two stations around it) and
+        the point that sets it."""
+        i = int(np.clip(np.searchsorted(self.stations_m, s_m), 0, len(self.stations_m) - 1))
+        j = i if self.bound_m_s[i] <= self.bound_m_s[max(i - 1, 0)] else max(i - 1, 0)
+        return float(self.bound_m_s[j]), int(self.binding[j])
+
+    def constraint(self, vlim: FloatArray):
+        """toppra's velocity constraint: ``vlim`` with the arc-length coordinate's bound
+        lowered to this one."""
+        import toppra.constraint
+
+        def limits_at(s_m: float) -> np.ndarray:
+            out = vlim.copy()
+            speed = self.at(s_m)[0]
+            out[-1] = (-speed, speed)
+            return out
+
+        return toppra.constraint.JointVelocityConstraintVarying(limits_at)
 
 
 def smooth_joint_path(
@@ -285,7 +363,9 @@ def _check(samples: dict[str, FloatArray], limits: Limits) -> str | None:
     return None
 
 
-def _assemble(arm, samples, limits, joints, tool, T_flange_tcp) -> JointTrajectory:
+def _assemble(
+    arm, samples, limits, joints, tool, T_flange_tcp, point_bound=None
+) -> JointTrajectory:
     q = samples["x"][:, :6]
     flange = forward(arm, q)
     tcp = flange if T_flange_tcp is None else flange @ np.asarray(T_flange_tcp)
@@ -302,11 +382,13 @@ def _assemble(arm, samples, limits, joints, tool, T_flange_tcp) -> JointTrajecto
         tcp_rotvec=tcp_pose[:, 3:],
         arc_length_m=arc,
         requested_speed_m_s=limits.speed_m_s,
-        speed_drops=tuple(_speed_drops(arc, speed, joints, tool, limits)),
+        speed_drops=tuple(_speed_drops(arc, speed, joints, tool, limits, point_bound)),
     )
 
 
-def _speed_drops(arc, speed, joints: JointPath, tool: ToolPath, limits: Limits) -> list[SpeedDrop]:
+def _speed_drops(
+    arc, speed, joints: JointPath, tool: ToolPath, limits: Limits, point_bound=None
+) -> list[SpeedDrop]:
     """Stretches where the TCP is slower than requested, with the limit that binds there.
 
     The ramps from rest to the first speed peak and from the last peak back to rest are not
@@ -336,7 +418,15 @@ def _speed_drops(arc, speed, joints: JointPath, tool: ToolPath, limits: Limits) 
         w = min(int(np.searchsorted(s_way, arc[i])), len(s_way) - 1)
         cap = limits.qd_max_rad_s / np.maximum(np.abs(rates[w]), 1e-12)
         joint = int(np.argmin(cap))
-        if joints.wrist_singularity[w] < 0.15:
+        bound, point = point_bound.at(float(arc[i])) if point_bound else (np.inf, -1)
+        if bound <= 1.05 * speed[i]:
+            from recon.kinematics import SPEED_POINT_NAMES
+
+            cause = (
+                f"the {SPEED_POINT_NAMES[point]} would pass the "
+                f"{point_bound.cap_m_s * 1e3:.0f} mm/s speed cap (the tool turns about its tip)"
+            )
+        elif joints.wrist_singularity[w] < 0.15:
             cause = "near the wrist singularity (joints 4 and 6 nearly aligned)"
         elif joints.elbow_singularity[w] < 0.15:
             cause = "near the elbow singularity (arm nearly stretched)"

@@ -497,6 +497,13 @@ class PlanParams:
         return tuple(self.tcp_pose)
 
     @property
+    def point_speed_max_m_s(self) -> float:
+        """The largest speed of the elbow, the wrists and the flange on the straight moves and
+        the path: the fastest TCP speed any phase asks for (a real arm's cap applies to every
+        point, and the service keeps each of these speeds under it)."""
+        return max(self.speed_m_s, self.approach_speed_m_s, self.transit_tcp_speed_m_s)
+
+    @property
     def T_flange_tcp(self) -> FloatArray:
         from recon.transforms import transform_from_pose
 
