@@ -423,7 +423,7 @@ def _process_tool_path(points_tracker_m, T_base_tracker, params, source, normals
         ).as_quat()
     return tool_path(
         points,
-        approach=params.approach,
+        approach=params.approach_direction,
         lead_deg=params.lead_deg,
         tilt_deg=params.tilt_deg,
         smooth_m=params.smooth_m,

@@ -352,9 +352,15 @@ class PlanParams:
         Lean of the tool (see ``recon.orient``).
     smooth_m : float
         Smoothing of the tool axis along the path (0 turns it off).
-    approach : tuple of 3 floats
-        Where the tool comes from, base frame (default from above): surface normals are turned
-        to face it.
+    approach : tuple of 3 floats or None
+        Where the tool comes from, base frame: surface normals are turned to face it, and the
+        fixed tool axis is minus it. None (the default): from above the work, ``mount_up``.
+    mount_up : tuple of 3 floats
+        Away from the earth's centre, in the base frame, as UR's installation gives it
+        (``set_gravity``'s direction): (0, 0, 1) for an arm on a floor or table, (0, 0, -1)
+        hanging from a ceiling, horizontal on a wall. The default approach comes from it: the
+        tool comes at the work from above, whatever the mount (the mounting plane is the base's
+        own z = 0 plane for every mount: the surface it is bolted to).
     tcp_offset_m : tuple of 3 floats
         The TCP in the flange frame, position only (a tool of length L along the flange's z:
         (0, 0, L)); when set it replaces ``tcp_pose``.
@@ -406,8 +412,18 @@ class PlanParams:
     smooth_m: float = param(
         0.01, ge=0, le=0.1, unit="m", help="smoothing of the tool axis along the path (0: off)"
     )
-    approach: tuple[float, float, float] = param(
-        (0.0, 0.0, 1.0), ge=-1, le=1, help="where the tool comes from, base frame"
+    approach: tuple[float, float, float] | None = param(
+        None,
+        ge=-1,
+        le=1,
+        help="where the tool comes from, base frame (default: from above, mount_up)",
+    )
+    mount_up: tuple[float, float, float] = param(
+        (0.0, 0.0, 1.0),
+        ge=-1,
+        le=1,
+        help="up (away from the earth's centre) in the base frame: 0,0,1 floor, 0,0,-1 ceiling, "
+        "horizontal on a wall",
     )
     tcp_offset_m: tuple[float, float, float] = param(
         (0.0, 0.0, 0.0), ge=-1, le=1, unit="m", help="the TCP in the flange frame"
@@ -473,8 +489,13 @@ class PlanParams:
 
         arm = kinematics.model(self.robot)  # raises on an unknown arm
         check_bounds(self)
-        if np.linalg.norm(self.approach) < 1e-9:
+        if self.approach is not None and np.linalg.norm(self.approach) < 1e-9:
             raise ValueError("approach must be a non-zero direction")
+        if np.linalg.norm(self.mount_up) < 0.5:
+            raise ValueError(
+                f"mount_up must be a direction (a unit vector, as 0,0,1 for a floor mount), got "
+                f"{self.mount_up}"
+            )
         if tuple(self.tcp_pose) != DEFAULT_TCP_POSE and any(self.tcp_offset_m):
             raise ValueError("give the TCP as tcp_pose or as tcp_offset_m, not both")
         if any(abs(v) > 1.0 for v in self.tcp_pose[:3]):
@@ -495,6 +516,14 @@ class PlanParams:
         if any(self.tcp_offset_m):
             return (*self.tcp_offset_m, 0.0, 0.0, 0.0)
         return tuple(self.tcp_pose)
+
+    @property
+    def approach_direction(self) -> FloatArray:
+        """Where the tool comes from (unit, base frame): ``approach``, or from above."""
+        direction = np.asarray(
+            self.mount_up if self.approach is None else self.approach, dtype=np.float64
+        )
+        return direction / np.linalg.norm(direction)
 
     @property
     def point_speed_max_m_s(self) -> float:

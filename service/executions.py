@@ -238,6 +238,7 @@ def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> Cell
         )
         T_flange_tcp = transform_from_pose(np.asarray(tool[0], dtype=np.float64))
         T_base_tracker = _placement_here(store, trajectory, summary.get("T_base_tracker"))
+        _require_this_mount(trajectory, settings.mount_up)
         cell = cell_for(
             scan,
             T_scan_tracker,
@@ -288,6 +289,27 @@ def _placement_here(store, trajectory: ArtifactRow, planned_with):
                 f"{np.degrees(np.arccos(turn)):.2f} deg apart): plan it again here"
             )
     return here
+
+
+def _require_this_mount(trajectory: ArtifactRow, mount_up) -> None:
+    """A plan made for another mount (its tool comes at the work from what is not above here)
+    is refused; a plan from before mounts were recorded was made for a floor mount.
+
+    Raises
+    ------
+    CellUnknown
+    """
+    planned = np.asarray(trajectory.params.get("mount_up") or (0.0, 0.0, 1.0), dtype=np.float64)
+    here = np.asarray(mount_up, dtype=np.float64)
+    if planned.shape != (3,) or not np.all(np.isfinite(planned)):
+        raise ValueError(f"its mount_up {trajectory.params.get('mount_up')!r} is not a direction")
+    cos = float(planned @ here / (np.linalg.norm(planned) * np.linalg.norm(here)))
+    if cos < np.cos(SAME_PLACEMENT_RAD):
+        raise CellUnknown(
+            f"trajectory {trajectory.id} was planned for another mount (up "
+            f"{', '.join(f'{v:g}' for v in planned)} in the base frame) than this arm's "
+            f"({', '.join(f'{v:g}' for v in here)}, TEACHPATH_MOUNT_UP): plan it again here"
+        )
 
 
 def _tool_of(trajectory: ArtifactRow) -> tuple:

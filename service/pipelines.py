@@ -740,7 +740,7 @@ def plan(
             path.mode,
             scan_model,
             T_scan_tracker=T_scan_tracker,
-            approach_tracker=approach_in(T_base, params.approach),
+            approach_tracker=approach_in(T_base, params.approach_direction),
             recon_params=recon_params,
         )
     result = plan_path(

@@ -175,6 +175,7 @@ class RobotWatch:
             "unlock_in_s": None if can_unlock_in is None else round(can_unlock_in, 2),
             "owner_execution_id": owner,
             "max_speed_m_s": self.settings.max_speed_m_s,
+            "mount_up": list(self.settings.mount_up),
         }
 
 

@@ -455,6 +455,9 @@ class RobotOut(BaseModel):
     )
     owner_execution_id: str | None = Field(None, description="the execution that owns the arm")
     max_speed_m_s: float = Field(..., description="the server's TCP speed cap on a real arm")
+    mount_up: list[float] = Field(
+        ..., description="how the arm is mounted: up in its base frame (plans default to it)"
+    )
 
 
 class CaptureOut(FromRow):

@@ -112,6 +112,12 @@ class Settings(BaseSettings):
         description="boxes the arm and tool must keep out of, base frame: "
         "x_min, y_min, z_min, x_max, y_max, z_max (m)",
     )
+    mount_up: tuple[float, float, float] = Field(
+        (0.0, 0.0, 1.0),
+        description="how the arm is mounted: up (away from the earth's centre) in its base "
+        "frame, as in its installation: 0,0,1 floor, 0,0,-1 ceiling, horizontal on a wall; "
+        "plans made here default to it",
+    )
     cell_planes: list[tuple[float, float, float, float]] = Field(
         default_factory=list,
         description="surfaces of the cell besides the one the base stands on (a wall, the floor "
@@ -128,6 +134,17 @@ class Settings(BaseSettings):
 
             for box in value:  # the planner's own checks, raised at start-up, not at planning
                 Box(min_m=box[:3], max_m=box[3:])
+        return value
+
+    @field_validator("mount_up")
+    @classmethod
+    def _mount_up(cls, value: tuple) -> tuple:
+        length = math.sqrt(sum(v * v for v in value))
+        if not 0.5 <= length <= 1.5:
+            raise ValueError(
+                f"mount_up must be a direction, a unit vector (0,0,1 for a floor mount), got "
+                f"{value}"
+            )
         return value
 
     @field_validator("cell_planes")

@@ -37,6 +37,8 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
         params["transit_tcp_speed_m_s"] = min(
             params["transit_tcp_speed_m_s"], services.settings.max_speed_m_s
         )
+    if "mount_up" not in request.model_fields_set:
+        params["mount_up"] = tuple(services.settings.mount_up)  # this cell's mount
     start_from = "given"
     if params["start_q_rad"] is None:
         # The plan starts where the arm is (a real arm's joints now, the sim's home).

@@ -125,7 +125,7 @@ def test_the_reconstructed_demo_path_plans_with_scan_normals():
         recon.mode,
         recon.scan_model,
         T_scan_tracker=recon.T_scan_tracker,
-        approach_tracker=approach_in(T, params.approach),
+        approach_tracker=approach_in(T, params.approach_direction),
     )
     assert normals.known.all() and recon.registration is not None
     # At the rim the tool axis bisects the top face and the wall: (cos a, sin a, 1)/sqrt 2 out.
@@ -210,3 +210,36 @@ def test_the_ur3s_endless_wrist_3_plans_a_half_circle_the_ur5e_plans(robot, star
         f"\n{robot}, arc from {start_deg} deg: wrist 3 over the process "
         f"{np.degrees(q[process, 5].min()):.0f}..{np.degrees(q[process, 5].max()):.0f} deg"
     )
+
+
+MOUNTS = {
+    # up (away from the earth's centre) in the base frame, and a short line on the work there
+    "floor": ((0.0, 0.0, 1.0), (0.40, 0.10, 0.05)),
+    "ceiling": ((0.0, 0.0, -1.0), (0.40, 0.10, 0.40)),
+    "wall": ((1.0, 0.0, 0.0), (-0.45, 0.25, 0.35)),
+}
+
+
+@pytest.mark.parametrize("mount", MOUNTS)
+def test_the_tool_comes_at_the_work_from_above_on_every_mount(mount):
+    """The approach was fixed to the base's +z: hanging from a ceiling the tool came at the
+    part from below, on a wall its axis lay horizontal. The mount's up now drives the approach,
+    the retract and the fixed tool axis; the motion is checked against the mounting plane."""
+    from recon.collision import Cell
+
+    up, centre = MOUNTS[mount]
+    up = np.asarray(up)
+    line = np.asarray(centre) + np.outer(np.linspace(-0.05, 0.05, 101), [0.0, 1.0, 0.0])
+    params = PlanParams(mount_up=tuple(up), speed_m_s=0.05, orientation="fixed")
+    plan = plan_path(line, params=params, cell=Cell())
+    trajectory = plan.trajectory
+    T = forward(model("ur5e"), trajectory.q_rad) @ params.T_flange_tcp
+    process = trajectory.phases == int(Phase.PROCESS)
+    # The tool's axis points down, into the work, all along the path.
+    np.testing.assert_allclose(T[process][:, :3, 2] @ up, -1.0, atol=1e-6)
+    # The approach starts approach_m above the first point and the retract ends above the last.
+    approach = T[trajectory.phases == int(Phase.APPROACH)]
+    retract = T[trajectory.phases == int(Phase.RETRACT)]
+    assert (approach[0, :3, 3] - line[0]) @ up == pytest.approx(params.approach_m, abs=1e-4)
+    assert (retract[-1, :3, 3] - line[-1]) @ up == pytest.approx(params.approach_m, abs=1e-4)
+    assert plan.collision is not None and plan.collision.clear

@@ -35,7 +35,7 @@ def _plan(cylinder, *, with_scan: bool = True, **changes):
         recon.mode,
         recon.scan_model,
         T_scan_tracker=recon.T_scan_tracker,
-        approach_tracker=approach_in(T, params.approach),
+        approach_tracker=approach_in(T, params.approach_direction),
     )
     scan_base = apply_transform(T @ invert_transform(recon.T_scan_tracker), scene.scan.points_m)
     return plan_path(
@@ -85,7 +85,7 @@ def test_a_tool_tilted_into_the_workpiece_is_refused_with_its_link_and_place():
         recon.mode,
         recon.scan_model,
         T_scan_tracker=recon.T_scan_tracker,
-        approach_tracker=approach_in(T, params.approach),
+        approach_tracker=approach_in(T, params.approach_direction),
     )
     scan_base = apply_transform(T @ invert_transform(recon.T_scan_tracker), scene.scan.points_m)
     with pytest.raises(CollisionError) as refused:

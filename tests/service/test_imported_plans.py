@@ -155,3 +155,15 @@ def test_a_plan_made_with_another_calibration_than_the_sessions_is_refused(bundl
     assert response.status_code == 409 and response.json()["code"] == "cell_unknown"
     assert "another tracker-to-base calibration" in response.json()["message"]
     assert "50.0 mm" in response.json()["message"]
+
+
+def test_a_plan_made_for_another_mount_is_refused(bundle, tmp_path):
+    """A plan's tool comes at the work from above its mount: on an arm hanging from a ceiling a
+    plan made for a floor mount would come from below. The cell's mount is a setting
+    (TEACHPATH_MOUNT_UP), plans default to it, and the gate refuses a plan made for another."""
+    with _site_b(tmp_path, max_speed_m_s=0.25, mount_up=(0.0, 0.0, -1.0)) as client:
+        sid = _import(client, bundle["zip"])
+        assert client.get("/robot").json()["mount_up"] == [0.0, 0.0, -1.0]
+        response = _run(client, sid, bundle["trajectory_id"])
+    assert response.status_code == 409 and response.json()["code"] == "cell_unknown"
+    assert "another mount" in response.json()["message"], response.json()

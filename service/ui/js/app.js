@@ -940,6 +940,15 @@ function updatePlanSpeed() {
 
 // -- run on the arm: behind a confirmation ---------------------------------------------------------
 
+/** The mount a plan was made for, in words, and whether it is this cell's. */
+function mountText(up, robot) {
+  if (!up) return "–";
+  const words = up[2] > 0.99 ? "floor" : up[2] < -0.99 ? "ceiling" : Math.abs(up[2]) < 0.01 ? "wall" : "tilted";
+  const here = robot?.mount_up;
+  const same = here && here.every((v, i) => Math.abs(v - up[i]) < 1e-6);
+  return `${words} (up ${up.map((v) => v.toFixed(2)).join(", ")} in the base frame)${here && !same ? " — NOT this cell's mount" : ""}`;
+}
+
 /** The TCP (flange frame) as an operator checks it on PolyScope: mm and degrees. */
 function tcpText(pose) {
   if (!pose) return "–";
@@ -970,6 +979,7 @@ function confirmRun(traj) {
     ["starts from", startFrom(sm.start_from)],
     ["approach", `${mm(sm.approach_m, 0)} along the tool axis`],
     ["configuration", sm.configuration || "–"],
+    ["mount", mountText(traj.params?.mount_up, robot)],
     ["TCP", tcpText(sm.tcp_pose)],
     ["payload", payloadText(sm, robot)],
   ];
