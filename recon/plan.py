@@ -214,6 +214,51 @@ def plan_path(
         velocity_scale=params.velocity_scale,
         acceleration_scale=params.acceleration_scale,
     )
+    # A configuration whose motion collides is not the end when the request leaves a choice
+    # (elbow "any", ...): the next best configuration is tried (elbow up was clear where the
+    # branch chosen first, elbow down, collided and the plan was refused).
+    candidates = list(range(8)) if allowed is None else list(allowed)
+    first_collision: InfeasibleTrajectoryError | None = None
+    while candidates:
+        try:
+            return _plan_in(
+                arm, tools, flanges, pieces, tuple(candidates), q_start, start_from, limits,
+                params, cell, normals, source,
+            )  # fmt: skip
+        except _BranchRefused as collided:
+            first_collision = first_collision or collided.error
+            candidates.remove(collided.branch)
+        except InfeasibleTrajectoryError:
+            if first_collision is None:
+                raise
+            break  # no other configuration follows the path: the collision is the reason
+    raise first_collision
+
+
+class _BranchRefused(Exception):
+    """The motion in IK branch ``branch`` collides or comes too near a joint limit (``error``
+    says where)."""
+
+    def __init__(self, branch: int, error: InfeasibleTrajectoryError) -> None:
+        super().__init__(str(error))
+        self.branch, self.error = branch, error
+
+
+def _plan_in(
+    arm, tools, flanges, pieces, allowed, q_start, start_from, limits, params, cell, normals, source
+) -> Plan:
+    """The plan in the best of the ``allowed`` IK branches (see :func:`plan_path`).
+
+    Raises
+    ------
+    _BranchRefused
+        Its motion collides whichever way onto the path is taken, or passes nearer a joint
+        limit than ``params.joint_margin_deg``.
+    InfeasibleTrajectoryError
+        No allowed branch follows the path.
+    """
+    T_flange_tcp = params.T_flange_tcp
+
     # One configuration for every piece: the first piece's branch is kept for the others.
     joints_per_piece, processes, q_near = [], [], q_start
     for k, (tool, flange) in enumerate(zip(tools, flanges, strict=True)):
@@ -261,6 +306,7 @@ def plan_path(
                 if report is None:
                     raise  # the approach asked for itself cannot be followed
                 break  # lifted higher the approach leaves the arm's reach
+            _require_joint_margin(arm, trajectory, joints.branch, params.joint_margin_deg)
             if cell is not None:
                 report = check_cell(arm, trajectory, cell, params)
             if report is None or report.first_collision is None:
@@ -278,8 +324,31 @@ def plan_path(
                     n_pieces=len(pieces),
                 )
             if report.first_collision.phase not in (Phase.TRANSIT, Phase.APPROACH):
-                raise _collision_error(report)  # another way onto the path cannot help
-    raise _collision_error(report)
+                # Another way onto the path cannot help.
+                raise _BranchRefused(joints.branch, _collision_error(report))
+    raise _BranchRefused(joints.branch, _collision_error(report))
+
+
+def _require_joint_margin(arm, trajectory, branch: int, margin_deg: float) -> None:
+    """Refuse (for this branch) a motion that passes nearer a joint's limit than the margin.
+
+    Raises
+    ------
+    _BranchRefused
+    """
+    q = trajectory.q_rad
+    to_limit = np.minimum(q - arm.q_min_rad, arm.q_max_rad - q)  # (M, 6), inf: no limit
+    i, j = np.unravel_index(int(np.argmin(to_limit)), to_limit.shape)
+    if to_limit[i, j] < np.radians(margin_deg):
+        raise _BranchRefused(
+            branch,
+            InfeasibleTrajectoryError(
+                f"joint {j + 1} comes {np.degrees(to_limit[i, j]):.1f} deg from its limit "
+                f"during {Phase(int(trajectory.phases[i])).label} at {trajectory.t_s[i]:.2f} s "
+                f"(sample {i}), within the {margin_deg:g} deg margin (joint_margin_deg): "
+                "change the tool orientation, the configuration or the start pose"
+            ),
+        )
 
 
 def _configuration_branches(arm, T_flange, want) -> tuple[int, ...] | None:

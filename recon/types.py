@@ -398,6 +398,9 @@ class PlanParams:
     clearance_m : float
         Smallest distance the arm and tool keep from the scan, the mounting plane and the
         keep-out boxes (the tool's tip may touch the workpiece along the path only).
+    joint_margin_deg : float
+        Smallest distance every joint keeps from its limits at every sample (a plan 0.4 deg
+        from a wrist's limit was accepted: the controller's own limit check stops it there).
     """
 
     robot: str = param(
@@ -482,6 +485,9 @@ class PlanParams:
     )
     clearance_m: float = param(
         0.01, ge=0, le=0.1, unit="m", help="distance the arm and tool keep from obstacles"
+    )
+    joint_margin_deg: float = param(
+        5.0, ge=0, le=45, unit="deg", help="distance every joint keeps from its limits"
     )
 
     def __post_init__(self) -> None:

@@ -273,6 +273,8 @@ TRAJECTORY_PARAMS = (
     "payload_cog_m",
     "tool_radius_m",
     "clearance_m",
+    "joint_margin_deg",
+    "mount_up",
 )
 
 

@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 
 from recon import scenes
 from recon.errors import InfeasibleTrajectoryError
-from recon.kinematics import forward, model
+from recon.kinematics import HOME_Q_RAD, forward, model
 from recon.metrics import distance_to_curve
 from recon.orient import smooth_directions, tool_path
 from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path
@@ -243,3 +243,47 @@ def test_the_tool_comes_at_the_work_from_above_on_every_mount(mount):
     assert (approach[0, :3, 3] - line[0]) @ up == pytest.approx(params.approach_m, abs=1e-4)
     assert (retract[-1, :3, 3] - line[-1]) @ up == pytest.approx(params.approach_m, abs=1e-4)
     assert plan.collision is not None and plan.collision.clear
+
+
+def test_a_configuration_that_collides_is_not_the_end_when_another_is_allowed():
+    """With elbow "any" the planner took the branch with the best margins, and a collision of
+    its motion refused the plan though another configuration was clear. Now the next best
+    allowed configuration is tried; one fixed in every word is still refused."""
+    from recon.collision import Box, Cell
+    from recon.errors import CollisionError
+    from recon.kinematics import joint_frames
+
+    line = np.array([0.4, 0.2, 0.3]) + np.outer(np.linspace(-0.05, 0.05, 101), [1.0, 0, 0])
+    free = PlanParams(speed_m_s=0.05, orientation="fixed", elbow="any")
+    first = plan_path(line, params=free, cell=Cell())
+    chosen = first.configuration
+    # A fixture where that configuration's elbow passes in the middle of the path.
+    process = first.trajectory.phases == int(Phase.PROCESS)
+    elbow = joint_frames(model("ur5e"), first.trajectory.q_rad[process])[:, 2, :3, 3]
+    centre = elbow[len(elbow) // 2]
+    cell = Cell(boxes=(Box(centre - 0.03, centre + 0.03, name="fixture"),))
+    fixed = PlanParams(
+        speed_m_s=0.05, orientation="fixed",
+        shoulder=chosen.shoulder, elbow=chosen.elbow, wrist=chosen.wrist,
+    )  # fmt: skip
+    with pytest.raises(CollisionError, match="fixture"):
+        plan_path(line, params=fixed, cell=cell)
+    retried = plan_path(line, params=free, cell=cell)
+    assert retried.configuration != chosen and retried.collision.clear
+    print(f"\nfirst {chosen.words()}: collides; then {retried.configuration.words()}: clear")
+
+
+def test_a_motion_that_passes_within_the_joint_margin_of_a_limit_is_refused():
+    """A plan 0.4 deg from a wrist's limit was accepted. Every sample keeps joint_margin_deg
+    (5 deg by default) from every limit, or the plan is refused naming the joint and where."""
+    from recon.errors import InfeasibleTrajectoryError
+
+    line = np.array([0.4, 0.1, 0.1]) + np.outer(np.linspace(-0.05, 0.05, 51), [0, 1.0, 0])
+    near = np.array(HOME_Q_RAD) + [0, 0, 0, 0, 0, 2 * np.pi - np.radians(0.4)]
+    params = PlanParams(speed_m_s=0.05, orientation="fixed", start_q_rad=tuple(near))
+    with pytest.raises(InfeasibleTrajectoryError, match=r"joint 6 comes 0\.4 deg from its limit"):
+        plan_path(line, params=params)
+    relaxed = PlanParams(
+        speed_m_s=0.05, orientation="fixed", start_q_rad=tuple(near), joint_margin_deg=0.0
+    )
+    assert plan_path(line, params=relaxed).trajectory.duration_s > 0
