@@ -152,7 +152,8 @@ def test_no_point_of_the_arm_passes_the_speed_cap_in_any_phase(cylinder):
     for phase in Phase:
         rows = trajectory.phases[1:] == int(phase)
         if rows.any():
-            fastest = dict(zip(SPEED_POINT_NAMES, np.round(speed[rows].max(axis=0) * 1e3).tolist()))
+            fastest_mm_s = np.round(speed[rows].max(axis=0) * 1e3).tolist()
+            fastest = dict(zip(SPEED_POINT_NAMES, fastest_mm_s, strict=True))
             print(f"{phase.label}: {fastest} mm/s")
     assert speed.max() <= 0.25 * 1.001
     problems = sample_problems(
