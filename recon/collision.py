@@ -129,6 +129,7 @@ class ObstacleKind(enum.IntEnum):
     PLANE = 1
     BOX = 2
     NONE = 3  # no obstacle in the cell at all
+    SELF = 4  # another part of the arm (or the tool)
 
 
 #: The arm's capsules, in the order of :func:`link_capsules`.
@@ -143,6 +144,17 @@ LINK_NAMES: tuple[str, ...] = (
     "wrist 3",
 )
 TOOL_NAME = "tool"
+
+#: Pairs of capsules (indices into :data:`LINK_NAMES`, 8: the tool) checked against each other:
+#: those three or more DH frames apart, whose distance the joints between them change (closer
+#: pairs are held apart by the arm's own build: their capsules meet at the joint). The tool and
+#: the wrists against the base, the shoulder and the upper arm are what folds into the arm.
+SELF_PAIRS: tuple[tuple[int, int], ...] = (
+    (0, 4), (0, 5), (0, 6), (0, 7), (0, 8),
+    (1, 6), (1, 7), (1, 8),
+    (2, 7), (2, 8), (3, 7), (3, 8),
+    (4, 8), (5, 8),
+)  # fmt: skip
 
 #: Capsules of each arm, millimetres (parsed into :data:`CAPSULES_MM`). Per link: the base's top
 #: and radius; for the housings along a joint axis (shoulder, elbow, wrists) "lo, hi", the capsule's
@@ -405,6 +417,57 @@ def tool_capsules(T_base_flange: FloatArray, T_flange_tcp: FloatArray, tool: Too
 
 # --------------------------------------------------------------------------------------------
 # Exact distances of capsules to points, half-spaces and boxes
+
+
+def segment_segment_closest(
+    p0: FloatArray, p1: FloatArray, q0: FloatArray, q1: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The closest points of two segments, and their distance (exact; broadcasting).
+
+    The clamped minimisation of Ericson's *Real-Time Collision Detection* (5.1.9), with its
+    degenerate cases (a segment that is a point, parallel segments).
+
+    Parameters
+    ----------
+    p0, p1 : ndarray of shape (..., 3)
+        The first segment's ends.
+    q0, q1 : ndarray of shape (..., 3)
+        The second's.
+
+    Returns
+    -------
+    distance : ndarray of shape (...)
+    on_p, on_q : ndarray of shape (..., 3)
+    """
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    a = np.einsum("...i,...i->...", d1, d1)
+    e = np.einsum("...i,...i->...", d2, d2)
+    f = np.einsum("...i,...i->...", d2, r)
+    c = np.einsum("...i,...i->...", d1, r)
+    b = np.einsum("...i,...i->...", d1, d2)
+    tiny = 1e-18
+    safe_a, safe_e = np.where(a > tiny, a, 1.0), np.where(e > tiny, e, 1.0)
+    denom = a * e - b * b
+    s = np.where(
+        denom > tiny * np.maximum(a * e, tiny),
+        np.clip((b * f - c * e) / np.where(denom > 0, denom, 1.0), 0.0, 1.0),
+        0.0,
+    )
+    t = (b * s + f) / safe_e
+    s = np.where(
+        t < 0.0,
+        np.clip(-c / safe_a, 0.0, 1.0),
+        np.where(t > 1.0, np.clip((b - c) / safe_a, 0.0, 1.0), s),
+    )
+    t = np.clip(t, 0.0, 1.0)
+    # A point for a segment: the other's closest point to it.
+    s = np.where(a <= tiny, 0.0, s)
+    t = np.where(a <= tiny, np.clip(f / safe_e, 0.0, 1.0), t)
+    t = np.where(e <= tiny, 0.0, t)
+    s = np.where((e <= tiny) & (a > tiny), np.clip(-c / safe_a, 0.0, 1.0), s)
+    on_p = p0 + s[..., None] * d1
+    on_q = q0 + t[..., None] * d2
+    return np.linalg.norm(on_p - on_q, axis=-1), on_p, on_q
 
 
 def segment_point_distance(a_m: FloatArray, b_m: FloatArray, p_m: FloatArray) -> FloatArray:
@@ -1018,6 +1081,7 @@ class Collision:
             ObstacleKind.PLANE: f"the {self.obstacle}",
             ObstacleKind.BOX: f"box {self.obstacle!r}",
             ObstacleKind.NONE: "nothing",
+            ObstacleKind.SELF: f"the arm's own {self.obstacle}",
         }[self.kind]
         when = f"at {self.t_s:.2f} s" if self.t_s is not None else f"at sample {self.sample}"
         c = self.clearance_m * 1000.0
@@ -1249,8 +1313,10 @@ def check_motion(
     motion_bound_fraction: float = 0.25,
     horizon_m: float = 0.1,
     workers: int = -1,
+    self_check: bool = True,
 ) -> CollisionReport:
-    """Check the continuous motion through a joint trajectory against a cell.
+    """Check the continuous motion through a joint trajectory against a cell, and the arm
+    against itself.
 
     Parameters
     ----------
@@ -1279,6 +1345,9 @@ def check_motion(
         margin are always resolved.
     workers : int
         Threads for the k-d tree queries (-1: all cores).
+    self_check : bool
+        Check the pairs of :data:`SELF_PAIRS` (the tool and the wrists against the base, the
+        shoulder and the upper arm, ...) too, reported as the arm's own obstacles.
 
     Returns
     -------
@@ -1425,6 +1494,30 @@ def check_motion(
     for box in cell.boxes:
         c, p = capsule_box_clearance(ends, radii, box, far_m=horizon_m)
         take(c, p, add(box.name, ObstacleKind.BOX), c_full, o_full, p_full)
+    self_tol = 0.0
+    if self_check:
+        # The arm against itself. Both capsules of a pair move: between two checked
+        # configurations their distance changes by up to twice what one point moves, so each
+        # configuration's clearance carries the spacing to its farther neighbour less, and the
+        # static bound below still holds.
+        spacing = np.diff(v) if J > 1 else np.zeros(0)
+        reach = np.maximum(np.r_[spacing, 0.0], np.r_[0.0, spacing])  # (J,)
+        self_tol = float(reach.max()) if J > 1 else 0.0
+        self_index: dict[int, int] = {}
+        for i, j in SELF_PAIRS:
+            # The tool is column 8, or columns 8.. (one per sphere of a SphereTool).
+            for jj in [j] if j < len(LINK_NAMES) else range(len(LINK_NAMES), L):
+                distance, on_i, on_j = segment_segment_closest(
+                    ends[:, i, 0], ends[:, i, 1], ends[:, jj, 0], ends[:, jj, 1]
+                )
+                c = distance - radii[i] - radii[jj] - reach
+                for mine, other, point in ((i, jj, on_j), (jj, i, on_i)):
+                    if other not in self_index:
+                        self_index[other] = add(names[other], ObstacleKind.SELF)
+                    cols = slice(mine, mine + 1)
+                    take(
+                        c[:, None], point[:, None], self_index[other], c_full, o_full, p_full, cols
+                    )
     c_ex, o_ex, p_ex = c_full.copy(), o_full.copy(), p_full.copy()
 
     scan_tol = 0.0
@@ -1536,7 +1629,7 @@ def check_motion(
         first_collision=first,
         margin_m=margin_m,
         motion_bound_m=motion_bound,
-        tolerance_m=2 * motion_bound + scan_tol,
+        tolerance_m=2 * motion_bound + max(scan_tol, self_tol),
         exact_below_m=refine_below - step_m,
         scan_resolution_m=cell.scan_resolution_m,
         contact_radius_m=contact_radius,

@@ -25,7 +25,15 @@ from recon.collision import (
     segment_point_distance,
     tool_capsules,
 )
-from recon.kinematics import UR_MODELS, follow_path, forward, inverse, joint_frames, model
+from recon.kinematics import (
+    HOME_Q_RAD,
+    UR_MODELS,
+    follow_path,
+    forward,
+    inverse,
+    joint_frames,
+    model,
+)
 
 MODELS = sorted(UR_MODELS)
 
@@ -376,17 +384,21 @@ def test_a_tool_tilted_into_the_workpiece_is_reported_as_the_tool(workpiece_cell
     arm = model("ur5e")
     upright, *_ = _contact_plan(arm, 0.0)
     joints, phase, T_ft, process, t = _contact_plan(arm, 60.0, branch=upright.branch)
-    report = check_motion(
-        arm,
-        joints.q_rad,
-        phase,
-        workpiece_cell,
+    kw = dict(
         T_flange_tcp=T_ft,
         tool=CapsuleTool(0.02),
         margin_m=0.01,
         contact_zone=ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft),
         t_s=t,
     )
+    # Tilted 60 deg, the 150 mm tool also passes 5 mm from the forearm's housing from the
+    # first sample on: the arm against itself is found first.
+    both = check_motion(arm, joints.q_rad, phase, workpiece_cell, **kw)
+    first = both.first_collision
+    assert first.kind == ObstacleKind.SELF and {first.link, first.obstacle} == {"tool", "forearm"}
+    assert first.sample == 0 and "the arm's own" in first.describe()
+    # Against the workpiece alone:
+    report = check_motion(arm, joints.q_rad, phase, workpiece_cell, self_check=False, **kw)
     hit = report.first_collision
     assert hit is not None and hit.link == "tool" and hit.kind == ObstacleKind.SCAN
     # The body goes into the workpiece's top, outside the contact tube, in the process phase.
@@ -699,3 +711,81 @@ def test_a_thick_tool_beside_a_clamp_is_refused_exactly_where_it_touches(radius_
         assert hit.point_m[2] > WORKPIECE_HI[2] + 0.01  # the clamp, above the band
     elif truth > margin_m + report.tolerance_m:
         assert report.clear, report.lines()
+
+
+# --- the arm against itself --------------------------------------------------------------------
+
+
+def test_segment_segment_closest_points_match_a_dense_search():
+    from recon.collision import segment_segment_closest
+
+    rng = np.random.default_rng(7)
+    for k in range(300):
+        p0, p1, q0, q1 = rng.normal(size=(4, 3))
+        if k % 5 == 0:
+            p1 = p0.copy()  # a point
+        if k % 7 == 0:
+            q1 = q0 + 0.5 * (p1 - p0)  # parallel
+        distance, on_p, on_q = segment_segment_closest(p0, p1, q0, q1)
+        s = np.linspace(0.0, 1.0, 2001)
+        dense = np.linalg.norm(
+            (p0 + s[:, None] * (p1 - p0))[:, None] - (q0 + s[:, None] * (q1 - q0))[None], axis=-1
+        ).min()
+        assert distance <= dense + 1e-12 and distance >= dense - 2e-3
+        assert np.linalg.norm(on_p - on_q) == pytest.approx(distance, abs=1e-12)
+
+
+def _self_clearance(arm, q, T_ft, tool_radius_m):
+    """The least clearance of the self-checked pairs at one configuration, by dense sampling of
+    the capsules' axes (apart from the check's closed form)."""
+    from recon.collision import SELF_PAIRS, _place, _tool_local, capsule_model
+
+    cm = capsule_model(arm)
+    tool_local, tool_r = _tool_local(T_ft, CapsuleTool(tool_radius_m))
+    ends = _place(
+        joint_frames(arm, q[None]), np.r_[cm.frames, 6], np.concatenate([cm.local_m, tool_local])
+    )[0]
+    radii = np.r_[cm.radii_m, tool_r]
+    s = np.linspace(0.0, 1.0, 301)[:, None]
+    best = np.inf
+    for i, j in SELF_PAIRS:
+        a = ends[i, 0] + s * (ends[i, 1] - ends[i, 0])
+        b = ends[j, 0] + s * (ends[j, 1] - ends[j, 0])
+        gap = np.linalg.norm(a[:, None] - b[None], axis=-1).min() - radii[i] - radii[j]
+        best = min(best, gap)
+    return best
+
+
+def test_the_arm_folding_onto_itself_is_refused_where_it_comes_within_the_margin():
+    """Nothing checked the arm against itself: folding the elbow past 150 deg swings wrist 3
+    into the shoulder. Now the tool and the wrists are checked against the base, the shoulder
+    and the upper arm (same report shape: the link, the arm's own part it meets, where), and
+    the refusal agrees with an independent dense computation within the stated tolerance."""
+    arm = model("ur5e")
+    n = 100
+    q = np.tile(HOME_Q_RAD, (n, 1))
+    q[:, 2] = np.linspace(np.pi / 2, 2.95, n)
+    T_ft = _tcp_transform(0.1)
+    report = check_motion(arm, q, np.zeros(n, int), Cell(mounting=None), T_flange_tcp=T_ft)
+    hit = report.first_collision
+    assert hit is not None and hit.kind == ObstacleKind.SELF
+    assert {hit.link, hit.obstacle} == {"shoulder", "wrist 3"}
+    truth = np.array([_self_clearance(arm, qq, T_ft, 0.02) for qq in q])  # every sample
+    # A sample's clearance is its period's (to the next sample): conservative, never more
+    # than the truth there, and at most the stated tolerance less.
+    period = np.minimum(truth, np.r_[truth[1:], truth[-1]])
+    every = slice(None)
+    assert np.all(report.clearance_m[every] <= period[every] + 1e-6)
+    lowest = np.minimum(period[every], 0.1) - report.tolerance_m - 1e-6
+    assert np.all(report.clearance_m[every] >= lowest)
+    # Refused in the first period whose true clearance may be within the margin, not before.
+    assert period[hit.sample] < report.margin_m + report.tolerance_m
+    assert np.all(period[: hit.sample] >= report.margin_m - 1e-6)
+    print(
+        f"\nrefused at elbow {np.degrees(q[hit.sample, 2]):.1f} deg: true clearance "
+        f"{period[hit.sample] * 1e3:.1f} mm, reported {hit.clearance_m * 1e3:.1f} mm"
+    )
+    # Turning the base with the arm at home never meets itself.
+    turn = np.tile(HOME_Q_RAD, (n, 1))
+    turn[:, 0] = np.linspace(0.0, 1.5, n)
+    assert check_motion(arm, turn, np.zeros(n, int), Cell(mounting=None), T_flange_tcp=T_ft).clear
