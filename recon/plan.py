@@ -306,10 +306,10 @@ def _plan_in(
                 if report is None:
                     raise  # the approach asked for itself cannot be followed
                 break  # lifted higher the approach leaves the arm's reach
-            _require_joint_margin(arm, trajectory, joints.branch, params.joint_margin_deg)
             if cell is not None:
                 report = check_cell(arm, trajectory, cell, params)
             if report is None or report.first_collision is None:
+                _require_joint_margin(arm, trajectory, joints.branch, params.joint_margin_deg)
                 return Plan(
                     tool=tool,
                     joints=joints,

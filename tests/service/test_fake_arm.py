@@ -81,8 +81,11 @@ def test_a_confirmed_execution_runs_on_the_controller(arm, fake_ur):
     # overwritten with 0 kg before every run.
     program = "def installation():\n  set_payload(2.0, [0, 0, 0.05])\nend\n"
     assert fake_ur.wait_program(fake_ur.send_program(program))["state"] == "finished"
-    shown = client.get("/robot").json()
-    assert shown["payload_kg"] == 2.0 and shown["payload_cog_m"] == [0, 0, 0.05]
+    deadline = time.monotonic() + 10  # the arm is read every robot_poll_s
+    while (shown := client.get("/robot").json())["payload_kg"] != 2.0:
+        assert time.monotonic() < deadline, shown
+        time.sleep(0.05)
+    assert shown["payload_cog_m"] == [0, 0, 0.05]
     plan = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}").json()
     assert plan["summary"]["payload_kg"] is None
     job = wait(client, _execute(client, sid, trajectory_id), timeout_s=120)

@@ -321,11 +321,12 @@ def test_samples_faster_than_the_arm_or_the_cap_are_refused_whatever_the_summary
 
 
 def test_a_transit_above_the_servers_tcp_cap_is_refused(tmp_path, trajectory):
-    """Joint speeds within the arm's limits, the TCP faster than this server allows."""
+    """Joint speeds within the arm's limits, the TCP (and the wrists with it) faster than this
+    server allows: the cap holds for every point of the arm, as UR's safety limits do."""
     slow_cap = Settings(data_dir=tmp_path, ur_host="127.0.0.9", ur_robot="ur5e", max_speed_m_s=0.05)
     with pytest.raises(gate.SamplesOutsideLimits, match="50 mm/s cap") as refused:
         gate.check_here(slow_cap, trajectory, a_trajectory(), EMPTY_CELL)
-    assert refused.value.detail["checks"] == ["tcp_speed"]
+    assert refused.value.detail["checks"] == ["tcp_speed", "link_speed"]
 
 
 def test_samples_off_the_controllers_grid_are_refused(settings, trajectory):
