@@ -494,6 +494,15 @@ class ExecutionSummary(_Summary):
     stopped_in: str | None = Field(
         None, description="where a stopped or failed execution got to (a phase or a step)"
     )
+    max_period_s: float | None = Field(
+        None, description="servoJ on a real arm: the longest time between two samples sent"
+    )
+    period_overruns: int | None = Field(
+        None, description="servoJ on a real arm: periods over 1.25 times the controller's"
+    )
+    realtime: str | None = Field(
+        None, description="the streaming loop's scheduling (realtime priority, or why not)"
+    )
     report: list[str] = Field(default_factory=list)
 
 

@@ -365,7 +365,8 @@ def _real_summary(trajectory, record, faults, duration_s, stopped_in, request, c
         backend="ur_rtde",
         tolerance_m=request.tolerance_m,
     )
-    return {**outcome.summary(), "stopped_in": stopped_in}
+    realtime = None if record is None else record.realtime
+    return {**outcome.summary(), "stopped_in": stopped_in, "realtime": realtime}
 
 
 @dataclass(frozen=True)

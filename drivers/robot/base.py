@@ -99,6 +99,8 @@ class ExecutionRecord:
     planned_index : ndarray of shape (K,), int, or None
         Which sample of the trajectory each one was sent as (servoJ streams sample k as record
         k), or planned at that time (movePath); None: sample k was planned sample k.
+    realtime : str or None
+        How the streaming loop was scheduled (a realtime priority, or why not).
     """
 
     t_s: FloatArray
@@ -108,6 +110,7 @@ class ExecutionRecord:
     fault: str | None = None
     tcp_actual: FloatArray | None = None
     planned_index: np.ndarray | None = None
+    realtime: str | None = None
 
     def planned(self) -> np.ndarray:
         """Which planned sample each recorded one belongs to (see ``planned_index``)."""

@@ -79,6 +79,10 @@ class ExecutionReport:
     phase_durations_s: dict = field(default_factory=dict)
     executed_phase_durations_s: dict = field(default_factory=dict)
     max_deviation_by_phase_m: dict = field(default_factory=dict)
+    #: servoJ on a real arm: the longest time between two samples sent, and how many periods
+    #: took over :data:`OVERRUN_FACTOR` times the controller's (None: not streamed in real time).
+    max_period_s: float | None = None
+    period_overruns: int | None = None
 
     def lines(self) -> list[str]:
         """The report as short lines for a terminal."""
@@ -123,6 +127,11 @@ class ExecutionReport:
             f"tool moves straight, wrist |sin q5| {self.min_wrist_singularity:.2f}, elbow "
             f"|sin q3| {self.min_elbow_singularity:.2f}"
         )
+        if self.max_period_s is not None:
+            out.append(
+                f"servoJ periods: longest {self.max_period_s * mm:.2f} ms, "
+                f"{self.period_overruns} over {OVERRUN_FACTOR:g} times the controller's"
+            )
         out += speed_drop_lines(self.speed_drops)
         out += [f"fault: {fault}" for fault in self.faults]
         return out
@@ -213,6 +222,11 @@ def off_path_m(arm, actual_flange: FloatArray, plan_q_rad: FloatArray) -> FloatA
     return distance_to_curve(actual_flange[:, :3, 3], plan_flange)
 
 
+#: A streamed period counts as an overrun when it takes this many times the controller's: the
+#: controller then repeats the last setpoint and the arm slows (or, with a watchdog, stops).
+OVERRUN_FACTOR = 1.25
+
+
 def execution_report(
     trajectory: JointTrajectory,
     record: ExecutionRecord | None,
@@ -283,6 +297,12 @@ def execution_report(
     along = process[1:] & process[:-1]
     path_length = float(np.sum(np.linalg.norm(np.diff(planned_tcp, axis=0), axis=1)[along]))
     process_s = float(np.count_nonzero(along) * trajectory.period_s)
+    max_period = overruns = None
+    if not dry_run and mode == "servoj" and record is not None and len(record) > 1:
+        # The samples' times are when each was sent (the streaming loop's clock).
+        periods = np.diff(np.asarray(record.t_s, dtype=np.float64))
+        max_period = float(periods.max())
+        overruns = int(np.count_nonzero(periods > OVERRUN_FACTOR * trajectory.period_s))
     return ExecutionReport(
         robot=trajectory.robot,
         completed=completed,
@@ -304,4 +324,6 @@ def execution_report(
         phase_durations_s=trajectory.phase_durations_s(),
         executed_phase_durations_s=executed,
         max_deviation_by_phase_m=by_phase,
+        max_period_s=max_period,
+        period_overruns=overruns,
     )

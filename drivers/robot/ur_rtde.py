@@ -21,6 +21,7 @@ floor that is the operator's decision, at the teach pendant.
 from __future__ import annotations
 
 import contextlib
+import os
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -98,6 +99,14 @@ class URRtdeConfig(BackendConfig):
     power_on: bool = Field(False, description="enable() powers on and releases the brakes")
     upper_range_registers: bool = Field(False, description="use RTDE registers 24-47")
     stop_deceleration_rad_s2: float = Field(4.0, gt=0, le=40.0)
+    rt_priority: int = Field(
+        80,
+        ge=0,
+        le=99,
+        description="realtime priority (SCHED_FIFO) of the servoJ loop and of ur_rtde's own "
+        "threads while streaming; 0: normal priority. Without the privilege the run goes on "
+        "at normal priority and its record says so",
+    )
 
 
 # -- the commands the worker serves --------------------------------------------------------------
@@ -140,6 +149,39 @@ class MoveJ(Command):
     q: list[float]
     speed: float
     acceleration: float
+
+
+class _realtime(contextlib.AbstractContextManager):
+    """The streaming thread at a realtime priority (SCHED_FIFO) while it streams, as ur_rtde's
+    examples run their servo loops; put back after. ``status`` says what it got: a system
+    without the privilege (CAP_SYS_NICE, or a container without it) streams at normal
+    priority and the execution's record says so."""
+
+    def __init__(self, priority: int) -> None:
+        self.priority, self.status, self._before = priority, "normal priority (not asked)", None
+
+    def __enter__(self) -> _realtime:
+        if self.priority <= 0:
+            return self
+        if not hasattr(os, "sched_setscheduler"):
+            self.status = "normal priority (no realtime scheduling on this system)"
+            return self
+        try:
+            self._before = (os.sched_getscheduler(0), os.sched_getparam(0))
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.priority))
+            self.status = f"realtime priority {self.priority} (SCHED_FIFO)"
+        except OSError as exc:
+            self._before = None
+            self.status = (
+                f"normal priority: realtime priority {self.priority} refused ({exc.strerror}; "
+                "give the service CAP_SYS_NICE)"
+            )
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._before is not None:
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(0, *self._before)
 
 
 @dataclass(frozen=True)
@@ -290,7 +332,7 @@ class URRtdeBackend(RobotBackend):
     ) -> ExecutionRecord:
         n = len(trajectory)
         try:
-            times, actual, tcp, completed, fault = self._call(
+            times, actual, tcp, completed, fault, realtime = self._call(
                 Execute(
                     trajectory.q_rad.tolist(),
                     trajectory.period_s,
@@ -312,6 +354,7 @@ class URRtdeBackend(RobotBackend):
             completed=completed,
             fault=fault,
             tcp_actual=np.array(tcp).reshape(-1, 6),
+            realtime=realtime,
         )
 
     def _execute_path(
@@ -413,7 +456,9 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         host = self.config["host"]
         try:
             self.receive = rtde_receive.RTDEReceiveInterface(
-                host, use_upper_range_registers=self.config["upper_range_registers"]
+                host,
+                use_upper_range_registers=self.config["upper_range_registers"],
+                rt_priority=int(self.config["rt_priority"]),
             )
             self.dashboard = dashboard_client.DashboardClient(host)
             self.dashboard.connect()
@@ -437,7 +482,10 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         if self.config["upper_range_registers"]:
             flags |= rtde_control.RTDEControlInterface.FLAG_UPPER_RANGE_REGISTERS
         try:
-            self.control = rtde_control.RTDEControlInterface(host, -1.0, flags)
+            # ur_rtde's own threads at the same realtime priority (0: its default).
+            self.control = rtde_control.RTDEControlInterface(
+                host, -1.0, flags, 50002, int(self.config["rt_priority"])
+            )
         except RuntimeError as exc:
             raise ConnectionLostError(
                 f"cannot start ur_rtde's control script at {host}: {exc}"
@@ -592,7 +640,8 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
     def execute(self, q_rows, period_s, journal=None):
         with contextlib.ExitStack() as stack:
             writer = None if journal is None else stack.enter_context(JournalWriter(journal))
-            return self._stream(q_rows, period_s, writer)
+            realtime = stack.enter_context(_realtime(int(self.config.get("rt_priority", 0))))
+            return (*self._stream(q_rows, period_s, writer), realtime.status)
 
     def _stream(self, q_rows, period_s, writer):
         lookahead, gain = self.config["lookahead_s"], self.config["gain"]

@@ -100,6 +100,16 @@ def test_a_confirmed_execution_runs_on_the_controller(arm, fake_ur):
     # follows the stream a lookahead behind and cuts the box's corner a little (3.2 mm measured
     # with both cores busy; the sim's dry run of the same plan stays within 1 mm).
     assert summary["backend"] == "ur_rtde" and 0 < summary["max_path_deviation_m"] < 5e-3
+    # The servoJ loop's timing is in the record: how it was scheduled (this test runs as root:
+    # realtime; elsewhere it says why not), its longest period and the overruns counted.
+    assert summary["realtime"].startswith(("realtime priority 80", "normal priority: realtime"))
+    assert summary["max_period_s"] >= 0.002 and summary["period_overruns"] >= 0
+    assert any(line.startswith("servoJ periods: longest") for line in summary["report"])
+    print(
+        f"\nservoJ on the fake: {summary['realtime']}; longest period "
+        f"{summary['max_period_s'] * 1e3:.2f} ms, {summary['period_overruns']} overruns of "
+        f"{summary['n_samples']}"
+    )
     # The controller's arm ended where the plan ends.
     csv = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}/csv").text
     q_end = np.array(csv.strip().splitlines()[-1].split(",")[1:7], dtype=float)
