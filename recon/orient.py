@@ -150,6 +150,30 @@ def smooth_directions(vectors: FloatArray, *, sigma_points: float) -> FloatArray
     return smoothed / np.maximum(np.linalg.norm(smoothed, axis=1), 1e-12)[:, None]
 
 
+def _carried(x0: FloatArray, axis: FloatArray) -> FloatArray:
+    """A direction perpendicular to each axis, starting at ``x0`` and carried from one axis to
+    the next with the least turn (parallel transport: no twist about the axis).
+
+    Parameters
+    ----------
+    x0 : ndarray of shape (3,)
+        Perpendicular to ``axis[0]``.
+    axis : ndarray of shape (N, 3)
+        Unit tool axes.
+
+    Returns
+    -------
+    ndarray of shape (N, 3)
+    """
+    out = np.empty_like(axis)
+    x = np.asarray(x0, dtype=np.float64)
+    for i, z in enumerate(axis):
+        x = x - (x @ z) * z
+        x /= np.linalg.norm(x)
+        out[i] = x
+    return out
+
+
 def tool_path(
     points_m: FloatArray,
     *,
@@ -159,6 +183,7 @@ def tool_path(
     lead_deg: float = 0.0,
     tilt_deg: float = 0.0,
     smooth_m: float = 0.01,
+    heading: str = "travel",
 ) -> ToolPath:
     """Tool poses along a path.
 
@@ -177,6 +202,12 @@ def tool_path(
     smooth_m : float
         Standard deviation, in metres of path, of the smoothing of the tool axis and the
         heading (the heading at least :data:`MIN_HEADING_SMOOTH_M`).
+    heading : {"travel", "free"}
+        The tool's x axis: along the direction of travel (a tool with a working direction:
+        a knife, a dispenser's slot), or free about the tool axis for a round tool: the
+        first point's travel direction carried along with the least turning about the axis
+        (parallel transport), so that wrist 3 stays still where the axis does (a three-turn
+        circle needed 1074 deg of joint 6 with the travel heading).
 
     Returns
     -------
@@ -216,6 +247,10 @@ def tool_path(
     if not np.any(good):
         raise ValueError("the path runs along the tool axis everywhere; no heading is defined")
     x = fill_along_path(np.where(good[:, None], x / np.where(good, norm, 1.0)[:, None], 0.0), good)
+    if heading == "free":
+        x = _carried(x[0], axis)
+    elif heading != "travel":
+        raise ValueError(f"heading must be 'travel' or 'free', got {heading!r}")
     x = x - np.einsum("ni,ni->n", x, axis)[:, None] * axis
     x /= np.linalg.norm(x, axis=1)[:, None]
     y = np.cross(axis, x)

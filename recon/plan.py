@@ -496,6 +496,7 @@ def _process_tool_path(points_tracker_m, T_base_tracker, params, source, normals
         lead_deg=params.lead_deg,
         tilt_deg=params.tilt_deg,
         smooth_m=params.smooth_m,
+        heading=params.heading,
         **kwargs,
     )
 

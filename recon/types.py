@@ -350,6 +350,9 @@ class PlanParams:
         Source of the tool axis; "auto" takes the scan if given, else the pen, else fixed.
     lead_deg, tilt_deg : float
         Lean of the tool (see ``recon.orient``).
+    heading : {"travel", "free"}
+        The tool's x axis along the travel, or free about the tool axis (a round tool: wrist 3
+        kept as still as the axis allows; see :func:`recon.orient.tool_path`).
     smooth_m : float
         Smoothing of the tool axis along the path (0 turns it off).
     approach : tuple of 3 floats or None
@@ -412,6 +415,11 @@ class PlanParams:
     )
     lead_deg: float = param(0.0, ge=-60, le=60, unit="deg", help="lean along the travel")
     tilt_deg: float = param(0.0, ge=-60, le=60, unit="deg", help="lean across the travel")
+    heading: Literal["travel", "free"] = param(
+        "travel",
+        help="the tool's x axis: along the travel, or free about the tool axis (a round tool: "
+        "wrist 3 kept still)",
+    )
     smooth_m: float = param(
         0.01, ge=0, le=0.1, unit="m", help="smoothing of the tool axis along the path (0: off)"
     )

@@ -256,6 +256,7 @@ TRAJECTORY_PARAMS = (
     "orientation",
     "lead_deg",
     "tilt_deg",
+    "heading",
     "smooth_m",
     "tcp_offset_m",
     "tcp_pose",
