@@ -103,8 +103,17 @@ are. Everywhere else, and always for the other links, the scan counts in full (t
 are found around points of the path a quarter of the contact radius apart, so the tube exempted
 is never wider than stated).
 
-What is not checked: self-collision between links (tool against base, forearm against upper arm),
-cables and dress packs, and the payload; the arm is assumed to follow its samples (no overshoot).
+The arm against itself
+----------------------
+The capsules three or more DH frames apart (:data:`SELF_PAIRS`: the tool and the wrists against
+the base, the shoulder and the upper arm, the forearm against the base, ...) are checked against
+each other at the same configurations, with exact segment distances
+(:func:`segment_segment_closest`). Both capsules of a pair move, so each configuration's
+clearance carries the spacing to its farther neighbour less, and the reported tolerance grows by
+it. Closer pairs meet at their joint by construction and are not checked.
+
+What is not checked: cables and dress packs, and the payload; the arm is assumed to follow its
+samples (no overshoot).
 """
 
 from __future__ import annotations
