@@ -416,7 +416,7 @@ class PlanParams:
     lead_deg: float = param(0.0, ge=-60, le=60, unit="deg", help="lean along the travel")
     tilt_deg: float = param(0.0, ge=-60, le=60, unit="deg", help="lean across the travel")
     heading: Literal["travel", "free"] = param(
-        "travel",
+        "free",
         help="the tool's x axis: along the travel, or free about the tool axis (a round tool: "
         "wrist 3 kept still)",
     )

@@ -292,16 +292,17 @@ def test_a_motion_that_passes_within_the_joint_margin_of_a_limit_is_refused():
 def test_a_round_tool_free_about_its_axis_keeps_wrist_3_still_on_a_three_turn_circle():
     """With the x axis along the travel, a three-turn circle turns the tool three times about
     its own axis (1074 deg of joint 6 for the tester, refused). Free about the axis (a round
-    tool), the heading is carried without twist and wrist 3 stays nearly still."""
+    tool, the default), the heading is carried without twist and wrist 3 stays nearly still."""
     a = np.linspace(0.0, 6 * np.pi, 1801)
     circle = np.column_stack(
         [0.45 + 0.03 * np.cos(a), 0.1 + 0.03 * np.sin(a), np.full_like(a, 0.1)]
     )
-    free = plan_path(circle, params=PlanParams(speed_m_s=0.05, orientation="fixed", heading="free"))
+    free = plan_path(circle, params=PlanParams(speed_m_s=0.05, orientation="fixed"))
     process = free.trajectory.phases == int(Phase.PROCESS)
     q6 = free.trajectory.q_rad[process, 5]
     turned_deg = np.degrees(q6.max() - q6.min())
     print(f"\nthree turns, heading free: joint 6 turns {turned_deg:.1f} deg")
     assert turned_deg < 30
+    along = PlanParams(speed_m_s=0.05, orientation="fixed", heading="travel")
     with pytest.raises(InfeasibleTrajectoryError, match="joint 6"):
-        plan_path(circle, params=PlanParams(speed_m_s=0.05, orientation="fixed"))
+        plan_path(circle, params=along)
