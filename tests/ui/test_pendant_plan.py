@@ -218,10 +218,15 @@ def test_the_plan_parameters_come_from_the_schema_and_reach_the_plan(pendant):
     expect(form.locator(".message")).to_contain_text("tcp_offset_m: give 3 numbers")
     assert not posts
     tcp.fill("0, 0, 0.12")
-    # Leaning 10° along the travel, the tool meets the cylinder on the way out: what to change.
+    # Leaning 10° along the travel in this configuration, the tool meets the cylinder on the
+    # way out: what to change. (With shoulder or wrist left to "any", another configuration is
+    # tried and found clear.)
+    form.locator("#plan-shoulder").select_option("right")
+    form.locator("#plan-wrist").select_option("flip")
     form.get_by_role("button", name="Plan").click()
     message = form.locator(".message")
-    expect(message).to_contain_text("tool comes too close to the scan", timeout=60_000)
+    expect(message).to_contain_text("the motion collides", timeout=60_000)
+    expect(message).to_contain_text("comes too close to")
     expect(message).to_contain_text("Change the tool orientation (lead, tilt)")
     pendant.shot("plan-collides")
     lead.fill("0")
@@ -236,6 +241,7 @@ def test_the_plan_parameters_come_from_the_schema_and_reach_the_plan(pendant):
     assert params["lead_deg"] == 0 and params["tilt_deg"] == 10
     assert params["tcp_offset_m"] == [0, 0, 0.12] and params["robot"] == "ur5e"
     assert params["speed_m_s"] == 0.05
+    assert params["shoulder"] == "right" and params["wrist"] == "flip"
 
 
 def test_two_reconstructions_overlaid_with_their_difference(pendant):
