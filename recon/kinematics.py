@@ -260,6 +260,23 @@ def _dh(theta: FloatArray, d: float, a: float, alpha: float) -> FloatArray:
     return T
 
 
+def limit_margins_rad(arm: URModel, q_rad: FloatArray) -> FloatArray:
+    """How far each joint is from its nearer limit.
+
+    Parameters
+    ----------
+    arm : URModel
+    q_rad : ndarray of shape (..., 6)
+
+    Returns
+    -------
+    ndarray of shape (..., 6), radians
+        Infinite for a joint without limits (the UR3's wrist 3).
+    """
+    q = np.asarray(q_rad, dtype=np.float64)
+    return np.minimum(q - arm.q_min_rad, arm.q_max_rad - q)
+
+
 #: The arm's points whose speed the cap bounds besides the TCP: the origins of DH frames 2..6,
 #: on the axes of the elbow, the three wrist joints and at the flange. A link is rigid, so the
 #: speed along its axis is largest at one of its ends (the speed field is affine in position):
@@ -644,7 +661,7 @@ def follow_path(
             )
             failures.append((first, f"it passes the {which} singularity"))
             continue
-        margin = np.min(np.minimum(q - arm.q_min_rad, arm.q_max_rad - q), axis=1)
+        margin = np.min(limit_margins_rad(arm, q), axis=1)
         score = min(float(wrist.min()), float(elbow.min()), float(margin.min()) / np.pi)
         distance = 0.0 if q_near_rad is None else float(np.abs(q[0] - q_near_rad).max())
         candidates.append((branch, q, margin, wrist, elbow, score, distance))

@@ -154,7 +154,9 @@ def joint_move(
     s_rate = float(np.min(v[moving] / np.abs(delta[moving])))
     s_acc = float(np.min(a[moving] / np.abs(delta[moving])))
     if tcp_speed_max_m_s is not None:
-        s_rate = min(s_rate, _rate_for_tcp_speed(arm, q0, delta, tcp_speed_max_m_s, T_flange_tcp))
+        s_rate = min(
+            s_rate, _rate_for_point_speeds(arm, q0, delta, tcp_speed_max_m_s, T_flange_tcp)
+        )
     t_total = trapezoid_duration(1.0, s_rate, s_acc)
     t = np.arange(int(np.ceil(t_total / dt - 1e-9)) + 1) * dt
     s, sd, sdd = trapezoid(1.0, s_rate, s_acc, t)
@@ -176,7 +178,7 @@ TCP_SPEED_SEGMENTS = 512
 TCP_SPEED_MARGIN = 0.97
 
 
-def _rate_for_tcp_speed(arm, q0, delta, tcp_speed_max_m_s: float, T_flange_tcp) -> float:
+def _rate_for_point_speeds(arm, q0, delta, tcp_speed_max_m_s: float, T_flange_tcp) -> float:
     """The largest ds/dt at which the TCP, the elbow and the wrists (every point of
     :func:`recon.kinematics.speed_points_m`) keep below ``tcp_speed_max_m_s`` along
     q0 + s delta: a real arm's cap is on all of them, as UR's safety limits are."""

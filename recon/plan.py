@@ -218,21 +218,21 @@ def plan_path(
     # (elbow "any", ...): the next best configuration is tried (elbow up was clear where the
     # branch chosen first, elbow down, collided and the plan was refused).
     candidates = list(range(8)) if allowed is None else list(allowed)
-    first_collision: InfeasibleTrajectoryError | None = None
+    first_refusal: InfeasibleTrajectoryError | None = None
     while candidates:
         try:
             return _plan_in(
                 arm, tools, flanges, pieces, tuple(candidates), q_start, start_from, limits,
                 params, cell, normals, source,
             )  # fmt: skip
-        except _BranchRefused as collided:
-            first_collision = first_collision or collided.error
-            candidates.remove(collided.branch)
+        except _BranchRefused as refused:
+            first_refusal = first_refusal or refused.error
+            candidates.remove(refused.branch)
         except InfeasibleTrajectoryError:
-            if first_collision is None:
+            if first_refusal is None:
                 raise
-            break  # no other configuration follows the path: the collision is the reason
-    raise first_collision
+            break  # no other configuration follows the path: the first refusal is the reason
+    raise first_refusal
 
 
 class _BranchRefused(Exception):
@@ -337,7 +337,7 @@ def _require_joint_margin(arm, trajectory, branch: int, margin_deg: float) -> No
     _BranchRefused
     """
     q = trajectory.q_rad
-    to_limit = np.minimum(q - arm.q_min_rad, arm.q_max_rad - q)  # (M, 6), inf: no limit
+    to_limit = kinematics.limit_margins_rad(arm, q)  # (M, 6), inf: no limit
     i, j = np.unravel_index(int(np.argmin(to_limit)), to_limit.shape)
     if to_limit[i, j] < np.radians(margin_deg):
         raise _BranchRefused(

@@ -67,7 +67,6 @@ def sample_problems(
     tcp_speed_max_m_s: float,
     T_flange_tcp: FloatArray,
     rate_hz: float | None = None,
-    tcp_m: FloatArray | None = None,
 ) -> list[SampleProblem]:
     """Every limit the samples break (the first sample of each), or an empty list.
 
@@ -86,9 +85,6 @@ def sample_problems(
         The TCP the controller will be given, in the flange frame.
     rate_hz : float, optional
         The rate the samples are sent at (default the arm's control rate).
-    tcp_m : ndarray of shape (K, 3), optional
-        The TCP positions of the samples (forward kinematics with ``T_flange_tcp``), when the
-        caller has them already.
 
     Returns
     -------
@@ -178,9 +174,10 @@ def sample_problems(
 
     if np.isinf(tcp_speed_max_m_s):
         return problems  # no cap to judge the TCP against (a file checked offline)
-    tcp_speed = tcp_speeds_m_s(
-        arm, q, T_flange_tcp=T_flange_tcp, rate_hz=1.0 / period_s, tcp_m=tcp_m
-    )
+    # One forward kinematics for every point the cap holds for (the TCP last).
+    points = kinematics.speed_points_m(arm, q, T_flange_tcp)  # (K, 6, 3)
+    speeds = np.linalg.norm(np.diff(points, axis=0), axis=-1) / period_s  # (K-1, 6), m/s
+    tcp_speed, point_speed = speeds[:, -1], speeds[:, :-1]
     if tcp_speed.max() > tcp_speed_max_m_s * (1.0 + SPEED_TOLERANCE):
         i = int(np.argmax(tcp_speed))
         problems.append(
@@ -193,8 +190,6 @@ def sample_problems(
             )
         )
     # The cap is on every point of the arm, as UR's safety limits are on the elbow's speed.
-    points = kinematics.speed_points_m(arm, q, T_flange_tcp)[:, :-1]  # (K, 5, 3): not the TCP
-    point_speed = np.linalg.norm(np.diff(points, axis=0), axis=-1) / period_s  # (K-1, 5)
     if point_speed.max() > tcp_speed_max_m_s * (1.0 + SPEED_TOLERANCE):
         i, k = np.unravel_index(int(np.argmax(point_speed)), point_speed.shape)
         problems.append(

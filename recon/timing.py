@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from recon.errors import InfeasibleTrajectoryError
-from recon.kinematics import URModel, forward
+from recon.kinematics import SPEED_POINT_NAMES, URModel, forward, speed_points_m
 from recon.transforms import pose_from_transform
 from recon.types import FloatArray, JointPath, JointTrajectory, SpeedDrop, ToolPath
 
@@ -212,8 +212,6 @@ class PointSpeedBound:
 
     @classmethod
     def along(cls, arm, path, length_m, speed_m_s, cap_m_s, T_flange_tcp) -> PointSpeedBound:
-        from recon.kinematics import speed_points_m
-
         if not cap_m_s > 0:
             raise ValueError(f"point_speed_max_m_s must be positive, got {cap_m_s}")
         T = np.eye(4) if T_flange_tcp is None else np.asarray(T_flange_tcp, dtype=np.float64)
@@ -425,8 +423,6 @@ def _speed_drops(
         joint = int(np.argmin(cap))
         bound, point = point_bound.at(float(arc[i])) if point_bound else (np.inf, -1)
         if bound <= 1.05 * speed[i]:
-            from recon.kinematics import SPEED_POINT_NAMES
-
             cause = (
                 f"the {SPEED_POINT_NAMES[point]} would pass the "
                 f"{point_bound.cap_m_s * 1e3:.0f} mm/s speed cap (the tool turns about its tip)"

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Set
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -207,7 +207,7 @@ def check_here(
     CollidesHere
     """
     from recon.plan import check_cell
-    from recon.sample_check import sample_problems, tcp_positions_m, tcp_speeds_m_s
+    from recon.sample_check import sample_problems, tcp_speeds_m_s
     from recon.types import PlanParams
 
     _require_arm(settings)
@@ -224,15 +224,12 @@ def check_here(
             f"{settings.max_speed_m_s} m/s on a real arm"
         )
     arm_model = kinematics.model(settings.ur_robot)
-    # The TCP's positions once: for the speed cap, the contact zone and the fastest speed.
-    tcp_m = tcp_positions_m(arm_model, loaded.q_rad, here.T_flange_tcp)
     problems = sample_problems(
         arm_model,
         loaded.t_s,
         loaded.q_rad,
         tcp_speed_max_m_s=settings.max_speed_m_s,
         T_flange_tcp=here.T_flange_tcp,
-        tcp_m=tcp_m,
     )
     if problems:
         first = problems[0]
@@ -244,14 +241,14 @@ def check_here(
             f"at most {settings.max_speed_m_s} m/s)",
             detail={"checks": [p.check for p in problems], "sample": first.sample},
         )
-    as_sent = replace(loaded, tcp_m=tcp_m)  # the contact zone from the samples, not a stored copy
     params = PlanParams(
         robot=settings.ur_robot,
         tool_radius_m=here.tool_radius_m,
         clearance_m=here.clearance_m,
         tcp_pose=tuple(float(v) for v in _pose_of(here.T_flange_tcp)),
     )
-    report = check_cell(arm_model, as_sent, here.cell, params)
+    # The contact zone comes from the samples' own kinematics (ContactZone.of_process).
+    report = check_cell(arm_model, loaded, here.cell, params)
     if report.first_collision is not None:
         first = report.first_collision
         raise CollidesHere(
@@ -269,7 +266,9 @@ def check_here(
         trajectory=loaded,
         summary=summary,
         min_clearance_m=float(np.min(report.clearance_m)),
-        fastest_tcp_m_s=float(np.max(tcp_speeds_m_s(arm_model, loaded.q_rad, tcp_m=tcp_m))),
+        fastest_tcp_m_s=float(
+            np.max(tcp_speeds_m_s(arm_model, loaded.q_rad, T_flange_tcp=here.T_flange_tcp))
+        ),
     )
 
 

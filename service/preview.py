@@ -116,7 +116,7 @@ def trajectory_preview(
     q = trajectory.q_rad
     frames = kinematics.joint_frames(arm, q[keep])
     joints = np.concatenate([frames[:, :, :3, 3], trajectory.tcp_m[keep][:, None, :]], axis=1)
-    limit_margin = np.minimum(q - arm.q_min_rad, arm.q_max_rad - q).min(axis=1)
+    limit_margin = kinematics.limit_margins_rad(arm, q).min(axis=1)
     qd_share = (np.abs(trajectory.qd_rad_s) / arm.qd_max_rad_s).max(axis=1)
     clearance = None
     if clearance_m is not None and len(clearance_m) == len(q):

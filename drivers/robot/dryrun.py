@@ -286,7 +286,7 @@ def execution_report(
         )
         completed = record.completed
     q = trajectory.q_rad
-    margin = float(np.min(np.minimum(q - arm.q_min_rad, arm.q_max_rad - q)))
+    margin = float(np.min(kinematics.limit_margins_rad(arm, q)))
     # Singularities matter where the tool moves in straight lines and along the path; a joint
     # move (transit, return) may pass through one (the elbow stretched) harmlessly.
     phases = trajectory.phases

@@ -151,7 +151,7 @@ class MoveJ(Command):
     acceleration: float
 
 
-class _realtime(contextlib.AbstractContextManager):
+class _RealtimePriority(contextlib.AbstractContextManager):
     """The streaming thread at a realtime priority (SCHED_FIFO) while it streams, as ur_rtde's
     examples run their servo loops; put back after. ``status`` says what it got: a system
     without the privilege (CAP_SYS_NICE, or a container without it) streams at normal
@@ -160,7 +160,7 @@ class _realtime(contextlib.AbstractContextManager):
     def __init__(self, priority: int) -> None:
         self.priority, self.status, self._before = priority, "normal priority (not asked)", None
 
-    def __enter__(self) -> _realtime:
+    def __enter__(self) -> _RealtimePriority:
         if self.priority <= 0:
             return self
         if not hasattr(os, "sched_setscheduler"):
@@ -640,7 +640,9 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
     def execute(self, q_rows, period_s, journal=None):
         with contextlib.ExitStack() as stack:
             writer = None if journal is None else stack.enter_context(JournalWriter(journal))
-            realtime = stack.enter_context(_realtime(int(self.config.get("rt_priority", 0))))
+            realtime = stack.enter_context(
+                _RealtimePriority(int(self.config.get("rt_priority", 0)))
+            )
             return (*self._stream(q_rows, period_s, writer), realtime.status)
 
     def _stream(self, q_rows, period_s, writer):
