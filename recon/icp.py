@@ -34,15 +34,6 @@ MIN_FITNESS = 0.3
 #: directions come out at 1e-5..5e-3 (noise in normals and edge directions), constrained ones at
 #: 0.02 and above.
 DEGENERACY_RATIO = 1e-2
-#: A registration must improve the fit by more than noise could: twice the drop of the robust
-#: cost from the initial guess to the result, over the residuals' variance, must exceed what
-#: fitting six motions to pure noise gives with probability 1e-3 (chi-square, 6 degrees of
-#: freedom: 22.46). Below it the initial guess is kept: on a gently curved surface (a real floor
-#: fragment) the cost is nearly flat along several motions and the ICP slid a trace that sat on
-#: the scan 10-14 mm, for a worse fit (the test's figure: -48). The residuals' correlation along
-#: the path is not counted here (it is in the covariance): inflated by it, a true 2.4 mm
-#: correction on a real part's edge (figure 550, correlation 36 pairs) looked like noise.
-SIGNIFICANT_GAIN = 22.46
 #: Largest number of path points used for registration (taken evenly along the path).
 MAX_SOURCE_POINTS = 5000
 #: ICP stops when a step moves the path by less than this (as a twist: metres at the path's ends).
@@ -158,11 +149,6 @@ def register_icp(
         if step.motion_m < CONVERGED_M:
             break
     final = problem.step(T, distance, scale)
-    init = check_rigid(init_T_target_source, name="initial T_scan_tracker")
-    kept_initial = not _significant(problem, init, T, final, distance, scale)
-    if kept_initial:
-        T = init
-        final = problem.step(T, distance, scale)
     fitness = final.n_inliers / len(source_m)
     if final.n_inliers < MIN_PAIRS or fitness < MIN_FITNESS or final.constrained_dof == 0:
         raise RegistrationError(
@@ -171,6 +157,7 @@ def register_icp(
             "traced feature and that both are in the same units, or give a better initial "
             "calibration"
         )
+    init = check_rigid(init_T_target_source, name="initial T_scan_tracker")
     moved_m = np.linalg.norm(apply_transform(T, source_m) - apply_transform(init, source_m), axis=1)
     return Registration(
         T_scan_tracker=T,
@@ -184,26 +171,7 @@ def register_icp(
         covariance=final.covariance,
         motion_centre_m=final.motion.centre_m,
         motion_length_m=final.motion.length_m,
-        kept_initial=kept_initial,
     )
-
-
-def _significant(
-    problem: _Problem,
-    init: FloatArray,
-    T: FloatArray,
-    final: _Step,
-    distance_m: float,
-    scale_m: float,
-) -> bool:
-    """Whether moving from ``init`` to ``T`` fits the target better than noise alone would
-    (see :data:`SIGNIFICANT_GAIN`); both are scored with the final pairing distance and Tukey
-    scale."""
-    if np.allclose(T, init, rtol=0.0, atol=1e-12):
-        return True
-    gain = problem.cost(init, distance_m, scale_m) - problem.cost(T, distance_m, scale_m)
-    noise = max(final.variance_m2, 1e-12)
-    return bool(gain > SIGNIFICANT_GAIN * noise / 2.0)
 
 
 @dataclass(frozen=True)
@@ -217,8 +185,6 @@ class _Step:
     motion_m: float
     motion: RigidMotion | None = None  # the twists' centre and scale (scan frame)
     covariance: FloatArray | None = None  # of the twist, from the residuals (see _covariance)
-    inflation: float = 1.0  # of the residuals' variance for their correlation (see _inflation)
-    variance_m2: float = float("inf")  # of the inlier residuals, per component
 
 
 @dataclass(frozen=True)
@@ -229,41 +195,23 @@ class _Problem:
     normals: FloatArray | None
     directions: FloatArray | None
 
-    def residuals(
-        self, T: FloatArray, distance_m: float
-    ) -> tuple[FloatArray, FloatArray, np.ndarray, FloatArray, FloatArray]:
-        """Pair the path moved by ``T`` with the target: (moved points, pair distances, which
-        paired, the paired points' feature axes (P, A, 3), their residuals along them (P, A))."""
+    def step(self, T: FloatArray, distance_m: float, scale_m: float) -> _Step:
+        """Pair, weigh and take one Gauss-Newton step from ``T`` (see :func:`register_icp`).
+
+        ``scale_m`` is the Tukey scale: pairs farther than it from the feature get weight 0.
+        """
         moved = apply_transform(T, self.source)
         dist, idx = self.tree.query(moved, distance_upper_bound=distance_m, workers=-1)
         paired = np.isfinite(dist)
+        points = moved[paired]
         partner_idx = idx[paired]
         if self.normals is not None:
             axes = self.normals[partner_idx][:, None, :]
         elif self.directions is not None:
             axes = _across(self.directions[partner_idx])
         else:
-            axes = np.broadcast_to(np.eye(3), (len(partner_idx), 3, 3))
-        residual = np.einsum("pai,pi->pa", axes, moved[paired] - self.target[partner_idx])
-        return moved, dist, paired, axes, residual
-
-    def cost(self, T: FloatArray, distance_m: float, scale_m: float) -> float:
-        """Tukey's robust cost of the path moved by ``T``: each point contributes
-        ``s^2/6 (1 - (1 - (r/s)^2)^3)`` for a residual r under the scale s, and ``s^2/6`` when
-        farther or unpaired (metres squared)."""
-        _, _, paired, _, residual = self.residuals(T, distance_m)
-        size = np.minimum(np.linalg.norm(residual, axis=1) / scale_m, 1.0)
-        n_unpaired = len(self.source) - int(np.count_nonzero(paired))
-        ceiling = scale_m**2 / 6.0
-        return float(ceiling * (np.sum(1.0 - (1.0 - size**2) ** 3) + n_unpaired))
-
-    def step(self, T: FloatArray, distance_m: float, scale_m: float) -> _Step:
-        """Pair, weigh and take one Gauss-Newton step from ``T`` (see :func:`register_icp`).
-
-        ``scale_m`` is the Tukey scale: pairs farther than it from the feature get weight 0.
-        """
-        moved, dist, paired, axes, residual = self.residuals(T, distance_m)
-        points = moved[paired]
+            axes = np.broadcast_to(np.eye(3), (len(points), 3, 3))
+        residual = np.einsum("pai,pi->pa", axes, points - self.target[partner_idx])
         size = np.linalg.norm(residual, axis=1)
         weight = np.where(size < scale_m, (1.0 - (size / scale_m) ** 2) ** 2, 0.0)
         inlier = weight > 0
@@ -278,7 +226,6 @@ class _Problem:
         info = np.einsum("p,pai,paj->ij", weight, jacobian, jacobian)
         gradient = np.einsum("p,pai,pa->i", weight, jacobian, residual)
         twist, keep = solve_constrained(info, gradient)
-        inflation = _inflation(residual[inlier])
         return _Step(
             motion.transform(twist) @ T,
             rmse,
@@ -288,57 +235,41 @@ class _Problem:
             int(np.count_nonzero(keep)),
             float(np.linalg.norm(twist)),
             motion,
-            _covariance(info, residual[inlier], inflation),
-            inflation,
-            float(np.mean(residual[inlier] ** 2)),
+            _covariance(info, residual[inlier], axes.shape[1]),
         )
 
 
-def _inflation(residual: FloatArray) -> float:
-    """How many times the residuals' variance understates the variance of what is fitted to
-    them, for their correlation along the path.
+def _covariance(info: FloatArray, residual: FloatArray, n_axes: int) -> FloatArray:
+    """Covariance of the registration's twist from its residuals.
 
-    Along a hand trace residuals are not independent (drift is correlated over centimetres):
-    their correlation length (in pairs: where their autocorrelation falls below 1/e), doubled,
-    between 1 and a third of the pairs.
+    The classic ``sigma^2 (J^T W J)^-1`` treats the residuals as independent; along a hand trace
+    they are not (drift is correlated over centimetres), and the transform is that much less
+    certain. The residuals' correlation length along the path (in pairs: where their
+    autocorrelation falls below 1/e, doubled) inflates it. The motions the feature leaves free
+    get no variance (they are not estimated at all).
 
     Parameters
     ----------
+    info : ndarray of shape (6, 6)
     residual : ndarray of shape (P, A)
         The inlier pairs' residuals, in path order.
+    n_axes : int
+        A, the residual components per pair.
 
     Returns
     -------
-    float
+    ndarray of shape (6, 6)
     """
     r = residual[:, 0] - residual[:, 0].mean()
+    variance = float(np.mean(residual**2))  # per component
     lag = len(r)
     if len(r) > 4 and np.dot(r, r) > 0:
         spectrum = np.fft.rfft(r, n=2 * len(r))
         auto = np.fft.irfft(spectrum * np.conj(spectrum))[: len(r)]
         below = np.flatnonzero(auto / auto[0] < np.exp(-1.0))
         lag = int(below[0]) if len(below) else len(r)
-    return float(np.clip(2 * lag, 1, max(len(r) / 3, 1)))
-
-
-def _covariance(info: FloatArray, residual: FloatArray, inflation: float) -> FloatArray:
-    """Covariance of the registration's twist from its residuals: the classic
-    ``sigma^2 (J^T W J)^-1``, times the residuals' correlation ``inflation`` (see
-    :func:`_inflation`). The motions the feature leaves free get no variance (they are not
-    estimated at all).
-
-    Parameters
-    ----------
-    info : ndarray of shape (6, 6)
-    residual : ndarray of shape (P, A)
-        The inlier pairs' residuals.
-    inflation : float
-
-    Returns
-    -------
-    ndarray of shape (6, 6)
-    """
-    variance = float(np.mean(residual**2))  # per component
+    inflation = float(np.clip(2 * lag, 1, max(len(r) / 3, 1)))
+    del n_axes  # the variance is per component already
     return inverse_on_fixed(info)[0] * variance * inflation
 
 

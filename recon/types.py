@@ -738,9 +738,6 @@ class Registration:
         motions the target leaves free. None when unknown.
     motion_centre_m : ndarray of shape (3,) or None
     motion_length_m : float or None
-    kept_initial : bool
-        The registration found no placement that fits the feature better than noise alone
-        would, and kept the initial guess (the trace sits on the scan where it was given).
     """
 
     T_scan_tracker: FloatArray
@@ -756,7 +753,6 @@ class Registration:
     covariance: FloatArray | None = field(default=None, compare=False, repr=False)
     motion_centre_m: FloatArray | None = field(default=None, compare=False, repr=False)
     motion_length_m: float | None = field(default=None, compare=False, repr=False)
-    kept_initial: bool = False
 
     def __post_init__(self) -> None:
         T = np.array(self.T_scan_tracker, dtype=np.float64)

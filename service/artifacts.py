@@ -332,11 +332,6 @@ class RegistrationSummary(BaseModel):
     )
     path_moved_max_m: float | None = Field(None, description="the same, at most")
     reason: str = Field("", description="why this target was chosen")
-    kept_initial: bool = Field(
-        False,
-        description="no placement fitted the scan better than noise alone would: the initial "
-        "one was kept",
-    )
     alternative: dict[str, Any] | None = Field(
         None, description="the other target's figures, when it was tried too"
     )

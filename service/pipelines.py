@@ -398,7 +398,6 @@ class ReconstructOutcome:
                 "path_moved_mean_m": _jsonable_or_none(reg.path_moved_mean_m),
                 "path_moved_max_m": _jsonable_or_none(reg.path_moved_max_m),
                 "reason": reg.reason,
-                "kept_initial": reg.kept_initial,
                 "alternative": None
                 if reg.alternative is None
                 else {
@@ -467,13 +466,6 @@ class ReconstructOutcome:
                 f"scanner registered by touches: {reg.reason}; the path moved "
                 f"{reg.path_moved_mean_m * mm:.2f} mm on average from the initial placement, "
                 f"touch residual {reg.rmse_m * mm:.3f} mm RMS"
-            )
-        elif reg is not None and reg.kept_initial:
-            lines.append(
-                f"registered to the scan's {reg.target}: kept where it was given (no placement "
-                "fits the scan better than the trace's noise alone would; residual "
-                f"{reg.rmse_m * mm:.2f} mm RMS, {reg.fitness * 100:.0f} % of the path paired; "
-                f"{reg.reason})"
             )
         elif reg is not None:
             lines.append(

@@ -492,8 +492,7 @@ function renderReconstruction() {
   }
   if (reg) {
     if (reg.reason) rows.push(["why", reg.reason]);
-    if (reg.kept_initial) rows.push(["path moved by it", "not at all: no placement fits the scan better than the trace's noise alone would, so the given one was kept"]);
-    else if (reg.path_moved_mean_m != null) rows.push(["path moved by it", `${mm(reg.path_moved_mean_m)} on average, ${mm(reg.path_moved_max_m)} at most`]);
+    if (reg.path_moved_mean_m != null) rows.push(["path moved by it", `${mm(reg.path_moved_mean_m)} on average, ${mm(reg.path_moved_max_m)} at most`]);
   }
   rows.push(["segments", sm.segments.map((g) => `${g.kind} (points ${g.start}–${g.stop - 1})`).join(", ") || "–"]);
   for (const [i, g] of sm.segments.entries()) {
