@@ -166,6 +166,16 @@ def test_no_server_errors_and_documented_responses(tmp_path, scene_files, fake_u
             "/sessions/import", files={"file": ("elsewhere.zip", bundle, "application/zip")}
         )
         assert response.status_code == 201, response.text
+        from_bundle = {
+            e["id"] for e in server.client.get(f"/sessions/{imported}/executions").json()
+        }
+        # Before any fuzzing (which may dry-run it here): the imported plan is not runnable.
+        plan = server.client.get(f"/sessions/{imported}/trajectories").json()[0]["id"]
+        refused = server.client.post(
+            f"/sessions/{imported}/executions",
+            json={"trajectory_id": plan, "backend": "ur_rtde", "confirm": True},
+        )
+        assert refused.status_code == 409 and refused.json()["code"] == "dry_run_required"
         _seed(server, scene_files)
         assert server.client.get("/sessions").json()[0]["id"] == imported
         fuzz = server.client.post("/sessions", json={"name": "fuzz"}).json()["id"]
@@ -221,14 +231,25 @@ def test_no_server_errors_and_documented_responses(tmp_path, scene_files, fake_u
             and "{artifact_id}" in link.rsplit(" -> ", 1)[-1]
         }
         assert found, (dict(followed), _output(result))
-        # The chains asked to run the imported plan, and it never ran on the arm: every
-        # execution of the imported session is a dry run (the bundle's, or one made here).
-        runs = [
-            link for link in followed if link.endswith("POST /sessions/{session_id}/executions")
+        # A run on the arm is legitimate only after a dry run made here (the fuzzer may make
+        # one): never on the bundle's own dry run.
+        executions = server.client.get(f"/sessions/{imported}/executions").json()
+        made_here = [
+            e
+            for e in executions
+            if e["id"] not in from_bundle
+            and e["summary"]["backend"] == "sim"
+            and e["summary"]["completed"]
         ]
-        assert runs, dict(followed)
-        for execution in server.client.get(f"/sessions/{imported}/executions").json():
-            assert execution["summary"]["backend"] == "sim", execution
+        for execution in executions:
+            if execution["summary"]["backend"] == "sim":
+                continue
+            assert any(
+                dry["inputs"]["trajectory_id"] == execution["inputs"]["trajectory_id"]
+                and dry["summary"]["mode"] == execution["summary"]["mode"]
+                and dry["created_at"] < execution["created_at"]
+                for dry in made_here
+            ), (execution, executions)
         # Shown with `pytest -s`: what the stateful run reached.
         print(f"stateful: {scenarios.group(1)} scenarios, links {covered}/{declared} covered")
         for link in sorted(followed):
