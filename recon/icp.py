@@ -34,6 +34,9 @@ MIN_FITNESS = 0.3
 #: directions come out at 1e-5..5e-3 (noise in normals and edge directions), constrained ones at
 #: 0.02 and above.
 DEGENERACY_RATIO = 1e-2
+#: A step that does not lower the robust cost is halved at most this many times before the
+#: registration is taken as converged (see :func:`_descend`).
+STEP_HALVINGS = 3
 #: Largest number of path points used for registration (taken evenly along the path).
 MAX_SOURCE_POINTS = 5000
 #: ICP stops when a step moves the path by less than this (as a twist: metres at the path's ends).
@@ -135,19 +138,13 @@ def register_icp(
     distance, scale = max_distance_m, max_distance_m
     for _ in range(max_iterations):
         step = problem.step(T, distance, scale)
-        T = step.T_next
+        T_next = _descend(problem, T, step, distance, scale)
+        if T_next is None:
+            break
+        T = T_next
         if step.motion_m < CONVERGED_M:
             break
-    for _ in range(max_iterations):
-        current = problem.step(T, distance, scale)
-        if current.n_inliers < MIN_PAIRS:
-            break  # nothing to refine; reported below
-        distance = max(3.0 * current.sigma_m, 2.0 * current.median_pair_m, 1e-3)
-        scale = max(ROBUST_SCALE_M, 3.0 * current.sigma_m)
-        step = problem.step(T, distance, scale)
-        T = step.T_next
-        if step.motion_m < CONVERGED_M:
-            break
+    T, distance, scale = _refine(problem, T, distance, scale, max_iterations)
     final = problem.step(T, distance, scale)
     fitness = final.n_inliers / len(source_m)
     if final.n_inliers < MIN_PAIRS or fitness < MIN_FITNESS or final.constrained_dof == 0:
@@ -174,6 +171,49 @@ def register_icp(
     )
 
 
+def _refine(
+    problem: _Problem, T: FloatArray, distance_m: float, scale_m: float, max_iterations: int
+) -> tuple[FloatArray, float, float]:
+    """The second stage: pairing distance and Tukey scale from the residuals' robust spread at
+    every iteration (see :func:`register_icp`); returns the transform, distance and scale."""
+    for _ in range(max_iterations):
+        current = problem.step(T, distance_m, scale_m)
+        if current.n_inliers < MIN_PAIRS:
+            break  # nothing to refine; reported by the caller
+        distance_m = max(3.0 * current.sigma_m, 2.0 * current.median_pair_m, 1e-3)
+        scale_m = max(ROBUST_SCALE_M, 3.0 * current.sigma_m)
+        step = problem.step(T, distance_m, scale_m)
+        T_next = _descend(problem, T, step, distance_m, scale_m)
+        if T_next is None:
+            break
+        T = T_next
+        if step.motion_m < CONVERGED_M:
+            break
+    return T, distance_m, scale_m
+
+
+def _descend(
+    problem: _Problem, T: FloatArray, step: _Step, distance_m: float, scale_m: float
+) -> FloatArray | None:
+    """The step's transform if it lowers the robust cost, else the largest of its halves that
+    does (at most :data:`STEP_HALVINGS`); None when none does (converged).
+
+    A Gauss-Newton step is the minimum of the cost *with this step's pairs*; with the pairs
+    re-chosen it can be worse, and without this test the iterations crept 10.8 mm across a
+    wavy scan fragment to a placement that fitted worse than where they began.
+    """
+    if step.twist is None:
+        return None  # too few pairs to take a step
+    before = step.cost
+    twist = step.twist
+    for _ in range(STEP_HALVINGS + 1):
+        candidate = step.motion.transform(twist) @ T
+        if problem.cost(candidate, distance_m, scale_m) <= before:
+            return candidate
+        twist = twist / 2
+    return None
+
+
 @dataclass(frozen=True)
 class _Step:
     T_next: FloatArray
@@ -185,6 +225,8 @@ class _Step:
     motion_m: float
     motion: RigidMotion | None = None  # the twists' centre and scale (scan frame)
     covariance: FloatArray | None = None  # of the twist, from the residuals (see _covariance)
+    twist: FloatArray | None = None  # the step, about ``motion``
+    cost: float = float("inf")  # the robust cost at the step's start (see _Problem.cost)
 
 
 @dataclass(frozen=True)
@@ -205,14 +247,10 @@ class _Problem:
         paired = np.isfinite(dist)
         points = moved[paired]
         partner_idx = idx[paired]
-        if self.normals is not None:
-            axes = self.normals[partner_idx][:, None, :]
-        elif self.directions is not None:
-            axes = _across(self.directions[partner_idx])
-        else:
-            axes = np.broadcast_to(np.eye(3), (len(points), 3, 3))
+        axes = self._axes(partner_idx)
         residual = np.einsum("pai,pi->pa", axes, points - self.target[partner_idx])
         size = np.linalg.norm(residual, axis=1)
+        cost = _tukey_cost(size, scale_m, n_unpaired=len(moved) - len(points))
         weight = np.where(size < scale_m, (1.0 - (size / scale_m) ** 2) ** 2, 0.0)
         inlier = weight > 0
         n_inliers = int(np.count_nonzero(inlier))
@@ -236,7 +274,38 @@ class _Problem:
             float(np.linalg.norm(twist)),
             motion,
             _covariance(info, residual[inlier], axes.shape[1]),
+            twist,
+            cost,
         )
+
+    def cost(self, T: FloatArray, distance_m: float, scale_m: float) -> float:
+        """The robust cost :meth:`step` minimises, at ``T``: Tukey's rho of every pair's
+        distance to its feature, with the points that find no partner within ``distance_m``
+        counted as outliers (so costs compare when the pairs change), metres squared."""
+        moved = apply_transform(T, self.source)
+        dist, idx = self.tree.query(moved, distance_upper_bound=distance_m, workers=-1)
+        paired = np.isfinite(dist)
+        partner_idx = idx[paired]
+        residual = np.einsum(
+            "pai,pi->pa", self._axes(partner_idx), moved[paired] - self.target[partner_idx]
+        )
+        size = np.linalg.norm(residual, axis=1)
+        return _tukey_cost(size, scale_m, n_unpaired=int(np.count_nonzero(~paired)))
+
+    def _axes(self, partner_idx: np.ndarray) -> FloatArray:
+        if self.normals is not None:
+            return self.normals[partner_idx][:, None, :]
+        if self.directions is not None:
+            return _across(self.directions[partner_idx])
+        return np.broadcast_to(np.eye(3), (len(partner_idx), 3, 3))
+
+
+def _tukey_cost(size_m: FloatArray, scale_m: float, *, n_unpaired: int) -> float:
+    """Sum of Tukey's rho over pair distances ``size_m`` (P,), the unpaired points counted at
+    rho's ceiling ``scale_m**2 / 6``, metres squared."""
+    ceiling = scale_m**2 / 6.0
+    inside = np.minimum(size_m / scale_m, 1.0)
+    return float(np.sum(ceiling * (1.0 - (1.0 - inside**2) ** 3)) + ceiling * n_unpaired)
 
 
 def _covariance(info: FloatArray, residual: FloatArray, n_axes: int) -> FloatArray:
