@@ -155,7 +155,8 @@ def register_icp(
             "calibration"
         )
     init = check_rigid(init_T_target_source, name="initial T_scan_tracker")
-    moved_m = np.linalg.norm(apply_transform(T, source_m) - apply_transform(init, source_m), axis=1)
+    move_m = apply_transform(T, source_m) - apply_transform(init, source_m)
+    moved_m = np.linalg.norm(move_m, axis=1)
     return Registration(
         T_scan_tracker=T,
         rmse_m=final.rmse_m,
@@ -165,6 +166,7 @@ def register_icp(
         constrained_dof=final.constrained_dof,
         path_moved_mean_m=float(moved_m.mean()),
         path_moved_max_m=float(moved_m.max()),
+        path_moved_off_feature_median_m=problem.off_feature_median_m(T, move_m),
         covariance=final.covariance,
         motion_centre_m=final.motion.centre_m,
         motion_length_m=final.motion.length_m,
@@ -291,6 +293,16 @@ class _Problem:
         )
         size = np.linalg.norm(residual, axis=1)
         return _tukey_cost(size, scale_m, n_unpaired=int(np.count_nonzero(~paired)))
+
+    def off_feature_median_m(self, T: FloatArray, move_m: FloatArray) -> float:
+        """The median over the source points of their moves ``move_m`` (N, 3) along their
+        feature's residual axes at ``T`` (the surface's normal, across the edge): how far the
+        registration moved the path toward or away from the feature, rather than along it.
+        (The median: points paired near another face or an edge of the patch see the wrong
+        normal.)"""
+        _, partner_idx = self.tree.query(apply_transform(T, self.source), workers=-1)
+        across = np.einsum("pai,pi->pa", self._axes(partner_idx), move_m)
+        return float(np.median(np.linalg.norm(across, axis=1)))
 
     def _axes(self, partner_idx: np.ndarray) -> FloatArray:
         if self.normals is not None:

@@ -111,6 +111,7 @@ class Plan:
             f"{joints.shoulder_margin_m.min() * mm:.0f} mm",
         ]
         if self.collision is not None:
+            lines.append(f"tool checked as {_tool_words(self.params)}")
             lines += self.collision.lines()
         if self.T_scan_tracker is not None:
             lines.append(
@@ -412,11 +413,20 @@ def _joined_joints(paths: list[JointPath]) -> JointPath:
     )
 
 
+def _tool_words(params: PlanParams) -> str:
+    """The tool's collision shape in words, millimetres (for the plan's report)."""
+    if not params.tool_spheres_m:
+        return f"a capsule of radius {params.tool_radius_m * 1e3:.1f} mm from the flange to the TCP"
+    spheres = np.reshape(np.asarray(params.tool_spheres_m), (-1, 4)) * 1e3
+    listed = "; ".join(", ".join(f"{v:.1f}" for v in sphere) for sphere in spheres)
+    return f"{len(spheres)} sphere(s), X, Y, Z, R in the flange frame (mm): {listed}"
+
+
 def check_cell(arm, trajectory: JointTrajectory, cell, params: PlanParams):
-    """The collision check of a whole motion: the arm's links and the tool (a capsule of
-    ``tool_radius_m`` from the flange to the TCP) against the cell; the tool may touch the
-    workpiece along the process path only."""
-    from recon.collision import CapsuleTool, ContactZone, check_motion
+    """The collision check of a whole motion: the arm's links and the tool (``params.tool``:
+    its spheres, or a capsule of ``tool_radius_m`` from the flange to the TCP) against the
+    cell; the tool may touch the workpiece along the process path only."""
+    from recon.collision import ContactZone, check_motion
 
     process = trajectory.phases == int(Phase.PROCESS)
     run = np.cumsum(np.r_[True, np.diff(process.astype(np.int8)) != 0])  # 1, 2, ... per run
@@ -434,7 +444,7 @@ def check_cell(arm, trajectory: JointTrajectory, cell, params: PlanParams):
         trajectory.phases,
         cell,
         T_flange_tcp=params.T_flange_tcp,
-        tool=CapsuleTool(radius_m=params.tool_radius_m),
+        tool=params.tool,
         margin_m=params.clearance_m,
         contact_zone=zone,
         t_s=trajectory.t_s,

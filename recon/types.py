@@ -334,6 +334,27 @@ MIN_VOXEL_M = 1e-4
 Orientation = Literal["auto", "scan", "pen", "fixed"]
 #: The TCP a plan assumes unless told: a straight tool 10 cm along the flange's z axis.
 DEFAULT_TCP_POSE = (0.0, 0.0, 0.1, 0.0, 0.0, 0.0)
+#: Most spheres a tool may be given as (``PlanParams.tool_spheres_m``): every sphere is checked
+#: against every scan point near the motion.
+MAX_TOOL_SPHERES = 32
+
+
+def check_tool_spheres(numbers: tuple[float, ...]) -> None:
+    """Check ``PlanParams.tool_spheres_m``'s shape: four numbers per sphere, radii >= 0 (the
+    bounds of each number are the parameter's own).
+
+    Raises
+    ------
+    ValueError
+        Saying what a sphere takes.
+    """
+    if len(numbers) % 4 or len(numbers) > 4 * MAX_TOOL_SPHERES:
+        raise ValueError(
+            "tool_spheres_m takes four numbers per sphere (X,Y,Z,R, flange frame, metres), "
+            f"at most {MAX_TOOL_SPHERES} spheres; got {len(numbers)} numbers"
+        )
+    if any(r < 0 for r in numbers[3::4]):
+        raise ValueError("tool_spheres_m: every sphere's radius (its 4th number) must be >= 0")
 
 
 @dataclass(frozen=True)
@@ -398,6 +419,11 @@ class PlanParams:
         The payload's centre of gravity in the flange frame (with ``payload_kg`` only).
     tool_radius_m : float
         Radius of the tool's body from the flange to the TCP, for the collision check.
+    tool_spheres_m : tuple of float
+        The tool as spheres instead, four numbers each (X, Y, Z, R; flange frame, metres;
+        at most :data:`MAX_TOOL_SPHERES`): a spindle with a flat end, whose capsule's round end
+        would reach ``tool_radius_m`` past the tip into the table beside a thin plate; a
+        gripper's fingers. Their union must hold the whole tool: the check sees nothing else.
     clearance_m : float
         Smallest distance the arm and tool keep from the scan, the mounting plane and the
         keep-out boxes (the tool's tip may touch the workpiece along the path only).
@@ -491,6 +517,14 @@ class PlanParams:
     tool_radius_m: float = param(
         0.01, ge=5e-4, le=0.2, unit="m", help="radius of the tool's body (collision check)"
     )
+    tool_spheres_m: tuple[float, ...] = param(
+        (),
+        ge=-1,
+        le=1,
+        unit="m",
+        help="the tool as spheres instead of a capsule: X,Y,Z,R per sphere in the flange frame "
+        "(a spindle with a flat end, a gripper's fingers); their union must hold the whole tool",
+    )
     clearance_m: float = param(
         0.01, ge=0, le=0.1, unit="m", help="distance the arm and tool keep from obstacles"
     )
@@ -514,6 +548,7 @@ class PlanParams:
             raise ValueError("give the TCP as tcp_pose or as tcp_offset_m, not both")
         if any(abs(v) > 1.0 for v in self.tcp_pose[:3]):
             raise ValueError(f"the TCP must be within 1 m of the flange, got {self.tcp_pose[:3]}")
+        check_tool_spheres(self.tool_spheres_m)
         if self.payload_kg is not None and self.payload_kg > arm.payload_kg:
             raise ValueError(
                 f"payload_kg {self.payload_kg} is above the {arm.name}'s {arm.payload_kg} kg"
@@ -545,6 +580,18 @@ class PlanParams:
         the path: the fastest TCP speed any phase asks for (a real arm's cap applies to every
         point, and the service keeps each of these speeds under it)."""
         return max(self.speed_m_s, self.approach_speed_m_s, self.transit_tcp_speed_m_s)
+
+    @property
+    def tool(self):
+        """The tool's collision shape: :class:`recon.collision.SphereTool` of
+        ``tool_spheres_m`` when given, else a :class:`recon.collision.CapsuleTool` of
+        ``tool_radius_m`` from the flange to the TCP."""
+        from recon.collision import CapsuleTool, SphereTool
+
+        if self.tool_spheres_m:
+            spheres = np.reshape(np.asarray(self.tool_spheres_m, dtype=np.float64), (-1, 4))
+            return SphereTool(centers_m=spheres[:, :3], radii_m=spheres[:, 3])
+        return CapsuleTool(radius_m=self.tool_radius_m)
 
     @property
     def T_flange_tcp(self) -> FloatArray:
@@ -726,6 +773,12 @@ class Registration:
         if unknown). What a user means by "registration moved the path": the transform's own
         translation also holds the scanner's placement, metres away for a scanner whose origin
         is far from the tracker's.
+    path_moved_off_feature_median_m : float
+        The part of a point's move toward or away from the feature it was registered to
+        (along the surface's normal, across the edge), median over the path (NaN if unknown).
+        A path moved by millimetres but off its feature by a fraction of one slid along it:
+        where the feature hardly fixes that sliding (a nearly flat patch), the move says little
+        about the scanner.
     reason : str
         Why this target was chosen (empty when there was no choice).
     alternative : dict or None
@@ -748,6 +801,7 @@ class Registration:
     constrained_dof: int = 6
     path_moved_mean_m: float = float("nan")
     path_moved_max_m: float = float("nan")
+    path_moved_off_feature_median_m: float = float("nan")
     reason: str = ""
     alternative: dict | None = field(default=None, compare=False)
     covariance: FloatArray | None = field(default=None, compare=False, repr=False)

@@ -331,6 +331,12 @@ class RegistrationSummary(BaseModel):
         None, description="how far the path's points moved from the initial placement (mean)"
     )
     path_moved_max_m: float | None = Field(None, description="the same, at most")
+    path_moved_off_feature_median_m: float | None = Field(
+        None,
+        description="the part of a point's move toward or away from the feature it was "
+        "registered to (the surface's normal, across the edge), median over the path; the rest "
+        "slid along it",
+    )
     reason: str = Field("", description="why this target was chosen")
     alternative: dict[str, Any] | None = Field(
         None, description="the other target's figures, when it was tried too"

@@ -234,6 +234,7 @@ def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> Cell
         params = PlanParams(
             robot=settings.ur_robot,
             tool_radius_m=trajectory.params.get("tool_radius_m", PlanParams.tool_radius_m),
+            tool_spheres_m=tuple(trajectory.params.get("tool_spheres_m") or ()),
             clearance_m=trajectory.params.get("clearance_m", PlanParams.clearance_m),
         )
         T_flange_tcp = transform_from_pose(np.asarray(tool[0], dtype=np.float64))
@@ -255,6 +256,7 @@ def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> Cell
         cell=cell,
         T_flange_tcp=T_flange_tcp,
         tool_radius_m=params.tool_radius_m,
+        tool_spheres_m=params.tool_spheres_m,
         clearance_m=params.clearance_m,
     )
 

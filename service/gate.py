@@ -132,12 +132,15 @@ class CellHere:
         The TCP the controller will be given.
     tool_radius_m, clearance_m : float
         The tool's capsule radius and the clearance required, as planned.
+    tool_spheres_m : tuple of float
+        The tool as spheres (X,Y,Z,R each, flange frame), as planned; empty for the capsule.
     """
 
     cell: Cell
     T_flange_tcp: FloatArray
     tool_radius_m: float
     clearance_m: float
+    tool_spheres_m: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -244,6 +247,7 @@ def check_here(
     params = PlanParams(
         robot=settings.ur_robot,
         tool_radius_m=here.tool_radius_m,
+        tool_spheres_m=here.tool_spheres_m,
         clearance_m=here.clearance_m,
         tcp_pose=tuple(float(v) for v in _pose_of(here.T_flange_tcp)),
     )
@@ -256,6 +260,7 @@ def check_here(
             "again here (a plan made elsewhere does not know this cell's keep-out boxes)",
             detail={
                 "sample": first.sample,
+                "link": first.link,
                 "obstacle": first.obstacle,
                 "clearance_m": float(first.clearance_m),
                 "margin_m": float(first.margin_m),

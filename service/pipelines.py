@@ -21,6 +21,16 @@ from recon.params import PIVOT_TOLERANCE_M
 from recon.types import FloatArray
 
 
+def _off_feature(reg, mm: float) -> str:
+    """ " (x mm of it off the surface, the rest along it)" for a registration report: a path
+    moved by millimetres but hardly off its feature slid along it."""
+    off = reg.path_moved_off_feature_median_m
+    if not np.isfinite(off) or not reg.path_moved_max_m > 0:
+        return ""
+    across = "off the surface" if reg.target == "surface" else "across the edge"
+    return f" ({off * mm:.2f} mm of it {across} on median, the rest along it)"
+
+
 def _jsonable_or_none(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
@@ -397,6 +407,9 @@ class ReconstructOutcome:
                 "constrained_dof": reg.constrained_dof,
                 "path_moved_mean_m": _jsonable_or_none(reg.path_moved_mean_m),
                 "path_moved_max_m": _jsonable_or_none(reg.path_moved_max_m),
+                "path_moved_off_feature_median_m": _jsonable_or_none(
+                    reg.path_moved_off_feature_median_m
+                ),
                 "reason": reg.reason,
                 "alternative": None
                 if reg.alternative is None
@@ -471,8 +484,9 @@ class ReconstructOutcome:
             lines.append(
                 f"registered to the scan's {reg.target}: the path moved "
                 f"{reg.path_moved_mean_m * mm:.2f} mm on average, "
-                f"{reg.path_moved_max_m * mm:.2f} mm at most from the initial placement, "
-                f"residual {reg.rmse_m * mm:.2f} mm RMS, "
+                f"{reg.path_moved_max_m * mm:.2f} mm at most from the initial placement"
+                + _off_feature(reg, mm)
+                + f", residual {reg.rmse_m * mm:.2f} mm RMS, "
                 f"{reg.fitness * 100:.0f} % of the path paired, {reg.constrained_dof}/6 motions "
                 f"fixed ({reg.reason})"
             )

@@ -18,7 +18,7 @@ from pydantic import (
 )
 
 from recon.params import default_of, specs, type_hints
-from recon.types import PlanParams, ReconParams
+from recon.types import PlanParams, ReconParams, check_tool_spheres
 from service.artifacts import (
     ExecutionSummary,
     ReconstructionSummary,
@@ -273,6 +273,7 @@ TRAJECTORY_PARAMS = (
     "payload_kg",
     "payload_cog_m",
     "tool_radius_m",
+    "tool_spheres_m",
     "clearance_m",
     "joint_margin_deg",
     "mount_up",
@@ -330,6 +331,13 @@ class _TrajectoryRequest(Strict):
     T_base_tracker: Matrix4 | None = Field(None, description="default: the session's")
 
     _matrix = field_validator("T_base_tracker")(_check_matrix)
+
+    @field_validator("tool_spheres_m", check_fields=False)
+    @classmethod
+    def _tool_spheres(cls, value):
+        # Before any lookup: a malformed tool is the request's fault whatever it names.
+        check_tool_spheres(tuple(value))
+        return value
 
     def plan_params(self) -> dict:
         """The core's parameters (:class:`recon.types.PlanParams`), checked by the core."""

@@ -260,6 +260,8 @@ def _value_type(name: str, hint, spec):
     if hint is bool:
         return _boolean
     tuples = [a for a in (hint, *args) if typing.get_origin(a) is tuple]
+    if tuples and Ellipsis in typing.get_args(tuples[0]):
+        return _any_numbers
     if tuples:
         count = len(typing.get_args(tuples[0]))
         return numbers(count, ",".join(["N"] * count))
@@ -280,6 +282,17 @@ def _value_type(name: str, hint, spec):
             ) from None
 
     return parse
+
+
+def _any_numbers(value: str) -> tuple[float, ...]:
+    """Comma-separated finite numbers, as many as given (the parameter checks the count)."""
+    try:
+        parts = tuple(float(v) for v in value.split(",")) if value.strip() else ()
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected numbers N,N,..., not {value!r}") from None
+    if not all(math.isfinite(v) for v in parts):
+        raise argparse.ArgumentTypeError(f"expected finite numbers, not {value!r}")
+    return parts
 
 
 def _boolean(value: str) -> bool:
@@ -332,6 +345,8 @@ def _metavar(hint) -> str | None:
     if hint is bool:
         return "true|false"
     for a in (hint, *typing.get_args(hint)):
+        if typing.get_origin(a) is tuple and Ellipsis in typing.get_args(a):
+            return "N,N,..."
         if typing.get_origin(a) is tuple:
             count = len(typing.get_args(a))
             return "X,Y,Z" if count == 3 else ",".join(["N"] * count)

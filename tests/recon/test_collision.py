@@ -34,6 +34,7 @@ from recon.kinematics import (
     joint_frames,
     model,
 )
+from recon.types import PlanParams
 
 MODELS = sorted(UR_MODELS)
 
@@ -313,10 +314,11 @@ def workpiece_cell():
     return Cell(scan_points_m=_box_scan(WORKPIECE_LO, WORKPIECE_HI, 0.002), voxel_m=0.002)
 
 
-def _contact_plan(arm, tilt_deg, *, branch=None, rate_hz=500.0, speed_m_s=0.05):
-    """Approach 50 mm straight down onto the workpiece's top, a 200 mm process line on it,
-    retract straight up; the tool points down, tilted about the line by ``tilt_deg``."""
-    top = WORKPIECE_HI[2]
+def _contact_plan(arm, tilt_deg, *, branch=None, rate_hz=500.0, speed_m_s=0.05, top_m=None):
+    """Approach 50 mm straight down onto the workpiece's top (``top_m``, default its box's),
+    a 200 mm process line on it, retract straight up; the tool points down, tilted about the
+    line by ``tilt_deg``."""
+    top = WORKPIECE_HI[2] if top_m is None else top_m
     start, end = np.array([0.45, -0.25, top]), np.array([0.45, -0.05, top])
 
     def line(a, b):
@@ -711,6 +713,50 @@ def test_a_thick_tool_beside_a_clamp_is_refused_exactly_where_it_touches(radius_
         assert hit.point_m[2] > WORKPIECE_HI[2] + 0.01  # the clamp, above the band
     elif truth > margin_m + report.tolerance_m:
         assert report.clear, report.lines()
+
+
+# --- a spindle with a flat end, as spheres, beside a plate on the table -------------------------
+
+PLATE_TOP_M = 0.03
+#: A 20 mm spindle whose flat end is the TCP (0.15 m from the flange), as spheres: a small one
+#: for the burr at the tip, 20 mm ones for the body from 25 mm above the tip up.
+SPINDLE_SPHERES_M = (0, 0, 0.147, 0.003, 0, 0, 0.125, 0.02, 0, 0, 0.09, 0.02, 0, 0, 0.055, 0.02)
+
+
+def test_a_flat_ended_spindle_given_as_spheres_works_a_plate_its_capsule_is_refused_at():
+    """A 30 mm plate on the table, a 20 mm spindle along its top. As a capsule the tool's round
+    end reaches 20 mm below the tip, 10 mm above the table: refused against the mounting plane.
+    As spheres (``PlanParams.tool_spheres_m``, as the CLI and the API give them) the lowest
+    point of the tool is the burr at the tip: clear, and the report's smallest clearance
+    matches the spheres' lowest point over the table computed apart from the check."""
+    arm = model("ur5e")
+    plate_hi = (WORKPIECE_HI[0], WORKPIECE_HI[1], PLATE_TOP_M)
+    cell = Cell(scan_points_m=_box_scan(WORKPIECE_LO, plate_hi, 0.002), voxel_m=0.002)
+    joints, phase, T_ft, _, t = _contact_plan(arm, 0.0, top_m=PLATE_TOP_M)
+    zone = ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft)
+    margin_m = 0.01
+
+    def check(params):
+        return check_motion(
+            arm, joints.q_rad, phase, cell, T_flange_tcp=T_ft, tool=params.tool,
+            margin_m=margin_m, contact_zone=zone, t_s=t,
+        )  # fmt: skip
+
+    capsule = check(PlanParams(speed_m_s=0.05, tool_radius_m=0.02))
+    assert not capsule.clear
+    hit = capsule.first_collision
+    assert hit.link == "tool" and hit.obstacle == "mounting plane"
+    spindle = PlanParams(speed_m_s=0.05, tool_spheres_m=SPINDLE_SPHERES_M)
+    assert isinstance(spindle.tool, SphereTool) and len(spindle.tool.radii_m) == 4
+    report = check(spindle)
+    assert report.clear, report.lines()
+    # Apart from the check: every sphere's lowest point over the table (the mounting plane is
+    # tested 5 mm up, where a scan's table points are dropped), and to the plate's top only
+    # for the spheres above the contact band.
+    centres = tool_capsules(forward(arm, joints.q_rad), T_ft, spindle.tool).ends_m[:, :, 0]
+    lowest_m = (centres[..., 2] - spindle.tool.radii_m).min()
+    assert lowest_m - cell.mounting_band_m > margin_m
+    assert report.clearance_m.min() <= lowest_m - cell.mounting_band_m + 1e-9
 
 
 # --- the arm against itself --------------------------------------------------------------------

@@ -98,6 +98,9 @@ def test_a_plane_fixes_only_height_and_tilt():
     np.testing.assert_allclose(reg.T_scan_tracker[:2, 3], init[:2, 3], atol=1e-6)
     np.testing.assert_allclose(reg.T_scan_tracker[:2, :2], init[:2, :2], atol=1e-6)
     assert reg.constrained_dof == 3
+    # Brought down by 1.5 mm, all of it off the surface (the move's in-plane part is zero).
+    assert abs(reg.path_moved_max_m - 0.0015) < 1e-6
+    assert abs(reg.path_moved_off_feature_median_m - 0.0015) < 1e-6
 
 
 def test_ignores_a_lifted_stretch_of_the_path():

@@ -64,6 +64,11 @@ def test_a_trace_lying_on_a_real_scan_fragment_is_left_where_it_is(fragment):
         registration = outcome.reconstruction.registration
         assert registration.target == "surface"
         moved_max_m.append(registration.path_moved_max_m)
+        # What moved is mostly sliding along the fragment's nearly flat patches, and the
+        # report says so: off the surface by about the hand noise at most.
+        assert registration.path_moved_off_feature_median_m < TRACE_NOISE_M, seed
+        report = next(line for line in outcome.lines() if line.startswith("registered to"))
+        assert "mm of it off the surface on median, the rest along it" in report
     assert np.median(moved_max_m) < 1.5e-3, moved_max_m
     assert max(moved_max_m) < 4e-3, moved_max_m
 

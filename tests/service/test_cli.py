@@ -273,6 +273,7 @@ def test_plan_then_dry_run(inputs, reconstructed, tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert "tool axis from the scan" in result.stdout and "margins" in result.stdout
+    assert "tool checked as a capsule of radius 10.0 mm from the flange to the TCP" in result.stdout
     picture = plt.imread(tmp_path / "plan.png")
     assert picture.shape[:2] == (900, 1000) and picture[..., :3].std() > 0.05
     meta, header = traj.read_text().splitlines()[:2]
@@ -288,6 +289,22 @@ def test_plan_then_dry_run(inputs, reconstructed, tmp_path):
     # rounding (measured 0.5 mm on this path's corner).
     off_path_mm = float(re.search(r"([0-9.]+) mm off the path", result.stdout).group(1))
     assert off_path_mm < 2.0
+
+
+def test_a_tool_given_as_spheres_is_the_tool_checked(inputs, reconstructed, tmp_path):
+    """``--tool-spheres-m``: the tool as spheres (a spindle's flat end), the same parameter as
+    the API's, and the report says which tool was checked."""
+    result = _plan_in_cell(
+        inputs,
+        reconstructed,
+        tmp_path / "traj.csv",
+        "--tool-spheres-m=0,0,0.097,0.003,0,0,0.06,0.02",
+    )
+    assert result.returncode == 0, result.stderr
+    assert (
+        "tool checked as 2 sphere(s), X, Y, Z, R in the flange frame (mm): "
+        "0.0, 0.0, 97.0, 3.0; 0.0, 0.0, 60.0, 20.0" in result.stdout
+    ), result.stdout
 
 
 def _plan_in_cell(inputs, reconstructed, out, *cell):

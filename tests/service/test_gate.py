@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -350,6 +351,24 @@ def test_a_keep_out_box_of_this_cell_on_the_motion_is_refused(settings, trajecto
     with pytest.raises(gate.CollidesHere, match="keep-out box 1") as refused:
         gate.check_here(settings, trajectory, planned, cell)
     assert refused.value.detail["obstacle"] == "keep-out box 1"
+
+
+def test_the_tool_is_checked_here_as_it_was_planned_spheres_included(settings, trajectory):
+    """A box 90 mm beside the tool's tip: clear of the planned 20 mm capsule, inside a tool
+    given as a 100 mm sphere at the tip (``tool_spheres_m``): refused for the spheres."""
+    planned = a_trajectory()
+    tcp = (kinematics.forward(kinematics.model("ur5e"), planned.q_rad) @ TOOL)[:, :3, 3]
+    beside = tcp[len(tcp) // 2] + np.array([0.0, 0.0, -0.09])
+    box = Box(min_m=beside - 0.02, max_m=beside + 0.02, name="keep-out box 1")
+    capsule = gate.CellHere(
+        cell=Cell(boxes=(box,)), T_flange_tcp=TOOL, tool_radius_m=0.02, clearance_m=0.01
+    )
+    gate.check_here(settings, trajectory, planned, capsule)
+    tip = TOOL[:3, 3]
+    spheres = replace(capsule, tool_spheres_m=(*tip, 0.1))
+    with pytest.raises(gate.CollidesHere, match="keep-out box 1") as refused:
+        gate.check_here(settings, trajectory, planned, spheres)
+    assert refused.value.detail["link"] == "tool"
 
 
 def test_a_trajectory_for_another_arm_is_refused_even_if_the_summary_agrees(settings, trajectory):

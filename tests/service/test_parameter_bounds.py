@@ -54,3 +54,43 @@ def test_a_plan_longer_than_an_hour_at_its_speed_is_refused_before_any_work():
     with pytest.raises(ValueError, match=r"5000 s at speed_m_s 0.001.*at least 0.0014 m/s"):
         plan_path(line, params=PlanParams(speed_m_s=0.001))
     assert MAX_PROCESS_DURATION_S == 3600.0
+
+
+@pytest.mark.parametrize(
+    ("spheres", "message"),
+    [
+        ([0, 0, 0.1], "four numbers per sphere"),
+        ([0, 0, 0.1, -0.01], "radius"),
+        ([0, 0, 0.1, 0.01] * 33, "at most 32 spheres"),
+        ([0, 0, 5.0, 0.01], "tool_spheres_m"),
+        ([0, 0, 0.1, 1e308], "tool_spheres_m"),
+        (["a", 0, 0.1, 0.01], "tool_spheres_m"),
+        ([[0, 0, 0.1, 0.01]], "tool_spheres_m"),
+        ({"x": 0}, "tool_spheres_m"),
+    ],
+    ids=["three", "negative-radius", "too-many", "far", "huge", "text", "nested", "object"],
+)
+def test_tool_spheres_that_are_not_a_tool_are_a_422(client, session, spheres, message):
+    response = client.post(
+        f"/sessions/{session}/trajectories",
+        json={"reconstruction_id": "rcn_0", "speed_m_s": 0.05, "tool_spheres_m": spheres},
+    )
+    assert response.status_code == 422, response.text
+    assert message in response.text
+
+
+def test_tool_spheres_bad_on_the_command_line_are_refused_before_any_work(tmp_path):
+    from tests.service.test_cli import run
+
+    for value, message in (
+        ("0,0,0.1", "four numbers per sphere"),
+        ("0,0,0.1,-0.01", "radius"),
+        ("a,b,c,d", "expected numbers"),
+        ("0,0,nan,0.01", "finite"),
+    ):
+        result = run(
+            "plan", tmp_path / "missing.csv", "--speed-m-s", "0.05",
+            f"--tool-spheres-m={value}", "--out", tmp_path / "o.csv",
+        )  # fmt: skip
+        assert result.returncode != 0, (value, result.stderr)
+        assert message in result.stderr, (value, result.stderr)

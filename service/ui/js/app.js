@@ -492,7 +492,13 @@ function renderReconstruction() {
   }
   if (reg) {
     if (reg.reason) rows.push(["why", reg.reason]);
-    if (reg.path_moved_mean_m != null) rows.push(["path moved by it", `${mm(reg.path_moved_mean_m)} on average, ${mm(reg.path_moved_max_m)} at most`]);
+    if (reg.path_moved_mean_m != null) {
+      // Millimetres of sliding along a nearly flat patch say little about the scanner: say how
+      // much of the move was toward or away from the feature.
+      const across = reg.target === "edge" ? "across the edge" : "off the surface";
+      const off = reg.path_moved_off_feature_median_m != null ? ` (${mm(reg.path_moved_off_feature_median_m)} of it ${across} on median, the rest along it)` : "";
+      rows.push(["path moved by it", `${mm(reg.path_moved_mean_m)} on average, ${mm(reg.path_moved_max_m)} at most${off}`]);
+    }
   }
   rows.push(["segments", sm.segments.map((g) => `${g.kind} (points ${g.start}–${g.stop - 1})`).join(", ") || "–"]);
   for (const [i, g] of sm.segments.entries()) {
