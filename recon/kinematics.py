@@ -9,14 +9,27 @@ millimetre). Joint angles are radians, lengths metres; poses are 4x4 transforms 
 The inverse kinematics is the analytic solution for this geometry (Hawkins, "Analytic Inverse
 Kinematics for the Universal Robots UR-5/UR-10 Arms", 2013): two shoulder, two wrist and two
 elbow branches, eight solutions in all, vectorised over many poses.
+
+**Calibrated arms.** Every UR arm leaves the factory with its own kinematics calibration: offsets
+to the four DH parameters of each joint (the controller's ``calibration.conf``; the controller
+reports the sums as its DH parameters). The published example of a real UR10e's calibration puts
+its flange 2.1 mm (median) and 3.4 mm (worst) from the nominal model's over random
+configurations, far above the half millimetre this project aims at. An arm with a
+:class:`DHCalibration` (:func:`with_calibration`) has the controller's forward kinematics; its
+inverse kinematics starts from the nominal closed form, branch by branch, and Newton's method on
+the calibrated chain takes each solution onto the pose (the offsets are small enough that the
+branches do not change). The calibrated DH chain is not the physical one (parallel axes put
+some of its frames hundreds of metres away along their axes): :func:`joint_frames` keeps the
+nominal frames for the links' geometry and only the flange is the calibrated one.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from recon.errors import InfeasibleTrajectoryError
 from recon.types import FloatArray, JointPath
@@ -33,6 +46,57 @@ DEG = np.pi / 180.0
 JOINT_RANGE_RAD = np.array([2 * np.pi, 2 * np.pi, np.pi, 2 * np.pi, 2 * np.pi, 2 * np.pi])
 JOINT_RANGE_RAD.setflags(write=False)
 _ENDLESS_WRIST_3_RANGE_RAD = np.append(JOINT_RANGE_RAD[:5], np.inf)
+
+
+@dataclass(frozen=True)
+class DHCalibration:
+    """An arm's own kinematics calibration: offsets added to its nominal DH parameters.
+
+    Attributes
+    ----------
+    delta_theta_rad, delta_a_m, delta_d_m, delta_alpha_rad : ndarray of shape (6,)
+        Per joint, as the controller's ``calibration.conf`` stores them. Not small in general:
+        near-parallel axes (joints 2-4) are described by common normals far along the axes, so
+        ``delta_d_m`` reaches hundreds of metres while the flange moves by millimetres.
+    source : str
+        Where it was read (a file name), for the plan's report.
+    """
+
+    delta_theta_rad: FloatArray
+    delta_a_m: FloatArray
+    delta_d_m: FloatArray
+    delta_alpha_rad: FloatArray
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        for name in ("delta_theta_rad", "delta_a_m", "delta_d_m", "delta_alpha_rad"):
+            value = np.array(getattr(self, name), dtype=np.float64)
+            if value.shape != (6,) or not np.all(np.isfinite(value)):
+                raise ValueError(f"{name} must be 6 finite numbers, got {getattr(self, name)!r}")
+            if np.abs(value).max() > CALIBRATION_MAX_OFFSET:
+                raise ValueError(
+                    f"{name} has an offset of {np.abs(value).max():g}: no arm's calibration "
+                    f"reaches {CALIBRATION_MAX_OFFSET:g} (metres or radians)"
+                )
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+
+
+#: Largest offset a calibration may hold (metres or radians): real ones reach ~450 m in d for
+#: the near-parallel axes; this only keeps arithmetic far from overflow.
+CALIBRATION_MAX_OFFSET = 1.0e4
+#: A calibration whose flange is farther than this from the nominal model's, at any of the
+#: configurations :func:`with_calibration` tries, is not this arm's (UR speaks of errors "in the
+#: magnitude of centimetres" without one; the published UR10e example is 3.4 mm at worst).
+CALIBRATION_MAX_DIFFERENCE_M = 0.03
+#: ... or turns the flange by more than this.
+CALIBRATION_MAX_TURN_RAD = np.radians(2.0)
+#: Newton steps of the calibrated inverse kinematics (each one about squares the error: from the
+#: nominal solution's millimetres to 1e-12 m takes three or four; near a singularity more).
+IK_REFINE_STEPS = 10
+#: A calibrated solution counts when it reaches the pose within these.
+IK_REFINE_TOLERANCE_M = 1e-9
+IK_REFINE_TOLERANCE_RAD = 1e-9
 
 
 @dataclass(frozen=True)
@@ -56,6 +120,8 @@ class URModel:
     control_rate_hz : float
         Controller (RTDE) rate: 500 Hz on e-series, 125 Hz on CB3.
     payload_kg : float
+    calibration : DHCalibration or None
+        The arm's own kinematics calibration (None: the nominal model).
     """
 
     name: str
@@ -72,6 +138,7 @@ class URModel:
     tcp_speed_max_m_s: float = 1.0
     q_min_rad: FloatArray = None  # type: ignore[assignment]
     q_max_rad: FloatArray = None  # type: ignore[assignment]
+    calibration: DHCalibration | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         for name in ("qd_max_rad_s", "qdd_max_rad_s2", "q_min_rad", "q_max_rad"):
@@ -89,6 +156,29 @@ class URModel:
     @property
     def a(self) -> FloatArray:
         return np.array([0.0, self.a2, self.a3, 0.0, 0.0, 0.0])
+
+    @property
+    def nominal(self) -> URModel:
+        """The same arm without its calibration."""
+        return self if self.calibration is None else replace(self, calibration=None)
+
+    @property
+    def kinematics_words(self) -> str:
+        """Which kinematic model this is, for a report."""
+        if self.calibration is None:
+            return f"{self.name}, UR's nominal kinematics (no calibration given)"
+        where = f" from {self.calibration.source}" if self.calibration.source else ""
+        return f"{self.name}, calibrated kinematics{where}"
+
+    def chain(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """The DH parameters the forward kinematics uses: joint-angle offsets, d, a, alpha,
+        each of shape (6,); the calibrated ones where the arm has a calibration."""
+        theta0, d, a, alpha = np.zeros(6), self.d, self.a, ALPHA.copy()
+        if self.calibration is not None:
+            c = self.calibration
+            theta0 = theta0 + c.delta_theta_rad
+            d, a, alpha = d + c.delta_d_m, a + c.delta_a_m, alpha + c.delta_alpha_rad
+        return theta0, d, a, alpha
 
     @property
     def reach_m(self) -> float:
@@ -319,18 +409,86 @@ def forward(arm: URModel, q_rad: FloatArray) -> FloatArray:
         ``T_base_flange``.
     """
     q = np.asarray(q_rad, dtype=np.float64)
-    d, a = arm.d, arm.a
-    T = _dh(q[..., 0], d[0], a[0], ALPHA[0])
+    theta0, d, a, alpha = arm.chain()
+    T = _dh(q[..., 0] + theta0[0], d[0], a[0], alpha[0])
     for i in range(1, 6):
-        T = T @ _dh(q[..., i], d[i], a[i], ALPHA[i])
+        T = T @ _dh(q[..., i] + theta0[i], d[i], a[i], alpha[i])
     return T
+
+
+def _chain_frames(arm: URModel, q_rad: FloatArray) -> FloatArray:
+    """The frames of the arm's DH chain, calibrated where it is: (..., 7, 4, 4). Not the links'
+    physical frames on a calibrated arm (see the module docstring): for Jacobians only."""
+    q = np.asarray(q_rad, dtype=np.float64)
+    theta0, d, a, alpha = arm.chain()
+    frames = np.empty((*q.shape[:-1], 7, 4, 4))
+    frames[..., 0, :, :] = np.eye(4)
+    T = np.broadcast_to(np.eye(4), (*q.shape[:-1], 4, 4))
+    for i in range(6):
+        T = T @ _dh(q[..., i] + theta0[i], d[i], a[i], alpha[i])
+        frames[..., i + 1, :, :] = T
+    return frames
+
+
+def with_calibration(arm: URModel, calibration: DHCalibration) -> URModel:
+    """The arm with its own kinematics calibration, checked to be plausibly this arm's.
+
+    Parameters
+    ----------
+    arm : URModel
+    calibration : DHCalibration
+
+    Returns
+    -------
+    URModel
+
+    Raises
+    ------
+    ValueError
+        At some of 500 configurations spread over the joint ranges the calibrated flange is
+        more than :data:`CALIBRATION_MAX_DIFFERENCE_M` or :data:`CALIBRATION_MAX_TURN_RAD`
+        from the nominal one: another arm type's calibration, or not a calibration at all.
+    """
+    calibrated = replace(arm.nominal, calibration=calibration)
+    q = np.random.default_rng(0).uniform(-np.pi, np.pi, (500, 6))
+    nominal_T, calibrated_T = forward(arm.nominal, q), forward(calibrated, q)
+    moved_m = np.linalg.norm(calibrated_T[:, :3, 3] - nominal_T[:, :3, 3], axis=1).max()
+    turn = np.swapaxes(nominal_T[:, :3, :3], 1, 2) @ calibrated_T[:, :3, :3]
+    turned_rad = np.linalg.norm(Rotation.from_matrix(turn).as_rotvec(), axis=1).max()
+    if moved_m > CALIBRATION_MAX_DIFFERENCE_M or turned_rad > CALIBRATION_MAX_TURN_RAD:
+        raise ValueError(
+            f"the calibration{' in ' + calibration.source if calibration.source else ''} puts "
+            f"the {arm.name}'s flange up to {moved_m * 1e3:.1f} mm and "
+            f"{np.degrees(turned_rad):.2f} deg from its nominal model (a calibration moves it by "
+            f"millimetres): is it this arm's, and is the robot model right?"
+        )
+    return calibrated
+
+
+def calibration_difference_m(arm: URModel, q_rad: FloatArray) -> FloatArray:
+    """How far the calibrated flange is from the nominal model's at these joints.
+
+    Parameters
+    ----------
+    arm : URModel
+        With a calibration (zeros without one).
+    q_rad : ndarray of shape (..., 6)
+
+    Returns
+    -------
+    ndarray of shape (...,), metres
+    """
+    return np.linalg.norm(
+        forward(arm, q_rad)[..., :3, 3] - forward(arm.nominal, q_rad)[..., :3, 3], axis=-1
+    )
 
 
 def joint_frames(arm: URModel, q_rad: FloatArray) -> FloatArray:
     """The DH frames of the chain for joint vectors: base, after joint 1, …, flange.
 
     Frame ``k`` (k = 1..6) is ``A_1 … A_k``; its z-axis is the axis of joint ``k + 1`` and frame 6
-    is the flange, so ``joint_frames(arm, q)[..., 6, :, :] == forward(arm, q)``.
+    is the flange, so ``joint_frames(arm, q)[..., 6, :, :] == forward(arm, q)``. On a calibrated
+    arm frames 1-5 are the nominal ones (the links' geometry) and frame 6 the calibrated flange.
 
     Parameters
     ----------
@@ -351,6 +509,10 @@ def joint_frames(arm: URModel, q_rad: FloatArray) -> FloatArray:
     for i in range(1, 6):
         T = T @ _dh(q[..., i], d[i], a[i], ALPHA[i])
         frames[..., i + 1, :, :] = T
+    if arm.calibration is not None:
+        # The links where they physically are (nominal), the flange where the controller
+        # puts it (calibrated): the two differ by millimetres.
+        frames[..., 6, :, :] = forward(arm, q)
     return frames
 
 
@@ -368,7 +530,9 @@ class IKSolutions:
     failure : ndarray of shape (N, 8), int8
         Why a branch does not exist: 0 it does, 1 the wrist centre is inside the shoulder's
         cylinder (too close to the base axis), 2 the wrist cannot take the orientation there,
-        3 the elbow cannot span the distance (too far, or too close to the shoulder).
+        3 the elbow cannot span the distance (too far, or too close to the shoulder), 4 on a
+        calibrated arm, the nominal solution did not converge onto the pose (at a
+        singularity's edge).
     shoulder_margin_m : ndarray of shape (N,)
         How far the wrist centre is outside the cylinder of radius d4 around the base axis; at 0
         the shoulder branches meet (shoulder singularity), below it the pose is unreachable.
@@ -398,6 +562,8 @@ def inverse(arm: URModel, T_base_flange: FloatArray) -> IKSolutions:
     T = np.asarray(T_base_flange, dtype=np.float64)
     if T.ndim != 3 or T.shape[1:] != (4, 4):
         raise ValueError(f"T_base_flange must have shape (N, 4, 4), got {T.shape}")
+    if arm.calibration is not None:
+        return _refine_on_calibration(arm, T, inverse(arm.nominal, T))
     n = len(T)
     d1, a2, a3, d4, d6 = arm.d1, arm.a2, arm.a3, arm.d4, arm.d6
     p06 = T[:, :3, 3]
@@ -456,6 +622,59 @@ def inverse(arm: URModel, T_base_flange: FloatArray) -> IKSolutions:
                 )
     q = (q + np.pi) % (2 * np.pi) - np.pi
     return IKSolutions(q_rad=q, valid=valid, shoulder_margin_m=shoulder_margin, failure=failure)
+
+
+def _refine_on_calibration(arm: URModel, T: FloatArray, nominal: IKSolutions) -> IKSolutions:
+    """Newton's method on the calibrated chain from each valid nominal solution.
+
+    Parameters
+    ----------
+    arm : URModel
+        With a calibration.
+    T : ndarray of shape (N, 4, 4)
+        The flange poses.
+    nominal : IKSolutions
+        The nominal model's solutions of ``T``.
+
+    Returns
+    -------
+    IKSolutions
+        The branches that reached the pose within :data:`IK_REFINE_TOLERANCE_M` and
+        :data:`IK_REFINE_TOLERANCE_RAD`; the others invalid (failure 4).
+    """
+    q = nominal.q_rad.copy()
+    valid = nominal.valid.copy()
+    rows, branches = np.nonzero(valid)
+    target = T[rows]
+    x = q[rows, branches]
+    for _ in range(IK_REFINE_STEPS):
+        frames = _chain_frames(arm, x)
+        flange = frames[:, 6]
+        position_error = target[:, :3, 3] - flange[:, :3, 3]
+        turn = target[:, :3, :3] @ np.swapaxes(flange[:, :3, :3], 1, 2)
+        rotation_error = Rotation.from_matrix(turn).as_rotvec()
+        axes, origins = frames[:, :6, :3, 2], frames[:, :6, :3, 3]
+        # Geometric Jacobian of the calibrated chain (columns: joints): the cross product
+        # drops the component along each axis, so origins far along it cost no precision.
+        linear = np.cross(axes, flange[:, None, :3, 3] - origins)
+        jacobian = np.concatenate([linear, axes], axis=2).transpose(0, 2, 1)  # (K, 6, 6)
+        error = np.concatenate([position_error, rotation_error], axis=1)
+        # Damped least squares: at a wrist singularity the free combination stays put.
+        damping = 1e-12 * np.eye(6)
+        jjt = jacobian @ np.swapaxes(jacobian, 1, 2) + damping
+        x = x + np.einsum("kji,kj->ki", jacobian, np.linalg.solve(jjt, error[..., None])[..., 0])
+    flange = forward(arm, x)
+    reached_m = np.linalg.norm(target[:, :3, 3] - flange[:, :3, 3], axis=1)
+    turn = target[:, :3, :3] @ np.swapaxes(flange[:, :3, :3], 1, 2)
+    reached_rad = np.linalg.norm(Rotation.from_matrix(turn).as_rotvec(), axis=1)
+    converged = (reached_m < IK_REFINE_TOLERANCE_M) & (reached_rad < IK_REFINE_TOLERANCE_RAD)
+    q[rows, branches] = (x + np.pi) % (2 * np.pi) - np.pi
+    valid[rows, branches] = converged
+    failure = nominal.failure.copy()
+    failure[rows[~converged], branches[~converged]] = 4
+    return IKSolutions(
+        q_rad=q, valid=valid, shoulder_margin_m=nominal.shoulder_margin_m, failure=failure
+    )
 
 
 def wrist_singularity(q_rad: FloatArray) -> FloatArray:
