@@ -207,6 +207,8 @@ def trajectory_csv_text(trajectory: JointTrajectory, *, meta: dict | None = None
         "robot": trajectory.robot,
         "rate_hz": 1.0 / trajectory.period_s if len(trajectory) > 1 else None,
         "requested_speed_m_s": trajectory.requested_speed_m_s,
+        # The joints are right for this calibration only: the file says which.
+        "calibration": None if trajectory.calibration is None else trajectory.calibration.as_dict(),
     }
     columns = [(name, numbers[:, k], "%.10g") for k, name in enumerate(TRAJECTORY_COLUMNS)]
     columns.append(("phase", labels, "%s"))
@@ -249,7 +251,7 @@ def read_trajectory_csv(
     TrajectoryMismatchError
         The file was planned for another arm, or its samples are not at the arm's rate.
     """
-    from recon.kinematics import model
+    from recon.kinematics import DHCalibration, model
 
     meta, rows, label = _read_rows(source, name)
     planned_for = meta.get("robot")
@@ -260,6 +262,14 @@ def read_trajectory_csv(
         )
     robot = (robot or planned_for or "ur5e").lower()
     arm = model(robot)
+    calibration = None
+    if meta.get("calibration") is not None:
+        try:
+            calibration = DHCalibration.from_dict(meta["calibration"])
+        except ValueError as exc:
+            raise InputFileError(
+                f"{label}: the calibration it names is not one ({exc}); plan it again"
+            ) from None
     header = [c.strip().lower() for c in rows[0]]
     if tuple(header[: len(TRAJECTORY_COLUMNS)]) != TRAJECTORY_COLUMNS:
         raise InputFileError(
@@ -308,6 +318,7 @@ def read_trajectory_csv(
         # A file that does not say what was requested: its mean speed stands in for it.
         requested_speed_m_s=float(requested) if requested else _mean_speed(data[:, 7:10], t),
         phase=phase,
+        calibration=calibration,
     )
     return TrajectoryFile(trajectory=trajectory, meta=meta)
 

@@ -81,6 +81,47 @@ class DHCalibration:
             value.setflags(write=False)
             object.__setattr__(self, name, value)
 
+    def as_dict(self) -> dict:
+        """The offsets as lists and the source: what a trajectory's record keeps."""
+        return {
+            "delta_theta_rad": self.delta_theta_rad.tolist(),
+            "delta_a_m": self.delta_a_m.tolist(),
+            "delta_d_m": self.delta_d_m.tolist(),
+            "delta_alpha_rad": self.delta_alpha_rad.tolist(),
+            "source": self.source,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> DHCalibration:
+        """The inverse of :meth:`as_dict`.
+
+        Raises
+        ------
+        ValueError
+            A field missing or not six finite numbers.
+        """
+        if not isinstance(data, dict):
+            raise ValueError(f"a calibration maps its offsets, got {type(data).__name__}")
+        try:
+            return cls(
+                delta_theta_rad=data["delta_theta_rad"],
+                delta_a_m=data["delta_a_m"],
+                delta_d_m=data["delta_d_m"],
+                delta_alpha_rad=data["delta_alpha_rad"],
+                source=str(data.get("source", "")),
+            )
+        except KeyError as exc:
+            raise ValueError(f"a calibration needs {exc}") from None
+        except TypeError as exc:
+            raise ValueError(f"not a calibration: {exc}") from None
+
+    def same_as(self, other: DHCalibration | None) -> bool:
+        """The same offsets (the source aside)."""
+        return other is not None and all(
+            np.array_equal(getattr(self, name), getattr(other, name))
+            for name in ("delta_theta_rad", "delta_a_m", "delta_d_m", "delta_alpha_rad")
+        )
+
 
 #: Largest offset a calibration may hold (metres or radians): real ones reach ~450 m in d for
 #: the near-parallel axes; this only keeps arithmetic far from overflow.

@@ -349,4 +349,5 @@ def assemble(
         requested_speed_m_s=requested_speed_m_s,
         speed_drops=drops,
         phase=np.concatenate(label),
+        calibration=arm.calibration,
     )

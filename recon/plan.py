@@ -105,6 +105,7 @@ class Plan:
             f"[{', '.join(f'{np.degrees(v):.1f}' for v in self.start_q_rad)}] deg",
             f"tool axis from the {self.tool.source}; {self.configuration.words()} "
             f"(IK branch {joints.branch})",
+            f"kinematics: {traj.arm.kinematics_words}",
             f"margins: joint limits {np.degrees(joints.limit_margin_rad.min()):.1f} deg, wrist "
             f"|sin q5| {joints.wrist_singularity.min():.2f}, elbow |sin q3| "
             f"{joints.elbow_singularity.min():.2f}, shoulder "
@@ -160,6 +161,7 @@ def plan_path(
     cell=None,
     piece: NDArray[np.int64] | None = None,
     start_from: str | None = None,
+    calibration: kinematics.DHCalibration | None = None,
 ) -> Plan:
     """Plan the whole motion along a path given in the tracker frame.
 
@@ -184,16 +186,23 @@ def plan_path(
     start_from : str, optional
         Where ``params.start_q_rad`` came from, for the report ("arm": read from the arm at
         planning time); default "given", or "home" without start joints.
+    calibration : recon.kinematics.DHCalibration, optional
+        The arm's own kinematics calibration (its controller's): the joints then put the flange
+        where the controller will, not millimetres off as the nominal model would. None: UR's
+        nominal model. The trajectory carries it.
 
     Raises
     ------
     ValueError
-        Inconsistent inputs (the requested orientation source is missing, bad shapes).
+        Inconsistent inputs (the requested orientation source is missing, bad shapes), or a
+        calibration that is not this arm type's.
     InfeasibleTrajectoryError
         The arm cannot follow the path (the message names the waypoint and why), no solution
         has the configuration asked for, or the motion collides (:class:`CollisionError`).
     """
     arm = kinematics.model(params.robot)
+    if calibration is not None:
+        arm = kinematics.with_calibration(arm, calibration)
     T = np.eye(4) if T_base_tracker is None else check_rigid(T_base_tracker, name="T_base_tracker")
     points = np.asarray(points_tracker_m, dtype=np.float64)
     pieces = piece_slices(piece_labels(piece, len(points)))

@@ -224,7 +224,7 @@ def require_within_limits(trajectory, *, what: str) -> None:
     """
     from recon.errors import InfeasibleTrajectoryError
 
-    arm = kinematics.model(trajectory.robot)
+    arm = trajectory.arm
     problems = sample_problems(
         arm,
         trajectory.t_s,

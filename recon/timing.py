@@ -386,6 +386,7 @@ def _assemble(
         arc_length_m=arc,
         requested_speed_m_s=limits.speed_m_s,
         speed_drops=tuple(_speed_drops(arc, speed, joints, tool, limits, point_bound)),
+        calibration=arm.calibration,
     )
 
 

@@ -22,6 +22,7 @@ from recon.transforms import rotation_angle_deg, translation_m
 if TYPE_CHECKING:
     # Annotations only: both modules import this one.
     from recon.classify import SegmentKind
+    from recon.kinematics import DHCalibration, URModel
     from recon.scan_model import ScanModel
 
 FloatArray = NDArray[np.float64]
@@ -1128,6 +1129,9 @@ class JointTrajectory:
     phase : ndarray of shape (M,), int8, or None
         :class:`Phase` of each sample; None for a trajectory that is the process path alone
         (one read from a file that does not say).
+    calibration : recon.kinematics.DHCalibration or None
+        The arm's own kinematics calibration it was planned with (None: UR's nominal model);
+        :attr:`arm` is the model with it.
     """
 
     robot: str
@@ -1141,6 +1145,7 @@ class JointTrajectory:
     requested_speed_m_s: float
     speed_drops: tuple[SpeedDrop, ...] = ()
     phase: NDArray[np.int8] | None = None
+    calibration: DHCalibration | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         n = len(self.t_s)
@@ -1171,6 +1176,16 @@ class JointTrajectory:
 
     def __len__(self) -> int:
         return len(self.t_s)
+
+    @property
+    def arm(self) -> URModel:
+        """The arm model it was planned with: its robot, with its calibration if it had one."""
+        from recon import kinematics  # here: kinematics imports this module
+
+        arm = kinematics.model(self.robot)
+        if self.calibration is None:
+            return arm
+        return kinematics.with_calibration(arm, self.calibration)
 
     @property
     def phases(self) -> NDArray[np.int8]:
@@ -1214,6 +1229,7 @@ class JointTrajectory:
             requested_speed_m_s=self.requested_speed_m_s,
             speed_drops=self.speed_drops if process else (),
             phase=self.phases[rows],
+            calibration=self.calibration,
         )
 
     def runs(self) -> list[tuple[Phase, slice]]:

@@ -200,9 +200,20 @@ class TrajectoryCodec:
 
     @staticmethod
     def decode(arrays: Arrays, summary: TrajectorySummary) -> JointTrajectory:
-        """The trajectory; what it was planned for comes from its summary."""
+        """The trajectory; what it was planned for (the arm and its calibration) comes from
+        its summary.
+
+        Raises
+        ------
+        ValueError
+            The summary's calibration is not one.
+        """
+        from recon.kinematics import DHCalibration
+
+        calibration = summary.calibration
         return JointTrajectory(
             robot=summary.robot,
+            calibration=None if calibration is None else DHCalibration.from_dict(calibration),
             requested_speed_m_s=summary.requested_speed_m_s,
             speed_drops=tuple(SpeedDrop(**d.model_dump()) for d in summary.speed_drops),
             phase=arrays.get("phase"),
@@ -433,6 +444,14 @@ class TrajectorySummary(_Summary):
     checks: list[str] = Field(default_factory=list, description="the checks the plan passed")
     teachpath: str | None = Field(None, description="the version that planned it")
     report: list[str] = Field(default_factory=list)
+    kinematics: str | None = Field(
+        None, description="the kinematic model the joints were solved with, in words"
+    )
+    calibration: dict[str, Any] | None = Field(
+        None,
+        description="the arm's own kinematics calibration it was planned with (offsets to UR's "
+        "DH parameters, as the controller's calibration.conf); null: UR's nominal model",
+    )
 
     #: What a trajectory file's metadata line holds besides robot, rate and speed.
     FILE_KEYS: ClassVar[tuple[str, ...]] = (
@@ -451,6 +470,7 @@ class TrajectorySummary(_Summary):
         "T_scan_tracker",
         "min_clearance_m",
         "checks",
+        "kinematics",
     )
 
     def file_meta(self) -> dict:

@@ -143,6 +143,43 @@ class CellHere:
     tool_spheres_m: tuple[float, ...] = ()
 
 
+def _arm_here(settings: Settings, loaded: JointTrajectory) -> kinematics.URModel:
+    """This server's arm, calibrated as its controller is (``ur_calibration``), after checking
+    that the trajectory's joints were solved for that very model: joints solved with another
+    one put the flange millimetres from where the plan (and its dry run) said.
+
+    Raises
+    ------
+    TrajectoryForAnotherRobot
+        Planned with another calibration, or with one where this server has none (or the
+        other way round).
+    """
+    arm = kinematics.model(settings.ur_robot)
+    here = settings.arm_calibration
+    if here is None and loaded.calibration is None:
+        return arm
+    calibrated = kinematics.with_calibration(arm, here if here is not None else loaded.calibration)
+    if here is not None and here.same_as(loaded.calibration):
+        return calibrated
+    moved_mm = float(kinematics.calibration_difference_m(calibrated, loaded.q_rad).max()) * 1e3
+    planned = (
+        "UR's nominal kinematics"
+        if loaded.calibration is None
+        else f"the calibration {loaded.calibration.source or '(unnamed)'}"
+    )
+    this = (
+        "its nominal kinematics (no ur_calibration)"
+        if here is None
+        else f"the calibration {here.source or '(unnamed)'}"
+    )
+    raise TrajectoryForAnotherRobot(
+        f"the trajectory's joints were solved with {planned}; this server models the arm with "
+        f"{this}, which puts the flange up to {moved_mm:.1f} mm from where the plan said: plan "
+        "it again here",
+        detail={"flange_difference_m": moved_mm / 1e3},
+    )
+
+
 @dataclass(frozen=True)
 class CheckedHere:
     """A trajectory whose samples passed every check of :func:`check_here`: the runner is
@@ -226,7 +263,7 @@ def check_here(
             f"the trajectory runs at {speed} m/s; this server allows at most "
             f"{settings.max_speed_m_s} m/s on a real arm"
         )
-    arm_model = kinematics.model(settings.ur_robot)
+    arm_model = _arm_here(settings, loaded)
     problems = sample_problems(
         arm_model,
         loaded.t_s,

@@ -662,6 +662,8 @@ class PlanOutcome:
             "checks": self.checks(),
             "teachpath": version,
             "robot": traj.robot,
+            "kinematics": traj.arm.kinematics_words,
+            "calibration": None if traj.calibration is None else traj.calibration.as_dict(),
             "requested_speed_m_s": traj.requested_speed_m_s,
             "duration_s": traj.duration_s,
             "n_samples": len(traj),
@@ -696,6 +698,7 @@ def plan(
     keep_out_boxes=(),
     cell_planes=(),
     start_from: str = "given",
+    calibration=None,
 ) -> PlanOutcome:
     """The whole motion along a reconstructed path, checked against the cell.
 
@@ -721,11 +724,14 @@ def plan(
         ``n . p >= d`` (m).
     start_from : str
         Where ``params.start_q_rad`` came from ("arm", "home", "given"), for the record.
+    calibration : recon.kinematics.DHCalibration, optional
+        The arm's own kinematics calibration (default: UR's nominal model).
 
     Raises
     ------
     ValueError
-        A scan model without the transform it belongs to, or a missing orientation source.
+        A scan model without the transform it belongs to, a missing orientation source, or a
+        calibration that is not this arm type's.
     InfeasibleTrajectoryError
         The arm cannot follow the path; ``CollisionError`` when the motion collides.
     """
@@ -758,6 +764,7 @@ def plan(
         cell=cell_for(scan, path.T_scan_tracker, T_base, keep_out_boxes, cell_planes),
         piece=path.piece,
         start_from=start_from,
+        calibration=calibration,
     )
     return PlanOutcome(
         plan=result, T_scan_tracker=T_scan_tracker, T_base_tracker=T_base, start_from=start_from

@@ -149,11 +149,10 @@ def plot_plan(path: str | Path, trajectory, *, title: str = "") -> None:
         ``speed_drops`` (metres of process path).
     title : str
     """
-    from recon import kinematics
     from recon.types import Phase
     from service.preview import speed_drop_times, tcp_speed_m_s
 
-    arm = kinematics.model(trajectory.robot)
+    arm = trajectory.arm
     t = trajectory.t_s
     phases = trajectory.phases
     speed_mm_s = tcp_speed_m_s(trajectory) * 1e3

@@ -110,7 +110,7 @@ def trajectory_preview(
     """
     from recon import kinematics
 
-    arm = kinematics.model(trajectory.robot)
+    arm = trajectory.arm
     phases = trajectory.phases
     keep = thinned(len(trajectory.t_s), max_samples, phases)
     q = trajectory.q_rad
@@ -173,7 +173,7 @@ def execution_review(trajectory, samples, *, max_samples: int = DEFAULT_SAMPLES)
     from drivers.robot.dryrun import off_path_m
     from recon import kinematics
 
-    arm = kinematics.model(trajectory.robot)
+    arm = trajectory.arm
     actual = np.asarray(samples.q_actual_rad)
     recorded = np.all(np.isfinite(actual), axis=1)
     t = np.asarray(samples.t_s)[recorded]

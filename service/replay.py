@@ -301,6 +301,7 @@ def path_deviation_m(stored_m: np.ndarray, replayed_m: np.ndarray) -> np.ndarray
 
 def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> dict:
     from recon.errors import CollisionError, InfeasibleTrajectoryError
+    from recon.kinematics import DHCalibration
     from recon.types import PlanParams, ReconParams
     from service import pipelines
     from service.artifacts import ReconstructionCodec, ScanCodec, TrajectorySummary
@@ -335,6 +336,10 @@ def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> 
             keep_out_boxes=boxes,
             cell_planes=planes,
             start_from=start_from,
+            # The arm the stored plan was solved for, calibrated as it was.
+            calibration=None
+            if summary.calibration is None
+            else DHCalibration.from_dict(summary.calibration),
         )
     except (InfeasibleTrajectoryError, CollisionError) as exc:
         # The stored plan was feasible: that it no longer is, is the finding.

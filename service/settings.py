@@ -7,7 +7,7 @@ import os
 import secrets
 from pathlib import Path
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, PrivateAttr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from drivers.scanning.limits import DEFAULT_MAX_FRAME_PIXELS, DEFAULT_MAX_PIXELS
@@ -102,6 +102,13 @@ class Settings(BaseSettings):
     cors_origins: list[str] = Field(default_factory=list, description="closed by default")
     ur_host: str | None = Field(None, description="controller address for backend ur_rtde")
     ur_robot: str = Field("ur5e", description="the model of the arm at ur_host")
+    ur_calibration: Path | None = Field(
+        None,
+        description="the arm's own kinematics calibration: its controller's calibration.conf "
+        "(copied from /root/.urcontrol/); plans solve their joints with it (without it UR's "
+        "nominal model, millimetres off on a real arm)",
+    )
+    _arm_calibration: object = PrivateAttr(default=None)
     home_q_rad: tuple[float, float, float, float, float, float] = Field(
         (0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0),
         description="where plans start on the simulated arm (rad)",
@@ -171,6 +178,30 @@ class Settings(BaseSettings):
     @classmethod
     def _absolute(cls, value: Path) -> Path:
         return value.expanduser().resolve()
+
+    @model_validator(mode="after")
+    def _calibration_is_this_arms(self) -> Settings:
+        # Read and checked once, at start: a server must not plan for an arm it cannot model,
+        # and a file changed later does not change the arm under a running server.
+        self._arm_calibration = None
+        if self.ur_calibration is not None:
+            from drivers.errors import InputFileError
+            from drivers.robot.ur_calibration import read_ur_calibration
+            from recon import kinematics
+
+            try:
+                calibration = read_ur_calibration(self.ur_calibration)
+                kinematics.with_calibration(kinematics.model(self.ur_robot), calibration)
+            except InputFileError as exc:
+                raise ValueError(f"ur_calibration: {exc}") from None
+            self._arm_calibration = calibration
+        return self
+
+    @property
+    def arm_calibration(self):
+        """The arm's :class:`recon.kinematics.DHCalibration` read from ``ur_calibration`` at
+        start (None without one), checked against ``ur_robot``."""
+        return self._arm_calibration
 
     @property
     def db_url(self) -> str:

@@ -325,8 +325,11 @@ class Plan:
     keep_out_boxes: list = ()
     cell_planes: list = ()
     start_from: str = "given"
+    #: The arm's own kinematics calibration (``DHCalibration.as_dict()``); None: nominal.
+    calibration: dict | None = None
 
     def run(self) -> dict:
+        from recon.kinematics import DHCalibration
         from recon.types import PlanParams, ReconParams
 
         arrays = load_arrays(self.reconstruction_path)
@@ -340,7 +343,10 @@ class Plan:
             keep_out_boxes=self.keep_out_boxes,
             cell_planes=self.cell_planes,
             start_from=self.start_from,
-        )
+            calibration=None if self.calibration is None else DHCalibration.from_dict(
+                self.calibration
+            ),
+        )  # fmt: skip
         report = outcome.plan.collision
         clearance = None if report is None else report.clearance_m
         save_arrays(

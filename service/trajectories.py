@@ -52,6 +52,8 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
     boxes = [list(box) for box in services.settings.keep_out_boxes]
     planes = [list(plane) for plane in services.settings.cell_planes]
     # The cell too: a replay of the plan must check it against the same obstacles.
+    # This cell's arm, calibrated as its controller is (the plan's joints are right for it).
+    calibration = services.settings.arm_calibration
     stored_params = {
         **params,
         "T_base_tracker": T,
@@ -79,6 +81,7 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
         keep_out_boxes=boxes,
         cell_planes=planes,
         start_from=start_from,
+        calibration=None if calibration is None else calibration.as_dict(),
     )
     return services.jobs.submit(
         session_id, "trajectory", {**stored_params, **inputs}, task, done, outputs=(task.out_path,)

@@ -253,7 +253,7 @@ def execution_report(
     faults : list of str
     dry_run : bool
     """
-    arm = kinematics.model(trajectory.robot)
+    arm = trajectory.arm
     planned_tcp = trajectory.tcp_m
     deviation = lag = joint_error = None
     completed = False

@@ -20,7 +20,6 @@ from typing import Literal
 import numpy as np
 
 from drivers.robot.base import START_TOLERANCE_RAD
-from recon import kinematics
 from recon.types import FloatArray, JointTrajectory, Phase
 
 Mode = Literal["servoj", "movep"]
@@ -158,7 +157,7 @@ def urscript_program(
     require_within_limits(trajectory, what="export it")
     if not tolerance_m > 0:
         raise ValueError(f"tolerance_m must be positive, got {tolerance_m}")
-    arm = kinematics.model(trajectory.robot)
+    arm = trajectory.arm
     lines = [f"# {line}" for line in header]
     lines += [
         f"# planned for a {trajectory.robot} at {1 / trajectory.period_s:.0f} Hz; the path as "

@@ -57,6 +57,13 @@ def add_parser(commands) -> None:
         aliases={"start_q_rad": ("--start-q",)},
     )
     plan.add_argument(
+        "--ur-calibration",
+        metavar="calibration.conf",
+        help="the arm's own kinematics calibration (its controller's "
+        "/root/.urcontrol/calibration.conf): the joints are solved for it, and the file "
+        "records it (default: UR's nominal model, millimetres off on a real arm)",
+    )
+    plan.add_argument(
         "--base-from-tracker",
         metavar="T.json",
         help="calibration T_base_tracker (default: the path is in the base frame)",
@@ -126,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
     out = check_output(args.out, ".csv")
     plot = check_output(args.plot, ".png") if args.plot else None  # refused before any work
     params = params_from_args(PlanParams, args, TRAJECTORY_PARAMS)
+    calibration = _calibration(args.ur_calibration, params.robot)
     path, scan_model, recon_params = _reconstruction(args.recon_file)
     T_base_tracker = read_matrix(args.base_from_tracker, "T_base_tracker")
     given = read_matrix(args.scan_from_tracker, "T_scan_tracker")
@@ -163,6 +171,7 @@ def run(args: argparse.Namespace) -> int:
         keep_out_boxes=args.keep_out_box,
         cell_planes=args.cell_plane,
         start_from="given" if args.start_q_rad is not None else "home",
+        calibration=calibration,
     )
     meta = TrajectorySummary.model_validate(outcome.summary()).file_meta()
     write_trajectory_csv(
@@ -174,3 +183,24 @@ def run(args: argparse.Namespace) -> int:
         plot_plan(plot, outcome.trajectory, title=Path(out).name)
     print("\n".join(outcome.lines()))
     return 0
+
+
+def _calibration(path: str | None, robot: str):
+    """The arm's calibration from ``--ur-calibration``, checked against the robot model before
+    any work (None without the option).
+
+    Raises
+    ------
+    InputFileError
+        The file is not a calibration.
+    ValueError
+        It is another arm type's.
+    """
+    if path is None:
+        return None
+    from drivers.robot.ur_calibration import read_ur_calibration
+    from recon import kinematics
+
+    calibration = read_ur_calibration(path)
+    kinematics.with_calibration(kinematics.model(robot), calibration)
+    return calibration

@@ -153,3 +153,91 @@ def test_a_missing_or_oversized_file_is_refused(tmp_path):
         handle.truncate(MAX_BYTES * 100)
     with pytest.raises(InputFileError, match="a few kilobytes"):
         read_ur_calibration(big)
+
+
+# --- the calibration through planning, the trajectory file, the dry run and the gate -----------
+
+
+@pytest.fixture(scope="module")
+def calibrated_plan(calibrated):
+    """A 150 mm line in front of a UR10e, planned with its calibration."""
+    from recon.plan import plan_path
+    from recon.types import PlanParams
+
+    s = np.linspace(0.0, 0.15, 151)
+    points = np.column_stack([0.6 + 0 * s, -0.075 + s, np.full_like(s, 0.1)])
+    params = PlanParams(robot="ur10e", speed_m_s=0.1)
+    return plan_path(points, params=params, calibration=calibrated.calibration)
+
+
+def test_a_plan_made_with_the_calibration_puts_the_real_flange_on_the_path(
+    calibrated_plan, calibrated
+):
+    """Its joints, run by the controller's kinematics (computed apart), put the TCP where the
+    plan says within 1e-9 m; the nominal model's joints would be millimetres off."""
+    trajectory = calibrated_plan.trajectory
+    assert trajectory.calibration.same_as(calibrated.calibration)
+    assert "calibrated kinematics from calibration.conf" in "\n".join(
+        calibrated_plan.report_lines()
+    )
+    T_flange_tcp = calibrated_plan.params.T_flange_tcp
+    rows = np.linspace(0, len(trajectory) - 1, 50).astype(int)
+    real = np.array([controller_forward(q) @ T_flange_tcp for q in trajectory.q_rad[rows]])
+    assert np.abs(real[:, :3, 3] - trajectory.tcp_m[rows]).max() < 1e-9
+    nominal = kinematics.forward(calibrated.nominal, trajectory.q_rad[rows]) @ T_flange_tcp
+    assert np.linalg.norm(nominal[:, :3, 3] - trajectory.tcp_m[rows], axis=1).max() > 1e-3
+
+
+def test_the_trajectory_file_keeps_its_calibration_and_a_forged_one_is_refused(
+    calibrated_plan, tmp_path
+):
+    import json
+
+    from drivers.export import read_trajectory_csv, write_trajectory_csv
+
+    path = tmp_path / "plan.csv"
+    write_trajectory_csv(path, calibrated_plan.trajectory)
+    back = read_trajectory_csv(path).trajectory
+    assert back.calibration.same_as(calibrated_plan.trajectory.calibration)
+    assert back.arm.calibration is not None
+    meta, rest = path.read_text().split("\n", 1)
+    head = json.loads(meta.removeprefix("# teachpath: "))
+    head["calibration"]["delta_d_m"] = [1.0, 2.0]
+    path.write_text("# teachpath: " + json.dumps(head) + "\n" + rest)
+    with pytest.raises(InputFileError, match="the calibration it names is not one"):
+        read_trajectory_csv(path)
+
+
+def test_the_gate_refuses_joints_solved_for_another_model_of_the_arm(calibrated_plan, tmp_path):
+    """A server with this arm's calibration refuses a plan solved with the nominal model (and
+    a server without one a calibrated plan), naming how far the flange would be off."""
+    from dataclasses import replace
+
+    from service import gate
+    from service.settings import Settings
+
+    conf = tmp_path / "calibration.conf"
+    conf.write_text(conf_text())
+    with_it = Settings(data_dir=tmp_path / "a", ur_robot="ur10e", ur_calibration=conf)
+    without = Settings(data_dir=tmp_path / "b", ur_robot="ur10e")
+    planned = calibrated_plan.trajectory
+    assert gate._arm_here(with_it, planned).calibration is not None
+    with pytest.raises(gate.TrajectoryForAnotherRobot, match=r"nominal kinematics.*mm from"):
+        gate._arm_here(with_it, replace(planned, calibration=None))
+    with pytest.raises(gate.TrajectoryForAnotherRobot, match="no ur_calibration"):
+        gate._arm_here(without, planned)
+    assert gate._arm_here(without, replace(planned, calibration=None)).calibration is None
+
+
+def test_a_server_refuses_to_start_with_a_calibration_it_cannot_use(tmp_path):
+    from pydantic import ValidationError
+
+    from service.settings import Settings
+
+    conf = tmp_path / "calibration.conf"
+    conf.write_text(conf_text())
+    with pytest.raises(ValidationError, match="is the robot model right"):
+        Settings(data_dir=tmp_path / "a", ur_robot="ur5e", ur_calibration=conf)
+    conf.write_text("[mounting]\n")
+    with pytest.raises(ValidationError, match="has no delta_theta"):
+        Settings(data_dir=tmp_path / "a", ur_robot="ur10e", ur_calibration=conf)

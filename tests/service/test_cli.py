@@ -307,6 +307,28 @@ def test_a_tool_given_as_spheres_is_the_tool_checked(inputs, reconstructed, tmp_
     ), result.stdout
 
 
+def test_a_plan_with_the_arms_calibration_says_so_and_records_it(inputs, reconstructed, tmp_path):
+    from tests.drivers.test_ur_calibration import conf_text
+
+    conf = tmp_path / "calibration.conf"
+    conf.write_text(conf_text())  # a UR10e's
+    out = tmp_path / "traj.csv"
+    result = _plan_in_cell(inputs, reconstructed, out, "--robot", "ur10e", "--ur-calibration", conf)
+    assert result.returncode == 0, result.stderr
+    assert "kinematics: ur10e, calibrated kinematics from calibration.conf" in result.stdout
+    assert '"calibration": {"delta_theta_rad"' in out.read_text().splitlines()[0]
+    result = run("dry-run", out)
+    assert result.returncode == 0, result.stderr
+    # Another arm's calibration, and a file that is none, are refused before any work.
+    refused = _plan_in_cell(inputs, reconstructed, out, "--ur-calibration", conf)
+    assert refused.returncode != 0 and "is the robot model right" in refused.stderr
+    conf.write_text("[mounting]\ndelta_theta = [0, 0, 0]\n")
+    refused = _plan_in_cell(
+        inputs, reconstructed, out, "--robot", "ur10e", "--ur-calibration", conf
+    )
+    assert refused.returncode != 0 and "delta_theta must be six finite numbers" in refused.stderr
+
+
 def _plan_in_cell(inputs, reconstructed, out, *cell):
     return run(
         "plan",
