@@ -68,6 +68,10 @@ PROGRESS_EVERY = 50
 STALE_AFTER_S = 0.5
 #: Bound on the control script starting after an upload (s).
 SCRIPT_START_TIMEOUT_S = 5.0
+#: The RTDE watchdog's frequency between motions: the arm rests, and the control script may
+#: idle that long (100 s) between jobs before the controller stops it (the next job's enable
+#: starts it again).
+IDLE_WATCHDOG_HZ = 0.01
 #: How long close() lets the worker disconnect its clients before it is killed (s).
 CLOSE_GRACE_S = 2.0
 #: The arm rests on a target when within this (rad) and slower than this (rad/s).
@@ -99,6 +103,16 @@ class URRtdeConfig(BackendConfig):
     power_on: bool = Field(False, description="enable() powers on and releases the brakes")
     upper_range_registers: bool = Field(False, description="use RTDE registers 24-47")
     stop_deceleration_rad_s2: float = Field(4.0, gt=0, le=40.0)
+    # Half a second: a worker that stalls that long is hung (the servo loop's longest period
+    # measured 11 ms), and a busy machine's scheduling hiccups stay well inside it.
+    watchdog_hz: float = Field(
+        2.0,
+        ge=0.5,
+        le=100.0,
+        description="during a motion the controller's own RTDE watchdog stops the program when "
+        "this process has written nothing for 1/watchdog_hz s (a hung or killed worker: the "
+        "controller runs movePath and moveJ on its own); between motions it is relaxed",
+    )
     rt_priority: int = Field(
         80,
         ge=0,
@@ -612,21 +626,49 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             time.sleep(0.01)
         self._ensure_script_running()
 
+    def _watchdog(self, frequency_hz: float) -> None:
+        """Set the controller's RTDE watchdog (ur_rtde's setWatchdog: the control script's
+        ``rtde_set_watchdog`` on its command register, action "stop"). Every command and
+        :meth:`_kick` feeds it."""
+        if not self.control.setWatchdog(frequency_hz):
+            self._refused()
+            raise ConnectionLostError("the controller refused setWatchdog; reconnect")
+
+    @contextlib.contextmanager
+    def _watched(self):
+        """The watchdog at ``watchdog_hz`` for one motion, relaxed to
+        :data:`IDLE_WATCHDOG_HZ` after it (the arm rests; the script may idle between jobs)."""
+        self._watchdog(float(self.config["watchdog_hz"]))
+        try:
+            yield
+        finally:
+            try:
+                self.control.setWatchdog(IDLE_WATCHDOG_HZ)
+            except RuntimeError:
+                pass  # the link is gone: the controller's watchdog stops the script itself
+
+    def _kick(self) -> None:
+        self.control.kickWatchdog()
+
     def move_j(self, q, speed, acceleration) -> None:
         self._safety()
         if self.stop_event.is_set():
             return  # a stop came before the command: nothing is sent
-        if not self.control.moveJ(q, speed, acceleration, True):
-            self._refused()
-            raise ConnectionLostError(
-                "the controller refused moveJ (is the control script running?); reconnect",
-            )
-        while self.control.getAsyncOperationProgressEx().isAsyncOperationRunning():
+        with self._watched():
             if self.stop_event.is_set():
-                self.control.stopJ(self.config["stop_deceleration_rad_s2"])
-                return
-            self._safety()
-            time.sleep(0.01)
+                return  # a stop came while the watchdog was set: the move is never sent
+            if not self.control.moveJ(q, speed, acceleration, True):
+                self._refused()
+                raise ConnectionLostError(
+                    "the controller refused moveJ (is the control script running?); reconnect",
+                )
+            while self.control.getAsyncOperationProgressEx().isAsyncOperationRunning():
+                if self.stop_event.is_set():
+                    self.control.stopJ(self.config["stop_deceleration_rad_s2"])
+                    return
+                self._safety()
+                self._kick()
+                time.sleep(0.01)
 
     def set_tool(self, tcp_pose, payload_kg, cog_m) -> None:
         self._safety()
@@ -643,6 +685,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             realtime = stack.enter_context(
                 _RealtimePriority(int(self.config.get("rt_priority", 0)))
             )
+            stack.enter_context(self._watched())  # every servoJ feeds it
             return (*self._stream(q_rows, period_s, writer), realtime.status)
 
     def _stream(self, q_rows, period_s, writer):
@@ -750,6 +793,15 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         if self.stop_event.is_set():
             # A stop came while the path was built or sent here: the command is never sent.
             return [], [], False, "stopped on request"
+        with self._watched():
+            return self._follow_path(path, q_rows, writer)
+
+    def _follow_path(self, path, q_rows, writer):
+        """Send the path and sample the arm until it ends, kicking the watchdog: the
+        controller runs the path on its own, and stops it when this process goes quiet."""
+        if self.stop_event.is_set():
+            # A stop came while the watchdog was set: the path is never sent.
+            return [], [], False, "stopped on request"
         if not self.control.movePath(path, True):
             self._refused()
             raise ConnectionLostError(
@@ -780,6 +832,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             if status.progress() != reported:
                 reported = status.progress()
                 self.link.progress(max(reported, 0))
+            self._kick()
             time.sleep(period_s)
         self.link.progress(len(q_rows) if completed else max(reported, 0))
         return times, actual, completed, fault

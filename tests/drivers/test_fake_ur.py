@@ -787,3 +787,56 @@ def test_a_dry_run_sized_trajectory_streams_with_servoj_and_runs_as_a_path(fake_
     record = robot.execute_path(trajectory, tolerance_m=5e-4)
     assert record.completed
     assert np.abs(robot.status().q_rad - trajectory.q_rad[-1]).max() < 2e-3
+
+
+# -- the controller's RTDE watchdog ------------------------------------------------------------
+
+
+@pytest.mark.timeout(60)
+def test_the_controllers_rtde_watchdog_stops_a_move_its_client_went_quiet_on(fake_ur):
+    """ur_rtde's setWatchdog: the control script's rtde_set_watchdog(..., "stop"). A moveJ the
+    controller runs on its own, from a client that then sends nothing (a hung worker): the
+    program stops within the watchdog's period and the arm brakes short of the goal."""
+    import rtde_control
+
+    flags = (
+        rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+        | rtde_control.RTDEControlInterface.FLAG_DISABLE_REMOTE_CONTROL_CHECK
+    )
+    control = rtde_control.RTDEControlInterface(fake_ur.host, -1.0, flags)
+    try:
+        goal = np.array(HOME_RAD) + [0.6, 0, 0, 0, 0, 0]
+        assert control.setWatchdog(20.0)
+        started = fake_ur.control("program_status")["t_s"]
+        assert control.moveJ(goal.tolist(), 0.5, 1.0, True)  # async: the controller runs it
+        deadline = time.monotonic() + 10.0
+        while fake_ur.control("program_status")["state"] == "running":
+            assert time.monotonic() < deadline, "the watchdog never fired"
+            time.sleep(0.01)
+        status = fake_ur.control("program_status")
+        assert any("RTDE watchdog" in m for m in status["messages"]), status["messages"]
+        # Stopped within a few watchdog periods of controller time after the last write, far
+        # short of the 1.2 s the move takes.
+        assert status["ended_s"] - started < 0.3
+        assert np.abs(np.array(status["q_rad"]) - goal).max() > 0.3
+        assert not control.isProgramRunning()
+    finally:
+        control.disconnect()
+
+
+@pytest.mark.timeout(60)
+def test_the_adapter_arms_the_watchdog_for_a_path_and_keeps_it_fed(fake_ur, robot):
+    """execute_path (movePath: the controller runs the path alone) with the watchdog at its
+    2 Hz: the adapter kicks it while it samples the arm, so the path completes; after it the
+    watchdog is relaxed and the script still runs."""
+    trajectory = line_process("ur5e", 0.1)
+    log_before = len(fake_ur.log_text())
+    record = robot.execute_path(trajectory, tolerance_m=5e-4)
+    assert record.completed
+    time.sleep(0.6)  # more than the 2 Hz watchdog's period, were it not relaxed
+    status = fake_ur.control("program_status")
+    assert status["state"] == "running", status
+    log = fake_ur.log_text()[log_before:]
+    armed, relaxed = log.find("RTDE watchdog set: 2 Hz"), log.find("RTDE watchdog set: 0.01 Hz")
+    assert 0 <= armed < relaxed, log  # armed for the path, relaxed after it
+    assert "RTDE watchdog:" not in log  # it never fired

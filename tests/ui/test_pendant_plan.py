@@ -268,9 +268,12 @@ def test_two_reconstructions_overlaid_with_their_difference(pendant):
     for name in ("scan", "raw trace", "reconstruction", "planned TCP path", "arm", "frames"):
         page.get_by_label(name, exact=True).uncheck()
     _click_point(page, "overlay", expected["at_index"])
-    expect(page.locator("#pick-readout")).to_contain_text(
-        f"{expected['max_m'] * 1000:.3f} mm from the current reconstruction"
-    )
+    readout = page.locator("#pick-readout")
+    expect(readout).to_contain_text("mm from the current reconstruction")
+    # The page measures in float32 positions a few hundred mm from the base: the last digit
+    # may differ from the server's (0.646 against 0.645 was seen).
+    shown_mm = float(re.search(r"([0-9.]+) mm from the current", readout.inner_text()).group(1))
+    assert shown_mm == pytest_approx(expected["max_m"] * 1000), shown_mm
     pendant.shot("overlay")
 
 

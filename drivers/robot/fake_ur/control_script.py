@@ -70,6 +70,7 @@ CMD_GET_INVERSE_KIN_ARGS = 30
 CMD_PROTECTIVE_STOP = 31
 CMD_STOPL = 33
 CMD_STOPJ = 34
+CMD_SET_WATCHDOG = 35
 CMD_GET_TCP_OFFSET = 40
 CMD_GET_FORWARD_KIN_DEFAULT = 43
 CMD_GET_FORWARD_KIN_ARGS = 44
@@ -99,6 +100,7 @@ EMULATED_COMMANDS = frozenset(
         CMD_PROTECTIVE_STOP,
         CMD_STOPL,
         CMD_STOPJ,
+        CMD_SET_WATCHDOG,
         CMD_GET_TCP_OFFSET,
         CMD_GET_FORWARD_KIN_DEFAULT,
         CMD_GET_FORWARD_KIN_ARGS,
@@ -133,6 +135,12 @@ BRANCH_MARKERS: dict[int, tuple[str, ...]] = {
     CMD_GET_INVERSE_KIN_ARGS: (
         "qnear = q_from_input_float_registers(6)",
         "get_inverse_kin(x, qnear, maxPositionError, maxOrientationError)",
+    ),
+    # The controller's own RTDE watchdog on the command register; it stops the program.
+    CMD_SET_WATCHDOG: (
+        "watchdog_min_frequency = read_input_float_reg(0)",
+        'rtde_set_watchdog("input_int_register_0", watchdog_min_frequency, "stop")',
+        'rtde_set_watchdog("input_int_register_24", watchdog_min_frequency, "stop")',
     ),
     CMD_SET_TARGET_PAYLOAD: (
         "mass = read_input_float_reg(0)",

@@ -228,6 +228,10 @@ class FakeController:
         self.out_double = [0.0] * REGISTER_COUNT
         self.t_s = 0.0  # controller time since start
         self._loop_starts_s = 0.0  # when the loaded program's command loop begins
+        # The RTDE watchdog the control script sets (rtde_set_watchdog, action "stop"): the
+        # program stops when the command register goes un-updated longer than this.
+        self.watchdog_period_s: float | None = None
+        self._register_seen_s = 0.0  # when a data package last wrote the command register
         self.robot_mode = ROBOT_MODE_RUNNING if powered else ROBOT_MODE_POWER_OFF
         self.safety_mode = SAFETY_NORMAL
         self.runtime_state = RUNTIME_STOPPED
@@ -377,7 +381,10 @@ class FakeController:
         return values
 
     def apply_inputs(self, values: dict[str, object]) -> None:
-        """Input fields of a data package from a client (registers; the rest is ignored)."""
+        """Input fields of a data package from a client (registers; the rest is ignored). A
+        package that writes the command register feeds the RTDE watchdog, whatever it holds."""
+        if f"input_int_register_{self._i(0)}" in values:
+            self._register_seen_s = self.t_s
         for name, value in values.items():
             if name.startswith("input_int_register_"):
                 self.in_int[int(name.rsplit("_", 1)[1])] = int(value)  # type: ignore[arg-type]
@@ -442,6 +449,7 @@ class FakeController:
             # reads it, as it does on a real controller (else a stale command runs again).
             self._loop_starts_s = self.t_s + self.program_start_s
             self._executing = False
+            self.watchdog_period_s = None  # a watchdog belongs to the program that set it
             self._waiting_sync = None
             self._stop_type_l = False
             self._write_async_progress(-1)  # reset_async_progress()
@@ -589,6 +597,7 @@ class FakeController:
             playing = self.runtime_state == RUNTIME_PLAYING
             if playing and script and script.is_rtde_control:
                 self._script_loop()
+                self._rtde_watchdog()
             elif playing and self.runner is not None:
                 self._program_step(self.runner)
             self._physics()
@@ -620,6 +629,22 @@ class FakeController:
             if float(np.abs(self.qd).max()) < SETTLED_RAD_S:
                 self._trace_until = None  # at rest after the program: the trace is complete
         self.trace.append(self.t_s, self.q, self.tcp_pose(), self._control_line())
+
+    def _rtde_watchdog(self) -> None:
+        """The controller's RTDE watchdog (``rtde_set_watchdog(..., "stop")``): no package on
+        the command register for longer than its period stops the program (the arm brakes)."""
+        period = self.watchdog_period_s
+        if period is None or self.t_s - self._register_seen_s <= period:
+            return
+        message = (
+            f"RTDE watchdog: input_int_register_{self._i(0)} not updated for "
+            f"{self.t_s - self._register_seen_s:.3f} s (at least {1 / period:g} Hz expected): "
+            "program stopped"
+        )
+        log.warning(message)
+        self.messages.append(message)
+        self.watchdog_period_s = None
+        self.stop_program("RTDE watchdog")
 
     def _script_loop(self) -> None:
         """One pass of the control script's main loop."""
@@ -725,6 +750,16 @@ class FakeController:
             return False
         if cmd == cs.CMD_PROTECTIVE_STOP:
             self.protective_stop("triggered by the client")
+            return False
+        if cmd == cs.CMD_SET_WATCHDOG:
+            frequency_hz = float(self.in_double[self._f(0)])
+            if not frequency_hz > 0:
+                raise ScriptRuntimeError(
+                    f"rtde_set_watchdog: min_frequency must be > 0, got {frequency_hz}"
+                )
+            self.watchdog_period_s = 1.0 / frequency_hz
+            self._register_seen_s = self.t_s
+            log.info("RTDE watchdog set: %g Hz", frequency_hz)
             return False
         # Any other command: acknowledged without effect, so the client never hangs on it.
         log.info("command %d is not emulated: acknowledged without effect", cmd)
