@@ -158,10 +158,19 @@ def _arm_here(settings: Settings, loaded: JointTrajectory) -> kinematics.URModel
     here = settings.arm_calibration
     if here is None and loaded.calibration is None:
         return arm
-    calibrated = kinematics.with_calibration(arm, here if here is not None else loaded.calibration)
+    this_arm = arm if here is None else kinematics.with_calibration(arm, here)
     if here is not None and here.same_as(loaded.calibration):
-        return calibrated
-    moved_mm = float(kinematics.calibration_difference_m(calibrated, loaded.q_rad).max()) * 1e3
+        return this_arm
+    try:
+        planned_arm = loaded.arm
+    except ValueError as exc:  # a calibration of another arm type (an imported file)
+        raise TrajectoryForAnotherRobot(
+            f"the trajectory's joints were solved with a calibration that is not this "
+            f"{settings.ur_robot}'s ({exc}): plan it again here"
+        ) from None
+    flange_here = kinematics.forward(this_arm, loaded.q_rad)[:, :3, 3]
+    flange_planned = kinematics.forward(planned_arm, loaded.q_rad)[:, :3, 3]
+    moved_mm = float(np.linalg.norm(flange_here - flange_planned, axis=1).max()) * 1e3
     planned = (
         "UR's nominal kinematics"
         if loaded.calibration is None

@@ -227,6 +227,21 @@ def test_the_gate_refuses_joints_solved_for_another_model_of_the_arm(calibrated_
     with pytest.raises(gate.TrajectoryForAnotherRobot, match="no ur_calibration"):
         gate._arm_here(without, planned)
     assert gate._arm_here(without, replace(planned, calibration=None)).calibration is None
+    # Two calibrations: the difference named is between them, not against the nominal model.
+    other = kinematics.DHCalibration(
+        **{
+            **{k: v for k, v in planned.calibration.as_dict().items() if k != "source"},
+            "delta_a_m": planned.calibration.delta_a_m + [0, 0.001, 0, 0, 0, 0],
+        },
+        source="other.conf",
+    )
+    with pytest.raises(gate.TrajectoryForAnotherRobot, match="other.conf") as refused:
+        gate._arm_here(with_it, replace(planned, calibration=other))
+    assert 0.5e-3 < refused.value.detail["flange_difference_m"] <= 1.0e-3 + 1e-9
+    # A calibration that is not this arm type's (a forged file): refused, not a crash.
+    wrong = kinematics.DHCalibration(**{**other.as_dict(), "delta_d_m": [0.5] * 6})
+    with pytest.raises(gate.TrajectoryForAnotherRobot, match="not this ur10e's"):
+        gate._arm_here(without, replace(planned, calibration=wrong))
 
 
 def test_a_server_refuses_to_start_with_a_calibration_it_cannot_use(tmp_path):
