@@ -328,7 +328,10 @@ class RobotBackend(ABC):
         self._begin(trajectory)
         self.last_record = None
         try:
-            path = coarse_waypoints(self.arm, trajectory, tolerance_m=tolerance_m, blend_m=blend_m)
+            # Judged on the arm the plan was solved for: its calibration, if it had one.
+            path = coarse_waypoints(
+                trajectory.arm, trajectory, tolerance_m=tolerance_m, blend_m=blend_m
+            )
             # Computing the waypoints takes a moment: a stop that came meanwhile wins (the
             # worker checks again right before it sends the path).
             self._require_not_stopped()

@@ -256,3 +256,16 @@ def test_a_server_refuses_to_start_with_a_calibration_it_cannot_use(tmp_path):
     conf.write_text("[mounting]\n")
     with pytest.raises(ValidationError, match="has no delta_theta"):
         Settings(data_dir=tmp_path / "a", ur_robot="ur10e", ur_calibration=conf)
+
+
+def test_coarse_waypoints_of_a_calibrated_plan_are_judged_on_its_own_arm(calibrated_plan):
+    """movePath's waypoints of a plan solved with the calibration: judged with the calibrated
+    forward kinematics (the plan's TCP), they keep within the tolerance with about as few
+    waypoints as the nominal model's plan needs; judged with the nominal model, every sample
+    broke the 0.5 mm tolerance by the calibration's millimetres."""
+    from recon.waypoints import coarse_waypoints
+
+    trajectory = calibrated_plan.trajectory
+    path = coarse_waypoints(trajectory.arm, trajectory, tolerance_m=5e-4)
+    assert path.deviation_max_m <= 5e-4
+    assert len(path) < len(trajectory) / 20
