@@ -137,12 +137,8 @@ def register_icp(
     # gaps between scan points, hence the median pair distance in the pairing bound.
     distance, scale = max_distance_m, max_distance_m
     for _ in range(max_iterations):
-        step = problem.step(T, distance, scale)
-        T_next = _descend(problem, T, step, distance, scale)
-        if T_next is None:
-            break
-        T = T_next
-        if step.motion_m < CONVERGED_M:
+        T, moving = _advance(problem, T, distance, scale)
+        if not moving:
             break
     T, distance, scale = _refine(problem, T, distance, scale, max_iterations)
     final = problem.step(T, distance, scale)
@@ -184,14 +180,22 @@ def _refine(
             break  # nothing to refine; reported by the caller
         distance_m = max(3.0 * current.sigma_m, 2.0 * current.median_pair_m, 1e-3)
         scale_m = max(ROBUST_SCALE_M, 3.0 * current.sigma_m)
-        step = problem.step(T, distance_m, scale_m)
-        T_next = _descend(problem, T, step, distance_m, scale_m)
-        if T_next is None:
-            break
-        T = T_next
-        if step.motion_m < CONVERGED_M:
+        T, moving = _advance(problem, T, distance_m, scale_m)
+        if not moving:
             break
     return T, distance_m, scale_m
+
+
+def _advance(
+    problem: _Problem, T: FloatArray, distance_m: float, scale_m: float
+) -> tuple[FloatArray, bool]:
+    """One iteration of either stage: the step from ``T`` that lowers the robust cost (see
+    :func:`_descend`), and whether the iterations should go on (False: converged)."""
+    step = problem.step(T, distance_m, scale_m)
+    T_next = _descend(problem, T, step, distance_m, scale_m)
+    if T_next is None:
+        return T, False
+    return T_next, step.motion_m >= CONVERGED_M
 
 
 def _descend(
