@@ -103,6 +103,14 @@ are. Everywhere else, and always for the other links, the scan counts in full (t
 are found around points of the path a quarter of the contact radius apart, so the tube exempted
 is never wider than stated).
 
+The mounting plane gets the same treatment for the tool's tip only: where the tool is exempt, its
+part within the contact radius of the TCP is left out of the test against the mounting plane (a
+capsule's round end reaches its radius below the tip, and with a scan the plane is tested
+``mounting_band_m`` up, so a sheet a few millimetres thick on the table could not be worked at
+all with the default tool); the rest of the tool, and every other link, is tested in full, and a
+tip deeper below the mounting surface than the contact zone's radius (a trace under the table)
+has its whole tool tested (:func:`_tip_cut_mounting`).
+
 The arm against itself
 ----------------------
 The capsules three or more DH frames apart (:data:`SELF_PAIRS`: the tool and the wrists against
@@ -1218,6 +1226,91 @@ class CollisionReport:
 _BIG = 1e6  # stands for "no obstacle" inside the arithmetic; reported as inf
 
 
+def _tip_cut_mounting(
+    tool_ends_m: FloatArray,
+    tool_radii_m: FloatArray,
+    tcp_m: FloatArray,
+    reach_m: FloatArray,
+    T_ft: FloatArray,
+    tool: Tool,
+    raised: HalfSpace,
+    band_m: float,
+    mounting: HalfSpace,
+    contact_radius_m: float,
+    zone_radius_m: float,
+    whole: tuple[FloatArray, FloatArray],
+) -> tuple[FloatArray, FloatArray]:
+    """The tool's clearance to the mounting plane without the tip's own region, for contact.
+
+    A tip working on a plate that lies on the mounting surface is within millimetres of it: a
+    capsule's round end reaches its radius below the TCP, and the mounting plane is tested
+    ``band_m`` higher when there is a scan. So the tool's part within the contact radius of the
+    TCP (the tip, as for the scan's contact exemption) is left out: for a capsule, the lowest
+    point of the capsule outside the ball of radius ``R`` around the TCP, exactly (it leaves
+    the ball at ``sqrt(R^2 - r^2)`` along the axis; the flange's half sphere is always
+    counted); for spheres, those lying wholly within ``R`` of the TCP are left out. The rest of
+    the tool is tested against the (raised) plane in full. What is left out is fixed in the
+    flange frame, so the clearance moves no faster than the tool does.
+
+    The tip is left out only where the TCP is no deeper than the contact zone's radius below
+    the real mounting plane, by a slack of the distance to the neighbouring checked
+    configurations (``reach_m``), so that the whole sample period around a configuration is on
+    the same side of that rule and the bound between configurations still holds; a path below
+    the table has its whole tool tested.
+
+    Parameters
+    ----------
+    tool_ends_m : ndarray of shape (J, T, 2, 3)
+        The tool's segments at the checked configurations (a capsule: flange to TCP).
+    tool_radii_m : ndarray of shape (T,)
+    tcp_m : ndarray of shape (J, 3)
+    reach_m : ndarray of shape (J,)
+    T_ft : ndarray of shape (4, 4)
+    tool : CapsuleTool or SphereTool
+    raised, mounting : HalfSpace
+        The plane tested (``band_m`` above the mounting surface) and the mounting surface.
+    band_m, contact_radius_m, zone_radius_m : float
+    whole : tuple of ndarray (J, T) and (J, T, 3)
+        The whole tool's clearances and nearest points, kept where the tip is not left out.
+
+    Returns
+    -------
+    clearance_m : ndarray of shape (J, T)
+    point_m : ndarray of shape (J, T, 3)
+    """
+    c, p = whole[0].copy(), whole[1].copy()
+    depth_m = -mounting.signed_distance_m(tcp_m)
+    rows = np.flatnonzero(depth_m + reach_m <= zone_radius_m)
+    if len(rows) == 0:
+        return c, p
+    if isinstance(tool, CapsuleTool):
+        length_m = float(np.linalg.norm(T_ft[:3, 3]))
+        cut_m = np.sqrt(max(contact_radius_m**2 - tool.radius_m**2, 0.0))
+        if cut_m >= length_m:
+            c[rows] = _BIG
+            return c, p
+        tip_m, flange_m = tool_ends_m[rows, 0, 1], tool_ends_m[rows, 0, 0]  # (n, 3) each
+        axis = (flange_m - tip_m) / length_m
+        cos = axis @ raised.normal
+        sin = np.sqrt(np.clip(1.0 - cos**2, 0.0, None))
+        r = tool.radius_m
+        # Lowest point of the capsule outside the ball: on the flange's half sphere, or on the
+        # cylinder where it leaves the ball (axial cut_m, radial r, on the plane's side).
+        lowest = raised.signed_distance_m(flange_m) - r
+        at = flange_m
+        ring = raised.signed_distance_m(tip_m) + cut_m * cos - r * sin
+        lower = ring < lowest
+        lowest = np.where(lower, ring, lowest)
+        at = np.where(lower[:, None], tip_m + cut_m * axis, at)
+        c[rows, 0] = lowest
+        p[rows, 0] = at - (raised.signed_distance_m(at) + band_m)[:, None] * raised.normal
+        return c, p
+    reach_from_tcp = np.linalg.norm(tool.centers_m - T_ft[:3, 3], axis=1) + tool.radii_m
+    tip = np.flatnonzero(reach_from_tcp <= contact_radius_m)
+    c[np.ix_(rows, tip)] = _BIG
+    return c, p
+
+
 def _joint_weights(
     arm: URModel, frame_idx: NDArray, local: FloatArray, radii: FloatArray
 ) -> FloatArray:
@@ -1409,7 +1502,8 @@ def check_motion(
     C = np.r_[0.0, np.cumsum(np.abs(np.diff(q, axis=0)) @ w)]
     u = _check_points(C, step_m)
     v = np.interp(u, np.arange(M), C)
-    ends = _place(joint_frames(arm, _interpolate(q, u)), frame_idx, local)  # (J, L, 2, 3)
+    frames = joint_frames(arm, _interpolate(q, u))
+    ends = _place(frames, frame_idx, local)  # (J, L, 2, 3)
     J = len(u)
     # Each sample period [m, m + 1] is covered by the check intervals j0[m] .. j1[m].
     m_all = np.arange(M - 1)
@@ -1489,6 +1583,7 @@ def check_motion(
         obstacle_kinds.append(kind)
         return len(obstacle_names) - 1
 
+    mounting_tool = None  # the mounting plane for the tool columns, taken once c_ex is made
     if cell.mounting is not None:
         band = cell.mounting_band_m if (cell.has_scan or cell.scan_dropped) else 0.0
         raised = HalfSpace(cell.mounting.normal, cell.mounting.offset_m + band, cell.mounting.name)
@@ -1496,7 +1591,19 @@ def check_motion(
         c, p = capsule_halfspace_clearance(ends, radii, raised)
         p = p - band * raised.normal
         c[:, 0] = _BIG  # the base stands on it
-        take(c, p, add(cell.mounting.name, ObstacleKind.PLANE), c_full, o_full, p_full)
+        k_mounting = add(cell.mounting.name, ObstacleKind.PLANE)
+        arm_cols = slice(0, len(LINK_NAMES))
+        take(c[:, arm_cols], p[:, arm_cols], k_mounting, c_full, o_full, p_full, arm_cols)
+        tool_cols = slice(len(LINK_NAMES), L)
+        cut = (c[:, tool_cols], p[:, tool_cols])
+        if contact_zone is not None:
+            reach = np.maximum(np.r_[np.diff(v), 0.0], np.r_[0.0, np.diff(v)])  # (J,)
+            tcp = (frames[:, 6] @ T_ft)[:, :3, 3]
+            cut = _tip_cut_mounting(
+                ends[:, tool_cols], radii[tool_cols], tcp, reach, T_ft, tool, raised, band,
+                cell.mounting, contact_radius, contact_zone.radius_m, cut,
+            )  # fmt: skip
+        mounting_tool = (c[:, tool_cols], p[:, tool_cols], cut, k_mounting, tool_cols)
     for plane in cell.planes:
         c, p = capsule_halfspace_clearance(ends, radii, plane)
         take(c, p, add(plane.name, ObstacleKind.PLANE), c_full, o_full, p_full)
@@ -1528,6 +1635,12 @@ def check_motion(
                         c[:, None], point[:, None], self_index[other], c_full, o_full, p_full, cols
                     )
     c_ex, o_ex, p_ex = c_full.copy(), o_full.copy(), p_full.copy()
+    if mounting_tool is not None:
+        # The whole tool against the mounting plane everywhere; where the tip is exempt, the
+        # tool without its tip (see _tip_cut_mounting).
+        c, p, (c_cut, p_cut), k_mounting, tool_cols = mounting_tool
+        take(c, p, k_mounting, c_full, o_full, p_full, tool_cols)
+        take(c_cut, p_cut, k_mounting, c_ex, o_ex, p_ex, tool_cols)
 
     scan_tol = 0.0
     if cell.has_scan:

@@ -9,6 +9,7 @@ changed behind the back of whoever stored it.
 from __future__ import annotations
 
 import enum
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
@@ -1177,9 +1178,11 @@ class JointTrajectory:
     def __len__(self) -> int:
         return len(self.t_s)
 
-    @property
+    @functools.cached_property
     def arm(self) -> URModel:
-        """The arm model it was planned with: its robot, with its calibration if it had one."""
+        """The arm model it was planned with: its robot, with its calibration if it had one.
+
+        Made once per trajectory: the calibration's plausibility check solves 500 poses."""
         from recon import kinematics  # here: kinematics imports this module
 
         arm = kinematics.model(self.robot)

@@ -112,7 +112,7 @@ def _dry_run(services, session_id, trajectory, request, out_id) -> JobRow:
 
 def journal_path(services: Services, execution_id: str) -> Path:
     """Where a real-arm execution's samples are written as they arrive."""
-    return services.store.data_dir / "journals" / f"{execution_id}.csv"
+    return services.store.data_dir / "journals" / f"{execution_id}.journal"
 
 
 def arm_owner(services: Services) -> str | None:
@@ -438,7 +438,9 @@ def recover(services: Services) -> None:
     folder = services.store.data_dir / "journals"
     if not folder.is_dir():
         return
-    for journal in sorted(folder.glob("exe_*.csv")):
+    # ``.csv``: the text journals of earlier versions, still recovered.
+    journals = sorted([*folder.glob("exe_*.journal"), *folder.glob("exe_*.csv")])
+    for journal in journals:
         execution_id = journal.stem
         try:
             _recover_one(services, execution_id, journal)

@@ -2,14 +2,29 @@
 
 A real arm's execution is written down while it runs (by the process that talks to the arm),
 so that a crash of the service keeps what was executed: the next start turns the journal into
-the execution's record. One CSV line per sample: time since the start (s), the actual joints
-(rad) and the actual TCP pose (m, rotation vector). Lines are flushed every
-:data:`FLUSH_EVERY` samples and when the journal closes; a torn last line (the writer died
-mid-line) is dropped on reading.
+the execution's record.
+
+The journal is a memory-mapped binary file, so that the servo loop that writes it makes no
+system call, formats no text and allocates nothing: a sample is a store of 13 float64 into
+pages mapped (and touched) before the motion starts, and the kernel writes the dirty pages back
+in its own time. What a killed process stored is in the page cache and reaches the file; a
+power loss can lose what the kernel had not written back yet (as with the text journal before,
+which was flushed but never synced). The file:
+
+- a header of :data:`HEADER_BYTES`: the magic :data:`MAGIC` (8 bytes), the column count
+  (uint32, 13) and 4 reserved bytes, the capacity in samples (uint64) and the count of
+  complete samples (uint64), all little-endian;
+- ``capacity`` rows of 13 float64: time since the start (s), the actual joints (rad) and the
+  actual TCP pose (m, rotation vector).
+
+A sample's row is written before the count that includes it, so a writer killed mid-row leaves
+a row the count does not include. Journals written by earlier versions as CSV text are still
+read (:func:`read_journal`).
 """
 
 from __future__ import annotations
 
+import mmap
 import os
 from pathlib import Path
 
@@ -18,37 +33,92 @@ import numpy as np
 from drivers.errors import InputFileError
 from recon.types import FloatArray
 
-HEADER = "t,q0,q1,q2,q3,q4,q5,x,y,z,rx,ry,rz\n"
-#: Samples between flushes (0.1 s at 500 Hz): a crash loses at most this many.
-FLUSH_EVERY = 50
+MAGIC = b"TPJOURN\x01"
 COLUMNS = 13
+HEADER_BYTES = 64
+ROW_BYTES = COLUMNS * 8
+#: Rows mapped when the length of the motion is not known beforehand (a movePath); the map
+#: doubles when it is full (outside a servo loop, whose capacity is given up front).
+DEFAULT_CAPACITY = 4096
+#: Refused beyond this many samples on reading: over two hours at 500 Hz (430 MB).
+MAX_SAMPLES = 4_000_000
+#: The text journal of earlier versions starts with this header.
+CSV_HEADER = "t,q0,q1,q2,q3,q4,q5,x,y,z,rx,ry,rz\n"
+
+_HEADER_DTYPE = np.dtype(
+    [("magic", "S8"), ("columns", "<u4"), ("reserved", "<u4"), ("capacity", "<u8"),
+     ("count", "<u8")]
+)
 
 
 class JournalWriter:
-    """Appends samples to a journal file; ``close()`` is idempotent."""
+    """Appends samples to a journal file; ``close()`` is idempotent.
 
-    def __init__(self, path: str | Path) -> None:
+    Parameters
+    ----------
+    path : str or Path
+        The journal file (created private, 0600: what the arm did is the site's record).
+    capacity_samples : int
+        Rows mapped and touched now. A servo loop gives its number of samples, so that no
+        sample of it remaps the file or takes a page fault.
+    """
+
+    def __init__(self, path: str | Path, capacity_samples: int = DEFAULT_CAPACITY) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        # Private (0600) from the start: what the arm did is the site's record.
-        fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-        self._file = os.fdopen(fd, "w", buffering=1 << 16)
-        self._file.write(HEADER)
-        self._pending = 0
+        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
+        self._count = 0
+        self._map = None
+        try:
+            self._map_rows(max(int(capacity_samples), 1))
+        except BaseException:
+            os.close(self._fd)
+            raise
+
+    def _map_rows(self, capacity: int) -> None:
+        """Size the file for ``capacity`` rows and map it (the rows written so far are kept)."""
+        self._release()
+        os.ftruncate(self._fd, HEADER_BYTES + capacity * ROW_BYTES)
+        self._map = mmap.mmap(self._fd, HEADER_BYTES + capacity * ROW_BYTES)
+        header = np.frombuffer(self._map, dtype=_HEADER_DTYPE, count=1)
+        header["magic"], header["columns"], header["capacity"] = MAGIC, COLUMNS, capacity
+        header["count"] = self._count
+        self._count_field = np.frombuffer(self._map, dtype="<u8", count=1, offset=24)
+        self._rows = np.frombuffer(self._map, dtype="<f8", offset=HEADER_BYTES).reshape(
+            capacity, COLUMNS
+        )
+        # Touch every page of the free rows now: the first store to a page faults it in.
+        self._rows[self._count :] = 0.0
+        self._capacity = capacity
 
     def add(self, t_s: float, q_rad, tcp_pose) -> None:
         """One sample: time (s), joints (6, rad), TCP pose (6)."""
-        values = (t_s, *q_rad, *tcp_pose)
-        self._file.write(",".join(f"{v:.9g}" for v in values) + "\n")
-        self._pending += 1
-        if self._pending >= FLUSH_EVERY:
-            self._file.flush()
-            self._pending = 0
+        if self._count == self._capacity:
+            self._map_rows(2 * self._capacity)
+        self._rows[self._count] = (t_s, *q_rad, *tcp_pose)
+        self._count += 1
+        self._count_field[0] = self._count  # after the row: a torn row is never counted
+
+    def __len__(self) -> int:
+        return self._count
+
+    def _release(self) -> None:
+        if self._map is not None:
+            # The arrays are views of the map: it closes only once they are gone.
+            del self._rows, self._count_field
+            self._map.close()
+            self._map = None
 
     def close(self) -> None:
-        if not self._file.closed:
-            self._file.flush()
-            self._file.close()
+        if self._fd < 0:
+            return
+        try:
+            if self._map is not None:
+                self._map.flush()
+            self._release()
+        finally:
+            os.close(self._fd)
+            self._fd = -1
 
     def __enter__(self) -> JournalWriter:
         return self
@@ -63,14 +133,64 @@ def read_journal(path: str | Path) -> tuple[FloatArray, FloatArray, FloatArray]:
     Raises
     ------
     InputFileError
-        The file is missing, or a complete line is not 13 numbers (changed by something else).
+        The file is missing, not a journal, declares more samples than it holds or than
+        :data:`MAX_SAMPLES`, or holds a sample that is not finite or goes back in time.
     """
+    name = Path(path).name
     try:
-        text = Path(path).read_text()
+        with open(path, "rb") as file:
+            head = file.read(HEADER_BYTES)
+            if head.startswith(CSV_HEADER.encode()):
+                return _read_csv_journal(path)
+            if len(head) < HEADER_BYTES or head[:8] != MAGIC:
+                raise InputFileError(
+                    f"the execution journal {name} is not a teachpath journal (it does not start "
+                    "with its header); it was not written by this service: move it out of the "
+                    "journals folder"
+                )
+            header = np.frombuffer(head, dtype=_HEADER_DTYPE, count=1)[0]
+            columns, capacity, count = (int(header[k]) for k in ("columns", "capacity", "count"))
+            size = os.fstat(file.fileno()).st_size
+            held = (size - HEADER_BYTES) // ROW_BYTES
+            if columns != COLUMNS or count > capacity or count > held or count > MAX_SAMPLES:
+                raise InputFileError(
+                    f"the execution journal {name} declares {count:,} samples of {columns} "
+                    f"numbers in room for {capacity:,}, but the file holds {held:,} samples of "
+                    f"{COLUMNS} (at most {MAX_SAMPLES:,} are read): it was cut or changed by "
+                    "something else; move it out of the journals folder"
+                )
+            data = np.fromfile(file, dtype="<f8", count=count * COLUMNS).reshape(count, COLUMNS)
     except OSError as exc:
+        raise InputFileError(f"the execution journal {name} cannot be read: {exc}") from None
+    _check_samples(data, name)
+    return data[:, 0], data[:, 1:7], data[:, 7:13]
+
+
+def _check_samples(data: FloatArray, name: str) -> None:
+    """Refuse samples that no arm reported: not finite, or time going backwards."""
+    bad = ~np.isfinite(data).all(axis=1)
+    bad[1:] |= np.diff(data[:, 0]) < 0
+    if bad.any():
+        row = int(np.argmax(bad))
         raise InputFileError(
-            f"the execution journal {Path(path).name} cannot be read: {exc}"
-        ) from None
+            f"the execution journal {name}, sample {row + 1}: not finite or earlier than the "
+            "sample before; it was changed by something else: move it out of the journals folder"
+        )
+
+
+def _read_csv_journal(path: str | Path) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """A text journal of an earlier version: one CSV line per sample, a torn last line
+    (the writer died mid-line) dropped."""
+    name = Path(path).name
+    try:
+        if os.path.getsize(path) > MAX_SAMPLES * 200:
+            raise InputFileError(
+                f"the execution journal {name} is larger than {MAX_SAMPLES:,} samples could "
+                "be; move it out of the journals folder"
+            )
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFileError(f"the execution journal {name} cannot be read: {exc}") from None
     lines = text.split("\n")
     # After the header, complete lines end in a newline: the last element is "" or torn.
     body = [line for line in lines[1:-1] if line.strip()]
@@ -82,7 +202,6 @@ def read_journal(path: str | Path) -> tuple[FloatArray, FloatArray, FloatArray]:
                 raise ValueError(f"{len(fields)} fields")
             data[row] = [float(f) for f in fields]
         except ValueError as exc:
-            raise InputFileError(
-                f"the execution journal {Path(path).name}, line {row + 2}: {exc}"
-            ) from None
+            raise InputFileError(f"the execution journal {name}, line {row + 2}: {exc}") from None
+    _check_samples(data, name)
     return data[:, 0], data[:, 1:7], data[:, 7:13]

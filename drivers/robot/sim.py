@@ -208,7 +208,7 @@ class SimBackend(RobotBackend):
         times, actual = [], []
         fault = None
         completed = False
-        writer = None if journal is None else JournalWriter(journal)
+        writer = None if journal is None else JournalWriter(journal, capacity_samples=n)
         T_flange_tcp = transform_from_pose(self.tcp_pose)
         try:
             for i in range(n):

@@ -681,7 +681,12 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
 
     def execute(self, q_rows, period_s, journal=None):
         with contextlib.ExitStack() as stack:
-            writer = None if journal is None else stack.enter_context(JournalWriter(journal))
+            # Mapped for every sample up front: the loop's journal write is a memory store.
+            writer = (
+                None
+                if journal is None
+                else stack.enter_context(JournalWriter(journal, capacity_samples=len(q_rows)))
+            )
             realtime = stack.enter_context(
                 _RealtimePriority(int(self.config.get("rt_priority", 0)))
             )

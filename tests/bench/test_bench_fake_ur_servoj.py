@@ -31,7 +31,8 @@ def _run(tmp_path, robot: str, length_m: float, repeats: int = 2):
         backend.connect()
         backend.enable()
         for _ in range(repeats):
-            record = backend.execute(trajectory)
+            # Journalled, as the service runs a real arm.
+            record = backend.execute(trajectory, journal=tmp_path / f"{robot}.journal")
             periods.append(np.diff(record.t_s))
             flange = lambda q: kinematics.forward(arm, q)[:, :3, 3]  # noqa: E731
             planned, actual = flange(record.q_planned_rad), flange(record.q_actual_rad)

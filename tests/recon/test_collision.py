@@ -723,10 +723,8 @@ PLATE_TOP_M = 0.03
 SPINDLE_SPHERES_M = (0, 0, 0.147, 0.003, 0, 0, 0.125, 0.02, 0, 0, 0.09, 0.02, 0, 0, 0.055, 0.02)
 
 
-def test_a_flat_ended_spindle_given_as_spheres_works_a_plate_its_capsule_is_refused_at():
-    """A 30 mm plate on the table, a 20 mm spindle along its top. As a capsule the tool's round
-    end reaches 20 mm below the tip, 10 mm above the table: refused against the mounting plane.
-    As spheres (``PlanParams.tool_spheres_m``, as the CLI and the API give them) the lowest
+def test_a_flat_ended_spindle_given_as_spheres_works_a_plate():
+    """A 30 mm plate on the table, a 20 mm spindle along its top. As spheres (``PlanParams.tool_spheres_m``, as the CLI and the API give them) the lowest
     point of the tool is the burr at the tip: clear, and the report's smallest clearance
     matches the spheres' lowest point over the table computed apart from the check."""
     arm = model("ur5e")
@@ -742,10 +740,11 @@ def test_a_flat_ended_spindle_given_as_spheres_works_a_plate_its_capsule_is_refu
             margin_m=margin_m, contact_zone=zone, t_s=t,
         )  # fmt: skip
 
+    # The capsule was refused here: its round end reaches 20 mm below the tip. That end is
+    # within the contact radius of the tip, the tip's own region, now left out against the
+    # table during contact (the thin-plate tests below).
     capsule = check(PlanParams(speed_m_s=0.05, tool_radius_m=0.02))
-    assert not capsule.clear
-    hit = capsule.first_collision
-    assert hit.link == "tool" and hit.obstacle == "mounting plane"
+    assert capsule.clear, capsule.lines()
     spindle = PlanParams(speed_m_s=0.05, tool_spheres_m=SPINDLE_SPHERES_M)
     assert isinstance(spindle.tool, SphereTool) and len(spindle.tool.radii_m) == 4
     report = check(spindle)
@@ -756,7 +755,110 @@ def test_a_flat_ended_spindle_given_as_spheres_works_a_plate_its_capsule_is_refu
     centres = tool_capsules(forward(arm, joints.q_rad), T_ft, spindle.tool).ends_m[:, :, 0]
     lowest_m = (centres[..., 2] - spindle.tool.radii_m).min()
     assert lowest_m - cell.mounting_band_m > margin_m
-    assert report.clearance_m.min() <= lowest_m - cell.mounting_band_m + 1e-9
+    # The burr's sphere lies within the contact radius of the tip: the tip's own region, left
+    # out against the table during contact. The body's spheres are tested in full.
+    tcp = T_ft[:3, 3]
+    body = (
+        np.linalg.norm(spindle.tool.centers_m - tcp, axis=1) + spindle.tool.radii_m
+        > report.contact_radius_m
+    )
+    assert not body[0] and body[1:].all()
+    body_lowest_m = (centres[..., body, 2] - spindle.tool.radii_m[body]).min()
+    assert report.clearance_m.min() <= body_lowest_m - cell.mounting_band_m + 1e-9
+
+
+# --- a thin plate on the table: the tip works it, the tool's body keeps off the table -----------
+
+
+def _body_over_table_m(arm, q, T_ft, radius_m, contact_radius_m, band_m) -> float:
+    """The least height over the mounting plane (tested ``band_m`` up) of the tool capsule's
+    points farther than ``contact_radius_m`` from the TCP, computed apart from recon.collision:
+    the capsule's surface sampled (rings of 36 points every 0.5 mm along the axis, the flange's
+    half sphere every 2.5 degrees)."""
+    flange = forward(arm, q)
+    tip, top = (flange @ T_ft)[:, :3, 3], flange[:, :3, 3]
+    length = np.linalg.norm(T_ft[:3, 3])
+    axis = (top - tip) / length
+    ref = np.where(np.abs(axis[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]])
+    e1 = np.cross(axis, ref)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(axis, e1)
+    phi = np.linspace(0.0, 2 * np.pi, 36, endpoint=False)
+    ring = np.cos(phi)[None, :, None] * e1[:, None] + np.sin(phi)[None, :, None] * e2[:, None]
+    points = []
+    for t in np.arange(0.0, length + 1e-9, 0.0005):
+        points.append(tip[:, None] + t * axis[:, None] + radius_m * ring)
+    for theta in np.radians(np.arange(0.0, 90.1, 2.5)):  # the flange's half sphere
+        points.append(
+            top[:, None]
+            + radius_m * np.sin(theta) * axis[:, None]
+            + radius_m * np.cos(theta) * ring
+        )
+    points = np.concatenate(points, axis=1)  # (M, P, 3)
+    far = np.linalg.norm(points - tip[:, None], axis=2) >= contact_radius_m
+    height = np.where(far, points[..., 2] - band_m, np.inf)
+    return float(height.min())
+
+
+@pytest.mark.parametrize("scanned", [True, False], ids=["scanned", "no-scan"])
+@pytest.mark.parametrize("tilt_deg", [0, 30, 45, 60, 75])
+@pytest.mark.parametrize("plate_mm", [2, 10])
+def test_a_thin_plate_on_the_table_is_worked_and_a_leaning_body_is_refused(
+    plate_mm, tilt_deg, scanned
+):
+    """A 2 mm sheet on the table could not be worked at all (the default 20 mm tool's round
+    end reaches 20 mm below the tip; with a scan the table is tested 5 mm up): every plate
+    under about 40 mm was refused against the mounting plane. The tip's own region (within the
+    contact radius of the TCP) is now left out of that test during contact, as it is for the
+    scan; the rest of the tool is not. Judged against an independent computation: refused where
+    the tool's body outside that region comes within the margin of the table, clear where it
+    stays farther than the margin plus the check's tolerance."""
+    arm = model("ur5e")
+    top = plate_mm / 1000
+    plate_hi = (WORKPIECE_HI[0], WORKPIECE_HI[1], top)
+    cell = Cell(scan_points_m=_box_scan(WORKPIECE_LO, plate_hi, 0.002), voxel_m=0.002) if scanned else Cell()
+    joints, phase, T_ft, _, t = _contact_plan(arm, float(tilt_deg), top_m=top)
+    radius_m, margin_m = 0.02, 0.01
+    report = check_motion(
+        arm, joints.q_rad, phase, cell, T_flange_tcp=T_ft, tool=CapsuleTool(radius_m),
+        margin_m=margin_m, t_s=t,
+        contact_zone=ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft),
+    )  # fmt: skip
+    band = cell.mounting_band_m if scanned else 0.0
+    # Every 5th sample of the process (where the tip is exempt; the orientation is constant).
+    exempt = np.flatnonzero(phase == Phase.PROCESS)[::5]
+    truth = _body_over_table_m(
+        arm, joints.q_rad[exempt], T_ft, radius_m, report.contact_radius_m, band
+    )
+    print(
+        f"\n{plate_mm} mm plate, tool tilted {tilt_deg} deg, {'scanned' if scanned else 'no scan'}:"
+        f" body {truth * 1e3:.1f} mm over the table; "
+        f"{'clear' if report.clear else 'refused: ' + report.first_collision.obstacle}"
+    )
+    if truth < margin_m:
+        assert not report.clear  # first by the tool, or by wrist 2 where it leans further
+        assert report.link_clearance_m[:, report.names.index("tool")].min() < margin_m
+    elif truth > margin_m + report.tolerance_m:
+        assert report.clear, report.lines()
+    if tilt_deg == 0:
+        assert report.clear, report.lines()  # an upright tool on a sheet: the everyday case
+
+
+def test_a_path_under_the_table_is_refused_whatever_the_contact():
+    """The tip's region is left out only where the tip is no deeper than the contact zone's
+    radius below the table: a trace 15 mm under it (a tracker calibrated wrong, no scan to
+    correct it) has the whole tool tested and is refused against the mounting plane."""
+    arm = model("ur5e")
+    joints, phase, T_ft, _, t = _contact_plan(arm, 0.0, top_m=-0.015)
+    zone = ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft)
+    assert zone.radius_m < 0.015
+    report = check_motion(
+        arm, joints.q_rad, phase, Cell(), T_flange_tcp=T_ft, tool=CapsuleTool(0.02),
+        margin_m=0.01, t_s=t, contact_zone=zone,
+    )  # fmt: skip
+    hit = report.first_collision
+    assert hit is not None and hit.link == "tool" and hit.obstacle == "mounting plane"
+    assert report.clearance_m[phase == Phase.PROCESS].max() < 0
 
 
 # --- the arm against itself --------------------------------------------------------------------

@@ -204,7 +204,9 @@ def test_a_busy_database_loses_nothing_the_arm_did(arm, fake_ur, monkeypatch):
     assert refusals["progress"] > 0 and refusals["record"] == 2
     execution = client.get(f"/sessions/{sid}/executions/{execution_id}").json()
     assert execution["summary"]["n_samples"] > 100
-    journal = store.data_dir / "journals" / f"{execution_id}.csv"
+    from service.executions import journal_path
+
+    journal = journal_path(client.app.state.services, execution_id)
     assert not journal.exists()  # deleted only once the record was stored
 
 
@@ -230,7 +232,7 @@ def test_a_database_that_stays_locked_leaves_the_journal_for_the_next_start(
     execution_id = job["params"]["execution_id"]
     assert client.post(f"/executions/{execution_id}/stop").status_code == 200
     job = wait(client, job, timeout_s=120)
-    journal = store.data_dir / "journals" / f"{execution_id}.csv"
+    journal = executions.journal_path(services, execution_id)
     assert journal.exists() and journal.stat().st_size > 1000  # the record, until stored
     assert client.get(f"/sessions/{sid}/executions/{execution_id}").status_code == 404
     # The database is free again; the next start (recover) stores the journal as the record.
