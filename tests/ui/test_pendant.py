@@ -205,6 +205,8 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant):
     page.get_by_label(re.compile("^Mode")).select_option("servoj")
     expect(run).to_be_enabled()
     pendant.shot("dry-run-passed")
+    _every_download_is_the_servers_file(pendant, "#plan-summary", "trajectories", 3)
+    _every_download_is_the_servers_file(pendant, "#dryrun-summary", "executions", 1)
 
     # The workspace draws the scan, trace, reconstruction and path.
     page.wait_for_function("document.querySelector('#legend-max').textContent.endsWith('mm')")
@@ -388,6 +390,35 @@ def test_the_calibration_panel_fits_pairs_and_the_tip_and_refuses_poor_fits(pend
     expect(page.locator("#pivot-form .message")).to_have_attribute("data-code", "poor_fit")
     expect(pivot).to_contain_text("RMS (tolerance 1.000 mm)")
     pendant.shot("pivot-refused")
+
+
+def _every_download_is_the_servers_file(pendant, box: str, collection: str, count: int) -> None:
+    """Click each "Download" button of the artifact shown in ``box``: each file saved is the
+    server's (the plan's requested ``/trajectorys/...``: 404, shown as a failed download)."""
+    page = pendant.page
+    details = page.locator(f"{box} details.provenance")
+    details.locator("summary").click()
+    artifact_id = details.get_attribute("data-artifact")
+    sid = page.evaluate("sessionStorage.getItem('teachpath.session')")
+    buttons = details.get_by_role("button", name=re.compile("^Download "))
+    expect(buttons).to_have_count(count)
+    suffixes = {"csv": "csv", "script": "urscript", "png": "plot.png"}
+    with tempfile.TemporaryDirectory() as folder:
+        for index in range(count):
+            with page.expect_download() as info:
+                buttons.nth(index).click()
+            download = info.value
+            name = download.suggested_filename
+            assert name.startswith(artifact_id), name
+            saved = Path(folder) / name
+            download.save_as(saved)
+            suffix = suffixes[name.rsplit(".", 1)[1]]
+            served = pendant.server.client.get(
+                f"/sessions/{sid}/{collection}/{artifact_id}/{suffix}"
+            )
+            assert served.status_code == 200 and len(served.content) > 100
+            assert saved.read_bytes() == served.content, name
+    expect(details.locator(".download-error")).to_be_empty()
 
 
 def test_provenance_and_downloads_of_the_stored_files(pendant, scene_files, tmp_path):

@@ -380,6 +380,12 @@ const DOWNLOADS = {
   execution: [["record CSV", "csv", ".csv"]],
 };
 
+/** The API's collection of each kind of artifact (not always the kind plus "s"). */
+const COLLECTIONS = {
+  recording: "recordings", scan: "scans", touches: "touches", reconstruction: "reconstructions",
+  trajectory: "trajectories", execution: "executions",
+};
+
 /** Fetch with the token and hand the bytes to the browser as a file (a plain link cannot send
  * the Authorization header). */
 async function download(path, filename, box) {
@@ -406,7 +412,7 @@ function provenance(kind, artifact) {
   const buttons = (DOWNLOADS[kind] || []).map(([label, suffix, extension]) => {
     const button = el("button", { type: "button", class: "download", text: `Download ${label}` });
     button.addEventListener("click", () =>
-      download(`/sessions/${sid}/${kind}s/${artifact.id}/${suffix}`, `${artifact.id}${extension}`, box));
+      download(`/sessions/${sid}/${COLLECTIONS[kind]}/${artifact.id}/${suffix}`, `${artifact.id}${extension}`, box));
     return button;
   });
   const details = el("details", { class: "provenance", "data-artifact": artifact.id },
