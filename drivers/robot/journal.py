@@ -46,8 +46,13 @@ MAX_SAMPLES = 4_000_000
 CSV_HEADER = "t,q0,q1,q2,q3,q4,q5,x,y,z,rx,ry,rz\n"
 
 _HEADER_DTYPE = np.dtype(
-    [("magic", "S8"), ("columns", "<u4"), ("reserved", "<u4"), ("capacity", "<u8"),
-     ("count", "<u8")]
+    [
+        ("magic", "S8"),
+        ("columns", "<u4"),
+        ("reserved", "<u4"),
+        ("capacity", "<u8"),
+        ("count", "<u8"),
+    ]
 )
 
 

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from drivers.errors import InputFileError, UnknownFormatError
@@ -412,4 +413,66 @@ def read_scan(
         fmt = FOLDER_FORMAT
     fmt = format_for(name or ("" if isinstance(source, bytes) else str(source)), fmt)
     reader = make_reader(fmt, options, limits, limit_names)
-    return reader.read(source, fmt=fmt, units=units, name=name)
+    scan_file = reader.read(source, fmt=fmt, units=units, name=name)
+    check_scan_units(scan_file.scan.points_m, units, name or fmt)
+    return scan_file
+
+
+#: A scan wider than this is not of a workpiece in a robot's cell (a depth camera sees a few
+#: metres; the corpus's room and plant scans span 2-7.5 m).
+MAX_SCAN_EXTENT_M = 30.0
+#: Nor one with points this far from the scanner's origin (geographic coordinates).
+MAX_SCANNER_DISTANCE_M = 100.0
+#: A scan narrower than this, read as millimetres, is metres read as millimetres.
+MIN_SCAN_EXTENT_MM_M = 1e-3
+
+
+def check_scan_units(points_m, units: str, label: str) -> None:
+    """Refuse at reading a scan whose size says its numbers are in another unit, or that is
+    not of a workpiece at all, rather than at the first reconstruction.
+
+    Parameters
+    ----------
+    points_m : ndarray of shape (N, 3), metres as read
+    units : {"m", "mm"}
+        The unit the coordinates were read in.
+    label : str
+        The file, for the message.
+
+    Raises
+    ------
+    UnitsMismatchError
+        Millimetres read as metres (a part of 170 mm read as 170 m), metres read as
+        millimetres (a scan narrower than a millimetre), or a scan of a site (wider than
+        :data:`MAX_SCAN_EXTENT_M`, or in geographic coordinates).
+    """
+    from recon.errors import UnitsMismatchError
+
+    points = np.asarray(points_m)
+    if len(points) == 0:
+        return
+    with np.errstate(over="ignore"):  # a file's 1e300: its extent is inf, refused below
+        extent_m = float(np.linalg.norm(np.ptp(points, axis=0)))
+    farthest_m = float(np.abs(points).max())
+    if extent_m > MAX_SCAN_EXTENT_M or farthest_m > MAX_SCANNER_DISTANCE_M:
+        said = (
+            f"the scan {label}, read as {'millimetres' if units == 'mm' else 'metres'}, spans "
+            f"{extent_m:.4g} m and reaches {farthest_m:.4g} m from its origin"
+        )
+        # As millimetres it would be a workpiece within a few metres of the scanner.
+        in_mm_fits = 1e-3 * max(extent_m, farthest_m) <= MAX_SCAN_EXTENT_M
+        if units == "m" and in_mm_fits:
+            raise UnitsMismatchError(
+                f"{said}: its numbers look like millimetres (it would span "
+                f"{extent_m:.4g} mm); upload it with units=mm (--units mm)"
+            )
+        raise UnitsMismatchError(
+            f"{said}: that is a scan of a site, not of a workpiece in a robot's cell; crop it to "
+            "the workpiece, with coordinates near the scanner, and upload that"
+        )
+    if units == "mm" and extent_m < MIN_SCAN_EXTENT_MM_M:
+        raise UnitsMismatchError(
+            f"the scan {label}, read as millimetres, spans only {extent_m * 1e3:.3g} mm: if its "
+            f"numbers are metres it spans {extent_m * 1e3:.3g} m; upload it with units=m "
+            "(--units m)"
+        )

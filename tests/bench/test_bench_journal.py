@@ -23,7 +23,10 @@ def _time_adds(add, samples: int) -> np.ndarray:
     """Seconds per call of ``add(t, q, tcp)``, shape (samples,), with the arguments a
     ur_rtde getter returns (lists of floats)."""
     rng = np.random.default_rng(0)
-    q_rows, tcp_rows = rng.normal(size=(samples, 6)).tolist(), rng.normal(size=(samples, 6)).tolist()
+    q_rows, tcp_rows = (
+        rng.normal(size=(samples, 6)).tolist(),
+        rng.normal(size=(samples, 6)).tolist(),
+    )
     spent = np.zeros(samples)
     for i in range(samples):
         start = time.perf_counter()

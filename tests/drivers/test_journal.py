@@ -1,4 +1,5 @@
-"""The execution journal: what a killed writer leaves is read back; what no writer left is refused."""
+"""The execution journal: what a killed writer leaves is read back; what no writer left is
+refused."""
 
 from __future__ import annotations
 

@@ -724,7 +724,8 @@ SPINDLE_SPHERES_M = (0, 0, 0.147, 0.003, 0, 0, 0.125, 0.02, 0, 0, 0.09, 0.02, 0,
 
 
 def test_a_flat_ended_spindle_given_as_spheres_works_a_plate():
-    """A 30 mm plate on the table, a 20 mm spindle along its top. As spheres (``PlanParams.tool_spheres_m``, as the CLI and the API give them) the lowest
+    """A 30 mm plate on the table, a 20 mm spindle along its top. As spheres
+    (``PlanParams.tool_spheres_m``, as the CLI and the API give them) the lowest
     point of the tool is the burr at the tip: clear, and the report's smallest clearance
     matches the spheres' lowest point over the table computed apart from the check."""
     arm = model("ur5e")
@@ -816,7 +817,11 @@ def test_a_thin_plate_on_the_table_is_worked_and_a_leaning_body_is_refused(
     arm = model("ur5e")
     top = plate_mm / 1000
     plate_hi = (WORKPIECE_HI[0], WORKPIECE_HI[1], top)
-    cell = Cell(scan_points_m=_box_scan(WORKPIECE_LO, plate_hi, 0.002), voxel_m=0.002) if scanned else Cell()
+    cell = (
+        Cell(scan_points_m=_box_scan(WORKPIECE_LO, plate_hi, 0.002), voxel_m=0.002)
+        if scanned
+        else Cell()
+    )
     joints, phase, T_ft, _, t = _contact_plan(arm, float(tilt_deg), top_m=top)
     radius_m, margin_m = 0.02, 0.01
     report = check_motion(

@@ -144,6 +144,30 @@ def test_bad_scans_are_refused_and_change_nothing(client, session, name, content
     assert client.get(f"/sessions/{session}").json() == before
 
 
+def _cylinder_xyz_mm() -> bytes:
+    """A 170 mm tall, 60 mm wide cylinder's surface, its numbers in millimetres."""
+    angle, height = np.meshgrid(np.linspace(0, 2 * np.pi, 90), np.linspace(0, 170, 60))
+    points = np.c_[30 * np.cos(angle).ravel(), 30 * np.sin(angle).ravel(), height.ravel()]
+    return "".join(f"{x:.3f} {y:.3f} {z:.3f}\n" for x, y, z in points).encode()
+
+
+def test_a_scan_in_millimetres_read_as_metres_is_refused_at_upload(client, session):
+    """It was accepted (Inputs done, a 170 m cylinder) and failed only at Reconstruct."""
+    before = client.get(f"/sessions/{session}").json()
+    response = client.put(
+        f"/sessions/{session}/scan", files={"file": ("part.xyz", _cylinder_xyz_mm())}
+    )
+    body = assert_error(response, 422, "units_mismatch")
+    assert "look like millimetres" in body["message"] and "units=mm" in body["message"]
+    assert client.get(f"/sessions/{session}").json() == before
+    response = client.put(
+        f"/sessions/{session}/scan",
+        files={"file": ("part.xyz", _cylinder_xyz_mm())},
+        data={"units": "mm"},
+    )
+    assert response.status_code in (200, 201), response.text
+
+
 def test_oversize_upload_is_413_and_changes_nothing(client, session):
     before = client.get(f"/sessions/{session}").json()
     big = b"x,y,z\n" + b"0.1,0.2,0.3\n" * 600_000  # about 7 MB, the limit is 5 MB
