@@ -27,11 +27,13 @@ from service.gate import (
     CellHere,
     CellUnknown,
     UnreadableTrajectory,
+    check_current,
     check_here,
     check_real_arm,
     check_request,
 )
 from service.pipelines import ExecutionOutcome, cell_for
+from service.provenance import trajectory_outdated
 from service.schemas import ExecutionCreate
 from service.store import FINISHED, ArtifactRow, JobRow, new_id
 
@@ -126,6 +128,12 @@ def arm_owner(services: Services) -> str | None:
 def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
     settings = services.settings
     check_request(settings, confirm=request.confirm)
+    # Outdated first: the clearest answer (a moved calibration also moves the cell checked
+    # below); checked again under the lock, where the inputs cannot change in between.
+    check_current(
+        trajectory_outdated(services.store, services.session(session_id), trajectory),
+        accept_outdated=request.accept_outdated,
+    )
     tool = _tool_of(trajectory)
     # The samples are judged here, against this arm and this cell, before the lock (the check
     # takes a fraction of a second); the runner is given the very arrays judged.
@@ -139,7 +147,8 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
     # One owner: deciding and taking the arm happen under one lock, so two requests that
     # arrive together cannot both pass the gate.
     with services.live.lock:
-        services.session(session_id)  # not deleted meanwhile (deleting checks under this lock)
+        session = services.session(session_id)  # not deleted meanwhile (checked under this lock)
+        outdated = trajectory_outdated(services.store, session, trajectory)
         check_real_arm(
             settings,
             checked,
@@ -150,6 +159,8 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
             tolerance_m=request.tolerance_m,
             owner=arm_owner(services),
             arm=services.robot.poll(),  # read now: the arm may have been jogged a moment ago
+            outdated=outdated,
+            accept_outdated=request.accept_outdated,
         )
         config = backend_config("ur_rtde", host=settings.ur_host, robot=settings.ur_robot)
         job = services.store.create_job(
@@ -160,7 +171,16 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
             job.id,
             create_backend(config),
             loaded,
-            _recorder(services, session_id, trajectory, request, out_id, loaded, config),
+            _recorder(
+                services,
+                session_id,
+                trajectory,
+                request,
+                out_id,
+                loaded,
+                config,
+                accepted_outdated=outdated,
+            ),  # fmt: skip
             tool=tool,
             journal=str(journal_path(services, out_id)),
             mode=request.mode,
@@ -328,8 +348,15 @@ def _tool_of(trajectory: ArtifactRow) -> tuple:
     )
 
 
-def _recorder(services, session_id, trajectory, request, out_id, loaded, config):
-    """What the runner calls at the end: the execution's artifact, measured as a dry run is."""
+def _recorder(
+    services, session_id, trajectory, request, out_id, loaded, config, *, accepted_outdated=()
+):
+    """What the runner calls at the end: the execution's artifact, measured as a dry run is.
+    ``accepted_outdated``: what had changed since the plan when the operator picked it anyway
+    (kept in the record's params)."""
+    params = _artifact_params(services, request)
+    if accepted_outdated:
+        params["accepted_outdated"] = list(accepted_outdated)
 
     def record(execution_record, faults: list[str], duration_s: float, stopped_in) -> dict:
         summary = _real_summary(
@@ -341,7 +368,7 @@ def _recorder(services, session_id, trajectory, request, out_id, loaded, config)
             kind="execution",
             arrays=ExecutionCodec.encode(execution_record),
             inputs={"trajectory_id": trajectory.id},
-            params=_artifact_params(services, request),
+            params=params,
             summary=summary,
         )
         journal_path(services, out_id).unlink(missing_ok=True)  # the artifact holds it now

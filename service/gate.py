@@ -73,6 +73,11 @@ class SpeedCapExceeded(RealArmRefused):
     """The trajectory's speed is above the server's cap for a real arm."""
 
 
+class OutdatedInputs(RealArmRefused):
+    """The plan was made from inputs that are no longer the session's current ones (a new
+    trace, scan, touches or calibration since), and the request did not pick it explicitly."""
+
+
 class DryRunRequired(RealArmRefused):
     """No passed dry run of this trajectory in this mode (and tolerance) is on record."""
 
@@ -372,6 +377,24 @@ def passed_dry_run(
     return False
 
 
+def check_current(outdated: list[str], *, accept_outdated: bool) -> None:
+    """Refuse a plan made from inputs that are no longer the session's, unless picked.
+
+    Raises
+    ------
+    OutdatedInputs
+        ``outdated`` is not empty and ``accept_outdated`` is false.
+    """
+    if outdated and not accept_outdated:
+        raise OutdatedInputs(
+            "this plan was made from inputs that are no longer the session's: "
+            + "; ".join(outdated)
+            + ". Reconstruct and plan again from the current ones, or, to run this older plan, "
+            "pick it explicitly (accept_outdated: true) after checking its inputs",
+            detail={"changed": list(outdated)},
+        )
+
+
 def check_real_arm(
     settings: Settings,
     checked: CheckedHere,
@@ -383,6 +406,8 @@ def check_real_arm(
     tolerance_m: float,
     owner: str | None,
     arm: Reading,
+    outdated: list[str] = (),
+    accept_outdated: bool = False,
 ) -> None:
     """Refuse, naming why, unless the configured arm may run the checked trajectory now.
 
@@ -399,6 +424,10 @@ def check_real_arm(
         The execution that owns the arm now, if any.
     arm : Reading
         The arm's latest reading (:class:`service.robot.Reading`).
+    outdated : list of str
+        What changed in the session since the plan (:mod:`service.provenance`).
+    accept_outdated : bool
+        The request picked this plan explicitly, outdated as it is.
 
     Raises
     ------
@@ -406,6 +435,7 @@ def check_real_arm(
         A subclass per reason.
     """
     check_request(settings, confirm=confirm)
+    check_current(outdated, accept_outdated=accept_outdated)
     if not passed_dry_run(
         dry_runs,
         checked.trajectory_id,

@@ -203,14 +203,23 @@ class ScanOut(_ArtifactOut):
     summary: ScanSummary
 
 
+_OUTDATED = Field(
+    default_factory=list,
+    description="what changed in the session since it was made (a new trace, scan, touches or "
+    "calibration), in words; empty: made from the session's current inputs",
+)
+
+
 class ReconstructionOut(_ArtifactOut):
     kind: Literal["reconstruction"]
     summary: ReconstructionSummary
+    outdated: list[str] = _OUTDATED
 
 
 class TrajectoryOut(_ArtifactOut):
     kind: Literal["trajectory"]
     summary: TrajectorySummary
+    outdated: list[str] = _OUTDATED
 
 
 class ExecutionOut(_ArtifactOut):
@@ -363,6 +372,12 @@ class ExecutionCreate(Strict):
     )
     confirm: StrictBool = Field(
         False, description="must be the JSON boolean true to move a real arm"
+    )
+    accept_outdated: StrictBool = Field(
+        False,
+        description="run a plan made from inputs that are no longer the session's current ones "
+        "(its `outdated` list); the run's record keeps what was accepted. Without it such a plan "
+        "is refused on a real arm (409 outdated_inputs)",
     )
 
 

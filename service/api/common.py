@@ -14,15 +14,29 @@ from service.inputs import Upload
 from service.uploads import clean_filename
 
 
-def add_artifact_routes(router: APIRouter, kind: str, plural: str, model: type) -> None:
-    """``GET /{plural}`` (oldest first) and ``GET /{plural}/{artifact_id}`` for one kind."""
+def add_artifact_routes(
+    router: APIRouter, kind: str, plural: str, model: type, *, outdated=None
+) -> None:
+    """``GET /{plural}`` (oldest first) and ``GET /{plural}/{artifact_id}`` for one kind.
+
+    ``outdated(store, session, row) -> list[str]``, where given, fills each one's ``outdated``
+    (:mod:`service.provenance`): what changed in the session since it was made.
+    """
+
+    def shown(services, session, row):
+        if outdated is None:
+            return row
+        return model.model_validate(row).model_copy(
+            update={"outdated": outdated(services.store, session, row)}
+        )
 
     def list_artifacts(session_id: str, services: ServicesDep):
-        services.session(session_id)
-        return services.store.artifacts(session_id, kind)
+        session = services.session(session_id)
+        return [shown(services, session, row) for row in services.store.artifacts(session_id, kind)]
 
     def get_artifact(session_id: str, artifact_id: str, services: ServicesDep):
-        return services.artifact(session_id, kind, artifact_id)
+        session = services.session(session_id)
+        return shown(services, session, services.artifact(session_id, kind, artifact_id))
 
     router.add_api_route(
         f"/{plural}",

@@ -10,6 +10,7 @@ from service.api.common import CSV, PNG, add_artifact_routes, download, gzip_jso
 from service.api.deps import ServicesDep
 from service.artifacts import ReconstructionCodec
 from service.errors import ApiError
+from service.provenance import reconstruction_outdated
 from service.schemas import JobOut, ReconstructionCreate, ReconstructionOut
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["reconstructions"])
@@ -22,7 +23,9 @@ def start_reconstruction(session_id: str, body: ReconstructionCreate, services: 
     return reconstructions.start(services, session_id, body)
 
 
-add_artifact_routes(router, "reconstruction", "reconstructions", ReconstructionOut)
+add_artifact_routes(
+    router, "reconstruction", "reconstructions", ReconstructionOut, outdated=reconstruction_outdated
+)
 
 
 @router.get("/reconstructions/{artifact_id}/csv", response_class=Response, responses=CSV)

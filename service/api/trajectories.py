@@ -11,6 +11,7 @@ from service import tasks, trajectories
 from service.api.common import CSV, add_artifact_routes, download, gzip_json
 from service.api.deps import ServicesDep
 from service.artifacts import TrajectorySummary
+from service.provenance import trajectory_outdated
 from service.schemas import JobOut, TrajectoryCreate, TrajectoryOut
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["trajectories"])
@@ -23,7 +24,9 @@ def start_trajectory(session_id: str, body: TrajectoryCreate, services: Services
     return trajectories.start(services, session_id, body)
 
 
-add_artifact_routes(router, "trajectory", "trajectories", TrajectoryOut)
+add_artifact_routes(
+    router, "trajectory", "trajectories", TrajectoryOut, outdated=trajectory_outdated
+)
 
 
 @router.get("/trajectories/{artifact_id}/csv", response_class=Response, responses=CSV)

@@ -151,8 +151,9 @@ def _cylinder_xyz_mm() -> bytes:
     return "".join(f"{x:.3f} {y:.3f} {z:.3f}\n" for x, y, z in points).encode()
 
 
-def test_a_scan_in_millimetres_read_as_metres_is_refused_at_upload(client, session):
+def test_a_scan_in_millimetres_read_as_metres_is_refused_at_upload(client):
     """It was accepted (Inputs done, a 170 m cylinder) and failed only at Reconstruct."""
+    session = client.post("/sessions", json={"name": "units"}).json()["id"]  # its own scan
     before = client.get(f"/sessions/{session}").json()
     response = client.put(
         f"/sessions/{session}/scan", files={"file": ("part.xyz", _cylinder_xyz_mm())}

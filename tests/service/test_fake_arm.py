@@ -73,6 +73,69 @@ def test_an_arm_moved_away_from_the_plans_start_is_refused_with_the_distance(arm
     assert np.abs(q_now - (q_start + [0.1, 0, 0, 0, 0, 0])).max() < 1e-9
 
 
+def test_a_plan_of_inputs_no_longer_the_sessions_is_shown_outdated_and_refused(
+    arm, fake_ur, scene_files
+):
+    """A new trace left the old plan ready to run (its dry run passed, "Run on arm" offered).
+    Now the plan lists what changed, the gate refuses it (outdated_inputs, naming the change)
+    and runs it only when the request picks it explicitly; the record keeps what was accepted."""
+    from tests.service.conftest import T_BASE_TRACKER
+
+    client = arm[0]
+    sid, trajectories = planned_session(client, scene_files, (0.1,), name="outdated")
+    trajectory_id = trajectories[0.1]
+    dry = client.post(f"/sessions/{sid}/executions", json={"trajectory_id": trajectory_id})
+    assert wait(client, dry.json())["result"]["completed"]
+    plan_url = f"/sessions/{sid}/trajectories/{trajectory_id}"
+    assert client.get(plan_url).json()["outdated"] == []
+    csv = client.get(f"{plan_url}/csv").text
+    q_start = np.array(csv.splitlines()[2].split(",")[1:7], dtype=float)
+    fake_ur.control("reset", q_rad=q_start.tolist())
+
+    # A different trace (the last sample left out) becomes the session's.
+    lines = scene_files["trace"].decode().rstrip("\n").split("\n")
+    new_trace = ("\n".join(lines[:-1]) + "\n").encode()
+    uploaded = client.put(f"/sessions/{sid}/recording", files={"file": ("t2.csv", new_trace)})
+    assert uploaded.status_code == 201, uploaded.text
+    new_id = client.get(f"/sessions/{sid}").json()["recording_id"]
+    (reason,) = client.get(plan_url).json()["outdated"]
+    assert reason.startswith("the trace") and new_id in reason
+    recon_id = client.get(plan_url).json()["inputs"]["reconstruction_id"]
+    assert client.get(f"/sessions/{sid}/reconstructions/{recon_id}").json()["outdated"] == [reason]
+    # And the calibration moved 2 mm.
+    moved = [row[:] for row in T_BASE_TRACKER]
+    moved[0][3] += 0.002
+    assert client.put(f"/sessions/{sid}/calibration", json={"T_base_tracker": moved}).is_success
+    outdated = client.get(plan_url).json()["outdated"]
+    assert len(outdated) == 2 and "2.0 mm" in outdated[1]
+
+    run = {"trajectory_id": trajectory_id, "backend": "ur_rtde", "confirm": True}
+    refused = client.post(f"/sessions/{sid}/executions", json=run)
+    assert refused.status_code == 409 and refused.json()["code"] == "outdated_inputs"
+    assert refused.json()["detail"]["changed"] == outdated
+    assert "Reconstruct and plan again" in refused.json()["message"]
+    assert np.abs(np.array(fake_ur.control("status")["q_rad"]) - q_start).max() < 1e-9
+    for bad in ("true", 1, None):
+        response = client.post(f"/sessions/{sid}/executions", json={**run, "accept_outdated": bad})
+        assert response.status_code == 422, (bad, response.text)
+
+    # Picked explicitly: a calibration change is still refused (the cell would be misplaced:
+    # the gate checks the plan in this session's frames); an older trace may be run.
+    accepted = client.post(f"/sessions/{sid}/executions", json={**run, "accept_outdated": True})
+    assert accepted.status_code == 409 and accepted.json()["code"] == "cell_unknown"
+    assert client.put(
+        f"/sessions/{sid}/calibration", json={"T_base_tracker": T_BASE_TRACKER}
+    ).is_success
+    outdated = client.get(plan_url).json()["outdated"]
+    assert outdated == [reason]
+    job = client.post(f"/sessions/{sid}/executions", json={**run, "accept_outdated": True})
+    assert job.status_code == 202, job.text
+    job = wait(client, job.json(), timeout_s=120)
+    assert job["state"] == "succeeded", job
+    execution = client.get(f"/sessions/{sid}/executions/{job['result']['execution_id']}").json()
+    assert execution["params"]["accepted_outdated"] == outdated
+
+
 def test_a_confirmed_execution_runs_on_the_controller(arm, fake_ur):
     client, sid, trajectory_id, q_start = arm
     # The arm stands where the plan starts (where it stood when it was planned).

@@ -151,7 +151,20 @@ def test_a_plan_made_with_another_calibration_than_the_sessions_is_refused(bundl
         calibration = np.array(client.get(f"/sessions/{sid}").json()["T_base_tracker"])
         calibration[0, 3] += 0.05  # recalibrated: the tracker 50 mm elsewhere
         client.put(f"/sessions/{sid}/calibration", json={"T_base_tracker": calibration.tolist()})
-        response = _run(client, sid, bundle["trajectory_id"])
+        outdated = _run(client, sid, bundle["trajectory_id"])
+        # Picked explicitly, outdated as it is: still not checked in the wrong place.
+        response = client.post(
+            f"/sessions/{sid}/executions",
+            json={
+                "trajectory_id": bundle["trajectory_id"],
+                "backend": "ur_rtde",
+                "confirm": True,
+                "accept_outdated": True,
+            },
+        )
+    assert outdated.status_code == 409 and outdated.json()["code"] == "outdated_inputs"
+    assert "the tracker-to-base calibration" in outdated.json()["message"]
+    assert "50.0 mm" in outdated.json()["detail"]["changed"][0]
     assert response.status_code == 409 and response.json()["code"] == "cell_unknown"
     assert "another tracker-to-base calibration" in response.json()["message"]
     assert "50.0 mm" in response.json()["message"]

@@ -127,7 +127,7 @@ def canvas_pixels(page) -> dict:
     )
 
 
-def test_demo_session_from_reconstruction_to_the_run_refusal(pendant):
+def test_demo_session_from_reconstruction_to_the_run_refusal(pendant, scene_files, tmp_path):
     page = pendant.page
     pendant.guard.allow(409, "/executions")
     posts = []
@@ -244,6 +244,34 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant):
     assert posts.count("executions") == 2
     expect(page.locator("#step-run .needs")).to_contain_text("Run on arm")
     pendant.shot("run-refused")
+
+    # A new trace: the plan, its passed dry run and "Run on arm" belonged to the old one. They
+    # stayed "done" and offered before; now they are shown outdated and the run is not offered.
+    trace = tmp_path / "new_trace.csv"
+    trace.write_bytes(scene_files["trace"])
+    page.locator("#recording-form input[type=file]").set_input_files(str(trace))
+    page.get_by_role("button", name="Upload recording").click()
+    expect(page.locator("#recording-current")).to_contain_text("new_trace.csv")
+    for step in ("reconstruct", "plan", "dryrun", "run"):
+        expect(page.locator(f"#steps li[data-step={step}]")).not_to_have_class(re.compile("done"))
+    banner = page.locator("#plan-summary .outdated")
+    expect(banner).to_contain_text("Outdated: made before the trace")
+    expect(page.locator("#reconstruct-summary .outdated")).to_contain_text("the trace")
+    expect(page.locator("#step-plan .needs")).to_contain_text("Reconstruct and plan again")
+    expect(page.locator("#step-run .needs")).to_contain_text("The plan is outdated")
+    expect(run).to_be_disabled()
+    pendant.shot("outdated-plan")
+    # Reconstructing the new trace makes that step current again.
+    page.get_by_role("button", name="Reconstruct").click()
+    expect(page.locator("#reconstruct-form .job-state")).to_have_text(
+        "succeeded 100 %", timeout=90_000
+    )
+    expect(page.locator("#reconstruct-summary .outdated")).to_have_count(0)
+    expect(page.locator("#steps li[data-step=reconstruct]")).to_have_class("done")
+    # The old plan is not the new reconstruction's: the plan step asks for a new one.
+    expect(page.locator("#step-plan .needs")).to_contain_text("press Plan")
+    expect(page.locator("#plan-summary .outdated")).to_have_count(0)
+    expect(run).to_be_disabled()
 
 
 def test_a_reload_finds_the_running_dry_run_again_and_sends_nothing(pendant):

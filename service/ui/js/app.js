@@ -279,11 +279,40 @@ function lastRun(traj = trajectory()) {
   return last(state.executions.filter((e) => e.inputs.trajectory_id === traj.id && !e.params.dry_run));
 }
 
+/** What changed in the session since an artifact was made (the server's words; empty: current). */
+const outdated = (artifact) => artifact?.outdated || [];
+const outdatedText = (artifact) => `Outdated: made before ${outdated(artifact).join("; ")}.`;
+
 function stepStates() {
   const s = state.session;
   const rec = reconstruction();
   const traj = trajectory();
   const dry = dryRun();
+  // A result made from inputs that are no longer the session's is shown, but is not a done step:
+  // the steps after it wait for it to be made again.
+  if (traj && outdated(traj).length) {
+    const again = outdated(rec).length ? "Reconstruct and plan again" : "Plan again";
+    const waiting = { done: false, needs: `The plan is outdated: ${again} first.` };
+    return {
+      ...stepStatesOf(s, rec, traj, dry),
+      ...(outdated(rec).length ? { reconstruct: { done: false, needs: `${outdatedText(rec)} Press Reconstruct.` } } : {}),
+      plan: { done: false, needs: `${outdatedText(traj)} ${again}.` },
+      dryrun: waiting,
+      run: waiting,
+    };
+  }
+  if (rec && outdated(rec).length) {
+    const waiting = { done: false, needs: "Needs a reconstruction of the current inputs." };
+    return {
+      ...stepStatesOf(s, rec, traj, dry),
+      reconstruct: { done: false, needs: `${outdatedText(rec)} Press Reconstruct.` },
+      plan: traj ? waiting : { done: false, needs: waiting.needs }, dryrun: waiting, run: waiting,
+    };
+  }
+  return stepStatesOf(s, rec, traj, dry);
+}
+
+function stepStatesOf(s, rec, traj, dry) {
   const haveInputs = Boolean(s.recording_id && s.scan_id);
   return {
     inputs: haveInputs
@@ -366,7 +395,8 @@ function updateButtons() {
   set("#reconstruct-form button[type=submit]", !busy && Boolean(s?.recording_id) && Boolean(state.schema));
   set("#plan-form button[type=submit]", !busy && Boolean(reconstruction()) && Boolean(s?.T_base_tracker));
   set("#dryrun-form button[type=submit]", !busy && Boolean(traj));
-  set("#run-form button[type=submit]", !busy && passedHere(dry) && !canMove());
+  // An outdated plan is never offered for the arm (the server refuses it too: outdated_inputs).
+  set("#run-form button[type=submit]", !busy && passedHere(dry) && !canMove() && !outdated(traj).length);
 }
 
 // -- provenance and downloads of an artifact --------------------------------------------------------
@@ -448,8 +478,12 @@ function renderInputs() {
   $("#recording-current").textContent = rec
     ? `${rec.source_name || rec.id}: ${rec.summary.n_samples} samples, ${mm(rec.summary.length_m, 0)} long`
     : "none yet";
+  // Its size on the card, in mm: a scan read in the wrong unit shows at once.
+  const size = sc?.summary.bounds_m
+    ? `, ${sc.summary.bounds_m[1].map((hi, i) => ((hi - sc.summary.bounds_m[0][i]) * 1000).toFixed(0)).join(" × ")} mm`
+    : "";
   $("#scan-current").textContent = sc
-    ? `${sc.source_name || sc.id}: ${sc.summary.n_points} points`
+    ? `${sc.source_name || sc.id}: ${sc.summary.n_points} points${size}`
     : "none yet";
   $("#recording-files").replaceChildren(...provenance("recording", rec));
   $("#scan-files").replaceChildren(...provenance("scan", sc));
@@ -524,7 +558,9 @@ function renderReconstruction() {
     rows.push(["demonstrations", `${used} of ${sm.demonstrations.length} fused`]);
   }
   if (sm.uncertainty_max_m != null) rows.push(["uncertainty (1σ)", `${mm(sm.uncertainty_mean_m)} on average, ${mm(sm.uncertainty_max_m)} at most`]);
-  box.replaceChildren(table(rows), ...(sm.notes.length ? [report(sm.notes)] : []), ...provenance("reconstruction", rec),
+  box.replaceChildren(
+    ...(outdated(rec).length ? [el("p", { class: "outdated", role: "status", text: outdatedText(rec) })] : []),
+    table(rows), ...(sm.notes.length ? [report(sm.notes)] : []), ...provenance("reconstruction", rec),
     ...comparison());
 }
 
@@ -577,6 +613,7 @@ function renderPlan() {
   const sm = traj.summary;
   const feasible = sm.checks.length ? `passed: ${sm.checks.join(", ")}` : "";
   box.replaceChildren(
+    ...(outdated(traj).length ? [el("p", { class: "outdated", role: "status", text: outdatedText(traj) })] : []),
     table([
       ["trajectory", traj.id],
       ["robot", sm.robot],

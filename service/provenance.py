@@ -1,0 +1,114 @@
+"""Whether a stored result was made from the session's current inputs.
+
+A session's inputs change: a new trace is uploaded, captured or replayed, a new scan, new
+touches, a new tracker-to-base calibration. A reconstruction or a plan made before stays
+stored, but it is *outdated*: it shows a path the operator did not trace last, or joints that
+put the tool where the old calibration said. The pendant shows such results as outdated and
+the real-arm gate refuses an outdated plan (``outdated_inputs``) unless the request picks it
+explicitly (``accept_outdated``), and the run's record keeps what was accepted.
+
+One function per kind, each returning the reasons in the operator's words (empty: current).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.store import ArtifactRow, SessionRow, Store
+
+#: Calibrations closer than this (translation, metres; rotation, radians) are the same one
+#: (a JSON round trip changes nothing; a new calibration moves millimetres).
+SAME_CALIBRATION_M = 1e-6
+SAME_CALIBRATION_RAD = 1e-6
+
+
+def reconstruction_outdated(
+    store: Store, session: SessionRow, reconstruction: ArtifactRow
+) -> list[str]:
+    """What changed in the session since ``reconstruction`` was made from it.
+
+    Parameters
+    ----------
+    store : Store
+        For the session's newest touches and the scan's upload time.
+    session : SessionRow
+    reconstruction : ArtifactRow
+
+    Returns
+    -------
+    list of str
+        One sentence per input that is no longer the session's current one.
+    """
+    reasons = []
+    inputs = reconstruction.inputs
+    used = inputs.get("recording_ids") or [inputs.get("recording_id")]
+    if session.recording_id is not None and session.recording_id not in used:
+        reasons.append(
+            f"the trace: made from {', '.join(map(str, used))}; the session's trace is now "
+            f"{session.recording_id}"
+        )
+    scan_id = inputs.get("scan_id")
+    if scan_id is not None and session.scan_id != scan_id:
+        reasons.append(
+            f"the scan: made with {scan_id}; the session's scan is now {session.scan_id or 'none'}"
+        )
+    elif scan_id is None and session.scan_id is not None:
+        scan = store.artifact(session.scan_id, kind="scan")
+        if scan is not None and scan.created_at > reconstruction.created_at:
+            reasons.append(f"the scan: made without one; scan {session.scan_id} was added after it")
+    touches_id = inputs.get("touches_id")
+    if touches_id is not None:
+        newest = store.artifacts(session.id, "touches")
+        if newest and newest[-1].id != touches_id:
+            reasons.append(
+                f"the touches: the scan was placed by {touches_id}; newer touches "
+                f"{newest[-1].id} were added"
+            )
+    return reasons
+
+
+def trajectory_outdated(
+    store: Store,
+    session: SessionRow,
+    trajectory: ArtifactRow,
+    reconstruction: ArtifactRow | None = None,
+) -> list[str]:
+    """What changed in the session since ``trajectory`` was planned: its reconstruction's
+    inputs (:func:`reconstruction_outdated`) and the tracker-to-base calibration.
+
+    Parameters
+    ----------
+    store : Store
+    session : SessionRow
+    trajectory : ArtifactRow
+    reconstruction : ArtifactRow, optional
+        The trajectory's reconstruction (looked up when not given).
+
+    Returns
+    -------
+    list of str
+    """
+    if reconstruction is None:
+        reconstruction = store.artifact(
+            trajectory.inputs.get("reconstruction_id", ""), kind="reconstruction"
+        )
+    reasons = (
+        [] if reconstruction is None else reconstruction_outdated(store, session, reconstruction)
+    )
+    planned = trajectory.params.get("T_base_tracker")
+    if planned is not None and session.T_base_tracker is not None:
+        moved_m, turned_rad = _difference(planned, session.T_base_tracker)
+        if moved_m > SAME_CALIBRATION_M or turned_rad > SAME_CALIBRATION_RAD:
+            reasons.append(
+                "the tracker-to-base calibration: the session's differs from the plan's by "
+                f"{moved_m * 1e3:.1f} mm and {np.degrees(turned_rad):.2f} deg"
+            )
+    return reasons
+
+
+def _difference(T_a, T_b) -> tuple[float, float]:
+    """Translation (m) and rotation angle (rad) between two 4x4 transforms."""
+    a, b = np.asarray(T_a, dtype=np.float64), np.asarray(T_b, dtype=np.float64)
+    moved_m = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+    cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
+    return moved_m, float(np.arccos(np.clip(cos, -1.0, 1.0)))
