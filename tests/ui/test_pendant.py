@@ -182,7 +182,6 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant, scene_file
     expect(summary.locator(".report")).not_to_be_empty()
     assert posts.count("trajectories") == 1
     expect(page.get_by_role("button", name="Run on arm")).to_be_disabled()
-    expect(page.locator("#step-run .needs")).to_contain_text("passed dry run")
     pendant.shot("planned")
 
     # A dry run moves no arm: no Stop button (the simulated run cannot be stopped either).
@@ -197,13 +196,18 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant, scene_file
     expect(page.locator("#dryrun-summary")).to_contain_text("passed", timeout=60_000)
     assert posts.count("executions") == 1
     expect(page.locator("#steps li[data-step=dryrun]")).to_have_class("done")
+    # This server has no real arm: the Run step says so and how to have one; it said "Ready"
+    # and "the arm will move" before, and offered the button for a refusal.
     run = page.get_by_role("button", name="Run on arm")
-    expect(run).to_be_enabled()
+    expect(run).to_be_disabled()
+    run_needs = page.locator("#step-run .needs")
+    expect(run_needs).to_contain_text("No real arm on this server (simulation only)")
+    expect(run_needs).to_contain_text("TEACHPATH_UR_HOST")
     # Another mode has no dry run of its own.
     page.get_by_label(re.compile("^Mode")).select_option("movepath")
-    expect(run).to_be_disabled()
+    expect(page.locator("#step-dryrun .needs")).to_contain_text("(mode movepath)")
     page.get_by_label(re.compile("^Mode")).select_option("servoj")
-    expect(run).to_be_enabled()
+    expect(page.locator("#steps li[data-step=dryrun]")).to_have_class("done")
     pendant.shot("dry-run-passed")
     _every_download_is_the_servers_file(pendant, "#plan-summary", "trajectories", 3)
     _every_download_is_the_servers_file(pendant, "#dryrun-summary", "executions", 1)
@@ -223,27 +227,7 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant, scene_file
     assert canvas_pixels(page)["drawn"] == pytest.approx(pixels["drawn"], rel=0.05)
     pendant.shot("workpiece")
 
-    # Run on arm: a confirmation first; cancelling sends nothing.
-    run.click()
-    dialog = page.locator("#confirm-dialog")
-    expect(dialog).to_be_visible()
-    expect(dialog).to_contain_text("ur5e")
-    expect(dialog).to_contain_text("80 mm/s")
-    expect(dialog).to_contain_text("process")
-    expect(dialog).to_contain_text("approach")
-    pendant.shot("confirm")
-    dialog.get_by_role("button", name="Cancel").click()
-    expect(dialog).to_be_hidden()
-    assert posts.count("executions") == 1
-    run.click()
-    dialog.get_by_role("button", name="Confirm: run on arm").click()
-    # This server has no real arm: the refusal is shown as what to do about it.
-    message = page.locator("#run-form .message")
-    expect(message).to_have_attribute("data-code", "no_robot")
-    expect(message).to_contain_text("TEACHPATH_UR_HOST")
-    assert posts.count("executions") == 2
-    expect(page.locator("#step-run .needs")).to_contain_text("Run on arm")
-    pendant.shot("run-refused")
+    assert posts.count("executions") == 1  # nothing was sent for the arm
 
     # A new trace: the plan, its passed dry run and "Run on arm" belonged to the old one. They
     # stayed "done" and offered before; now they are shown outdated and the run is not offered.

@@ -91,6 +91,12 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         expect(dialog.locator("th", has_text="approach").first).to_be_visible()
         pendant.shot("confirm")
         q_before = _joints(fake)
+        # Cancelling sends nothing; the run is asked for again.
+        dialog.get_by_role("button", name="Cancel").click()
+        expect(dialog).to_be_hidden()
+        expect(page.locator("#arm-owner")).to_have_text("none")
+        run.click()
+        expect(dialog).to_be_visible()
         page.get_by_role("button", name="Confirm: run on arm").click()
         stop = page.get_by_role("button", name="Stop")
         expect(stop).to_be_visible()

@@ -334,6 +334,20 @@ function stepStatesOf(s, rec, traj, dry) {
   };
 }
 
+/** Why the arm cannot take a run now, whatever the plan (null: it can). */
+function armBlocker() {
+  const robot = state.robot;
+  if (!robot) return "Waiting for the arm's state…";
+  if (!robot.real_arm) {
+    return "No real arm on this server (simulation only): the dry run is as far as a plan goes here. "
+      + "To run on an arm, start the service with TEACHPATH_UR_HOST set to the controller's address.";
+  }
+  if (robot.emergency_stop) return "The arm is in an emergency stop: release it on the teach pendant, then unlock it.";
+  if (robot.protective_stop) return "The arm is in a protective stop: clear its cause, then press Unlock in the safety bar.";
+  if (!robot.reachable) return "The arm's controller does not answer: check its network and power.";
+  return null;
+}
+
 function runState(dry) {
   const owner = state.robot?.owner_execution_id;
   // This session's run (started here, or found again after a reload or on a second pendant).
@@ -342,6 +356,8 @@ function runState(dry) {
     return { done: false, needs: `The arm is busy: execution ${owner} owns it. Wait until it ends, or press Stop.` };
   }
   if (lastRun()?.summary.completed) return { done: true, needs: "" };
+  const blocker = armBlocker();
+  if (blocker) return { done: false, needs: blocker };
   if (dry && passed(dry) && !passedHere(dry)) return { done: false, needs: IMPORTED_DRY_RUN };
   return { done: false, needs: passedHere(dry) ? "Ready: press “Run on arm” and confirm." : "Needs a passed dry run of this plan in this mode." };
 }
@@ -396,7 +412,8 @@ function updateButtons() {
   set("#plan-form button[type=submit]", !busy && Boolean(reconstruction()) && Boolean(s?.T_base_tracker));
   set("#dryrun-form button[type=submit]", !busy && Boolean(traj));
   // An outdated plan is never offered for the arm (the server refuses it too: outdated_inputs).
-  set("#run-form button[type=submit]", !busy && passedHere(dry) && !canMove() && !outdated(traj).length);
+  set("#run-form button[type=submit]",
+    !busy && passedHere(dry) && !canMove() && !outdated(traj).length && !armBlocker());
 }
 
 // -- provenance and downloads of an artifact --------------------------------------------------------
