@@ -1253,6 +1253,19 @@ class JointTrajectory:
             out[Phase(value).label] = float(np.count_nonzero(phases == value) * dt)
         return out
 
+    def phase_max_tcp_speed_m_s(self) -> dict[str, float]:
+        """The fastest TCP speed (m/s) of each phase present, between consecutive samples (a
+        period belongs to the phase of its later sample), in the order they run."""
+        if len(self) < 2:
+            return {Phase(v).label: 0.0 for v in dict.fromkeys(self.phases.tolist())}
+        speed = np.linalg.norm(np.diff(self.tcp_m, axis=0), axis=1) / np.diff(self.t_s)
+        later = self.phases[1:]
+        out: dict[str, float] = {}
+        for value in dict.fromkeys(self.phases.tolist()):
+            mine = later == value
+            out[Phase(value).label] = float(speed[mine].max()) if mine.any() else 0.0
+        return out
+
     @property
     def duration_s(self) -> float:
         return float(self.t_s[-1]) if len(self.t_s) else 0.0

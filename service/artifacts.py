@@ -430,6 +430,9 @@ class TrajectorySummary(_Summary):
     phase_durations_s: dict[str, float] = Field(
         default_factory=dict, description="seconds per phase: transit, approach, process, ..."
     )
+    phase_max_tcp_speed_m_s: dict[str, float] = Field(
+        default_factory=dict, description="the fastest TCP speed of each phase (m/s)"
+    )
     start_q_rad: list[float] | None = Field(None, description="where the motion starts")
     start_from: str | None = Field(None, description="arm, home or given")
     configuration: str | None = Field(None, description="the IK configuration kept, in words")

@@ -648,6 +648,7 @@ class PlanOutcome:
             clearance = float(np.min(report.clearance_m))
         return {
             "phase_durations_s": traj.phase_durations_s(),
+            "phase_max_tcp_speed_m_s": traj.phase_max_tcp_speed_m_s(),
             "start_q_rad": [float(v) for v in plan.start_q_rad],
             "start_from": self.start_from,
             "configuration": plan.configuration.words(),

@@ -182,6 +182,18 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant, scene_file
     expect(summary.locator(".report")).not_to_be_empty()
     assert posts.count("trajectories") == 1
     expect(page.get_by_role("button", name="Run on arm")).to_be_disabled()
+    # Every phase's fastest TCP speed is shown, and the speed plot does not hide what is above
+    # its scale (it was cut at 1.6 times the path's speed without a mark: the transit's 588
+    # mm/s did not show).
+    transit = summary.locator("tr[data-phase=transit] td")
+    expect(transit).to_contain_text(re.compile(r"TCP up to \d+ mm/s"))
+    fastest_mm_s = int(re.search(r"TCP up to (\d+) mm/s", transit.inner_text()).group(1))
+    assert fastest_mm_s <= 250 + 1  # the server's cap holds in the transit too
+    plot = page.locator("svg.plot[aria-label^='TCP speed']")
+    expect(plot).to_contain_text("off the scale (red on top): up to")
+    off_scale_mm_s = float(plot.get_attribute("data-off-scale"))
+    assert 1.6 * 80 < off_scale_mm_s <= fastest_mm_s + 1, (off_scale_mm_s, fastest_mm_s)
+    assert plot.locator("rect.clipped").count() >= 1
     pendant.shot("planned")
 
     # A dry run moves no arm: no Stop button (the simulated run cannot be stopped either).

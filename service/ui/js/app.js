@@ -641,9 +641,9 @@ function renderPlan() {
       ["approach", mm(sm.approach_m, 0)],
       ["closest to the cell", mm(sm.min_clearance_m, 1)],
     ]),
-    el("h4", { text: "Duration per phase" }),
+    el("h4", { text: "Duration and fastest TCP speed per phase" }),
     el("table", { class: "phases" }, ...Object.entries(sm.phase_durations_s).map(([phase, s]) =>
-      el("tr", { "data-phase": phase }, el("th", { text: phase }), el("td", { text: seconds(s) })))),
+      el("tr", { "data-phase": phase }, el("th", { text: phase }), el("td", { text: phaseText(sm, phase, s) })))),
     el("h4", { text: "Feasibility" }),
     el("p", { class: "small", text: feasible }),
     report(sm.report),
@@ -1032,6 +1032,12 @@ function payloadText(sm, robot) {
   return "not set by the plan: the controller's own stays";
 }
 
+/** A phase's duration and, where the plan says, its fastest TCP speed. */
+function phaseText(sm, phase, duration) {
+  const fastest = sm.phase_max_tcp_speed_m_s?.[phase];
+  return fastest == null ? seconds(duration) : `${seconds(duration)}, TCP up to ${mmps(fastest)}`;
+}
+
 function confirmRun(traj) {
   const sm = traj.summary;
   const robot = state.robot;
@@ -1040,7 +1046,7 @@ function confirmRun(traj) {
     ["speed", mmps(sm.requested_speed_m_s)],
     ["mode", mode()],
     ["duration", seconds(sm.duration_s)],
-    ...Object.entries(sm.phase_durations_s).map(([phase, s]) => [`  ${phase}`, seconds(s)]),
+    ...Object.entries(sm.phase_durations_s).map(([phase, s]) => [`  ${phase}`, phaseText(sm, phase, s)]),
     ["starts from", startFrom(sm.start_from)],
     ["approach", `${mm(sm.approach_m, 0)} along the tool axis`],
     ["configuration", sm.configuration || "–"],

@@ -61,8 +61,27 @@ export class Plot {
       s.values.forEach((v, i) => { if (Number.isFinite(v)) points.push(`${x(t[i]).toFixed(1)},${y(Math.min(v, this.top)).toFixed(1)}`); });
       node.append(svg("polyline", { points: points.join(" "), fill: "none", stroke: s.colour, "stroke-width": 1.3 }));
     }
+    // Values above the scale are never hidden: a red bar on the top edge where they are, and the
+    // largest named in the title (the transit's TCP speed is far above the process path's).
+    const over = values.filter((v) => v > this.top);
+    for (const s of series) {
+      let first = null;
+      s.values.forEach((v, i) => {
+        const above = Number.isFinite(v) && v > this.top;
+        if (above && first === null) first = i;
+        if ((!above || i === s.values.length - 1) && first !== null) {
+          const end = above ? i : i - 1;
+          node.append(svg("rect", { x: x(t[first]) - 1, y: this.pad.top - 3, width: Math.max(2, x(t[end]) - x(t[first]) + 2),
+            height: 4, fill: "#d62728", class: "clipped" }));
+          first = null;
+        }
+      });
+    }
     const label = svg("text", { x: this.pad.left, y: 11, "font-size": 11 });
-    label.textContent = `${title} [${unit}]`;
+    const largest = over.length ? Math.max(...over) : null;
+    label.textContent = `${title} [${unit}]` + (largest === null ? ""
+      : ` · off the scale (red on top): up to ${Math.abs(largest) >= 100 ? largest.toFixed(0) : largest.toPrecision(3)} ${unit}`);
+    node.dataset.offScale = largest === null ? "" : String(largest);
     node.append(label);
     for (const v of [this.bottom, this.top]) {
       const tick = svg("text", { x: this.pad.left - 4, y: y(v) + 4, "font-size": 10, "text-anchor": "end" });
