@@ -8,6 +8,7 @@ import math
 import re
 
 import numpy as np
+import pytest
 from playwright.sync_api import expect
 
 from tests.ui.test_pendant import canvas_pixels
@@ -210,14 +211,24 @@ def test_the_plan_parameters_come_from_the_schema_and_reach_the_plan(pendant):
     expect(lead).to_have_attribute("max", "60")
     expect(form.locator("label[for=plan-lead_deg] .hint")).to_contain_text("deg")
     lead.fill("10")
-    tcp = form.locator("#plan-tcp_offset_m")
+    # One TCP field, showing the TCP the plan uses (the 100 mm default tool; the form showed a
+    # 0,0,0 offset before), in mm and degrees as on UR's pendant.
+    tcp = form.locator("#plan-tcp_pose")
+    expect(tcp).to_have_value("0, 0, 100, 0, 0, 0")
+    expect(form.locator("label[for=plan-tcp_pose] .name")).to_have_text(
+        "TCP: x, y, z (mm), rx, ry, rz (deg)"
+    )
     tcp.fill("0, 0")  # two numbers: refused on the page, nothing sent
     posts = []
     page.on("request", lambda r: posts.append(r.url) if r.method == "POST" else None)
     form.get_by_role("button", name="Plan").click()
-    expect(form.locator(".message")).to_contain_text("tcp_offset_m: give 3 numbers")
+    expect(form.locator(".message")).to_contain_text("rz (deg): give 6 numbers")
     assert not posts
-    tcp.fill("0, 0, 0.12")
+    tcp.fill("0, 0, 9000, 0, 0, 0")  # 9 m: out of range, said in mm and degrees
+    form.get_by_role("button", name="Plan").click()
+    expect(form.locator(".message")).to_contain_text("[-6283.2, 6283.2] / [-360, 360]")
+    assert not posts
+    tcp.fill("0, 0, 120, 0, 0, 0")
     # Leaning 10° along the travel in this configuration, the tool meets the cylinder on the
     # way out: what to change. (With shoulder or wrist left to "any", another configuration is
     # tried and found clear.)
@@ -239,7 +250,11 @@ def test_the_plan_parameters_come_from_the_schema_and_reach_the_plan(pendant):
     params = trajectories[-1]["params"]
     assert trajectories[-1]["inputs"]["reconstruction_id"] == rid
     assert params["lead_deg"] == 0 and params["tilt_deg"] == 10
-    assert params["tcp_offset_m"] == [0, 0, 0.12] and params["robot"] == "ur5e"
+    assert params["tcp_pose"] == pytest.approx([0, 0, 0.12, 0, 0, 0]) and params["robot"] == "ur5e"
+    # The plan summary says which TCP and payload it was planned with.
+    plan = page.locator("#plan-summary")
+    expect(plan).to_contain_text("x 0.0, y 0.0, z 120.0 mm; rx 0.0, ry 0.0, rz 0.0 deg")
+    expect(plan).to_contain_text("not set by the plan: the controller's")
     assert params["speed_m_s"] == 0.05
     assert params["shoulder"] == "right" and params["wrist"] == "flip"
 

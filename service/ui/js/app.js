@@ -640,6 +640,8 @@ function renderPlan() {
       ["starts from", startFrom(sm.start_from)],
       ["approach", mm(sm.approach_m, 0)],
       ["closest to the cell", mm(sm.min_clearance_m, 1)],
+      ["TCP", tcpText(sm.tcp_pose)],
+      ["payload", payloadText(sm, state.robot)],
     ]),
     el("h4", { text: "Duration and fastest TCP speed per phase" }),
     el("table", { class: "phases" }, ...Object.entries(sm.phase_durations_s).map(([phase, s]) =>
@@ -883,7 +885,7 @@ function wireCalibration() {
 
 const RECONSTRUCTION_FIELDS = ["radius_m", "alpha", "beta", "degree", "method", "spacing_m", "use_scan", "registration", "use_touches"];
 /** The plan's parameters on the form (the speed has its slider). */
-const PLAN_FIELDS = ["robot", "orientation", "lead_deg", "tilt_deg", "smooth_m", "tcp_offset_m", "approach_m",
+const PLAN_FIELDS = ["robot", "orientation", "lead_deg", "tilt_deg", "smooth_m", "tcp_pose", "approach_m",
   "shoulder", "elbow", "wrist", "tool_radius_m", "clearance_m", "payload_kg", "return_to_start"];
 
 function numberField(name, spec) {
@@ -896,6 +898,12 @@ function numberField(name, spec) {
 }
 
 /** One input for a parameter of the API's schema, with its range and default. */
+const DEG_PER_RAD = 180 / Math.PI;
+/** Fields the form shows in other units than the API's SI: factor from the API's to the form's. */
+const DISPLAY_SCALES = { tcp_pose: [1000, 1000, 1000, DEG_PER_RAD, DEG_PER_RAD, DEG_PER_RAD] };
+/** Their labels, in those units. */
+const DISPLAY_NAMES = { tcp_pose: "TCP: x, y, z (mm), rx, ry, rz (deg)" };
+
 function paramInput(name, spec) {
   if (spec.type === "boolean") {
     const input = el("input", { name, type: "checkbox" });
@@ -915,10 +923,13 @@ function paramInput(name, spec) {
     return input;
   }
   if (spec.prefixItems) {
-    // x, y, z (or six numbers): typed on one line, each checked against its range.
+    // x, y, z (or six numbers): typed on one line, each checked against its range. Shown in the
+    // operator's units where the field has them (the TCP in mm and degrees, as on UR's pendant).
     const input = el("input", { name, type: "text", inputmode: "decimal" });
-    input.value = (spec.default || []).join(", ");
+    const scales = DISPLAY_SCALES[name] || spec.prefixItems.map(() => 1);
+    input.value = (spec.default || []).map((v, i) => +(v * scales[i]).toFixed(6)).join(", ");
     input.dataset.items = JSON.stringify(spec.prefixItems.map((s) => [s.minimum, s.maximum]));
+    input.dataset.scales = JSON.stringify(scales);
     return input;
   }
   if (spec.anyOf && spec.anyOf.some((s) => s.type === "null")) {
@@ -955,7 +966,7 @@ function buildParams(schema, schemaName, fields, box, prefix) {
     input.id = `${prefix}-${name}`;
     const nullable = spec.anyOf?.some((s) => s.type === "null");
     input.dataset.kind = spec.prefixItems ? "tuple" : nullable ? "optional-number" : spec.type || (spec.anyOf ? "mixed" : "string");
-    box.append(el("label", { for: input.id }, el("span", { class: "name", text: name }), input,
+    box.append(el("label", { for: input.id }, el("span", { class: "name", text: DISPLAY_NAMES[name] || name }), input,
       el("span", { class: "hint", text: spec.description || "" })));
   }
 }
@@ -978,10 +989,12 @@ function paramsBody(form, fields) {
     else if (kind === "mixed") body[name] = input.value === input.dataset.word ? input.value : Number(input.value);
     else if (kind === "tuple") {
       const ranges = JSON.parse(input.dataset.items);
-      const values = input.value.split(/[\s,;]+/).filter(Boolean).map(Number);
+      const scales = JSON.parse(input.dataset.scales || "null") || ranges.map(() => 1);
+      const values = input.value.split(/[\s,;]+/).filter(Boolean).map((v, i) => Number(v) / (scales[i] ?? 1));
       const bad = values.length !== ranges.length || values.some((v, i) => !Number.isFinite(v) || v < ranges[i][0] || v > ranges[i][1]);
       if (bad) {
-        throw { code: "invalid_request", message: `${name}: give ${ranges.length} numbers separated by commas, each in [${ranges[0][0]}, ${ranges[0][1]}] (you typed “${input.value}”)` };
+        const shown = ranges.map(([lo, hi], i) => `[${+(lo * scales[i]).toFixed(1)}, ${+(hi * scales[i]).toFixed(1)}]`);
+        throw { code: "invalid_request", message: `${DISPLAY_NAMES[name] || name}: give ${ranges.length} numbers separated by commas, in ${[...new Set(shown)].join(" / ")} (you typed “${input.value}”)` };
       }
       body[name] = values;
     } else body[name] = input.value;
