@@ -193,6 +193,20 @@ def unparsable(error: StarletteHTTPException) -> str:
     return "the request body could not be read"
 
 
+#: The names pydantic gives the members of a union in an error's location: not fields.
+_UNION_MEMBERS = {"float", "int", "str", "bool", "none", "list", "dict", "tuple", "list[float]"}
+
+
+def _where(loc) -> str:
+    """A validation error's location as the operator typed it: ``alpha``, not
+    ``body.alpha.constrained-float`` (the body is implied; the union member tried is noise)."""
+    parts = [str(p) for p in loc]
+    if parts[:1] == ["body"] and len(parts) > 1:
+        parts = parts[1:]
+    named = [p for p in parts if p not in _UNION_MEMBERS and "[" not in p and "-" not in p]
+    return ".".join(named) or "request"
+
+
 def install(app: FastAPI) -> None:
     """Register the handlers on ``app``."""
 
@@ -213,7 +227,7 @@ def install(app: FastAPI) -> None:
     async def _validation(request: Request, error: RequestValidationError):
         errors = error.errors()
         problems = [
-            {"where": ".".join(str(p) for p in e.get("loc", ())), "problem": e.get("msg")}
+            {"where": _where(e.get("loc", ())), "problem": e.get("msg")}
             for e in errors[:MAX_LISTED_PROBLEMS]
         ]
         first = problems[0] if problems else {"where": "request", "problem": "invalid"}

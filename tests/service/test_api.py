@@ -536,3 +536,21 @@ def test_the_generated_token_is_private(tmp_path):
     token = settings.access_token()
     assert len(token) >= 24 and (tmp_path / "token").stat().st_mode & 0o777 == 0o600
     assert settings.access_token() == token
+
+
+@pytest.mark.parametrize(
+    "body, where",
+    [
+        ({"alpha": -1}, "alpha"),  # a number or "auto": was "body.alpha.constrained-float"
+        ({"alpha": "often"}, "alpha"),
+        ({"radius_m": "x"}, "radius_m"),
+        ({"recording_ids": [1]}, "recording_ids.0"),
+    ],
+)
+def test_validation_errors_name_the_field_as_typed(client, session, body, where):
+    response = client.post(f"/sessions/{session}/reconstructions", json=body)
+    error = assert_error(response, 422, "invalid_request")
+    assert error["message"].startswith(f"{where}: "), error["message"]
+    for noise in ("body.", "constrained", "literal[", "function-"):
+        assert noise not in error["message"], error["message"]
+    assert all(not p["where"].startswith("body") for p in error["detail"])

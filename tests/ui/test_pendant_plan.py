@@ -297,3 +297,28 @@ def pytest_approx(value: float):
     import pytest
 
     return pytest.approx(value, abs=0.02)
+
+
+def test_a_comma_decimal_is_taken_and_a_bad_value_is_said_in_the_fields_words(pendant):
+    """Operators on many keyboards type "0,8"; the server's refusals name the field as on the
+    form (it said "body.alpha.constrained-float")."""
+    page = pendant.page
+    pendant.guard.allow(422, "/reconstructions")  # the refusal below, on purpose
+    pendant.open()
+    page.get_by_role("button", name="demo", exact=True).click()
+    alpha = page.locator("#recon-alpha")
+    alpha.fill("0,8")
+    page.get_by_role("button", name="Reconstruct").click()
+    expect(page.locator("#reconstruct-form .job-state")).to_have_text(
+        "succeeded 100 %", timeout=90_000
+    )
+    sid = page.evaluate("sessionStorage.getItem('teachpath.session')")
+    reconstructions = pendant.server.client.get(f"/sessions/{sid}/reconstructions").json()
+    assert reconstructions[-1]["params"]["alpha"] == pytest.approx(0.8)
+    alpha.fill("5")  # over its range of [0, 1]: the server refuses, naming the field
+    page.get_by_role("button", name="Reconstruct").click()
+    message = page.locator("#reconstruct-form .message")
+    expect(message).to_contain_text("alpha: ")
+    expect(message).not_to_contain_text("body.")
+    expect(message).not_to_contain_text("constrained")
+    pendant.shot("alpha-refused")

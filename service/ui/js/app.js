@@ -949,7 +949,7 @@ function paramInput(name, spec) {
     input.dataset.word = word?.const || "";
     input.dataset.min = number?.minimum ?? "";
     input.dataset.max = number?.maximum ?? "";
-    input.pattern = `${word ? `${word.const}|` : ""}[0-9]*\\.?[0-9]+`;
+    input.pattern = `${word ? `${word.const}|` : ""}[0-9]*[.,]?[0-9]+`;
     return input;
   }
   return numberField(name, spec);
@@ -986,7 +986,8 @@ function paramsBody(form, fields) {
     if (input.type === "checkbox") body[name] = input.checked;
     else if (kind === "number" || kind === "integer") body[name] = Number(input.value);
     else if (kind === "optional-number") { if (input.value.trim() !== "") body[name] = Number(input.value); }
-    else if (kind === "mixed") body[name] = input.value === input.dataset.word ? input.value : Number(input.value);
+    // A comma decimal ("0,8") is the same number: many operators' keyboards type it.
+    else if (kind === "mixed") body[name] = input.value === input.dataset.word ? input.value : Number(input.value.replace(",", "."));
     else if (kind === "tuple") {
       const ranges = JSON.parse(input.dataset.items);
       const scales = JSON.parse(input.dataset.scales || "null") || ranges.map(() => 1);
