@@ -554,3 +554,31 @@ def test_touches_are_uploaded_in_the_calibration_panel_and_place_the_scan(pendan
     page.locator("#reconstruct-params").get_by_label("use_touches").uncheck()
     page.get_by_role("button", name="Reconstruct").click()
     expect(result).to_contain_text("to the scan's edge", timeout=90_000)
+
+
+def test_a_second_screen_without_the_start_url_signs_in_with_the_token(pendant):
+    """A new tab or a restarted browser has no ?token= address: it was locked out (a banner
+    saying to open the printed URL). It is offered a sign-in; a wrong token is said so and
+    asked again; the right one opens the pendant with the safety bar live."""
+    page = pendant.page
+    pendant.guard.allow(401, "/")
+    page.goto(pendant.server.url + "/")
+    page.wait_for_selector("body[data-ready=true]")
+    form = page.locator("#sign-in")
+    expect(form).to_be_visible()
+    expect(page.locator("#banner")).to_contain_text("paste it below")
+    expect(page.locator("#link-state")).not_to_have_text("live")
+    pendant.shot("sign-in")
+    page.get_by_label(re.compile("^Access token")).fill("not-the-token")
+    page.get_by_role("button", name="Sign in").click()
+    page.wait_for_selector("body[data-ready=true]")
+    expect(form).to_be_visible()  # wrong: asked again
+    assert "token" not in page.url
+    page.get_by_label(re.compile("^Access token")).fill(TOKEN)
+    page.get_by_role("button", name="Sign in").click()
+    page.wait_for_selector("body[data-ready=true]")
+    expect(page.locator("#link-state")).to_have_text("live")
+    expect(form).to_be_hidden()
+    expect(page.locator("#arm-kind")).to_have_text("SIM")
+    assert "token" not in page.url  # taken out of the address bar, as the printed URL's is
+    expect(page.get_by_role("button", name="demo", exact=True)).to_be_visible()

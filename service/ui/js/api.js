@@ -22,6 +22,14 @@ export function takeToken() {
   return fromUrl || stored || "";
 }
 
+/** Sign in with a pasted token: through the start-up URL's path, so it is kept (and taken out
+ * of the address bar) exactly as the printed URL's is. */
+export function signIn(value) {
+  const url = new URL(window.location.href);
+  url.searchParams.set("token", value.trim());
+  window.location.replace(url.href);
+}
+
 let token = "";
 export const setToken = (value) => { token = value; };
 const auth = () => ({ Authorization: `Bearer ${token}` });
@@ -153,7 +161,7 @@ export const INSTRUCTIONS = {
   unknown_format: "The file's format is not known: choose the format in the list.",
   upload_too_large: "The file is larger than the server accepts.",
   invalid_request: "A value is out of range: correct it and submit again.",
-  unauthorized: "The access token is missing or wrong: open the URL the server printed.",
+  unauthorized: "The access token is missing or wrong: paste it below (or open the URL the server printed).",
   unreachable: "The server cannot be reached: is it running?",
   collision: "The motion would collide: change the plan's options (configuration, start).",
   infeasible_trajectory: "The arm cannot follow this path: change the plan's options.",

@@ -2,7 +2,7 @@
 // Nothing here resends a request that moves or computes by itself: every POST comes from one
 // click, and the button stays disabled until its job has finished.
 
-import { api, events, explain, followJob, FINISHED, setToken, takeToken } from "./api.js";
+import { api, events, explain, followJob, FINISHED, setToken, signIn, takeToken } from "./api.js";
 import { wireCapture } from "./capture.js";
 
 const $ = (selector, root = document) => root.querySelector(selector);
@@ -106,7 +106,7 @@ async function followRobot() {
       }
     } catch (err) {
       link.textContent = `no robot state: ${explain(err).message}`;
-      if (err.status === 401) return banner(explain(err).instruction);
+      if (err.status === 401) return askToken(explain(err).instruction);
     }
     link.textContent = "reconnecting…";
     await new Promise((resolve) => setTimeout(resolve, 1000));
@@ -1182,6 +1182,19 @@ function wire() {
   });
 }
 
+/** No token, or a wrong one: say so, and offer to paste it (a second screen has no start-up URL). */
+function askToken(instruction) {
+  banner(instruction);
+  const form = $("#sign-in");
+  if (!form.hidden) return;
+  form.hidden = false;
+  form.addEventListener("submit", (event) => {
+    event.preventDefault();
+    signIn($("#sign-in-token").value);
+  }, { once: true });
+  $("#sign-in-token").focus();
+}
+
 async function main() {
   wireStop();
   setToken(takeToken());
@@ -1198,7 +1211,8 @@ async function main() {
     }
   } catch (err) {
     const { instruction, message } = explain(err);
-    banner(`${instruction} (${message})`);
+    if (err.status === 401) askToken(instruction);
+    else banner(`${instruction} (${message})`);
   }
   try {
     const [{ Workspace }, { Timeline }] = await Promise.all([import("./workspace.js"), import("./timeline.js")]);
