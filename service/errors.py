@@ -86,6 +86,7 @@ ERROR_MAP: list[tuple[type[Exception], int, str]] = [
     (gate.TrajectoryForAnotherRobot, 409, "trajectory_mismatch"),
     (gate.ConfirmationRequired, 409, "confirmation_required"),
     (gate.SpeedCapExceeded, 409, "speed_cap"),
+    (gate.ApprovalMismatch, 409, "approval_mismatch"),
     (gate.OutdatedInputs, 409, "outdated_inputs"),
     (gate.DryRunRequired, 409, "dry_run_required"),
     (gate.UnreadableTrajectory, 409, "trajectory_unreadable"),

@@ -27,6 +27,7 @@ from service.gate import (
     CellHere,
     CellUnknown,
     UnreadableTrajectory,
+    check_approved,
     check_current,
     check_here,
     check_real_arm,
@@ -128,6 +129,7 @@ def arm_owner(services: Services) -> str | None:
 def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
     settings = services.settings
     check_request(settings, confirm=request.confirm)
+    check_approved(request.approved_sha256, trajectory.sha256, trajectory.id)
     # Outdated first: the clearest answer (a moved calibration also moves the cell checked
     # below); checked again under the lock, where the inputs cannot change in between.
     check_current(
@@ -355,6 +357,8 @@ def _recorder(
     ``accepted_outdated``: what had changed since the plan when the operator picked it anyway
     (kept in the record's params)."""
     params = _artifact_params(services, request)
+    if request.approved_sha256 is not None:
+        params["approved_sha256"] = request.approved_sha256  # what the operator confirmed
     if accepted_outdated:
         params["accepted_outdated"] = list(accepted_outdated)
 

@@ -73,6 +73,10 @@ class SpeedCapExceeded(RealArmRefused):
     """The trajectory's speed is above the server's cap for a real arm."""
 
 
+class ApprovalMismatch(RealArmRefused):
+    """The trajectory file is not the one the operator approved (its checksum differs)."""
+
+
 class OutdatedInputs(RealArmRefused):
     """The plan was made from inputs that are no longer the session's current ones (a new
     trace, scan, touches or calibration since), and the request did not pick it explicitly."""
@@ -375,6 +379,22 @@ def passed_dry_run(
             continue
         return True
     return False
+
+
+def check_approved(approved_sha256: str | None, stored_sha256: str, trajectory_id: str) -> None:
+    """Refuse when the operator approved another file than the one stored under this id.
+
+    Raises
+    ------
+    ApprovalMismatch
+    """
+    if approved_sha256 is not None and approved_sha256 != stored_sha256:
+        raise ApprovalMismatch(
+            f"trajectory {trajectory_id} is not the file that was approved (sha256 "
+            f"{approved_sha256[:12]}… approved, {stored_sha256[:12]}… stored): reload the page, "
+            "check the plan again and confirm what it shows",
+            detail={"approved_sha256": approved_sha256, "stored_sha256": stored_sha256},
+        )
 
 
 def check_current(outdated: list[str], *, accept_outdated: bool) -> None:

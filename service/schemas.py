@@ -373,6 +373,13 @@ class ExecutionCreate(Strict):
     confirm: StrictBool = Field(
         False, description="must be the JSON boolean true to move a real arm"
     )
+    approved_sha256: str | None = Field(
+        None,
+        pattern="^[0-9a-f]{64}$",
+        description="the trajectory file's sha256 as the operator approved it (the pendant's "
+        "confirmation shows it): a real-arm run is refused (409 approval_mismatch) unless the "
+        "stored file is that one; kept in the run's record",
+    )
     accept_outdated: StrictBool = Field(
         False,
         description="run a plan made from inputs that are no longer the session's current ones "

@@ -128,12 +128,29 @@ def test_a_plan_of_inputs_no_longer_the_sessions_is_shown_outdated_and_refused(
     ).is_success
     outdated = client.get(plan_url).json()["outdated"]
     assert outdated == [reason]
-    job = client.post(f"/sessions/{sid}/executions", json={**run, "accept_outdated": True})
+    # The approval names the file: another checksum is refused, a malformed one is a 422.
+    sha = client.get(plan_url).json()["sha256"]
+    wrong = client.post(
+        f"/sessions/{sid}/executions",
+        json={**run, "accept_outdated": True, "approved_sha256": "0" * 64},
+    )
+    assert wrong.status_code == 409 and wrong.json()["code"] == "approval_mismatch"
+    assert wrong.json()["detail"] == {"approved_sha256": "0" * 64, "stored_sha256": sha}
+    for bad in ("abc", sha.upper(), sha + "0", 5):
+        response = client.post(
+            f"/sessions/{sid}/executions", json={**run, "approved_sha256": bad}
+        )
+        assert response.status_code == 422, (bad, response.text)
+    job = client.post(
+        f"/sessions/{sid}/executions",
+        json={**run, "accept_outdated": True, "approved_sha256": sha},
+    )
     assert job.status_code == 202, job.text
     job = wait(client, job.json(), timeout_s=120)
     assert job["state"] == "succeeded", job
     execution = client.get(f"/sessions/{sid}/executions/{job['result']['execution_id']}").json()
     assert execution["params"]["accepted_outdated"] == outdated
+    assert execution["params"]["approved_sha256"] == sha
 
 
 def test_a_confirmed_execution_runs_on_the_controller(arm, fake_ur):

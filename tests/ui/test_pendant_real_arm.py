@@ -89,6 +89,10 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         expect(dialog).to_contain_text(f"REAL ARM ur5e @ {fake.host}")
         expect(dialog).to_contain_text("20 mm/s")
         expect(dialog.locator("th", has_text="approach").first).to_be_visible()
+        # What the plan was made from, with checksums: the approval names the file that runs.
+        expect(dialog).to_contain_text("plan file")
+        expect(dialog.locator("tr", has_text="trace")).to_contain_text("sha256")
+        expect(dialog.locator("tr", has_text="scan")).to_contain_text("sha256")
         pendant.shot("confirm")
         q_before = _joints(fake)
         # Cancelling sends nothing; the run is asked for again.
@@ -155,6 +159,12 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         assert fake.control("program_status")["state"] != "running"
         expect(run).to_be_enabled()  # the dry run still holds; the operator may run again
         pendant.shot("stopped")
+        # The run's record keeps the approval: the checksum of the file the operator confirmed.
+        sid = page.evaluate("sessionStorage.getItem('teachpath.session')")
+        client = arm_server.client
+        record = client.get(f"/sessions/{sid}/executions").json()[-1]
+        plan = client.get(f"/sessions/{sid}/trajectories/{record['inputs']['trajectory_id']}")
+        assert record["params"]["approved_sha256"] == plan.json()["sha256"]
 
 
 def test_a_protective_stop_is_shown_and_unlocked_when_the_controller_allows(

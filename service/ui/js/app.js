@@ -1052,6 +1052,23 @@ function phaseText(sm, phase, duration) {
   return fastest == null ? seconds(duration) : `${seconds(duration)}, TCP up to ${mmps(fastest)}`;
 }
 
+/** What the plan was made from, named with checksums and times, as approved in the dialog. */
+function approvedInputs(traj) {
+  const rec = state.reconstructions.find((r) => r.id === traj.inputs.reconstruction_id);
+  const named = (list, id) => {
+    const row = list.find((a) => a.id === id);
+    return row ? `${row.source_name || row.id} (${row.id}, sha256 ${row.sha256.slice(0, 12)}…, ${new Date(row.created_at).toLocaleString()})` : id || "none";
+  };
+  const recordings = rec ? (rec.inputs.recording_ids || [rec.inputs.recording_id]) : [];
+  const T = traj.params?.T_base_tracker;
+  return [
+    ["plan file", `${traj.id}, sha256 ${traj.sha256.slice(0, 12)}…, ${new Date(traj.created_at).toLocaleString()}`],
+    ["trace", recordings.map((id) => named(state.recordings, id)).join("; ") || "–"],
+    ["scan", named(state.scans, rec?.inputs.scan_id)],
+    ["tracker → base", T ? `translation ${T.slice(0, 3).map((row) => mm(row[3], 1)).join(", ")}` : "–"],
+  ];
+}
+
 function confirmRun(traj) {
   const sm = traj.summary;
   const robot = state.robot;
@@ -1067,6 +1084,7 @@ function confirmRun(traj) {
     ["mount", mountText(traj.params?.mount_up, robot)],
     ["TCP", tcpText(sm.tcp_pose)],
     ["payload", payloadText(sm, robot)],
+    ...approvedInputs(traj),
   ];
   $("#confirm-table").replaceChildren(...rows.map(([k, v]) => el("tr", {}, el("th", { text: k }), el("td", { text: v }))));
   const dialog = $("#confirm-dialog");
@@ -1154,7 +1172,8 @@ function wire() {
     const dry = dryRun(traj);
     if (!traj || !passedHere(dry) || state.busy) return;
     if (!(await confirmRun(traj))) return;
-    const body = { trajectory_id: traj.id, backend: "ur_rtde", mode: mode(), confirm: true };
+    // The plan's checksum as shown in the confirmation: the server runs only that file.
+    const body = { trajectory_id: traj.id, backend: "ur_rtde", mode: mode(), confirm: true, approved_sha256: traj.sha256 };
     runJob("run", form, async () => {
       const job = await api(`/sessions/${state.session.id}/executions`, { method: "POST", json: body });
       state.moving = { executionId: job.params.execution_id, jobId: job.id };
