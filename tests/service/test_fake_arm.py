@@ -137,9 +137,7 @@ def test_a_plan_of_inputs_no_longer_the_sessions_is_shown_outdated_and_refused(
     assert wrong.status_code == 409 and wrong.json()["code"] == "approval_mismatch"
     assert wrong.json()["detail"] == {"approved_sha256": "0" * 64, "stored_sha256": sha}
     for bad in ("abc", sha.upper(), sha + "0", 5):
-        response = client.post(
-            f"/sessions/{sid}/executions", json={**run, "approved_sha256": bad}
-        )
+        response = client.post(f"/sessions/{sid}/executions", json={**run, "approved_sha256": bad})
         assert response.status_code == 422, (bad, response.text)
     job = client.post(
         f"/sessions/{sid}/executions",
