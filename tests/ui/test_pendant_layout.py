@@ -1,4 +1,5 @@
-"""The pendant at the screen sizes of a cell's touch panel and a desk (1280x800, 1920x1080):
+"""The pendant at the screen sizes of a tablet, a cell's touch panel and a desk (1024x768,
+1280x800, 1920x1080):
 nothing off to the side, the Stop and the 3-D view in reach, every control big enough for a
 finger; and the 3-D view's GPU objects do not pile up as sessions are opened again."""
 
@@ -16,7 +17,10 @@ from tests.ui.test_pendant_plan import _plan_demo
 MIN_TARGET_PX = 44
 
 
-@pytest.mark.parametrize("width, height", [(1280, 800), (1920, 1080)])
+SIZES = [(1024, 768), (1280, 800), (1920, 1080)]  # a tablet, a cell's touch panel, a desk
+
+
+@pytest.mark.parametrize("width, height", SIZES)
 def test_the_pendant_fits_the_screen_and_its_targets_fit_a_finger(
     browser, server, screens, width, height
 ):
@@ -58,6 +62,58 @@ def test_the_pendant_fits_the_screen_and_its_targets_fit_a_finger(
         )
         assert not small, f"controls smaller than {MIN_TARGET_PX} px: {small}"
         page.screenshot(path=str(screens / f"layout-{width}x{height}.png"))
+
+
+def _on_screen(page, selector: str, width: int, height: int, top: float) -> dict:
+    box = page.locator(selector).bounding_box()
+    assert box is not None, f"{selector} is not shown"
+    assert box["x"] >= 0 and box["x"] + box["width"] <= width + 0.5, (selector, box)
+    assert box["y"] >= top - 0.5 and box["y"] + box["height"] <= height + 0.5, (selector, box)
+    return box
+
+
+@pytest.mark.parametrize("width, height", SIZES)
+def test_one_screen_the_view_and_the_timeline_stay_while_pressing_each_step(
+    browser, server, screens, width, height
+):
+    """At 1280x800 the page was a 5,000 px column: pressing Plan, Dry run or Run, the 3-D view
+    was 3,000 px above and the timeline below the fold. Now the page does not scroll; each
+    column scrolls inside itself, and with each step's button in reach the safety bar, the 3-D
+    view and the timeline's controls are on the screen too."""
+    sid, _ = _plan_demo(server)
+    with pendant_for(browser, server, screens, f"one-screen-{width}x{height}") as pendant:
+        page = pendant.page
+        page.set_viewport_size({"width": width, "height": height})
+        pendant.open()
+        page.get_by_role("button", name="demo", exact=True).click()
+        page.wait_for_function(
+            "(sid) => (document.querySelector('#workspace').dataset.shown || '').startsWith(sid)",
+            arg=sid,
+        )
+        expect(page.locator("#timeline")).to_be_visible()
+        bar = page.locator("#safety-bar").bounding_box()
+        below_bar = bar["y"] + bar["height"]
+        for form in ("reconstruct", "plan", "dryrun", "run"):
+            button = f"#{form}-form button[type=submit]"
+            page.locator(button).scroll_into_view_if_needed()
+            _on_screen(page, button, width, height, below_bar)
+            view = _on_screen(page, "#workspace", width, height, below_bar)
+            assert view["height"] >= 200 and view["width"] >= 300, view
+            _on_screen(page, "#timeline-scrub", width, height, below_bar)
+            _on_screen(page, "#timeline-play", width, height, below_bar)
+            page_scroll = page.evaluate(
+                "document.documentElement.scrollHeight - window.innerHeight"
+            )
+            assert page_scroll <= 1, f"the page itself scrolls by {page_scroll} px"
+            assert page.locator("#safety-bar").bounding_box()["y"] == 0
+        # The workspace column scrolls to its plots and layers; the view and the timeline's
+        # controls stay where they are.
+        page.locator("#layers").scroll_into_view_if_needed()
+        _on_screen(page, "#layers input[name=scan]", width, height, below_bar)
+        view = _on_screen(page, "#workspace", width, height, below_bar)
+        controls = _on_screen(page, ".timeline-controls", width, height, below_bar)
+        assert controls["y"] >= view["y"] + view["height"] - 0.5, (view, controls)  # not over it
+        page.screenshot(path=str(screens / f"one-screen-{width}x{height}.png"))
 
 
 def test_reopening_sessions_does_not_pile_up_gpu_objects(pendant):
