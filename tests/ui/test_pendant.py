@@ -243,6 +243,10 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant, scene_file
 
     # A new trace: the plan, its passed dry run and "Run on arm" belonged to the old one. They
     # stayed "done" and offered before; now they are shown outdated and the run is not offered.
+    client = pendant.server.client
+    sid = page.evaluate("sessionStorage.getItem('teachpath.session')")
+    demo_trace = client.get(f"/sessions/{sid}").json()["recording_id"]
+    demo_csv = client.get(f"/sessions/{sid}/recordings/{demo_trace}/csv").content
     trace = tmp_path / "new_trace.csv"
     trace.write_bytes(scene_files["trace"])
     page.locator("#recording-form input[type=file]").set_input_files(str(trace))
@@ -268,6 +272,11 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant, scene_file
     expect(page.locator("#step-plan .needs")).to_contain_text("press Plan")
     expect(page.locator("#plan-summary .outdated")).to_have_count(0)
     expect(run).to_be_disabled()
+    # The demo session is shared by the other tests: its own trace is the current one again.
+    restored = client.put(
+        f"/sessions/{sid}/recording", files={"file": ("demo_trace.csv", demo_csv)}
+    )
+    assert restored.status_code == 201, restored.text
 
 
 def test_a_reload_finds_the_running_dry_run_again_and_sends_nothing(pendant):
