@@ -141,7 +141,20 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             time.sleep(0.05)
         assert np.abs(_joints(fake) - q_before).max() > 1e-3  # the arm has moved
         pendant.shot("running")
+        # From the press until the server confirms, the page says "Stopping…" (the stop's
+        # request is held here a moment, as on a slow network).
+        held = []
+        page.route("**/executions/*/stop", lambda route: held.append(route))
         page.keyboard.press("Escape")
+        expect(stop).to_have_text("Stopping…")
+        expect(page.locator("#step-run .needs")).to_contain_text("Stopping: the stop was sent")
+        expect(stop).to_be_enabled()  # pressing again sends it again
+        deadline = time.monotonic() + 10
+        while not held:
+            assert time.monotonic() < deadline, "the stop was not sent"
+            page.wait_for_timeout(20)
+        held[0].continue_()
+        page.unroute("**/executions/*/stop")
         result = page.locator("#run-summary")
         expect(result).to_contain_text("stopped in", timeout=30_000)
         expect(result).to_contain_text("not completed")

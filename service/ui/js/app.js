@@ -120,7 +120,9 @@ function canMove() {
 
 function updateStop() {
   const show = canMove();
+  if (!show) state.stopping = null;  // nothing moves any more: the stop is confirmed
   $("#stop").hidden = !show;
+  $("#stop").textContent = state.stopping ? "Stopping…" : "Stop";
   $("#stop-hint").hidden = !show;
   document.body.classList.toggle("moving", show);
 }
@@ -128,6 +130,11 @@ function updateStop() {
 async function stop() {
   const id = state.moving?.executionId || state.robot?.owner_execution_id;
   if (!id) return;
+  // "Stopping…" from the press until the run has ended (the job finished, or the arm is free):
+  // the button stays live, pressing again sends the stop again.
+  state.stopping = id;
+  updateStop();
+  renderSteps();
   try {
     await api(`/executions/${id}/stop`, { method: "POST" });
     banner("");
@@ -351,6 +358,7 @@ function armBlocker() {
 function runState(dry) {
   const owner = state.robot?.owner_execution_id;
   // This session's run (started here, or found again after a reload or on a second pendant).
+  if (state.stopping) return { done: false, needs: "Stopping: the stop was sent; waiting for the server to confirm the arm stands still." };
   if (state.moving) return { done: false, needs: "The arm is moving: press Stop (or Esc) to stop it at once." };
   if (owner) {
     return { done: false, needs: `The arm is busy: execution ${owner} owns it. Wait until it ends, or press Stop.` };
@@ -740,9 +748,12 @@ async function runJob(step, form, start, onDone) {
   try {
     const job = await start();
     bar.hidden = false;
+    // Progress never goes back on the page (an event and a poll can arrive out of order).
+    let shown = 0;
     const finished = await followJob(job, (j) => {
-      bar.value = j.progress;
-      label.textContent = `${j.state} ${Math.round(j.progress * 100)} %`;
+      shown = Math.max(shown, j.progress);
+      bar.value = shown;
+      label.textContent = `${j.state} ${Math.round(shown * 100)} %`;
     });
     if (finished.state === "cancelled") {
       // A Stop (or a cancel): say where it ended, not just the state twice.
@@ -757,6 +768,7 @@ async function runJob(step, form, start, onDone) {
   } finally {
     state.busy = null;
     state.moving = null;
+    state.stopping = null;
     bar.hidden = true;
     updateStop();
     await refresh().catch(() => {});
