@@ -161,17 +161,29 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     expect(page.locator("#legend-modes")).to_be_visible()
     expect(page.locator("#legend-displacement")).to_be_hidden()
 
-    # Click a reconstruction point: its diagnostics. Then measure between the path's ends; the
-    # distance is the one between the CSV's first and last points.
-    for name in ("scan", "raw trace", "planned TCP path", "arm", "frames"):
-        page.get_by_label(name, exact=True).uncheck()
     csv = pendant.server.client.get(f"/sessions/{sid}/reconstructions/{rid}/csv").text
     rows = [line.split(",") for line in csv.splitlines() if line and not line.startswith("#")]
     header, body = rows[0], rows[1:]
     xyz = np.array([[float(r[header.index(c)]) for c in "xyz"] for r in body])
     middle = len(xyz) // 2
-    _click_point(page, "reconstruction", middle)
+    # With every layer shown, a click on a reconstruction point, or 6 px beside it, lands on
+    # the reconstruction, not on the denser scan behind it (the nearest point to the ray won).
     readout = page.locator("#pick-readout")
+    page.locator("#workspace canvas").scroll_into_view_if_needed()
+    at = page.evaluate(
+        "([layer, index]) => document.querySelector('#workspace').workspace.screenOf(layer, index)",
+        ["reconstruction", middle],
+    )
+    for dx, dy in ((0, 0), (6, 0), (0, -6)):
+        page.mouse.click(at["x"] + dx, at["y"] + dy)
+        expect(readout).to_contain_text(re.compile(r"^reconstruction point \d+ at"))
+    page.mouse.click(at["x"], at["y"])
+    expect(readout).to_contain_text(f"reconstruction point {middle} at")
+    # Click a reconstruction point: its diagnostics. Then measure between the path's ends; the
+    # distance is the one between the CSV's first and last points.
+    for name in ("scan", "raw trace", "planned TCP path", "arm", "frames"):
+        page.get_by_label(name, exact=True).uncheck()
+    _click_point(page, "reconstruction", middle)
     expect(readout).to_contain_text(f"reconstruction point {middle} at")
     expect(readout).to_contain_text("displacement")
     expect(readout).to_contain_text("mode: an edge of the scan")

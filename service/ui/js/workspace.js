@@ -7,6 +7,9 @@ import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { api } from "./api.js";
 
+/** Which shown layer a click picks first, when several have a point under the finger. */
+const PICK_ORDER = ["overlay", "reconstruction", "path", "trace", "scan"];
+
 /** The layers that show the workpiece (framed by default). */
 const WORKPIECE = ["scan", "trace", "reconstruction"];
 const COLOURS = { scan: 0x8a8f98, trace: 0xff8c00, path: 0x1f77ff };
@@ -493,13 +496,19 @@ export class Workspace {
     const pointer = new THREE.Vector2(((event.clientX - box.left) / box.width) * 2 - 1, -((event.clientY - box.top) / box.height) * 2 + 1);
     const caster = new THREE.Raycaster();
     caster.setFromCamera(pointer, this.camera);
-    // About 6 pixels at the target's distance.
+    // A finger's reach (22 px, half a 44 px target) on a touch screen, 10 px with a mouse, at the
+    // target's distance.
+    const radiusPx = event.pointerType === "touch" || event.pointerType === "pen" ? 22 : 10;
     const distance = this.camera.position.distanceTo(this.controls.target);
-    caster.params.Points.threshold = (6 / box.height) * 2 * distance * Math.tan(THREE.MathUtils.degToRad(this.camera.fov / 2));
+    caster.params.Points.threshold = (radiusPx / box.height) * 2 * distance * Math.tan(THREE.MathUtils.degToRad(this.camera.fov / 2));
     caster.params.Line.threshold = caster.params.Points.threshold;
-    const targets = ["overlay", "reconstruction", "trace", "scan", "path"].map((n) => this.layers[n]).filter((o) => o?.visible);
+    // The layer the operator looks at first: the overlay and the reconstruction over the path,
+    // the raw trace, and the dense scan behind them all (a click near a reconstruction point
+    // landed on the scan point that happened to be nearer the ray).
+    const targets = PICK_ORDER.map((n) => this.layers[n]).filter((o) => o?.visible);
+    const rank = (h) => PICK_ORDER.indexOf(h.object.name);
     const hit = caster.intersectObjects(targets, false).filter((h) => h.index < h.object.geometry.drawRange.count)
-      .sort((a, b) => a.distanceToRay - b.distanceToRay)[0];
+      .sort((a, b) => rank(a) - rank(b) || a.distanceToRay - b.distanceToRay)[0];
     if (!hit) return this.hooks.onPick?.(null);
     const position = hit.object.geometry.attributes.position;
     const point = new THREE.Vector3().fromBufferAttribute(position, hit.index);
