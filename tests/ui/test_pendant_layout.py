@@ -91,6 +91,13 @@ def test_one_screen_the_view_and_the_timeline_stay_while_pressing_each_step(
             arg=sid,
         )
         expect(page.locator("#timeline")).to_be_visible()
+        # The plots keep their height in the scrolling column (they were squeezed to a strip).
+        plots = page.locator("#plan-plots svg.plot")
+        expect(plots).to_have_count(4)
+        heights = [plot.bounding_box()["height"] for plot in plots.all()]
+        assert min(heights) >= 60, heights
+        held = page.locator("#plan-plots").bounding_box()["height"]
+        assert held >= sum(heights) - 1, (held, heights)  # not drawn over what follows
         bar = page.locator("#safety-bar").bounding_box()
         below_bar = bar["y"] + bar["height"]
         for form in ("reconstruct", "plan", "dryrun", "run"):
