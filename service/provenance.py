@@ -42,20 +42,16 @@ def reconstruction_outdated(
     reasons = []
     inputs = reconstruction.inputs
     used = inputs.get("recording_ids") or [inputs.get("recording_id")]
-    if session.recording_id is not None and session.recording_id not in used:
+    if session.recording_id not in used and _newer(store, session.recording_id, reconstruction):
         reasons.append(
             f"the trace: made from {', '.join(map(str, used))}; the session's trace is now "
             f"{session.recording_id}"
         )
     scan_id = inputs.get("scan_id")
-    if scan_id is not None and session.scan_id != scan_id:
+    if session.scan_id != scan_id and _newer(store, session.scan_id, reconstruction):
         reasons.append(
-            f"the scan: made with {scan_id}; the session's scan is now {session.scan_id or 'none'}"
+            f"the scan: made with {scan_id or 'none'}; scan {session.scan_id} was added after it"
         )
-    elif scan_id is None and session.scan_id is not None:
-        scan = store.artifact(session.scan_id, kind="scan")
-        if scan is not None and scan.created_at > reconstruction.created_at:
-            reasons.append(f"the scan: made without one; scan {session.scan_id} was added after it")
     touches_id = inputs.get("touches_id")
     if touches_id is not None:
         newest = store.artifacts(session.id, "touches")
@@ -96,7 +92,12 @@ def trajectory_outdated(
         [] if reconstruction is None else reconstruction_outdated(store, session, reconstruction)
     )
     planned = trajectory.params.get("T_base_tracker")
-    if planned is not None and session.T_base_tracker is not None:
+    if planned is None and session.T_base_tracker is not None:
+        reasons.append(
+            "the tracker-to-base calibration: the plan was made without one; the session has "
+            "one now"
+        )
+    elif planned is not None and session.T_base_tracker is not None:
         moved_m, turned_rad = _difference(planned, session.T_base_tracker)
         if moved_m > SAME_CALIBRATION_M or turned_rad > SAME_CALIBRATION_RAD:
             reasons.append(
@@ -104,6 +105,15 @@ def trajectory_outdated(
                 f"{moved_m * 1e3:.1f} mm and {np.degrees(turned_rad):.2f} deg"
             )
     return reasons
+
+
+def _newer(store: Store, artifact_id: str | None, than: ArtifactRow) -> bool:
+    """Whether the session's current input ``artifact_id`` came after ``than`` was made (an
+    input a request named on purpose, older than the result, is not a change since)."""
+    if artifact_id is None:
+        return False
+    current = store.artifact(artifact_id)
+    return current is not None and current.created_at > than.created_at
 
 
 def _difference(T_a, T_b) -> tuple[float, float]:

@@ -145,6 +145,10 @@ def read_journal(path: str | Path) -> tuple[FloatArray, FloatArray, FloatArray]:
     try:
         with open(path, "rb") as file:
             head = file.read(HEADER_BYTES)
+            if not head.strip(b"\0"):
+                # Created, and nothing written before the writer died (a text journal not yet
+                # flushed, a header never written back): the arm never moved under it.
+                return np.zeros(0), np.zeros((0, 6)), np.zeros((0, 6))
             if head.startswith(CSV_HEADER.encode()):
                 return _read_csv_journal(path)
             if len(head) < HEADER_BYTES or head[:8] != MAGIC:
@@ -167,6 +171,10 @@ def read_journal(path: str | Path) -> tuple[FloatArray, FloatArray, FloatArray]:
             data = np.fromfile(file, dtype="<f8", count=count * COLUMNS).reshape(count, COLUMNS)
     except OSError as exc:
         raise InputFileError(f"the execution journal {name} cannot be read: {exc}") from None
+    # Rows counted but never written back (a power loss: the count's page reached the disk, a
+    # row's did not) read as all zeros at the end: the samples before them are kept.
+    written = np.flatnonzero(data.any(axis=1))
+    data = data[: written[-1] + 1 if len(written) else 0]
     _check_samples(data, name)
     return data[:, 0], data[:, 1:7], data[:, 7:13]
 

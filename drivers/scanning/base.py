@@ -451,16 +451,21 @@ def check_scan_units(points_m, units: str, label: str) -> None:
     points = np.asarray(points_m)
     if len(points) == 0:
         return
-    with np.errstate(over="ignore"):  # a file's 1e300: its extent is inf, refused below
-        extent_m = float(np.linalg.norm(np.ptp(points, axis=0)))
-    farthest_m = float(np.abs(points).max())
+    # Of the bulk (0.5-99.5 % on each axis): a few stray points far out do not refuse a scan.
+    lo, hi = np.percentile(points, [0.5, 99.5], axis=0)
+    with np.errstate(over="ignore", invalid="ignore"):  # a file's 1e300: inf, refused below
+        extent_m = float(np.linalg.norm(hi - lo))
+        farthest_m = float(np.percentile(np.abs(points).max(axis=1), 99.5))
     if extent_m > MAX_SCAN_EXTENT_M or farthest_m > MAX_SCANNER_DISTANCE_M:
         said = (
             f"the scan {label}, read as {'millimetres' if units == 'mm' else 'metres'}, spans "
             f"{extent_m:.4g} m and reaches {farthest_m:.4g} m from its origin"
         )
         # As millimetres it would be a workpiece within a few metres of the scanner.
-        in_mm_fits = 1e-3 * max(extent_m, farthest_m) <= MAX_SCAN_EXTENT_M
+        in_mm_fits = (
+            1e-3 * max(extent_m, farthest_m) <= MAX_SCAN_EXTENT_M
+            and 1e-3 * extent_m >= MIN_SCAN_EXTENT_MM_M
+        )
         if units == "m" and in_mm_fits:
             raise UnitsMismatchError(
                 f"{said}: its numbers look like millimetres (it would span "

@@ -103,7 +103,6 @@ def _header(count: int, capacity: int, columns: int = 13) -> bytes:
 @pytest.mark.parametrize(
     "content, words",
     [
-        (b"", "not a teachpath journal"),
         (b"\x89PNG\r\n\x1a\n" + bytes(100), "not a teachpath journal"),
         (MAGIC + bytes(10), "not a teachpath journal"),  # the header itself cut
         (_header(5, 5) + bytes(2 * ROW_BYTES), "declares 5 samples"),  # cut after two rows
@@ -112,7 +111,7 @@ def _header(count: int, capacity: int, columns: int = 13) -> bytes:
         (_header(MAX_SAMPLES + 1, MAX_SAMPLES + 1), "at most 4,000,000"),  # no 430 MB+ read
         (_header(1, 1, columns=12) + bytes(ROW_BYTES), "of 12 numbers"),
     ],
-    ids=["empty", "png", "cut-header", "cut-rows", "over-capacity", "huge", "too-many", "columns"],
+    ids=["png", "cut-header", "cut-rows", "over-capacity", "huge", "too-many", "columns"],
 )
 def test_files_no_writer_left_are_refused_with_what_is_wrong(tmp_path, content, words):
     path = tmp_path / "bad.journal"
@@ -172,3 +171,29 @@ def test_bad_text_journals_are_refused(tmp_path, body, words):
     path.write_bytes(CSV_HEADER.encode() + b"\xff\xfe\n")
     with pytest.raises(InputFileError, match="cannot be read"):
         read_journal(path)
+
+
+@pytest.mark.parametrize(
+    "content", [b"", bytes(HEADER_BYTES + 3 * ROW_BYTES)], ids=["0 bytes", "zeros"]
+)
+def test_a_journal_nothing_was_written_to_has_no_samples(tmp_path, content):
+    """The writer died before anything reached the file (a text journal before its first flush,
+    a header never written back): the arm never moved under it. It was refused before."""
+    for name in ("exe_x.journal", "exe_x.csv"):
+        path = tmp_path / name
+        path.write_bytes(content)
+        t, q, tcp = read_journal(path)
+        assert len(t) == 0 and q.shape == (0, 6) and tcp.shape == (0, 6)
+
+
+def test_rows_counted_but_never_written_back_keep_the_samples_before_them(tmp_path):
+    """A power loss can write the count's page back and not the last rows': they read as zeros
+    at the end. The samples before them are kept (the whole journal was refused)."""
+    path = tmp_path / "j.journal"
+    data = _samples(50)
+    _write(path, data)
+    raw = bytearray(path.read_bytes())
+    raw[HEADER_BYTES + 40 * ROW_BYTES : HEADER_BYTES + 50 * ROW_BYTES] = bytes(10 * ROW_BYTES)
+    path.write_bytes(bytes(raw))
+    t, q, tcp = read_journal(path)
+    assert np.array_equal(np.column_stack([t, q, tcp]), data[:40])

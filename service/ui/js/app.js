@@ -139,6 +139,10 @@ async function stop() {
     await api(`/executions/${id}/stop`, { method: "POST" });
     banner("");
   } catch (err) {
+    // Not sent: the page must not say it is stopping (press again, or use the arm's own stop).
+    state.stopping = null;
+    updateStop();
+    renderSteps();
     banner(`Stop: ${explain(err).message}`);
   }
 }
