@@ -1258,7 +1258,10 @@ class JointTrajectory:
         period belongs to the phase of its later sample), in the order they run."""
         if len(self) < 2:
             return {Phase(v).label: 0.0 for v in dict.fromkeys(self.phases.tolist())}
-        speed = np.linalg.norm(np.diff(self.tcp_m, axis=0), axis=1) / np.diff(self.t_s)
+        # The real-arm gate's own measure of the TCP's speed, so that the two agree.
+        from recon.sample_check import tcp_speeds_m_s  # here: sample_check imports this module
+
+        speed = tcp_speeds_m_s(self.arm, self.q_rad, tcp_m=self.tcp_m, rate_hz=1.0 / self.period_s)
         later = self.phases[1:]
         out: dict[str, float] = {}
         for value in dict.fromkeys(self.phases.tolist()):

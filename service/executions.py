@@ -131,7 +131,8 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
     check_request(settings, confirm=request.confirm)
     check_approved(request.approved_sha256, trajectory.sha256, trajectory.id)
     # Outdated first: the clearest answer (a moved calibration also moves the cell checked
-    # below); checked again under the lock, where the inputs cannot change in between.
+    # below); checked again under the lock, just before the arm is taken (uploads do not take
+    # that lock: an input changed in the moments between is caught at the second look).
     check_current(
         trajectory_outdated(services.store, services.session(session_id), trajectory),
         accept_outdated=request.accept_outdated,
