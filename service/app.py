@@ -18,6 +18,7 @@ from service.api import (
     executions,
     health,
     jobs,
+    pairing,
     reconstructions,
     recordings,
     robot,
@@ -32,12 +33,16 @@ from service.core import Services
 from service.demo import create_demo_session
 from service.guards import BodyLimit, TokenGate
 from service.jobs import JobManager
+from service.pairing import Pairing
 from service.robot import RobotWatch
 from service.schemas import ErrorBody
 from service.settings import Settings
 from service.store import HEARTBEAT_S, Store
 
 log = logging.getLogger("teachpath.service")
+
+#: Requests with a body that need no token (TokenGate): stopping an execution and pairing.
+TOKEN_FREE_POSTS = (r"/executions/[^/]+/stop", r"/pairing")
 
 
 def _recover(services: Services) -> None:
@@ -140,7 +145,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=version,
         description="Robot programming by demonstration: reconstruct a hand-traced path with a "
         "scan of the workpiece, plan it for a Universal Robots arm, dry-run and execute it. "
-        "Every route but /health needs `Authorization: Bearer TOKEN`.",
+        "Every route needs `Authorization: Bearer TOKEN` but /health, the arm's state (GET /robot, "
+        "/robot/events), Stop (POST /executions/{id}/stop) and POST /pairing.",
         lifespan=lifespan,
         # Served by service.api.ui from local copies of the libraries (no CDN).
         docs_url=None,
@@ -162,21 +168,29 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     # Outermost: who sends a body is known before any of it is received (service/guards.py).
     app.add_middleware(
-        TokenGate, token=lambda: getattr(getattr(app.state, "services", None), "token", None)
+        TokenGate,
+        token=lambda: getattr(getattr(app.state, "services", None), "token", None),
+        open_paths=TOKEN_FREE_POSTS,
     )
+    # One code at a time for a second screen (printed by `teachpath serve`).
+    app.state.pairing = Pairing()
 
+    # Without the token: liveness, the arm's state and Stop (any screen by the cell shows the
+    # safety state and can stop the arm, as anyone may press an emergency stop), and pairing.
     app.include_router(health.router)
+    app.include_router(robot.router)
+    app.include_router(executions.stop_router)
+    app.include_router(pairing.router)
     protected = [Depends(require_token)]
     documented = {status: {"model": ErrorBody} for status in (401, 404, 409, 413, 422, 503)}
     for router in (
-        robot.router,
+        robot.unlock_router,
         sessions.router,
         recordings.router,
         scans.router,
         reconstructions.router,
         trajectories.router,
         executions.router,
-        executions.stop_router,
         jobs.router,
         jobs.session_router,
         captures.router,

@@ -7,7 +7,8 @@ access. These guards sit in front of the application:
 
 * :class:`TokenGate` refuses every request that can carry a body (anything but GET, HEAD and
   OPTIONS) without the right ``Authorization: Bearer`` token with 401, from its headers alone;
-  nothing of the body is received. (GET routes keep the token dependency.)
+  nothing of the body is received. (GET routes keep the token dependency.) The few paths that
+  need no token (Stop, pairing) may send at most :data:`OPEN_BODY_BYTES`.
 * :class:`BodyLimit` refuses bodies above a size with 413: a JSON body above
   ``max_json_bytes`` (no JSON document the API takes comes near it), any other body above the
   upload limit; a declared Content-Length at once, a chunked body as it arrives.
@@ -17,7 +18,10 @@ from __future__ import annotations
 
 import hmac
 import json
+import re
 
+#: The largest body a request without the token may send (bytes).
+OPEN_BODY_BYTES = 1024
 #: Methods that never carry a body the application reads.
 BODILESS = frozenset({"GET", "HEAD", "OPTIONS"})
 
@@ -41,14 +45,22 @@ class TokenGate:
     app : ASGI application
     token : callable returning str
         The expected token (read per request: the services hold it once started).
+    open_paths : tuple of str
+        Regular expressions of paths that need no token (matched whole).
     """
 
-    def __init__(self, app, token) -> None:
+    def __init__(self, app, token, open_paths: tuple[str, ...] = ()) -> None:
         self.app, self.token = app, token
+        self.open_paths = re.compile("|".join(f"(?:{p})" for p in open_paths) or "(?!)")
+        # What needs no token takes no more than a pairing code: nobody without the token can
+        # make the server receive a large body.
+        self.open_limited = BodyLimit(app, OPEN_BODY_BYTES, OPEN_BODY_BYTES)
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http" or scope.get("method", "GET") in BODILESS:
             return await self.app(scope, receive, send)
+        if self.open_paths.fullmatch(scope.get("path", "")):
+            return await self.open_limited(scope, receive, send)
         expected = self.token()
         given = _bearer(scope)
         if expected is None:
@@ -133,6 +145,8 @@ class BodyLimit:
                 f"the JSON body exceeds {limit // 1024} KB: no request of this API needs that "
                 "much (files go as multipart uploads)"
             )
+        elif limit < 1024 * 1024:
+            message = f"the request body exceeds {limit // 1024} KB"
         else:
             message = f"the request body exceeds {limit // (1024 * 1024)} MB"
         await _answer(send, 413, "upload_too_large", message)

@@ -452,6 +452,29 @@ class CaptureCreate(Strict):
         return value
 
 
+class PairingIn(Strict):
+    """A pairing code typed on a second screen."""
+
+    code: str = Field(
+        ...,
+        pattern=r"^[0-9]{6}$",
+        description="the six digits the server printed, or a signed-in pendant shows",
+    )
+
+
+class PairingOut(BaseModel):
+    """The access token, for the screen that gave the right code."""
+
+    token: str
+
+
+class PairingCodeOut(BaseModel):
+    """A new pairing code (the previous one is void)."""
+
+    code: str = Field(..., description="six digits, good for one sign-in")
+    expires_in_s: float = Field(..., description="seconds it is good for")
+
+
 class StopOut(JobOut):
     """The execution's job after the stop request."""
 

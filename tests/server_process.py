@@ -68,8 +68,10 @@ class Server:
     def _start(self, token: str | None, timeout_s: float) -> None:
         deadline = time.monotonic() + 60
         self.url = None
-        while self.url is None:
-            assert time.monotonic() < deadline, "the server did not print its URL"
+        #: The pairing code the server printed (the last of its start-up lines).
+        self.pairing_code = None
+        while self.pairing_code is None:
+            assert time.monotonic() < deadline, "the server did not print its URL and code"
             line = self.process.stdout.readline()
             assert line or self.process.poll() is None, "the server exited"
             match = re.search(r"open (http://127\.0\.0\.1:\d+)/\?token=(\S+)", line)
@@ -77,6 +79,9 @@ class Server:
                 self.url = match.group(1)
                 assert token is None or match.group(2) == token
                 token = match.group(2)
+            code = re.search(r"pairing code for another screen: ([0-9]{6}) ", line)
+            if code:
+                self.pairing_code = code.group(1)
         self.token = token
         self.client = httpx.Client(
             base_url=self.url, timeout=timeout_s, headers={"Authorization": f"Bearer {token}"}

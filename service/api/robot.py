@@ -13,7 +13,10 @@ from service.errors import ApiError
 from service.executions import arm_owner
 from service.schemas import RobotOut
 
+#: The arm's state: no token needed (the safety bar of any screen by the cell).
 router = APIRouter(prefix="/robot", tags=["robot"])
+#: Acting on the arm: with the token.
+unlock_router = APIRouter(prefix="/robot", tags=["robot"])
 
 #: How long the event stream waits for a change before it repeats the state (a keep-alive).
 KEEPALIVE_S = 5.0
@@ -83,7 +86,7 @@ async def robot_events(services: ServicesDep) -> StreamingResponse:
     )
 
 
-@router.post("/unlock", response_model=RobotOut)
+@unlock_router.post("/unlock", response_model=RobotOut)
 def unlock_protective_stop(services: ServicesDep) -> dict:
     """Unlock a protective stop (after its cause is gone; UR refuses within 5 s of it)."""
     services.robot.unlock_protective_stop()

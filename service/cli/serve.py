@@ -31,6 +31,7 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from service.app import create_app
+    from service.pairing import CODE_TTL_S
     from service.settings import Settings
 
     overrides = {
@@ -54,7 +55,13 @@ def run(args: argparse.Namespace) -> int:
     shown = f"[{host}]" if ":" in host else host
     print(f"teachpath is serving {settings.data_dir}")
     print(f"open http://{shown}:{port}/?token={token}")
-    print(f"API: http://{shown}:{port}/docs (send 'Authorization: Bearer {token}')", flush=True)
+    print(f"API: http://{shown}:{port}/docs (send 'Authorization: Bearer {token}')")
+    print(
+        f"pairing code for another screen: {app.state.pairing.issue()} (once, within "
+        f"{CODE_TTL_S / 60:.0f} min; "
+        "a signed-in pendant makes new ones: Pair a screen)",
+        flush=True,
+    )
     config = uvicorn.Config(app, log_level="warning")
     uvicorn.Server(config).run(sockets=[sock])
     return 0

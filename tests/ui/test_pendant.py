@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from playwright.sync_api import expect
 
-from tests.ui.conftest import TOKEN
+from tests.ui.conftest import TOKEN, pendant_for
 
 
 def test_token_leaves_the_url_and_the_safety_bar_shows_the_sim_arm(pendant):
@@ -565,29 +565,57 @@ def test_touches_are_uploaded_in_the_calibration_panel_and_place_the_scan(pendan
     expect(result).to_contain_text("to the scan's edge", timeout=90_000)
 
 
-def test_a_second_screen_without_the_start_url_signs_in_with_the_token(pendant):
-    """A new tab or a restarted browser has no ?token= address: it was locked out (a banner
-    saying to open the printed URL). It is offered a sign-in; a wrong token is said so and
-    asked again; the right one opens the pendant with the safety bar live."""
+def test_a_second_screen_without_the_start_url_shows_the_arm_and_signs_in(
+    pendant, browser, screens
+):
+    """A new tab or a restarted browser has no ?token= address. It shows the safety bar live at
+    once (and would show Stop); it is offered a sign-in by a pairing code that a signed-in
+    screen makes, or by the token. A wrong code or token is said so and asked again."""
     page = pendant.page
     pendant.guard.allow(401, "/")
     page.goto(pendant.server.url + "/")
     page.wait_for_selector("body[data-ready=true]")
     form = page.locator("#sign-in")
     expect(form).to_be_visible()
-    expect(page.locator("#banner")).to_contain_text("paste it below")
-    expect(page.locator("#link-state")).not_to_have_text("live")
-    pendant.shot("sign-in")
-    page.get_by_label(re.compile("^Access token")).fill("not-the-token")
-    page.get_by_role("button", name="Sign in").click()
-    page.wait_for_selector("body[data-ready=true]")
-    expect(form).to_be_visible()  # wrong: asked again
-    assert "token" not in page.url
-    page.get_by_label(re.compile("^Access token")).fill(TOKEN)
-    page.get_by_role("button", name="Sign in").click()
-    page.wait_for_selector("body[data-ready=true]")
+    expect(page.locator("#banner")).to_contain_text("type a pairing code or paste the access token")
+    # The safety state needs no sign-in.
     expect(page.locator("#link-state")).to_have_text("live")
-    expect(form).to_be_hidden()
     expect(page.locator("#arm-kind")).to_have_text("SIM")
+    pendant.shot("sign-in")
+    # A wrong token: asked again.
+    page.get_by_label(re.compile("^or the access token")).fill("not-the-token")
+    page.get_by_role("button", name="Sign in").click()
+    page.wait_for_selector("body[data-ready=true]")
+    expect(form).to_be_visible()
+    assert "token" not in page.url
+    # A pairing code, made on a signed-in screen ("Pair a screen").
+    with pendant_for(browser, pendant.server, screens, "pairing-first-screen") as first:
+        first.open()
+        first.page.get_by_role("button", name="Pair a screen").click()
+        shown = first.page.locator("#pairing-code")
+        expect(shown).to_contain_text("type it on the other screen before")
+        code = shown.get_attribute("data-code")
+        first.shot("code")
+    assert code and re.fullmatch(r"[0-9]{6}", code)
+    wrong = f"{(int(code) + 1) % 10**6:06d}"
+    code_field = page.get_by_label(re.compile("^Pairing code"))
+    code_field.fill(wrong)
+    page.get_by_role("button", name="Sign in").click()
+    expect(page.locator("#sign-in-message")).to_contain_text("wrong code (4 tries left)")
+    code_field.fill(code)
+    page.get_by_role("button", name="Sign in").click()
+    page.wait_for_selector("body[data-ready=true]")
+    expect(form).to_be_hidden()
+    expect(page.locator("#link-state")).to_have_text("live")
     assert "token" not in page.url  # taken out of the address bar, as the printed URL's is
+    expect(page.get_by_role("button", name="demo", exact=True)).to_be_visible()
+    pendant.shot("paired")
+    # The code worked once; the token too signs a screen in.
+    page.evaluate("sessionStorage.clear()")
+    page.goto(pendant.server.url + "/")
+    page.wait_for_selector("body[data-ready=true]")
+    page.get_by_label(re.compile("^or the access token")).fill(TOKEN)
+    page.get_by_role("button", name="Sign in").click()
+    page.wait_for_selector("body[data-ready=true]")
+    expect(form).to_be_hidden()
     expect(page.get_by_role("button", name="demo", exact=True)).to_be_visible()

@@ -141,20 +141,39 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             time.sleep(0.05)
         assert np.abs(_joints(fake) - q_before).max() > 1e-3  # the arm has moved
         pendant.shot("running")
-        # From the press until the server confirms, the page says "Stopping…" (the stop's
-        # request is held here a moment, as on a slow network).
-        held = []
-        page.route("**/executions/*/stop", lambda route: held.append(route))
-        page.keyboard.press("Escape")
-        expect(stop).to_have_text("Stopping…")
-        expect(page.locator("#step-run .needs")).to_contain_text("Stopping: the stop was sent")
-        expect(stop).to_be_enabled()  # pressing again sends it again
-        deadline = time.monotonic() + 10
-        while not held:
-            assert time.monotonic() < deadline, "the stop was not sent"
-            page.wait_for_timeout(20)
-        held[0].continue_()
-        page.unroute("**/executions/*/stop")
+        # A screen that is not signed in (a tablet by the cell, no token) shows the arm owned
+        # and a Stop that works: its Escape is the stop that lands. The operator's page presses
+        # Escape too. From each press until the server confirms, each page says "Stopping…"
+        # (the stops' requests are held a moment, as on a slow network).
+        with pendant_for(browser, arm_server, screens, "real-arm-signed-out") as bystander:
+            near = bystander.page
+            bystander.guard.allow(401, "/")
+            near.goto(arm_server.url + "/")
+            near.wait_for_selector("body[data-ready=true]")
+            expect(near.locator("#sign-in")).to_be_visible()
+            expect(near.locator("#arm-kind")).to_have_text("REAL ARM")
+            expect(near.locator("#arm-owner")).to_have_text(owner)
+            near_stop = near.get_by_role("button", name="Stop")
+            expect(near_stop).to_be_visible()
+            bystander.shot("arm-owned")
+            held, near_held = [], []
+            page.route("**/executions/*/stop", lambda route: held.append(route))
+            near.route("**/executions/*/stop", lambda route: near_held.append(route))
+            near.keyboard.press("Escape")
+            expect(near_stop).to_have_text("Stopping…")
+            page.keyboard.press("Escape")
+            expect(stop).to_have_text("Stopping…")
+            expect(page.locator("#step-run .needs")).to_contain_text("Stopping: the stop was sent")
+            expect(stop).to_be_enabled()  # pressing again sends it again
+            deadline = time.monotonic() + 10
+            while not (held and near_held):
+                assert time.monotonic() < deadline, "a stop was not sent"
+                page.wait_for_timeout(20)
+            near_held[0].continue_()  # the signed-out screen's stop, without a token
+            expect(near_stop).to_be_hidden(timeout=30_000)
+            expect(near.locator("#arm-owner")).to_have_text("none")
+            held[0].continue_()
+            page.unroute("**/executions/*/stop")
         result = page.locator("#run-summary")
         expect(result).to_contain_text("stopped in", timeout=30_000)
         expect(result).to_contain_text("not completed")

@@ -161,7 +161,10 @@ export const INSTRUCTIONS = {
   unknown_format: "The file's format is not known: choose the format in the list.",
   upload_too_large: "The file is larger than the server accepts.",
   invalid_request: "A value is out of range: correct it and submit again.",
-  unauthorized: "The access token is missing or wrong: paste it below (or open the URL the server printed).",
+  unauthorized:
+    "This screen is not signed in (or its token is wrong): type a pairing code or paste the " +
+    "access token below (or open the URL the server printed).",
+  pairing_failed: "The pairing code was not accepted: ask for a new one with “Pair a screen”.",
   unreachable: "The server cannot be reached: is it running?",
   collision: "The motion would collide: change the plan's options (configuration, start).",
   infeasible_trajectory: "The arm cannot follow this path: change the plan's options.",

@@ -1208,6 +1208,7 @@ function wire() {
   contrast.checked = recall("localStorage", "teachpath.contrast") === "1";
   theme(contrast.checked);
   contrast.addEventListener("change", () => theme(contrast.checked));
+  $("#pair-screen").addEventListener("click", pairScreen);
   $("#unlock").addEventListener("click", async () => {
     try {
       showRobot(await api("/robot/unlock", { method: "POST" }));
@@ -1217,17 +1218,51 @@ function wire() {
   });
 }
 
-/** No token, or a wrong one: say so, and offer to paste it (a second screen has no start-up URL). */
+/** No token, or a wrong one: say so, and offer to sign in (a second screen has no start-up URL)
+ * with the pairing code or the token. The safety bar and Stop work meanwhile (no token needed). */
 function askToken(instruction) {
   banner(instruction);
+  document.body.classList.add("signed-out");
   const form = $("#sign-in");
   if (!form.hidden) return;
   form.hidden = false;
-  form.addEventListener("submit", (event) => {
+  const message = $("#sign-in-message");
+  form.addEventListener("submit", async (event) => {
     event.preventDefault();
-    signIn($("#sign-in-token").value);
-  }, { once: true });
-  $("#sign-in-token").focus();
+    const code = $("#sign-in-code").value.trim();
+    const token = $("#sign-in-token").value.trim();
+    message.textContent = "";
+    if (token) return signIn(token);
+    if (!/^[0-9]{6}$/.test(code)) {
+      message.textContent = "Type the six digits of the pairing code, or paste the access token.";
+      return;
+    }
+    try {
+      const answer = await api("/pairing", { method: "POST", json: { code } });
+      signIn(answer.token);
+    } catch (err) {
+      message.textContent = explain(err).message;
+      $("#sign-in-code").select();
+    }
+  });
+  $("#sign-in-code").focus();
+}
+
+/** "Pair a screen": a new one-time code for a tablet or a second browser to sign in with. */
+async function pairScreen() {
+  const out = $("#pairing-code");
+  try {
+    const { code, expires_in_s: expiresInS } = await api("/pairing/code", { method: "POST" });
+    const until = new Date(Date.now() + expiresInS * 1000);
+    const time = until.toLocaleTimeString([], { hour: "2-digit", minute: "2-digit" });
+    out.replaceChildren(
+      el("b", { class: "code", text: code }),
+      el("span", { text: `type it on the other screen before ${time} (it works once)` }),
+    );
+    out.dataset.code = code;
+  } catch (err) {
+    out.textContent = `No code: ${explain(err).message}`;
+  }
 }
 
 async function main() {
