@@ -87,6 +87,27 @@ class RobotWatch:
         self._version = 0
         self._closing = threading.Event()
         self._thread = threading.Thread(target=self._run, name="robot watch", daemon=True)
+        self._arm = None  # the arm's kinematic model, made on the first view with joints
+
+    def _joint_positions_m(self, state) -> list | None:
+        """Where the arm's joints are now (base frame, m), for the pendant's live arm: base, the
+        DH frames 1..6 (6: the flange) from the joints read, then the TCP the controller
+        reports. Shape (8, 3) as nested lists; (7, 3) without a TCP; None without joints."""
+        if state.q_rad is None:
+            return None
+        from recon import kinematics
+
+        if self._arm is None:
+            arm = kinematics.model(self.settings.ur_robot)
+            calibration = self.settings.arm_calibration
+            self._arm = arm if calibration is None else kinematics.with_calibration(arm, calibration)
+        q = np.asarray(state.q_rad, dtype=np.float64)
+        if q.shape != (6,) or not np.isfinite(q).all():
+            return None
+        points = kinematics.joint_frames(self._arm, q)[:, :3, 3]
+        if state.tcp_pose is not None and np.isfinite(state.tcp_pose[:3]).all():
+            points = np.vstack([points, np.asarray(state.tcp_pose[:3], dtype=np.float64)])
+        return np.round(points, 5).tolist()
 
     def start(self) -> None:
         self._thread.start()
@@ -166,6 +187,7 @@ class RobotWatch:
         return {
             **asdict(state),
             "q_rad": None if state.q_rad is None else list(state.q_rad),
+            "joints_m": self._joint_positions_m(state),
             "tcp_pose": None if state.tcp_pose is None else list(state.tcp_pose),
             "payload_cog_m": None if state.payload_cog_m is None else list(state.payload_cog_m),
             "real_arm": self.backend != "sim",

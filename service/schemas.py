@@ -498,6 +498,11 @@ class RobotOut(BaseModel):
     remote_control: bool | None
     program_running: bool
     q_rad: list[float] | None
+    joints_m: list[list[float]] | None = Field(
+        None,
+        description="where the joints are (base frame, m): base, DH frames 1-6 (6: the "
+        "flange) from the joints read, and the TCP the controller reports; (8, 3)",
+    )
     tcp_pose: list[float] | None = Field(None, description="x, y, z (m), rx, ry, rz; base")
     payload_kg: float | None = Field(
         None,

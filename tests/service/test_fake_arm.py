@@ -473,6 +473,15 @@ def test_the_robot_state_follows_the_controller(arm, fake_ur):
     assert state["robot_mode"] == "RUNNING" and state["safety_status"] == "NORMAL"
     assert state["remote_control"] is True and state["max_speed_m_s"] == pytest.approx(0.1)
     assert np.abs(np.array(state["q_rad"]) - q_start).max() < 1e-6
+    # Where the joints are, for the pendant's live arm: the flange as forward kinematics puts
+    # it, and the TCP as the controller reports it.
+    from recon import kinematics
+
+    joints = np.array(state["joints_m"])
+    assert joints.shape == (8, 3) and np.allclose(joints[0], 0.0)
+    flange = kinematics.forward(kinematics.model("ur5e"), np.array(state["q_rad"]))[:3, 3]
+    assert np.abs(joints[6] - flange).max() < 2e-5
+    assert np.abs(joints[7] - np.array(state["tcp_pose"][:3])).max() < 2e-5
     fake_ur.control("protective_stop")
     deadline = time.monotonic() + 5
     while not client.get("/robot").json()["protective_stop"]:

@@ -4,6 +4,7 @@ the clicks that reconstruct and plan are tested in test_pendant.py)."""
 
 from __future__ import annotations
 
+import json
 import math
 import re
 
@@ -75,11 +76,23 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     expect(page.locator("#timeline-now")).to_have_text(re.compile(r"^0\.00 s / \d+\.\d\d s$"))
     expect(_readout(page, "phase")).to_have_text("transit")
     total_s = float(page.locator("#timeline-now").text_content().split("/ ")[1].split(" ")[0])
-    # The arm's stick figure is drawn (in the whole motion's view: it stands metres away).
+    # The arm where it stands now (from the robot's state stream; the simulated arm at home):
+    # drawn in green, its TCP the one the server reports.
+    robot = pendant.server.client.get("/robot").json()
+    assert len(robot["joints_m"]) == 8
+    expect(page.locator("#workspace")).to_have_attribute(
+        "data-live-arm", json.dumps(robot["joints_m"][-1], separators=(",", ":"))
+    )
+    # (At the plan's start the planned arm stands where the live one does: hidden here.)
     page.get_by_role("button", name="Whole motion").click()
-    page.get_by_label("arm", exact=True).uncheck()
+    page.get_by_label("planned arm", exact=True).uncheck()
+    with_live_arm = canvas_pixels(page)
+    page.get_by_label("arm now", exact=True).uncheck()
     without_arm = canvas_pixels(page)
-    page.get_by_label("arm", exact=True).check()
+    assert without_arm["drawn"] < with_live_arm["drawn"], (without_arm, with_live_arm)
+    # The planned arm's stick figure is drawn (in the whole motion's view: it stands metres
+    # away).
+    page.get_by_label("planned arm", exact=True).check()
     at_start = canvas_pixels(page)
     assert at_start["drawn"] > without_arm["drawn"], (at_start, without_arm)
     start_digest = canvas_digest(page)
@@ -181,7 +194,7 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     expect(readout).to_contain_text(f"reconstruction point {middle} at")
     # Click a reconstruction point: its diagnostics. Then measure between the path's ends; the
     # distance is the one between the CSV's first and last points.
-    for name in ("scan", "raw trace", "planned TCP path", "arm", "frames"):
+    for name in ("scan", "raw trace", "planned TCP path", "planned arm", "arm now", "frames"):
         page.get_by_label(name, exact=True).uncheck()
     _click_point(page, "reconstruction", middle)
     expect(readout).to_contain_text(f"reconstruction point {middle} at")
@@ -292,7 +305,15 @@ def test_two_reconstructions_overlaid_with_their_difference(pendant):
     expect(note).to_contain_text(f"{expected['max_m'] * 1000:.3f} mm at most")
     expect(page.locator("#legend-overlay")).to_be_visible()
     assert canvas_digest(page) != before
-    for name in ("scan", "raw trace", "reconstruction", "planned TCP path", "arm", "frames"):
+    for name in (
+        "scan",
+        "raw trace",
+        "reconstruction",
+        "planned TCP path",
+        "planned arm",
+        "arm now",
+        "frames",
+    ):
         page.get_by_label(name, exact=True).uncheck()
     _click_point(page, "overlay", expected["at_index"])
     readout = page.locator("#pick-readout")

@@ -6,6 +6,7 @@ arm disabled, its Stop shown), and clears a protective stop with Unlock.
 
 from __future__ import annotations
 
+import json
 import re
 import time
 
@@ -140,6 +141,16 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             assert time.monotonic() < deadline, "the run did not get a fifth of the way"
             time.sleep(0.05)
         assert np.abs(_joints(fake) - q_before).max() > 1e-3  # the arm has moved
+        # The 3-D view draws the arm where it is now, following the controller's state.
+        drawn = page.locator("#workspace").get_attribute("data-live-arm")
+        page.wait_for_function(
+            "(before) => document.querySelector('#workspace').dataset.liveArm !== before",
+            arg=drawn,
+            timeout=10_000,
+        )
+        tcp_now = np.array(json.loads(page.locator("#workspace").get_attribute("data-live-arm")))
+        tcp_server = np.array(arm_server.client.get("/robot").json()["tcp_pose"][:3])
+        assert np.linalg.norm(tcp_now - tcp_server) < 0.05  # moving at 20 mm/s, read apart
         pendant.shot("running")
         # A screen that is not signed in (a tablet by the cell, no token) shows the arm owned
         # and a Stop that works: its Escape is the stop that lands. The operator's page presses

@@ -86,6 +86,7 @@ function showRobot(robot) {
   $("#arm-owner").textContent = robot.owner_execution_id || "none";
   $("#speed-cap").textContent = mmps(robot.max_speed_m_s);
   $("#safety-bar").classList.toggle("alarm", stopped || robot.emergency_stop || !robot.reachable);
+  state.workspace?.showLiveArm(robot.reachable ? robot.joints_m : null);
   updateStop();
   updatePlanSpeed();
   // The plan is for the arm the server drives, unless the operator chose another model.
@@ -1298,6 +1299,7 @@ async function main() {
       },
     });
     timeline = new Timeline($("#timeline"), (joints) => state.workspace.pose(joints));
+    if (state.robot?.reachable) state.workspace.showLiveArm(state.robot.joints_m);
     if (state.session) await refresh();
   } catch (err) {
     $("#workspace-note").textContent = `The 3-D view is unavailable: ${err.message}`;

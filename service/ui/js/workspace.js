@@ -10,6 +10,9 @@ import { api } from "./api.js";
 /** Which shown layer a click picks first, when several have a point under the finger. */
 const PICK_ORDER = ["overlay", "reconstruction", "path", "trace", "scan"];
 
+/** The live arm is redrawn at most this often (ms). */
+const LIVE_ARM_MS = 200;
+
 /** The layers that show the workpiece (framed by default). */
 const WORKPIECE = ["scan", "trace", "reconstruction"];
 const COLOURS = { scan: 0x8a8f98, trace: 0xff8c00, path: 0x1f77ff };
@@ -119,6 +122,7 @@ export class Workspace {
     this.controls.addEventListener("start", () => { this.steered = true; }); // the operator's camera now
     this.pointSize = 2;
     this.layers = {};
+    this.inBaseFrame = true; // nothing shown yet: the arm's own frame
     this.shown = null; // what the layers were filled from (ids), so nothing is fetched twice
     this.preview = null;
     this.reconstruction = null; // the shown reconstruction's CSV columns (for picking)
@@ -158,11 +162,11 @@ export class Workspace {
 
   /** The objects a layer toggle switches (the arm figure is two; the frames three). */
   members(toggle) {
-    return { arm: ["arm", "arm-joints"], frames: ["frames"], path: ["path", "tool-axes"] }[toggle] || [toggle];
+    return { arm: ["arm", "arm-joints"], "live-arm": ["live-arm", "live-arm-joints"], frames: ["frames"], path: ["path", "tool-axes"] }[toggle] || [toggle];
   }
 
   toggleOf(name) {
-    return { "arm-joints": "arm", "tool-axes": "path" }[name] || name;
+    return { "arm-joints": "arm", "live-arm-joints": "live-arm", "tool-axes": "path" }[name] || name;
   }
 
   resize() {
@@ -192,7 +196,7 @@ export class Workspace {
       geometry.setAttribute("position", new THREE.BufferAttribute(new Float32Array(Math.max(capacity, positions.length)), 3));
       if (colours) geometry.setAttribute("color", new THREE.BufferAttribute(new Float32Array(colours.length), 3));
       const material = kind === "points"
-        ? new THREE.PointsMaterial({ size: name === "arm-joints" ? 8 : this.pointSize, sizeAttenuation: false, vertexColors: Boolean(colours), color: colours ? 0xffffff : colour })
+        ? new THREE.PointsMaterial({ size: name.endsWith("arm-joints") ? 8 : this.pointSize, sizeAttenuation: false, vertexColors: Boolean(colours), color: colours ? 0xffffff : colour })
         : new THREE.LineBasicMaterial({ color: colours ? 0xffffff : colour, vertexColors: Boolean(colours) });
       object = kind === "points" ? new THREE.Points(geometry, material)
         : kind === "segments" ? new THREE.LineSegments(geometry, material) : new THREE.Line(geometry, material);
@@ -257,6 +261,8 @@ export class Workspace {
     // The base frame when calibrated; the scan through the registration the reconstruction found.
     const baseTracker = matrix(session.T_base_tracker);
     this.baseTracker = baseTracker;
+    this.inBaseFrame = Boolean(session.T_base_tracker);
+    this.showLiveArm(this.liveArm);
     const scanTracker = matrix(rec?.summary.T_scan_tracker || session.T_scan_tracker);
     const baseScan = baseTracker.clone().multiply(scanTracker.clone().invert());
     const transformed = (xyz, m) => {
@@ -472,6 +478,31 @@ export class Workspace {
       positions.set([x, y, z, x - 0.015 * ax, y - 0.015 * ay, z - 0.015 * az], 6 * k);
     });
     this.layer("tool-axes", "segments", positions, null, 0x0b3d91);
+  }
+
+  /** The arm where it stands now (base frame, [[x, y, z], ...]: base, DH frames, flange, TCP),
+   * from the robot's state stream, beside the planned one; null hides it. Drawn only while the
+   * view is in the base frame (a session without a tracker-to-base calibration is shown in the
+   * tracker's), and redrawn at most every LIVE_ARM_MS (the stream may send 20 states a second). */
+  showLiveArm(points) {
+    this.liveArm = points;
+    if (this.liveArmTimer) return;
+    this.liveArmTimer = setTimeout(() => {
+      this.liveArmTimer = null;
+      const now = this.liveArm;
+      if (!now || !this.inBaseFrame) {
+        this.clear("live-arm");
+        this.clear("live-arm-joints");
+        this.container.dataset.liveArm = now ? "not in the base frame" : "none";
+      } else {
+        const flat = Float32Array.from(now.flat());
+        this.layer("live-arm", "line", flat, null, 0x0a8f3c);
+        this.layer("live-arm-joints", "points", flat, null, 0x0a8f3c);
+        this.container.dataset.liveArm = JSON.stringify(now[now.length - 1]);
+      }
+      this.render();
+    }, this.liveArmDrawn ? LIVE_ARM_MS : 0);
+    this.liveArmDrawn = true;
   }
 
   /** Draw the arm's stick figure: base, the DH frames' origins, the flange and the TCP. */
