@@ -100,7 +100,9 @@ class RobotWatch:
         if self._arm is None:
             arm = kinematics.model(self.settings.ur_robot)
             calibration = self.settings.arm_calibration
-            self._arm = arm if calibration is None else kinematics.with_calibration(arm, calibration)
+            self._arm = (
+                arm if calibration is None else kinematics.with_calibration(arm, calibration)
+            )
         q = np.asarray(state.q_rad, dtype=np.float64)
         if q.shape != (6,) or not np.isfinite(q).all():
             return None
