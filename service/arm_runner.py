@@ -30,7 +30,8 @@ import numpy as np
 
 from drivers.errors import MotionStoppedError
 from drivers.robot.base import ExecutionRecord, RobotBackend
-from recon.types import JointTrajectory, Phase
+from drivers.robot.dryrun import reached_phase
+from recon.types import JointTrajectory
 from service.errors import error_body
 from service.store import Store, now
 
@@ -147,7 +148,6 @@ class ExecutionRunner:
     def _drive(self) -> dict:
         """Run the execution; return the job's final fields (state, result, error, progress)."""
         record: ExecutionRecord | None = None
-        started = time.monotonic()
         try:
             self._next("connecting")
             self.backend.connect()
@@ -169,24 +169,28 @@ class ExecutionRunner:
                 record = self.backend.execute(
                     self.trajectory, on_progress=self._progress, journal=self.journal
                 )
-            return self._ended(record, [record.fault] if record.fault else [], started)
+            return self._ended(record, [record.fault] if record.fault else [])
         except Exception as error:  # every failure ends the job, with what was recorded
             record = self._with_journal(
                 record or getattr(self.backend, "last_record", None), str(error)
             )
             if isinstance(error, MotionStoppedError) or self._stop.is_set():
-                return self._ended(record, [str(error)], started)
+                return self._ended(record, [str(error)])
             log.warning("execution job %s failed: %s", self.job_id, error)
-            result = self._record(record, [str(error)], started, self.where(record))
+            result = self._record(record, [str(error)], self.where(record))
             return {"state": "failed", "error": error_body(error), "result": result}
 
-    def _ended(self, record: ExecutionRecord | None, faults: list[str], started: float) -> dict:
-        """Record the execution; the job succeeded, or was cancelled by a stop."""
-        completed = record is not None and record.completed and not self._stop.is_set()
+    def _ended(self, record: ExecutionRecord | None, faults: list[str]) -> dict:
+        """Record the execution; the job succeeded, or was cancelled by a stop.
+
+        One verdict for the job and its record: an execution that sent its last sample has
+        completed, even when a Stop came in while it ended (the job and the record then both
+        say completed; "cancelled" with a completed record said two things)."""
+        completed = record is not None and record.completed
         if not completed:
             record = self._with_journal(record, "; ".join(faults) or "stopped")
         stopped_in = None if completed else self.where(record)
-        result = self._record(record, faults, started, stopped_in)
+        result = self._record(record, faults, stopped_in)
         return {
             "state": "succeeded" if completed else "cancelled",
             "result": result,
@@ -206,21 +210,20 @@ class ExecutionRunner:
             return from_journal
         return record
 
-    def _record(self, record, faults: list[str], started: float, stopped_in) -> dict | None:
+    def _record(self, record, faults: list[str], stopped_in) -> dict | None:
         """Store the execution's record (retried while the database is busy); None if it
         could not be stored, in which case the journal stays for the next start to recover."""
-        duration_s = time.monotonic() - started
         return _retrying(
-            lambda: self.record(record, faults, duration_s, stopped_in),
+            lambda: self.record(record, faults, stopped_in),
             f"the record of job {self.job_id} (its journal is kept for the next start)",
         )
 
     def where(self, record: ExecutionRecord | None) -> str:
-        """Where the execution got to: a step before motion, or the phase of its last sample."""
+        """Where the execution got to: a step before motion, or the phase the arm was in at
+        its last sample (the report's rule: :func:`drivers.robot.dryrun.reached_phase`)."""
         if record is None or len(record) == 0:
             return f"before moving ({self.step})"
-        index = int(np.clip(record.planned()[-1], 0, len(self.trajectory) - 1))
-        return Phase(int(self.trajectory.phases[index])).label
+        return reached_phase(self.trajectory, record, self.backend.config.lookahead_s)
 
 
 #: How long the runner keeps trying to store an execution's end while the database is busy

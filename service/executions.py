@@ -17,7 +17,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from drivers.robot.base import backend_config, create_backend
-from recon.types import Phase
+from drivers.robot.dryrun import reached_phase
 from service import tasks
 from service.arm_runner import ExecutionRunner, journal_record
 from service.artifacts import ID_PREFIX, ExecutionCodec, ReconstructionCodec, ScanCodec
@@ -363,10 +363,8 @@ def _recorder(
     if accepted_outdated:
         params["accepted_outdated"] = list(accepted_outdated)
 
-    def record(execution_record, faults: list[str], duration_s: float, stopped_in) -> dict:
-        summary = _real_summary(
-            loaded, execution_record, faults, duration_s, stopped_in, request, config
-        )
+    def record(execution_record, faults: list[str], stopped_in) -> dict:
+        summary = _real_summary(loaded, execution_record, faults, stopped_in, request, config)
         services.store.add_arrays_artifact(
             artifact_id=out_id,
             session_id=session_id,
@@ -382,7 +380,7 @@ def _recorder(
     return record
 
 
-def _real_summary(trajectory, record, faults, duration_s, stopped_in, request, config) -> dict:
+def _real_summary(trajectory, record, faults, stopped_in, request, config) -> dict:
     from drivers.robot.dryrun import execution_report
 
     outcome = ExecutionOutcome(
@@ -390,7 +388,6 @@ def _real_summary(trajectory, record, faults, duration_s, stopped_in, request, c
             trajectory,
             record,
             mode=request.mode,
-            duration_s=duration_s,
             lookahead_s=config.lookahead_s,
             faults=faults,
             dry_run=False,
@@ -501,7 +498,6 @@ def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
     trajectory = tasks.load_trajectory(store.path_of(trajectory_row), trajectory_row.summary)
     fault = "the service stopped during the execution"
     record = journal_record(trajectory, journal, fault)
-    t_s = np.zeros(0) if record is None else record.t_s
     if record is None:  # nothing was journalled: the arm never moved
         record = ExecutionRecord(np.zeros(0), np.zeros((0, 6)), np.zeros((0, 6)), False, fault)
     request = ExecutionCreate(
@@ -513,20 +509,8 @@ def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
     config = backend_config(
         "ur_rtde", host=services.settings.ur_host or "unknown", robot=trajectory.robot
     )
-    where = (
-        "before moving"
-        if len(t_s) == 0
-        else Phase(int(trajectory.phases[record.planned_index[-1]])).label
-    )
-    summary = _real_summary(
-        trajectory,
-        record,
-        [record.fault],
-        float(t_s[-1]) if len(t_s) else 0.0,
-        where,
-        request,
-        config,
-    )
+    where = reached_phase(trajectory, record, config.lookahead_s)
+    summary = _real_summary(trajectory, record, [record.fault], where, request, config)
     store.add_arrays_artifact(
         artifact_id=execution_id,
         session_id=job.session_id,

@@ -27,7 +27,8 @@ class ExecutionReport:
     mode : {"servoj", "movepath"}
         How it ran: every sample streamed, or coarse waypoints run by the controller.
     duration_s, planned_duration_s : float
-        Execution time (a simulation includes settling at the end) and the plan's.
+        How long the arm was driven (:func:`motion_time_s`: the recorded samples, the same
+        for a simulation and a real arm) and the plan's duration.
     max_path_deviation_m : float or None
         Largest distance of the executed TCP from the planned TCP path (across the path)
         along the process phase (the path itself; all of the motion for a trajectory without
@@ -54,7 +55,8 @@ class ExecutionReport:
     phase_durations_s : dict of str to float
         Planned seconds per phase.
     executed_phase_durations_s : dict of str to float
-        Seconds recorded per phase (where the execution got to).
+        Seconds of each phase the arm got through (:func:`executed_phase_durations_s`): the
+        planned ones for a completed execution, the phases up to where it stopped otherwise.
     max_deviation_by_phase_m : dict of str to float
         Largest distance of the executed TCP from the planned TCP path, per phase recorded.
     """
@@ -174,7 +176,6 @@ def dry_run(
         backend = SimBackend(settings, clock=FakeClock())
     faults: list[str] = []
     record = None
-    t0 = backend.clock.now()
     try:
         backend.connect()
         backend.enable()
@@ -193,7 +194,6 @@ def dry_run(
         trajectory,
         record,
         mode=mode,
-        duration_s=backend.clock.now() - t0,
         lookahead_s=backend.config.lookahead_s,
         faults=faults,
         dry_run=True,
@@ -222,6 +222,60 @@ def off_path_m(arm, actual_flange: FloatArray, plan_q_rad: FloatArray) -> FloatA
     return distance_to_curve(actual_flange[:, :3, 3], plan_flange)
 
 
+def recorded_plan_index(trajectory: JointTrajectory, planned_index, lookahead_s: float):
+    """Which sample of the plan the arm was at for each recorded sample.
+
+    servoJ runs the stream a lookahead behind the sample sent with it, so the arm is at the
+    plan's sample ``lookahead_s`` earlier. The one rule for the report's phases, the phase a
+    stopped run stopped in and the phases' executed seconds.
+
+    Parameters
+    ----------
+    trajectory : JointTrajectory
+    planned_index : ndarray of shape (S,)
+        The plan's sample sent with each recorded one.
+    lookahead_s : float
+
+    Returns
+    -------
+    ndarray of shape (S,), int
+    """
+    lag = int(round(lookahead_s / trajectory.period_s))
+    return np.clip(np.asarray(planned_index, dtype=np.int64) - lag, 0, len(trajectory) - 1)
+
+
+def reached_phase(trajectory: JointTrajectory, record: ExecutionRecord, lookahead_s: float) -> str:
+    """The phase the arm was in at the record's last sample (see :func:`recorded_plan_index`);
+    "before moving" for an empty record."""
+    if record is None or len(record) == 0:
+        return "before moving"
+    last = recorded_plan_index(trajectory, record.planned()[-1:], lookahead_s)[0]
+    return Phase(int(trajectory.phases[last])).label
+
+
+def executed_phase_durations_s(trajectory: JointTrajectory, reached: int) -> dict[str, float]:
+    """Seconds of each phase the arm got through, up to the plan's sample ``reached``: counted
+    as :meth:`JointTrajectory.phase_durations_s` counts the plan's, so a completed execution
+    shows its plan's figures and no phase shows more than planned."""
+    phases = trajectory.phases[: reached + 1]
+    out: dict[str, float] = {}
+    for value in dict.fromkeys(phases.tolist()):
+        out[Phase(value).label] = float(np.count_nonzero(phases == value) * trajectory.period_s)
+    return out
+
+
+def motion_time_s(record: ExecutionRecord | None) -> float:
+    """How long the arm was driven: from the first recorded sample to the last, measured as
+    the plan's duration is (its first sample to its last). The one definition of an
+    execution's duration, for the simulated arm, a real one and a record recovered from a
+    journal: connecting, enabling and settling are not motion; servoJ's lookahead at the end
+    is (the arm still moves)."""
+    if record is None or len(record) == 0:
+        return 0.0
+    t_s = np.asarray(record.t_s, dtype=np.float64)
+    return float(t_s[-1] - t_s[0])
+
+
 #: A streamed period counts as an overrun when it takes this many times the controller's: the
 #: controller then repeats the last setpoint and the arm slows (or, with a watchdog, stops).
 OVERRUN_FACTOR = 1.25
@@ -232,7 +286,6 @@ def execution_report(
     record: ExecutionRecord | None,
     *,
     mode: str,
-    duration_s: float,
     lookahead_s: float,
     faults: list[str],
     dry_run: bool,
@@ -246,8 +299,6 @@ def execution_report(
     record : ExecutionRecord or None
         What was executed (None or empty: nothing moved).
     mode : {"servoj", "movepath"}
-    duration_s : float
-        How long the execution took.
     lookahead_s : float
         servoJ's lookahead: the executed joints are compared with the plan delayed by it.
     faults : list of str
@@ -265,15 +316,16 @@ def execution_report(
         off_path = off_path_m(arm, actual_flange, trajectory.q_rad)
         # Which phase each recorded sample belongs to: the arm runs the plan a lookahead
         # behind the sample sent with it.
-        lag = int(round(lookahead_s / trajectory.period_s))
-        index = np.clip(record.planned() - lag, 0, len(trajectory) - 1)
+        index = recorded_plan_index(trajectory, record.planned(), lookahead_s)
         recorded_phase = trajectory.phases[index]
         for value in dict.fromkeys(trajectory.phases.tolist()):
             mine = recorded_phase == value
             if mine.any():
-                name = Phase(value).label
-                by_phase[name] = float(off_path[mine].max())
-                executed[name] = float(np.count_nonzero(mine) * trajectory.period_s)
+                by_phase[Phase(value).label] = float(off_path[mine].max())
+        # What the arm got through: the whole plan once completed (its last samples are the
+        # lookahead's, sent while the arm caught up).
+        reached = len(trajectory) - 1 if record.completed else int(index.max())
+        executed = executed_phase_durations_s(trajectory, reached)
         deviation = by_phase.get(Phase.PROCESS.label)
         # The lag grows with speed; along the path is what matters (the transit runs faster).
         on_path = recorded_phase == int(Phase.PROCESS)
@@ -307,7 +359,7 @@ def execution_report(
         robot=trajectory.robot,
         completed=completed,
         mode=mode,
-        duration_s=duration_s,
+        duration_s=motion_time_s(record),
         planned_duration_s=trajectory.duration_s,
         max_path_deviation_m=deviation,
         max_lag_m=lag,

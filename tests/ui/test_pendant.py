@@ -310,6 +310,26 @@ def test_a_reload_finds_the_running_dry_run_again_and_sends_nothing(pendant):
     expect(dry).to_be_enabled()
     assert len(posts) == sent, posts[sent:]  # nothing was sent again
 
+    # A dry run stopped while it runs (from another screen, or the API) says so; the table
+    # beside it is still the earlier, finished one (of the other mode: none here).
+    page.locator("#exec-mode").select_option("movepath")
+    dry.click()
+    expect(page.locator("#dryrun-form .job-state")).to_contain_text("running")
+    client = pendant.server.client
+    sid = page.evaluate("sessionStorage.getItem('teachpath.session')")
+    running = [
+        j
+        for j in client.get(f"/sessions/{sid}/jobs").json()
+        if j["kind"] == "execution" and j["state"] == "running"
+    ]
+    assert len(running) == 1, running
+    stopped = client.post(f"/executions/{running[0]['params']['execution_id']}/stop")
+    assert stopped.status_code == 200, stopped.text
+    message = page.locator("#dryrun-form .message")
+    expect(message).to_contain_text("stopped on request while it ran", timeout=60_000)
+    expect(message).not_to_contain_text("before it started")
+    page.locator("#exec-mode").select_option("servoj")
+
     # A second reconstruction with another radius: the two side by side, the newest in bold.
     page.locator("#recon-radius_m").fill("0.012")
     page.get_by_role("button", name="Reconstruct").click()

@@ -218,7 +218,19 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     expect(page.locator("#dryrun-summary")).to_contain_text("passed", timeout=60_000)
     review = page.get_by_role("region", name="Execution review")
     expect(review).to_be_visible()
-    expect(review).to_contain_text(re.compile(r"dry run\): the arm was at most \d+\.\d{3} mm"))
+    expect(review).to_contain_text(
+        re.compile(
+            r"dry run, servoj\): along the path \(process\) the arm was at most \d+\.\d{3} mm"
+        )
+    )
+    # The review says what the dry run's table says: the same two deviations.
+    table = page.locator("#dryrun-summary")
+    along = table.locator("tr", has_text="largest deviation along the path").locator("td")
+    anywhere = table.locator("tr", has_text="largest deviation anywhere").locator("td")
+    headline = review.locator("#review-summary").text_content()
+    assert f"at most {along.text_content()} from the plan" in headline, headline
+    assert f"anywhere {anywhere.text_content()}" in headline, headline
+    expect(table.locator("tr", has_text="motion time")).to_contain_text("planned")
     expect(review.locator("svg.plot polyline")).to_have_count(1)
     pendant.shot("review")
 

@@ -257,7 +257,15 @@ async function refresh() {
   Object.assign(state, { session, recordings, scans, reconstructions, trajectories, executions, touches, madeHere });
   renderSteps();
   state.capture.sessionShown(sid);
-  state.workspace?.show(sid, state).catch((err) => {
+  showWorkspace();
+}
+
+/** Draw the session in the 3-D view; the review is of the execution the tables show (the last
+ * run on the arm of this plan, else its dry run in the chosen mode). */
+function showWorkspace() {
+  if (!state.session) return;
+  state.reviewExecution = [lastRun(), dryRun()].find((e) => e?.summary.n_samples > 0) || null;
+  state.workspace?.show(state.session.id, state).catch((err) => {
     $("#workspace-note").textContent = `workspace: ${err.message}`;
   });
 }
@@ -666,15 +674,28 @@ function renderPlan() {
   );
 }
 
+/** The largest deviation anywhere in an execution and the phase it was in (from the record's
+ * per-phase figures: the review shows the same). */
+function worstDeviation(sm) {
+  const entries = Object.entries(sm.max_deviation_by_phase_m || {});
+  if (!entries.length) return null;
+  const [phase, value] = entries.reduce((a, b) => (b[1] > a[1] ? b : a));
+  return { phase, value };
+}
+
 function execSummary(ex) {
   const sm = ex.summary;
+  const worst = worstDeviation(sm);
+  const got = Object.keys(sm.executed_phase_durations_s || {});
   return [
     table([
       ["execution", ex.id],
       ["result", passed(ex) ? (state.madeHere.has(ex.id) ? "passed" : "passed at another site (imported): not counted here") : sm.completed ? `completed with faults` : `not completed${sm.stopped_in ? ` (stopped in ${sm.stopped_in})` : ""}`],
       ["mode", sm.mode],
-      ["duration", `${seconds(sm.duration_s)} of ${seconds(sm.planned_duration_s)} planned`],
-      ["largest deviation from the plan", mm(sm.max_path_deviation_m, 3)],
+      ["motion time", `${seconds(sm.duration_s)} of ${seconds(sm.planned_duration_s)} planned`
+        + (sm.completed ? "" : got.length ? ` (got through ${got.join(", ")})` : " (the arm did not move)")],
+      ["largest deviation along the path (process)", mm(sm.max_path_deviation_m, 3)],
+      ["largest deviation anywhere", worst ? `${mm(worst.value, 3)} (${worst.phase})` : "–"],
       ["faults", sm.faults.join("; ") || "none"],
     ]),
     report(sm.report),
@@ -730,9 +751,14 @@ function showReview(review, execution) {
   const panel = $("#review");
   panel.hidden = !review?.t_s.length;
   if (panel.hidden) return;
-  const kind = execution.summary.dry_run ? "dry run" : "run on the arm";
-  $("#review-summary").textContent = `${execution.id} (${kind}): the arm was at most ${mm(review.max_off_path_m, 3)} `
-    + `from the planned path, at ${review.at_s.toFixed(2)} s; the executed path is drawn in red.`;
+  const sm = execution.summary;
+  const kind = sm.dry_run ? `dry run, ${sm.mode}` : `run on the arm, ${sm.mode}`;
+  const worst = worstDeviation(sm);
+  // The record's figures, as in the execution's table; the review's own maximum is the same
+  // measure over the same samples (tests/service/test_execution_summaries.py).
+  $("#review-summary").textContent = `${execution.id} (${kind}): along the path (process) the arm was at most `
+    + `${mm(sm.max_path_deviation_m, 3)} from the plan; anywhere ${mm(worst ? worst.value : review.max_off_path_m, 3)}`
+    + `${worst ? ` (${worst.phase})` : ""}, at ${review.at_s.toFixed(2)} s. The executed path is drawn in red.`;
   import("./timeline.js").then(({ Plot }) => {
     $("#review-plot").replaceChildren();
     new Plot($("#review-plot"), { title: "distance from the planned path", unit: "mm", t: review.t_s,
@@ -763,7 +789,9 @@ async function runJob(step, form, start, onDone) {
     if (finished.state === "cancelled") {
       // A Stop (or a cancel): say where it ended, not just the state twice.
       const where = finished.result?.stopped_in;
-      showError(box, { code: "cancelled", message: where ? `cancelled by Stop: the arm stopped in ${where}` : "cancelled before it started" });
+      const message = where ? `cancelled by Stop: the arm stopped in ${where}`
+        : finished.error?.message || "cancelled before it started";
+      showError(box, { code: "cancelled", message });
     } else if (finished.state !== "succeeded") {
       showError(box, { code: finished.error?.code || finished.state, message: finished.error?.message || finished.state });
     }
@@ -1173,7 +1201,7 @@ function wire() {
     runJob("plan", form, () => api(`/sessions/${state.session.id}/trajectories`, { method: "POST", json: body }));
   });
 
-  $("#exec-mode").addEventListener("change", renderSteps);
+  $("#exec-mode").addEventListener("change", () => { renderSteps(); showWorkspace(); });
   $("#dryrun-form").addEventListener("submit", (event) => {
     event.preventDefault();
     const body = { trajectory_id: trajectory().id, backend: "sim", mode: mode() };

@@ -237,11 +237,13 @@ export class Workspace {
     delete this.layers[name];
   }
 
-  /** Fill the layers from a session's artifacts (each fetched only when it changed). */
-  async show(sid, { session, reconstructions, trajectories, executions = [] }) {
+  /** Fill the layers from a session's artifacts (each fetched only when it changed);
+   * `reviewExecution` is the execution reviewed against the plan (null: none). */
+  async show(sid, { session, reconstructions, trajectories, reviewExecution = null }) {
     const rec = reconstructions[reconstructions.length - 1] || null;
     const traj = rec ? [...trajectories].reverse().find((t) => t.inputs.reconstruction_id === rec.id) : null;
-    const exec = traj ? [...executions].reverse().find((e) => e.inputs.trajectory_id === traj.id && e.summary.n_samples > 0) : null;
+    // The execution the page's tables show (the caller chooses), if it is of this plan.
+    const exec = traj && reviewExecution?.inputs.trajectory_id === traj.id ? reviewExecution : null;
     const calibration = JSON.stringify([session.T_base_tracker, session.T_scan_tracker, rec?.summary.T_scan_tracker]);
     const key = [sid, session.recording_id, session.scan_id, rec?.id, traj?.id, exec?.id, calibration].join("/");
     if (key === this.shown || key === this.showing) return;
