@@ -144,12 +144,24 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant, scene_file
 
     # Reconstruct: the parameters come from the API's schema, with their units and ranges.
     radius = page.locator("#recon-radius_m")
-    expect(radius).to_have_value("0.008")
-    expect(radius).to_have_attribute("max", "0.2")
-    expect(page.locator("label[for=recon-radius_m] .hint")).to_contain_text("m")
+    # In the operator's words and units: millimetres (the API takes metres).
+    expect(radius).to_have_value("8")
+    expect(radius).to_have_attribute("max", "200")
+    expect(page.locator("label[for=recon-radius_m] .name")).to_have_text(
+        "neighbourhood radius (mm)"
+    )
+    expect(page.locator("label[for=recon-radius_m] .hint")).to_contain_text("0.5 to 200 mm")
+    # A checkbox's hint says what its state does, and follows it.
+    use_scan = page.locator("#recon-use_scan")
+    scan_hint = page.locator("label[for=recon-use_scan] .hint")
+    expect(scan_hint).to_have_text("ticked: the scan corrects the trace")
+    use_scan.uncheck()
+    expect(scan_hint).to_contain_text("not ticked: the trace alone")
+    use_scan.check()
+    expect(scan_hint).to_have_text("ticked: the scan corrects the trace")
     expect(page.locator("#recon-method")).to_have_value("anchored")
     expect(page.locator("#recon-alpha")).to_have_value("auto")
-    radius.fill("0.01")
+    radius.fill("10")
     pendant.shot("reconstruct-params")
     button = page.get_by_role("button", name="Reconstruct")
     button.click()
@@ -173,12 +185,17 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant, scene_file
     speed = page.locator("#plan-speed")
     expect(speed).to_have_attribute("max", "0.25")
     speed.fill("0.08")
-    expect(page.locator("#plan-speed-value")).to_have_text("80 mm/s")
+    typed = page.get_by_label("Speed along the path in mm/s")
+    expect(typed).to_have_value("80")  # the field beside the slider follows it
     expect(page.locator("#plan-speed-cap")).to_contain_text("250 mm/s")
+    expect(typed).to_have_attribute("max", "250")
+    # Typed in mm/s, the slider follows (to the millimetre per second).
+    typed.fill("83")
+    expect(speed).to_have_value("0.083")
     page.get_by_role("button", name="Plan").click()
     summary = page.locator("#plan-summary")
     expect(summary.locator("tr[data-phase=process]")).to_be_visible(timeout=60_000)
-    expect(summary).to_contain_text("80 mm/s")
+    expect(summary).to_contain_text("83 mm/s")  # what was typed, not the slider's step
     expect(summary.locator(".report")).not_to_be_empty()
     assert posts.count("trajectories") == 1
     expect(page.get_by_role("button", name="Run on arm")).to_be_disabled()
@@ -192,7 +209,7 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant, scene_file
     plot = page.locator("svg.plot[aria-label^='TCP speed']")
     expect(plot).to_contain_text("off the scale (red on top): up to")
     off_scale_mm_s = float(plot.get_attribute("data-off-scale"))
-    assert 1.6 * 80 < off_scale_mm_s <= fastest_mm_s + 1, (off_scale_mm_s, fastest_mm_s)
+    assert 1.6 * 83 < off_scale_mm_s <= fastest_mm_s + 1, (off_scale_mm_s, fastest_mm_s)
     assert plot.locator("rect.clipped").count() >= 1
     pendant.shot("planned")
 
@@ -331,7 +348,7 @@ def test_a_reload_finds_the_running_dry_run_again_and_sends_nothing(pendant):
     page.locator("#exec-mode").select_option("servoj")
 
     # A second reconstruction with another radius: the two side by side, the newest in bold.
-    page.locator("#recon-radius_m").fill("0.012")
+    page.locator("#recon-radius_m").fill("12")
     page.get_by_role("button", name="Reconstruct").click()
     expect(page.locator("#reconstruct-form .job-state")).to_have_text(
         "succeeded 100 %", timeout=90_000
@@ -580,7 +597,7 @@ def test_touches_are_uploaded_in_the_calibration_panel_and_place_the_scan(pendan
     expect(result).to_contain_text("by 6 touches of the workpiece", timeout=90_000)
     expect(result).to_contain_text("motions the touches fixed")
     pendant.shot("reconstructed-by-touches")
-    page.locator("#reconstruct-params").get_by_label("use_touches").uncheck()
+    page.locator("#reconstruct-params").get_by_label("use the touches").uncheck()
     page.get_by_role("button", name="Reconstruct").click()
     expect(result).to_contain_text("to the scan's edge", timeout=90_000)
 

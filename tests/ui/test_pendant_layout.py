@@ -47,12 +47,12 @@ def test_the_pendant_fits_the_screen_and_its_targets_fit_a_finger(
         for details in page.locator("details").all():  # the folded parameters count too
             if details.is_visible():
                 details.evaluate("(d) => { d.open = true; }")
-        # Every visible button, select and text field, and every checkbox's label, is a
-        # finger's size.
+        # Every visible button, select and text field, every checkbox's label and every step
+        # chip is a finger's size.
         small = page.evaluate(
             """(least) => [...document.querySelectorAll(
                 'button, select, input:not([type=checkbox]):not([type=hidden]), '
-                + 'label:has(> input[type=checkbox])')]
+                + 'label:has(> input[type=checkbox]), #steps a')]
               .filter((e) => e.offsetParent !== null)
               .map((e) => [e.id || e.name || e.textContent.trim().slice(0, 30),
                            e.getBoundingClientRect()])

@@ -246,7 +246,10 @@ def test_the_plan_parameters_come_from_the_schema_and_reach_the_plan(pendant):
     expect(form.locator("#plan-orientation")).to_have_value("auto")
     lead = form.locator("#plan-lead_deg")
     expect(lead).to_have_attribute("max", "60")
-    expect(form.locator("label[for=plan-lead_deg] .hint")).to_contain_text("deg")
+    expect(form.locator("label[for=plan-lead_deg] .name")).to_have_text("lead (°)")
+    expect(form.locator("label[for=plan-lead_deg] .hint")).to_contain_text("-60 to 60°")
+    approach = form.locator("#plan-approach_m")
+    expect(approach).to_have_value("50")  # 0.05 m, shown in mm
     lead.fill("10")
     # One TCP field, showing the TCP the plan uses (the 100 mm default tool; the form showed a
     # 0,0,0 offset before), in mm and degrees as on UR's pendant.
@@ -288,6 +291,10 @@ def test_the_plan_parameters_come_from_the_schema_and_reach_the_plan(pendant):
     assert trajectories[-1]["inputs"]["reconstruction_id"] == rid
     assert params["lead_deg"] == 0 and params["tilt_deg"] == 10
     assert params["tcp_pose"] == pytest.approx([0, 0, 0.12, 0, 0, 0]) and params["robot"] == "ur5e"
+    # The millimetres on the form are metres in the request.
+    assert params["approach_m"] == pytest.approx(0.05) and params["clearance_m"] == pytest.approx(
+        0.01
+    )
     # The plan summary says which TCP and payload it was planned with.
     plan = page.locator("#plan-summary")
     expect(plan).to_contain_text("x 0.0, y 0.0, z 120.0 mm; rx 0.0, ry 0.0, rz 0.0 deg")
@@ -363,7 +370,7 @@ def test_a_comma_decimal_is_taken_and_a_bad_value_is_said_in_the_fields_words(pe
     alpha.fill("5")  # over its range of [0, 1]: the server refuses, naming the field
     page.get_by_role("button", name="Reconstruct").click()
     message = page.locator("#reconstruct-form .message")
-    expect(message).to_contain_text("alpha: ")
+    expect(message).to_contain_text("trace weight α (alpha): ")
     expect(message).not_to_contain_text("body.")
     expect(message).not_to_contain_text("constrained")
     pendant.shot("alpha-refused")

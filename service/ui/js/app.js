@@ -45,7 +45,13 @@ const state = {
 // -- errors shown as instructions ---------------------------------------------------------------
 
 function showError(box, err) {
-  const { code, instruction, message } = explain(err);
+  const { code, instruction } = explain(err);
+  let { message } = explain(err);
+  // A refusal names the API's fields: say them as the form does ("radius_m: ..." is the
+  // "neighbourhood radius (mm) (radius_m): ..." the operator sees above).
+  if (code === "invalid_request") {
+    message = message.replace(/\b([a-z_]+): /g, (all, field) => (DISPLAY_NAMES[field] ? `${DISPLAY_NAMES[field]} (${field}): ` : all));
+  }
   box.replaceChildren(
     el("p", { class: "instruction", text: instruction || message }),
     el("p", { class: "server-message" }, el("code", { text: code }), ` ${message}`),
@@ -935,19 +941,58 @@ const PLAN_FIELDS = ["robot", "orientation", "lead_deg", "tilt_deg", "smooth_m",
 
 function numberField(name, spec) {
   const input = el("input", { name, type: "number", step: "any" });
+  const scale = DISPLAY_SCALES[name] ?? 1;
   if (spec.type === "integer") input.step = "1";
-  if (spec.minimum !== undefined) input.min = spec.minimum;
-  if (spec.maximum !== undefined) input.max = spec.maximum;
-  if (spec.default !== undefined) input.value = spec.default;
+  if (spec.minimum !== undefined) input.min = inFormUnits(spec.minimum, scale);
+  if (spec.maximum !== undefined) input.max = inFormUnits(spec.maximum, scale);
+  if (spec.default !== undefined && spec.default !== null) input.value = inFormUnits(spec.default, scale);
+  input.dataset.scale = scale;
   return input;
 }
 
 /** One input for a parameter of the API's schema, with its range and default. */
 const DEG_PER_RAD = 180 / Math.PI;
 /** Fields the form shows in other units than the API's SI: factor from the API's to the form's. */
-const DISPLAY_SCALES = { tcp_pose: [1000, 1000, 1000, DEG_PER_RAD, DEG_PER_RAD, DEG_PER_RAD] };
-/** Their labels, in those units. */
-const DISPLAY_NAMES = { tcp_pose: "TCP: x, y, z (mm), rx, ry, rz (deg)" };
+const DISPLAY_SCALES = {
+  tcp_pose: [1000, 1000, 1000, DEG_PER_RAD, DEG_PER_RAD, DEG_PER_RAD],
+  radius_m: 1000, spacing_m: 1000, smooth_m: 1000, approach_m: 1000, tool_radius_m: 1000, clearance_m: 1000,
+};
+/** The parameters in the operator's words and units (the API keeps its SI names; a refusal
+ * from the server names the API's field, given beside the label as "(api: name)"). */
+const DISPLAY_NAMES = {
+  tcp_pose: "TCP: x, y, z (mm), rx, ry, rz (deg)",
+  radius_m: "neighbourhood radius (mm)", alpha: "trace weight α", beta: "correction amount β",
+  degree: "fit degree", method: "method", spacing_m: "point spacing (mm)", use_scan: "use the scan",
+  registration: "align the scan to the trace", use_touches: "use the touches",
+  robot: "robot model", orientation: "tool axis from", lead_deg: "lead (°)", tilt_deg: "tilt (°)",
+  smooth_m: "axis smoothing (mm)", approach_m: "approach height (mm)", shoulder: "shoulder",
+  elbow: "elbow", wrist: "wrist", tool_radius_m: "tool body radius (mm)", clearance_m: "clearance (mm)",
+  payload_kg: "payload (kg)", return_to_start: "return to the start",
+};
+/** What each field does, in those units; a checkbox's hint says what its current state does. */
+const DISPLAY_HINTS = {
+  tcp_pose: "the tool centre point in the flange frame, as on UR's pendant",
+  radius_m: "how far around each point the trace and the scan are fitted; 0.5 to 200 mm",
+  alpha: "how much the trace counts against the scan: 1 the trace only, 0 the scan only; auto: per point",
+  beta: "how much of the correction is applied: 0 none, 1 all of it",
+  degree: "degree of the curves fitted along the path: 1 (straight) to 5",
+  method: "anchored: ours, held to the scan's position; paper: the paper's equation (4)",
+  spacing_m: "distance between the points of the result; 0.1 to 10 mm",
+  use_scan: { on: "ticked: the scan corrects the trace", off: "not ticked: the trace alone, smoothed (the scan is not used)" },
+  registration: { on: "ticked: the scan is aligned to the trace first (ICP)", off: "not ticked: the calibrated frames are trusted as they are" },
+  use_touches: { on: "ticked: the touched points place the scan", off: "not ticked: the trace places the scan, even with touches" },
+  robot: "the UR model the plan is for",
+  lead_deg: "the tool leaning along the travel; -60 to 60°",
+  tilt_deg: "the tool leaning across the travel; -60 to 60°",
+  smooth_m: "length over which the tool's axis is smoothed along the path (0: off); 0 to 100 mm",
+  approach_m: "approach and retract distance along the tool's axis; 5 to 500 mm",
+  tool_radius_m: "radius of the tool's body for the collision check; 0.5 to 200 mm",
+  clearance_m: "distance the arm and the tool keep from obstacles; 0 to 100 mm",
+  payload_kg: "mass set before the motion; empty: the controller's installation keeps its own",
+  return_to_start: { on: "ticked: the arm moves back to where it started at the end", off: "not ticked: the arm stays above the path's end" },
+};
+/** A number in the form's units (rounded: 0.008 m is "8", not "8.000000000000002"). */
+const inFormUnits = (value, scale) => +(value * scale).toPrecision(12);
 
 function paramInput(name, spec) {
   if (spec.type === "boolean") {
@@ -1011,8 +1056,16 @@ function buildParams(schema, schemaName, fields, box, prefix) {
     input.id = `${prefix}-${name}`;
     const nullable = spec.anyOf?.some((s) => s.type === "null");
     input.dataset.kind = spec.prefixItems ? "tuple" : nullable ? "optional-number" : spec.type || (spec.anyOf ? "mixed" : "string");
-    box.append(el("label", { for: input.id }, el("span", { class: "name", text: DISPLAY_NAMES[name] || name }), input,
-      el("span", { class: "hint", text: spec.description || "" })));
+    const words = DISPLAY_HINTS[name];
+    const hint = el("span", { class: "hint" });
+    const describe = () => {
+      hint.textContent = typeof words === "object" ? (input.checked ? words.on : words.off) : words || spec.description || "";
+    };
+    describe();
+    if (typeof words === "object") input.addEventListener("change", describe);
+    const label = el("span", { class: "name", text: DISPLAY_NAMES[name] || name });
+    if (DISPLAY_NAMES[name]) label.title = `API field: ${name}`;
+    box.append(el("label", { for: input.id }, label, input, hint));
   }
 }
 
@@ -1028,9 +1081,11 @@ function paramsBody(form, fields) {
     const input = form.elements[name];
     if (!input) continue;
     const kind = input.dataset.kind;
+    const scale = Number(input.dataset.scale || 1);
     if (input.type === "checkbox") body[name] = input.checked;
-    else if (kind === "number" || kind === "integer") body[name] = Number(input.value);
-    else if (kind === "optional-number") { if (input.value.trim() !== "") body[name] = Number(input.value); }
+    else if (kind === "integer") body[name] = Number(input.value);
+    else if (kind === "number") body[name] = Number(input.value) / scale;
+    else if (kind === "optional-number") { if (input.value.trim() !== "") body[name] = Number(input.value) / scale; }
     // A comma decimal ("0,8") is the same number: many operators' keyboards type it.
     else if (kind === "mixed") body[name] = input.value === input.dataset.word ? input.value : Number(input.value.replace(",", "."));
     else if (kind === "tuple") {
@@ -1058,7 +1113,10 @@ function updatePlanSpeed() {
   const cap = Math.min(specMax, state.robot?.max_speed_m_s ?? specMax);
   slider.max = cap;
   if (Number(slider.value) > cap) slider.value = cap;
-  $("#plan-speed-value").textContent = mmps(Number(slider.value));
+  const field = $("#plan-speed-mm");
+  field.max = Math.round(cap * 1000);
+  // The field follows the slider, unless the operator is typing in it.
+  if (document.activeElement !== field) field.value = Math.round(Number(slider.value) * 1000);
   $("#plan-speed-cap").textContent = `at most ${mmps(cap)} (the server's cap)`;
 }
 
@@ -1185,6 +1243,12 @@ function wire() {
   });
 
   $("#plan-speed").addEventListener("input", updatePlanSpeed);
+  // Typed in mm/s (a comma decimal too): the slider follows; out of range, the form says so.
+  $("#plan-speed-mm").addEventListener("input", (event) => {
+    const value = Number(String(event.target.value).replace(",", ".")) / 1000;
+    if (event.target.checkValidity() && Number.isFinite(value) && value > 0) $("#plan-speed").value = value;
+  });
+  $("#plan-speed-mm").addEventListener("change", updatePlanSpeed);
   $("#plan-params").addEventListener("change", (event) => {
     if (event.target.name === "robot") event.target.dataset.chosen = "1";
   });
@@ -1194,7 +1258,7 @@ function wire() {
     if (!form.reportValidity()) return;
     let body;
     try {
-      body = { reconstruction_id: reconstruction().id, ...paramsBody(form, PLAN_FIELDS), speed_m_s: Number($("#plan-speed").value) };
+      body = { reconstruction_id: reconstruction().id, ...paramsBody(form, PLAN_FIELDS), speed_m_s: Number($("#plan-speed-mm").value.replace(",", ".")) / 1000 };
     } catch (err) {
       return showError($(".message", form), err);
     }
