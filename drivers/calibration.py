@@ -196,7 +196,7 @@ def _load_json(source: str | Path | bytes, label: str) -> dict:
         data = json.loads(raw)
     except FileNotFoundError:
         raise InputFileError(f"{label} does not exist") from None
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # RecursionError: nested too deep
         raise InputFileError(f"{label} is not a readable JSON calibration: {exc}") from None
     if not isinstance(data, dict):
         raise InputFileError(f"{label} is not a JSON object")

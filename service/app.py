@@ -185,6 +185,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     documented = {status: {"model": ErrorBody} for status in (401, 404, 409, 413, 422, 503)}
     for router in (
         robot.unlock_router,
+        robot.cell_router,
         sessions.router,
         recordings.router,
         scans.router,

@@ -308,6 +308,70 @@ def set_calibration(services: Services, session_id: str, request: CalibrationIn)
     return services.store.update_session(session_id, **fields)
 
 
+#: A calibration file is a few hundred bytes; anything far larger is not one.
+MAX_CALIBRATION_FILE_BYTES = 64 * 1024
+#: The calibration files a session takes, by the name they carry, and the field each sets.
+CALIBRATION_FILES = {
+    "T_base_tracker": "T_base_tracker",
+    "T_scan_tracker": "T_scan_tracker",
+    "tip_offset": "tip_offset_m",
+}
+
+
+def load_calibration_file(services: Services, session_id: str, content: bytes, filename: str):
+    """Set the calibration a stored file holds (``teachpath calibrate`` writes them): a
+    tracker-to-base or tracker-to-scan transform, or a pen's tip offset, read by the CLI's
+    own readers. The file's name, date and residual go into the session's calibration report.
+
+    Raises
+    ------
+    ApiError
+        422 ``invalid_file``: too large, not JSON, not one of those calibrations, not rigid,
+        unknown units (nothing of the session changes).
+    """
+    import json
+
+    from drivers.calibration import read_calibration, read_tip_calibration
+    from drivers.errors import InputFileError
+    from service.errors import ApiError
+
+    services.session(session_id)
+    label = filename or "the file"
+    if len(content) > MAX_CALIBRATION_FILE_BYTES:
+        raise ApiError(
+            422,
+            "invalid_file",
+            f"{label} is {len(content) // 1024} KB: a calibration file is a few hundred bytes "
+            "(choose the JSON file `teachpath calibrate` wrote)",
+        )
+    try:
+        try:
+            name = json.loads(content).get("name")
+        except (ValueError, AttributeError, RecursionError):
+            name = None  # the readers below say what is wrong with it
+        if name == "tip_offset":
+            tip = read_tip_calibration(content, label=label)
+            fields = {"tip_offset_m": [float(v) for v in tip.offset_m]}
+            created, residual = tip.created, tip.residual_rms_m
+        else:
+            calibration = read_calibration(content, label=label)
+            if calibration.name not in CALIBRATION_FILES:
+                raise InputFileError(
+                    f"{label} holds {calibration.name}; a session takes "
+                    f"{', '.join(CALIBRATION_FILES)} (as `teachpath calibrate` writes them)"
+                )
+            fields = {CALIBRATION_FILES[calibration.name]: calibration.matrix.tolist()}
+            created, residual = calibration.created, calibration.residual_rms_m
+    except (InputFileError, RecursionError) as error:
+        message = str(error) if isinstance(error, InputFileError) else f"{label} nests too deep"
+        raise ApiError(422, "invalid_file", message) from None
+    (field,) = fields
+    entry = {"source_name": filename, "field": field, "created": created, "at": now().isoformat()}
+    if residual is not None:
+        entry["residual_rms_m"] = residual
+    return services.store.record_calibration(session_id, f"file:{field}", entry, **fields)
+
+
 async def pivot_calibration(
     services: Services,
     session_id: str,

@@ -521,6 +521,20 @@ class RobotOut(BaseModel):
     )
 
 
+class CellOut(BaseModel):
+    """The cell this server plans and runs in (its settings at start)."""
+
+    robot: str
+    keep_out_boxes_m: list[list[float]] = Field(
+        ..., description="boxes, base frame: x_min, y_min, z_min, x_max, y_max, z_max (m)"
+    )
+    cell_planes: list[list[float]] = Field(
+        ..., description="planes besides the mounting one, base frame: nx, ny, nz, d (n . p >= d)"
+    )
+    mount_up: list[float]
+    arm_kinematics: str = Field(..., description="calibrated from the controller, or nominal")
+
+
 class CaptureOut(FromRow):
     id: str
     session_id: str

@@ -11,12 +11,13 @@ from fastapi.responses import StreamingResponse
 from service.api.deps import ServicesDep
 from service.errors import ApiError
 from service.executions import arm_owner
-from service.schemas import RobotOut
+from service.schemas import CellOut, RobotOut
 
 #: The arm's state: no token needed (the safety bar of any screen by the cell).
 router = APIRouter(prefix="/robot", tags=["robot"])
-#: Acting on the arm: with the token.
+#: Acting on the arm, and the cell's setup: with the token.
 unlock_router = APIRouter(prefix="/robot", tags=["robot"])
+cell_router = APIRouter(prefix="/cell", tags=["robot"])
 
 #: How long the event stream waits for a change before it repeats the state (a keep-alive).
 KEEPALIVE_S = 5.0
@@ -91,3 +92,23 @@ def unlock_protective_stop(services: ServicesDep) -> dict:
     """Unlock a protective stop (after its cause is gone; UR refuses within 5 s of it)."""
     services.robot.unlock_protective_stop()
     return _view(services)
+
+
+@cell_router.get("", response_model=CellOut)
+def cell(services: ServicesDep) -> dict:
+    """This server's cell, as every plan and the real-arm gate check against it: the keep-out
+    boxes and planes (base frame, m), how the arm is mounted, and whether its kinematics are
+    the controller's calibration or UR's nominal ones. Set at start (TEACHPATH_KEEP_OUT_BOXES,
+    TEACHPATH_CELL_PLANES, TEACHPATH_MOUNT_UP, TEACHPATH_UR_CALIBRATION)."""
+    settings = services.settings
+    return {
+        "robot": settings.ur_robot,
+        "keep_out_boxes_m": [list(box) for box in settings.keep_out_boxes],
+        "cell_planes": [list(plane) for plane in settings.cell_planes],
+        "mount_up": list(settings.mount_up),
+        "arm_kinematics": (
+            f"calibrated ({settings.ur_calibration.name})"
+            if settings.arm_calibration is not None
+            else "UR's nominal kinematics (no calibration.conf given)"
+        ),
+    }

@@ -134,6 +134,24 @@ def set_calibration(session_id: str, body: CalibrationIn, services: ServicesDep)
     return inputs.set_calibration(services, session_id, body)
 
 
+@router.post("/{session_id}/calibration/file", response_model=SessionOut)
+async def load_calibration_file(
+    session_id: str,
+    services: ServicesDep,
+    file: UploadFile = File(
+        ..., description="a calibration `teachpath calibrate` wrote (JSON, at most 64 KB)"
+    ),
+):
+    """Set the calibration a stored file holds: T_base_tracker, T_scan_tracker (4x4, as
+    ``teachpath calibrate base|scan`` writes them) or the pen's tip offset (``calibrate
+    pivot``); checked as the CLI checks them (rigid, units). 422 ``invalid_file`` otherwise,
+    and nothing changes."""
+    async with received(file, services) as upload:
+        return await run_in_threadpool(
+            inputs.load_calibration_file, services, session_id, upload.content, upload.filename
+        )
+
+
 @router.post("/{session_id}/calibration/pivot", response_model=CalibrationResult)
 async def pivot_calibration(
     session_id: str,

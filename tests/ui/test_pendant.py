@@ -392,7 +392,14 @@ def test_the_calibration_panel_fits_pairs_and_the_tip_and_refuses_poor_fits(pend
     pendant.guard.allow(422, "/calibration/")
     pendant.open()
     pendant.create_session("calibration bench")
-    expect(page.locator("#calibration-current")).to_have_text("not calibrated")
+    current = page.locator("#calibration-current")
+    # One line per calibration the session and the cell use.
+    expect(current.locator("tr", has_text="tracker → base")).to_contain_text("not calibrated")
+    expect(current.locator("tr", has_text="tracker → scan")).to_contain_text("no first guess")
+    expect(current.locator("tr", has_text="pen tip")).to_contain_text("not calibrated")
+    expect(current.locator("tr", has_text="touches")).to_contain_text("none")
+    expect(current.locator("tr", has_text="arm")).to_contain_text("ur5e: UR's nominal kinematics")
+    expect(current.locator("tr", has_text="cell")).to_contain_text("0 keep-out boxes, 0 planes")
 
     # Five points touched with the robot (base) and the pen (tracker), in mm; the tracker
     # sits 450, 100, 50 mm from the base, axes aligned.
@@ -411,9 +418,9 @@ def test_the_calibration_panel_fits_pairs_and_the_tip_and_refuses_poor_fits(pend
     summary = page.locator("#pairs-summary")
     expect(summary.locator("table.pairs tr")).to_have_count(6)  # a header and five pairs
     expect(summary).to_contain_text("RMS of the pairs used0.000 mm")
-    expect(page.locator("#calibration-current")).to_have_text(
-        "tracker → base set: translation 450.0 mm, 100.0 mm, 50.0 mm"
-    )
+    base_line = current.locator("tr", has_text="tracker → base")
+    expect(base_line).to_contain_text("translation (450.0, 100.0, 50.0) mm, turned 0.0°")
+    expect(base_line).to_contain_text("(point pairs, ")
     expect(page.locator("#steps li[data-step=calibration]")).to_have_class("done")
     pendant.shot("pairs-fitted")
 
@@ -427,7 +434,7 @@ def test_the_calibration_panel_fits_pairs_and_the_tip_and_refuses_poor_fits(pend
     expect(message).to_have_attribute("data-code", "poor_fit")
     expect(message).to_contain_text("was not stored")
     expect(summary.locator("tr.suspect")).to_have_count(5)
-    expect(page.locator("#calibration-current")).to_contain_text("450.0 mm, 100.0 mm, 50.0 mm")
+    expect(base_line).to_contain_text("translation (450.0, 100.0, 50.0) mm")
     pendant.shot("pairs-refused")
 
     # The pen's tip from a pivoting recording; a pivot whose tip slid is refused with its RMS.
@@ -445,7 +452,7 @@ def test_the_calibration_panel_fits_pairs_and_the_tip_and_refuses_poor_fits(pend
     pivot = page.locator("#pivot-summary")
     expect(pivot).to_contain_text("tip offset")
     expect(pivot).to_contain_text("RMS")
-    expect(page.locator("#calibration-current")).to_contain_text("tip offset")
+    expect(current.locator("tr", has_text="pen tip")).to_contain_text("(pivoting, ")
     position, quat = pivot_recording(0, position_noise_m=3e-3)
     slid = tmp_path / "slid.csv"
     slid.write_bytes(
@@ -460,6 +467,37 @@ def test_the_calibration_panel_fits_pairs_and_the_tip_and_refuses_poor_fits(pend
     expect(page.locator("#pivot-form .message")).to_have_attribute("data-code", "poor_fit")
     expect(pivot).to_contain_text("RMS (tolerance 1.000 mm)")
     pendant.shot("pivot-refused")
+
+    # A stored calibration file, as `teachpath calibrate base` writes it: loaded and named.
+    from drivers.calibration import write_calibration
+
+    T = np.eye(4)
+    T[:3, 3] = [0.3, -0.2, 0.1]
+    T[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]  # turned 90 degrees about z
+    stored = tmp_path / "T_base_tracker.json"
+    write_calibration(stored, "T_base_tracker", T)
+    page.locator("#calfile-form input[type=file]").set_input_files(str(stored))
+    page.get_by_role("button", name="Load calibration").click()
+    expect(page.locator("#calfile-form .message")).to_have_text("Loaded T_base_tracker.json.")
+    expect(base_line).to_contain_text("translation (300.0, -200.0, 100.0) mm, turned 90.0°")
+    expect(base_line).to_contain_text("(file T_base_tracker.json, ")
+    # A file that is not a calibration: refused, saying why; nothing changes.
+    wrong = tmp_path / "T_scan_sensor.json"
+    write_calibration(wrong, "T_scan_sensor", T)
+    page.locator("#calfile-form input[type=file]").set_input_files(str(wrong))
+    page.get_by_role("button", name="Load calibration").click()
+    message = page.locator("#calfile-form .message")
+    expect(message).to_have_attribute("data-code", "invalid_file")
+    expect(message).to_contain_text("holds T_scan_sensor; a session takes T_base_tracker")
+    expect(base_line).to_contain_text("turned 90.0°")
+    # Another session's calibration (the demo's: the same cell), chosen by its name.
+    demo = next(x for x in pendant.server.client.get("/sessions").json() if x["name"] == "demo")
+    page.locator("#copycal-form select").select_option(value=demo["id"])
+    page.get_by_role("button", name="Use its calibration").click()
+    expect(page.locator("#copycal-form .message")).to_contain_text("of “demo” set")
+    shift = np.array(demo["T_base_tracker"])[:3, 3] * 1000
+    expect(base_line).to_contain_text(f"translation ({', '.join(f'{v:.1f}' for v in shift)}) mm")
+    pendant.shot("calibration-lines")
 
 
 def _every_download_is_the_servers_file(pendant, box: str, collection: str, count: int) -> None:
@@ -590,6 +628,14 @@ def test_touches_are_uploaded_in_the_calibration_panel_and_place_the_scan(pendan
     summary = page.locator("#touches-summary")
     expect(summary).to_contain_text("6 rests found in touches.csv")
     expect(summary).to_contain_text("touch 6")
+    # The touched points are drawn in the 3-D view, where the calibration puts them.
+    expect(page.locator("#calibration-current tr", has_text="touches")).to_contain_text(
+        "6 points touched (touches.csv)"
+    )
+    page.wait_for_function(
+        "() => document.querySelector('#workspace').workspace.layers.touches"
+        "?.geometry.drawRange.count === 6"
+    )
     pendant.shot("touches")
 
     page.get_by_role("button", name="Reconstruct").click()

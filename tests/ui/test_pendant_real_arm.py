@@ -37,6 +37,10 @@ def arm_server(tmp_path_factory, fake_ur_process):
             "TEACHPATH_UR_HOST": fake_ur_process.host,
             "TEACHPATH_UR_ROBOT": "ur5e",
             "TEACHPATH_MAX_SPEED_M_S": str(CAP_M_S),
+            # A cabinet beside the arm and the floor under the table: far from the demo's
+            # motion, drawn in the 3-D view.
+            "TEACHPATH_KEEP_OUT_BOXES": "[[0.0, 0.7, 0.0, 0.2, 0.9, 0.3]]",
+            "TEACHPATH_CELL_PLANES": "[[0.0, 0.0, 1.0, -0.5]]",
         },
     )
     yield server
@@ -65,6 +69,12 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         expect(page.locator("#remote-control")).to_have_text("on")
         expect(page.locator("#speed-cap")).to_have_text("100 mm/s")
         page.get_by_role("button", name="demo", exact=True).click()
+        # The cell's keep-out box (12 edges) and plane (a grid of 5 + 5 lines) are drawn; the
+        # calibration lines name them.
+        expect(page.locator("#workspace")).to_have_attribute("data-cell", "22")
+        expect(page.locator("#calibration-current tr", has_text="cell")).to_contain_text(
+            "1 keep-out box, 1 plane besides the mounting one"
+        )
         page.get_by_role("button", name="Reconstruct").click()
         expect(page.locator("#reconstruct-summary")).to_contain_text(
             "max displacement", timeout=90_000

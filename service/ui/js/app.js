@@ -159,6 +159,7 @@ async function stop() {
 async function loadSessions() {
   const list = $("#session-list");
   const sessions = await api("/sessions");
+  state.sessions = sessions;
   list.replaceChildren(
     ...sessions.map((s) => {
       const open = el("button", { type: "button", class: "open", text: s.name });
@@ -533,13 +534,53 @@ function renderInputs() {
   $("#scan-files").replaceChildren(...provenance("scan", sc));
 }
 
+/** Where a calibration of the session came from: the newest entry of its report that set
+ * `field` (point pairs, a pivot, a loaded file), in words. */
+function calibrationSource(s, field) {
+  const sets = { base: "T_base_tracker", pivot: "tip_offset_m" };
+  const entries = Object.entries(s.calibration_report || {})
+    .filter(([name, entry]) => (entry.field || sets[name]) === field)
+    .sort(([, a], [, b]) => String(a.at || "").localeCompare(String(b.at || "")));
+  if (!entries.length) return "";
+  const [name, entry] = entries[entries.length - 1];
+  const how = name === "base" ? "point pairs" : name === "pivot" ? "pivoting" : entry.source_name ? `file ${entry.source_name}` : name;
+  return ` (${how}${entry.at ? `, ${new Date(entry.at).toLocaleString()}` : ""})`;
+}
+
+/** The rotation of a 4x4 (rows) in degrees, and its translation in mm. */
+function transformText(T) {
+  const turn = Math.acos(Math.min(1, Math.max(-1, (T[0][0] + T[1][1] + T[2][2] - 1) / 2))) * 180 / Math.PI;
+  return `translation (${T.slice(0, 3).map((row) => (row[3] * 1000).toFixed(1)).join(", ")}) mm, turned ${turn.toFixed(1)}°`;
+}
+
+/** Every calibration the session and the cell use, one line each: what a plan and a run
+ * depend on, read at a glance. */
+function calibrationLines() {
+  const s = state.session;
+  const touches = (state.touches || []).at(-1);
+  const cell = state.cell;
+  const boxes = cell?.keep_out_boxes_m.length ?? 0;
+  const planes = cell?.cell_planes.length ?? 0;
+  return [
+    ["tracker → base", s.T_base_tracker ? `${transformText(s.T_base_tracker)}${calibrationSource(s, "T_base_tracker")}` : "not calibrated (plans need it)"],
+    ["tracker → scan", s.T_scan_tracker ? `first guess set: ${transformText(s.T_scan_tracker)}${calibrationSource(s, "T_scan_tracker")}` : "no first guess (the registration finds it)"],
+    ["pen tip", s.tip_offset_m ? `(${s.tip_offset_m.map((v) => (v * 1000).toFixed(1)).join(", ")}) mm from the rigid body${calibrationSource(s, "tip_offset_m")}` : "not calibrated (the rigid body's origin is taken as the tip)"],
+    ["touches", touches ? `${touches.summary.n_touches} points touched (${touches.source_name || touches.id}): they place the scan` : "none"],
+    ["arm", cell ? `${cell.robot}: ${cell.arm_kinematics}` : "–"],
+    ["cell", cell ? `${boxes} keep-out box${boxes === 1 ? "" : "es"}, ${planes} plane${planes === 1 ? "" : "s"} besides the mounting one (drawn in the 3-D view); set at the server's start` : "–"],
+  ];
+}
+
 function renderCalibration() {
   const s = state.session;
-  const T = s.T_base_tracker;
-  $("#calibration-current").textContent = T
-    ? `tracker → base set: translation ${T.map((row) => mm(row[3], 1)).slice(0, 3).join(", ")}` +
-      (s.tip_offset_m ? `; tip offset ${s.tip_offset_m.map((v) => mm(v, 1)).join(", ")}` : "")
-    : "not calibrated";
+  $("#calibration-current").replaceChildren(table(calibrationLines()));
+  // Another session's tracker -> base, to use here (the same cell, the tracker not moved).
+  const select = $("#copycal-form select");
+  const others = (state.sessions || []).filter((o) => o.id !== s.id && o.T_base_tracker);
+  const chosen = select.value;
+  select.replaceChildren(el("option", { value: "", text: others.length ? "choose one" : "no other session is calibrated" }),
+    ...others.map((o) => el("option", { value: o.id, text: `${o.name} (${transformText(o.T_base_tracker)})` })));
+  if (others.some((o) => o.id === chosen)) select.value = chosen;
   // The newest touches place the scan for the next reconstructions (unless use_touches is off).
   const touches = (state.touches || []).at(-1);
   $("#touches-summary").replaceChildren(...(touches ? [
@@ -901,6 +942,46 @@ function fitForm(form, summary, send, show) {
 }
 
 function wireCalibration() {
+  // A stored calibration file: sent whole, read and checked by the server as the CLI reads it.
+  $("#calfile-form").addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const form = event.currentTarget;
+    const box = $(".message", form);
+    clearMessage(box);
+    if (!form.reportValidity()) return;
+    const file = form.elements.file.files[0];
+    const data = new FormData();
+    data.append("file", file, file.name);
+    const button = $("button[type=submit]", form);
+    button.disabled = true;
+    try {
+      await api(`/sessions/${state.session.id}/calibration/file`, { method: "POST", form: data });
+      box.textContent = `Loaded ${file.name}.`;
+    } catch (err) {
+      showError(box, err);
+    } finally {
+      button.disabled = false;
+      if (state.session) await refresh();
+    }
+  });
+  $("#copycal-form").addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const form = event.currentTarget;
+    const box = $(".message", form);
+    clearMessage(box);
+    if (!form.reportValidity()) return;
+    const from = (state.sessions || []).find((o) => o.id === form.elements.from.value);
+    if (!from) return;
+    try {
+      await api(`/sessions/${state.session.id}/calibration`, { method: "PUT", json: { T_base_tracker: from.T_base_tracker } });
+      box.textContent = `Tracker → base of “${from.name}” set.`;
+    } catch (err) {
+      showError(box, err);
+    } finally {
+      if (state.session) await refresh();
+    }
+  });
+
   fitForm($("#pivot-form"), $("#pivot-summary"), (form) => {
     const data = new FormData();
     const file = form.elements.file.files[0];
@@ -1365,6 +1446,7 @@ async function main() {
   followRobot();
   try {
     state.schema = await api("/openapi.json");
+    state.cell = await api("/cell");
     buildReconstructForm(state.schema);
     updatePlanSpeed();
     await loadSessions();
@@ -1392,6 +1474,7 @@ async function main() {
     });
     timeline = new Timeline($("#timeline"), (joints) => state.workspace.pose(joints));
     if (state.robot?.reachable) state.workspace.showLiveArm(state.robot.joints_m);
+    if (state.cell) state.workspace.showCell(state.cell);
     if (state.session) await refresh();
   } catch (err) {
     $("#workspace-note").textContent = `The 3-D view is unavailable: ${err.message}`;

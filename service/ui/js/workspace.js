@@ -71,6 +71,29 @@ const PATH_COLOURING = {
     risk: (p, i) => 1 - Math.min(1, Math.min(p.wrist_singularity[i], p.elbow_singularity[i]) / 0.2) },
 };
 
+/** The 12 edges of a box (x_min, y_min, z_min, x_max, y_max, z_max) as segment ends. */
+function boxEdges([x0, y0, z0, x1, y1, z1]) {
+  const c = [[x0, y0, z0], [x1, y0, z0], [x1, y1, z0], [x0, y1, z0], [x0, y0, z1], [x1, y0, z1], [x1, y1, z1], [x0, y1, z1]];
+  const edges = [[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]];
+  return edges.flatMap(([a, b]) => [...c[a], ...c[b]]);
+}
+
+/** A plane n . p = d (n, d in the base frame) drawn as a 1 m square with a grid, centred on the
+ * plane's point nearest the base. */
+function planeGrid([nx, ny, nz, d], half = 0.5, lines = 5) {
+  const n = new THREE.Vector3(nx, ny, nz).normalize();
+  const centre = n.clone().multiplyScalar(d / Math.hypot(nx, ny, nz));
+  const u = new THREE.Vector3().crossVectors(n, Math.abs(n.z) < 0.9 ? new THREE.Vector3(0, 0, 1) : new THREE.Vector3(1, 0, 0)).normalize();
+  const v = new THREE.Vector3().crossVectors(n, u);
+  const at = (a, b) => centre.clone().addScaledVector(u, a).addScaledVector(v, b).toArray();
+  const out = [];
+  for (let i = 0; i < lines; i++) {
+    const t = -half + (2 * half * i) / (lines - 1);
+    out.push(...at(t, -half), ...at(t, half), ...at(-half, t), ...at(half, t));
+  }
+  return out;
+}
+
 /** A text label drawn into a sprite (for the frames' names). */
 function label(text, colour = "#111") {
   const canvas = document.createElement("canvas");
@@ -239,19 +262,20 @@ export class Workspace {
 
   /** Fill the layers from a session's artifacts (each fetched only when it changed);
    * `reviewExecution` is the execution reviewed against the plan (null: none). */
-  async show(sid, { session, reconstructions, trajectories, reviewExecution = null }) {
+  async show(sid, { session, reconstructions, trajectories, reviewExecution = null, touches: allTouches = [] }) {
     const rec = reconstructions[reconstructions.length - 1] || null;
     const traj = rec ? [...trajectories].reverse().find((t) => t.inputs.reconstruction_id === rec.id) : null;
     // The execution the page's tables show (the caller chooses), if it is of this plan.
     const exec = traj && reviewExecution?.inputs.trajectory_id === traj.id ? reviewExecution : null;
     const calibration = JSON.stringify([session.T_base_tracker, session.T_scan_tracker, rec?.summary.T_scan_tracker]);
-    const key = [sid, session.recording_id, session.scan_id, rec?.id, traj?.id, exec?.id, calibration].join("/");
+    const touches = allTouches[allTouches.length - 1] || null;
+    const key = [sid, session.recording_id, session.scan_id, rec?.id, traj?.id, exec?.id, touches?.id, calibration].join("/");
     if (key === this.shown || key === this.showing) return;
     // The newest call wins: an older one still loading stops at its next step.
     this.showing = key;
     const current = () => this.showing === key;
     try {
-      await this.fill(sid, key, current, { session, rec, traj, exec });
+      await this.fill(sid, key, current, { session, rec, traj, exec, touches });
     } finally {
       if (current()) this.showing = null;
     }
@@ -259,12 +283,13 @@ export class Workspace {
 
   /** The layers for one state of the session (see show); `current()` is false once a newer
    * state is being shown, and then nothing more is drawn from this one. */
-  async fill(sid, key, current, { session, rec, traj, exec }) {
+  async fill(sid, key, current, { session, rec, traj, exec, touches }) {
     // The base frame when calibrated; the scan through the registration the reconstruction found.
     const baseTracker = matrix(session.T_base_tracker);
     this.baseTracker = baseTracker;
     this.inBaseFrame = Boolean(session.T_base_tracker);
     this.showLiveArm(this.liveArm);
+    this.showCell(this.cell);
     const scanTracker = matrix(rec?.summary.T_scan_tracker || session.T_scan_tracker);
     const baseScan = baseTracker.clone().multiply(scanTracker.clone().invert());
     const transformed = (xyz, m) => {
@@ -298,6 +323,14 @@ export class Workspace {
       if (!current()) return;
       this.layer("trace", "line", transformed(interleave(csv), baseTracker));
     } else this.clear("trace");
+
+    // The touched points (tracker frame, the pen's tip) of the newest touches, where the
+    // reconstructions place the scan by them.
+    const touched = touches?.summary?.touches_m || [];
+    if (touched.length) {
+      const layer = this.layer("touches", "points", transformed(Float32Array.from(touched.flat()), baseTracker), null, 0x7b1fa2);
+      layer.material.size = 12;
+    } else this.clear("touches");
 
     if (rec) {
       const csv = parseCsv(await api(`/sessions/${sid}/reconstructions/${rec.id}/csv`), ["x", "y", "z", ...DIAGNOSTICS], 1, ["mode", "reason"]);
@@ -505,6 +538,17 @@ export class Workspace {
       this.render();
     }, this.liveArmDrawn ? LIVE_ARM_MS : 0);
     this.liveArmDrawn = true;
+  }
+
+  /** This server's cell (GET /cell): the keep-out boxes' edges and the planes as grids, in the
+   * base frame (not drawn while the view is in the tracker's). */
+  showCell(cell) {
+    this.cell = cell;
+    const ends = cell ? [...cell.keep_out_boxes_m.flatMap(boxEdges), ...cell.cell_planes.flatMap((p) => planeGrid(p))] : [];
+    if (!ends.length || !this.inBaseFrame) this.clear("cell");
+    else this.layer("cell", "segments", Float32Array.from(ends), null, 0xc2185b);
+    this.container.dataset.cell = this.layers.cell ? String(ends.length / 6) : "0";
+    this.render();
   }
 
   /** Draw the arm's stick figure: base, the DH frames' origins, the flange and the TCP. */
