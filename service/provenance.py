@@ -53,13 +53,23 @@ def reconstruction_outdated(
             f"the scan: made with {scan_id or 'none'}; scan {session.scan_id} was added after it"
         )
     touches_id = inputs.get("touches_id")
+    newest = store.artifacts(session.id, "touches")
     if touches_id is not None:
-        newest = store.artifacts(session.id, "touches")
         if newest and newest[-1].id != touches_id:
             reasons.append(
                 f"the touches: the scan was placed by {touches_id}; newer touches "
                 f"{newest[-1].id} were added"
             )
+    elif (
+        newest
+        and reconstruction.params.get("use_touches", True) is not False
+        and newest[-1].created_at > reconstruction.created_at
+    ):
+        # Made before any touches: the next reconstruction places the scan by them.
+        reasons.append(
+            f"the touches: touches {newest[-1].id} were added after it (a reconstruction now "
+            "places the scan by them)"
+        )
     return reasons
 
 

@@ -64,3 +64,19 @@ def test_a_calibration_set_after_a_plan_made_without_one_is_a_change():
     moved[2][3] = 0.003
     (reason,) = trajectory_outdated(store, _session(T=moved), planned)
     assert "3.0 mm" in reason
+
+
+def test_touches_added_after_a_reconstruction_made_without_them_are_a_change():
+    recon = _row("rcn", 10, {"recording_id": "rec_a", "scan_id": "scn_a"})
+    store = _Store(_row("rec_a", 0), _row("scn_a", 0), recon)
+    assert reconstruction_outdated(store, _session(), recon) == []
+    store.rows["tch_a"] = _row("tch_a", 20)
+    (reason,) = reconstruction_outdated(store, _session(), recon)
+    assert reason.startswith("the touches") and "tch_a" in reason
+    # Touches older than it (it was made not to use them) are no change; nor are touches
+    # when it was asked not to use any.
+    store.rows["tch_a"] = _row("tch_a", 5)
+    assert reconstruction_outdated(store, _session(), recon) == []
+    store.rows["tch_a"] = _row("tch_a", 20)
+    declined = _row("rcn2", 10, {"recording_id": "rec_a"}, {"use_touches": False})
+    assert reconstruction_outdated(store, _session(scan=None), declined) == []
