@@ -702,3 +702,46 @@ def test_a_second_screen_without_the_start_url_shows_the_arm_and_signs_in(
     page.wait_for_selector("body[data-ready=true]")
     expect(form).to_be_hidden()
     expect(page.get_by_role("button", name="demo", exact=True)).to_be_visible()
+
+
+def test_a_jobs_progress_never_goes_back_on_the_page(pendant):
+    """Events and polls can arrive out of order (a stream that broke, then a poll answered
+    from an older state): the bar and its label keep the largest progress seen."""
+    import json
+
+    page = pendant.page
+    pendant.open()
+    page.get_by_role("button", name="demo", exact=True).click()
+
+    def events(route):
+        job_id = route.request.url.split("/jobs/")[1].split("/")[0]
+        body = "".join(
+            f"event: job\ndata: {json.dumps({'id': job_id, 'state': 'running', 'progress': p})}\n\n"
+            for p in (0.6, 0.3)
+        )
+        route.fulfill(status=200, headers={"Content-Type": "text/event-stream"}, body=body)
+
+    polls = []
+
+    def poll(route):
+        response = route.fetch()
+        job = response.json()
+        if len(polls) < 3:  # the first polls answer from an older state
+            job = {**job, "state": "running", "progress": 0.1}
+        polls.append(job["progress"])
+        route.fulfill(response=response, json=job)
+
+    page.route("**/jobs/*/events", events)
+    page.route(re.compile(r".*/jobs/[^/]+$"), poll)
+    page.get_by_role("button", name="Reconstruct").click()
+    label = page.locator("#reconstruct-form .job-state")
+    expect(label).to_have_text("running 60 %")
+    deadline = 100
+    while len(polls) < 3 and deadline:
+        page.wait_for_timeout(200)
+        deadline -= 1
+    assert polls[:3] == [0.1, 0.1, 0.1]
+    expect(label).to_have_text("running 60 %")  # not 30 %, not 10 %
+    assert page.locator("#reconstruct-form progress").evaluate("bar => bar.value") == 0.6
+    page.unroute("**/jobs/*/events")
+    expect(label).to_have_text("succeeded 100 %", timeout=90_000)
