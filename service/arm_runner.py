@@ -30,7 +30,7 @@ import numpy as np
 
 from drivers.errors import MotionStoppedError
 from drivers.robot.base import ExecutionRecord, RobotBackend
-from drivers.robot.dryrun import reached_phase
+from drivers.robot.dryrun import reached_phase, stream_lag_s
 from recon.types import JointTrajectory
 from service.errors import error_body
 from service.store import Store, now
@@ -223,7 +223,8 @@ class ExecutionRunner:
         its last sample (the report's rule: :func:`drivers.robot.dryrun.reached_phase`)."""
         if record is None or len(record) == 0:
             return f"before moving ({self.step})"
-        return reached_phase(self.trajectory, record, self.backend.config.lookahead_s)
+        lag_s = stream_lag_s(self.mode, self.backend.config.lookahead_s)
+        return reached_phase(self.trajectory, record, lag_s)
 
 
 #: How long the runner keeps trying to store an execution's end while the database is busy

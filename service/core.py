@@ -41,8 +41,10 @@ class LiveRunners:
     execution_jobs: dict[str, str] = field(default_factory=dict)
     captures: dict = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
-    #: Open ``/robot/events`` streams (changed on the event loop only).
+    #: Open ``/robot/events`` streams (changed on the event loop only), and of those, the
+    #: ones without the token.
     event_streams: int = 0
+    anonymous_streams: int = 0
 
     def stop_all(self) -> None:
         """Stop every arm and capture (at shutdown)."""

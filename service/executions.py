@@ -17,7 +17,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from drivers.robot.base import backend_config, create_backend
-from drivers.robot.dryrun import reached_phase
+from drivers.robot.dryrun import reached_phase, stream_lag_s
 from service import tasks
 from service.arm_runner import ExecutionRunner, journal_record
 from service.artifacts import ID_PREFIX, ExecutionCodec, ReconstructionCodec, ScanCodec
@@ -509,7 +509,7 @@ def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
     config = backend_config(
         "ur_rtde", host=services.settings.ur_host or "unknown", robot=trajectory.robot
     )
-    where = reached_phase(trajectory, record, config.lookahead_s)
+    where = reached_phase(trajectory, record, stream_lag_s(request.mode, config.lookahead_s))
     summary = _real_summary(trajectory, record, [record.fault], where, request, config)
     store.add_arrays_artifact(
         artifact_id=execution_id,

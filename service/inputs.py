@@ -302,10 +302,15 @@ def reread_upload(
 
 
 def set_calibration(services: Services, session_id: str, request: CalibrationIn) -> SessionRow:
-    """Set the calibrations named in the request (an explicit null clears one)."""
+    """Set the calibrations named in the request (an explicit null clears one); the report
+    says each was set directly, and when (so no earlier fit or file is named as its source)."""
     services.session(session_id)
     fields = {name: getattr(request, name) for name in request.model_fields_set}
-    return services.store.update_session(session_id, **fields)
+    row = None
+    for name, value in fields.items():
+        entry = {"field": name, "at": now().isoformat(), "cleared": value is None}
+        row = services.store.record_calibration(session_id, f"set:{name}", entry, **{name: value})
+    return row if row is not None else services.session(session_id)
 
 
 #: A calibration file is a few hundred bytes; anything far larger is not one.

@@ -62,7 +62,7 @@ def reconstruction_outdated(
             )
     elif (
         newest
-        and reconstruction.params.get("use_touches", True) is not False
+        and _touches_considered(reconstruction)
         and newest[-1].created_at > reconstruction.created_at
     ):
         # Made before any touches: the next reconstruction places the scan by them.
@@ -115,6 +115,18 @@ def trajectory_outdated(
                 f"{moved_m * 1e3:.1f} mm and {np.degrees(turned_rad):.2f} deg"
             )
     return reasons
+
+
+def _touches_considered(reconstruction: ArtifactRow) -> bool:
+    """Whether touches, had there been any, would have placed this reconstruction's scan (a
+    scan used, registration on, touches not declined). Recorded at its start; for one made by
+    an earlier version, judged from what it recorded (touches were then on by default)."""
+    params, inputs = reconstruction.params, reconstruction.inputs
+    if "touches_considered" in params:
+        return bool(params["touches_considered"])
+    alpha = params.get("alpha", "auto")
+    uses_scan = alpha == "auto" or (isinstance(alpha, int | float) and alpha < 1.0)
+    return inputs.get("scan_id") is not None and uses_scan and params.get("register", True)
 
 
 def _newer(store: Store, artifact_id: str | None, than: ArtifactRow) -> bool:

@@ -22,6 +22,10 @@ def preview_path(services: Services, reconstruction_id: str) -> Path:
     return Path(services.array_path(reconstruction_id, "png"))
 
 
+#: What a reconstruction's stored parameters hold beyond the core's ReconParams.
+NOT_RECON_PARAMS = ("T_scan_tracker_init", "touches_considered")
+
+
 def start(services: Services, session_id: str, request: ReconstructionCreate) -> JobRow:
     """Queue the reconstruction; the job's result names it.
 
@@ -59,6 +63,11 @@ def start(services: Services, session_id: str, request: ReconstructionCreate) ->
         newest = services.store.artifacts(session_id, "touches")
         touches = newest[-1] if newest else None
     uses_scan = params["alpha"] == "auto" or params["alpha"] < 1.0
+    # Whether touches place the scan of this reconstruction (when there are any): touches
+    # added later make it outdated only then (service/provenance.py).
+    touches_considered = bool(
+        scan is not None and uses_scan and request.use_touches and request.registration
+    )
     if scan is None or not uses_scan or not request.use_touches:
         touches = None  # nothing to place, or asked not to: not an input
     T_init = request.T_scan_tracker or session.T_scan_tracker
@@ -71,7 +80,11 @@ def start(services: Services, session_id: str, request: ReconstructionCreate) ->
     inputs["scan_id"] = scan.id if scan else None
     if touches is not None:
         inputs["touches_id"] = touches.id
-    stored_params = {**params, "T_scan_tracker_init": T_init if scan else None}
+    stored_params = {
+        **params,
+        "T_scan_tracker_init": T_init if scan else None,
+        "touches_considered": touches_considered,
+    }
     done = services.record_when_done(
         session_id,
         "reconstruction",

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from service.bundles import BundleError, BundleReader
+from service.reconstructions import NOT_RECON_PARAMS
 
 #: The report's columns, in order.
 REPORT_COLUMNS = (
@@ -318,7 +319,7 @@ def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> 
     recon_id = artifact.inputs["reconstruction_id"]
     recon_arrays = reader.arrays(recon_id)
     recon_params = {
-        k: v for k, v in reader.artifact(recon_id).params.items() if k != "T_scan_tracker_init"
+        k: v for k, v in reader.artifact(recon_id).params.items() if k not in NOT_RECON_PARAMS
     }
     scan_id = artifact.inputs.get("scan_id")
     summary = TrajectorySummary.model_validate(artifact.summary)

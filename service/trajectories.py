@@ -10,12 +10,10 @@ from __future__ import annotations
 from service import tasks
 from service.artifacts import ID_PREFIX
 from service.core import Services
+from service.reconstructions import NOT_RECON_PARAMS
 from service.robot import start_joints
 from service.schemas import TrajectoryCreate
 from service.store import JobRow, new_id
-
-#: What the stored reconstruction parameters hold beyond the core's ReconParams.
-_NOT_RECON_PARAMS = ("T_scan_tracker_init",)
 
 
 def start(services: Services, session_id: str, request: TrajectoryCreate) -> JobRow:
@@ -46,7 +44,7 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
         params["start_q_rad"] = tuple(float(v) for v in q_start)
         request.plan_params_with(params)  # the arm's joints are checked as the request's are
     T = request.T_base_tracker or session.T_base_tracker
-    recon_params = {k: v for k, v in recon.params.items() if k not in _NOT_RECON_PARAMS}
+    recon_params = {k: v for k, v in recon.params.items() if k not in NOT_RECON_PARAMS}
     out_id = new_id(ID_PREFIX["trajectory"])
     inputs = {"reconstruction_id": recon.id, "scan_id": recon.inputs.get("scan_id")}
     boxes = [list(box) for box in services.settings.keep_out_boxes]

@@ -222,6 +222,13 @@ def off_path_m(arm, actual_flange: FloatArray, plan_q_rad: FloatArray) -> FloatA
     return distance_to_curve(actual_flange[:, :3, 3], plan_flange)
 
 
+def stream_lag_s(mode: str, lookahead_s: float) -> float:
+    """How far the arm runs behind the sample recorded with it: servoJ's lookahead when every
+    sample is streamed; none for movePath, whose record pairs each sample with the plan's at
+    the same time."""
+    return lookahead_s if mode == "servoj" else 0.0
+
+
 def recorded_plan_index(trajectory: JointTrajectory, planned_index, lookahead_s: float):
     """Which sample of the plan the arm was at for each recorded sample.
 
@@ -316,7 +323,7 @@ def execution_report(
         off_path = off_path_m(arm, actual_flange, trajectory.q_rad)
         # Which phase each recorded sample belongs to: the arm runs the plan a lookahead
         # behind the sample sent with it.
-        index = recorded_plan_index(trajectory, record.planned(), lookahead_s)
+        index = recorded_plan_index(trajectory, record.planned(), stream_lag_s(mode, lookahead_s))
         recorded_phase = trajectory.phases[index]
         for value in dict.fromkeys(trajectory.phases.tolist()):
             mine = recorded_phase == value

@@ -227,7 +227,9 @@ class SimBackend(RobotBackend):
             else:
                 completed = True
             # Decelerate (after a stop) or settle on the last sample.
-            self._settle(targets[-1] if completed else None)
+            if self._settle(targets[-1] if completed else None) and completed:
+                # Stopped while it settled: the arm braked short of the last sample.
+                completed, fault = False, "stopped on request"
         except RobotError as error:
             self._record(times, targets[: len(times)], actual, False, str(error))
             raise
@@ -249,14 +251,18 @@ class SimBackend(RobotBackend):
         self.last_record = record
         return record
 
-    def _settle(self, goal: FloatArray | None) -> None:
+    def _settle(self, goal: FloatArray | None) -> bool:
         """Keep feeding ``goal`` (or brake) until the buffered stream has run out and the arm
-        rests."""
+        rests; returns whether a stop came while it was still moving towards ``goal`` (the
+        arm then braked short of it)."""
+        stopped = False
         for i in range(int(1.0 / self._dt)):
             if i > self._delay + 2 and np.abs(self._qd).max() < 1e-5:
                 break
+            stopped = stopped or self._stopping or self._stop_requested.is_set()
             self.clock.sleep_until(self.clock.now() + self._dt)
             self._advance(self.clock.now(), target=goal)
+        return stopped and goal is not None
 
     def _check_faults(self) -> None:
         now = self.clock.now()

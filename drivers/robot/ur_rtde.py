@@ -724,10 +724,12 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             self.control.waitPeriod(t_cycle)
         else:
             completed = True
-            self._hold(q_rows[-1], period_s)
-            # The hold ends early on a safety stop: then the arm did not arrive.
+            cut_short = self._hold(q_rows[-1], period_s)
+            # The hold ends early on a safety stop or a Stop: then the arm did not arrive.
             if self.receive.isProtectiveStopped():
                 completed, fault = False, "protective stop"
+            elif cut_short:
+                completed, fault = False, "stopped on request"
         self.control.servoStop(self.config["stop_deceleration_rad_s2"])
         if completed:
             self._safety()
@@ -752,8 +754,9 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             q_before = q_after
         return q_after, tcp
 
-    def _hold(self, q, period_s) -> None:
-        """Keep servoing the last sample until the arm rests on it.
+    def _hold(self, q, period_s) -> bool:
+        """Keep servoing the last sample until the arm rests on it; returns whether a stop
+        request ended it before (the arm then brakes short of the sample).
 
         servoJ follows its targets a lookahead behind; a servoStop right after the last sample
         would brake the arm short of it (measured on the fake controller: 15 mrad on the
@@ -762,8 +765,10 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         """
         lookahead, gain = self.config["lookahead_s"], self.config["gain"]
         for _ in range(int((lookahead + 0.5) / period_s)):
-            if self.stop_event.is_set() or self.receive.isProtectiveStopped():
-                return
+            if self.stop_event.is_set():
+                return True
+            if self.receive.isProtectiveStopped():
+                return False
             t_cycle = self.control.initPeriod()
             if not self.control.servoJ(q, 0.0, 0.0, period_s, lookahead, gain):
                 self._refused()
@@ -773,8 +778,9 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
                 )
             error = np.abs(np.asarray(self.receive.getActualQ()) - q).max()
             if error < SETTLED_RAD and np.abs(self.receive.getActualQd()).max() < SETTLED_RAD_S:
-                return
+                return False
             self.control.waitPeriod(t_cycle)
+        return False
 
     def move_path(self, q_rows, speeds, acceleration, blends, journal=None):
         """Run blended moveJ waypoints as one controller-side path (ur_rtde movePath)."""

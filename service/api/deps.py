@@ -40,5 +40,14 @@ async def require_token(
         raise ApiError(401, "unauthorized", "wrong access token")
 
 
+def has_token(request: Request) -> bool:
+    """Whether a request to a route that needs no token carries the right one anyway."""
+    scheme, _, given = request.headers.get("authorization", "").partition(" ")
+    expected = request.app.state.services.token
+    return scheme.lower() == "bearer" and hmac.compare_digest(
+        given.strip().encode(), expected.encode()
+    )
+
+
 #: The services bundle, for a route's signature.
 ServicesDep = Annotated[Services, Depends(services)]

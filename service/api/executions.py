@@ -12,7 +12,7 @@ from fastapi import APIRouter, Query, Request, Response
 
 from service import executions, tasks
 from service.api.common import CSV, add_artifact_routes, download, gzip_json
-from service.api.deps import ServicesDep
+from service.api.deps import ServicesDep, has_token
 from service.artifacts import ExecutionCodec
 from service.errors import ApiError
 from service.schemas import ExecutionCreate, ExecutionOut, JobOut, StopOut
@@ -75,12 +75,23 @@ STOP_THREADS = anyio.CapacityLimiter(4)
 
 
 @stop_router.post("/{execution_id}/stop", response_model=StopOut)
-async def stop_execution(execution_id: str, services: ServicesDep) -> dict:
+async def stop_execution(execution_id: str, services: ServicesDep, request: Request) -> dict:
     """Stop the arm (decelerating; nothing of this execution moves afterwards) or cancel an
-    execution that has not started; says whether it had already ended."""
+    execution that has not started; says whether it had already ended. Needs no token for an
+    execution this instance started (any screen by the cell stops the arm); with the token,
+    any execution the database knows."""
     # Latched first, on the event loop: no database, no worker thread, nothing an ordinary
     # request can hold stands between the request and the arm's stop.
     executions.latch_stop(services, execution_id)
+    if execution_id not in services.live.execution_jobs and not has_token(request):
+        # Without the token no search of the database: a flood of made-up ids must not load
+        # it, nor keep the stop's threads from a real Stop.
+        raise ApiError(
+            404,
+            "not_found",
+            f"execution {execution_id} was not started by this instance: sign in to stop an "
+            "execution of another, or stop the arm at its teach pendant",
+        )
     outcome = await anyio.to_thread.run_sync(
         executions.stop, services, execution_id, limiter=STOP_THREADS
     )

@@ -5,10 +5,10 @@ from __future__ import annotations
 import asyncio
 import json
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 from fastapi.responses import StreamingResponse
 
-from service.api.deps import ServicesDep
+from service.api.deps import ServicesDep, has_token
 from service.errors import ApiError
 from service.executions import arm_owner
 from service.schemas import CellOut, RobotOut
@@ -25,6 +25,9 @@ KEEPALIVE_S = 5.0
 EVENT_POLL_S = 0.05
 #: Open event streams at most (one token serves every pendant of a cell; a page holds one).
 MAX_EVENT_STREAMS = 64
+#: Of those, streams without the token at most: screens that are not signed in cannot take
+#: the slots the signed-in pendants need.
+MAX_ANONYMOUS_STREAMS = 16
 
 
 def _view(services) -> dict:
@@ -53,21 +56,28 @@ def robot_state(services: ServicesDep) -> dict:
     response_class=StreamingResponse,
     responses={200: {"content": {"text/event-stream": {}}}},
 )
-async def robot_events(services: ServicesDep) -> StreamingResponse:
+async def robot_events(services: ServicesDep, request: Request) -> StreamingResponse:
     """Server-sent events: the arm's state each time it changes (and every few seconds). At
-    most 64 streams are open at once (429 beyond): each is a coroutine on the event loop that
-    reads the one watch of the arm, so no stream holds a thread an ordinary request needs."""
+    most 64 streams are open at once, 16 of them without the token (429 beyond): each is a
+    coroutine on the event loop that reads the one watch of the arm, so no stream holds a
+    thread an ordinary request needs."""
     live = services.live
-    if live.event_streams >= MAX_EVENT_STREAMS:
+    anonymous = not has_token(request)
+    if live.event_streams >= MAX_EVENT_STREAMS or (
+        anonymous and live.anonymous_streams >= MAX_ANONYMOUS_STREAMS
+    ):
+        limit = MAX_ANONYMOUS_STREAMS if anonymous else MAX_EVENT_STREAMS
         raise ApiError(
             429,
             "too_many_streams",
-            f"{MAX_EVENT_STREAMS} event streams are open already: close a pendant, or poll "
-            "GET /robot",
+            f"{limit} event streams{' without the token' if anonymous else ''} are open "
+            "already: close a pendant, sign in, or poll GET /robot",
         )
 
     async def stream():
-        live.event_streams += 1  # counted while it runs (on the event loop: no lock needed)
+        # Counted while it runs (on the event loop: no lock needed).
+        live.event_streams += 1
+        live.anonymous_streams += anonymous
         loop = asyncio.get_running_loop()
         version = -1
         try:
@@ -81,6 +91,7 @@ async def robot_events(services: ServicesDep) -> StreamingResponse:
                 yield f"event: robot\ndata: {json.dumps(body)}\n\n"
         finally:
             live.event_streams -= 1
+            live.anonymous_streams -= anonymous
 
     return StreamingResponse(
         stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}

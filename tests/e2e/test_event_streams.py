@@ -10,7 +10,7 @@ import time
 import httpx
 import pytest
 
-from service.api.robot import MAX_EVENT_STREAMS
+from service.api.robot import MAX_ANONYMOUS_STREAMS, MAX_EVENT_STREAMS
 from tests.server_process import Server
 
 pytestmark = pytest.mark.timeout(300)
@@ -18,8 +18,10 @@ pytestmark = pytest.mark.timeout(300)
 TOKEN = "streams-token-abcdefghijklmnop"
 
 
-def _listen(url: str, started: threading.Semaphore, stop: threading.Event, errors: list) -> None:
-    headers = {"Authorization": f"Bearer {TOKEN}"}
+def _listen(
+    url: str, started: threading.Semaphore, stop: threading.Event, errors: list, token=TOKEN
+) -> None:
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
     try:
         with httpx.Client(base_url=url, timeout=30.0, headers=headers) as client:
             with client.stream("GET", "/robot/events") as response:
@@ -70,6 +72,40 @@ def test_many_open_event_streams_leave_requests_answered_and_the_next_is_refused
             assert refused.status_code == 429 and refused.json()["code"] == "too_many_streams"
         assert server.client.post("/executions/exe_000000000000/stop").status_code == 404
         assert server.client.get("/robot").status_code == 200
+    finally:
+        stop.set()
+        server.stop()
+        for thread in threads:
+            thread.join(timeout=10)
+
+
+def test_screens_without_the_token_cannot_take_the_signed_in_pendants_streams(tmp_path):
+    """The safety state streams to any screen, signed in or not; but the screens that are not
+    cannot hold more than 16 streams, so the pendants' slots stay free."""
+    server = Server(tmp_path / "data", token=TOKEN)
+    stop = threading.Event()
+    started = threading.Semaphore(0)
+    errors: list = []
+    threads = [
+        threading.Thread(
+            target=_listen, args=(server.url, started, stop, errors, None), daemon=True
+        )
+        for _ in range(MAX_ANONYMOUS_STREAMS)
+    ]
+    try:
+        for thread in threads:
+            thread.start()
+        for _ in threads:
+            assert started.acquire(timeout=60), "a stream got no first event"
+        assert errors == []
+        anonymous = httpx.get(f"{server.url}/robot/events", timeout=10)
+        assert anonymous.status_code == 429 and "without the token" in anonymous.json()["message"]
+        signed_in = threading.Thread(
+            target=_listen, args=(server.url, started, stop, errors), daemon=True
+        )
+        signed_in.start()
+        threads.append(signed_in)
+        assert started.acquire(timeout=60) and errors == []
     finally:
         stop.set()
         server.stop()

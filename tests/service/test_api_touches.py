@@ -128,6 +128,17 @@ def test_touches_are_uploaded_and_used_by_the_next_reconstruction(client, sid, s
     assert "touches_id" not in body["inputs"]
     assert body["summary"]["registration"]["target"] == "edge"
     assert body["summary"]["registration"]["reason"]
+    # What touches added now would mean to each: outdated where touches place the scan, not
+    # where they were declined.
+    assert body["params"]["touches_considered"] is False and body["outdated"] == []
+    touch_again = client.put(
+        f"/sessions/{sid}/touches", files={"file": ("touches.csv", _csv(touch.recording))}
+    )
+    assert touch_again.status_code == 201
+    assert client.get(f"/sessions/{sid}/reconstructions/{rid}").json()["outdated"] == []
+    first = client.get(f"/sessions/{sid}/reconstructions").json()[0]
+    assert first["params"]["touches_considered"] is True
+    assert any(reason.startswith("the touches") for reason in first["outdated"])
 
 
 @pytest.mark.parametrize(

@@ -129,3 +129,12 @@ def test_a_dry_run_measures_its_duration_and_phases_as_a_real_run_does(mode):
     # No connecting or settling: within a second of the plan (movePath's controller times its
     # own blends).
     assert abs(summary["duration_s"] - summary["planned_duration_s"]) < 1.0
+
+
+def test_a_stop_while_the_arm_settles_on_the_last_sample_is_a_stop(tmp_path):
+    """The last sample sent is not the arm arrived: it follows a lookahead behind and settles.
+    A Stop then brakes it short of the end (12 mrad measured), so the run did not complete."""
+    job, summary, record, _ = _run(tmp_path, stop_at=1.0)
+    assert job["state"] == "cancelled"
+    assert not summary["completed"] and summary["faults"] == ["stopped on request"]
+    assert summary["stopped_in"] == job["result"]["stopped_in"] == "retract"

@@ -130,8 +130,13 @@ def test_the_safety_state_and_stop_need_no_token_and_nothing_else_opens(app_clie
     _, client = app_client
     state = client.get("/robot", headers=NO_TOKEN)
     assert state.status_code == 200 and state.json()["backend"] == "sim"
-    # Stop is answered (here: no such execution), never 401.
-    _error(client.post("/executions/exe_nope/stop", headers=NO_TOKEN), 404, "not_found")
+    # Stop is answered (here: no such execution), never 401; without the token only for
+    # executions this instance started (no search of the database for made-up ids).
+    message = _error(client.post("/executions/exe_nope/stop", headers=NO_TOKEN), 404, "not_found")
+    assert "not started by this instance" in message
+    assert "not started by this instance" not in _error(
+        client.post("/executions/exe_nope/stop"), 404, "not_found"
+    )
     # Acting on the arm or the sessions still needs the token.
     _error(client.post("/robot/unlock", headers=NO_TOKEN), 401, "unauthorized")
     _error(client.post("/sessions", json={"name": "x"}, headers=NO_TOKEN), 401, "unauthorized")

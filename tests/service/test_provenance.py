@@ -67,7 +67,9 @@ def test_a_calibration_set_after_a_plan_made_without_one_is_a_change():
 
 
 def test_touches_added_after_a_reconstruction_made_without_them_are_a_change():
-    recon = _row("rcn", 10, {"recording_id": "rec_a", "scan_id": "scn_a"})
+    recon = _row(
+        "rcn", 10, {"recording_id": "rec_a", "scan_id": "scn_a"}, {"touches_considered": True}
+    )
     store = _Store(_row("rec_a", 0), _row("scn_a", 0), recon)
     assert reconstruction_outdated(store, _session(), recon) == []
     store.rows["tch_a"] = _row("tch_a", 20)
@@ -78,5 +80,16 @@ def test_touches_added_after_a_reconstruction_made_without_them_are_a_change():
     store.rows["tch_a"] = _row("tch_a", 5)
     assert reconstruction_outdated(store, _session(), recon) == []
     store.rows["tch_a"] = _row("tch_a", 20)
-    declined = _row("rcn2", 10, {"recording_id": "rec_a"}, {"use_touches": False})
-    assert reconstruction_outdated(store, _session(scan=None), declined) == []
+    # Touches that could not have placed it (declined, no scan, registration off, the trace
+    # alone) are no change either.
+    declined = _row("rcn2", 10, {"recording_id": "rec_a", "scan_id": "scn_a"})
+    declined.params = {"touches_considered": False}
+    assert reconstruction_outdated(store, _session(), declined) == []
+    # One made by an earlier version (nothing recorded): judged from its parameters.
+    for params, outdated in (
+        ({"alpha": "auto", "register": True}, True),
+        ({"alpha": 1.0, "register": True}, False),
+        ({"alpha": 0.5, "register": False}, False),
+    ):
+        old = _row("rcn3", 10, {"recording_id": "rec_a", "scan_id": "scn_a"}, params)
+        assert bool(reconstruction_outdated(store, _session(), old)) is outdated, params

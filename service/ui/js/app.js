@@ -543,7 +543,8 @@ function calibrationSource(s, field) {
     .sort(([, a], [, b]) => String(a.at || "").localeCompare(String(b.at || "")));
   if (!entries.length) return "";
   const [name, entry] = entries[entries.length - 1];
-  const how = name === "base" ? "point pairs" : name === "pivot" ? "pivoting" : entry.source_name ? `file ${entry.source_name}` : name;
+  const how = name === "base" ? "point pairs" : name === "pivot" ? "pivoting"
+    : entry.source_name ? `file ${entry.source_name}` : name.startsWith("set:") ? "set directly" : name;
   return ` (${how}${entry.at ? `, ${new Date(entry.at).toLocaleString()}` : ""})`;
 }
 
@@ -1107,7 +1108,7 @@ function paramInput(name, spec) {
     // A number that may be left out (empty: not given, e.g. the payload: the controller's stays).
     const number = spec.anyOf.find((s) => s.type === "number") || {};
     const input = numberField(name, number);
-    input.value = spec.default ?? "";
+    input.value = spec.default == null ? "" : inFormUnits(spec.default, DISPLAY_SCALES[name] ?? 1);
     input.placeholder = "not set";
     return input;
   }
@@ -1324,12 +1325,15 @@ function wire() {
   });
 
   $("#plan-speed").addEventListener("input", updatePlanSpeed);
-  // Typed in mm/s (a comma decimal too): the slider follows; out of range, the form says so.
+  // Typed in mm/s: the slider follows. Out of range it is left as typed (never replaced by the
+  // slider's value): the form refuses it when Plan is pressed, saying the range.
   $("#plan-speed-mm").addEventListener("input", (event) => {
-    const value = Number(String(event.target.value).replace(",", ".")) / 1000;
+    const value = Number(event.target.value) / 1000;
     if (event.target.checkValidity() && Number.isFinite(value) && value > 0) $("#plan-speed").value = value;
   });
-  $("#plan-speed-mm").addEventListener("change", updatePlanSpeed);
+  $("#plan-speed-mm").addEventListener("change", (event) => {
+    if (event.target.checkValidity()) updatePlanSpeed();
+  });
   $("#plan-params").addEventListener("change", (event) => {
     if (event.target.name === "robot") event.target.dataset.chosen = "1";
   });
@@ -1339,7 +1343,7 @@ function wire() {
     if (!form.reportValidity()) return;
     let body;
     try {
-      body = { reconstruction_id: reconstruction().id, ...paramsBody(form, PLAN_FIELDS), speed_m_s: Number($("#plan-speed-mm").value.replace(",", ".")) / 1000 };
+      body = { reconstruction_id: reconstruction().id, ...paramsBody(form, PLAN_FIELDS), speed_m_s: Number($("#plan-speed-mm").value) / 1000 };
     } catch (err) {
       return showError($(".message", form), err);
     }
