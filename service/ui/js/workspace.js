@@ -10,8 +10,11 @@ import { api } from "./api.js";
 /** Which shown layer a click picks first, when several have a point under the finger. */
 const PICK_ORDER = ["overlay", "reconstruction", "path", "trace", "scan"];
 
-/** The live arm is redrawn at most this often (ms). */
-const LIVE_ARM_MS = 200;
+/** The live arm is redrawn at most this often (ms): each redraw renders the whole scene (the
+ * scan's points too), which on a software-rendered screen costs the CPU the server may need. */
+const LIVE_ARM_MS = 500;
+/** A pose that moved less than this (m, at every joint) is not redrawn. */
+const LIVE_ARM_STILL_M = 5e-4;
 
 /** The layers that show the workpiece (framed by default). */
 const WORKPIECE = ["scan", "trace", "reconstruction"];
@@ -520,11 +523,16 @@ export class Workspace {
    * view is in the base frame (a session without a tracker-to-base calibration is shown in the
    * tracker's), and redrawn at most every LIVE_ARM_MS (the stream may send 20 states a second). */
   showLiveArm(points) {
+    const drawn = this.liveArmShown;
+    const still = points && drawn && points.length === drawn.length && this.liveArmFrame === this.inBaseFrame
+      && points.every((p, i) => Math.hypot(p[0] - drawn[i][0], p[1] - drawn[i][1], p[2] - drawn[i][2]) < LIVE_ARM_STILL_M);
     this.liveArm = points;
-    if (this.liveArmTimer) return;
+    if (still || this.liveArmTimer) return;
     this.liveArmTimer = setTimeout(() => {
       this.liveArmTimer = null;
       const now = this.liveArm;
+      this.liveArmShown = now;
+      this.liveArmFrame = this.inBaseFrame;
       if (!now || !this.inBaseFrame) {
         this.clear("live-arm");
         this.clear("live-arm-joints");
