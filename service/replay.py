@@ -230,6 +230,7 @@ def _reconstruction(reader: BundleReader, artifact, overrides: Overrides, tolera
     inputs = artifact.inputs
     params = dict(artifact.params)
     T_init = params.pop("T_scan_tracker_init", None)
+    params = {k: v for k, v in params.items() if k not in NOT_RECON_PARAMS}
     params = _as_stored(params, overrides.reconstruction)
     ids = inputs.get("recording_ids") or [inputs["recording_id"]]
     recording_arrays = [reader.arrays(rid) for rid in ids]
