@@ -183,9 +183,10 @@ class ExecutionRunner:
     def _ended(self, record: ExecutionRecord | None, faults: list[str]) -> dict:
         """Record the execution; the job succeeded, or was cancelled by a stop.
 
-        One verdict for the job and its record: an execution that sent its last sample has
-        completed, even when a Stop came in while it ended (the job and the record then both
-        say completed; "cancelled" with a completed record said two things)."""
+        One verdict for the job and its record: an execution whose arm arrived and settled on
+        its last sample has completed, even when a Stop came in after that (the job and the
+        record then both say completed; "cancelled" with a completed record said two things).
+        A Stop while the arm still settles is a stop: the backend's record is not completed."""
         completed = record is not None and record.completed
         if not completed:
             record = self._with_journal(record, "; ".join(faults) or "stopped")
