@@ -539,9 +539,16 @@ export class Workspace {
         this.container.dataset.liveArm = now ? "not in the base frame" : "none";
       } else {
         const flat = Float32Array.from(now.flat());
+        const first = !this.layers["live-arm"];
         this.layer("live-arm", "line", flat, null, 0x0a8f3c);
         this.layer("live-arm-joints", "points", flat, null, 0x0a8f3c);
         this.container.dataset.liveArm = JSON.stringify(now[now.length - 1]);
+        // Nothing of a session shown (a screen not signed in, or none opened): aim at the arm.
+        if (first && !this.shown && !this.showing && !this.steered) {
+          const view = this.view;
+          this.frame("all");
+          this.view = view; // a session shown later is framed as the operator chose
+        }
       }
       this.render();
     }, this.liveArmDrawn ? LIVE_ARM_MS : 0);
