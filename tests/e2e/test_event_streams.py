@@ -40,21 +40,29 @@ def _listen(
         errors.append(type(error).__name__)
 
 
+def _open_streams(server, count: int, token, shared, threads: list) -> None:
+    """Open ``count`` streams (with ``token``, or none), each in a thread appended to
+    ``threads``, and wait until every one has had its first event."""
+    started, stop, errors = shared
+    for _ in range(count):
+        thread = threading.Thread(
+            target=_listen, args=(server.url, started, stop, errors, token), daemon=True
+        )
+        thread.start()
+        threads.append(thread)
+    for _ in range(count):
+        assert started.acquire(timeout=60), "a stream got no first event"
+    assert errors == []
+
+
 def test_many_open_event_streams_leave_requests_answered_and_the_next_is_refused(tmp_path):
     server = Server(tmp_path / "data", token=TOKEN)
     stop = threading.Event()
     started = threading.Semaphore(0)
     errors: list = []
-    threads = [
-        threading.Thread(target=_listen, args=(server.url, started, stop, errors), daemon=True)
-        for _ in range(MAX_EVENT_STREAMS)
-    ]
+    threads: list = []
     try:
-        for thread in threads:
-            thread.start()
-        for _ in threads:
-            assert started.acquire(timeout=60), "a stream got no first event"
-        assert errors == []
+        _open_streams(server, MAX_EVENT_STREAMS, TOKEN, (started, stop, errors), threads)
         # Every stream is open and served: ordinary requests are answered.
         before = time.monotonic()
         for _ in range(5):
@@ -86,18 +94,9 @@ def test_screens_without_the_token_cannot_take_the_signed_in_pendants_streams(tm
     stop = threading.Event()
     started = threading.Semaphore(0)
     errors: list = []
-    threads = [
-        threading.Thread(
-            target=_listen, args=(server.url, started, stop, errors, None), daemon=True
-        )
-        for _ in range(MAX_ANONYMOUS_STREAMS)
-    ]
+    threads: list = []
     try:
-        for thread in threads:
-            thread.start()
-        for _ in threads:
-            assert started.acquire(timeout=60), "a stream got no first event"
-        assert errors == []
+        _open_streams(server, MAX_ANONYMOUS_STREAMS, None, (started, stop, errors), threads)
         anonymous = httpx.get(f"{server.url}/robot/events", timeout=10)
         assert anonymous.status_code == 429 and "without the token" in anonymous.json()["message"]
         signed_in = threading.Thread(

@@ -942,22 +942,19 @@ function fitForm(form, summary, send, show) {
   });
 }
 
-function wireCalibration() {
-  // A stored calibration file: sent whole, read and checked by the server as the CLI reads it.
-  $("#calfile-form").addEventListener("submit", async (event) => {
+/** A form that sets something of the session: on submit, `send(form)` makes the request and
+ * returns what to say; an error is shown as an instruction. One click, one request; the button
+ * is held meanwhile, and the session is read again after. */
+function setForm(form, send) {
+  form.addEventListener("submit", async (event) => {
     event.preventDefault();
-    const form = event.currentTarget;
     const box = $(".message", form);
+    const button = $("button[type=submit]", form);
     clearMessage(box);
     if (!form.reportValidity()) return;
-    const file = form.elements.file.files[0];
-    const data = new FormData();
-    data.append("file", file, file.name);
-    const button = $("button[type=submit]", form);
     button.disabled = true;
     try {
-      await api(`/sessions/${state.session.id}/calibration/file`, { method: "POST", form: data });
-      box.textContent = `Loaded ${file.name}.`;
+      box.textContent = await send(form);
     } catch (err) {
       showError(box, err);
     } finally {
@@ -965,22 +962,23 @@ function wireCalibration() {
       if (state.session) await refresh();
     }
   });
-  $("#copycal-form").addEventListener("submit", async (event) => {
-    event.preventDefault();
-    const form = event.currentTarget;
-    const box = $(".message", form);
-    clearMessage(box);
-    if (!form.reportValidity()) return;
+}
+
+function wireCalibration() {
+  // A stored calibration file: sent whole, read and checked by the server as the CLI reads it.
+  setForm($("#calfile-form"), async (form) => {
+    const file = form.elements.file.files[0];
+    const data = new FormData();
+    data.append("file", file, file.name);
+    await api(`/sessions/${state.session.id}/calibration/file`, { method: "POST", form: data });
+    return `Loaded ${file.name}.`;
+  });
+  // Another session's tracker -> base (the same cell, the tracker not moved).
+  setForm($("#copycal-form"), async (form) => {
     const from = (state.sessions || []).find((o) => o.id === form.elements.from.value);
-    if (!from) return;
-    try {
-      await api(`/sessions/${state.session.id}/calibration`, { method: "PUT", json: { T_base_tracker: from.T_base_tracker } });
-      box.textContent = `Tracker → base of “${from.name}” set.`;
-    } catch (err) {
-      showError(box, err);
-    } finally {
-      if (state.session) await refresh();
-    }
+    if (!from) return "";
+    await api(`/sessions/${state.session.id}/calibration`, { method: "PUT", json: { T_base_tracker: from.T_base_tracker } });
+    return `Tracker → base of “${from.name}” set.`;
   });
 
   fitForm($("#pivot-form"), $("#pivot-summary"), (form) => {
