@@ -46,6 +46,13 @@ class LiveRunners:
     event_streams: int = 0
     anonymous_streams: int = 0
 
+    def arm_owner(self) -> str | None:
+        """The execution that owns the real arm now (call with :attr:`lock` held)."""
+        for execution_id, runner in self.executions.items():
+            if runner.running:
+                return execution_id
+        return None
+
     def stop_all(self) -> None:
         """Stop every arm and capture (at shutdown)."""
         with self.lock:

@@ -21,6 +21,7 @@ from drivers.robot.dryrun import reached_phase, stream_lag_s
 from service import tasks
 from service.arm_runner import ExecutionRunner, journal_record
 from service.artifacts import ID_PREFIX, ExecutionCodec, ReconstructionCodec, ScanCodec
+from service.cell import cell_now
 from service.core import Services
 from service.errors import ApiError, not_found
 from service.gate import (
@@ -118,14 +119,6 @@ def journal_path(services: Services, execution_id: str) -> Path:
     return services.store.data_dir / "journals" / f"{execution_id}.journal"
 
 
-def arm_owner(services: Services) -> str | None:
-    """The execution that owns the real arm now (call with ``live.lock`` held)."""
-    for execution_id, runner in services.live.executions.items():
-        if runner.running:
-            return execution_id
-    return None
-
-
 def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
     settings = services.settings
     check_request(settings, confirm=request.confirm)
@@ -134,24 +127,33 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
     # below); checked again under the lock, just before the arm is taken (uploads do not take
     # that lock: an input changed in the moments between is caught at the second look).
     check_current(
-        trajectory_outdated(services.store, services.session(session_id), trajectory),
+        trajectory_outdated(
+            services.store,
+            services.session(session_id),
+            trajectory,
+            cell=cell_now(services.store, settings),
+        ),
         accept_outdated=request.accept_outdated,
     )
     tool = _tool_of(trajectory)
     # The samples are judged here, against this arm and this cell, before the lock (the check
     # takes a fraction of a second); the runner is given the very arrays judged.
-    checked = check_here(
-        settings,
-        trajectory,
-        _load_for_gate(services, trajectory),
-        _cell_here(services, trajectory, tool),
-    )
+    here = _cell_here(services, trajectory, tool)
+    checked = check_here(settings, trajectory, _load_for_gate(services, trajectory), here)
     loaded = checked.trajectory
     # One owner: deciding and taking the arm happen under one lock, so two requests that
     # arrive together cannot both pass the gate.
     with services.live.lock:
         session = services.session(session_id)  # not deleted meanwhile (checked under this lock)
-        outdated = trajectory_outdated(services.store, session, trajectory)
+        if cell_now(services.store, settings).revision != here.cell_revision:
+            # Cell edits take this lock too: after this look, none lands before the arm is taken.
+            raise CellUnknown(
+                "the cell was edited while this run was being checked: start the run again, "
+                "and it is checked against the cell as it is now"
+            )
+        outdated = trajectory_outdated(
+            services.store, session, trajectory, cell=cell_now(services.store, settings)
+        )
         check_real_arm(
             settings,
             checked,
@@ -160,7 +162,7 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
             confirm=request.confirm,
             mode=request.mode,
             tolerance_m=request.tolerance_m,
-            owner=arm_owner(services),
+            owner=services.live.arm_owner(),
             arm=services.robot.poll(),  # read now: the arm may have been jogged a moment ago
             outdated=outdated,
             accept_outdated=request.accept_outdated,
@@ -231,6 +233,7 @@ def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> Cell
     from recon.types import PlanParams
 
     store, settings = services.store, services.settings
+    cell_in_force = cell_now(store, settings)  # not the plan's copy of it
     summary = trajectory.summary if isinstance(trajectory.summary, dict) else {}
     scan = T_scan_tracker = None
     scan_id = trajectory.inputs.get("scan_id")
@@ -267,8 +270,8 @@ def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> Cell
             scan,
             T_scan_tracker,
             None if T_base_tracker is None else np.asarray(T_base_tracker, dtype=np.float64),
-            settings.keep_out_boxes,
-            settings.cell_planes,
+            cell_in_force.keep_out_boxes_m,
+            cell_in_force.cell_planes,
         )
     except (TypeError, ValueError) as exc:
         raise UnreadableTrajectory(
@@ -281,6 +284,7 @@ def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> Cell
         tool_radius_m=params.tool_radius_m,
         tool_spheres_m=params.tool_spheres_m,
         clearance_m=params.clearance_m,
+        cell_revision=cell_in_force.revision,
     )
 
 

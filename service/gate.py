@@ -143,6 +143,9 @@ class CellHere:
         The tool's capsule radius and the clearance required, as planned.
     tool_spheres_m : tuple of float
         The tool as spheres (X,Y,Z,R each, flange frame), as planned; empty for the capsule.
+    cell_revision : int
+        The revision of the edited cell the boxes and planes came from (0: start-up settings):
+        the arm is taken only if it is still the one in force.
     """
 
     cell: Cell
@@ -150,6 +153,7 @@ class CellHere:
     tool_radius_m: float
     clearance_m: float
     tool_spheres_m: tuple[float, ...] = ()
+    cell_revision: int = 0
 
 
 def _arm_here(settings: Settings, loaded: JointTrajectory) -> kinematics.URModel:

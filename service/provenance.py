@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.cell import CellNow
 from service.store import ArtifactRow, SessionRow, Store
 
 #: Calibrations closer than this (translation, metres; rotation, radians) are the same one
@@ -78,9 +79,11 @@ def trajectory_outdated(
     session: SessionRow,
     trajectory: ArtifactRow,
     reconstruction: ArtifactRow | None = None,
+    *,
+    cell: CellNow | None = None,
 ) -> list[str]:
-    """What changed in the session since ``trajectory`` was planned: its reconstruction's
-    inputs (:func:`reconstruction_outdated`) and the tracker-to-base calibration.
+    """What changed since ``trajectory`` was planned: its reconstruction's inputs
+    (:func:`reconstruction_outdated`), the tracker-to-base calibration and the cell.
 
     Parameters
     ----------
@@ -89,6 +92,8 @@ def trajectory_outdated(
     trajectory : ArtifactRow
     reconstruction : ArtifactRow, optional
         The trajectory's reconstruction (looked up when not given).
+    cell : CellNow, optional
+        The cell in force (:func:`service.cell.cell_now`); not compared when not given.
 
     Returns
     -------
@@ -114,7 +119,20 @@ def trajectory_outdated(
                 "the tracker-to-base calibration: the session's differs from the plan's by "
                 f"{moved_m * 1e3:.1f} mm and {np.degrees(turned_rad):.2f} deg"
             )
+    params = trajectory.params
+    boxes, planes = params.get("keep_out_boxes") or [], params.get("cell_planes") or []
+    if cell is not None and cell.differs_from(boxes, planes):
+        reasons.append(
+            f"the cell: planned with {_count(boxes, 'keep-out box', 'keep-out boxes')} and "
+            f"{_count(planes, 'plane', 'planes')}; the cell now has "
+            f"{_count(cell.keep_out_boxes_m, 'keep-out box', 'keep-out boxes')} and "
+            f"{_count(cell.cell_planes, 'plane', 'planes')} ({cell.source})"
+        )
     return reasons
+
+
+def _count(items, one: str, many: str) -> str:
+    return f"{len(items)} {one if len(items) == 1 else many}"
 
 
 def _touches_considered(reconstruction: ArtifactRow) -> bool:

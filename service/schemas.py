@@ -12,6 +12,7 @@ from pydantic import (
     ConfigDict,
     Field,
     StrictBool,
+    StrictInt,
     StringConstraints,
     field_validator,
     model_validator,
@@ -522,7 +523,7 @@ class RobotOut(BaseModel):
 
 
 class CellOut(BaseModel):
-    """The cell this server plans and runs in (its settings at start)."""
+    """The cell this server plans and runs in: its start-up settings or the edited cell."""
 
     robot: str
     keep_out_boxes_m: list[list[float]] = Field(
@@ -531,8 +532,45 @@ class CellOut(BaseModel):
     cell_planes: list[list[float]] = Field(
         ..., description="planes besides the mounting one, base frame: nx, ny, nz, d (n . p >= d)"
     )
+    revision: int = Field(
+        ...,
+        description="changes stored so far (0: never edited); an edit "
+        "names the revision it was made from",
+    )
+    source: str = Field(..., description="the start-up settings, or when it was edited")
+    editable: bool = Field(..., description="false while a real-arm execution runs")
     mount_up: list[float]
     arm_kinematics: str = Field(..., description="calibrated from the controller, or nominal")
+
+
+class CellIn(Strict):
+    """This arm's keep-out boxes and planes, as the operator set them."""
+
+    keep_out_boxes_m: list[Any] = Field(
+        ...,
+        max_length=64,
+        description="boxes, base frame: x_min, y_min, z_min, x_max, y_max, z_max (m); at most 32",
+    )
+    cell_planes: list[Any] = Field(
+        ...,
+        max_length=64,
+        description="planes besides the mounting one, base frame: nx, ny, nz, d (m); the arm "
+        "keeps to n . p >= d; at most 16",
+    )
+    revision: StrictInt = Field(
+        ..., ge=0, description="the revision of the cell this edit was made from (GET /cell)"
+    )
+
+    @model_validator(mode="after")
+    def _checkable(self) -> CellIn:
+        from service.cell import check_shapes
+
+        boxes, planes = check_shapes(self.keep_out_boxes_m, self.cell_planes)
+        self.keep_out_boxes_m, self.cell_planes = (
+            [list(b) for b in boxes],
+            [list(p) for p in planes],
+        )
+        return self
 
 
 class CaptureOut(FromRow):

@@ -131,6 +131,14 @@ class Settings(BaseSettings):
         "below a wall- or ceiling-mounted arm), base frame: nx, ny, nz, d; the arm keeps to "
         "n . p >= d",
     )
+    cell_name: str | None = Field(
+        None,
+        min_length=1,
+        max_length=200,
+        description="the name this arm's cell is stored under once edited in the pendant "
+        "(instances on one database that drive the same arm share it); default: the arm's "
+        "model and address, or 'simulated'",
+    )
     demo: bool = Field(False, description="create the demo session on start if missing")
 
     @field_validator("keep_out_boxes")
@@ -202,6 +210,14 @@ class Settings(BaseSettings):
         """The arm's :class:`recon.kinematics.DHCalibration` read from ``ur_calibration`` at
         start (None without one), checked against ``ur_robot``."""
         return self._arm_calibration
+
+    @property
+    def cell_key(self) -> str:
+        """The name this arm's edited cell is stored under (``cell_name`` or one made of the
+        arm's model and address)."""
+        if self.cell_name:
+            return self.cell_name
+        return f"{self.ur_robot}@{self.ur_host}" if self.ur_host else "simulated"
 
     @property
     def db_url(self) -> str:

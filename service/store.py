@@ -146,6 +146,21 @@ class InstanceRow(Base):
     heartbeat_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
 
 
+class CellRow(Base):
+    """An arm's cell as edited in the pendant (``PUT /cell``), under the arm's name.
+
+    ``keep_out_boxes`` and ``cell_planes`` None: the start-up settings apply (``DELETE /cell``).
+    ``revision`` counts the changes, so that an edit made from an older view is refused.
+    """
+
+    __tablename__ = "cells"
+    name: Mapped[str] = mapped_column(String(200), primary_key=True)
+    keep_out_boxes: Mapped[list[Any] | None] = mapped_column(JSON, nullable=True)
+    cell_planes: Mapped[list[Any] | None] = mapped_column(JSON, nullable=True)
+    revision: Mapped[int] = mapped_column(Integer)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+
+
 class StorageError(Exception):
     """A stored file is missing or does not match its checksum."""
 
@@ -154,6 +169,14 @@ class StorageError(Exception):
 FOLDERS = ("arrays", "uploads", "captures", "journals")
 PRIVATE_DIR = 0o700
 PRIVATE_FILE = 0o600
+
+
+class CellChangedError(Exception):
+    """A cell was edited from a view older than the stored cell (``revision``: the stored one)."""
+
+    def __init__(self, revision: int) -> None:
+        super().__init__(f"the cell is at revision {revision}")
+        self.revision = revision
 
 
 class SessionDeletedError(Exception):
@@ -439,6 +462,44 @@ class Store:
             for key, value in fields.items():
                 setattr(row, key, value)
             return row
+
+    # -- cells -----------------------------------------------------------------------------------
+
+    def cell(self, name: str) -> CellRow | None:
+        """The cell stored under ``name`` (None: never edited, the start-up settings apply)."""
+        with self.db() as db:
+            return db.get(CellRow, name)
+
+    def set_cell(
+        self, name: str, *, boxes: list | None, planes: list | None, expected_revision: int
+    ) -> CellRow:
+        """Store the cell ``name`` (None, None: back to the start-up settings) if its revision
+        is still ``expected_revision`` (0: never stored).
+
+        Raises
+        ------
+        CellChangedError
+            Another edit came first: the caller's view of the cell is older than the stored one.
+        """
+        import sqlalchemy.exc
+
+        try:
+            with self._calibration_lock, self.db.begin() as db:
+                row = db.get(CellRow, name, with_for_update=True)
+                revision = 0 if row is None else row.revision
+                if revision != expected_revision:
+                    raise CellChangedError(revision)
+                if row is None:
+                    row = CellRow(name=name, revision=0, updated_at=now())
+                    db.add(row)
+                row.keep_out_boxes = _jsonable(boxes) if boxes is not None else None
+                row.cell_planes = _jsonable(planes) if planes is not None else None
+                row.revision = revision + 1
+                row.updated_at = now()
+                return row
+        except sqlalchemy.exc.IntegrityError:
+            # Two instances stored the first edit at once: the other one's insert came first.
+            raise CellChangedError(self.cell(name).revision) from None
 
     # -- artifacts -------------------------------------------------------------------------------
 

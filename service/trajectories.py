@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from service import tasks
 from service.artifacts import ID_PREFIX
+from service.cell import cell_now
 from service.core import Services
 from service.reconstructions import NOT_RECON_PARAMS
 from service.robot import start_joints
@@ -47,8 +48,9 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
     recon_params = {k: v for k, v in recon.params.items() if k not in NOT_RECON_PARAMS}
     out_id = new_id(ID_PREFIX["trajectory"])
     inputs = {"reconstruction_id": recon.id, "scan_id": recon.inputs.get("scan_id")}
-    boxes = [list(box) for box in services.settings.keep_out_boxes]
-    planes = [list(plane) for plane in services.settings.cell_planes]
+    cell = cell_now(services.store, services.settings)
+    boxes = [list(box) for box in cell.keep_out_boxes_m]
+    planes = [list(plane) for plane in cell.cell_planes]
     # The cell too: a replay of the plan must check it against the same obstacles.
     # This cell's arm, calibrated as its controller is (the plan's joints are right for it).
     calibration = services.settings.arm_calibration

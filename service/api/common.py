@@ -19,15 +19,15 @@ def add_artifact_routes(
 ) -> None:
     """``GET /{plural}`` (oldest first) and ``GET /{plural}/{artifact_id}`` for one kind.
 
-    ``outdated(store, session, row) -> list[str]``, where given, fills each one's ``outdated``
-    (:mod:`service.provenance`): what changed in the session since it was made.
+    ``outdated(services, session, row) -> list[str]``, where given, fills each one's
+    ``outdated`` (:mod:`service.provenance`): what changed in the session since it was made.
     """
 
     def shown(services, session, row):
         if outdated is None:
             return row
         return model.model_validate(row).model_copy(
-            update={"outdated": outdated(services.store, session, row)}
+            update={"outdated": outdated(services, session, row)}
         )
 
     def list_artifacts(session_id: str, services: ServicesDep):

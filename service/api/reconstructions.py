@@ -23,8 +23,12 @@ def start_reconstruction(session_id: str, body: ReconstructionCreate, services: 
     return reconstructions.start(services, session_id, body)
 
 
+def _outdated(services, session, row) -> list[str]:
+    return reconstruction_outdated(services.store, session, row)
+
+
 add_artifact_routes(
-    router, "reconstruction", "reconstructions", ReconstructionOut, outdated=reconstruction_outdated
+    router, "reconstruction", "reconstructions", ReconstructionOut, outdated=_outdated
 )
 
 

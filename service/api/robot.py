@@ -5,13 +5,12 @@ from __future__ import annotations
 import asyncio
 import json
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
 
 from service.api.deps import ServicesDep, has_token
 from service.errors import ApiError
-from service.executions import arm_owner
-from service.schemas import CellOut, RobotOut
+from service.schemas import CellIn, CellOut, RobotOut
 
 #: The arm's state: no token needed (the safety bar of any screen by the cell).
 router = APIRouter(prefix="/robot", tags=["robot"])
@@ -32,7 +31,7 @@ MAX_ANONYMOUS_STREAMS = 16
 
 def _view(services) -> dict:
     with services.live.lock:
-        owner = arm_owner(services)
+        owner = services.live.arm_owner()
     return services.robot.view(owner)
 
 
@@ -105,17 +104,20 @@ def unlock_protective_stop(services: ServicesDep) -> dict:
     return _view(services)
 
 
-@cell_router.get("", response_model=CellOut)
-def cell(services: ServicesDep) -> dict:
-    """This server's cell, as every plan and the real-arm gate check against it: the keep-out
-    boxes and planes (base frame, m), how the arm is mounted, and whether its kinematics are
-    the controller's calibration or UR's nominal ones. Set at start (TEACHPATH_KEEP_OUT_BOXES,
-    TEACHPATH_CELL_PLANES, TEACHPATH_MOUNT_UP, TEACHPATH_UR_CALIBRATION)."""
+def _cell_view(services) -> dict:
+    from service.cell import cell_now
+
     settings = services.settings
+    cell = cell_now(services.store, settings)
+    with services.live.lock:
+        editable = services.live.arm_owner() is None
     return {
         "robot": settings.ur_robot,
-        "keep_out_boxes_m": [list(box) for box in settings.keep_out_boxes],
-        "cell_planes": [list(plane) for plane in settings.cell_planes],
+        "keep_out_boxes_m": [list(box) for box in cell.keep_out_boxes_m],
+        "cell_planes": [list(plane) for plane in cell.cell_planes],
+        "revision": cell.revision,
+        "source": cell.source,
+        "editable": editable,
         "mount_up": list(settings.mount_up),
         "arm_kinematics": (
             f"calibrated ({settings.ur_calibration.name})"
@@ -123,3 +125,35 @@ def cell(services: ServicesDep) -> dict:
             else "UR's nominal kinematics (no calibration.conf given)"
         ),
     }
+
+
+@cell_router.get("", response_model=CellOut)
+def cell(services: ServicesDep) -> dict:
+    """This server's cell, as every plan and the real-arm gate check against it: the keep-out
+    boxes and planes (base frame, m), how the arm is mounted, and whether its kinematics are
+    the controller's calibration or UR's nominal ones. The boxes and planes are the start-up
+    settings (TEACHPATH_KEEP_OUT_BOXES, TEACHPATH_CELL_PLANES) until edited (PUT /cell)."""
+    return _cell_view(services)
+
+
+@cell_router.put("", response_model=CellOut)
+def edit_cell(body: CellIn, services: ServicesDep) -> dict:
+    """Set this arm's keep-out boxes and planes. Plans made before are then outdated, and the
+    real-arm gate checks every run against the new cell. Refused (409) while a real-arm
+    execution runs, and when the cell changed since the revision named (``cell_changed``)."""
+    from service import cell as cells
+
+    cells.edit_cell(services, body.keep_out_boxes_m, body.cell_planes, revision=body.revision)
+    return _cell_view(services)
+
+
+@cell_router.delete("", response_model=CellOut)
+def reset_cell(
+    services: ServicesDep,
+    revision: int = Query(..., ge=0, le=2**31 - 1, description="the revision this was seen at"),
+) -> dict:
+    """Go back to the start-up settings' boxes and planes (refused as an edit is)."""
+    from service import cell as cells
+
+    cells.edit_cell(services, None, None, revision=revision)
+    return _cell_view(services)

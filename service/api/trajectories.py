@@ -11,6 +11,7 @@ from service import tasks, trajectories
 from service.api.common import CSV, add_artifact_routes, download, gzip_json
 from service.api.deps import ServicesDep
 from service.artifacts import TrajectorySummary
+from service.cell import CellUnreadable, cell_now
 from service.provenance import trajectory_outdated
 from service.schemas import JobOut, TrajectoryCreate, TrajectoryOut
 
@@ -24,9 +25,15 @@ def start_trajectory(session_id: str, body: TrajectoryCreate, services: Services
     return trajectories.start(services, session_id, body)
 
 
-add_artifact_routes(
-    router, "trajectory", "trajectories", TrajectoryOut, outdated=trajectory_outdated
-)
+def _outdated(services, session, row) -> list[str]:
+    try:
+        cell = cell_now(services.store, services.settings)
+    except CellUnreadable as exc:  # the list stays readable; the plans cannot run
+        return [*trajectory_outdated(services.store, session, row), exc.message]
+    return trajectory_outdated(services.store, session, row, cell=cell)
+
+
+add_artifact_routes(router, "trajectory", "trajectories", TrajectoryOut, outdated=_outdated)
 
 
 @router.get("/trajectories/{artifact_id}/csv", response_class=Response, responses=CSV)

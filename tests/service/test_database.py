@@ -32,7 +32,7 @@ from tests.postgres import PostgresServer
 
 pytestmark = pytest.mark.timeout(600)
 
-HEAD = "0002"
+HEAD = "0003"
 
 
 @pytest.fixture(scope="module")

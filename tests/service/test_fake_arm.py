@@ -535,3 +535,76 @@ def test_the_exported_program_runs_on_the_controller_and_ends_where_the_plan_end
     # servoj: the stream itself (measured 0.05 mm); movep: the tolerance, the blends, and the
     # fake's servo lagging the joints where the tool turns at the box's corner (1.2 mm).
     assert off.max() < (1e-3 if mode == "servoj" else 3e-3), off.max()
+
+
+def test_a_keep_out_box_edited_into_the_path_stops_a_plan_made_before_it(arm, fake_ur):
+    """The operator adds a keep-out box around part of the path after planning: the plan is
+    outdated (the cell), and picked explicitly it is still refused, because the gate checks the
+    samples against the cell in force, not the plan's copy; the arm does not move. While a run
+    owns the arm, the cell cannot be edited."""
+    client, sid, trajectory_id, q_start = arm
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    plan_url = f"/sessions/{sid}/trajectories/{trajectory_id}"
+    rows = client.get(f"{plan_url}/csv").text.splitlines()[2:]
+    tcp_middle_m = np.array(rows[len(rows) // 2].split(",")[7:10], dtype=float)
+    box = [*(tcp_middle_m - 0.01), *(tcp_middle_m + 0.01)]
+    revision = client.get("/cell").json()["revision"]
+    edit = {"keep_out_boxes_m": [box], "cell_planes": [], "revision": revision}
+    assert client.put("/cell", json=edit).status_code == 200
+    try:
+        (reason,) = client.get(plan_url).json()["outdated"]
+        assert reason.startswith("the cell: planned with 0 keep-out boxes"), reason
+        run = {"trajectory_id": trajectory_id, "backend": "ur_rtde", "confirm": True}
+        refused = client.post(f"/sessions/{sid}/executions", json=run)
+        assert refused.status_code == 409 and refused.json()["code"] == "outdated_inputs"
+        picked = client.post(f"/sessions/{sid}/executions", json={**run, "accept_outdated": True})
+        assert picked.status_code == 409 and picked.json()["code"] == "collides_here", picked.text
+        assert "keep-out box 1" in picked.json()["message"]
+        assert np.abs(np.array(fake_ur.control("status")["q_rad"]) - q_start).max() < 1e-9
+    finally:
+        revision = client.get("/cell").json()["revision"]
+        assert client.delete("/cell", params={"revision": revision}).status_code == 200
+    assert client.get(plan_url).json()["outdated"] == []
+
+    # While the plan runs on the arm, the cell it was checked against cannot change.
+    job = _execute_until(client, sid, trajectory_id, progress=0.1)
+    revision = client.get("/cell").json()["revision"]
+    during = client.put("/cell", json={**edit, "revision": revision})
+    assert during.status_code == 409 and during.json()["code"] == "arm_running"
+    _stop(client, job["params"]["execution_id"])
+    assert wait(client, job, timeout_s=60)["state"] == "cancelled"
+    assert client.get("/cell").json()["revision"] == revision
+
+
+def test_a_cell_edited_while_a_run_is_being_checked_refuses_the_run(arm, fake_ur, monkeypatch):
+    """An edit landing between the gate's check of the samples and taking the arm: the run is
+    refused (checked against a cell no longer in force) and the arm does not move."""
+    from service import executions
+
+    client, sid, trajectory_id, q_start = arm
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    services = client.app.state.services
+    checked_against = executions._cell_here
+
+    def edited_meanwhile(*args, **kwargs):
+        here = checked_against(*args, **kwargs)
+        revision = services.store.cell(services.settings.cell_key)
+        services.store.set_cell(
+            services.settings.cell_key,
+            boxes=[],
+            planes=[[-1.0, 0.0, 0.0, -1.5]],
+            expected_revision=0 if revision is None else revision.revision,
+        )
+        return here
+
+    monkeypatch.setattr(executions, "_cell_here", edited_meanwhile)
+    try:
+        run = {"trajectory_id": trajectory_id, "backend": "ur_rtde", "confirm": True}
+        refused = client.post(f"/sessions/{sid}/executions", json=run)
+        assert refused.status_code == 409 and refused.json()["code"] == "cell_unknown"
+        assert "the cell was edited while this run was being checked" in refused.text
+        assert np.abs(np.array(fake_ur.control("status")["q_rad"]) - q_start).max() < 1e-9
+    finally:
+        monkeypatch.undo()
+        revision = client.get("/cell").json()["revision"]
+        assert client.delete("/cell", params={"revision": revision}).status_code == 200
