@@ -17,10 +17,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import UTC, datetime
 
 from service.errors import ApiError
-from service.store import CellChangedError, Store, iso
+from service.store import CellChangedError, Store
 
 #: At most this many boxes and planes (a cell has a handful; each costs every collision check).
 MAX_BOXES = 32
@@ -56,7 +56,8 @@ class CellNow:
         """Where the boxes and planes come from, in the operator's words."""
         if self.edited_at is None:
             return "the server's start-up settings"
-        return f"edited in the pendant at {iso(self.edited_at)} (revision {self.revision})"
+        at = self.edited_at.replace(tzinfo=self.edited_at.tzinfo or UTC).astimezone(UTC)
+        return f"edited in the pendant at {at:%Y-%m-%d %H:%M:%S} UTC (revision {self.revision})"
 
     def differs_from(self, boxes: list, planes: list) -> bool:
         """Whether ``boxes`` and ``planes`` (as a plan stored them) are not this cell."""
@@ -219,7 +220,10 @@ def _numbers(values: object, count: int, name: str) -> tuple[float, ...]:
         or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
     ):
         raise ValueError(f"{name}: give {count} numbers")
-    numbers = tuple(float(v) for v in values)
+    try:
+        numbers = tuple(float(v) for v in values)
+    except OverflowError:  # an integer of hundreds of digits
+        numbers = (math.inf,)
     if not all(math.isfinite(v) for v in numbers):
         raise ValueError(f"{name}: every number must be finite")
     return numbers

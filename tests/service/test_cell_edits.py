@@ -135,6 +135,8 @@ def test_a_cell_that_cannot_be_checked_is_refused_saying_what_to_change(fresh, c
             {"keep_out_boxes_m": [[0, 0, 0, 1, 1, 1]] * 5000, "cell_planes": [], "revision": 0}
         ),  # fmt: skip
         "[1, 2",
+        '{"keep_out_boxes_m": [[0, 0, 0, 1' + "0" * 400 + ', 1, 1]], "cell_planes": [], '
+        '"revision": 0}',
     ],
     ids=[
         "nan",
@@ -147,6 +149,7 @@ def test_a_cell_that_cannot_be_checked_is_refused_saying_what_to_change(fresh, c
         "nested-5000",
         "5000-boxes",
         "truncated",
+        "400-digit-corner",
     ],  # fmt: skip
 )
 def test_hostile_bodies_get_a_4xx_and_change_nothing(fresh, body):
@@ -262,3 +265,20 @@ def test_two_edits_from_one_view_at_once_store_exactly_one(tmp_path):
         thread.join()
     assert sorted(outcomes, key=str) == [1, "stored"]
     assert stores[0].cell("arm").revision == 1
+
+
+def test_two_arms_on_one_database_keep_their_own_cells(tmp_path):
+    """Each arm's edited cell is stored under its name: the simulated arm by default, a real
+    one by its model and address, or TEACHPATH_CELL_NAME."""
+    assert make_settings(tmp_path).cell_key == "simulated"
+    assert make_settings(tmp_path, ur_host="10.0.0.7").cell_key == "ur5e@10.0.0.7"
+    left_settings = make_settings(tmp_path, cell_name="left cell")
+    right_settings = make_settings(tmp_path, cell_name="right cell")
+    with (
+        TestClient(create_app(left_settings), headers=AUTH) as left,
+        TestClient(create_app(right_settings), headers=AUTH) as right,
+    ):
+        assert _put(left, [], [WALL_FAR_AWAY]).status_code == 200
+        assert right.get("/cell").json()["cell_planes"] == []
+        assert right.get("/cell").json()["revision"] == 0
+        assert left.get("/cell").json()["cell_planes"] == [WALL_FAR_AWAY]

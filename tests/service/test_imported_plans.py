@@ -111,7 +111,8 @@ def test_a_forged_fast_trajectory_is_refused_on_its_samples(bundle, tmp_path):
 def test_a_genuine_plan_from_another_cell_is_checked_against_this_cells_keep_out_box(
     bundle, tmp_path
 ):
-    """Planned where there was no box; here a keep-out box sits on its path: refused for it."""
+    """Planned where there was no box; here a keep-out box sits on its path: outdated (the
+    cell), and picked explicitly, refused for the box (checked against this cell's)."""
     _, arrays = _trajectory_arrays(bundle["zip"], bundle["trajectory_id"])
     arm = kinematics.model("ur5e")
     T_flange_tcp = np.eye(4)
@@ -121,7 +122,19 @@ def test_a_genuine_plan_from_another_cell_is_checked_against_this_cells_keep_out
     box = [*(middle - [0.05, 0.05, 0.02]), *(middle + [0.05, 0.05, 0.02])]
     with _site_b(tmp_path, max_speed_m_s=0.25, keep_out_boxes=[box]) as client:
         sid = _import(client, bundle["zip"])
-        response = _run(client, sid, bundle["trajectory_id"])
+        outdated = _run(client, sid, bundle["trajectory_id"])
+        assert outdated.status_code == 409 and outdated.json()["code"] == "outdated_inputs"
+        (reason,) = outdated.json()["detail"]["changed"]
+        assert reason.startswith("the cell: planned with 0 keep-out boxes"), reason
+        response = client.post(
+            f"/sessions/{sid}/executions",
+            json={
+                "trajectory_id": bundle["trajectory_id"],
+                "backend": "ur_rtde",
+                "confirm": True,
+                "accept_outdated": True,
+            },
+        )
     assert response.status_code == 409, response.text
     assert response.json()["code"] == "collides_here"
     assert "keep-out box 1" in response.json()["message"]

@@ -101,7 +101,7 @@ def test_uploads_show_the_422_inline_and_then_take_good_files(pendant, scene_fil
     expect(page.locator("#steps li[data-step=inputs]")).to_have_class("done")
     expect(page.locator("#step-calibration .needs")).to_contain_text("T_base_tracker")
     expect(page.get_by_role("button", name="Reconstruct")).to_be_enabled()
-    expect(page.get_by_role("button", name="Plan")).to_be_disabled()
+    expect(page.get_by_role("button", name="Plan", exact=True)).to_be_disabled()
     pendant.shot("uploaded")
 
 
@@ -192,7 +192,7 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant, scene_file
     # Typed in mm/s, the slider follows (to the millimetre per second).
     typed.fill("83")
     expect(speed).to_have_value("0.083")
-    page.get_by_role("button", name="Plan").click()
+    page.get_by_role("button", name="Plan", exact=True).click()
     summary = page.locator("#plan-summary")
     expect(summary.locator("tr[data-phase=process]")).to_be_visible(timeout=60_000)
     expect(summary).to_contain_text("83 mm/s")  # what was typed, not the slider's step
@@ -308,7 +308,7 @@ def test_a_reload_finds_the_running_dry_run_again_and_sends_nothing(pendant):
     )
     # Slow, so that the dry run (simulated in real time) outlasts the reload by far.
     page.locator("#plan-speed").fill("0.01")
-    page.get_by_role("button", name="Plan").click()
+    page.get_by_role("button", name="Plan", exact=True).click()
     expect(page.locator("#plan-form .job-state")).to_have_text("succeeded 100 %", timeout=60_000)
     dry = page.get_by_role("button", name="Dry run")
     dry.click()

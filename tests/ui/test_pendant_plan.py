@@ -374,3 +374,110 @@ def test_a_comma_decimal_is_taken_and_a_bad_value_is_said_in_the_fields_words(pe
     expect(message).not_to_contain_text("body.")
     expect(message).not_to_contain_text("constrained")
     pendant.shot("alpha-refused")
+
+
+def test_the_cell_is_edited_in_3d_and_outdates_the_plans_made_in_another(pendant):
+    """Calibrate, Cell: a keep-out box added around a point clicked in the 3-D view and a wall
+    typed in mm, drawn as a draft (orange) while unsaved; saved, the plan made before is
+    outdated; an edit from a view another pendant changed is refused and discarded; back to the
+    start-up settings, the plan is current again."""
+    page, client = pendant.page, pendant.server.client
+    sid, _ = _plan_demo(pendant.server)
+    try:
+        pendant.open()
+        page.get_by_role("button", name="demo", exact=True).click()
+        workspace = page.locator("#workspace")
+        expect(workspace).to_have_attribute("data-cell", "0")
+        form = page.locator("#cell-form")
+        expect(page.locator("#cell-source")).to_have_text("Saved: the server's start-up settings.")
+        add_at_pick = page.get_by_role("button", name="Add a box around the picked point")
+        expect(add_at_pick).to_be_disabled()  # nothing picked yet
+        # Two boxes added and the first removed: the second is box 1 now; removed too.
+        page.get_by_role("button", name="Add a box", exact=True).click()
+        page.get_by_label("box 1 x min (mm)").fill("300")
+        page.get_by_role("button", name="Add a box", exact=True).click()
+        page.get_by_role("button", name="remove box 1").click()
+        expect(page.get_by_label("box 1 x min (mm)")).to_have_value("500")
+        expect(page.get_by_role("button", name="remove box 2")).to_have_count(0)
+        page.get_by_role("button", name="remove box 1").click()
+        expect(form.locator("#cell-boxes tbody tr")).to_have_count(0)
+
+        # A reconstruction point clicked in the 3-D view (base frame): a 100 mm box around it.
+        for name in ("scan", "raw trace", "planned TCP path", "planned arm", "arm now"):
+            page.get_by_label(name, exact=True).uncheck()
+        _click_point(page, "reconstruction", 10)
+        readout = page.locator("#pick-readout").text_content()
+        picked_mm = np.array(
+            re.search(r"at \(([-\d.]+), ([-\d.]+), ([-\d.]+)\) mm", readout).groups(), dtype=float
+        )
+        add_at_pick.click()
+        box_row = form.locator("#cell-boxes tbody tr")
+        expect(box_row).to_have_count(1)
+        typed = box_row.locator("input").evaluate_all("inputs => inputs.map(i => i.value)")
+        corners = [float(v) for v in typed]
+        np.testing.assert_allclose(corners[:3], picked_mm - 50, atol=0.1)
+        np.testing.assert_allclose(corners[3:], picked_mm + 50, atol=0.1)
+        expect(workspace).to_have_attribute("data-cell-draft", "true")
+        expect(workspace).to_have_attribute("data-cell", "12")  # a box's 12 edges
+        expect(page.locator("#cell-draft")).to_contain_text("Not saved: 1 box and 0 planes")
+
+        # A wall 1 m behind the arm, typed with a comma decimal; a field that is not a number
+        # is marked and nothing is sent.
+        page.get_by_role("button", name="Add a plane").click()
+        d = page.get_by_label("plane 1 d (mm)")
+        d.fill("abc")
+        expect(page.locator("#cell-draft")).to_have_text(
+            "Not saved: a field is not a number (marked)."
+        )
+        page.get_by_role("button", name="Save cell").click()
+        expect(form.locator("#cell-planes tr.invalid")).to_have_count(1)
+        assert client.get("/cell").json()["revision"] == 0
+        d.fill("-1000,5")
+        expect(form.locator("tr.invalid")).to_have_count(0)
+        expect(workspace).to_have_attribute("data-cell", re.compile(r"^(1[3-9]|[2-9]\d)$"))
+        pendant.shot("cell-draft")
+        page.get_by_role("button", name="Save cell").click()
+        expect(form.locator(".message")).to_have_text(
+            "Cell saved (revision 1): plans made in another cell are now outdated."
+        )
+        saved = client.get("/cell").json()
+        np.testing.assert_allclose(
+            saved["keep_out_boxes_m"][0], np.array(corners) / 1000, atol=1e-9
+        )
+        assert saved["cell_planes"] == [[1.0, 0.0, 0.0, -1.0005]]
+        expect(workspace).to_have_attribute("data-cell-draft", "false")
+        cell_line = page.locator("#calibration-current tr", has_text="cell")
+        expect(cell_line).to_contain_text("1 keep-out box, 1 plane besides the mounting one")
+        expect(cell_line).to_contain_text("edited in the pendant at ")
+        # The plan was made in the cell without them: outdated, not offered for the arm.
+        expect(page.locator("#step-plan .outdated")).to_contain_text(
+            "the cell: planned with 0 keep-out boxes and 0 planes; the cell now has 1 keep-out "
+            "box and 1 plane"
+        )
+        expect(page.locator("#steps li[data-step=plan]")).to_have_class("todo")
+        pendant.shot("cell-saved")
+
+        # Another pendant removes the wall meanwhile; this one's edit, from the older view, is
+        # refused saying so, and Discard changes shows the other's cell.
+        other = {"keep_out_boxes_m": saved["keep_out_boxes_m"], "cell_planes": [], "revision": 1}
+        assert client.put("/cell", json=other).status_code == 200
+        pendant.guard.allow(409, "/cell")
+        page.get_by_label("box 1 z max (mm)").fill("400")
+        page.get_by_role("button", name="Save cell").click()
+        message = form.locator(".message")
+        expect(message).to_have_attribute("data-code", "cell_changed")
+        expect(message).to_contain_text("reload it, check the change and edit again")
+        assert client.get("/cell").json()["cell_planes"] == []
+        page.get_by_role("button", name="Discard changes").click()
+        expect(form.locator("#cell-planes tbody tr")).to_have_count(0)
+        expect(page.get_by_label("box 1 z max (mm)")).to_have_value(f"{corners[5]:g}")
+
+        # Back to the start-up settings: nothing drawn, the plan is current again.
+        page.get_by_role("button", name="Back to the start-up settings").click()
+        expect(form.locator(".message")).to_have_text("Back to the start-up settings (revision 3).")
+        expect(workspace).to_have_attribute("data-cell", "0")
+        expect(page.locator("#step-plan .outdated")).to_have_count(0)
+        expect(page.locator("#steps li[data-step=plan]")).to_have_class("done")
+    finally:
+        revision = client.get("/cell").json()["revision"]
+        client.delete("/cell", params={"revision": revision})

@@ -83,7 +83,7 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         # that the run lasts long enough to be stopped in the middle.
         expect(page.locator("#plan-speed")).to_have_attribute("max", str(CAP_M_S))
         page.locator("#plan-speed").fill("0.02")
-        page.get_by_role("button", name="Plan").click()
+        page.get_by_role("button", name="Plan", exact=True).click()
         summary = page.locator("#plan-summary")
         expect(summary.locator("tr[data-phase=process]")).to_be_visible(timeout=60_000)
         expect(summary).to_contain_text("the arm's joints")
@@ -271,7 +271,13 @@ def test_an_imported_plan_must_be_dry_run_here_and_the_pendant_says_so(
     files = {
         k: (tmp_path / f).read_bytes() for k, f in (("trace", "trace.csv"), ("scan", "scan.ply"))
     }
-    with TestClient(create_app(make_settings(tmp_path / "site_a")), headers=AUTH) as site_a:
+    # Planned elsewhere for this cell (its box and floor): not outdated here, only not dry-run.
+    site_a_settings = make_settings(
+        tmp_path / "site_a",
+        keep_out_boxes=[(0.0, 0.7, 0.0, 0.2, 0.9, 0.3)],
+        cell_planes=[(0.0, 0.0, 1.0, -0.5)],
+    )
+    with TestClient(create_app(site_a_settings), headers=AUTH) as site_a:
         sid, trajectories = planned_session(
             site_a, files, [0.05], name="from site A", start_q_rad=HOME_Q_RAD
         )

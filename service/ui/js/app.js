@@ -262,6 +262,7 @@ async function refresh() {
     jobs.filter((j) => j.kind === "execution" && j.state === "succeeded").map((j) => j.params.execution_id),
   );
   Object.assign(state, { session, recordings, scans, reconstructions, trajectories, executions, touches, madeHere });
+  await reloadCell(); // another pendant may have edited it
   renderSteps();
   state.capture.sessionShown(sid);
   showWorkspace();
@@ -568,13 +569,14 @@ function calibrationLines() {
     ["pen tip", s.tip_offset_m ? `(${s.tip_offset_m.map((v) => (v * 1000).toFixed(1)).join(", ")}) mm from the rigid body${calibrationSource(s, "tip_offset_m")}` : "not calibrated (the rigid body's origin is taken as the tip)"],
     ["touches", touches ? `${touches.summary.n_touches} points touched (${touches.source_name || touches.id}): they place the scan` : "none"],
     ["arm", cell ? `${cell.robot}: ${cell.arm_kinematics}` : "–"],
-    ["cell", cell ? `${boxes} keep-out box${boxes === 1 ? "" : "es"}, ${planes} plane${planes === 1 ? "" : "s"} besides the mounting one (drawn in the 3-D view); set at the server's start` : "–"],
+    ["cell", cell ? `${boxes} keep-out box${boxes === 1 ? "" : "es"}, ${planes} plane${planes === 1 ? "" : "s"} besides the mounting one (drawn in the 3-D view); ${cell.source}` : "cannot be read: set it again below"],
   ];
 }
 
 function renderCalibration() {
   const s = state.session;
   $("#calibration-current").replaceChildren(table(calibrationLines()));
+  renderCell();
   // Another session's tracker -> base, to use here (the same cell, the tracker not moved).
   const select = $("#copycal-form select");
   const others = (state.sessions || []).filter((o) => o.id !== s.id && o.T_base_tracker);
@@ -940,6 +942,147 @@ function fitForm(form, summary, send, show) {
       if (state.session) await refresh();
     }
   });
+}
+
+// -- the cell: keep-out boxes and planes, edited as a draft drawn in 3-D ------------------------
+
+const CELL_COLUMNS = { box: ["x min", "y min", "z min", "x max", "y max", "z max"], plane: ["nx", "ny", "nz", "d"] };
+// The size of a box added around a picked point (m).
+const PICK_BOX_M = 0.1;
+
+/** One editable row: a box's corners or a plane's normal and offset, in the operator's units
+ * (mm; a plane's normal has none). */
+function cellRow(kind, number, values) {
+  const scale = (i) => (kind === "box" || i === 3 ? 1000 : 1);
+  const cells = values.map((v, i) => el("td", {}, el("input", {
+    type: "text", inputmode: "decimal", required: "", "aria-label": `${kind} ${number} ${CELL_COLUMNS[kind][i]}${scale(i) === 1000 ? " (mm)" : ""}`,
+    value: String(Number((v * scale(i)).toFixed(3))), "data-scale": String(scale(i)),
+  })));
+  const remove = el("button", { type: "button", class: "remove", text: "✕", title: "Remove", "aria-label": `remove ${kind} ${number}` });
+  remove.addEventListener("click", () => {
+    remove.closest("tr").remove();
+    renumberCell();
+    cellEdited();
+  });
+  return el("tr", { "data-kind": kind }, el("td", { text: String(number) }), ...cells, el("td", {}, remove));
+}
+
+function renumberCell() {
+  for (const kind of ["box", "plane"]) {
+    [...$(`#cell-${kind === "box" ? "boxes" : "planes"} tbody`).rows].forEach((row, i) => {
+      row.cells[0].textContent = String(i + 1);
+      for (const control of row.querySelectorAll("[aria-label]")) {
+        control.setAttribute("aria-label", control.getAttribute("aria-label").replace(/^(remove )?(box|plane) \d+/, `$1$2 ${i + 1}`));
+      }
+    });
+  }
+}
+
+/** The saved cell in the form, unless the operator is editing it (a draft is never overwritten
+ * by a refresh; "Discard changes" reads the saved one again). */
+function renderCell({ force = false } = {}) {
+  const form = $("#cell-form");
+  const cell = state.cell;
+  if (!state.cellDirty || force) {
+    state.cellDirty = false;
+    $("#cell-boxes tbody").replaceChildren(...(cell?.keep_out_boxes_m || []).map((box, i) => cellRow("box", i + 1, box)));
+    $("#cell-planes tbody").replaceChildren(...(cell?.cell_planes || []).map((plane, i) => cellRow("plane", i + 1, plane)));
+    $("#cell-draft").textContent = "";
+    state.workspace?.showCell(cell);
+  }
+  $("#cell-source").textContent = cell
+    ? `Saved: ${cell.source}.${cell.editable ? "" : " The arm is running: the cell cannot be changed until the run ends."}`
+    : "The saved cell cannot be read: set the boxes and planes again, or go back to the start-up settings.";
+  const locked = Boolean(cell && !cell.editable);
+  for (const control of form.querySelectorAll("input, button")) control.disabled = locked;
+  $("#cell-box-at-pick").disabled = locked || !state.pickedBase;
+}
+
+/** The boxes and planes typed, in metres, or null with the first bad field marked. */
+function cellDraft() {
+  const read = (kind) => [...$(`#cell-${kind === "box" ? "boxes" : "planes"} tbody`).rows].map((row) => {
+    row.classList.remove("invalid");
+    return [...row.querySelectorAll("input")].map((input) => {
+      const value = Number(input.value.trim().replace(",", "."));
+      const ok = input.value.trim() !== "" && Number.isFinite(value);
+      input.setCustomValidity(ok ? "" : "a number (a comma or a point for decimals)");
+      if (!ok) row.classList.add("invalid");
+      return value / Number(input.dataset.scale);
+    });
+  });
+  const boxes = read("box");
+  const planes = read("plane");
+  return $("#cell-form").querySelector("input:invalid") ? null : { keep_out_boxes_m: boxes, cell_planes: planes };
+}
+
+/** Typed: the draft drawn in 3-D in orange, and said to be unsaved. */
+function cellEdited() {
+  state.cellDirty = true;
+  const draft = cellDraft();
+  if (draft) state.workspace?.showCell(draft, { draft: true });
+  const boxes = draft?.keep_out_boxes_m.length;
+  $("#cell-draft").textContent = draft
+    ? `Not saved: ${boxes} box${boxes === 1 ? "" : "es"} and ${draft.cell_planes.length} plane${draft.cell_planes.length === 1 ? "" : "s"}, drawn in orange in the 3-D view. Save the cell to plan and run with it.`
+    : "Not saved: a field is not a number (marked).";
+}
+
+async function reloadCell() {
+  try {
+    state.cell = await api("/cell");
+  } catch (err) {
+    if (err.status !== 409) throw err;
+    state.cell = null; // unreadable: the form says so; a save repairs it
+    state.cellRevision = err.detail?.revision ?? state.cellRevision;
+  }
+  if (state.cell) state.cellRevision = state.cell.revision;
+}
+
+function wireCell() {
+  const form = $("#cell-form");
+  form.addEventListener("input", cellEdited);
+  const add = (kind, values) => {
+    const body = $(`#cell-${kind === "box" ? "boxes" : "planes"} tbody`);
+    body.append(cellRow(kind, body.rows.length + 1, values));
+    cellEdited();
+    body.rows[body.rows.length - 1].querySelector("input").focus();
+  };
+  // A new box in front of the arm, a new plane a wall 1 m behind it: the operator types over.
+  $("#cell-add-box").addEventListener("click", () => add("box", [0.5, -0.1, 0, 0.6, 0.1, 0.1]));
+  $("#cell-add-plane").addEventListener("click", () => add("plane", [1, 0, 0, -1]));
+  $("#cell-box-at-pick").addEventListener("click", () => {
+    const p = state.pickedBase;
+    if (!p) return;
+    const h = PICK_BOX_M / 2;
+    add("box", [p.x - h, p.y - h, p.z - h, p.x + h, p.y + h, p.z + h]);
+  });
+  $("#cell-reload").addEventListener("click", async () => {
+    clearMessage($(".message", form));
+    await reloadCell();
+    renderCell({ force: true });
+  });
+  const save = async (json, said) => {
+    const box = $(".message", form);
+    clearMessage(box);
+    try {
+      state.cell = await (json ? api("/cell", { method: "PUT", json }) : api(`/cell?revision=${state.cellRevision ?? 0}`, { method: "DELETE" }));
+      state.cellRevision = state.cell.revision;
+      renderCell({ force: true });
+      box.textContent = said(state.cell);
+      box.className = "message ok";
+    } catch (err) {
+      showError(box, err);
+    }
+    if (state.session) await refresh();
+  };
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const draft = cellDraft();
+    if (!draft) return form.reportValidity();
+    await save({ ...draft, revision: state.cellRevision ?? 0 },
+      (cell) => `Cell saved (revision ${cell.revision}): plans made in another cell are now outdated.`);
+  });
+  $("#cell-reset").addEventListener("click", () => save(null,
+    (cell) => `Back to the start-up settings (revision ${cell.revision}).`));
 }
 
 /** A form that sets something of the session: on submit, `send(form)` makes the request and
@@ -1312,6 +1455,7 @@ function wire() {
   upload("touches", $("#touches-form"));
   upload("scan", $("#scan-form"));
   wireCalibration();
+  wireCell();
 
   $("#reconstruct-form").addEventListener("submit", (event) => {
     event.preventDefault();
@@ -1448,7 +1592,7 @@ async function main() {
   followRobot();
   try {
     state.schema = await api("/openapi.json");
-    state.cell = await api("/cell");
+    await reloadCell();
     buildReconstructForm(state.schema);
     updatePlanSpeed();
     await loadSessions();
@@ -1471,6 +1615,8 @@ async function main() {
       },
       onPick: (picked) => {
         showPick(picked);
+        state.pickedBase = picked && state.workspace.inBaseFrame ? picked.point : null;
+        renderCell();
         if (picked?.time_s != null) timeline.seek(picked.time_s);
       },
     });

@@ -230,6 +230,7 @@ export class Workspace {
       this.layers[name] = object;
       this.scene.add(object);
     }
+    if (!colours) object.material.color.set(colour); // a reused layer takes the colour asked for now
     const position = object.geometry.attributes.position;
     position.array.set(positions);
     // Past the draw range: the last point again, so that the bounds stay those of the data.
@@ -292,7 +293,7 @@ export class Workspace {
     this.baseTracker = baseTracker;
     this.inBaseFrame = Boolean(session.T_base_tracker);
     this.showLiveArm(this.liveArm);
-    this.showCell(this.cell);
+    this.showCell(this.cell, { draft: this.cellDraft });
     const scanTracker = matrix(rec?.summary.T_scan_tracker || session.T_scan_tracker);
     const baseScan = baseTracker.clone().multiply(scanTracker.clone().invert());
     const transformed = (xyz, m) => {
@@ -556,13 +557,18 @@ export class Workspace {
   }
 
   /** This server's cell (GET /cell): the keep-out boxes' edges and the planes as grids, in the
-   * base frame (not drawn while the view is in the tracker's). */
-  showCell(cell) {
+   * base frame (not drawn while the view is in the tracker's). A `draft` (the cell being edited,
+   * not saved) is drawn in orange instead; `showCell(saved)` draws the saved one again. */
+  showCell(cell, { draft = false } = {}) {
     this.cell = cell;
+    this.cellDraft = draft;
     const ends = cell ? [...cell.keep_out_boxes_m.flatMap(boxEdges), ...cell.cell_planes.flatMap((p) => planeGrid(p))] : [];
     if (!ends.length || !this.inBaseFrame) this.clear("cell");
-    else this.layer("cell", "segments", Float32Array.from(ends), null, 0xc2185b);
+    else this.layer("cell", "segments", Float32Array.from(ends), null, draft ? 0xef6c00 : 0xc2185b);
     this.container.dataset.cell = this.layers.cell ? String(ends.length / 6) : "0";
+    this.container.dataset.cellDraft = String(draft);
+    this.legend.querySelector("#legend-cell-draft").hidden = !draft;
+    this.legend.querySelector("#legend-cell-draft-text").hidden = !draft;
     this.render();
   }
 
