@@ -611,7 +611,7 @@ def inverse(arm: URModel, T_base_flange: FloatArray) -> IKSolutions:
     z6 = T[:, :3, 2]
     p05 = p06 - d6 * z6
     radius = np.hypot(p05[:, 0], p05[:, 1])
-    shoulder_margin = radius - abs(d4)
+    shoulder_margin = shoulder_margin_m(arm, T)
 
     q = np.zeros((n, 8, 6))
     valid = np.ones((n, 8), dtype=bool)
@@ -716,6 +716,19 @@ def _refine_on_calibration(arm: URModel, T: FloatArray, nominal: IKSolutions) ->
     return IKSolutions(
         q_rad=q, valid=valid, shoulder_margin_m=nominal.shoulder_margin_m, failure=failure
     )
+
+
+def shoulder_margin_m(arm: URModel, T_base_flange: FloatArray) -> FloatArray:
+    """How far the wrist centre is outside the shoulder-singular cylinder (radius ``|d4|``
+    about the base's z axis), for flange poses (N, 4, 4); negative inside it.
+
+    Returns
+    -------
+    ndarray of shape (N,), metres
+    """
+    T = np.asarray(T_base_flange, dtype=np.float64)
+    wrist_centre = T[:, :3, 3] - arm.d6 * T[:, :3, 2]
+    return np.hypot(wrist_centre[:, 0], wrist_centre[:, 1]) - abs(arm.d4)
 
 
 def wrist_singularity(q_rad: FloatArray) -> FloatArray:

@@ -711,3 +711,136 @@ def normals_from_scan(
         known=found.known,
         T_scan_tracker=T.copy(),
     )
+
+
+# -- a move to a plan's start ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MovePlan:
+    """A joint move of its own from where the arm is to where a plan starts, checked as a plan
+    is (limits at every sample, the cell), to be dry-run and approved before it runs.
+
+    Attributes
+    ----------
+    trajectory : JointTrajectory
+        One transit (two when the base turns first), at rest at both ends.
+    params : PlanParams
+        The target plan's (its tool, payload, transit speeds and clearance).
+    start_q_rad, goal_q_rad : ndarray of shape (6,)
+        Where the arm is, and the target plan's first sample.
+    base_first : bool
+        Whether the base turns alone first (the direct move collided).
+    collision : CollisionReport or None
+        The check against the cell (None: no cell given).
+    """
+
+    trajectory: JointTrajectory
+    params: PlanParams
+    start_q_rad: FloatArray
+    goal_q_rad: FloatArray
+    base_first: bool = False
+    collision: object | None = None
+
+    def margins(self) -> dict[str, float]:
+        """The smallest joint-limit margin (rad), wrist and elbow |sin| and shoulder margin (m)
+        over every sample."""
+        arm, q = self.trajectory.arm, self.trajectory.q_rad
+        return {
+            "min_limit_margin_rad": float(kinematics.limit_margins_rad(arm, q).min()),
+            "min_wrist_singularity": float(kinematics.wrist_singularity(q).min()),
+            "min_elbow_singularity": float(kinematics.elbow_singularity(q).min()),
+            "min_shoulder_margin_m": float(
+                kinematics.shoulder_margin_m(arm, kinematics.forward(arm, q)).min()
+            ),
+        }
+
+    def report_lines(self) -> list[str]:
+        """The move's report for a terminal and the pendant."""
+        traj = self.trajectory
+        moved = np.degrees(np.abs(self.goal_q_rad - self.start_q_rad))
+        tcp = traj.phase_max_tcp_speed_m_s().get(Phase.TRANSIT.label, 0.0)
+        lines = [
+            f"{traj.robot}: a joint move of {traj.duration_s:.2f} s to the plan's start "
+            f"({len(traj)} samples at {1 / traj.period_s:.0f} Hz), the largest joint turn "
+            f"{moved.max():.1f} deg (joint {int(np.argmax(moved)) + 1}), fastest TCP "
+            f"{tcp * 1e3:.0f} mm/s" + ("; the base turns alone first" if self.base_first else ""),
+            f"from [{', '.join(f'{v:.1f}' for v in np.degrees(self.start_q_rad))}] deg",
+            f"to [{', '.join(f'{v:.1f}' for v in np.degrees(self.goal_q_rad))}] deg",
+            f"kinematics: {traj.arm.kinematics_words}",
+        ]
+        if self.collision is not None:
+            lines.append(f"tool checked as {_tool_words(self.params)}")
+            lines += self.collision.lines()
+        return lines
+
+
+#: Joint angles given to a move must be within this of the arm's limits (rad): a reading of
+#: the arm is never outside them by more than its noise.
+MOVE_LIMIT_TOLERANCE_RAD = 1e-6
+
+
+def plan_move(
+    q_from_rad: FloatArray,
+    q_to_rad: FloatArray,
+    *,
+    params: PlanParams,
+    cell=None,
+    calibration: kinematics.DHCalibration | None = None,
+) -> MovePlan:
+    """A joint move (UR's ``movej``: every joint on one trapezoidal profile) from ``q_from_rad``
+    to ``q_to_rad`` at the plan's transit speeds, checked against ``cell``; if the direct move
+    collides, the base turns alone first, as a plan's transit does.
+
+    Parameters
+    ----------
+    q_from_rad, q_to_rad : array-like of shape (6,)
+        Where the arm is and where the target plan starts (rad).
+    params : PlanParams
+        The target plan's parameters: robot, tool, transit speed scales and TCP speed, clearance.
+    cell : recon.collision.Cell, optional
+        What the arm must not touch (the tool touches nothing on a move).
+    calibration : recon.kinematics.DHCalibration, optional
+        The arm's own kinematics calibration (default: UR's nominal model).
+
+    Raises
+    ------
+    ValueError
+        Joints that are not six finite numbers within the arm's limits.
+    CollisionError
+        Both ways of moving collide (the message names where and with what).
+    """
+    arm = kinematics.model(params.robot)
+    if calibration is not None:
+        arm = kinematics.with_calibration(arm, calibration)
+    ends = []
+    for name, q in (("the arm's joints", q_from_rad), ("the plan's start", q_to_rad)):
+        q = np.asarray(q, dtype=np.float64).reshape(-1)
+        if q.shape != (6,) or not np.all(np.isfinite(q)):
+            raise ValueError(f"{name} must be six finite joint angles (rad), got {q}")
+        if np.any(kinematics.limit_margins_rad(arm, q[None]) < -MOVE_LIMIT_TOLERANCE_RAD):
+            raise ValueError(
+                f"{name} [{', '.join(f'{v:.1f}' for v in np.degrees(q))}] deg are outside the "
+                f"{arm.name}'s joint limits"
+            )
+        ends.append(q)
+    q_from, q_to = ends
+    joint_move = {
+        "speed_scale": params.transit_speed_scale,
+        "acceleration_scale": params.transit_acceleration_scale,
+        "tcp_speed_max_m_s": params.transit_tcp_speed_m_s,
+        "T_flange_tcp": params.T_flange_tcp,
+    }
+    report = None
+    for base_first in (False, True):
+        trajectory = motion.assemble(
+            arm,
+            _transit(arm, q_from, q_to, base_first, joint_move),
+            T_flange_tcp=params.T_flange_tcp,
+            requested_speed_m_s=params.transit_tcp_speed_m_s,
+        )
+        if cell is not None:
+            report = check_cell(arm, trajectory, cell, params)
+        if report is None or report.first_collision is None:
+            return MovePlan(trajectory, params, q_from, q_to, base_first, report)
+    raise _collision_error(report)

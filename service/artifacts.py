@@ -409,7 +409,20 @@ class SpeedDropSummary(BaseModel):
     cause: str
 
 
+def as_core_params(params: dict, overrides: dict | None = None) -> dict:
+    """Stored parameters (JSON: sequences came back as lists) as the parameter classes
+    (:class:`recon.types.PlanParams`, ``ReconParams``) take them, tuples, with ``overrides``
+    applied."""
+    merged = {**params, **(overrides or {})}
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in merged.items()}
+
+
 class TrajectorySummary(_Summary):
+    move_to_start_of: str | None = Field(
+        None,
+        description="a move of its own from where the arm was to this plan's start (no traced "
+        "path): the plan it leads to",
+    )
     robot: str
     requested_speed_m_s: float
     duration_s: float

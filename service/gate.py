@@ -513,8 +513,9 @@ def check_arm_state(arm: Reading, q_start_rad: FloatArray, *, robot: str) -> Non
         joint = int(np.argmax(gap))
         raise StartMoved(
             f"the arm is not where this plan starts: joint {joint + 1} is "
-            f"{np.degrees(gap[joint]):.1f} deg away and the flange {distance_mm:.0f} mm: plan "
-            "again from where the arm is",
+            f"{np.degrees(gap[joint]):.1f} deg away and the flange {distance_mm:.0f} mm: move "
+            "it to the plan's start (a move of its own, planned, dry-run and approved: POST "
+            ".../trajectories/{id}/move-to-start), or plan again from where the arm is",
             detail={
                 "max_joint_deg": float(np.degrees(gap.max())),
                 "flange_distance_m": distance_mm / 1e3,

@@ -772,6 +772,128 @@ def plan(
     )
 
 
+@dataclass(frozen=True)
+class MoveOutcome:
+    """A move to a plan's start (:class:`recon.plan.MovePlan`) and the plan it leads to."""
+
+    move: object  # recon.plan.MovePlan
+    target_id: str
+    target_summary: dict
+    start_from: str = "arm"
+
+    @property
+    def trajectory(self):
+        return self.move.trajectory
+
+    def summary(self) -> dict:
+        """The artifact's summary: a trajectory's (:class:`service.artifacts.TrajectorySummary`)
+        with ``move_to_start_of`` naming the plan; no traced path, no process phase."""
+        from importlib import metadata
+
+        move, traj, target = self.move, self.move.trajectory, self.target_summary
+        try:
+            version = metadata.version("teachpath")
+        except metadata.PackageNotFoundError:
+            version = "0"
+        report = move.collision
+        clearance = None
+        if report is not None and len(report.clearance_m):
+            clearance = float(np.min(report.clearance_m))
+        checks = ["joint position, speed and acceleration limits at every sample"]
+        if report is not None:
+            checks.append(
+                f"no collision of the arm or the tool with the {', '.join(report.obstacles)} "
+                f"(smallest clearance {clearance * 1e3:.1f} mm, margin "
+                f"{report.margin_m * 1e3:.1f} mm)"
+            )
+        return {
+            "move_to_start_of": self.target_id,
+            "phase_durations_s": traj.phase_durations_s(),
+            "phase_max_tcp_speed_m_s": traj.phase_max_tcp_speed_m_s(),
+            "start_q_rad": [float(v) for v in move.start_q_rad],
+            "start_from": self.start_from,
+            "configuration": target.get("configuration"),
+            "approach_m": None,
+            "tcp_pose": [float(v) for v in move.params.tcp],
+            "payload_kg": move.params.payload_kg,
+            "payload_cog_m": list(move.params.payload_cog_m),
+            "T_base_tracker": target.get("T_base_tracker"),
+            "min_clearance_m": clearance if clearance is None or np.isfinite(clearance) else None,
+            "checks": checks,
+            "teachpath": version,
+            "robot": traj.robot,
+            "kinematics": traj.arm.kinematics_words,
+            "calibration": None if traj.calibration is None else traj.calibration.as_dict(),
+            "requested_speed_m_s": traj.requested_speed_m_s,
+            "duration_s": traj.duration_s,
+            "n_samples": len(traj),
+            "rate_hz": 1.0 / traj.period_s,
+            "path_length_m": 0.0,
+            "n_pieces": 0,
+            "tool_axis_from": "none: a joint move",
+            "ik_branch": int(target.get("ik_branch", -1)),
+            **move.margins(),
+            "speed_drops": [],
+            "T_scan_tracker": None,
+            "report": move.report_lines(),
+        }
+
+
+def move_to_start(
+    q_from_rad,
+    target,
+    *,
+    target_id: str,
+    target_summary: dict,
+    params,
+    scan=None,
+    T_scan_tracker=None,
+    T_base_tracker=None,
+    keep_out_boxes=(),
+    cell_planes=(),
+    start_from: str = "arm",
+    calibration=None,
+) -> MoveOutcome:
+    """A move of its own from where the arm is to ``target``'s first sample, checked against
+    the cell the target is checked against (its scan placed as it was planned).
+
+    Parameters
+    ----------
+    q_from_rad : array-like of shape (6,)
+        Where the arm is.
+    target : recon.types.JointTrajectory
+        The plan to move to the start of.
+    target_id : str
+    target_summary : dict
+        Its summary (its configuration, IK branch and tracker-to-base transform are the move's).
+    params : recon.types.PlanParams
+        The target's parameters (tool, transit speeds, clearance).
+    scan, T_scan_tracker, T_base_tracker, keep_out_boxes, cell_planes
+        The cell, as :func:`cell_for` takes them.
+    start_from : str
+        Where ``q_from_rad`` came from ("arm" or "home").
+    calibration : recon.kinematics.DHCalibration, optional
+
+    Raises
+    ------
+    ValueError
+        Joints outside the arm's limits, or a scan whose place is unknown.
+    CollisionError
+        The move collides whichever way it is made.
+    """
+    from recon.plan import plan_move
+
+    T_base = None if T_base_tracker is None else np.asarray(T_base_tracker, dtype=np.float64)
+    move = plan_move(
+        q_from_rad,
+        target.q_rad[0],
+        params=params,
+        cell=cell_for(scan, T_scan_tracker, T_base, keep_out_boxes, cell_planes),
+        calibration=calibration,
+    )
+    return MoveOutcome(move, target_id, target_summary, start_from)
+
+
 def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=(), cell_planes=()):
     """The cell a plan is checked against (base frame): the mounting surface (the base's z = 0
     plane), other planes of the cell, the keep-out boxes and the scanned workpiece.

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.artifacts import as_core_params
 from service.bundles import BundleError, BundleReader
 from service.reconstructions import NOT_RECON_PARAMS
 
@@ -231,7 +232,7 @@ def _reconstruction(reader: BundleReader, artifact, overrides: Overrides, tolera
     params = dict(artifact.params)
     T_init = params.pop("T_scan_tracker_init", None)
     params = {k: v for k, v in params.items() if k not in NOT_RECON_PARAMS}
-    params = _as_stored(params, overrides.reconstruction)
+    params = as_core_params(params, overrides.reconstruction)
     ids = inputs.get("recording_ids") or [inputs["recording_id"]]
     recording_arrays = [reader.arrays(rid) for rid in ids]
     recordings = [RecordingCodec.decode(arrays) for arrays in recording_arrays]
@@ -277,13 +278,6 @@ def _within(deviation: np.ndarray, tolerance_m: float) -> bool:
     return bool(len(deviation)) and bool(np.all(deviation <= tolerance_m))
 
 
-def _as_stored(params: dict, overrides: dict) -> dict:
-    """Stored parameters (JSON: sequences came back as lists) as the parameter classes take
-    them (tuples), with the overrides applied."""
-    merged = {**params, **overrides}
-    return {k: tuple(v) if isinstance(v, list) else v for k, v in merged.items()}
-
-
 def path_deviation_m(stored_m: np.ndarray, replayed_m: np.ndarray) -> np.ndarray:
     """How far a replayed path lies from the stored one, per point (m).
 
@@ -316,7 +310,7 @@ def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> 
         note = "the stored plan does not record its cell's keep-out boxes and planes: none used"
     boxes = params.pop("keep_out_boxes", [])
     planes = params.pop("cell_planes", [])
-    params = _as_stored(params, overrides.plan)
+    params = as_core_params(params, overrides.plan)
     recon_id = artifact.inputs["reconstruction_id"]
     recon_arrays = reader.arrays(recon_id)
     recon_params = {
@@ -333,7 +327,7 @@ def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> 
             params=PlanParams(**params),
             T_base_tracker=T_base,
             scan_model=ReconstructionCodec.scan_model(recon_arrays),
-            recon_params=ReconParams(**_as_stored(recon_params, {})),
+            recon_params=ReconParams(**as_core_params(recon_params, {})),
             scan=ScanCodec.decode(reader.arrays(scan_id)) if scan_id else None,
             keep_out_boxes=boxes,
             cell_planes=planes,

@@ -355,6 +355,60 @@ class Plan:
         return outcome.summary()
 
 
+@dataclass(frozen=True)
+class MoveToStart:
+    """Plan a move from where the arm is to a stored plan's start, checked against the cell the
+    plan is checked against. ``run()`` returns the move's trajectory summary."""
+
+    target_path: str
+    target_summary: dict
+    target_id: str
+    reconstruction_path: str | None
+    params: dict
+    q_from_rad: list
+    out_path: str
+    scan_path: str | None = None
+    T_base_tracker: list | None = None
+    keep_out_boxes: list = ()
+    cell_planes: list = ()
+    start_from: str = "arm"
+    calibration: dict | None = None
+
+    def run(self) -> dict:
+        from recon.kinematics import DHCalibration
+        from recon.types import PlanParams
+
+        T_scan_tracker = None
+        if self.reconstruction_path is not None:
+            T_scan_tracker = ReconstructionCodec.decode(
+                load_arrays(self.reconstruction_path)
+            ).T_scan_tracker
+        outcome = pipelines.move_to_start(
+            self.q_from_rad,
+            load_trajectory(self.target_path, self.target_summary),
+            target_id=self.target_id,
+            target_summary=self.target_summary,
+            params=PlanParams(**self.params),
+            scan=ScanCodec.decode(load_arrays(self.scan_path)) if self.scan_path else None,
+            T_scan_tracker=T_scan_tracker,
+            T_base_tracker=self.T_base_tracker,
+            keep_out_boxes=self.keep_out_boxes,
+            cell_planes=self.cell_planes,
+            start_from=self.start_from,
+            calibration=None if self.calibration is None else DHCalibration.from_dict(
+                self.calibration
+            ),
+        )  # fmt: skip
+        report = outcome.move.collision
+        save_arrays(
+            self.out_path,
+            TrajectoryCodec.encode(
+                outcome.trajectory, clearance_m=None if report is None else report.clearance_m
+            ),
+        )
+        return outcome.summary()
+
+
 def load_trajectory(path: str | Path, summary: dict):
     """A stored trajectory, with what its summary says it was planned for."""
     return TrajectoryCodec.decode(load_arrays(path), TrajectorySummary.model_validate(summary))

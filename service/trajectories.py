@@ -7,8 +7,10 @@ it used and the scan model it built, so no registration runs twice and the plan 
 
 from __future__ import annotations
 
+import numpy as np
+
 from service import tasks
-from service.artifacts import ID_PREFIX
+from service.artifacts import ID_PREFIX, as_core_params
 from service.cell import cell_now
 from service.core import Services
 from service.reconstructions import NOT_RECON_PARAMS
@@ -78,6 +80,108 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
         T_base_tracker=T,
         out_path=services.array_path(out_id),
         scan_path=None if scan is None else str(services.store.path_of(scan)),
+        keep_out_boxes=boxes,
+        cell_planes=planes,
+        start_from=start_from,
+        calibration=None if calibration is None else calibration.as_dict(),
+    )
+    return services.jobs.submit(
+        session_id, "trajectory", {**stored_params, **inputs}, task, done, outputs=(task.out_path,)
+    )
+
+
+def start_move_to_start(services: Services, session_id: str, trajectory_id: str) -> JobRow:
+    """Queue the planning of a move of its own from where the arm is to a plan's start: a
+    trajectory (``move_to_start_of`` names the plan) that is dry-run, approved and run as any
+    plan is, so that the plan itself can run afterwards without being planned again.
+
+    Raises
+    ------
+    ApiError
+        404 for an unknown plan; 409 ``move_of_a_move`` for a move, ``at_start`` when the arm
+        already stands where the plan starts.
+    RobotUnavailable
+        A real arm is configured but its joints cannot be read now.
+    """
+    from drivers.robot.base import START_TOLERANCE_RAD
+    from recon.types import PlanParams
+    from service.errors import ApiError
+    from service.schemas import TRAJECTORY_PARAMS
+
+    services.session(session_id)
+    target = services.artifact(session_id, "trajectory", trajectory_id)
+    if target.inputs.get("move_to_start_of"):
+        raise ApiError(
+            409,
+            "move_of_a_move",
+            f"{trajectory_id} is itself a move to a plan's start: ask for the move to the start "
+            f"of {target.inputs['move_to_start_of']} instead",
+        )
+    q_now, start_from = start_joints(services.robot, services.settings)
+    q_goal = (target.summary or {}).get("start_q_rad")
+    if (
+        q_goal is not None
+        and float(np.abs(q_now - np.asarray(q_goal)).max()) <= START_TOLERANCE_RAD
+    ):
+        raise ApiError(
+            409,
+            "at_start",
+            f"the arm already stands where {trajectory_id} starts: dry-run and run the plan",
+        )
+    params = as_core_params({k: target.params[k] for k in TRAJECTORY_PARAMS if k in target.params})
+    # The move keeps to this server's TCP speed cap as the plan's transit does.
+    params["transit_tcp_speed_m_s"] = min(
+        params.get("transit_tcp_speed_m_s", PlanParams.transit_tcp_speed_m_s),
+        services.settings.max_speed_m_s,
+    )
+    params["start_q_rad"] = tuple(float(v) for v in q_now)
+    try:
+        PlanParams(**params)
+    except (TypeError, ValueError) as exc:
+        raise ApiError(
+            409,
+            "unreadable_plan",
+            f"the parameters of {trajectory_id} cannot be read ({str(exc)[:200]}): plan it again",
+        ) from None
+    cell = cell_now(services.store, services.settings)
+    boxes = [list(box) for box in cell.keep_out_boxes_m]
+    planes = [list(plane) for plane in cell.cell_planes]
+    T = target.params.get("T_base_tracker")
+    inputs = {
+        "reconstruction_id": target.inputs.get("reconstruction_id"),
+        "scan_id": target.inputs.get("scan_id"),
+        "move_to_start_of": trajectory_id,
+    }
+    stored_params = {
+        **params,
+        "T_base_tracker": T,
+        "start_from": start_from,
+        "keep_out_boxes": boxes,
+        "cell_planes": planes,
+    }
+    out_id = new_id(ID_PREFIX["trajectory"])
+    done = services.record_when_done(
+        session_id,
+        "trajectory",
+        out_id,
+        inputs=inputs,
+        params=stored_params,
+        result=lambda summary: {"trajectory_id": out_id, "move_to_start_of": trajectory_id},
+    )
+    store = services.store
+    recon = store.artifact(str(inputs["reconstruction_id"]), kind="reconstruction")
+    scan = store.artifact(str(inputs["scan_id"]), kind="scan") if inputs["scan_id"] else None
+    calibration = services.settings.arm_calibration
+    task = tasks.MoveToStart(
+        target_path=str(store.path_of(target)),
+        target_summary=target.summary,
+        target_id=trajectory_id,
+        reconstruction_path=None if recon is None else str(store.path_of(recon)),
+        params=params,
+        q_from_rad=[float(v) for v in q_now],
+        out_path=services.array_path(out_id),
+        scan_path=None if scan is None else str(store.path_of(scan)),
+        T_base_tracker=T,
         keep_out_boxes=boxes,
         cell_planes=planes,
         start_from=start_from,

@@ -25,6 +25,15 @@ def start_trajectory(session_id: str, body: TrajectoryCreate, services: Services
     return trajectories.start(services, session_id, body)
 
 
+@router.post("/trajectories/{trajectory_id}/move-to-start", status_code=202, response_model=JobOut)
+def start_move_to_start(session_id: str, trajectory_id: str, services: ServicesDep):
+    """Plan a move of its own from where the arm is now to this plan's start (a joint move at
+    the plan's transit speeds, checked against the cell). The result is a trajectory like any
+    other (its summary's ``move_to_start_of`` names the plan): dry-run it, approve it and run
+    it; the plan then starts where the arm stands. 409 ``at_start`` when it already does."""
+    return trajectories.start_move_to_start(services, session_id, trajectory_id)
+
+
 def _outdated(services, session, row) -> list[str]:
     try:
         cell = cell_now(services.store, services.settings)

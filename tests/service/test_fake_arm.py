@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from recon import kinematics
 from service.app import create_app
 from tests.drivers import fake_ur_fixture
 from tests.service.conftest import AUTH, make_settings, planned_session, wait
@@ -608,3 +609,82 @@ def test_a_cell_edited_while_a_run_is_being_checked_refuses_the_run(arm, fake_ur
         monkeypatch.undo()
         revision = client.get("/cell").json()["revision"]
         assert client.delete("/cell", params={"revision": revision}).status_code == 200
+
+
+def test_an_arm_moved_away_goes_back_to_the_plans_start_by_a_move_of_its_own(arm, fake_ur):
+    """Jogged away after the plan's dry run: the run is refused (start_moved); a move to the
+    start is planned from where the arm is, refused on the arm until it is dry-run here, then
+    run; the plan itself then runs as approved, without planning it again."""
+    client, sid, trajectory_id, q_start = arm
+    jogged = q_start + [0.25, -0.1, 0.05, 0.0, 0.1, 0.3]
+    fake_ur.control("reset", q_rad=jogged.tolist())
+    time.sleep(0.5)  # the arm's state is read a few times a second
+    run = {"trajectory_id": trajectory_id, "backend": "ur_rtde", "confirm": True}
+    refused = client.post(f"/sessions/{sid}/executions", json=run)
+    assert refused.status_code == 409 and refused.json()["code"] == "start_moved"
+    assert "move-to-start" in refused.json()["message"]
+
+    job = client.post(f"/sessions/{sid}/trajectories/{trajectory_id}/move-to-start")
+    assert job.status_code == 202, job.text
+    job = wait(client, job.json())
+    assert job["state"] == "succeeded", job
+    move_id = job["result"]["trajectory_id"]
+    move = client.get(f"/sessions/{sid}/trajectories/{move_id}").json()
+    summary = move["summary"]
+    assert summary["move_to_start_of"] == trajectory_id
+    assert move["inputs"]["move_to_start_of"] == trajectory_id and move["outdated"] == []
+    assert summary["start_from"] == "arm"
+    assert list(summary["phase_durations_s"]) == ["transit"]
+    assert summary["phase_max_tcp_speed_m_s"]["transit"] <= 0.1 + 1e-9  # the server's cap
+    assert any("no collision" in check for check in summary["checks"]), summary["checks"]
+    rows = client.get(f"/sessions/{sid}/trajectories/{move_id}/csv").text.splitlines()[2:]
+    first, last = (np.array(rows[i].split(",")[1:7], dtype=float) for i in (0, -1))
+    np.testing.assert_allclose(first, jogged, atol=1e-4)  # from where the arm stands
+    np.testing.assert_allclose(last, q_start, atol=1e-9)  # to exactly where the plan starts
+
+    # Like any plan: not on the arm before its dry run here; then it runs.
+    not_yet = client.post(f"/sessions/{sid}/executions", json={**run, "trajectory_id": move_id})
+    assert not_yet.status_code == 409 and not_yet.json()["code"] == "dry_run_required"
+    dry = client.post(f"/sessions/{sid}/executions", json={"trajectory_id": move_id})
+    assert wait(client, dry.json())["result"]["completed"]
+    moved = wait(
+        client,
+        client.post(f"/sessions/{sid}/executions", json={**run, "trajectory_id": move_id}).json(),
+    )
+    assert moved["state"] == "succeeded", moved
+    q_now = np.array(fake_ur.control("status")["q_rad"])
+    assert np.abs(q_now - q_start).max() < 1e-3, np.degrees(q_now - q_start)
+
+    # Standing at the start: no move is needed, and the plan runs as it was approved.
+    time.sleep(0.5)
+    at_start = client.post(f"/sessions/{sid}/trajectories/{trajectory_id}/move-to-start")
+    assert at_start.status_code == 409 and at_start.json()["code"] == "at_start"
+    again = client.post(f"/sessions/{sid}/trajectories/{move_id}/move-to-start")
+    assert again.status_code == 409 and again.json()["code"] == "move_of_a_move"
+    ran = wait(client, client.post(f"/sessions/{sid}/executions", json=run).json(), timeout_s=120)
+    assert ran["state"] == "succeeded", ran
+
+
+def test_a_move_to_start_through_a_keep_out_box_is_refused_naming_it(arm, fake_ur):
+    client, sid, trajectory_id, q_start = arm
+    jogged = q_start + [0.6, 0.0, 0.0, 0.0, 0.0, 0.0]  # the base turned 34 degrees away
+    fake_ur.control("reset", q_rad=jogged.tolist())
+    time.sleep(0.5)
+    # A box around where the flange passes halfway between the two poses.
+    arm_model = kinematics.model("ur5e")
+    halfway = kinematics.forward(arm_model, ((jogged + q_start) / 2)[None])[0, :3, 3]
+    box = [*(halfway - 0.05), *(halfway + 0.05)]
+    revision = client.get("/cell").json()["revision"]
+    edit = {"keep_out_boxes_m": [box], "cell_planes": [], "revision": revision}
+    assert client.put("/cell", json=edit).status_code == 200
+    try:
+        job = wait(
+            client,
+            client.post(f"/sessions/{sid}/trajectories/{trajectory_id}/move-to-start").json(),
+        )
+        assert job["state"] == "failed" and job["error"]["code"] == "collision", job
+        assert job["error"]["detail"]["obstacle"] == "keep-out box 1"
+    finally:
+        revision = client.get("/cell").json()["revision"]
+        assert client.delete("/cell", params={"revision": revision}).status_code == 200
+        fake_ur.control("reset", q_rad=q_start.tolist())
