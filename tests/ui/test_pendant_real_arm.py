@@ -210,14 +210,63 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         time.sleep(0.5)
         assert np.abs(_joints(fake) - q_stopped).max() < 1e-6
         assert fake.control("program_status")["state"] != "running"
-        expect(run).to_be_enabled()  # the dry run still holds; the operator may run again
+        # The dry run still holds, but the arm stands mid-path, not where the plan starts: Run
+        # is not offered (the server would refuse it: start_moved); a move to the start is.
+        expect(run).to_be_disabled()
+        expect(page.locator("#step-run .needs")).to_contain_text(
+            "The arm is not where the plan starts (joint "
+        )
         pendant.shot("stopped")
         # The run's record keeps the approval: the checksum of the file the operator confirmed.
         sid = page.evaluate("sessionStorage.getItem('teachpath.session')")
         client = arm_server.client
         record = client.get(f"/sessions/{sid}/executions").json()[-1]
-        plan = client.get(f"/sessions/{sid}/trajectories/{record['inputs']['trajectory_id']}")
-        assert record["params"]["approved_sha256"] == plan.json()["sha256"]
+        plan_id = record["inputs"]["trajectory_id"]
+        plan = client.get(f"/sessions/{sid}/trajectories/{plan_id}").json()
+        assert record["params"]["approved_sha256"] == plan["sha256"]
+
+        # Back to the start by a move of its own: planned from where the arm stopped, drawn in
+        # the 3-D view, dry-run, then approved and run; the plan can then run again.
+        panel = page.locator("#move-to-start")
+        expect(panel).to_be_visible()
+        expect(page.locator("#move-status")).to_contain_text("from where the plan starts")
+        move_on_arm = page.get_by_role("button", name="Move to start on the arm")
+        expect(move_on_arm).to_be_disabled()
+        page.get_by_role("button", name="Plan the move to the start").click()
+        move_summary = page.locator("#move-summary")
+        expect(move_summary).to_contain_text("fastest TCP", timeout=60_000)
+        expect(move_summary.locator(".report")).to_contain_text("a joint move of")
+        move_id = move_summary.locator("td").first.inner_text()
+        assert move_id.startswith("trj_"), move_id
+        expect(page.locator("#workspace")).to_have_attribute("data-move", move_id)
+        expect(page.locator("#plan-summary td").first).to_have_text(plan_id)  # still the plan
+        expect(move_on_arm).to_be_disabled()  # not before its dry run
+        page.get_by_role("button", name="Dry run the move").click()
+        expect(move_summary.locator("tr", has_text="dry run")).to_contain_text(
+            "passed", timeout=60_000
+        )
+        expect(move_on_arm).to_be_enabled()
+        pendant.shot("move-planned")
+        move_on_arm.click()
+        expect(dialog).to_be_visible()
+        expect(page.locator("#confirm-title")).to_have_text("Move the arm to the plan's start?")
+        expect(dialog.locator("tr", has_text="motion")).to_contain_text(
+            f"a joint move to the start of plan {plan_id}"
+        )
+        expect(dialog.locator("tr", has_text="move file")).to_contain_text(move_id)
+        pendant.shot("move-confirm")
+        page.get_by_role("button", name="Confirm: move to start").click()
+        expect(panel).to_be_hidden(timeout=60_000)
+        q_start = np.array(plan["summary"]["start_q_rad"])
+        assert np.abs(_joints(fake) - q_start).max() < 0.01
+        move_run = client.get(f"/sessions/{sid}/executions").json()[-1]
+        assert move_run["inputs"]["trajectory_id"] == move_id
+        assert not move_run["params"]["dry_run"] and move_run["summary"]["completed"]
+        expect(run).to_be_enabled()
+        expect(page.locator("#step-run .needs")).to_have_text(
+            "Ready: press “Run on arm” and confirm."
+        )
+        pendant.shot("at-start")
 
 
 def test_a_protective_stop_is_shown_and_unlocked_when_the_controller_allows(

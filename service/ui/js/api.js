@@ -139,7 +139,7 @@ export const INSTRUCTIONS = {
   speed_cap: "The plan is faster than the server's speed cap: plan again at a lower speed.",
   arm_busy: "Another execution owns the arm: wait until it ends, or stop it.",
   start_moved:
-    "The arm is no longer where the plan starts: plan again from where the arm stands now.",
+    "The arm is no longer where the plan starts: move it there (Move to the plan’s start, in the Run step), or plan again from where it stands.",
   protective_stop:
     "The arm is in a protective stop: remove its cause, then press Unlock in the safety bar.",
   emergency_stop:

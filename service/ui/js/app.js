@@ -224,9 +224,15 @@ async function openSession(id) {
 // button disabled until it ends: nothing is sent again.
 const JOB_STEPS = { reconstruction: "reconstruct", trajectory: "plan" };
 function stepOfJob(job) {
-  if (job.kind === "execution") return job.params.backend === "sim" ? "dryrun" : "run";
+  if (job.kind === "trajectory" && job.params.move_to_start_of) return "move-plan";
+  if (job.kind === "execution") {
+    const ofMove = isMove(state.trajectories.find((t) => t.id === job.params.trajectory_id));
+    return `${ofMove ? "move-" : ""}${job.params.backend === "sim" ? "dryrun" : "run"}`;
+  }
   return JOB_STEPS[job.kind] || null;
 }
+/** The form whose button started a job of `step` (its progress and messages go there). */
+const formOfStep = (step) => (step.startsWith("move-") ? $(`#${step}-form`) : $(`#step-${step} form`));
 
 async function resumeJobs(sid) {
   if (state.busy) return;
@@ -234,8 +240,8 @@ async function resumeJobs(sid) {
   const job = jobs.find((j) => !FINISHED.includes(j.state) && stepOfJob(j));
   if (!job) return;
   const step = stepOfJob(job);
-  runJob(step, $(`#step-${step} form`), async () => {
-    if (step === "run") {
+  runJob(step, formOfStep(step), async () => {
+    if (step === "run" || step === "move-run") {
       state.moving = { executionId: job.params.execution_id, jobId: job.id };
       // The arm's state may have come first (it owns the arm already): say "moving" now.
       updateStop();
@@ -284,10 +290,28 @@ const last = (list) => list[list.length - 1] || null;
 const recording = () => state.recordings.find((r) => r.id === state.session?.recording_id) || null;
 const scan = () => state.scans.find((s) => s.id === state.session?.scan_id) || null;
 const reconstruction = () => last(state.reconstructions);
+// A move to a plan's start is a trajectory of its own (move_to_start_of names the plan): never
+// "the plan".
+const isMove = (t) => Boolean(t?.inputs.move_to_start_of);
 const trajectory = () => {
   const rec = reconstruction();
-  return last(state.trajectories.filter((t) => t.inputs.reconstruction_id === rec?.id));
+  return last(state.trajectories.filter((t) => t.inputs.reconstruction_id === rec?.id && !isMove(t)));
 };
+// The server's gate: a run starts only with the arm this close to the plan's first sample (rad).
+const START_TOLERANCE_RAD = 0.01;
+/** How far the real arm stands from where `traj` starts: the largest joint difference (rad) and
+ * its joint (1-6); null when not known (no real arm, no reading). */
+function startGap(traj) {
+  const q = state.robot?.q_rad;
+  const start = traj?.summary.start_q_rad;
+  if (!state.robot?.real_arm || !state.robot.reachable || !q || !start) return null;
+  const gaps = start.map((v, i) => Math.abs(v - q[i]));
+  const rad = Math.max(...gaps);
+  return { rad, joint: gaps.indexOf(rad) + 1 };
+}
+const awayFromStart = (traj) => (startGap(traj)?.rad ?? 0) > START_TOLERANCE_RAD;
+/** The newest move to `traj`'s start. */
+const moveTo = (traj) => (traj ? last(state.trajectories.filter((t) => t.inputs.move_to_start_of === traj.id)) : null);
 const mode = () => $("#exec-mode").value;
 const passed = (e) => e.summary.completed === true && e.summary.faults.length === 0;
 // A passed dry run counts for the arm only if this server made it (not one imported with a bundle).
@@ -388,6 +412,11 @@ function runState(dry) {
   const blocker = armBlocker();
   if (blocker) return { done: false, needs: blocker };
   if (dry && passed(dry) && !passedHere(dry)) return { done: false, needs: IMPORTED_DRY_RUN };
+  const traj = trajectory();
+  if (passedHere(dry) && awayFromStart(traj)) {
+    const gap = startGap(traj);
+    return { done: false, needs: `The arm is not where the plan starts (joint ${gap.joint} is ${(gap.rad * 180 / Math.PI).toFixed(1)}° away): move it there first (below), or plan again from where it stands.` };
+  }
   return { done: false, needs: passedHere(dry) ? "Ready: press “Run on arm” and confirm." : "Needs a passed dry run of this plan in this mode." };
 }
 
@@ -442,7 +471,13 @@ function updateButtons() {
   set("#dryrun-form button[type=submit]", !busy && Boolean(traj));
   // An outdated plan is never offered for the arm (the server refuses it too: outdated_inputs).
   set("#run-form button[type=submit]",
-    !busy && passedHere(dry) && !canMove() && !outdated(traj).length && !armBlocker());
+    !busy && passedHere(dry) && !canMove() && !outdated(traj).length && !armBlocker() && !awayFromStart(traj));
+  const move = moveTo(traj);
+  const fresh = move && !awayFromStart(move) && !outdated(move).length; // it starts where the arm stands
+  set("#move-plan-form button[type=submit]", !busy && !canMove() && Boolean(traj) && !outdated(traj).length);
+  set("#move-dryrun-form button[type=submit]", !busy && Boolean(fresh));
+  set("#move-run-form button[type=submit]",
+    !busy && Boolean(fresh) && passedHere(dryRun(move)) && !canMove() && !armBlocker());
 }
 
 // -- provenance and downloads of an artifact --------------------------------------------------------
@@ -761,6 +796,41 @@ function renderDryRun() {
 function renderRun() {
   const run = lastRun();
   $("#run-summary").replaceChildren(...(run ? execSummary(run) : []));
+  renderMove();
+}
+
+/** The move to the plan's start: offered while the real arm stands away from it (after a jog,
+ * or another plan's run), as a motion of its own that is planned, dry-run and approved. */
+function renderMove() {
+  const traj = trajectory();
+  const panel = $("#move-to-start");
+  const gap = startGap(traj);
+  const move = moveTo(traj);
+  const away = Boolean(traj) && !outdated(traj).length && awayFromStart(traj) && !state.moving;
+  // Shown while the arm is away, and while a move of this plan is being made.
+  panel.hidden = !away && !["move-plan", "move-dryrun", "move-run"].includes(state.busy);
+  state.workspace?.showMove(state.session.id, panel.hidden ? null : move).catch(() => {});
+  if (panel.hidden) return;
+  const degrees = (rad) => `${(rad * 180 / Math.PI).toFixed(1)}°`;
+  const stale = move && awayFromStart(move);
+  const dry = move ? dryRun(move) : null;
+  $("#move-status").textContent = !gap ? "" : !move
+    ? `The arm stands ${degrees(gap.rad)} (joint ${gap.joint}) from where the plan starts. Plan a move there: a joint move of its own, checked against the cell, which you dry-run and approve before it runs.`
+    : stale ? "The arm has moved since this move was planned: plan the move again from where it stands."
+      : !passedHere(dry) ? "Dry-run the move (it is drawn in teal in the 3-D view), then move the arm to the start."
+        : "The move passed its dry run: press “Move to start on the arm” and confirm. The plan can run after it.";
+  if (!move) return $("#move-summary").replaceChildren();
+  const sm = move.summary;
+  $("#move-summary").replaceChildren(
+    table([
+      ["move", `${move.id}${stale ? " (planned from another pose of the arm)" : ""}`],
+      ["duration", seconds(sm.duration_s)],
+      ["fastest TCP", sm.phase_max_tcp_speed_m_s?.transit == null ? "–" : mmps(sm.phase_max_tcp_speed_m_s.transit)],
+      ["closest to the cell", mm(sm.min_clearance_m, 1)],
+      ["dry run", !dry ? "not yet" : passedHere(dry) ? "passed" : passed(dry) ? "imported: does not count here" : "did not pass: read its report"],
+    ]),
+    report(sm.report),
+  );
 }
 
 // -- the workspace's readouts: a picked point, an execution against its plan -------------------
@@ -983,8 +1053,12 @@ function renumberCell() {
 function renderCell({ force = false } = {}) {
   const form = $("#cell-form");
   const cell = state.cell;
-  if (!state.cellDirty || force) {
+  // Rows are rebuilt only when the saved cell changed: the steps are drawn again on every state
+  // of the arm, and a rebuilt row would take the field the operator is about to type in.
+  const shown = JSON.stringify(cell);
+  if ((!state.cellDirty && shown !== state.cellShown) || force) {
     state.cellDirty = false;
+    state.cellShown = shown;
     $("#cell-boxes tbody").replaceChildren(...(cell?.keep_out_boxes_m || []).map((box, i) => cellRow("box", i + 1, box)));
     $("#cell-planes tbody").replaceChildren(...(cell?.cell_planes || []).map((plane, i) => cellRow("plane", i + 1, plane)));
     $("#cell-draft").textContent = "";
@@ -1398,8 +1472,26 @@ function approvedInputs(traj) {
 function confirmRun(traj) {
   const sm = traj.summary;
   const robot = state.robot;
-  const rows = [
-    ["robot", `${robot.real_arm ? "REAL ARM" : "SIM (no real arm configured)"} ${sm.robot}${robot.host ? ` @ ${robot.host}` : ""}`],
+  const degrees = (q) => `${q.map((v) => (v * 180 / Math.PI).toFixed(1)).join(", ")}°`;
+  const arm = ["robot", `${robot.real_arm ? "REAL ARM" : "SIM (no real arm configured)"} ${sm.robot}${robot.host ? ` @ ${robot.host}` : ""}`];
+  const move = isMove(traj);
+  $("#confirm-title").textContent = move ? "Move the arm to the plan's start?" : "Run on the arm?";
+  $("#confirm-run").textContent = move ? "Confirm: move to start" : "Confirm: run on arm";
+  const goal = state.trajectories.find((t) => t.id === sm.move_to_start_of);
+  const rows = move ? [
+    arm,
+    ["motion", `a joint move to the start of plan ${sm.move_to_start_of}`],
+    ["mode", mode()],
+    ["duration", seconds(sm.duration_s)],
+    ["fastest TCP", sm.phase_max_tcp_speed_m_s?.transit == null ? "–" : mmps(sm.phase_max_tcp_speed_m_s.transit)],
+    ["closest to the cell", mm(sm.min_clearance_m, 1)],
+    ["from (joints)", degrees(sm.start_q_rad)],
+    ["to (joints)", goal ? degrees(goal.summary.start_q_rad) : "–"],
+    ["TCP", tcpText(sm.tcp_pose)],
+    ["payload", payloadText(sm, robot)],
+    ["move file", `${traj.id}, sha256 ${traj.sha256.slice(0, 12)}…, ${new Date(traj.created_at).toLocaleString()}`],
+  ] : [
+    arm,
     ["speed", mmps(sm.requested_speed_m_s)],
     ["mode", mode()],
     ["duration", seconds(sm.duration_s)],
@@ -1490,6 +1582,38 @@ function wire() {
       return showError($(".message", form), err);
     }
     runJob("plan", form, () => api(`/sessions/${state.session.id}/trajectories`, { method: "POST", json: body }));
+  });
+
+  // The move to the plan's start: planned, dry-run and approved as a plan is, then run.
+  $("#move-plan-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    const traj = trajectory();
+    if (!traj) return;
+    runJob("move-plan", event.currentTarget, () =>
+      api(`/sessions/${state.session.id}/trajectories/${traj.id}/move-to-start`, { method: "POST" }));
+  });
+  $("#move-dryrun-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    const move = moveTo(trajectory());
+    if (!move) return;
+    const body = { trajectory_id: move.id, backend: "sim", mode: mode() };
+    runJob("move-dryrun", event.currentTarget, () =>
+      api(`/sessions/${state.session.id}/executions`, { method: "POST", json: body }));
+  });
+  $("#move-run-form").addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const form = event.currentTarget;
+    const move = moveTo(trajectory());
+    if (!move || !passedHere(dryRun(move)) || state.busy) return;
+    if (!(await confirmRun(move))) return;
+    const body = { trajectory_id: move.id, backend: "ur_rtde", mode: mode(), confirm: true, approved_sha256: move.sha256 };
+    runJob("move-run", form, async () => {
+      const job = await api(`/sessions/${state.session.id}/executions`, { method: "POST", json: body });
+      state.moving = { executionId: job.params.execution_id, jobId: job.id };
+      updateStop();
+      renderSteps();
+      return job;
+    });
   });
 
   $("#exec-mode").addEventListener("change", () => { renderSteps(); showWorkspace(); });

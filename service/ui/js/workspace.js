@@ -268,7 +268,8 @@ export class Workspace {
    * `reviewExecution` is the execution reviewed against the plan (null: none). */
   async show(sid, { session, reconstructions, trajectories, reviewExecution = null, touches: allTouches = [] }) {
     const rec = reconstructions[reconstructions.length - 1] || null;
-    const traj = rec ? [...trajectories].reverse().find((t) => t.inputs.reconstruction_id === rec.id) : null;
+    // The plan (a move to its start is drawn by showMove, not as the plan).
+    const traj = rec ? [...trajectories].reverse().find((t) => t.inputs.reconstruction_id === rec.id && !t.inputs.move_to_start_of) : null;
     // The execution the page's tables show (the caller chooses), if it is of this plan.
     const exec = traj && reviewExecution?.inputs.trajectory_id === traj.id ? reviewExecution : null;
     const calibration = JSON.stringify([session.T_base_tracker, session.T_scan_tracker, rec?.summary.T_scan_tracker]);
@@ -554,6 +555,30 @@ export class Workspace {
       this.render();
     }, this.liveArmDrawn ? LIVE_ARM_MS : 0);
     this.liveArmDrawn = true;
+  }
+
+  /** A move to the plan's start (a trajectory of its own), drawn as its TCP's way in teal; null
+   * clears it. Fetched once per move. */
+  async showMove(sid, move) {
+    const id = move?.id ?? null;
+    if (id === this.moveShown) return;
+    this.moveShown = id;
+    if (!id) {
+      this.clear("move");
+      this.container.dataset.move = "";
+      return this.render();
+    }
+    const preview = await api(`/sessions/${sid}/trajectories/${id}/preview?max_samples=1000`);
+    if (this.moveShown !== id) return; // another move (or none) since
+    this.layer("move", "line", Float32Array.from(preview.tcp_m.flat()), null, 0x00838f);
+    this.container.dataset.move = id;
+    // A new move is shown whole (it spans the cell), unless the operator has turned the view.
+    if (!this.steered) {
+      const view = this.view;
+      this.frame("all");
+      this.view = view;
+    }
+    this.render();
   }
 
   /** This server's cell (GET /cell): the keep-out boxes' edges and the planes as grids, in the
