@@ -300,7 +300,12 @@ def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> 
     from recon.kinematics import DHCalibration
     from recon.types import PlanParams, ReconParams
     from service import pipelines
-    from service.artifacts import ReconstructionCodec, ScanCodec, TrajectorySummary
+    from service.artifacts import (
+        ReconstructionCodec,
+        ScanCodec,
+        TrajectoryCodec,
+        TrajectorySummary,
+    )
 
     params = dict(artifact.params)
     T_base = params.pop("T_base_tracker", None)
@@ -321,22 +326,43 @@ def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> 
     stored_duration = float(sum(summary.phase_durations_s.values()))
     stored_tcp = reader.arrays(artifact.id)["tcp_m"]
     start = time.perf_counter()
+    move_of = artifact.inputs.get("move_to_start_of")
+    calibration = (
+        None if summary.calibration is None else DHCalibration.from_dict(summary.calibration)
+    )  # the arm the stored plan was solved for, calibrated as it was
+    scan = ScanCodec.decode(reader.arrays(scan_id)) if scan_id else None
     try:
-        outcome = pipelines.plan(
-            ReconstructionCodec.decode(recon_arrays),
-            params=PlanParams(**params),
-            T_base_tracker=T_base,
-            scan_model=ReconstructionCodec.scan_model(recon_arrays),
-            recon_params=ReconParams(**as_core_params(recon_params, {})),
-            scan=ScanCodec.decode(reader.arrays(scan_id)) if scan_id else None,
-            keep_out_boxes=boxes,
-            cell_planes=planes,
-            start_from=start_from,
-            # The arm the stored plan was solved for, calibrated as it was.
-            calibration=None
-            if summary.calibration is None
-            else DHCalibration.from_dict(summary.calibration),
-        )
+        if move_of is not None:  # a move to a plan's start: made again from the same joints
+            outcome = pipelines.move_to_start(
+                params["start_q_rad"],
+                TrajectoryCodec.decode(
+                    reader.arrays(move_of),
+                    TrajectorySummary.model_validate(reader.artifact(move_of).summary),
+                ),
+                target_id=move_of,
+                target_summary=reader.artifact(move_of).summary,
+                params=PlanParams(**params),
+                scan=scan,
+                T_scan_tracker=ReconstructionCodec.decode(recon_arrays).T_scan_tracker,
+                T_base_tracker=T_base,
+                keep_out_boxes=boxes,
+                cell_planes=planes,
+                start_from=start_from,
+                calibration=calibration,
+            )
+        else:
+            outcome = pipelines.plan(
+                ReconstructionCodec.decode(recon_arrays),
+                params=PlanParams(**params),
+                T_base_tracker=T_base,
+                scan_model=ReconstructionCodec.scan_model(recon_arrays),
+                recon_params=ReconParams(**as_core_params(recon_params, {})),
+                scan=scan,
+                keep_out_boxes=boxes,
+                cell_planes=planes,
+                start_from=start_from,
+                calibration=calibration,
+            )
     except (InfeasibleTrajectoryError, CollisionError) as exc:
         # The stored plan was feasible: that it no longer is, is the finding.
         return _row(

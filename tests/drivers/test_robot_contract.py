@@ -143,7 +143,10 @@ def test_execute_path_runs_coarse_waypoints_on_the_plan(robot):
     flange = lambda q: kinematics.forward(robot.arm, q)[:, :3, 3]  # noqa: E731
     distance, _ = cKDTree(flange(trajectory.q_rad)).query(flange(record.q_actual_rad))
     assert distance.max() < 1e-3
-    assert record.t_s[-1] < 2 * trajectory.duration_s + 1.0
+    # The path ran once, forward, to its end (not judged by the clock: a loaded machine
+    # stretches the controller's time).
+    planned = record.planned()
+    assert np.all(np.diff(planned) >= 0) and planned[-1] == len(trajectory) - 1
     with pytest.raises(TrajectoryMismatchError, match="move it there first"):
         robot.execute_path(trajectory)  # now at the end, not the start
 

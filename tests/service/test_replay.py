@@ -204,3 +204,24 @@ def test_an_existing_cluster_runs_the_replay_by_its_address(bundles, tmp_path, c
         assert cluster.scheduler_address in capsys.readouterr().err
         with Client(cluster) as client:  # still up after the command
             assert len(client.scheduler_info()["workers"]) == 2
+
+
+def test_a_move_to_a_plans_start_is_replayed_as_a_move(tmp_path, scene_files):
+    """A plan that starts away from the arm (given joints), and the move to its start from the
+    simulated arm's home: replayed, each is made again as what it is, the same."""
+    from recon.kinematics import HOME_Q_RAD
+
+    away = (np.array(HOME_Q_RAD) + [0.3, -0.1, 0.1, 0.0, 0.2, 0.4]).tolist()
+    with TestClient(create_app(make_settings(tmp_path / "data")), headers=AUTH) as client:
+        sid, plans = planned_session(client, scene_files, [0.05], start_q_rad=away)
+        job = client.post(f"/sessions/{sid}/trajectories/{plans[0.05]}/move-to-start")
+        job = wait(client, job.json())
+        assert job["state"] == "succeeded", job
+        move_id = job["result"]["trajectory_id"]
+        bundle = tmp_path / "moved.zip"
+        bundle.write_bytes(client.get(f"/sessions/{sid}/bundle").content)
+    rows = replay_bundle(str(bundle), Overrides.none(), 1e-4)
+    (row,) = [r for r in rows if r.get("artifact_id") == move_id]
+    assert row["status"] == SAME, row
+    assert row["n_stored"] == row["n_replayed"] > 100
+    assert [r["status"] for r in rows] == [SAME] * 3, rows
