@@ -720,7 +720,12 @@ def _refine_on_calibration(arm: URModel, T: FloatArray, nominal: IKSolutions) ->
 
 def shoulder_margin_m(arm: URModel, T_base_flange: FloatArray) -> FloatArray:
     """How far the wrist centre is outside the shoulder-singular cylinder (radius ``|d4|``
-    about the base's z axis), for flange poses (N, 4, 4); negative inside it.
+    about the base's z axis); negative inside it.
+
+    Parameters
+    ----------
+    arm : URModel
+    T_base_flange : ndarray of shape (N, 4, 4)
 
     Returns
     -------

@@ -10,6 +10,7 @@ builds the model around the path at a known transform, again without registering
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,6 +28,10 @@ from recon.transforms import (
     rotation_angle_deg,
     translation_m,
 )
+
+if TYPE_CHECKING:
+    from recon.collision import CollisionReport
+
 from recon.types import (
     FloatArray,
     JointPath,
@@ -718,8 +723,9 @@ def normals_from_scan(
 
 @dataclass(frozen=True)
 class MovePlan:
-    """A joint move of its own from where the arm is to where a plan starts, checked as a plan
-    is (limits at every sample, the cell), to be dry-run and approved before it runs.
+    """A joint move of its own from where the arm is to where a plan starts, checked against
+    the joint limits at every sample and the cell (not against the planning margin to the
+    limits: the move starts where the arm stands), to be dry-run and approved before it runs.
 
     Attributes
     ----------
@@ -740,11 +746,18 @@ class MovePlan:
     start_q_rad: FloatArray
     goal_q_rad: FloatArray
     base_first: bool = False
-    collision: object | None = None
+    collision: CollisionReport | None = None
 
     def margins(self) -> dict[str, float]:
         """The smallest joint-limit margin (rad), wrist and elbow |sin| and shoulder margin (m)
-        over every sample."""
+        over every sample.
+
+        Returns
+        -------
+        dict of str to float
+            ``min_limit_margin_rad``, ``min_wrist_singularity``, ``min_elbow_singularity``,
+            ``min_shoulder_margin_m``, as a plan's summary names them.
+        """
         arm, q = self.trajectory.arm, self.trajectory.q_rad
         return {
             "min_limit_margin_rad": float(kinematics.limit_margins_rad(arm, q).min()),
@@ -756,7 +769,7 @@ class MovePlan:
         }
 
     def report_lines(self) -> list[str]:
-        """The move's report for a terminal and the pendant."""
+        """The move's report for a terminal and the pendant, one line per entry."""
         traj = self.trajectory
         moved = np.degrees(np.abs(self.goal_q_rad - self.start_q_rad))
         tcp = traj.phase_max_tcp_speed_m_s().get(Phase.TRANSIT.label, 0.0)
@@ -802,6 +815,10 @@ def plan_move(
         What the arm must not touch (the tool touches nothing on a move).
     calibration : recon.kinematics.DHCalibration, optional
         The arm's own kinematics calibration (default: UR's nominal model).
+
+    Returns
+    -------
+    MovePlan
 
     Raises
     ------

@@ -411,8 +411,19 @@ class SpeedDropSummary(BaseModel):
 
 def as_core_params(params: dict, overrides: dict | None = None) -> dict:
     """Stored parameters (JSON: sequences came back as lists) as the parameter classes
-    (:class:`recon.types.PlanParams`, ``ReconParams``) take them, tuples, with ``overrides``
-    applied."""
+    (:class:`recon.types.PlanParams`, ``ReconParams``) take them, tuples.
+
+    Parameters
+    ----------
+    params : dict
+        As stored with an artifact.
+    overrides : dict, optional
+        Values that replace the stored ones.
+
+    Returns
+    -------
+    dict
+    """
     merged = {**params, **(overrides or {})}
     return {k: tuple(v) if isinstance(v, list) else v for k, v in merged.items()}
 
@@ -447,6 +458,9 @@ class TrajectorySummary(_Summary):
         default_factory=dict, description="the fastest TCP speed of each phase (m/s)"
     )
     start_q_rad: list[float] | None = Field(None, description="where the motion starts")
+    goal_q_rad: list[float] | None = Field(
+        None, description="a move to a plan's start: where it ends (that plan's first joints)"
+    )
     start_from: str | None = Field(None, description="arm, home or given")
     configuration: str | None = Field(None, description="the IK configuration kept, in words")
     approach_m: float | None = None

@@ -89,11 +89,14 @@ def check_shapes(boxes: object, planes: object) -> tuple[list, list]:
     boxes : list of 6 numbers each
         x_min, y_min, z_min, x_max, y_max, z_max (m).
     planes : list of 4 numbers each
-        nx, ny, nz, d (the normal need not be a unit vector; d in m along the unit normal).
+        nx, ny, nz, d: the arm keeps to nx x + ny y + nz z >= d (m); the normal need not be
+        a unit vector.
 
     Returns
     -------
-    boxes, planes : list of tuple of float
+    boxes : list of tuple of 6 floats
+    planes : list of tuple of 4 floats
+        Each plane as its unit normal and its distance along it (m): the same half-space.
 
     Raises
     ------
@@ -126,19 +129,22 @@ def check_shapes(boxes: object, planes: object) -> tuple[list, list]:
     checked_planes = []
     for number, plane in enumerate(planes, start=1):
         values = _numbers(plane, 4, f"plane {number}")
-        try:
-            HalfSpace(normal=values[:3], offset_m=values[3])
-        except ValueError:
+        length = math.hypot(*values[:3])
+        if not length > 0.0:
             raise ValueError(
                 f"plane {number}: its normal (nx, ny, nz) is zero; give the direction that "
                 "points away from the wall, into the arm's side"
-            ) from None
-        if abs(values[3]) > MAX_COORDINATE_M * math.hypot(*values[:3]):
+            )
+        # n . p >= d as typed, kept as the unit normal and the distance along it (what the
+        # planner checks and the pendant draws).
+        unit = (*(v / length for v in values[:3]), values[3] / length)
+        HalfSpace(normal=unit[:3], offset_m=unit[3])
+        if abs(unit[3]) > MAX_COORDINATE_M:
             raise ValueError(
                 f"plane {number}: it is more than {MAX_COORDINATE_M:g} m from the base (were "
                 "millimetres typed as metres?)"
             )
-        checked_planes.append(values)
+        checked_planes.append(unit)
     return checked_boxes, checked_planes
 
 
@@ -151,10 +157,7 @@ def cell_now(store: Store, settings) -> CellNow:
         The stored cell is not a list of valid boxes and planes.
     """
     row = store.cell(settings.cell_key)
-    startup = (
-        [tuple(map(float, box)) for box in settings.keep_out_boxes],
-        [tuple(map(float, plane)) for plane in settings.cell_planes],
-    )
+    startup = check_shapes(list(settings.keep_out_boxes), list(settings.cell_planes))
     if row is None:
         return CellNow(*startup, revision=0, edited_at=None)
     if row.keep_out_boxes is None and row.cell_planes is None:
@@ -173,9 +176,14 @@ def edit_cell(services, boxes: list | None, planes: list | None, *, revision: in
     ----------
     services : service.core.Services
     boxes, planes : list or None
-        As :func:`check_shapes` takes them.
+        As :func:`check_shapes` returns them.
     revision : int
         The revision the operator saw and edited.
+
+    Returns
+    -------
+    CellNow
+        The cell in force after the edit.
 
     Raises
     ------
@@ -184,7 +192,8 @@ def edit_cell(services, boxes: list | None, planes: list | None, *, revision: in
         cell as it is); 409 ``cell_changed`` when the stored cell is newer than ``revision``.
     """
     # Under the lock that starts executions: no run starts between this check and the edit,
-    # and the gate re-reads the revision under the same lock.
+    # and the gate re-reads the revision under the same lock. (One instance drives an arm, as
+    # its ownership is this process's: the edits that matter reach that instance.)
     with services.live.lock:
         owner = services.live.arm_owner()
         if owner is not None:

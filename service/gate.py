@@ -144,8 +144,8 @@ class CellHere:
     tool_spheres_m : tuple of float
         The tool as spheres (X,Y,Z,R each, flange frame), as planned; empty for the capsule.
     cell_revision : int
-        The revision of the edited cell the boxes and planes came from (0: start-up settings):
-        the arm is taken only if it is still the one in force.
+        The revision of the cell the boxes and planes came from (0: never edited): the arm is
+        taken only if that revision is still the one in force.
     """
 
     cell: Cell

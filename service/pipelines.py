@@ -14,11 +14,15 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from recon.params import PIVOT_TOLERANCE_M
 from recon.types import FloatArray
+
+if TYPE_CHECKING:  # the plan module is imported where a plan is made, not for every command
+    from recon.plan import MovePlan
 
 
 def _off_feature(reg, mm: float) -> str:
@@ -774,15 +778,27 @@ def plan(
 
 @dataclass(frozen=True)
 class MoveOutcome:
-    """A move to a plan's start (:class:`recon.plan.MovePlan`) and the plan it leads to."""
+    """A move to a plan's start and the plan it leads to.
 
-    move: object  # recon.plan.MovePlan
+    Attributes
+    ----------
+    move : recon.plan.MovePlan
+    target_id : str
+        The plan the move leads to the start of.
+    target_summary : dict
+        That plan's summary (its configuration, IK branch and tracker-to-base transform).
+    start_from : str
+        Where the move's first joints came from ("arm" or "home").
+    """
+
+    move: MovePlan
     target_id: str
     target_summary: dict
     start_from: str = "arm"
 
     @property
     def trajectory(self):
+        """The move's samples (:class:`recon.types.JointTrajectory`)."""
         return self.move.trajectory
 
     def summary(self) -> dict:
@@ -811,6 +827,7 @@ class MoveOutcome:
             "phase_durations_s": traj.phase_durations_s(),
             "phase_max_tcp_speed_m_s": traj.phase_max_tcp_speed_m_s(),
             "start_q_rad": [float(v) for v in move.start_q_rad],
+            "goal_q_rad": [float(v) for v in move.goal_q_rad],
             "start_from": self.start_from,
             "configuration": target.get("configuration"),
             "approach_m": None,
@@ -874,6 +891,10 @@ def move_to_start(
         Where ``q_from_rad`` came from ("arm" or "home").
     calibration : recon.kinematics.DHCalibration, optional
 
+    Returns
+    -------
+    MoveOutcome
+
     Raises
     ------
     ValueError
@@ -922,8 +943,13 @@ def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=(), cell_plane
         T_base = np.eye(4) if T_base_tracker is None else np.asarray(T_base_tracker)
         T_base_scan = T_base @ invert_transform(np.asarray(T_scan_tracker, dtype=np.float64))
         points = apply_transform(T_base_scan, np.asarray(scan.points_m))
+    # n . p >= d with n as given: the half-space of the unit normal at d / |n|.
     planes = tuple(
-        HalfSpace(normal=plane[:3], offset_m=plane[3], name=f"cell plane {index + 1}")
+        HalfSpace(
+            normal=plane[:3],
+            offset_m=plane[3] / max(float(np.linalg.norm(plane[:3])), 1e-300),
+            name=f"cell plane {index + 1}",
+        )
         for index, plane in enumerate(cell_planes)
     )
     return Cell(planes=planes, boxes=boxes, scan_points_m=points)

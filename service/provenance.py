@@ -121,7 +121,14 @@ def trajectory_outdated(
             )
     params = trajectory.params
     boxes, planes = params.get("keep_out_boxes") or [], params.get("cell_planes") or []
-    if cell is not None and cell.differs_from(boxes, planes):
+    if cell is not None and "keep_out_boxes" not in params:
+        reasons.append(
+            "the cell: the plan does not record the cell it was checked against (made by an "
+            f"earlier version); the cell now has "
+            f"{_count(cell.keep_out_boxes_m, 'keep-out box', 'keep-out boxes')} and "
+            f"{_count(cell.cell_planes, 'plane', 'planes')} ({cell.source})"
+        )
+    elif cell is not None and cell.differs_from(boxes, planes):
         reasons.append(
             f"the cell: planned with {_count(boxes, 'keep-out box', 'keep-out boxes')} and "
             f"{_count(planes, 'plane', 'planes')}; the cell now has "

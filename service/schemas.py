@@ -558,7 +558,10 @@ class CellIn(Strict):
         "keeps to n . p >= d; at most 16",
     )
     revision: StrictInt = Field(
-        ..., ge=0, description="the revision of the cell this edit was made from (GET /cell)"
+        ...,
+        ge=0,
+        le=2**31 - 1,
+        description="the revision of the cell this edit was made from (GET /cell)",
     )
 
     @model_validator(mode="after")

@@ -136,8 +136,8 @@ class Settings(BaseSettings):
         min_length=1,
         max_length=200,
         description="the name this arm's cell is stored under once edited in the pendant "
-        "(instances on one database that drive the same arm share it); default: the arm's "
-        "model and address, or 'simulated'",
+        "(instances for different arms on one database keep theirs apart; one instance drives "
+        "an arm); default: the arm's model and address, or 'simulated'",
     )
     demo: bool = Field(False, description="create the demo session on start if missing")
 
@@ -145,10 +145,11 @@ class Settings(BaseSettings):
     @classmethod
     def _boxes(cls, value: list) -> list:
         if value:
-            from recon.collision import Box
+            from service.cell import check_shapes
 
-            for box in value:  # the planner's own checks, raised at start-up, not at planning
-                Box(min_m=box[:3], max_m=box[3:])
+            # The pendant's own checks, raised at start-up, not at planning: a cell set here
+            # can be saved unchanged from the pendant.
+            check_shapes(list(value), [])
         return value
 
     @field_validator("mount_up")
@@ -166,10 +167,9 @@ class Settings(BaseSettings):
     @classmethod
     def _planes(cls, value: list) -> list:
         if value:
-            from recon.collision import HalfSpace
+            from service.cell import check_shapes
 
-            for plane in value:
-                HalfSpace(normal=plane[:3], offset_m=plane[3])
+            check_shapes([], list(value))
         return value
 
     @model_validator(mode="after")

@@ -281,6 +281,7 @@ class Store:
         migrate(self.engine, lock_path=None if database in (None, "", ":memory:") else database)
         self.db = sessionmaker(self.engine, expire_on_commit=False)
         self._calibration_lock = threading.Lock()
+        self._cell_lock = threading.Lock()
         self.instance_id = instance_id or (
             f"{socket.gethostname()[:40]}:{os.getpid()}:{secrets.token_hex(3)}"
         )
@@ -472,9 +473,18 @@ class Store:
 
     def set_cell(
         self, name: str, *, boxes: list | None, planes: list | None, expected_revision: int
-    ) -> CellRow:
+    ) -> None:
         """Store the cell ``name`` (None, None: back to the start-up settings) if its revision
         is still ``expected_revision`` (0: never stored).
+
+        Parameters
+        ----------
+        name : str
+            The arm's name (``Settings.cell_key``).
+        boxes, planes : list or None
+            As :func:`service.cell.check_shapes` returns them.
+        expected_revision : int
+            The revision the edit was made from.
 
         Raises
         ------
@@ -482,24 +492,33 @@ class Store:
             Another edit came first: the caller's view of the cell is older than the stored one.
         """
         import sqlalchemy.exc
+        from sqlalchemy import update
 
+        values = {
+            "keep_out_boxes": None if boxes is None else _jsonable(boxes),
+            "cell_planes": None if planes is None else _jsonable(planes),
+            "revision": expected_revision + 1,
+            "updated_at": now(),
+        }
         try:
-            with self._calibration_lock, self.db.begin() as db:
-                row = db.get(CellRow, name, with_for_update=True)
-                revision = 0 if row is None else row.revision
-                if revision != expected_revision:
-                    raise CellChangedError(revision)
-                if row is None:
-                    row = CellRow(name=name, revision=0, updated_at=now())
-                    db.add(row)
-                row.keep_out_boxes = _jsonable(boxes) if boxes is not None else None
-                row.cell_planes = _jsonable(planes) if planes is not None else None
-                row.revision = revision + 1
-                row.updated_at = now()
-                return row
+            with self._cell_lock, self.db.begin() as db:
+                if expected_revision == 0:  # the first edit: an insert, refused if one came first
+                    db.add(CellRow(name=name, **values))
+                    db.flush()
+                    return
+                # One statement that compares and sets: of two edits from the same revision,
+                # on PostgreSQL or SQLite, in one process or two, exactly one matches.
+                done = db.execute(
+                    update(CellRow)
+                    .where(CellRow.name == name, CellRow.revision == expected_revision)
+                    .values(**values)
+                )
+                if done.rowcount == 1:
+                    return
         except sqlalchemy.exc.IntegrityError:
-            # Two instances stored the first edit at once: the other one's insert came first.
-            raise CellChangedError(self.cell(name).revision) from None
+            pass
+        row = self.cell(name)
+        raise CellChangedError(0 if row is None else row.revision)
 
     # -- artifacts -------------------------------------------------------------------------------
 

@@ -358,7 +358,30 @@ class Plan:
 @dataclass(frozen=True)
 class MoveToStart:
     """Plan a move from where the arm is to a stored plan's start, checked against the cell the
-    plan is checked against. ``run()`` returns the move's trajectory summary."""
+    plan is checked against. ``run()`` returns the move's trajectory summary.
+
+    Attributes
+    ----------
+    target_path, target_summary, target_id
+        The plan's arrays file, summary and id.
+    reconstruction_path : str or None
+        The plan's reconstruction (where it placed the scan), if stored.
+    params : dict
+        :class:`recon.types.PlanParams` of the plan, ``start_q_rad`` where the arm stands.
+    q_from_rad : list of 6 floats
+        Where the arm stands.
+    out_path : str
+        Where the move's arrays are written.
+    scan_path : str or None
+    T_base_tracker : list or None
+        The plan's tracker-to-base transform (4x4).
+    keep_out_boxes, cell_planes : list
+        The cell in force.
+    start_from : str
+        "arm" or "home".
+    calibration : dict or None
+        The arm's kinematics calibration (``DHCalibration.as_dict()``).
+    """
 
     target_path: str
     target_summary: dict

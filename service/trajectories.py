@@ -95,11 +95,27 @@ def start_move_to_start(services: Services, session_id: str, trajectory_id: str)
     trajectory (``move_to_start_of`` names the plan) that is dry-run, approved and run as any
     plan is, so that the plan itself can run afterwards without being planned again.
 
+    Parameters
+    ----------
+    services : Services
+    session_id : str
+    trajectory_id : str
+        The plan to move to the start of.
+
+    Returns
+    -------
+    JobRow
+        The planning job; its result names the move (``trajectory_id``).
+
     Raises
     ------
     ApiError
-        404 for an unknown plan; 409 ``move_of_a_move`` for a move, ``at_start`` when the arm
-        already stands where the plan starts.
+        404 for an unknown plan; 409 ``move_of_a_move`` for a move, ``arm_busy`` while a run
+        owns the arm, ``at_start`` when the arm already stands where the plan starts,
+        ``unreadable_plan`` for stored parameters that no longer read, ``arm_outside_limits``
+        for joints no move may start from.
+    CellUnreadable
+        The stored cell cannot be read (nothing is planned against it).
     RobotUnavailable
         A real arm is configured but its joints cannot be read now.
     """
@@ -116,6 +132,15 @@ def start_move_to_start(services: Services, session_id: str, trajectory_id: str)
             "move_of_a_move",
             f"{trajectory_id} is itself a move to a plan's start: ask for the move to the start "
             f"of {target.inputs['move_to_start_of']} instead",
+        )
+    with services.live.lock:
+        owner = services.live.arm_owner()
+    if owner is not None:
+        raise ApiError(
+            409,
+            "arm_busy",
+            f"the arm is running execution {owner}: a move is planned from where the arm "
+            "stands, once it stands still",
         )
     q_now, start_from = start_joints(services.robot, services.settings)
     q_goal = (target.summary or {}).get("start_q_rad")
@@ -134,14 +159,23 @@ def start_move_to_start(services: Services, session_id: str, trajectory_id: str)
         params.get("transit_tcp_speed_m_s", PlanParams.transit_tcp_speed_m_s),
         services.settings.max_speed_m_s,
     )
+    try:
+        PlanParams(**{**params, "start_q_rad": None})
+    except (TypeError, ValueError) as exc:
+        raise ApiError(
+            409,
+            "unreadable_plan",
+            f"the parameters of {trajectory_id} cannot be read ({str(exc)[:200]}): plan it again",
+        ) from None
     params["start_q_rad"] = tuple(float(v) for v in q_now)
     try:
         PlanParams(**params)
     except (TypeError, ValueError) as exc:
         raise ApiError(
             409,
-            "unreadable_plan",
-            f"the parameters of {trajectory_id} cannot be read ({str(exc)[:200]}): plan it again",
+            "arm_outside_limits",
+            f"the arm's joints cannot start a move ({str(exc)[:200]}): jog it back within its "
+            "limits on its teach pendant",
         ) from None
     cell = cell_now(services.store, services.settings)
     boxes = [list(box) for box in cell.keep_out_boxes_m]

@@ -20,7 +20,8 @@ def add_artifact_routes(
     """``GET /{plural}`` (oldest first) and ``GET /{plural}/{artifact_id}`` for one kind.
 
     ``outdated(services, session, row) -> list[str]``, where given, fills each one's
-    ``outdated`` (:mod:`service.provenance`): what changed in the session since it was made.
+    ``outdated`` (:mod:`service.provenance`): what changed since it was made (the session's
+    inputs and calibration, the cell).
     """
 
     def shown(services, session, row):

@@ -6,12 +6,13 @@ from __future__ import annotations
 import json
 import threading
 
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.store import CellChangedError, CellRow, Store
-from tests.service.conftest import AUTH, make_settings, wait
+from tests.service.conftest import AUTH, make_settings, planned_session, wait
 
 #: The box-corner trace runs from x = 0.37 to 0.45 m of the base frame: a wall at x = 0.42 m
 #: cuts it, one at 1.5 m is far from every motion.
@@ -226,20 +227,35 @@ def test_plans_follow_the_cell_edited(fresh, scene_files):
     assert fresh.get(plan_url).json()["outdated"] == []
 
 
-def test_a_stored_cell_that_cannot_be_read_refuses_plans_until_set_again(fresh, data_dir):
+def test_a_stored_cell_that_cannot_be_read_refuses_plans_until_set_again(fresh, scene_files):
+    from recon.kinematics import HOME_Q_RAD
+
     assert _put(fresh, [], [WALL_FAR_AWAY]).status_code == 200
+    away = (np.array(HOME_Q_RAD) + [0.2, 0.0, 0.0, 0.0, 0.1, 0.3]).tolist()
+    sid, plans = planned_session(fresh, scene_files, [0.05], name="cell", start_q_rad=away)
+    plan_url = f"/sessions/{sid}/trajectories/{plans[0.05]}"
+    plan = fresh.get(plan_url).json()
     services = fresh.app.state.services
     with services.store.db.begin() as db:  # a damaged row (a hand edit, another version)
         db.get(CellRow, services.settings.cell_key).cell_planes = [[0, 0, 0, "x"]]
     refused = fresh.get("/cell")
     assert refused.status_code == 409 and refused.json()["code"] == "cell_unreadable"
     assert "set the boxes and planes again" in refused.json()["message"]
-    sid = fresh.post("/sessions", json={"name": "unreadable cell"}).json()["id"]
-    assert fresh.get(f"/sessions/{sid}/trajectories").status_code == 200
+    # Nothing is planned against it; the plans stay listed, each saying why it cannot run.
+    body = {"reconstruction_id": plan["inputs"]["reconstruction_id"], "speed_m_s": 0.05}
+    for response in (
+        fresh.post(f"/sessions/{sid}/trajectories", json=body),
+        fresh.post(f"{plan_url}/move-to-start"),
+    ):
+        assert response.status_code == 409 and response.json()["code"] == "cell_unreadable"
+    listed = fresh.get(f"/sessions/{sid}/trajectories")
+    assert listed.status_code == 200
+    assert any("cannot be read" in reason for reason in listed.json()[-1]["outdated"])
     # Setting it again from the revision the refusal names repairs it.
     revision = refused.json()["detail"]["revision"]
     assert _put(fresh, [], [WALL_FAR_AWAY], revision=revision).status_code == 200
     assert fresh.get("/cell").json()["cell_planes"] == [WALL_FAR_AWAY]
+    assert fresh.get(plan_url).json()["outdated"] == []
 
 
 def test_two_edits_from_one_view_at_once_store_exactly_one(tmp_path):
@@ -282,3 +298,50 @@ def test_two_arms_on_one_database_keep_their_own_cells(tmp_path):
         assert right.get("/cell").json()["cell_planes"] == []
         assert right.get("/cell").json()["revision"] == 0
         assert left.get("/cell").json()["cell_planes"] == [WALL_FAR_AWAY]
+
+
+def test_two_edits_of_a_stored_cell_from_one_view_store_exactly_one(tmp_path):
+    """The compare-and-set holds for updates too (SQLite takes no row locks)."""
+    url = make_settings(tmp_path).db_url
+    stores = [Store(tmp_path, url) for _ in range(2)]
+    stores[0].set_cell("arm", boxes=[], planes=[[0, 0, 1, -1.0]], expected_revision=0)
+    for attempt in range(5):  # a race: tried a few times, never more than one may win
+        revision = stores[0].cell("arm").revision
+        barrier, outcomes = threading.Barrier(2), []
+
+        def edit(store, offset, revision=revision, barrier=barrier, outcomes=outcomes):
+            barrier.wait()
+            try:
+                store.set_cell(
+                    "arm", boxes=[], planes=[[0, 0, 1, offset]], expected_revision=revision
+                )
+                outcomes.append("stored")
+            except CellChangedError as exc:
+                outcomes.append(exc.revision)
+
+        threads = [
+            threading.Thread(target=edit, args=(store, -2.0 - n)) for n, store in enumerate(stores)
+        ]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        assert sorted(outcomes, key=str) == [revision + 1, "stored"], (attempt, outcomes)
+        assert stores[1].cell("arm").revision == revision + 1
+
+
+def test_a_plane_means_what_the_pendant_draws_whatever_the_normals_length(fresh):
+    """nx x + ny y + nz z >= d as typed: stored as the unit normal and the distance along it,
+    and the planner keeps the arm on the same side as the formula says."""
+    from service.pipelines import cell_for
+
+    assert _put(fresh, [], [[-1.0, -1.0, 0.0, -1.0]]).status_code == 200
+    (stored,) = fresh.get("/cell").json()["cell_planes"]
+    half = 1 / np.sqrt(2)
+    np.testing.assert_allclose(stored, [-half, -half, 0.0, -half], atol=1e-12)
+    (plane,) = cell_for(None, None, None, [], [[-1.0, -1.0, 0.0, -1.0]]).planes
+    for point in ([0.6, 0.6, 0.3], [0.3, 0.3, 0.3]):
+        typed = -point[0] - point[1] - (-1.0)  # n . p - d as typed
+        checked = float(plane.signed_distance_m(np.array(point)))
+        assert np.sign(checked) == np.sign(typed)
+        assert checked == pytest.approx(typed * half)

@@ -16,13 +16,23 @@ WALL_FAR_AWAY = (-1.0, 0.0, 0.0, -1.5)
 @pytest.mark.parametrize(
     "setting, message",
     [
-        ({"cell_planes": [(0.0, 0.0, 0.0, 0.5)]}, "non-zero"),
-        ({"cell_planes": [(1.0, 0.0, float("nan"), 0.5)]}, "non-zero"),
+        ({"cell_planes": [(0.0, 0.0, 0.0, 0.5)]}, "plane 1: its normal (nx, ny, nz) is zero"),
+        ({"cell_planes": [(1.0, 0.0, float("nan"), 0.5)]}, "plane 1: every number must be"),
         ({"cell_planes": [(1.0, 0.0, 0.0)]}, "cell_planes"),
-        ({"keep_out_boxes": [(1.0, 1.0, 1.0, 0.0, 0.0, 0.0)]}, "must be >= min_m"),
+        ({"keep_out_boxes": [(1.0, 1.0, 1.0, 0.0, 0.0, 0.0)]}, "each maximum (x, y, z) must"),
         ({"keep_out_boxes": [(0.0, 0.0, 0.0, 1.0, 1.0, float("inf"))]}, "finite"),
+        ({"keep_out_boxes": [(0.0, 0.0, 0.0, 1.0, 1.0, 1.0)] * 33}, "at most 32 boxes"),
+        ({"cell_planes": [(0.0, 0.0, 1.0, -400.0)]}, "were millimetres typed as metres"),
     ],
-    ids=["zero-normal", "nan-normal", "three-numbers", "inverted-box", "infinite-box"],
+    ids=[
+        "zero-normal",
+        "nan-normal",
+        "three-numbers",
+        "inverted-box",
+        "infinite-box",
+        "33-boxes",
+        "millimetres",
+    ],  # fmt: skip
 )
 def test_a_cell_that_cannot_be_checked_stops_the_start(tmp_path, setting, message):
     with pytest.raises(ValidationError) as refused:

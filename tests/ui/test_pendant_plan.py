@@ -467,7 +467,14 @@ def test_the_cell_is_edited_in_3d_and_outdates_the_plans_made_in_another(pendant
         message = form.locator(".message")
         expect(message).to_have_attribute("data-code", "cell_changed")
         expect(message).to_contain_text("reload it, check the change and edit again")
+        expect(page.locator("#cell-source")).to_contain_text(
+            "changed by another pendant since you started editing"
+        )
+        # Pressed again, it is refused again: the draft never overwrites the other's change.
+        page.get_by_role("button", name="Save cell").click()
+        expect(message).to_have_attribute("data-code", "cell_changed")
         assert client.get("/cell").json()["cell_planes"] == []
+        assert client.get("/cell").json()["revision"] == 2
         page.get_by_role("button", name="Discard changes").click()
         expect(form.locator("#cell-planes tbody tr")).to_have_count(0)
         expect(page.get_by_label("box 1 z max (mm)")).to_have_value(f"{corners[5]:g}")

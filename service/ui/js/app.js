@@ -1059,15 +1059,20 @@ function renderCell({ force = false } = {}) {
   if ((!state.cellDirty && shown !== state.cellShown) || force) {
     state.cellDirty = false;
     state.cellShown = shown;
+    // The revision an edit of these rows is made from: a save names it, and is refused if
+    // another pendant saved since (never the newer revision a refresh has read meanwhile).
+    state.cellBase = cell ? cell.revision : state.cellRevision;
     $("#cell-boxes tbody").replaceChildren(...(cell?.keep_out_boxes_m || []).map((box, i) => cellRow("box", i + 1, box)));
     $("#cell-planes tbody").replaceChildren(...(cell?.cell_planes || []).map((plane, i) => cellRow("plane", i + 1, plane)));
     $("#cell-draft").textContent = "";
     state.workspace?.showCell(cell);
   }
-  $("#cell-source").textContent = cell
+  const newer = state.cellDirty && cell && cell.revision !== state.cellBase;
+  $("#cell-source").textContent = (cell
     ? `Saved: ${cell.source}.${cell.editable ? "" : " The arm is running: the cell cannot be changed until the run ends."}`
-    : "The saved cell cannot be read: set the boxes and planes again, or go back to the start-up settings.";
-  const locked = Boolean(cell && !cell.editable);
+    : "The saved cell cannot be read: set the boxes and planes again, or go back to the start-up settings.")
+    + (newer ? " It was changed by another pendant since you started editing: press Discard changes to see it." : "");
+  const locked = Boolean(cell && !cell.editable) || Boolean(state.cellSaving);
   for (const control of form.querySelectorAll("input, button")) control.disabled = locked;
   $("#cell-box-at-pick").disabled = locked || !state.pickedBase;
 }
@@ -1137,14 +1142,21 @@ function wireCell() {
   const save = async (json, said) => {
     const box = $(".message", form);
     clearMessage(box);
+    if (state.cellSaving) return;
+    // One request at a time (a double click would send a second one from the same revision).
+    state.cellSaving = true;
+    for (const button of form.querySelectorAll("button")) button.disabled = true;
     try {
-      state.cell = await (json ? api("/cell", { method: "PUT", json }) : api(`/cell?revision=${state.cellRevision ?? 0}`, { method: "DELETE" }));
+      state.cell = await (json ? api("/cell", { method: "PUT", json }) : api(`/cell?revision=${state.cellBase ?? 0}`, { method: "DELETE" }));
       state.cellRevision = state.cell.revision;
       renderCell({ force: true });
       box.textContent = said(state.cell);
       box.className = "message ok";
     } catch (err) {
       showError(box, err);
+    } finally {
+      state.cellSaving = false;
+      renderCell();
     }
     if (state.session) await refresh();
   };
@@ -1152,7 +1164,7 @@ function wireCell() {
     event.preventDefault();
     const draft = cellDraft();
     if (!draft) return form.reportValidity();
-    await save({ ...draft, revision: state.cellRevision ?? 0 },
+    await save({ ...draft, revision: state.cellBase ?? 0 },
       (cell) => `Cell saved (revision ${cell.revision}): plans made in another cell are now outdated.`);
   });
   $("#cell-reset").addEventListener("click", () => save(null,
@@ -1477,7 +1489,6 @@ function confirmRun(traj) {
   const move = isMove(traj);
   $("#confirm-title").textContent = move ? "Move the arm to the plan's start?" : "Run on the arm?";
   $("#confirm-run").textContent = move ? "Confirm: move to start" : "Confirm: run on arm";
-  const goal = state.trajectories.find((t) => t.id === sm.move_to_start_of);
   const rows = move ? [
     arm,
     ["motion", `a joint move to the start of plan ${sm.move_to_start_of}`],
@@ -1486,7 +1497,7 @@ function confirmRun(traj) {
     ["fastest TCP", sm.phase_max_tcp_speed_m_s?.transit == null ? "–" : mmps(sm.phase_max_tcp_speed_m_s.transit)],
     ["closest to the cell", mm(sm.min_clearance_m, 1)],
     ["from (joints)", degrees(sm.start_q_rad)],
-    ["to (joints)", goal ? degrees(goal.summary.start_q_rad) : "–"],
+    ["to (joints)", sm.goal_q_rad ? degrees(sm.goal_q_rad) : "–"],
     ["TCP", tcpText(sm.tcp_pose)],
     ["payload", payloadText(sm, robot)],
     ["move file", `${traj.id}, sha256 ${traj.sha256.slice(0, 12)}…, ${new Date(traj.created_at).toLocaleString()}`],

@@ -561,15 +561,22 @@ export class Workspace {
    * clears it. Fetched once per move. */
   async showMove(sid, move) {
     const id = move?.id ?? null;
-    if (id === this.moveShown) return;
-    this.moveShown = id;
+    if (id === this.moveShown || id === this.moveLoading) return;
+    this.moveLoading = id;
     if (!id) {
+      this.moveShown = null;
       this.clear("move");
       this.container.dataset.move = "";
       return this.render();
     }
-    const preview = await api(`/sessions/${sid}/trajectories/${id}/preview?max_samples=1000`);
-    if (this.moveShown !== id) return; // another move (or none) since
+    let preview;
+    try {
+      preview = await api(`/sessions/${sid}/trajectories/${id}/preview?max_samples=1000`);
+    } finally {
+      if (this.moveLoading === id) this.moveLoading = undefined; // a failed fetch is tried again
+    }
+    if (this.moveLoading !== undefined) return; // another move (or none) asked for since
+    this.moveShown = id;
     this.layer("move", "line", Float32Array.from(preview.tcp_m.flat()), null, 0x00838f);
     this.container.dataset.move = id;
     // A new move is shown whole (it spans the cell), unless the operator has turned the view.
