@@ -417,8 +417,8 @@ def test_the_cell_is_edited_in_3d_and_outdates_the_plans_made_in_another(pendant
         corners = [float(v) for v in typed]
         np.testing.assert_allclose(corners[:3], picked_mm - 50, atol=0.1)
         np.testing.assert_allclose(corners[3:], picked_mm + 50, atol=0.1)
-        expect(workspace).to_have_attribute("data-cell-draft", "true")
-        expect(workspace).to_have_attribute("data-cell", "12")  # a box's 12 edges
+        expect(workspace).to_have_attribute("data-cell-draft", "12")  # a box's 12 edges
+        expect(workspace).to_have_attribute("data-cell", "0")  # nothing saved yet
         expect(page.locator("#cell-draft")).to_contain_text("Not saved: 1 box and 0 planes")
 
         # A wall 1 m behind the arm, typed with a comma decimal; a field that is not a number
@@ -426,15 +426,20 @@ def test_the_cell_is_edited_in_3d_and_outdates_the_plans_made_in_another(pendant
         page.get_by_role("button", name="Add a plane").click()
         d = page.get_by_label("plane 1 d (mm)")
         d.fill("abc")
-        expect(page.locator("#cell-draft")).to_have_text(
-            "Not saved: a field is not a number (marked)."
-        )
+        expect(page.locator("#cell-draft")).to_contain_text("(the field is marked in red)")
+        assert d.evaluate("input => input.validity.valid") is False
         page.get_by_role("button", name="Save cell").click()
         expect(form.locator("#cell-planes tr.invalid")).to_have_count(1)
         assert client.get("/cell").json()["revision"] == 0
         d.fill("-1000,5")
         expect(form.locator("tr.invalid")).to_have_count(0)
-        expect(workspace).to_have_attribute("data-cell", re.compile(r"^(1[3-9]|[2-9]\d)$"))
+        expect(workspace).to_have_attribute("data-cell-draft", re.compile(r"^(1[3-9]|[2-9]\d)$"))
+        # A maximum below its minimum is said on its field before anything is sent.
+        x_max = page.get_by_label("box 1 x max (mm)")
+        x_max.fill("0")
+        expect(page.locator("#cell-draft")).to_contain_text("must be above x min")
+        x_max.fill(f"{corners[3]:g}")
+        expect(form.locator("tr.invalid")).to_have_count(0)
         pendant.shot("cell-draft")
         page.get_by_role("button", name="Save cell").click()
         expect(form.locator(".message")).to_have_text(
@@ -445,7 +450,8 @@ def test_the_cell_is_edited_in_3d_and_outdates_the_plans_made_in_another(pendant
             saved["keep_out_boxes_m"][0], np.array(corners) / 1000, atol=1e-9
         )
         assert saved["cell_planes"] == [[1.0, 0.0, 0.0, -1.0005]]
-        expect(workspace).to_have_attribute("data-cell-draft", "false")
+        expect(workspace).to_have_attribute("data-cell-draft", "0")
+        expect(workspace).to_have_attribute("data-cell", re.compile(r"^(1[3-9]|[2-9]\d)$"))
         cell_line = page.locator("#calibration-current tr", has_text="cell")
         expect(cell_line).to_contain_text("1 keep-out box, 1 plane besides the mounting one")
         expect(cell_line).to_contain_text("edited in the pendant at ")
@@ -475,11 +481,17 @@ def test_the_cell_is_edited_in_3d_and_outdates_the_plans_made_in_another(pendant
         expect(message).to_have_attribute("data-code", "cell_changed")
         assert client.get("/cell").json()["cell_planes"] == []
         assert client.get("/cell").json()["revision"] == 2
+        page.once("dialog", lambda dialog: dialog.accept())  # "Discard the changes you typed?"
         page.get_by_role("button", name="Discard changes").click()
         expect(form.locator("#cell-planes tbody tr")).to_have_count(0)
         expect(page.get_by_label("box 1 z max (mm)")).to_have_value(f"{corners[5]:g}")
 
         # Back to the start-up settings: nothing drawn, the plan is current again.
+        # Asked first (it applies to every pendant at once): dismissed, nothing changes.
+        page.once("dialog", lambda dialog: dialog.dismiss())
+        page.get_by_role("button", name="Back to the start-up settings").click()
+        assert client.get("/cell").json()["revision"] == 2
+        page.once("dialog", lambda dialog: dialog.accept())
         page.get_by_role("button", name="Back to the start-up settings").click()
         expect(form.locator(".message")).to_have_text("Back to the start-up settings (revision 3).")
         expect(workspace).to_have_attribute("data-cell", "0")

@@ -156,7 +156,8 @@ export const INSTRUCTIONS = {
   stopped: "The motion was stopped.",
   cancelled:
     "Stopped at your request: the arm stands where it stopped. Check the cell before you run " +
-    "again (the plan starts where the arm stood when it was planned).",
+    "again: the plan runs from its start (Move to the plan’s start, in the Run step, takes the " +
+    "arm back there).",
   invalid_file: "The file could not be read: check its format and units, then upload it again.",
   unknown_format: "The file's format is not known: choose the format in the list.",
   upload_too_large: "The file is larger than the server accepts.",
@@ -171,6 +172,16 @@ export const INSTRUCTIONS = {
   registration_failed: "The trace could not be matched to the scan: check the calibration.",
   no_overlap: "The trace and the scan do not overlap: check the calibration and the units.",
   units_mismatch: "The trace and the scan look like different units: check the units.",
+  cell_changed:
+    "Another pendant saved the cell since you started editing: press “Discard changes” to see " +
+    "theirs, then edit again.",
+  cell_unreadable:
+    "The saved cell cannot be read: set its boxes and planes again (Calibration, Cell) and save.",
+  arm_running: "The arm is running: edit the cell once the run has ended (or press Stop).",
+  at_start: "The arm already stands where the plan starts: dry-run and run the plan.",
+  arm_outside_limits: "The arm stands outside its joint limits: jog it back on the UR pendant.",
+  outdated_inputs:
+    "The plan is outdated (its inputs or the cell changed): plan again, or pick it on purpose.",
   poor_fit:
     "The fit is worse than its tolerance and was not stored: measure again (touch the points " +
     "again, pivot again), or tick “store it even if the fit is poor”.",

@@ -50,6 +50,7 @@ function showError(box, err) {
   // A refusal names the API's fields: say them as the form does ("radius_m: ..." is the
   // "neighbourhood radius (mm) (radius_m): ..." the operator sees above).
   if (code === "invalid_request") {
+    message = message.replace(/(body: )?Value error, /g, "");
     message = message.replace(/\b([a-z_]+): /g, (all, field) => (DISPLAY_NAMES[field] ? `${DISPLAY_NAMES[field]} (${field}): ` : all));
   }
   box.replaceChildren(
@@ -778,7 +779,7 @@ function execSummary(ex) {
       ["result", passed(ex) ? (state.madeHere.has(ex.id) ? "passed" : "passed at another site (imported): not counted here") : sm.completed ? `completed with faults` : `not completed${sm.stopped_in ? ` (stopped in ${sm.stopped_in})` : ""}`],
       ["mode", sm.mode],
       ["motion time", `${seconds(sm.duration_s)} of ${seconds(sm.planned_duration_s)} planned`
-        + (sm.completed ? "" : got.length ? ` (got through ${got.join(", ")})` : " (the arm did not move)")],
+        + (sm.completed ? "" : got.length ? ` (reached: ${got.join(", ")})` : " (the arm did not move)")],
       ["largest deviation along the path (process)", mm(sm.max_path_deviation_m, 3)],
       ["largest deviation anywhere", worst ? `${mm(worst.value, 3)} (${worst.phase})` : "–"],
       ["faults", sm.faults.join("; ") || "none"],
@@ -795,7 +796,9 @@ function renderDryRun() {
 
 function renderRun() {
   const run = lastRun();
-  $("#run-summary").replaceChildren(...(run ? execSummary(run) : []));
+  const previous = state.busy === "run" && run
+    ? [el("p", { class: "small", text: "The last run before this one (this one is reported when it ends):" })] : [];
+  $("#run-summary").replaceChildren(...previous, ...(run ? execSummary(run) : []));
   renderMove();
 }
 
@@ -814,11 +817,13 @@ function renderMove() {
   const degrees = (rad) => `${(rad * 180 / Math.PI).toFixed(1)}°`;
   const stale = move && awayFromStart(move);
   const dry = move ? dryRun(move) : null;
-  $("#move-status").textContent = !gap ? "" : !move
+  const busyMove = { "move-plan": "Planning the move…", "move-dryrun": "Dry-running the move…",
+    "move-run": "The arm is moving to the plan's start: Stop (or Esc) stops it." }[state.busy];
+  $("#move-status").textContent = busyMove || (!gap ? "" : !move
     ? `The arm stands ${degrees(gap.rad)} (joint ${gap.joint}) from where the plan starts. Plan a move there: a joint move of its own, checked against the cell, which you dry-run and approve before it runs.`
     : stale ? "The arm has moved since this move was planned: plan the move again from where it stands."
       : !passedHere(dry) ? "Dry-run the move (it is drawn in teal in the 3-D view), then move the arm to the start."
-        : "The move passed its dry run: press “Move to start on the arm” and confirm. The plan can run after it.";
+        : "The move passed its dry run: press “Move to start on the arm” and confirm. The plan can run after it.");
   if (!move) return $("#move-summary").replaceChildren();
   const sm = move.summary;
   $("#move-summary").replaceChildren(
@@ -826,7 +831,7 @@ function renderMove() {
       ["move", `${move.id}${stale ? " (planned from another pose of the arm)" : ""}`],
       ["duration", seconds(sm.duration_s)],
       ["fastest TCP", sm.phase_max_tcp_speed_m_s?.transit == null ? "–" : mmps(sm.phase_max_tcp_speed_m_s.transit)],
-      ["closest to the cell", mm(sm.min_clearance_m, 1)],
+      ["smallest clearance (arm, tool, cell, scan)", mm(sm.min_clearance_m, 1)],
       ["dry run", !dry ? "not yet" : passedHere(dry) ? "passed" : passed(dry) ? "imported: does not count here" : "did not pass: read its report"],
     ]),
     report(sm.report),
@@ -1066,6 +1071,7 @@ function renderCell({ force = false } = {}) {
     $("#cell-planes tbody").replaceChildren(...(cell?.cell_planes || []).map((plane, i) => cellRow("plane", i + 1, plane)));
     $("#cell-draft").textContent = "";
     state.workspace?.showCell(cell);
+    state.workspace?.showCell(null, { draft: true });
   }
   const newer = state.cellDirty && cell && cell.revision !== state.cellBase;
   $("#cell-source").textContent = (cell
@@ -1091,6 +1097,19 @@ function cellDraft() {
   });
   const boxes = read("box");
   const planes = read("plane");
+  // What the server would refuse, said on the field: a maximum not above its minimum, a zero
+  // normal (the rows stay as typed).
+  const mark = (kind, index, column, why) => {
+    const row = $(`#cell-${kind === "box" ? "boxes" : "planes"} tbody`).rows[index];
+    row.querySelectorAll("input")[column].setCustomValidity(why);
+    row.classList.add("invalid");
+  };
+  boxes.forEach((b, i) => [0, 1, 2].forEach((axis) => {
+    if (b[axis + 3] <= b[axis]) mark("box", i, axis + 3, `must be above ${CELL_COLUMNS.box[axis]}`);
+  }));
+  planes.forEach((p, i) => {
+    if (p.slice(0, 3).every((v) => v === 0)) mark("plane", i, 0, "the normal (nx, ny, nz) cannot be zero");
+  });
   return $("#cell-form").querySelector("input:invalid") ? null : { keep_out_boxes_m: boxes, cell_planes: planes };
 }
 
@@ -1102,7 +1121,7 @@ function cellEdited() {
   const boxes = draft?.keep_out_boxes_m.length;
   $("#cell-draft").textContent = draft
     ? `Not saved: ${boxes} box${boxes === 1 ? "" : "es"} and ${draft.cell_planes.length} plane${draft.cell_planes.length === 1 ? "" : "s"}, drawn in orange in the 3-D view. Save the cell to plan and run with it.`
-    : "Not saved: a field is not a number (marked).";
+    : `Not saved: ${$("#cell-form input:invalid")?.validationMessage || "a field is not valid"} (the field is marked in red).`;
 }
 
 async function reloadCell() {
@@ -1135,6 +1154,7 @@ function wireCell() {
     add("box", [p.x - h, p.y - h, p.z - h, p.x + h, p.y + h, p.z + h]);
   });
   $("#cell-reload").addEventListener("click", async () => {
+    if (state.cellDirty && !window.confirm("Discard the changes you typed? The saved cell stays as it is.")) return;
     clearMessage($(".message", form));
     await reloadCell();
     renderCell({ force: true });
@@ -1167,8 +1187,20 @@ function wireCell() {
     await save({ ...draft, revision: state.cellBase ?? 0 },
       (cell) => `Cell saved (revision ${cell.revision}): plans made in another cell are now outdated.`);
   });
-  $("#cell-reset").addEventListener("click", () => save(null,
-    (cell) => `Back to the start-up settings (revision ${cell.revision}).`));
+  $("#cell-reset").addEventListener("click", () => {
+    if (!window.confirm("Drop the cell edited in the pendant and go back to the server's start-up settings? It applies at once to every pendant, plan and run.")) return;
+    save(null, (cell) => `Back to the start-up settings (revision ${cell.revision}).`);
+  });
+  // Another pendant's save shows here within a few seconds (a draft is kept, and said older).
+  setInterval(async () => {
+    if (document.hidden || !state.session || state.cellSaving) return;
+    try {
+      await reloadCell();
+      renderCell();
+    } catch {
+      // the next refresh says what is wrong
+    }
+  }, 5000);
 }
 
 /** A form that sets something of the session: on submit, `send(form)` makes the request and
@@ -1495,7 +1527,7 @@ function confirmRun(traj) {
     ["mode", mode()],
     ["duration", seconds(sm.duration_s)],
     ["fastest TCP", sm.phase_max_tcp_speed_m_s?.transit == null ? "–" : mmps(sm.phase_max_tcp_speed_m_s.transit)],
-    ["closest to the cell", mm(sm.min_clearance_m, 1)],
+    ["smallest clearance (arm, tool, cell, scan)", mm(sm.min_clearance_m, 1)],
     ["from (joints)", degrees(sm.start_q_rad)],
     ["to (joints)", sm.goal_q_rad ? degrees(sm.goal_q_rad) : "–"],
     ["TCP", tcpText(sm.tcp_pose)],
@@ -1519,6 +1551,9 @@ function confirmRun(traj) {
   const dialog = $("#confirm-dialog");
   dialog.returnValue = "";
   dialog.showModal();
+  // From its top (what runs where, first), with Cancel focused: Enter never confirms.
+  $("#confirm-dialog button[value=cancel]").focus({ preventScroll: true });
+  dialog.scrollTop = 0;
   return new Promise((resolve) => {
     dialog.addEventListener("close", () => resolve(dialog.returnValue === "confirm"), { once: true });
   });
@@ -1624,6 +1659,14 @@ function wire() {
       updateStop();
       renderSteps();
       return job;
+    }, (finished) => {
+      if (finished.state !== "succeeded") return;
+      // At the start: what the stopped run said no longer holds.
+      const box = $("#run-form .message");
+      clearMessage(box);
+      box.textContent = "The arm stands at the plan's start: the plan can run.";
+      box.className = "message ok";
+      $("#run-form .job-state").textContent = "";
     });
   });
 

@@ -188,11 +188,11 @@ export class Workspace {
 
   /** The objects a layer toggle switches (the arm figure is two; the frames three). */
   members(toggle) {
-    return { arm: ["arm", "arm-joints"], "live-arm": ["live-arm", "live-arm-joints"], frames: ["frames"], path: ["path", "tool-axes"] }[toggle] || [toggle];
+    return { arm: ["arm", "arm-joints"], "live-arm": ["live-arm", "live-arm-joints"], frames: ["frames"], path: ["path", "tool-axes"], cell: ["cell", "cell-draft"] }[toggle] || [toggle];
   }
 
   toggleOf(name) {
-    return { "arm-joints": "arm", "live-arm-joints": "live-arm", "tool-axes": "path" }[name] || name;
+    return { "arm-joints": "arm", "live-arm-joints": "live-arm", "tool-axes": "path", "cell-draft": "cell" }[name] || name;
   }
 
   resize() {
@@ -294,7 +294,8 @@ export class Workspace {
     this.baseTracker = baseTracker;
     this.inBaseFrame = Boolean(session.T_base_tracker);
     this.showLiveArm(this.liveArm);
-    this.showCell(this.cell, { draft: this.cellDraft });
+    this.showCell(this.cell);
+    this.showCell(this.cellDraft, { draft: true });
     const scanTracker = matrix(rec?.summary.T_scan_tracker || session.T_scan_tracker);
     const baseScan = baseTracker.clone().multiply(scanTracker.clone().invert());
     const transformed = (xyz, m) => {
@@ -578,6 +579,9 @@ export class Workspace {
     if (this.moveLoading !== undefined) return; // another move (or none) asked for since
     this.moveShown = id;
     this.layer("move", "line", Float32Array.from(preview.tcp_m.flat()), null, 0x00838f);
+    // Over the planned and executed paths it shares its ends with (else hidden under them).
+    this.layers.move.material.depthTest = false;
+    this.layers.move.renderOrder = 10;
     this.container.dataset.move = id;
     // A new move is shown whole (it spans the cell), unless the operator has turned the view.
     if (!this.steered) {
@@ -592,15 +596,17 @@ export class Workspace {
    * base frame (not drawn while the view is in the tracker's). A `draft` (the cell being edited,
    * not saved) is drawn in orange instead; `showCell(saved)` draws the saved one again. */
   showCell(cell, { draft = false } = {}) {
-    this.cell = cell;
-    this.cellDraft = draft;
+    const name = draft ? "cell-draft" : "cell";
+    if (draft) this.cellDraft = cell;
+    else this.cell = cell;
     const ends = cell ? [...cell.keep_out_boxes_m.flatMap(boxEdges), ...cell.cell_planes.flatMap((p) => planeGrid(p))] : [];
-    if (!ends.length || !this.inBaseFrame) this.clear("cell");
-    else this.layer("cell", "segments", Float32Array.from(ends), null, draft ? 0xef6c00 : 0xc2185b);
-    this.container.dataset.cell = this.layers.cell ? String(ends.length / 6) : "0";
-    this.container.dataset.cellDraft = String(draft);
-    this.legend.querySelector("#legend-cell-draft").hidden = !draft;
-    this.legend.querySelector("#legend-cell-draft-text").hidden = !draft;
+    if (!ends.length || !this.inBaseFrame) this.clear(name);
+    else this.layer(name, "segments", Float32Array.from(ends), null, draft ? 0xef6c00 : 0xc2185b);
+    // Segments drawn: the saved cell's (data-cell) and the draft's (data-cell-draft).
+    this.container.dataset[draft ? "cellDraft" : "cell"] = this.layers[name] ? String(ends.length / 6) : "0";
+    const drafting = Boolean(this.layers["cell-draft"]);
+    this.legend.querySelector("#legend-cell-draft").hidden = !drafting;
+    this.legend.querySelector("#legend-cell-draft-text").hidden = !drafting;
     this.render();
   }
 
