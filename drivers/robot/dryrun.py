@@ -90,15 +90,35 @@ class ExecutionReport:
         """The report as short lines for a terminal."""
         mm = 1e3
         where = f"a simulated {self.robot}" if self.dry_run else f"the {self.robot}"
+        process = Phase.PROCESS.label
+        # The path's figures only where the arm reached the path (a run stopped in the transit
+        # has none: its deviations are in the phases' line).
+        on_path = not self.phase_durations_s or process in self.executed_phase_durations_s
+        has_path = process in self.phase_durations_s or not self.phase_durations_s
+        speed = (
+            f"mean TCP speed along the path {self.mean_speed_m_s * mm:.1f} mm/s of "
+            f"{self.requested_speed_m_s * mm:.1f} requested"
+            if on_path and has_path
+            else "the path was not reached"
+            if has_path
+            else "no path: a joint move"
+        )
         out = [
             f"{'dry run' if self.dry_run else 'run'} on {where} ({self.mode}): "
             + ("completed" if self.completed else "DID NOT COMPLETE"),
-            f"duration {self.duration_s:.2f} s (planned {self.planned_duration_s:.2f} s); "
-            f"mean TCP speed along the path {self.mean_speed_m_s * mm:.1f} mm/s of "
-            f"{self.requested_speed_m_s * mm:.1f} requested",
+            f"duration {self.duration_s:.2f} s (planned {self.planned_duration_s:.2f} s); " + speed,
         ]
         if self.max_path_deviation_m is None or self.max_lag_m is None:
-            out.append("tracking: not measured (nothing was recorded)")
+            if self.max_deviation_by_phase_m:
+                phase, worst = max(self.max_deviation_by_phase_m.items(), key=lambda kv: kv[1])
+                out.append(
+                    "tracking along the path: not measured (the arm was not on it); "
+                    f"elsewhere {worst * mm:.3f} mm off at most ({phase})"
+                    if has_path
+                    else f"tracking: {worst * mm:.3f} mm off the planned way at most ({phase})"
+                )
+            else:
+                out.append("tracking: not measured (nothing was recorded)")
         else:
             out.append(
                 f"tracking: {self.max_path_deviation_m * mm:.3f} mm off the path at most, "
