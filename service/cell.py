@@ -59,6 +59,10 @@ class CellNow:
         at = self.edited_at.replace(tzinfo=self.edited_at.tzinfo or UTC).astimezone(UTC)
         return f"edited in the pendant at {at:%Y-%m-%d %H:%M:%S} UTC (revision {self.revision})"
 
+    def as_lists(self) -> tuple[list[list[float]], list[list[float]]]:
+        """The boxes and planes as JSON lists (as a plan records them and ``GET /cell`` says)."""
+        return [list(box) for box in self.keep_out_boxes_m], [list(p) for p in self.cell_planes]
+
     def differs_from(self, boxes: list, planes: list) -> bool:
         """Whether ``boxes`` and ``planes`` (as a plan stored them) are not this cell."""
         return (

@@ -145,15 +145,14 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
     # arrive together cannot both pass the gate.
     with services.live.lock:
         session = services.session(session_id)  # not deleted meanwhile (checked under this lock)
-        if cell_now(services.store, settings).revision != here.cell_revision:
+        cell = cell_now(services.store, settings)
+        if cell.revision != here.cell_revision:
             # Cell edits take this lock too: after this look, none lands before the arm is taken.
             raise CellUnknown(
                 "the cell was edited while this run was being checked: start the run again, "
                 "and it is checked against the cell as it is now"
             )
-        outdated = trajectory_outdated(
-            services.store, session, trajectory, cell=cell_now(services.store, settings)
-        )
+        outdated = trajectory_outdated(services.store, session, trajectory, cell=cell)
         check_real_arm(
             settings,
             checked,

@@ -604,6 +604,39 @@ def place_scan(scan, path, *, recon_params=None) -> PlacedScan:
     )
 
 
+#: The limits every planned sample was checked against, in words.
+LIMITS_CHECKED = "joint position, speed and acceleration limits at every sample"
+
+
+def _teachpath_version() -> str:
+    """The version that planned it, for the record ("0" when not installed)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("teachpath")
+    except metadata.PackageNotFoundError:
+        return "0"
+
+
+def _smallest_clearance_m(report) -> float | None:
+    """The closest approach a collision report found (None: not checked, or no samples)."""
+    if report is None or not len(report.clearance_m):
+        return None
+    return float(np.min(report.clearance_m))
+
+
+def _collision_checks(report) -> list[str]:
+    """The collision check passed, in words (none when no check was made)."""
+    if report is None:
+        return []
+    smallest = _smallest_clearance_m(report)
+    smallest = np.inf if smallest is None else smallest
+    return [
+        f"no collision of the arm or the tool with the {', '.join(report.obstacles)} "
+        f"(smallest clearance {smallest * 1e3:.1f} mm, margin {report.margin_m * 1e3:.1f} mm)"
+    ]
+
+
 @dataclass(frozen=True)
 class PlanOutcome:
     """A planned trajectory and the transform its tool axis was taken with."""
@@ -621,35 +654,18 @@ class PlanOutcome:
         """The checks the plan passed, in words (what the trajectory file and the pendant show)."""
         plan = self.plan
         passed = [
-            "joint position, speed and acceleration limits at every sample",
+            LIMITS_CHECKED,
             "wrist, elbow and shoulder singularity margins along the path",
             f"one IK configuration throughout ({plan.configuration.words()})",
         ]
-        report = plan.collision
-        if report is not None:
-            smallest = float(np.min(report.clearance_m)) if len(report.clearance_m) else np.inf
-            passed.append(
-                f"no collision of the arm or the tool with the {', '.join(report.obstacles)} "
-                f"(smallest clearance {smallest * 1e3:.1f} mm, margin "
-                f"{report.margin_m * 1e3:.1f} mm)"
-            )
-        return passed
+        return passed + _collision_checks(plan.collision)
 
     def summary(self) -> dict:
         """The artifact's summary (see :class:`service.artifacts.TrajectorySummary`)."""
-        from importlib import metadata
-
         plan, traj = self.plan, self.plan.trajectory
         joints = plan.joints
         params = plan.params
-        try:
-            version = metadata.version("teachpath")
-        except metadata.PackageNotFoundError:
-            version = "0"
-        report = plan.collision
-        clearance = None
-        if report is not None and len(report.clearance_m):
-            clearance = float(np.min(report.clearance_m))
+        clearance = _smallest_clearance_m(plan.collision)
         return {
             "phase_durations_s": traj.phase_durations_s(),
             "phase_max_tcp_speed_m_s": traj.phase_max_tcp_speed_m_s(),
@@ -665,7 +681,7 @@ class PlanOutcome:
             else np.asarray(self.T_base_tracker).tolist(),
             "min_clearance_m": clearance if clearance is None or np.isfinite(clearance) else None,
             "checks": self.checks(),
-            "teachpath": version,
+            "teachpath": _teachpath_version(),
             "robot": traj.robot,
             "kinematics": traj.arm.kinematics_words,
             "calibration": None if traj.calibration is None else traj.calibration.as_dict(),
@@ -804,24 +820,9 @@ class MoveOutcome:
     def summary(self) -> dict:
         """The artifact's summary: a trajectory's (:class:`service.artifacts.TrajectorySummary`)
         with ``move_to_start_of`` naming the plan; no traced path, no process phase."""
-        from importlib import metadata
-
         move, traj, target = self.move, self.move.trajectory, self.target_summary
-        try:
-            version = metadata.version("teachpath")
-        except metadata.PackageNotFoundError:
-            version = "0"
-        report = move.collision
-        clearance = None
-        if report is not None and len(report.clearance_m):
-            clearance = float(np.min(report.clearance_m))
-        checks = ["joint position, speed and acceleration limits at every sample"]
-        if report is not None:
-            checks.append(
-                f"no collision of the arm or the tool with the {', '.join(report.obstacles)} "
-                f"(smallest clearance {clearance * 1e3:.1f} mm, margin "
-                f"{report.margin_m * 1e3:.1f} mm)"
-            )
+        clearance = _smallest_clearance_m(move.collision)
+        checks = [LIMITS_CHECKED, *_collision_checks(move.collision)]
         return {
             "move_to_start_of": self.target_id,
             "phase_durations_s": traj.phase_durations_s(),
@@ -837,7 +838,7 @@ class MoveOutcome:
             "T_base_tracker": target.get("T_base_tracker"),
             "min_clearance_m": clearance if clearance is None or np.isfinite(clearance) else None,
             "checks": checks,
-            "teachpath": version,
+            "teachpath": _teachpath_version(),
             "robot": traj.robot,
             "kinematics": traj.arm.kinematics_words,
             "calibration": None if traj.calibration is None else traj.calibration.as_dict(),

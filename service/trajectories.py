@@ -50,9 +50,7 @@ def start(services: Services, session_id: str, request: TrajectoryCreate) -> Job
     recon_params = {k: v for k, v in recon.params.items() if k not in NOT_RECON_PARAMS}
     out_id = new_id(ID_PREFIX["trajectory"])
     inputs = {"reconstruction_id": recon.id, "scan_id": recon.inputs.get("scan_id")}
-    cell = cell_now(services.store, services.settings)
-    boxes = [list(box) for box in cell.keep_out_boxes_m]
-    planes = [list(plane) for plane in cell.cell_planes]
+    boxes, planes = cell_now(services.store, services.settings).as_lists()
     # The cell too: a replay of the plan must check it against the same obstacles.
     # This cell's arm, calibrated as its controller is (the plan's joints are right for it).
     calibration = services.settings.arm_calibration
@@ -177,9 +175,7 @@ def start_move_to_start(services: Services, session_id: str, trajectory_id: str)
             f"the arm's joints cannot start a move ({str(exc)[:200]}): jog it back within its "
             "limits on its teach pendant",
         ) from None
-    cell = cell_now(services.store, services.settings)
-    boxes = [list(box) for box in cell.keep_out_boxes_m]
-    planes = [list(plane) for plane in cell.cell_planes]
+    boxes, planes = cell_now(services.store, services.settings).as_lists()
     T = target.params.get("T_base_tracker")
     inputs = {
         "reconstruction_id": target.inputs.get("reconstruction_id"),

@@ -111,10 +111,11 @@ def _cell_view(services) -> dict:
     cell = cell_now(services.store, settings)
     with services.live.lock:
         editable = services.live.arm_owner() is None
+    boxes, planes = cell.as_lists()
     return {
         "robot": settings.ur_robot,
-        "keep_out_boxes_m": [list(box) for box in cell.keep_out_boxes_m],
-        "cell_planes": [list(plane) for plane in cell.cell_planes],
+        "keep_out_boxes_m": boxes,
+        "cell_planes": planes,
         "revision": cell.revision,
         "source": cell.source,
         "editable": editable,
