@@ -117,10 +117,13 @@ class WorkerClient:
         self.errors = dict(errors) if errors is not None else None
         #: Set to ask the running command to stop (the server decides what stopping means).
         self.stop_event = ctx.Event()
+        #: A number the client sets at any time and a running command reads (a robot's speed
+        #: override); one aligned double in shared memory, so a read is never torn.
+        self.dial = ctx.RawValue("d", 1.0)
         parent, child = ctx.Pipe()
         self.process = ctx.Process(
             target=_serve,
-            args=(child, self.stop_event, server, tuple(args), os.getpid()),
+            args=(child, self.stop_event, server, tuple(args), os.getpid(), self.dial),
             name=name,
             daemon=True,  # ended by multiprocessing when this interpreter exits
         )
@@ -141,6 +144,7 @@ class WorkerClient:
         *,
         timeout_s: float,
         on_progress: ProgressCallback | None = None,
+        quiet_s: float | None = None,
     ) -> Any:
         """Run ``command`` in the worker and return what its handler returned.
 
@@ -148,9 +152,13 @@ class WorkerClient:
         ----------
         command : Command
         timeout_s : float
-            Bound on the reply (progress reports do not extend it).
+            Bound on the reply.
         on_progress : callable, optional
             Called with each progress report of the command, in this thread.
+        quiet_s : float, optional
+            With it, each progress report extends the bound to at least ``quiet_s`` from then:
+            for a command whose length is not known when it is sent (a motion that can be
+            slowed or paused), the bound is on silence, not on the whole.
 
         Raises
         ------
@@ -176,11 +184,11 @@ class WorkerClient:
                 f"{command.label()} was not sent"
             )
         try:
-            return self._call(command, deadline, timeout_s, on_progress)
+            return self._call(command, deadline, timeout_s, on_progress, quiet_s)
         finally:
             self._lock.release()
 
-    def _call(self, command, deadline, timeout_s, on_progress):
+    def _call(self, command, deadline, timeout_s, on_progress, quiet_s=None):
         conn = self._conn
         if conn is None:
             raise WorkerLostError(f"{self.name} is closed")
@@ -199,8 +207,9 @@ class WorkerClient:
                 raise WorkerLostError(f"{self.name} was closed during {command.label()}") from None
             if not answered:
                 self.close(grace_s=0)
+                bound = f"{timeout_s:.1f} s" if quiet_s is None else f"{quiet_s:.1f} s of silence"
                 raise WorkerTimeoutError(
-                    f"{self.name} did not answer {command.label()} within {timeout_s:.1f} s"
+                    f"{self.name} did not answer {command.label()} within {bound}"
                 )
             try:
                 reply_seq, kind, payload = conn.recv()
@@ -212,6 +221,8 @@ class WorkerClient:
             if reply_seq != seq:
                 continue  # about an earlier command (none is left unanswered; cheap to check)
             if kind == "progress":
+                if quiet_s is not None:
+                    deadline = max(deadline, time.monotonic() + quiet_s)
                 if on_progress is not None:
                     on_progress(payload)
                 continue
@@ -249,10 +260,12 @@ class WorkerClient:
 class WorkerLink:
     """What a server has of its client while it runs a command."""
 
-    def __init__(self, conn, stop_event) -> None:
+    def __init__(self, conn, stop_event, dial=None) -> None:
         self._conn = conn
         #: Set by the client (or by the worker when its parent died): stop what you are doing.
         self.stop_event = stop_event
+        #: The client's dial (:attr:`WorkerClient.dial`): read ``dial.value``.
+        self.dial = dial
         self._seq = 0
 
     def progress(self, payload: Any) -> None:
@@ -287,12 +300,14 @@ class WorkerServer(ABC):
 # -- the child process ---------------------------------------------------------------------------
 
 
-def _serve(conn, stop_event, server: str, args: tuple, parent_pid: int) -> None:  # pragma: no cover
+def _serve(  # pragma: no cover
+    conn, stop_event, server: str, args: tuple, parent_pid: int, dial=None
+) -> None:
     """Build the server and answer commands until the client closes or goes away."""
     # Ctrl-C reaches the whole process group: the parent decides when its worker stops.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _watch_parent(parent_pid, stop_event)
-    link = WorkerLink(conn, stop_event)
+    link = WorkerLink(conn, stop_event, dial)
     instance: WorkerServer | None = None
     handlers: dict = {}
     failure: Exception | None = None

@@ -252,21 +252,22 @@ def journal_record(
     trajectory: JointTrajectory, journal: str | Path, fault: str
 ) -> ExecutionRecord | None:
     """An execution's record rebuilt from its journal (each actual sample paired with the
-    planned sample at the same time), or None when the journal is absent or empty.
+    planned sample it was sent towards: the same time, unless the run was slowed or paused),
+    or None when the journal is absent or empty.
 
     Raises
     ------
     InputFileError
         A journal whose complete lines are not samples.
     """
-    from drivers.robot.journal import read_journal
+    from drivers.robot.journal import read_journal_with_plan
 
     if not Path(journal).is_file():
         return None
-    t_s, q, tcp = read_journal(journal)
+    t_s, q, tcp, plan_s = read_journal_with_plan(journal)
     if len(t_s) == 0:
         return None
-    index = np.clip(np.searchsorted(trajectory.t_s, t_s), 0, len(trajectory) - 1)
+    index = np.clip(np.rint(plan_s / trajectory.period_s), 0, len(trajectory) - 1).astype(int)
     return ExecutionRecord(
         planned_index=index,
         t_s=t_s,

@@ -149,6 +149,11 @@ class RobotBackend(ABC):
         self._stop_requested = threading.Event()
         #: The TCP the controller was told (:meth:`set_tool`): x, y, z, rx, ry, rz.
         self.tcp_pose = np.zeros(6)
+        # The speed override of a streamed execution (see :meth:`set_speed`).
+        self._speed_fraction = 1.0
+        self._paused = False
+        #: The speed fraction the stream last reported it runs at (0: at rest, paused).
+        self.speed_now = 1.0
 
     # -- lifecycle -----------------------------------------------------------------------------
 
@@ -382,6 +387,60 @@ class RobotBackend(ABC):
     def stop_requested(self) -> bool:
         """Whether a stop was requested (and not cleared since)."""
         return self._stop_requested.is_set()
+
+    # -- speed override and pause ---------------------------------------------------------------
+
+    def set_speed(self, fraction: float) -> None:
+        """Run the streamed execution at ``fraction`` of its planned speed, from now on.
+
+        Any thread, any time; the stream ramps to it within the joints' acceleration limits and
+        never runs faster than planned (:mod:`drivers.robot.timescale`). Applies to
+        :meth:`execute` (the stream is timed here), not to :meth:`execute_path` (the
+        controller times it).
+
+        Raises
+        ------
+        ValueError
+            ``fraction`` outside :data:`~drivers.robot.timescale.MIN_SPEED_FRACTION` .. 1.
+        """
+        from drivers.robot.timescale import MIN_SPEED_FRACTION
+
+        value = float(fraction)
+        if not MIN_SPEED_FRACTION <= value <= 1.0:  # NaN too
+            raise ValueError(
+                f"the speed must be {MIN_SPEED_FRACTION:.0%} to 100 % of the planned speed, "
+                f"got {fraction!r}"
+            )
+        self._speed_fraction = value
+        self._send_speed()
+
+    def pause(self) -> None:
+        """Bring the streamed execution to rest on its path (a controlled slow-down along it,
+        within the acceleration limits); it holds there until :meth:`resume` or a stop."""
+        self._paused = True
+        self._send_speed()
+
+    def resume(self) -> None:
+        """Go on along the path from where :meth:`pause` left it, ramping up to the speed set."""
+        self._paused = False
+        self._send_speed()
+
+    @property
+    def speed_fraction(self) -> float:
+        """The speed override set (0..1), whether paused or not."""
+        return self._speed_fraction
+
+    @property
+    def paused(self) -> bool:
+        return self._paused
+
+    @property
+    def speed_target(self) -> float:
+        """What the stream ramps towards: 0 while paused, else :attr:`speed_fraction`."""
+        return 0.0 if self._paused else self._speed_fraction
+
+    def _send_speed(self) -> None:  # noqa: B027 - optional hook
+        """Pass :attr:`speed_target` to where the stream runs (a worker process reads it)."""
 
     def clear_stop(self) -> None:
         """Forget a stop request: only for starting a new execution on the same backend."""

@@ -40,6 +40,7 @@ from drivers.robot.base import (
 )
 from drivers.robot.journal import JournalWriter
 from drivers.robot.monitor import ArmState, RobotMonitor
+from drivers.robot.timescale import MAX_PAUSE_S, PlanCursor
 from recon import kinematics
 from recon.motion import trapezoid, trapezoid_duration
 from recon.transforms import pose_from_transform, transform_from_pose
@@ -182,71 +183,106 @@ class SimBackend(RobotBackend):
         on_progress: ProgressCallback | None,
         journal: str | Path | None,
     ) -> ExecutionRecord:
-        times, actual, completed, fault = self._stream(trajectory.q_rad, on_progress, journal)
-        return self._record(times, trajectory.q_rad[: len(times)], actual, completed, fault)
+        # Timed here, as the servoJ stream is: the speed override and pause apply.
+        cursor = PlanCursor(
+            trajectory.q_rad, self._dt, trajectory.arm.qdd_max_rad_s2, self.speed_target
+        )
+        times, sent, planned, actual, completed, fault = self._stream(
+            cursor, on_progress, journal, override=True
+        )
+        return self._record(times, trajectory.q_rad[planned], actual, completed, fault, planned)
 
     def _execute_path(
         self, path: CoarsePath, on_progress: ProgressCallback | None, journal: str | Path | None
     ):
         # The controller runs the path itself: joint-space lines between the waypoints at each
         # move's speed, without stopping where a blend is asked for. Fed to the same servo law,
-        # which rounds the corners the way blending does.
-        targets = _path_targets(path, self._dt)
-        times, actual, completed, fault = self._stream(targets, on_progress, journal)
+        # which rounds the corners the way blending does. The controller times it: no override.
+        cursor = PlanCursor(_path_targets(path, self._dt), self._dt, self.arm.qdd_max_rad_s2)
+        times, _, _, actual, completed, fault = self._stream(
+            cursor, on_progress, journal, override=False
+        )
         return np.array(times), np.array(actual).reshape(-1, 6), completed, fault
 
     def _stream(
         self,
-        targets: FloatArray,
+        cursor: PlanCursor,
         on_progress: ProgressCallback | None,
         journal: str | Path | None = None,
+        *,
+        override: bool,
     ):
-        """Follow ``targets`` (K, 6), one per controller period, as servoJ does."""
-        n = len(targets)
+        """Follow the cursor's targets, one per controller period, as servoJ does; with
+        ``override``, at the speed set (:meth:`set_speed`, :meth:`pause`).
+
+        Returns
+        -------
+        times : list of float
+        sent : list of ndarray of shape (6,)
+            The targets sent.
+        planned : ndarray of shape (K,), int
+            The planned sample nearest the cursor at each one.
+        actual : list of ndarray of shape (6,)
+        completed : bool
+        fault : str or None
+        """
+        n = len(cursor.q_rad)
         t0 = self.clock.now()
         self._stopping = False
-        times, actual = [], []
+        times, sent, planned, actual = [], [], [], []
         fault = None
         completed = False
         writer = None if journal is None else JournalWriter(journal, capacity_samples=n)
         T_flange_tcp = transform_from_pose(self.tcp_pose)
         try:
-            for i in range(n):
+            while True:
                 if self._stop_requested.is_set():
                     fault = "stopped on request"
                     break
-                self.clock.sleep_until(t0 + (i + 1) * self._dt)
-                self._advance(self.clock.now(), target=targets[i])
+                if cursor.paused_too_long:
+                    fault = f"stopped: paused for longer than {MAX_PAUSE_S / 60:.0f} min"
+                    break
+                target = cursor.here()
+                self.clock.sleep_until(t0 + (len(times) + 1) * self._dt)
+                self._advance(self.clock.now(), target=target)
                 times.append(self.clock.now() - t0)
+                sent.append(target)
+                planned.append(cursor.index)
                 actual.append(self._q.copy())
                 if writer is not None:
                     tcp = pose_from_transform(kinematics.forward(self.arm, self._q) @ T_flange_tcp)
-                    writer.add(times[-1], self._q, tcp)
-                if on_progress is not None and (i % PROGRESS_EVERY == 0 or i == n - 1):
-                    on_progress((i + 1) / n)
-            else:
-                completed = True
+                    writer.add(times[-1], self._q, tcp, plan_s=cursor.plan_time_s)
+                self.speed_now = cursor.fraction
+                last = cursor.done
+                if on_progress is not None and (len(times) % PROGRESS_EVERY == 1 or last):
+                    on_progress(cursor.position / max(n - 1, 1))
+                if last:
+                    completed = True
+                    break
+                cursor.advance(self.speed_target if override else 1.0)
             # Decelerate (after a stop) or settle on the last sample.
-            if self._settle(targets[-1] if completed else None) and completed:
+            if self._settle(sent[-1] if completed else None) and completed:
                 # Stopped while it settled: the arm braked short of the last sample.
                 completed, fault = False, "stopped on request"
         except RobotError as error:
-            self._record(times, targets[: len(times)], actual, False, str(error))
+            index = np.array(planned, dtype=int)
+            self._record(times, cursor.q_rad[index], actual, False, str(error), index)
             raise
         finally:
             if writer is not None:
                 writer.close()
-        return times, actual, completed, fault
+        return times, sent, np.array(planned, dtype=int), actual, completed, fault
 
     # -- physics ---------------------------------------------------------------------------------
 
-    def _record(self, times, planned, actual, completed, fault) -> ExecutionRecord:
+    def _record(self, times, planned, actual, completed, fault, index=None) -> ExecutionRecord:
         record = ExecutionRecord(
             t_s=np.array(times),
             q_planned_rad=np.array(planned).reshape(-1, 6),
             q_actual_rad=np.array(actual).reshape(-1, 6),
             completed=completed,
             fault=fault,
+            planned_index=None if index is None else np.asarray(index, dtype=int),
         )
         self.last_record = record
         return record

@@ -51,6 +51,7 @@ from drivers.robot.base import (
     RobotState,
 )
 from drivers.robot.journal import JournalWriter
+from drivers.robot.timescale import MAX_PAUSE_S, PlanCursor
 from drivers.worker import Command, WorkerClient, WorkerLink, WorkerServer
 from recon.types import FloatArray, JointTrajectory
 from recon.waypoints import CoarsePath
@@ -200,11 +201,13 @@ class _RealtimePriority(contextlib.AbstractContextManager):
 
 @dataclass(frozen=True)
 class Execute(Command):
-    """Stream ``q_rows`` (K lists of 6 joints, rad) with servoJ every ``period_s``; with a
-    ``journal`` path, write every sample there as it is taken."""
+    """Stream ``q_rows`` (K lists of 6 joints, rad) with servoJ every ``period_s``, at the speed
+    the client's dial sets (:mod:`drivers.robot.timescale`, within ``qdd_max`` rad/s^2 per
+    joint); with a ``journal`` path, write every sample there as it is taken."""
 
     q_rows: list[list[float]]
     period_s: float
+    qdd_max: list[float]
     journal: str | None = None
 
 
@@ -248,6 +251,12 @@ class URRtdeBackend(RobotBackend):
             name=f"ur_rtde {self.config.host}",
             fallback=RobotError,
         )
+        self._send_speed()
+
+    def _send_speed(self) -> None:
+        worker = self._worker
+        if worker is not None:
+            worker.dial.value = self.speed_target
 
     def _kill_worker(self) -> None:
         # Without its worker the backend has no link: it must be connect()ed again (the base
@@ -263,12 +272,15 @@ class URRtdeBackend(RobotBackend):
         *,
         timeout_s: float | None = None,
         on_progress: ProgressCallback | None = None,
+        quiet_s: float | None = None,
     ):
         if self._worker is None:
             raise ConnectionLostError("no connection to the controller: connect() first")
         timeout = self.config.command_timeout_s if timeout_s is None else timeout_s
         try:
-            return self._worker.call(command, timeout_s=timeout, on_progress=on_progress)
+            return self._worker.call(
+                command, timeout_s=timeout, on_progress=on_progress, quiet_s=quiet_s
+            )
         except WorkerTimeoutError:
             self._kill_worker()  # the client has ended it; the link is gone with it
             raise RobotTimeoutError(
@@ -344,26 +356,37 @@ class URRtdeBackend(RobotBackend):
         on_progress: ProgressCallback | None,
         journal: str | Path | None,
     ) -> ExecutionRecord:
-        n = len(trajectory)
+        last = max(len(trajectory) - 1, 1)
+
+        def progress(report) -> None:
+            position, self.speed_now = report
+            if on_progress is not None:
+                on_progress(position / last)
+
         try:
-            times, actual, tcp, completed, fault, realtime = self._call(
+            times, actual, tcp, planned, completed, fault, realtime = self._call(
                 Execute(
                     trajectory.q_rad.tolist(),
                     trajectory.period_s,
+                    trajectory.arm.qdd_max_rad_s2.tolist(),
                     None if journal is None else str(journal),
                 ),
                 timeout_s=self._motion_bound_s(trajectory.duration_s),
-                on_progress=(None if on_progress is None else (lambda i: on_progress(i / n))),
+                on_progress=progress,
+                # Slowed or paused, a run takes longer than planned: the stream reports every
+                # PROGRESS_EVERY periods, paused too, and silence beyond the margin is a hang.
+                quiet_s=self._motion_bound_s(0.0),
             )
         except RobotError:
             self.last_record = ExecutionRecord(
                 np.zeros(0), np.zeros((0, 6)), np.zeros((0, 6)), False, "interrupted"
             )
             raise
-        k = len(times)
+        planned_index = np.asarray(planned, dtype=int).reshape(-1)
         return ExecutionRecord(
             t_s=np.array(times),
-            q_planned_rad=trajectory.q_rad[:k],
+            planned_index=planned_index,
+            q_planned_rad=trajectory.q_rad[planned_index],
             q_actual_rad=np.array(actual).reshape(-1, 6),
             completed=completed,
             fault=fault,
@@ -444,7 +467,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             Unlock: lambda _: self.unlock(),
             MoveJ: lambda c: self.move_j(c.q, c.speed, c.acceleration),
             SetTool: lambda c: self.set_tool(c.tcp_pose, c.payload_kg, c.cog_m),
-            Execute: lambda c: self.execute(c.q_rows, c.period_s, c.journal),
+            Execute: lambda c: self.execute(c.q_rows, c.period_s, c.qdd_max, c.journal),
             MovePath: lambda c: self.move_path(
                 c.q_rows, c.speeds, c.acceleration, c.blends, c.journal
             ),
@@ -679,9 +702,17 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             self._refused()
             raise ConnectionLostError("the controller refused setPayload; reconnect")
 
-    def execute(self, q_rows, period_s, journal=None):
+    def execute(self, q_rows, period_s, qdd_max, journal=None):
+        dial = self.link.dial
+        cursor = PlanCursor(
+            np.asarray(q_rows, dtype=np.float64),
+            period_s,
+            qdd_max,
+            start_fraction=1.0 if dial is None else dial.value,
+        )
         with contextlib.ExitStack() as stack:
-            # Mapped for every sample up front: the loop's journal write is a memory store.
+            # Mapped for every sample of a run at the planned speed up front: the loop's
+            # journal write is a memory store (a slowed run maps more as it goes).
             writer = (
                 None
                 if journal is None
@@ -691,16 +722,23 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
                 _RealtimePriority(int(self.config.get("rt_priority", 0)))
             )
             stack.enter_context(self._watched())  # every servoJ feeds it
-            return (*self._stream(q_rows, period_s, writer), realtime.status)
+            return (*self._stream(cursor, writer), realtime.status)
 
-    def _stream(self, q_rows, period_s, writer):
+    def _stream(self, cursor: PlanCursor, writer):
+        """servoJ the cursor's position every period, advancing it at the dial's speed."""
         lookahead, gain = self.config["lookahead_s"], self.config["gain"]
-        times, actual, tcp, fault, completed = [], [], [], None, False
+        period_s = cursor.period_s
+        times, actual, tcp, planned, fault, completed = [], [], [], [], None, False
         start = time.monotonic()
-        for i, q in enumerate(q_rows):
+        dial = self.link.dial
+        while True:
             if self.stop_event.is_set():
                 fault = "stopped on request"
                 break
+            if cursor.paused_too_long:
+                fault = f"stopped: paused for longer than {MAX_PAUSE_S / 60:.0f} min"
+                break
+            q = cursor.here().tolist()
             t_cycle = self.control.initPeriod()
             # Positional only: ur_rtde's binding names these arguments arg0..arg5.
             if not self.control.servoJ(q, 0.0, 0.0, period_s, lookahead, gain):
@@ -710,21 +748,25 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
                     "the controller refused servoJ (the control script stopped); reconnect",
                 )
             times.append(time.monotonic() - start)
+            planned.append(cursor.index)
             q_now, tcp_now = self._sample()
             actual.append(q_now)
             tcp.append(tcp_now)
             if writer is not None:
-                writer.add(times[-1], actual[-1], tcp[-1])
+                writer.add(times[-1], actual[-1], tcp[-1], plan_s=cursor.plan_time_s)
             self._check_fresh()
             if self.receive.isProtectiveStopped():
                 fault = "protective stop"
                 break
-            if i % PROGRESS_EVERY == 0:
-                self.link.progress(i + 1)
+            if len(times) % PROGRESS_EVERY == 1:
+                self.link.progress((cursor.position, cursor.fraction))
+            if cursor.done:
+                break
+            cursor.advance(dial.value if dial is not None else 1.0)
             self.control.waitPeriod(t_cycle)
-        else:
+        if cursor.done and fault is None:
             completed = True
-            cut_short = self._hold(q_rows[-1], period_s)
+            cut_short = self._hold(cursor.here().tolist(), period_s)
             # The hold ends early on a safety stop or a Stop: then the arm did not arrive.
             if self.receive.isProtectiveStopped():
                 completed, fault = False, "protective stop"
@@ -733,10 +775,10 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         self.control.servoStop(self.config["stop_deceleration_rad_s2"])
         if completed:
             self._safety()
-        self.link.progress(len(times))
+        self.link.progress((cursor.position, cursor.fraction))
         if fault == "protective stop":
             raise ProtectiveStopError("protective stop during execution")
-        return times, actual, tcp, completed, fault
+        return times, actual, tcp, planned, completed, fault
 
     def _sample(self) -> tuple[list[float], list[float]]:
         """The actual joints and TCP pose from one RTDE packet.

@@ -15,13 +15,16 @@ import pytest
 
 from drivers.errors import InputFileError
 from drivers.robot.journal import (
+    COLUMNS,
     CSV_HEADER,
     HEADER_BYTES,
     MAGIC,
+    MAGIC_V1,
     MAX_SAMPLES,
     ROW_BYTES,
     JournalWriter,
     read_journal,
+    read_journal_with_plan,
 )
 
 
@@ -94,10 +97,43 @@ def test_a_row_written_but_not_counted_is_not_read(tmp_path):
     assert len(read_journal(path)[0]) == 9
 
 
-def _header(count: int, capacity: int, columns: int = 13) -> bytes:
-    head = MAGIC + np.uint32(columns).tobytes() + bytes(4)
+def _header(count: int, capacity: int, columns: int = COLUMNS, magic: bytes = MAGIC) -> bytes:
+    head = magic + np.uint32(columns).tobytes() + bytes(4)
     head += np.uint64(capacity).tobytes() + np.uint64(count).tobytes()
     return head.ljust(HEADER_BYTES, b"\0")
+
+
+def test_the_plan_clock_of_a_slowed_run_comes_back(tmp_path):
+    """A run slowed or paused: each sample keeps where on the plan's clock the arm was sent."""
+    data = _samples(50)
+    plan_s = np.concatenate([np.arange(25) * 0.002, np.full(25, 24 * 0.002)])  # then paused
+    path = tmp_path / "j.journal"
+    with JournalWriter(path, capacity_samples=10) as writer:
+        for row, plan in zip(data, plan_s, strict=True):
+            writer.add(row[0], row[1:7], row[7:13], plan_s=plan)
+    t, q, tcp, plan_back = read_journal_with_plan(path)
+    assert np.array_equal(np.column_stack([t, q, tcp]), data)
+    assert np.array_equal(plan_back, plan_s)
+
+
+def test_a_journal_of_the_version_before_reads_with_the_plan_at_its_own_pace(tmp_path):
+    """13 columns and the first magic: written before speed override existed."""
+    data = _samples(6)
+    path = tmp_path / "old.journal"
+    path.write_bytes(_header(6, 8, columns=13, magic=MAGIC_V1) + data.tobytes() + bytes(2 * 104))
+    t, q, tcp, plan_s = read_journal_with_plan(path)
+    assert np.array_equal(np.column_stack([t, q, tcp]), data)
+    assert np.array_equal(plan_s, t)
+
+
+def test_a_plan_clock_going_backwards_is_refused_naming_the_sample(tmp_path):
+    data = _samples(10)
+    path = tmp_path / "j.journal"
+    with JournalWriter(path) as writer:
+        for i, row in enumerate(data):
+            writer.add(row[0], row[1:7], row[7:13], plan_s=0.1 if i == 6 else i * 0.002)
+    with pytest.raises(InputFileError, match="sample 8"):
+        read_journal(path)
 
 
 @pytest.mark.parametrize(
@@ -110,8 +146,9 @@ def _header(count: int, capacity: int, columns: int = 13) -> bytes:
         (_header(2**63, 2**64 - 1), "declares 9,223,372,036,854,775,808 samples"),
         (_header(MAX_SAMPLES + 1, MAX_SAMPLES + 1), "at most 4,000,000"),  # no 430 MB+ read
         (_header(1, 1, columns=12) + bytes(ROW_BYTES), "of 12 numbers"),
+        (_header(1, 1, columns=14, magic=MAGIC_V1) + bytes(ROW_BYTES), "of 14 numbers"),
     ],
-    ids=["png", "cut-header", "cut-rows", "over-capacity", "huge", "too-many", "columns"],
+    ids=["png", "cut-header", "cut-rows", "over-capacity", "huge", "too-many", "columns", "v1-14"],
 )
 def test_files_no_writer_left_are_refused_with_what_is_wrong(tmp_path, content, words):
     path = tmp_path / "bad.journal"
