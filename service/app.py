@@ -192,6 +192,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         reconstructions.router,
         trajectories.router,
         executions.router,
+        executions.control_router,
         jobs.router,
         jobs.session_router,
         captures.router,

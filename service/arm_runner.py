@@ -62,6 +62,9 @@ class ExecutionRunner:
         Where the samples are written as they arrive.
     mode : {"servoj", "movepath"}
     tolerance_m : float
+    approved_sha256, trajectory_id : str, optional
+        The trajectory's file checksum and id, as approved: a resume after a pause is approved
+        against them.
     """
 
     def __init__(
@@ -76,8 +79,13 @@ class ExecutionRunner:
         journal: str,
         mode: str = "servoj",
         tolerance_m: float = 5e-4,
+        approved_sha256: str | None = None,
+        trajectory_id: str | None = None,
     ) -> None:
         self.store, self.job_id = store, job_id
+        #: The trajectory (its id, and its file's checksum the run was approved with): a resume
+        #: names the checksum again.
+        self.trajectory_id, self.approved_sha256 = trajectory_id, approved_sha256
         self.mode, self.tolerance_m = mode, tolerance_m
         self.backend, self.trajectory, self.record = backend, trajectory, record
         self.tool, self.journal = tool, journal
@@ -102,6 +110,43 @@ class ExecutionRunner:
     @property
     def stop_requested(self) -> bool:
         return self._stop.is_set()
+
+    # -- speed override and pause (a servoJ stream only: a movePath is timed by the controller)
+
+    @property
+    def overridable(self) -> bool:
+        """Whether this run's speed can be changed and the run paused: a servoJ stream."""
+        return self.mode == "servoj"
+
+    def set_speed(self, fraction: float) -> None:
+        """The run's speed as a fraction of the planned speed (any time before its end).
+
+        Raises
+        ------
+        ValueError
+            Outside 5 % .. 100 %.
+        """
+        self.backend.set_speed(fraction)
+
+    def pause(self) -> None:
+        """Bring the arm to rest on its path; it holds there until :meth:`resume` or a stop."""
+        self.backend.pause()
+
+    def resume(self) -> None:
+        self.backend.resume()
+
+    def speed_view(self) -> dict:
+        """The speed override as the safety bar shows it."""
+        backend = self.backend
+        return {
+            "trajectory_id": self.trajectory_id,
+            "approved_sha256": self.approved_sha256,
+            "overridable": self.overridable,
+            "speed_fraction": backend.speed_fraction,
+            "paused": backend.paused,
+            "speed_now": round(float(backend.speed_now), 4),
+            "moving": self.step == "moving",
+        }
 
     def _progress(self, fraction: float) -> None:
         if fraction - self._last_progress >= 0.01 or fraction >= 1.0:

@@ -189,6 +189,8 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
             journal=str(journal_path(services, out_id)),
             mode=request.mode,
             tolerance_m=request.tolerance_m,
+            approved_sha256=trajectory.sha256,  # checked equal to the request's, if it named one
+            trajectory_id=trajectory.id,
         )
         services.live.executions[out_id] = runner
     runner.start()
@@ -462,6 +464,80 @@ def stop(services: Services, execution_id: str) -> StopOutcome:
         # A dry run (a pool job): stopped, it ends cancelled and never counts as passed.
         services.jobs.discard(job_id)
     return StopOutcome(job=services.store.job(job_id), already_ended=already_ended)
+
+
+def _running_here(services: Services, execution_id: str) -> ExecutionRunner:
+    """The runner of an execution this instance is running, or the error that says why not."""
+    runner = services.live.executions.get(execution_id)
+    if runner is None:
+        if execution_id in services.live.execution_jobs:
+            raise ApiError(
+                409, "not_running", f"execution {execution_id} has ended: nothing to change"
+            )
+        raise ApiError(
+            404,
+            "not_found",
+            f"execution {execution_id} is not running on this instance: change its speed "
+            "where it was started, or at the arm's teach pendant",
+        )
+    if not runner.running:
+        raise ApiError(409, "not_running", f"execution {execution_id} has ended: nothing to change")
+    if not runner.overridable:
+        raise ApiError(
+            409,
+            "not_streamed",
+            f"execution {execution_id} runs as a movePath, which the controller times itself: "
+            "its speed cannot be changed nor the run paused here. Stop it, or use the speed "
+            "slider of the arm's teach pendant",
+        )
+    return runner
+
+
+def speed_view(execution_id: str, runner: ExecutionRunner) -> dict:
+    """What :class:`service.schemas.RunSpeedOut` shows."""
+    return {"execution_id": execution_id, **runner.speed_view()}
+
+
+def set_speed(services: Services, execution_id: str, fraction: float) -> dict:
+    """Change a running execution's speed (5 .. 100 % of the planned speed)."""
+    runner = _running_here(services, execution_id)
+    try:
+        runner.set_speed(fraction)
+    except ValueError as error:
+        raise ApiError(422, "bad_speed", str(error)) from None
+    log.info("execution %s: speed set to %.0f %%", execution_id, 100 * fraction)
+    return speed_view(execution_id, runner)
+
+
+def pause(services: Services, execution_id: str) -> dict:
+    """Bring a running execution's arm to rest on its path (idempotent)."""
+    runner = _running_here(services, execution_id)
+    if runner.step != "moving":
+        raise ApiError(
+            409,
+            "not_moving",
+            f"execution {execution_id} is {runner.step}, not moving yet: there is nothing to "
+            "pause. Stop it to cancel it",
+        )
+    runner.pause()
+    log.info("execution %s: paused", execution_id)
+    return speed_view(execution_id, runner)
+
+
+def resume(services: Services, execution_id: str, approved_sha256: str) -> dict:
+    """Go on from a pause, once the operator has approved the run again (idempotent)."""
+    runner = _running_here(services, execution_id)
+    if runner.approved_sha256 is not None and approved_sha256 != runner.approved_sha256:
+        raise ApiError(
+            409,
+            "approval_mismatch",
+            f"the approved trajectory ({approved_sha256[:12]}…) is not the one running "
+            f"({runner.approved_sha256[:12]}…): reload the page and approve the resume again",
+            detail={"approved_sha256": approved_sha256, "running_sha256": runner.approved_sha256},
+        )
+    runner.resume()
+    log.info("execution %s: resumed", execution_id)
+    return speed_view(execution_id, runner)
 
 
 def recover(services: Services) -> None:

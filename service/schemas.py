@@ -476,6 +476,49 @@ class PairingCodeOut(BaseModel):
     expires_in_s: float = Field(..., description="seconds it is good for")
 
 
+class SpeedIn(Strict):
+    """A run's speed override."""
+
+    fraction: float = Field(
+        ...,
+        ge=0.05,
+        le=1.0,
+        allow_inf_nan=False,
+        description="of the planned speed, 0.05 .. 1 (the pendant shows per cent); the arm "
+        "ramps to it within its acceleration limits and never runs faster than planned",
+    )
+
+
+class ResumeIn(Strict):
+    """Going on after a pause: the operator approves the run again."""
+
+    confirm: StrictBool = Field(..., description="must be the JSON boolean true")
+    approved_sha256: str = Field(
+        ...,
+        pattern="^[0-9a-f]{64}$",
+        description="the running trajectory's sha256, as the resume confirmation shows it",
+    )
+
+
+class RunSpeedOut(BaseModel):
+    """A running execution's speed override and pause."""
+
+    execution_id: str
+    trajectory_id: str | None = Field(None, description="the trajectory it runs")
+    approved_sha256: str | None = Field(
+        None, description="its file's sha256 as approved (a resume is approved against it)"
+    )
+    overridable: bool = Field(
+        ..., description="a servoJ run (a movePath is timed by the controller: no override)"
+    )
+    speed_fraction: float = Field(..., description="the speed set, of the planned speed")
+    paused: bool = Field(..., description="a pause was asked (the arm holds on its path)")
+    speed_now: float = Field(
+        ..., description="the fraction the stream runs at now (0: at rest, paused)"
+    )
+    moving: bool = Field(..., description="the run is in its motion (not connecting)")
+
+
 class StopOut(JobOut):
     """The execution's job after the stop request."""
 
@@ -516,6 +559,9 @@ class RobotOut(BaseModel):
         None, description="in a protective stop: seconds until the controller allows unlocking"
     )
     owner_execution_id: str | None = Field(None, description="the execution that owns the arm")
+    run_speed: RunSpeedOut | None = Field(
+        None, description="the owning execution's speed override and pause"
+    )
     max_speed_m_s: float = Field(..., description="the server's TCP speed cap on a real arm")
     mount_up: list[float] = Field(
         ..., description="how the arm is mounted: up in its base frame (plans default to it)"

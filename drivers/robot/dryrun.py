@@ -253,14 +253,16 @@ def recorded_plan_index(trajectory: JointTrajectory, planned_index, lookahead_s:
     """Which sample of the plan the arm was at for each recorded sample.
 
     servoJ runs the stream a lookahead behind the sample sent with it, so the arm is at the
-    plan's sample ``lookahead_s`` earlier. The one rule for the report's phases, the phase a
-    stopped run stopped in and the phases' executed seconds.
+    plan's sample sent ``lookahead_s`` earlier: the recorded sample that many controller
+    periods before (in a run slowed or paused, fewer of the plan's samples than periods). The
+    one rule for the report's phases, the phase a stopped run stopped in and the phases'
+    executed seconds.
 
     Parameters
     ----------
     trajectory : JointTrajectory
     planned_index : ndarray of shape (S,)
-        The plan's sample sent with each recorded one.
+        The plan's sample sent with each recorded one, one per controller period, in order.
     lookahead_s : float
 
     Returns
@@ -268,7 +270,11 @@ def recorded_plan_index(trajectory: JointTrajectory, planned_index, lookahead_s:
     ndarray of shape (S,), int
     """
     lag = int(round(lookahead_s / trajectory.period_s))
-    return np.clip(np.asarray(planned_index, dtype=np.int64) - lag, 0, len(trajectory) - 1)
+    planned = np.asarray(planned_index, dtype=np.int64).reshape(-1)
+    if lag > 0:
+        # Before the first lookahead has passed, the arm is still at the plan's start.
+        planned = np.concatenate([np.zeros(min(lag, len(planned)), np.int64), planned[:-lag]])
+    return np.clip(planned, 0, len(trajectory) - 1)
 
 
 def reached_phase(trajectory: JointTrajectory, record: ExecutionRecord, lookahead_s: float) -> str:
@@ -276,7 +282,7 @@ def reached_phase(trajectory: JointTrajectory, record: ExecutionRecord, lookahea
     "before moving" for an empty record."""
     if record is None or len(record) == 0:
         return "before moving"
-    last = recorded_plan_index(trajectory, record.planned()[-1:], lookahead_s)[0]
+    last = recorded_plan_index(trajectory, record.planned(), lookahead_s)[-1]
     return Phase(int(trajectory.phases[last])).label
 
 

@@ -15,10 +15,20 @@ from service.api.common import CSV, add_artifact_routes, download, gzip_json
 from service.api.deps import ServicesDep, has_token
 from service.artifacts import ExecutionCodec
 from service.errors import ApiError
-from service.schemas import ExecutionCreate, ExecutionOut, JobOut, StopOut
+from service.schemas import (
+    ExecutionCreate,
+    ExecutionOut,
+    JobOut,
+    ResumeIn,
+    RunSpeedOut,
+    SpeedIn,
+    StopOut,
+)
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["executions"])
 stop_router = APIRouter(prefix="/executions", tags=["executions"])
+#: The speed override and pause of a running execution: with the token.
+control_router = APIRouter(prefix="/executions", tags=["executions"])
 
 
 @router.post("/executions", status_code=202, response_model=JobOut)
@@ -97,3 +107,36 @@ async def stop_execution(execution_id: str, services: ServicesDep, request: Requ
     )
     job = JobOut.model_validate(outcome.job).model_dump()
     return {**job, "already_ended": outcome.already_ended}
+
+
+# The speed override and pause touch no database and no worker thread (a shared number is
+# set): answered on the event loop, like the stop, so a busy pool never delays a pause.
+
+
+@control_router.post("/{execution_id}/speed", response_model=RunSpeedOut)
+async def set_speed(execution_id: str, body: SpeedIn, services: ServicesDep) -> dict:
+    """Run a real-arm execution (servoJ) at a fraction of its planned speed from now on, as a
+    UR program's speed slider does: the arm ramps to it within the joints' acceleration limits,
+    on the same path, never faster than planned."""
+    return executions.set_speed(services, execution_id, body.fraction)
+
+
+@control_router.post("/{execution_id}/pause", response_model=RunSpeedOut)
+async def pause(execution_id: str, services: ServicesDep) -> dict:
+    """Bring a moving real-arm execution (servoJ) to rest on its path, within the acceleration
+    limits; it holds there until resumed (an approval) or stopped. A pause longer than 10
+    minutes ends the run as stopped."""
+    return executions.pause(services, execution_id)
+
+
+@control_router.post("/{execution_id}/resume", response_model=RunSpeedOut)
+async def resume(execution_id: str, body: ResumeIn, services: ServicesDep) -> dict:
+    """Go on along the path from where a pause left the arm, at the speed set: the operator
+    approves it again (``confirm`` true, and the running trajectory's sha256)."""
+    if body.confirm is not True:
+        raise ApiError(
+            409,
+            "not_confirmed",
+            "resuming moves the arm: confirm it (confirm: true) with the trajectory's sha256",
+        )
+    return executions.resume(services, execution_id, body.approved_sha256)

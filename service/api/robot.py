@@ -8,6 +8,7 @@ import json
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
 
+from service import executions
 from service.api.deps import ServicesDep, has_token
 from service.errors import ApiError
 from service.schemas import CellIn, CellOut, RobotOut
@@ -32,7 +33,8 @@ MAX_ANONYMOUS_STREAMS = 16
 def _view(services) -> dict:
     with services.live.lock:
         owner = services.live.arm_owner()
-    return services.robot.view(owner)
+        runner = services.live.executions.get(owner) if owner else None
+    return _with_speed(services.robot.view(owner), owner, runner)
 
 
 def _view_now(services) -> dict:
@@ -40,7 +42,23 @@ def _view_now(services) -> dict:
     the GIL) instead of the lock a starting execution holds while it reads the arm."""
     runners = dict(services.live.executions)
     owner = next((eid for eid, runner in runners.items() if runner.running), None)
-    return services.robot.view(owner)
+    return _with_speed(services.robot.view(owner), owner, runners.get(owner))
+
+
+def _speed_signature(services) -> tuple | None:
+    """What of the owning run's speed the safety bar shows (a change is sent at once: a pause
+    asked, and the arm come to rest)."""
+    for execution_id, runner in dict(services.live.executions).items():
+        if runner.running:
+            view = runner.speed_view()
+            return (execution_id, view["speed_fraction"], view["paused"], view["speed_now"] == 0)
+    return None
+
+
+def _with_speed(view: dict, owner: str | None, runner) -> dict:
+    """The view with the owning run's speed override (what the safety bar shows beside Stop)."""
+    speed = None if runner is None else executions.speed_view(owner, runner)
+    return {**view, "run_speed": speed}
 
 
 @router.get("", response_model=RobotOut)
@@ -78,14 +96,18 @@ async def robot_events(services: ServicesDep, request: Request) -> StreamingResp
         live.event_streams += 1
         live.anonymous_streams += anonymous
         loop = asyncio.get_running_loop()
-        version = -1
+        version, speed = -1, None
         try:
             while True:
                 # On a change, or after KEEPALIVE_S: either way the page gets the state.
                 deadline = loop.time() + KEEPALIVE_S
-                while services.robot.version == version and loop.time() < deadline:
+                while (
+                    services.robot.version == version
+                    and _speed_signature(services) == speed
+                    and loop.time() < deadline
+                ):
                     await asyncio.sleep(EVENT_POLL_S)
-                version = services.robot.version
+                version, speed = services.robot.version, _speed_signature(services)
                 body = RobotOut.model_validate(_view_now(services)).model_dump(mode="json")
                 yield f"event: robot\ndata: {json.dumps(body)}\n\n"
         finally:

@@ -688,3 +688,170 @@ def test_a_move_to_start_through_a_keep_out_box_is_refused_naming_it(arm, fake_u
         revision = client.get("/cell").json()["revision"]
         assert client.delete("/cell", params={"revision": revision}).status_code == 200
         fake_ur.control("reset", q_rad=q_start.tolist())
+
+
+# -- speed override and pause of a run -------------------------------------------------------------
+
+
+def _robot_until(client, predicate, what: str, timeout_s: float = 30.0) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while not predicate(shown := client.get("/robot").json()):
+        assert time.monotonic() < deadline, f"{what}: {shown.get('run_speed')}"
+        time.sleep(0.05)
+    return shown
+
+
+def _plan_samples(client, sid, trajectory_id) -> np.ndarray:
+    csv = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}/csv").text
+    return np.array([row.split(",")[1:7] for row in csv.strip().splitlines()[2:]], dtype=float)
+
+
+def test_a_run_paused_rests_on_its_path_and_goes_on_only_when_approved_again(arm, fake_ur):
+    client, sid, trajectory_id, q_start = arm
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    low, high = _phase_window(client, sid, trajectory_id, "process")
+    job = _execute_until(
+        client, sid, trajectory_id, progress=0.1 + 0.9 * (low + 0.3 * (high - low))
+    )
+    execution_id = job["params"]["execution_id"]
+    paused = client.post(f"/executions/{execution_id}/pause")
+    assert paused.status_code == 200, paused.text
+    assert paused.json()["paused"] is True and paused.json()["overridable"] is True
+    shown = _robot_until(
+        client, lambda r: r["run_speed"] and r["run_speed"]["speed_now"] == 0.0, "never at rest"
+    )
+    assert shown["owner_execution_id"] == execution_id and shown["run_speed"]["paused"]
+    # At rest, on the planned path (the stream holds a point between two planned samples: the
+    # servo settles on it), and still the run's: the job runs on.
+    time.sleep(0.4)  # the servo's lookahead settles
+    q_a = np.array(fake_ur.control("status")["q_rad"])
+    time.sleep(0.5)
+    q_b = np.array(fake_ur.control("status")["q_rad"])
+    assert np.abs(q_b - q_a).max() < 1e-4
+    plan = _plan_samples(client, sid, trajectory_id)
+    assert np.abs(plan - q_b).max(axis=1).min() < 2e-3
+    assert client.get(f"/jobs/{job['id']}").json()["state"] == "running"
+    # Going on needs the approval again: the JSON true, and the running plan's checksum.
+    sha = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}").json()["sha256"]
+    for body, status, code in [
+        ({}, 422, None),
+        ({"confirm": True}, 422, None),
+        ({"confirm": "true", "approved_sha256": sha}, 422, None),
+        ({"confirm": False, "approved_sha256": sha}, 409, "not_confirmed"),
+        ({"confirm": True, "approved_sha256": "0" * 64}, 409, "approval_mismatch"),
+        ({"confirm": True, "approved_sha256": sha, "speed": 2}, 422, None),
+    ]:
+        refused = client.post(f"/executions/{execution_id}/resume", json=body)
+        assert refused.status_code == status, (body, refused.text)
+        assert code is None or refused.json()["code"] == code
+    time.sleep(0.2)
+    assert np.abs(np.array(fake_ur.control("status")["q_rad"]) - q_b).max() < 1e-4
+    resumed = client.post(
+        f"/executions/{execution_id}/resume", json={"confirm": True, "approved_sha256": sha}
+    )
+    assert resumed.status_code == 200 and resumed.json()["paused"] is False
+    job = wait(client, job, timeout_s=120)
+    assert job["state"] == "succeeded", job
+    summary = client.get(f"/sessions/{sid}/executions/{execution_id}").json()["summary"]
+    assert summary["completed"] and 0 < summary["max_path_deviation_m"] < 5e-3
+    # The record holds the pause (more samples than planned) and ends where the plan ends.
+    assert summary["n_samples"] > len(plan) + 100
+    assert np.abs(np.array(fake_ur.control("status")["q_rad"]) - plan[-1]).max() < 2e-3
+    # It has ended: nothing to change any more.
+    late = client.post(f"/executions/{execution_id}/speed", json={"fraction": 0.5})
+    assert late.status_code == 409 and late.json()["code"] == "not_running"
+
+
+def test_the_speed_override_slows_the_run_on_its_path(arm, fake_ur):
+    client, sid, trajectory_id, q_start = arm
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    job = _execute_until(client, sid, trajectory_id, progress=0.15)
+    execution_id = job["params"]["execution_id"]
+    slowed = client.post(f"/executions/{execution_id}/speed", json={"fraction": 0.5})
+    assert slowed.status_code == 200, slowed.text
+    assert slowed.json()["speed_fraction"] == 0.5
+    _robot_until(
+        client,
+        lambda r: r["run_speed"] and r["run_speed"]["speed_now"] == 0.5,
+        "never at half speed",
+    )
+    job = wait(client, job, timeout_s=120)
+    assert job["state"] == "succeeded", job
+    summary = client.get(f"/sessions/{sid}/executions/{execution_id}").json()["summary"]
+    plan = _plan_samples(client, sid, trajectory_id)
+    # Most of the run at half speed: well over the planned count of samples, on the same path.
+    assert summary["n_samples"] > 1.5 * len(plan)
+    assert summary["completed"] and 0 < summary["max_path_deviation_m"] < 5e-3
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        {},
+        {"fraction": 0},
+        {"fraction": 0.04},
+        {"fraction": 1.01},
+        {"fraction": -1},
+        {"fraction": "fast"},
+        {"fraction": "NaN"},
+        {"fraction": "Infinity"},
+        {"fraction": 10**400},
+        {"fraction": [0.5]},
+        {"fraction": 0.5, "paused": False},
+        {"fraction": {"a": {"b": {"c": 0.5}}}},
+    ],
+)
+def test_speeds_no_operator_could_set_are_refused_before_any_run_is_looked_up(arm, body):
+    client = arm[0]
+    refused = client.post("/executions/exe_unknown/speed", json=body)
+    assert refused.status_code == 422, refused.text
+
+
+def test_the_controls_of_a_run_need_the_token_and_a_run_this_instance_drives(arm):
+    client = arm[0]
+    for path, body in [
+        ("speed", {"fraction": 0.5}),
+        ("pause", None),
+        ("resume", {"confirm": True, "approved_sha256": "0" * 64}),
+    ]:
+        anonymous = client.post(
+            f"/executions/exe_x/{path}", json=body, headers={"Authorization": ""}
+        )
+        assert anonymous.status_code == 401, anonymous.text
+        unknown = client.post(f"/executions/exe_x/{path}", json=body)
+        assert unknown.status_code == 404 and "not running on this instance" in unknown.text
+    deep = "[" * 5000 + "]" * 5000
+    nested = client.post(
+        "/executions/exe_x/speed", content=deep, headers={"Content-Type": "application/json"}
+    )
+    assert nested.status_code in (400, 413, 422), nested.text
+
+
+def test_a_movepath_run_refuses_the_override_and_says_why(arm, tmp_path):
+    """The controller times a movePath itself: there is no stream here to slow or pause."""
+    from drivers.robot.clock import FakeClock
+    from drivers.robot.sim import SimBackend, SimConfig
+    from service.arm_runner import ExecutionRunner
+    from tests.motion_fixtures import line_process
+
+    client = arm[0]
+    services = client.app.state.services
+    runner = ExecutionRunner(
+        services.store,
+        "job_none",
+        SimBackend(SimConfig(), clock=FakeClock()),
+        line_process("ur5e", 0.1),
+        lambda *a: None,
+        tool=(np.zeros(6), None, np.zeros(3)),
+        journal=str(tmp_path / "j.journal"),
+        mode="movepath",
+    )  # never started: it counts as running (it may still move the arm)
+    services.live.executions["exe_movepath"] = runner
+    try:
+        for path, body in [("speed", {"fraction": 0.5}), ("pause", None)]:
+            refused = client.post(f"/executions/exe_movepath/{path}", json=body)
+            assert refused.status_code == 409, refused.text
+            assert refused.json()["code"] == "not_streamed"
+            assert "teach pendant" in refused.json()["message"]
+    finally:
+        del services.live.executions["exe_movepath"]

@@ -162,6 +162,53 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         tcp_server = np.array(arm_server.client.get("/robot").json()["tcp_pose"][:3])
         assert np.linalg.norm(tcp_now - tcp_server) < 0.05  # moving at 20 mm/s, read apart
         pendant.shot("running")
+
+        # Pause: the arm comes to rest on its path and holds; the bar says so. Resuming is
+        # approved again in a dialog that names the plan's file; cancelling it keeps the pause.
+        speed_state = page.locator("#run-speed-state")
+        expect(speed_state).to_have_text("100 % of the plan's speed")
+        page.get_by_role("button", name="Pause").click()
+        expect(speed_state).to_have_text("PAUSED, at rest on the path", timeout=15_000)
+        page.wait_for_timeout(400)  # the servo's lookahead settles
+        q_paused = _joints(fake)
+        page.wait_for_timeout(600)
+        assert np.abs(_joints(fake) - q_paused).max() < 1e-4
+        progress_paused = _progress(page, "#run-form")
+        pendant.shot("paused")
+        resume = page.get_by_role("button", name="Resume…")
+        resume.click()
+        expect(dialog).to_be_visible()
+        expect(page.locator("#confirm-title")).to_have_text("Resume the run on the arm?")
+        sha = arm_server.client.get("/robot").json()["run_speed"]["approved_sha256"]
+        expect(dialog.locator("tr", has_text="plan file")).to_contain_text(f"sha256 {sha[:12]}")
+        expect(dialog.locator("tr", has_text="speed")).to_contain_text("100 % of the plan's speed")
+        pendant.shot("confirm-resume")
+        dialog.get_by_role("button", name="Cancel").click()
+        page.wait_for_timeout(300)
+        assert np.abs(_joints(fake) - q_paused).max() < 1e-4
+        expect(speed_state).to_have_text("PAUSED, at rest on the path")
+        # The speed is set while paused (typed, with a comma), and the run goes on at it.
+        speed_field = page.locator("#run-speed-value")
+        speed_field.fill("2")
+        speed_field.press("Enter")
+        expect(page.locator("#banner")).to_contain_text("type 5 to 100")
+        assert arm_server.client.get("/robot").json()["run_speed"]["speed_fraction"] == 1.0
+        speed_field.fill("50,0")
+        speed_field.press("Enter")
+        expect(page.locator("#run-speed-slider")).to_have_value("50")
+        expect(page.locator("#banner")).to_be_hidden()
+        resume.click()
+        expect(dialog.locator("tr", has_text="speed")).to_contain_text("50 % of the plan's speed")
+        page.get_by_role("button", name="Confirm: resume").click()
+        expect(speed_state).to_have_text("50 % of the plan's speed", timeout=15_000)
+        expect(page.get_by_role("button", name="Pause")).to_be_visible()
+        deadline = time.monotonic() + 30
+        while _progress(page, "#run-form") <= progress_paused + 0.01:
+            assert time.monotonic() < deadline, "the run did not go on after the resume"
+            time.sleep(0.05)
+        assert np.abs(_joints(fake) - q_paused).max() > 1e-3
+        pendant.shot("half-speed")
+
         # A screen that is not signed in (a tablet by the cell, no token) shows the arm owned
         # and a Stop that works: its Escape is the stop that lands. The operator's page presses
         # Escape too. From each press until the server confirms, each page says "Stopping…"
@@ -176,6 +223,10 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             expect(near.locator("#arm-owner")).to_have_text(owner)
             near_stop = near.get_by_role("button", name="Stop")
             expect(near_stop).to_be_visible()
+            # It shows the run's speed; changing it or pausing takes the token (Stop does not).
+            expect(near.locator("#run-speed-state")).to_have_text("50 % of the plan's speed")
+            expect(near.get_by_role("button", name="Pause")).to_be_hidden()
+            expect(near.locator("#run-speed-slider")).to_be_hidden()
             bystander.shot("arm-owned")
             held, near_held = [], []
             page.route("**/executions/*/stop", lambda route: held.append(route))

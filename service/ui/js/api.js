@@ -182,6 +182,15 @@ export const INSTRUCTIONS = {
   arm_outside_limits: "The arm stands outside its joint limits: jog it back on the UR pendant.",
   outdated_inputs:
     "The plan is outdated (its inputs or the cell changed): plan again, or pick it on purpose.",
+  not_streamed:
+    "This run is a movePath, timed by the controller: its speed is fixed here. Use the UR " +
+    "pendant's speed slider, or Stop.",
+  not_moving: "The run has not started to move yet: there is nothing to pause (Stop cancels it).",
+  not_running: "The run has ended: there is nothing to change.",
+  bad_speed: "Set the run speed between 5 and 100 % of the plan's speed.",
+  not_confirmed: "Confirm the resume in the dialog: the arm moves only after you confirm.",
+  approval_mismatch:
+    "The plan on the server is not the one you approved: reload the page and approve it again.",
   poor_fit:
     "The fit is worse than its tolerance and was not stored: measure again (touch the points " +
     "again, pivot again), or tick “store it even if the fit is poor”.",

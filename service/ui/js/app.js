@@ -38,6 +38,7 @@ const state = {
   madeHere: new Set(), // executions a job of this server made (an imported dry run is not one)
   busy: null, // the step whose job runs now
   moving: null, // {executionId, jobId} of an execution that may move the arm
+  speedSending: false, // a run speed is on its way to the server
   schema: null,
   workspace: null,
 };
@@ -95,6 +96,7 @@ function showRobot(robot) {
   $("#safety-bar").classList.toggle("alarm", stopped || robot.emergency_stop || !robot.reachable);
   state.workspace?.showLiveArm(robot.reachable ? robot.joints_m : null);
   updateStop();
+  showRunSpeed(robot.run_speed);
   updatePlanSpeed();
   // The plan is for the arm the server drives, unless the operator chose another model.
   const model = $("#plan-robot");
@@ -153,6 +155,113 @@ async function stop() {
     renderSteps();
     banner(`Stop: ${explain(err).message}`);
   }
+}
+
+// -- the run's speed override and pause (beside Stop) ---------------------------------------------
+
+const percent = (fraction) => `${Math.round(fraction * 100)} %`;
+
+/** The speed group of the safety bar, from the owning run's state (robot.run_speed). */
+function showRunSpeed(run) {
+  const group = $("#run-speed");
+  group.hidden = !run;
+  group.classList.toggle("paused", Boolean(run?.paused));
+  if (!run) return;
+  const slider = $("#run-speed-slider");
+  const value = $("#run-speed-value");
+  const status = $("#run-speed-state");
+  if (!run.overridable) {
+    slider.hidden = value.hidden = $("#pause").hidden = $("#resume").hidden = true;
+    status.textContent = "fixed: a movePath run is timed by the controller";
+    return;
+  }
+  // A screen that is not signed in shows the speed; changing it, pausing and resuming take the
+  // token (Stop does not).
+  const signedOut = document.body.classList.contains("signed-out");
+  slider.hidden = value.hidden = signedOut;
+  // Never overwrite what the operator is setting.
+  if (![slider, value].includes(document.activeElement) && !state.speedSending) {
+    slider.value = String(Math.round(run.speed_fraction * 100));
+    value.value = slider.value;
+  }
+  if (run.paused) {
+    status.textContent = run.speed_now === 0 ? "PAUSED, at rest on the path" : "pausing…";
+  } else if (!run.moving) {
+    status.textContent = `${percent(run.speed_fraction)} of the plan's speed, from the start`;
+  } else if (Math.abs(run.speed_now - run.speed_fraction) > 0.005) {
+    status.textContent = `${percent(run.speed_now)}, going to ${percent(run.speed_fraction)}`;
+  } else {
+    status.textContent = `${percent(run.speed_fraction)} of the plan's speed`;
+  }
+  $("#pause").hidden = signedOut || run.paused || !run.moving;
+  $("#pause").disabled = Boolean(state.stopping);
+  $("#resume").hidden = signedOut || !run.paused;
+  $("#resume").disabled = Boolean(state.stopping) || run.speed_now !== 0;
+}
+
+async function sendRunSpeed(source) {
+  const run = state.robot?.run_speed;
+  if (!run) return;
+  const typed = Number(String(source.value).trim().replace(",", "."));
+  const value = $("#run-speed-value");
+  if (!Number.isFinite(typed) || typed < 5 || typed > 100) {
+    value.setCustomValidity("5 to 100 %");
+    value.reportValidity();
+    banner("Run speed: type 5 to 100 (per cent of the plan's speed). Nothing was changed.");
+    return;
+  }
+  value.setCustomValidity("");
+  $("#run-speed-slider").value = String(Math.round(typed));
+  value.value = String(Math.round(typed * 10) / 10);
+  state.speedSending = true;
+  try {
+    const shown = await api(`/executions/${run.execution_id}/speed`, { method: "POST", json: { fraction: typed / 100 } });
+    banner("");
+    showRunSpeed(shown);
+  } catch (err) {
+    banner(`Run speed: ${explain(err).message}`);
+  } finally {
+    state.speedSending = false;
+  }
+}
+
+async function pauseRun() {
+  const run = state.robot?.run_speed;
+  if (!run) return;
+  try {
+    showRunSpeed(await api(`/executions/${run.execution_id}/pause`, { method: "POST" }));
+    banner("");
+  } catch (err) {
+    banner(`Pause: ${explain(err).message}`);
+  }
+}
+
+async function resumeRun() {
+  const run = state.robot?.run_speed;
+  if (!run || !(await confirmResume(run))) return;
+  try {
+    showRunSpeed(await api(`/executions/${run.execution_id}/resume`, {
+      method: "POST", json: { confirm: true, approved_sha256: run.approved_sha256 },
+    }));
+    banner("");
+  } catch (err) {
+    banner(`Resume: ${explain(err).message}`);
+  }
+}
+
+/** The approval of a resume: what runs, from where, at what speed. */
+function confirmResume(run) {
+  const robot = state.robot;
+  const traj = state.trajectories.find((t) => t.id === run.trajectory_id);
+  const rows = [
+    ["robot", `${robot.real_arm ? "REAL ARM" : "SIM"} ${robot.robot}${robot.host ? ` @ ${robot.host}` : ""}`],
+    ["run", run.execution_id],
+    ["plan file", `${run.trajectory_id}, sha256 ${(run.approved_sha256 || "").slice(0, 12)}…` +
+      (traj ? `, ${new Date(traj.created_at).toLocaleString()}` : " (not in this session's list)")],
+    ["goes on", "from where it paused, along the same path to the plan's end"],
+    ["speed", `${percent(run.speed_fraction)} of the plan's speed (never faster than planned)`],
+  ];
+  return askDialog("Resume the run on the arm?", "Confirm: resume", rows);
 }
 
 // -- sessions -------------------------------------------------------------------------------------
@@ -1519,8 +1628,6 @@ function confirmRun(traj) {
   const degrees = (q) => `${q.map((v) => (v * 180 / Math.PI).toFixed(1)).join(", ")}°`;
   const arm = ["robot", `${robot.real_arm ? "REAL ARM" : "SIM (no real arm configured)"} ${sm.robot}${robot.host ? ` @ ${robot.host}` : ""}`];
   const move = isMove(traj);
-  $("#confirm-title").textContent = move ? "Move the arm to the plan's start?" : "Run on the arm?";
-  $("#confirm-run").textContent = move ? "Confirm: move to start" : "Confirm: run on arm";
   const rows = move ? [
     arm,
     ["motion", `a joint move to the start of plan ${sm.move_to_start_of}`],
@@ -1547,6 +1654,17 @@ function confirmRun(traj) {
     ["payload", payloadText(sm, robot)],
     ...approvedInputs(traj),
   ];
+  return askDialog(
+    move ? "Move the arm to the plan's start?" : "Run on the arm?",
+    move ? "Confirm: move to start" : "Confirm: run on arm",
+    rows,
+  );
+}
+
+/** The confirmation dialog: a title, rows of what will happen, Cancel focused. */
+function askDialog(title, button, rows) {
+  $("#confirm-title").textContent = title;
+  $("#confirm-run").textContent = button;
   $("#confirm-table").replaceChildren(...rows.map(([k, v]) => el("tr", {}, el("th", { text: k }), el("td", { text: v }))));
   const dialog = $("#confirm-dialog");
   dialog.returnValue = "";
@@ -1564,6 +1682,14 @@ function confirmRun(traj) {
 // Stop first: whatever fails later in the start-up, Stop and Escape work.
 function wireStop() {
   $("#stop").addEventListener("click", stop);
+  $("#pause").addEventListener("click", pauseRun);
+  $("#resume").addEventListener("click", resumeRun);
+  $("#run-speed-slider").addEventListener("input", (event) => { $("#run-speed-value").value = event.target.value; });
+  $("#run-speed-slider").addEventListener("change", (event) => sendRunSpeed(event.target));
+  $("#run-speed-value").addEventListener("change", (event) => sendRunSpeed(event.target));
+  $("#run-speed-value").addEventListener("keydown", (event) => {
+    if (event.key === "Enter") event.target.blur();  // sends it (change), off the field
+  });
   document.addEventListener("keydown", (event) => {
     if (event.key === "Escape" && canMove()) {
       event.preventDefault();
