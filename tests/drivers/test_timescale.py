@@ -182,3 +182,17 @@ def test_a_speed_outside_five_to_a_hundred_percent_is_refused(sim, bad):
     with pytest.raises((ValueError, TypeError)):
         backend.set_speed(bad)
     assert backend.speed_fraction == 1.0
+
+
+def test_the_arm_is_placed_on_the_plan_a_lookahead_of_periods_back_not_of_plan_samples():
+    """servoJ follows what was sent a lookahead ago in time: in a paused run that is the same
+    plan sample for as long as it stood still (a shift of plan samples would run ahead)."""
+    from drivers.robot.dryrun import recorded_plan_index
+
+    trajectory = line_process("ur5e", 0.1)
+    lag_s = 2 * trajectory.period_s
+    sent = np.array([0, 1, 2, 3, 3, 3, 3, 4, 5])  # paused at sample 3 for four periods
+    assert recorded_plan_index(trajectory, sent, lag_s).tolist() == [0, 0, 0, 1, 2, 3, 3, 3, 3]
+    # At the plan's own pace it is the plan sample a lookahead back, as before.
+    assert recorded_plan_index(trajectory, np.arange(6), lag_s).tolist() == [0, 0, 0, 1, 2, 3]
+    assert recorded_plan_index(trajectory, np.arange(1), lag_s).tolist() == [0]

@@ -174,6 +174,7 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         page.wait_for_timeout(600)
         assert np.abs(_joints(fake) - q_paused).max() < 1e-4
         progress_paused = _progress(page, "#run-form")
+        expect(page.locator("#step-run .needs")).to_contain_text("The run is paused")
         pendant.shot("paused")
         resume = page.get_by_role("button", name="Resume…")
         resume.click()
@@ -202,6 +203,9 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         page.get_by_role("button", name="Confirm: resume").click()
         expect(speed_state).to_have_text("50 % of the plan's speed", timeout=15_000)
         expect(page.get_by_role("button", name="Pause")).to_be_visible()
+        expect(page.locator("#step-run .needs")).to_have_text(
+            "The arm is moving: press Stop (or Esc) to stop it at once."
+        )
         deadline = time.monotonic() + 30
         while _progress(page, "#run-form") <= progress_paused + 0.01:
             assert time.monotonic() < deadline, "the run did not go on after the resume"

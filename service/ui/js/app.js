@@ -514,6 +514,9 @@ function runState(dry) {
   const owner = state.robot?.owner_execution_id;
   // This session's run (started here, or found again after a reload or on a second pendant).
   if (state.stopping) return { done: false, needs: "Stopping: the stop was sent; waiting for the server to confirm the arm stands still." };
+  if (state.moving && state.robot?.run_speed?.paused) {
+    return { done: false, needs: "The run is paused: the arm rests on its path. Resume… in the bar goes on after you approve it again; Stop (or Esc) ends the run." };
+  }
   if (state.moving) return { done: false, needs: "The arm is moving: press Stop (or Esc) to stop it at once." };
   if (owner) {
     return { done: false, needs: `The arm is busy: execution ${owner} owns it. Wait until it ends, or press Stop.` };
