@@ -29,10 +29,13 @@ test: setup
 # Speed and accuracy tables; never part of `make test` (timings on a shared machine are noisy).
 bench: setup
 	@scripts/setup.sh --bench-tools
-	$(BIN)/python -m pytest -q -s -p no:cacheprovider tests/bench
+	$(BIN)/python -m pytest -q -s -p no:cacheprovider -m bench tests/bench
 
+# What CI checks before the tests (and the pre-commit hooks, .pre-commit-config.yaml, before a
+# commit): ruff's rules and its formatting, the Dockerfile, the compose file.
 lint: setup
 	$(BIN)/ruff check recon drivers service tests
+	$(BIN)/ruff format --check recon drivers service tests
 	$(BIN)/hadolint docker/Dockerfile
 	$(BIN)/yamllint -c .yamllint.yaml docker/compose.yaml
 

@@ -203,7 +203,7 @@ def run_isolated(
             }
         )
         output_path = Path(tmp) / _OUTPUT
-        env = {**os.environ, **{var: "1" for var in _ONE_THREAD}}
+        env = {**os.environ, **dict.fromkeys(_ONE_THREAD, "1")}
         started = time.monotonic()
         with output_path.open("wb") as output:
             process = subprocess.Popen(

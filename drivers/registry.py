@@ -30,16 +30,20 @@ from drivers.errors import DriverError, MissingDependencyError
 
 T = TypeVar("T")
 
-#: Third-party module -> the pip requirement that provides it (with the version teachpath pins
-#: where the code relies on it; see pyproject.toml). Unlisted modules are named as they are.
+#: Third-party module -> what to install for it: the extra of teachpath that brings it (see the
+#: optional dependencies in pyproject.toml, which pin the versions the code relies on). Unlisted
+#: modules are named as they are.
 INSTALL_HINTS: dict[str, str] = {
     "open3d": "open3d-cpu",
-    "pye57": "pye57",
-    "ezc3d": "ezc3d>=1.7,<1.8",
-    "natnet": "natnet==0.3.0",
-    "rtde_control": "ur-rtde==1.6.5",
-    "rtde_receive": "ur-rtde==1.6.5",
-    "dashboard_client": "ur-rtde==1.6.5",
+    "pye57": "teachpath[e57]",
+    "ezc3d": "teachpath[c3d]",
+    "natnet": "teachpath[natnet]",
+    "rtde_control": "teachpath[ur]",
+    "rtde_receive": "teachpath[ur]",
+    "dashboard_client": "teachpath[ur]",
+    "dask": "teachpath[replay]",
+    "distributed": "teachpath[replay]",
+    "psycopg": "teachpath[postgres]",
 }
 
 #: Top-level packages of teachpath itself: an import error inside them is a bug, not a missing

@@ -1401,7 +1401,7 @@ def _travel_windows(
     return out
 
 
-def check_motion(
+def check_motion(  # noqa: C901
     arm: URModel | str,
     q_rad: FloatArray,
     phase: NDArray,

@@ -401,7 +401,7 @@ def _votes(x, y, phi, weight, n_rho) -> FloatArray:
     """Hough accumulator (B, THETA_BINS, n_rho): each weighted point votes for the lines through
     it whose normals lie within :data:`NORMAL_TOLERANCE_DEG` of its own normal (``phi``), each
     vote shared linearly between the two nearest offset bins."""
-    b, k = x.shape
+    b, _k = x.shape
     step = np.pi / THETA_BINS
     window = np.arange(-VOTE_HALF_WINDOW, VOTE_HALF_WINDOW + 1)
     centre = np.floor(phi / step).astype(np.int64)

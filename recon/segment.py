@@ -6,6 +6,8 @@ corners stay sharp. Where the corners are is decided in :mod:`recon.corners`.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 
@@ -23,4 +25,4 @@ def split_at(n_points: int, corners: np.ndarray) -> list[tuple[int, int]]:
     list of (start, stop)
     """
     bounds = [0, *[int(c) for c in corners if 0 < c < n_points - 1], n_points - 1]
-    return [(a, b + 1) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    return [(a, b + 1) for a, b in itertools.pairwise(bounds)]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import enum
 import functools
+import itertools
 import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
@@ -93,7 +94,7 @@ def piece_labels(values, n: int, *, name: str = "piece") -> NDArray[np.int64]:
 def piece_slices(piece: NDArray[np.int64]) -> list[slice]:
     """The index range of each piece, in order (``piece`` as checked by :func:`piece_labels`)."""
     starts = np.r_[0, np.flatnonzero(np.diff(piece)) + 1, len(piece)]
-    return [slice(int(a), int(b)) for a, b in zip(starts[:-1], starts[1:], strict=True)]
+    return [slice(int(a), int(b)) for a, b in itertools.pairwise(starts)]
 
 
 @dataclass(frozen=True)
@@ -1241,8 +1242,7 @@ class JointTrajectory:
         phases = self.phases
         starts = np.r_[0, np.flatnonzero(np.diff(phases)) + 1, len(phases)]
         return [
-            (Phase(int(phases[a])), slice(int(a), int(b)))
-            for a, b in zip(starts[:-1], starts[1:], strict=True)
+            (Phase(int(phases[a])), slice(int(a), int(b))) for a, b in itertools.pairwise(starts)
         ]
 
     def phase_durations_s(self) -> dict[str, float]:

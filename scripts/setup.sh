@@ -102,5 +102,5 @@ quiet_pip() {
     rm -f "$log"
 }
 quiet_pip install -q --upgrade pip
-quiet_pip install -q -c constraints.txt -e '.[dev]'
+quiet_pip install -q -c constraints.txt -e '.[all,dev]'
 echo "$want" > "$STAMP"

@@ -584,7 +584,7 @@ def _first_error(exc: Exception) -> str:
     return "nested too deeply"
 
 
-def _check_layout(
+def _check_layout(  # noqa: C901
     bundle: zipfile.ZipFile, manifest: Manifest, max_bytes: int, max_file_bytes: int | None = None
 ) -> list[FileEntry]:
     """The files to unpack, after checking that ids, names and sizes are what this version
@@ -915,9 +915,9 @@ def _record(store: Store, manifest: Manifest) -> None:
 __all__ = [
     "BUNDLE_FILES",
     "BUNDLE_SCHEMA",
-    "BundleReader",
     "BundleConflictError",
     "BundleError",
+    "BundleReader",
     "ImportResult",
     "Manifest",
     "build_manifest",

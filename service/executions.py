@@ -184,7 +184,7 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
                 loaded,
                 config,
                 accepted_outdated=outdated,
-            ),  # fmt: skip
+            ),
             tool=tool,
             journal=str(journal_path(services, out_id)),
             mode=request.mode,

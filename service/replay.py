@@ -445,7 +445,12 @@ def run_replay(
     on_cluster : callable, optional
         Given the Dask client once connected (to show its dashboard link).
     """
-    from distributed import Client, LocalCluster, as_completed
+    try:
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError as error:
+        from drivers.registry import missing_dependency
+
+        raise missing_dependency(error, "replay (one Dask task per session)") from None
 
     start = time.perf_counter()
     cluster = None

@@ -71,7 +71,7 @@ def iso(moment: datetime | None) -> str | None:
 
 
 class Base(DeclarativeBase):
-    type_annotation_map = {dict[str, Any]: JSON, list[Any]: JSON}
+    type_annotation_map = {dict[str, Any]: JSON, list[Any]: JSON}  # noqa: RUF012 - SQLAlchemy's way
 
 
 class SessionRow(Base):
@@ -263,11 +263,16 @@ class Store:
             for suffix in ("-wal", "-shm"):
                 if os.path.exists(database + suffix):
                     os.chmod(database + suffix, PRIVATE_FILE)
-        self.engine = create_engine(
-            url,
-            connect_args={"check_same_thread": False, "timeout": 30} if sqlite else {},
-            pool_pre_ping=not sqlite,  # a restarted database server: reconnect, do not fail
-        )
+        try:
+            self.engine = create_engine(
+                url,
+                connect_args={"check_same_thread": False, "timeout": 30} if sqlite else {},
+                pool_pre_ping=not sqlite,  # a restarted database server: reconnect, do not fail
+            )
+        except ImportError as error:  # the database's driver (psycopg: the postgres extra)
+            from drivers.registry import missing_dependency
+
+            raise missing_dependency(error, f"the database {make_url(url).drivername}") from None
         if sqlite:
 
             @event.listens_for(self.engine, "connect")

@@ -268,10 +268,8 @@ class RobotBackend(ABC):
         if pose.shape != (6,) or not np.all(np.isfinite(pose)) or np.abs(pose[:3]).max() > 1.0:
             raise ValueError(f"tcp_pose must be 6 finite numbers within 1 m, got {tcp_pose!r}")
         if (
-            payload_kg is not None
-            and not (0.0 <= payload_kg <= self.arm.payload_kg)
-            or cog.shape != (3,)
-        ):
+            payload_kg is not None and not (0.0 <= payload_kg <= self.arm.payload_kg)
+        ) or cog.shape != (3,):
             raise ValueError(
                 f"the payload must be 0..{self.arm.payload_kg} kg with a 3-vector centre of "
                 f"gravity, got {payload_kg!r}, {payload_cog_m!r}"

@@ -187,7 +187,7 @@ class SimBackend(RobotBackend):
         cursor = PlanCursor(
             trajectory.q_rad, self._dt, trajectory.arm.qdd_max_rad_s2, self.speed_target
         )
-        times, sent, planned, actual, completed, fault = self._stream(
+        times, _sent, planned, actual, completed, fault = self._stream(
             cursor, on_progress, journal, override=True
         )
         return self._record(times, trajectory.q_rad[planned], actual, completed, fault, planned)

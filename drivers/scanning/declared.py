@@ -273,7 +273,7 @@ def ply_layout(path: Path, label: str) -> PlyLayout:
 # --------------------------------------------------------------------------- PCD
 
 
-def _check_pcd(path: Path, label: str) -> int:
+def _check_pcd(path: Path, label: str) -> int:  # noqa: C901
     lines, offset = _header(path, label, "pcd", lambda line: line.upper().startswith("DATA"))
     body = path.stat().st_size - offset
     fields: dict[str, list[str]] = {}

@@ -27,6 +27,7 @@ Everything done is listed in the :class:`GapReport`.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -346,7 +347,7 @@ def _continuous_sign(quat: FloatArray, ok: np.ndarray) -> FloatArray:
     so interpolation and smoothing do not take the long way round."""
     quat = quat.copy()
     idx = np.flatnonzero(ok)
-    for prev, cur in zip(idx[:-1], idx[1:], strict=True):
+    for prev, cur in itertools.pairwise(idx):
         if np.dot(quat[prev], quat[cur]) < 0:
             quat[cur] = -quat[cur]
     return quat

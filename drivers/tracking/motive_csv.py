@@ -146,7 +146,7 @@ class MotiveTrace:
         )
 
 
-def read_motive_csv(
+def read_motive_csv(  # noqa: C901
     source: str | Path | bytes,
     *,
     rigid_body: str | None = None,

@@ -451,9 +451,12 @@ class NatNetSource(TrackerSource):
         self._closed = True
         self._stop.set()  # the receiver flushes its last frames and exits
         consumer = self._consumer
-        if consumer is not None and consumer != threading.get_ident():
-            if self._drained.wait(DRAIN_S + 1.0):
-                return
+        if (
+            consumer is not None
+            and consumer != threading.get_ident()
+            and self._drained.wait(DRAIN_S + 1.0)
+        ):
+            return
         self._shutdown()
 
     def __enter__(self) -> NatNetSource:

@@ -109,9 +109,12 @@ def turning_edge(
     """
     rng = np.random.default_rng(seed)
     noise = noise or HandNoise()
-    geometry = dict(
-        leg_a_m=leg_a_m, leg_b_m=leg_b_m, turn_deg=turn_deg, bend_radius_m=bend_radius_m
-    )
+    geometry = {
+        "leg_a_m": leg_a_m,
+        "leg_b_m": leg_b_m,
+        "turn_deg": turn_deg,
+        "bend_radius_m": bend_radius_m,
+    }
     length = leg_a_m + bend_radius_m * np.radians(turn_deg) + leg_b_m
     dense_s = np.arange(-EXTENSION_M, length + EXTENSION_M + 1e-12, 0.05 * MM)
     dense, headings = outline(dense_s, **geometry)

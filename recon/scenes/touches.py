@@ -10,6 +10,7 @@ through the air. The tracker's tip position carries white noise and the pivot ca
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -227,7 +228,7 @@ def _move(a, normal_a, b, normal_b, lift_m, step_m) -> FloatArray:
     ends), in steps of about ``step_m``."""
     waypoints = [a, a + lift_m * normal_a, b + lift_m * normal_b, b]
     out = []
-    for p, q in zip(waypoints[:-1], waypoints[1:], strict=True):
+    for p, q in itertools.pairwise(waypoints):
         n = max(2, int(np.ceil(np.linalg.norm(q - p) / step_m)))
         # Smooth in and out of each leg (a hand slows down where it turns).
         u = 0.5 - 0.5 * np.cos(np.pi * np.linspace(0.0, 1.0, n, endpoint=False)[1:])

@@ -87,7 +87,10 @@ async def export_session(session_id: str, services: ServicesDep) -> FileResponse
     from service.bundles import export_bundle
 
     services.session(session_id)
-    handle = tempfile.NamedTemporaryFile(prefix="teachpath-bundle-", suffix=".zip", delete=False)
+    # Closed by the `with` below; opened first, so that a failure can delete it by its name.
+    handle = tempfile.NamedTemporaryFile(  # noqa: SIM115
+        prefix="teachpath-bundle-", suffix=".zip", delete=False
+    )
     path = Path(handle.name)
     try:
         with handle:

@@ -146,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
     if scan is not None and given is not None and not wants_scan:
         path = replace(path, T_scan_tracker=given)
     elif scan is not None and (
-        given is not None or path.T_scan_tracker is None or scan_model is None and wants_scan
+        given is not None or path.T_scan_tracker is None or (scan_model is None and wants_scan)
     ):
         # A transform given by hand, or none stored, or no stored model: build one here.
         known = given if given is not None else path.T_scan_tracker

@@ -109,7 +109,7 @@ def test_collision_check_speed():
     print(
         f"| scan preprocessing (1M points, 2 mm voxels) | - | - | {med:.3f} | {lo:.3f} | {hi:.3f} |"
     )
-    q, phase, T_ft, process = _plan(arm)
+    q, phase, T_ft, _process = _plan(arm)
     zone = ContactZone.of_process(arm, q[phase == Phase.PROCESS], T_ft)
     for copies in (1, 10):
         qq, pp = np.tile(q, (copies, 1)), np.tile(phase, copies)

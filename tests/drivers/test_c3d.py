@@ -47,7 +47,7 @@ def test_round_trip_with_lost_samples(tmp_path, units):
 
 
 def test_single_marker_is_chosen_and_bytes_are_accepted(tmp_path):
-    t, pos = markers(50)
+    _t, pos = markers(50)
     path = write_c3d(tmp_path / "one.c3d", ["pen"], pos[:, :1], 100.0)
     trace = read_c3d(path.read_bytes(), name="upload.c3d")
     assert trace.marker == "pen"
@@ -58,7 +58,7 @@ def test_single_marker_is_chosen_and_bytes_are_accepted(tmp_path):
 def test_take_longer_than_65535_frames(tmp_path):
     # 200 s at 360 Hz: past the header's 16-bit frame numbers and ezc3d's own limit.
     n = 72_000
-    t, pos = markers(n, 360.0)
+    _t, pos = markers(n, 360.0)
     lost = np.zeros((n, 2), bool)
     lost[[10, 65_534, 65_535, 70_000], 0] = True
     path = write_c3d(tmp_path / "long.c3d", LABELS[:2], pos[:, :2], 360.0, lost=lost)

@@ -648,7 +648,7 @@ def test_the_worker_checks_the_latched_stop_right_before_it_sends_move_path(fake
 
     trajectory = line_process("ur5e", 0.1)
     robot._worker.stop_event.set()  # latched in the worker, not yet seen by the caller
-    times, actual, completed, fault = robot._call(
+    times, _actual, completed, fault = robot._call(
         MovePath(
             trajectory.q_rad[::200].tolist(),
             [0.5] * len(trajectory.q_rad[::200]),

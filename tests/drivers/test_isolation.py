@@ -109,7 +109,7 @@ def test_a_child_under_a_lower_inherited_limit_names_that_limit():
     outer = Limits(memory_bytes=700 << 20)
     with pytest.raises(ResourceLimitError) as raised:
         run_isolated(T + "allocate_in_a_child", (1 << 30, 4 << 30), limits=outer)
-    assert "the inner needed more memory than its limit of 700 MB (inner)" == str(raised.value)
+    assert str(raised.value) == "the inner needed more memory than its limit of 700 MB (inner)"
 
 
 def test_a_child_over_its_time_limit_is_the_time_limit_error():

@@ -496,7 +496,7 @@ def _skeleton_export(n_bones=3, n=60):
 
 
 def test_a_skeleton_only_export_lists_bones_and_markers_and_a_bone_can_be_read():
-    content, t, p, q = _skeleton_export()
+    content, _t, p, q = _skeleton_export()
     with pytest.raises(InputFileError) as error:
         read_motive_csv(content, name="walk.csv")
     message = str(error.value)

@@ -71,10 +71,10 @@ def _open3d_read(path):
 
 
 CASES = {
-    "doubles": dict(),
-    "floats": dict(kind="float"),
-    "big-endian": dict(fmt="binary_big_endian"),
-    "normals and colours": dict(normals=True, colours=True),
+    "doubles": {},
+    "floats": {"kind": "float"},
+    "big-endian": {"fmt": "binary_big_endian"},
+    "normals and colours": {"normals": True, "colours": True},
 }
 
 

@@ -196,7 +196,7 @@ def test_read_trace_reads_a_c3d_marker(tmp_path):
     from drivers.tracking.readers import read_trace
     from tests.drivers.tracking_fixtures import helix, write_c3d
 
-    t, position, _ = helix(480)
+    _t, position, _ = helix(480)
     markers = np.stack([position, position + 0.1], axis=1)
     write_c3d(tmp_path / "take.c3d", ["tip", "tail"], markers, 240.0)
     trace = read_trace(tmp_path / "take.c3d", marker="tip")

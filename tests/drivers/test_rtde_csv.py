@@ -113,7 +113,7 @@ def test_a_recording_without_the_tcp_pose_quotes_only_part_of_its_header(arm):
 
 
 def test_a_torn_last_line_is_left_out_and_a_damaged_row_refused(arm):
-    t, position, quat, rotvec = arm
+    t, position, _quat, rotvec = arm
     content = rtde_recording(t[:50], position[:50], rotvec[:50])
     torn = content[:-200]  # the recorder stopped in the middle of the last row
     trace = read_rtde_csv(torn, name="r.csv")

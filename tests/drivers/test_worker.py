@@ -95,9 +95,11 @@ def test_labels_name_commands_in_snake_case():
 
 
 def test_the_fallback_class_is_the_client_s_choice():
-    with WorkerClient(SERVER, name="the arm's worker", fallback=RobotError) as worker:
-        with pytest.raises(RobotError, match="VendorError: boom"):
-            worker.call(Fail("vendor", "boom"), timeout_s=30)
+    with (
+        WorkerClient(SERVER, name="the arm's worker", fallback=RobotError) as worker,
+        pytest.raises(RobotError, match="VendorError: boom"),
+    ):
+        worker.call(Fail("vendor", "boom"), timeout_s=30)
 
 
 def test_a_command_that_overruns_its_bound_ends_the_worker():
@@ -136,9 +138,11 @@ def test_a_worker_that_dies_is_a_lost_worker():
 
 
 def test_a_server_that_cannot_start_answers_with_its_error():
-    with WorkerClient("tests.drivers.worker_targets:BrokenServer", name="w") as worker:
-        with pytest.raises(InputFileError, match="would not start"):
-            worker.call(Echo(1), timeout_s=30)
+    with (
+        WorkerClient("tests.drivers.worker_targets:BrokenServer", name="w") as worker,
+        pytest.raises(InputFileError, match="would not start"),
+    ):
+        worker.call(Echo(1), timeout_s=30)
 
 
 def test_the_stop_event_reaches_a_busy_server(client):

@@ -57,7 +57,7 @@ def helix(n: int, rate_hz: float = 240.0, *, seed: int = 0):
     return t, position, quat
 
 
-def write_motive_csv(
+def write_motive_csv(  # noqa: C901
     path: str | Path,
     t_s: np.ndarray,
     position_m: np.ndarray,

@@ -23,19 +23,21 @@ def _listen(
 ) -> None:
     headers = {"Authorization": f"Bearer {token}"} if token else {}
     try:
-        with httpx.Client(base_url=url, timeout=30.0, headers=headers) as client:
-            with client.stream("GET", "/robot/events") as response:
-                if response.status_code != 200:
-                    errors.append(response.status_code)
+        with (
+            httpx.Client(base_url=url, timeout=30.0, headers=headers) as client,
+            client.stream("GET", "/robot/events") as response,
+        ):
+            if response.status_code != 200:
+                errors.append(response.status_code)
+                started.release()
+                return
+            first = True
+            for line in response.iter_lines():
+                if first and line.startswith("data:"):
                     started.release()
+                    first = False
+                if stop.is_set():
                     return
-                first = True
-                for line in response.iter_lines():
-                    if first and line.startswith("data:"):
-                        started.release()
-                        first = False
-                    if stop.is_set():
-                        return
     except httpx.HTTPError as error:
         errors.append(type(error).__name__)
 

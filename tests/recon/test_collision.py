@@ -273,7 +273,12 @@ def test_elbow_down_dips_below_the_table_elbow_up_does_not():
     q_up, q_down = (qs[0], qs[1]) if elbow_z[0] > elbow_z[1] else (qs[1], qs[0])
     phase = np.full(n, Phase.TRANSIT)
     t = np.arange(n) / arm.control_rate_hz
-    kw = dict(T_flange_tcp=_tcp_transform(0.05), tool=CapsuleTool(0.01), margin_m=0.01, t_s=t)
+    kw = {
+        "T_flange_tcp": _tcp_transform(0.05),
+        "tool": CapsuleTool(0.01),
+        "margin_m": 0.01,
+        "t_s": t,
+    }
     up = check_motion(arm, q_up, phase, Cell(), **kw)
     assert up.clear, up.lines()
     down = check_motion(arm, q_down, phase, Cell(), **kw)
@@ -355,7 +360,7 @@ def test_the_tool_may_touch_the_process_path_only_in_the_process_phases(workpiec
     joints, phase, T_ft, process, t = _contact_plan(arm, 0.0)
     zone = ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft)
     assert np.allclose(zone.path_m, process)
-    kw = dict(T_flange_tcp=T_ft, tool=CapsuleTool(0.02), margin_m=0.01, t_s=t)
+    kw = {"T_flange_tcp": T_ft, "tool": CapsuleTool(0.02), "margin_m": 0.01, "t_s": t}
     ok = check_motion(arm, joints.q_rad, phase, workpiece_cell, contact_zone=zone, **kw)
     assert ok.clear, ok.lines()
     assert ok.exempt_links == ("tool",)
@@ -386,13 +391,13 @@ def test_a_tool_tilted_into_the_workpiece_is_reported_as_the_tool(workpiece_cell
     arm = model("ur5e")
     upright, *_ = _contact_plan(arm, 0.0)
     joints, phase, T_ft, process, t = _contact_plan(arm, 60.0, branch=upright.branch)
-    kw = dict(
-        T_flange_tcp=T_ft,
-        tool=CapsuleTool(0.02),
-        margin_m=0.01,
-        contact_zone=ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft),
-        t_s=t,
-    )
+    kw = {
+        "T_flange_tcp": T_ft,
+        "tool": CapsuleTool(0.02),
+        "margin_m": 0.01,
+        "contact_zone": ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft),
+        "t_s": t,
+    }
     # Tilted 60 deg, the 150 mm tool also passes 5 mm from the forearm's housing from the
     # first sample on: the arm against itself is found first.
     both = check_motion(arm, joints.q_rad, phase, workpiece_cell, **kw)

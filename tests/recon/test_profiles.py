@@ -4,6 +4,7 @@ with known answers: dihedral edges, a chamfer, a thin wall, a step."""
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -28,7 +29,7 @@ def extruded(profile_yz, rng, *, sigma_m, length_m=0.06, spacing_m=0.0007):
     face's normal. Returns (points (M, 3), unit normals (M, 3))."""
     profile = np.asarray(profile_yz, dtype=np.float64)
     points, normals = [], []
-    for a, b in zip(profile[:-1], profile[1:], strict=True):
+    for a, b in itertools.pairwise(profile):
         width = float(np.linalg.norm(b - a))
         n = int(length_m * width / spacing_m**2)
         t = rng.uniform(0.0, 1.0, n)

@@ -145,7 +145,7 @@ def test_a_damaged_capture_file_is_a_clear_error(tmp_path):
 
 def test_pivot_calibration_bad_input_changes_nothing(client, sid):
     before = client.get(f"/sessions/{sid}").json()
-    position, quat = pivot_recording(0)
+    position, _quat = pivot_recording(0)
     t = np.arange(len(position)) / 240.0
     for name, content, code in (
         ("p.csv", _csv(Recording(points_m=position, t_s=t)), "invalid_file"),  # no quaternions

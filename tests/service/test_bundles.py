@@ -432,7 +432,7 @@ def test_a_bad_bundle_is_refused_by_name_and_changes_nothing(source, tmp_path, c
     assert message in str(refused.value)
     assert not isinstance(refused.value, BundleConflictError)
     assert _state(target) == before
-    assert not [p for p in target.rglob(".*import*")]
+    assert not list(target.rglob(".*import*"))
 
 
 def test_the_api_and_cli_refuse_bad_bundles_with_their_reason(source, tmp_path, capsys):
@@ -524,7 +524,7 @@ def test_two_processes_importing_the_same_ids_at_once_leave_one_consistent_sessi
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
                 text=True,
-            )  # fmt: skip
+            )
             for p in paths
         ]
         results = [(run.wait(120), run.stdout.read(), run.stderr.read()) for run in runs]

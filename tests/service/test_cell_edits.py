@@ -134,7 +134,7 @@ def test_a_cell_that_cannot_be_checked_is_refused_saying_what_to_change(fresh, c
         '{"keep_out_boxes_m": ' + "[" * 5000 + "]" * 5000 + ', "cell_planes": [], "revision": 0}',
         json.dumps(
             {"keep_out_boxes_m": [[0, 0, 0, 1, 1, 1]] * 5000, "cell_planes": [], "revision": 0}
-        ),  # fmt: skip
+        ),
         "[1, 2",
         '{"keep_out_boxes_m": [[0, 0, 0, 1' + "0" * 400 + ', 1, 1]], "cell_planes": [], '
         '"revision": 0}',
@@ -151,7 +151,7 @@ def test_a_cell_that_cannot_be_checked_is_refused_saying_what_to_change(fresh, c
         "5000-boxes",
         "truncated",
         "400-digit-corner",
-    ],  # fmt: skip
+    ],
 )
 def test_hostile_bodies_get_a_4xx_and_change_nothing(fresh, body):
     before = fresh.get("/cell").json()

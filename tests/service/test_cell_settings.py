@@ -32,7 +32,7 @@ WALL_FAR_AWAY = (-1.0, 0.0, 0.0, -1.5)
         "infinite-box",
         "33-boxes",
         "millimetres",
-    ],  # fmt: skip
+    ],
 )
 def test_a_cell_that_cannot_be_checked_stops_the_start(tmp_path, setting, message):
     with pytest.raises(ValidationError) as refused:

@@ -76,7 +76,7 @@ def _run(tmp_path, *, stop_at: float | None = None, stop_after_end: bool = False
 
 @pytest.mark.parametrize("stop_at", [0.3, 0.55, 0.8])
 def test_a_stopped_run_reports_one_place_it_stopped_and_the_time_it_ran(tmp_path, stop_at):
-    job, summary, record, trajectory = _run(tmp_path, stop_at=stop_at)
+    job, summary, _record, trajectory = _run(tmp_path, stop_at=stop_at)
     assert job["state"] == "cancelled" and not summary["completed"]
     planned = summary["phase_durations_s"]
     executed = summary["executed_phase_durations_s"]
@@ -134,7 +134,7 @@ def test_a_dry_run_measures_its_duration_and_phases_as_a_real_run_does(mode):
 def test_a_stop_while_the_arm_settles_on_the_last_sample_is_a_stop(tmp_path):
     """The last sample sent is not the arm arrived: it follows a lookahead behind and settles.
     A Stop then brakes it short of the end (12 mrad measured), so the run did not complete."""
-    job, summary, record, _ = _run(tmp_path, stop_at=1.0)
+    job, summary, _record, _ = _run(tmp_path, stop_at=1.0)
     assert job["state"] == "cancelled"
     assert not summary["completed"] and summary["faults"] == ["stopped on request"]
     assert summary["stopped_in"] == job["result"]["stopped_in"] == "retract"

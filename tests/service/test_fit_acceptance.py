@@ -28,7 +28,7 @@ def client(tmp_path_factory):
 @pytest.fixture()
 def sid(client):
     sid = client.post("/sessions", json={"name": "fits"}).json()["id"]
-    T, pairs = _pairs()
+    _T, pairs = _pairs()
     assert (
         client.post(f"/sessions/{sid}/calibration/base", json={"pairs": pairs}).status_code == 200
     )
@@ -70,7 +70,7 @@ def test_a_poor_fit_is_stored_when_explicitly_accepted(client, sid):
 
 
 def test_a_good_fit_with_one_bad_pair_leaves_it_out_and_is_stored(client, sid):
-    T, pairs = _pairs(outlier_at=2)
+    _T, pairs = _pairs(outlier_at=2)
     response = client.post(f"/sessions/{sid}/calibration/base", json={"pairs": pairs})
     assert response.status_code == 200
     result = response.json()["result"]

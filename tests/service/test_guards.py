@@ -83,7 +83,7 @@ def test_with_the_token_the_body_goes_on_and_reads_need_no_gate():
 
 
 def test_before_the_service_has_a_token_nothing_with_a_body_is_accepted():
-    status, body, received = call(TokenGate(Inner(), lambda: None), headers=[])
+    status, _body, received = call(TokenGate(Inner(), lambda: None), headers=[])
     assert status == 503 and received == []
 
 

@@ -114,7 +114,7 @@ def test_every_link_names_what_exists(spec):
     for method, path, status, source, response, name, link in _declared(spec):
         where = f"{method} {path} {status} {name}"
         assert link["operationId"] in operations, where
-        _, target_path, target = operations[link["operationId"]]
+        _, _target_path, target = operations[link["operationId"]]
         path_parameters = {p["name"] for p in target.get("parameters", []) if p["in"] == "path"}
         # Every path parameter of the target is set (the link is followed with real ids).
         assert set(link["parameters"]) == path_parameters, where

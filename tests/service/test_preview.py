@@ -228,7 +228,7 @@ def test_an_endless_joint_and_an_empty_cell_are_null_not_infinite(client, planne
     import dataclasses
     import json
 
-    sid, tid = planned
+    _sid, tid = planned
     row = client.app.state.services.store.artifact(tid, kind="trajectory")
     path = client.app.state.services.store.path_of(row)
     trajectory = dataclasses.replace(load_trajectory(path, row.summary), robot="ur3e")

@@ -196,7 +196,7 @@ DEEP = 50_000
     ids=["deep-array", "deep-field", "huge-integer", "long-string"],
 )
 def test_hostile_json_bodies_are_client_errors(app_client, body):
-    services, client = app_client
+    _services, client = app_client
     before = client.get("/sessions").json()
     response = client.post("/sessions", content=body, headers={"Content-Type": "application/json"})
     assert 400 <= response.status_code < 500, response.text
@@ -221,7 +221,7 @@ def test_hostile_reader_options_are_refused_before_the_file_is_read(
 ):
     import sys
 
-    services, client = app_client
+    _services, client = app_client
     sid = client.post("/sessions", json={"name": "options"}).json()["id"]
     limit = sys.getrecursionlimit()
     sys.setrecursionlimit(1000)  # what the server runs with; the test runner raises it
@@ -239,7 +239,7 @@ def test_hostile_reader_options_are_refused_before_the_file_is_read(
 
 
 def test_confirm_is_only_the_json_boolean(app_client):
-    services, client = app_client
+    _services, client = app_client
     sid = client.post("/sessions", json={"name": "confirm"}).json()["id"]
     for value in ("yes", 1, "true", None):
         body = json.dumps({"trajectory_id": "trj_x", "mode": "servoj", "confirm": value})

@@ -28,7 +28,7 @@ def app_client(tmp_path):
 def test_an_upload_onto_a_full_disk_is_a_503_storage_full_and_recovers(
     app_client, scene_files, monkeypatch
 ):
-    services, client = app_client
+    _services, client = app_client
     sid = client.post("/sessions", json={"name": "disk"}).json()["id"]
     real = shutil.disk_usage
     monkeypatch.setattr(shutil, "disk_usage", lambda path: Usage(10**12, 10**12, 1 << 20))

@@ -382,7 +382,7 @@ def test_the_cell_is_edited_in_3d_and_outdates_the_plans_made_in_another(pendant
     outdated; an edit from a view another pendant changed is refused and discarded; back to the
     start-up settings, the plan is current again."""
     page, client = pendant.page, pendant.server.client
-    sid, _ = _plan_demo(pendant.server)
+    _sid, _ = _plan_demo(pendant.server)
     try:
         pendant.open()
         page.get_by_role("button", name="demo", exact=True).click()

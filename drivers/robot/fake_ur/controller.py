@@ -677,7 +677,7 @@ class FakeController:
             log.exception("command %d failed inside the fake controller", cmd)
             self.runtime_error(f"command {cmd} failed inside the fake controller")
 
-    def _process(self, cmd: int) -> bool:
+    def _process(self, cmd: int) -> bool:  # noqa: C901
         """Run one command; True if it answers later (a synchronous move)."""
         if cmd == cs.CMD_SERVOJ:
             self.servo_target = self._float_regs(0)

@@ -18,7 +18,7 @@ UNLOCK_TOO_EARLY = (
 )
 
 
-def reply(c: ctl.FakeController, line: str, *, polyscope: str, serial: str, model: str) -> str:
+def reply(c: ctl.FakeController, line: str, *, polyscope: str, serial: str, model: str) -> str:  # noqa: C901
     """The one-line answer to the dashboard command ``line`` (state changes applied)."""
     command = line.strip()
     lower = command.lower()

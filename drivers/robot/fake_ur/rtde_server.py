@@ -118,7 +118,7 @@ class RTDEConnection:
             )
             self.close()
 
-    def _handle(self, kind: int, body: bytes) -> None:
+    def _handle(self, kind: int, body: bytes) -> None:  # noqa: C901
         c = self.controller
         if kind == rp.DATA_PACKAGE:
             recipe = self.inputs.get(body[0]) if body else None

@@ -110,7 +110,7 @@ class FakeUR:
     def start(self) -> None:
         """Bind every port (raises OSError if one is taken) and start serving."""
         handlers = {DASHBOARD_PORT: self._dashboard, RTDE_PORT: self._rtde_client}
-        handlers.update({port: self._script for port in SCRIPT_PORTS})
+        handlers.update(dict.fromkeys(SCRIPT_PORTS, self._script))
         handlers[CONTROL_PORT] = self._control
         for port, handler in handlers.items():
             server = socket.create_server((self.host, port), reuse_port=False)
@@ -302,7 +302,7 @@ class FakeUR:
                 self.shutdown()
                 return
 
-    def handle_control(self, request: dict) -> dict | None:
+    def handle_control(self, request: dict) -> dict | None:  # noqa: C901
         """Carry out one control channel request (see the module docstring)."""
         c = self.controller
         command = request.get("cmd")

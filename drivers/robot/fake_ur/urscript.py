@@ -764,7 +764,7 @@ class Runner:
             raise ScriptRuntimeError(f"{function}: {name} must be finite")
         return array.copy(), is_pose
 
-    def _execute(self, statement: Statement) -> None:
+    def _execute(self, statement: Statement) -> None:  # noqa: C901
         function, args = statement.function, statement.args
         if function == "=":
             self.status.executed += 1
