@@ -3,15 +3,21 @@ VENV := .venv
 BIN := $(VENV)/bin
 OUT ?= demo_out
 
-.PHONY: setup run demo test bench lint clean
+.PHONY: setup run demo test bench lint docs clean
 
 setup:
 	@scripts/setup.sh
 
 # The main job: the service on 127.0.0.1 with the embedded defaults (SQLite in ./teachpath_data,
 # the simulated arm, a demo session); it prints the URL to open, with the access token.
-run: setup
+run: setup docs
 	$(BIN)/teachpath serve --demo
+
+# The documentation site (mkdocs-material, strict: a broken link or reference fails it) into
+# site/, with the diagrams' script from npm; the service serves it at /guide.
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
+	mkdir -p site/js && cp service/ui/vendor/mermaid/mermaid.min.js site/js/
 
 # The offline demo: reconstruct the synthetic cylinder scene, write table and plots to $(OUT)/.
 demo: setup
@@ -34,11 +40,11 @@ bench: setup
 # What CI checks before the tests (and the pre-commit hooks, .pre-commit-config.yaml, before a
 # commit): ruff's rules and its formatting, the Dockerfile, the compose file.
 lint: setup
-	$(BIN)/ruff check recon drivers service tests
-	$(BIN)/ruff format --check recon drivers service tests
+	$(BIN)/ruff check recon drivers service tests docs/examples
+	$(BIN)/ruff format --check recon drivers service tests docs/examples
 	$(BIN)/hadolint docker/Dockerfile
 	$(BIN)/yamllint -c .yamllint.yaml docker/compose.yaml
 
 clean:
-	rm -rf $(VENV) $(OUT) *.egg-info
+	rm -rf $(VENV) $(OUT) *.egg-info site
 # teachpath_data/ (sessions, token) is left alone: delete it yourself to start afresh.

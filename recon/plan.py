@@ -46,6 +46,13 @@ from recon.types import (
     speed_drop_lines,
 )
 
+#: Where the tool axis came from, in the report's words.
+TOOL_AXIS_WORDS = {
+    "scan": "from the scan",
+    "pen": "from the pen",
+    "fixed": "fixed (along the approach, no scan normals or pen orientations)",
+}
+
 
 @dataclass(frozen=True)
 class Plan:
@@ -108,7 +115,8 @@ class Plan:
             + f" ({traj.duration_s:.2f} s in all; approach {self.approach_m * mm:.0f} mm)",
             f"starts from {self.start_from} "
             f"[{', '.join(f'{np.degrees(v):.1f}' for v in self.start_q_rad)}] deg",
-            f"tool axis from the {self.tool.source}; {self.configuration.words()} "
+            f"tool axis {TOOL_AXIS_WORDS.get(self.tool.source, self.tool.source)}; "
+            f"{self.configuration.words()} "
             f"(IK branch {joints.branch})",
             f"kinematics: {traj.arm.kinematics_words}",
             f"margins: joint limits {np.degrees(joints.limit_margin_rad.min()):.1f} deg, wrist "

@@ -1,9 +1,9 @@
 """Rigid transforms: apply, invert, validate, measure, and convert to and from UR poses.
 
-A transform ``T_a_b`` is a 4x4 homogeneous matrix that maps points of frame ``b`` into frame
-``a`` (see DESIGN.md). Every check of "is this rigid" in the project uses :data:`RIGID_TOLERANCE`
-through :func:`is_rigid` or :func:`check_rigid`, so a matrix accepted in one place (a calibration
-file, a REST request, a camera pose) is accepted everywhere.
+A transform ``T_a_b`` is a 4x4 homogeneous matrix that maps points of frame ``b`` into frame ``a``
+(see docs/architecture.md). Every check of "is this rigid" in the project uses
+:data:`RIGID_TOLERANCE` through :func:`is_rigid` or :func:`check_rigid`, so a matrix accepted in
+one place (a calibration file, a REST request, a camera pose) is accepted everywhere.
 
 This module imports nothing else of ``recon``: every layer may use it.
 """

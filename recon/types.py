@@ -1,9 +1,9 @@
 """Frozen dataclasses shared by every layer: inputs, parameters and results of the core.
 
-Conventions (see DESIGN.md): SI units (m, rad, s); a transform ``T_a_b`` is a 4x4 homogeneous
-matrix mapping points of frame ``b`` into frame ``a``; quaternions are scalar-last ``(x, y, z, w)``
-where a field says ``xyzw``. Arrays held by these classes are made read-only so a result cannot be
-changed behind the back of whoever stored it.
+Conventions (see docs/architecture.md): SI units (m, rad, s); a transform ``T_a_b`` is a 4x4
+homogeneous matrix mapping points of frame ``b`` into frame ``a``; quaternions are scalar-last
+``(x, y, z, w)`` where a field says ``xyzw``. Arrays held by these classes are made read-only so a
+result cannot be changed behind the back of whoever stored it.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@
 #   2. a virtual environment in .venv with the project installed editable, with its dev extra;
 #   3. the pendant's browser libraries (three.js, Swagger UI, ReDoc; package-lock.json) with
 #      `npm ci --ignore-scripts`, copied into service/ui/vendor/ (scripts/vendor-ui.sh);
-#   4. Debian's curl and jq, for the README's REST walk-through (a test runs it);
+#   4. Debian's curl and jq, for the service guide's REST walk-through (a test runs it);
 #   5. Debian's chromium, which the pendant's browser tests (tests/ui, Playwright) drive;
 #   6. Debian's postgresql, whose server the database tests start in a temporary folder.
 # The stamp file .venv/.installed records the pyproject.toml and constraints.txt (the exact versions)
@@ -57,11 +57,11 @@ if [ "$(cat service/ui/vendor/.lock-sha256 2>/dev/null)" != "$lock" ]; then
     scripts/vendor-ui.sh node_modules service/ui/vendor
 fi
 
-# curl and jq: the README's REST walk-through uses them, and a test runs it.
+# curl and jq: the service guide's REST walk-through uses them, and a test runs it.
 missing=""
 for tool in curl jq; do command -v "$tool" >/dev/null || missing="$missing $tool"; done
 if [ -n "$missing" ]; then
-    echo "setup: installing Debian package(s)$missing (for the README's REST walk-through)"
+    echo "setup: installing Debian package(s)$missing (for the service guide's REST walk-through)"
     # shellcheck disable=SC2086 - one word per package
     apt_install $missing
 fi

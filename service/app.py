@@ -212,6 +212,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.openapi = openapi
 
-    ui.install(app)
+    ui.install(app, settings.guide_dir)
 
     return app

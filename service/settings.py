@@ -140,6 +140,10 @@ class Settings(BaseSettings):
         "an arm); default: the arm's model and address, or 'simulated'",
     )
     demo: bool = Field(False, description="create the demo session on start if missing")
+    guide_dir: Path = Field(
+        Path(__file__).resolve().parent.parent / "site",
+        description="the documentation site `make docs` builds, served at /guide",
+    )
 
     @field_validator("keep_out_boxes")
     @classmethod

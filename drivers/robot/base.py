@@ -2,8 +2,8 @@
 
 Modelled on python-can's bus interfaces and ros2_control's hardware interfaces: the public methods
 live here, check the lifecycle and the arguments, and call a backend's private hooks. Lifecycle
-(DESIGN.md): ``connect()`` reads state and moves nothing, ``enable()`` readies the arm, then
-motion, ``disable()``, ``close()`` (idempotent). Motion while not enabled raises.
+(docs/architecture.md): ``connect()`` reads state and moves nothing, ``enable()`` readies the arm,
+then motion, ``disable()``, ``close()`` (idempotent). Motion while not enabled raises.
 
 Backends are registered by name in :data:`BACKENDS` (a :class:`~drivers.registry.Registry`) and
 imported lazily (:func:`create_backend`), so a missing optional dependency is an error that names

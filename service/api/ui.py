@@ -64,17 +64,46 @@ class UiFiles(StaticFiles):
         return response
 
 
+class GuideFiles(StaticFiles):
+    """The documentation site (``make docs``), with the security headers: each page's inline
+    scripts allowed by their hashes; inline styles allowed (the diagrams draw with them)."""
+
+    async def get_response(self, path, scope):
+        response = await super().get_response(path, scope)
+        html = ""
+        if response.media_type == "text/html" and getattr(response, "path", None):
+            html = Path(response.path).read_text(errors="replace")
+        response.headers.update(headers(policy(html, style="'self' 'unsafe-inline'")))
+        return response
+
+
 def _page(response: HTMLResponse, **csp) -> HTMLResponse:
     html = response.body.decode()
     return HTMLResponse(html, headers=headers(policy(html, **csp)))
 
 
-def install(app: FastAPI) -> None:
-    """``/`` (the pendant), ``/ui/...`` (its files), ``/docs`` and ``/redoc`` (local assets).
+def install(app: FastAPI, guide_dir: Path | None = None) -> None:
+    """``/`` (the pendant), ``/ui/...`` (its files), ``/docs`` and ``/redoc`` (local assets),
+    and ``/guide/`` (the documentation site, where ``make docs`` built it).
 
     The app must be made with ``docs_url=None, redoc_url=None``.
     """
     app.mount(PREFIX, UiFiles(directory=UI_DIR, check_dir=False), name="ui")
+    if guide_dir is not None and (guide_dir / "index.html").is_file():
+        app.mount("/guide", GuideFiles(directory=guide_dir, html=True), name="guide")
+    else:
+
+        @app.get("/guide", include_in_schema=False)
+        @app.get("/guide/{rest:path}", include_in_schema=False)
+        def guide_not_built(rest: str = "") -> HTMLResponse:
+            return HTMLResponse(
+                "<!doctype html><title>teachpath guide</title><p>The documentation site is not "
+                "built on this server: run <code>make docs</code> (or <code>make run</code>, "
+                "which builds it) and restart the service. The same pages are in the "
+                "repository's <code>docs/</code> folder.</p>",
+                status_code=404,
+                headers=headers(policy()),
+            )
 
     @app.get("/", response_class=HTMLResponse, include_in_schema=False)
     def pendant() -> HTMLResponse:

@@ -56,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"teachpath is serving {settings.data_dir}")
     print(f"open http://{shown}:{port}/?token={token}")
     print(f"API: http://{shown}:{port}/docs (send 'Authorization: Bearer {token}')")
+    print(f"guide: http://{shown}:{port}/guide/ (built by make docs)")
     print(
         f"pairing code for another screen: {app.state.pairing.issue()} (once, within "
         f"{CODE_TTL_S / 60:.0f} min; "

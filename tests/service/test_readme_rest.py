@@ -1,6 +1,7 @@
-"""The README's REST walk-through runs as pasted: bash at a repository root (``.venv`` there),
-``teachpath serve`` with its generated token in ``teachpath_data/token``, real files from
-``teachpath demo``, ids chained with jq, a wait loop for the jobs, ``curl --fail-with-body``."""
+"""The service guide's REST walk-through (docs/guides/service.md) runs as pasted: bash at a
+repository root (``.venv`` there), ``teachpath serve`` with its generated token in
+``teachpath_data/token``, real files from ``teachpath demo``, ids chained with jq, a wait loop
+for the jobs, ``curl --fail-with-body``."""
 
 from __future__ import annotations
 
@@ -18,11 +19,11 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def walk_through() -> str:
-    """The shell block under "The whole job over REST" in the README."""
-    text = (REPO / "README.md").read_text()
+    """The shell block under "The whole job over REST" in the service guide."""
+    text = (REPO / "docs" / "guides" / "service.md").read_text()
     start = text.index("The whole job over REST")
     block = re.search(r"```sh\n(.*?)```", text[start:], re.S)
-    assert block, "the README's REST walk-through has no ```sh block"
+    assert block, "the service guide's REST walk-through has no ```sh block"
     return block.group(1)
 
 
