@@ -38,10 +38,12 @@ bench: setup
 	$(BIN)/python -m pytest -q -s -p no:cacheprovider -m bench tests/bench
 
 # What CI checks before the tests (and the pre-commit hooks, .pre-commit-config.yaml, before a
-# commit): ruff's rules and its formatting, the Dockerfile, the compose file.
+# commit): ruff's rules and its formatting, the types (mypy, [tool.mypy] in pyproject.toml), the
+# Dockerfile, the compose file.
 lint: setup
 	$(BIN)/ruff check recon drivers service tests docs/examples
 	$(BIN)/ruff format --check recon drivers service tests docs/examples
+	$(BIN)/mypy
 	$(BIN)/hadolint docker/Dockerfile
 	$(BIN)/yamllint -c .yamllint.yaml docker/compose.yaml
 

@@ -22,7 +22,13 @@ from recon.params import PIVOT_TOLERANCE_M
 from recon.types import FloatArray
 
 if TYPE_CHECKING:  # the plan module is imported where a plan is made, not for every command
-    from recon.plan import MovePlan
+    from drivers.robot.base import ExecutionRecord
+    from drivers.robot.dryrun import ExecutionReport
+    from recon.calibrate import PivotCalibration, PointPairCalibration
+    from recon.plan import MovePlan, Plan
+    from recon.scan_model import ScanModel
+    from recon.touches import TouchRegistration
+    from recon.types import Reconstruction, Registration
 
 
 def _off_feature(reg, mm: float) -> str:
@@ -46,7 +52,7 @@ def _jsonable_or_none(value: float) -> float | None:
 class PivotOutcome:
     """A pivot calibration from a recording, with what was left out of it."""
 
-    calibration: object  # recon.calibrate.PivotCalibration
+    calibration: PivotCalibration
     n_lost: int
     rigid_body: str | None
     format: str
@@ -157,7 +163,7 @@ def refuse_poor_pivot(result: dict, tolerance_m: float, accept_poor_fit: bool) -
 class PointPairOutcome:
     """``T_base_tracker`` fitted to point pairs, with every pair's residuals."""
 
-    fit: object  # recon.calibrate.PointPairCalibration
+    fit: PointPairCalibration
 
     def as_json(self) -> dict:
         fit = self.fit
@@ -220,7 +226,7 @@ class TouchOutcome:
         Rests left out, touches left out.
     """
 
-    registration: object
+    registration: TouchRegistration
     dwells: list
     notes: list[str]
 
@@ -366,7 +372,7 @@ class ReconstructOutcome:
         registration's, else the given one), so the preview draws it where the path saw it.
     """
 
-    reconstruction: object
+    reconstruction: Reconstruction
     scan_tracker_m: FloatArray | None
 
     def summary(self) -> dict:
@@ -572,9 +578,9 @@ class PlacedScan:
         Set when the transform had to be found by registering the path here.
     """
 
-    model: object
+    model: ScanModel
     T_scan_tracker: FloatArray
-    registration: object | None
+    registration: Registration | None
 
 
 def place_scan(scan, path, *, recon_params=None) -> PlacedScan:
@@ -641,7 +647,7 @@ def _collision_checks(report) -> list[str]:
 class PlanOutcome:
     """A planned trajectory and the transform its tool axis was taken with."""
 
-    plan: object  # recon.plan.Plan
+    plan: Plan
     T_scan_tracker: FloatArray | None
     T_base_tracker: FloatArray | None = None
     start_from: str = "given"
@@ -963,8 +969,8 @@ def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=(), cell_plane
 class ExecutionOutcome:
     """What an execution showed (dry run or real arm) and what it recorded."""
 
-    report: object  # drivers.robot.dryrun.ExecutionReport
-    record: object  # drivers.robot.base.ExecutionRecord or None
+    report: ExecutionReport
+    record: ExecutionRecord | None
     backend: str
     tolerance_m: float
 
