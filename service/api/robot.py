@@ -45,9 +45,11 @@ def _view_now(services) -> dict:
     return _with_speed(services.robot.view(owner), owner, runners.get(owner))
 
 
-def _speed_signature(services) -> tuple | None:
-    """What of the owning run's speed the safety bar shows (a change is sent at once: a pause
-    asked, and the arm come to rest)."""
+def _run_signature(services) -> tuple | None:
+    """Which run owns the arm and what of its speed the safety bar shows. A change is sent at
+    once: a run that has ended (the arm free again: with the arm at rest, its readings no longer
+    change, and the bar said "busy" until the next keep-alive), a pause asked, the arm come to
+    rest."""
     for execution_id, runner in dict(services.live.executions).items():
         if runner.running:
             view = runner.speed_view()
@@ -96,18 +98,18 @@ async def robot_events(services: ServicesDep, request: Request) -> StreamingResp
         live.event_streams += 1
         live.anonymous_streams += anonymous
         loop = asyncio.get_running_loop()
-        version, speed = -1, None
+        version, run = -1, None
         try:
             while True:
                 # On a change, or after KEEPALIVE_S: either way the page gets the state.
                 deadline = loop.time() + KEEPALIVE_S
                 while (
                     services.robot.version == version
-                    and _speed_signature(services) == speed
+                    and _run_signature(services) == run
                     and loop.time() < deadline
                 ):
                     await asyncio.sleep(EVENT_POLL_S)
-                version, speed = services.robot.version, _speed_signature(services)
+                version, run = services.robot.version, _run_signature(services)
                 body = RobotOut.model_validate(_view_now(services)).model_dump(mode="json")
                 yield f"event: robot\ndata: {json.dumps(body)}\n\n"
         finally:
