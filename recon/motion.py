@@ -158,7 +158,7 @@ def joint_move(
             s_rate, _rate_for_point_speeds(arm, q0, delta, tcp_speed_max_m_s, T_flange_tcp)
         )
     t_total = trapezoid_duration(1.0, s_rate, s_acc)
-    t = np.arange(int(np.ceil(t_total / dt - 1e-9)) + 1) * dt
+    t = np.arange(int(np.ceil(t_total / dt - 1e-9)) + 1, dtype=np.float64) * dt
     s, sd, sdd = trapezoid(1.0, s_rate, s_acc, t)
     s[-1] = 1.0
     return PhaseSamples(
@@ -252,11 +252,13 @@ def line_move(
         )
         joined, q_joined = joints.q_rad[0], q_end_rad
         joints = _reversed(joints)
-    else:
+    elif q_start_rad is not None:
         joints = kinematics.follow_path(
             arm, flange, q_near_rad=q_start_rad, allowed_branches=(branch,)
         )
         joined, q_joined = joints.q_rad[0], q_start_rad
+    else:
+        raise ValueError("a line move joins a neighbouring phase: give q_end_rad or q_start_rad")
     gap = float(np.abs(joined - q_joined).max())
     if gap > BOUNDARY_TOLERANCE_RAD:
         raise InfeasibleTrajectoryError(
@@ -313,7 +315,11 @@ def assemble(
         Phases that do not join (a bug of the caller).
     """
     dt = 1.0 / arm.control_rate_hz
-    t, q, qd, qdd, label = [], [], [], [], []
+    t: list[FloatArray] = []
+    q: list[FloatArray] = []
+    qd: list[FloatArray] = []
+    qdd: list[FloatArray] = []
+    label: list[np.ndarray] = []
     offset = 0.0
     drops: tuple[SpeedDrop, ...] = ()
     for index, part in enumerate(phases):

@@ -179,7 +179,7 @@ def tool_path(
     *,
     normals: FloatArray | None = None,
     pen_xyzw: FloatArray | None = None,
-    approach: FloatArray = (0.0, 0.0, 1.0),
+    approach: FloatArray | tuple[float, float, float] = (0.0, 0.0, 1.0),
     lead_deg: float = 0.0,
     tilt_deg: float = 0.0,
     smooth_m: float = 0.01,

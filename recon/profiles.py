@@ -417,7 +417,7 @@ def _votes(x, y, phi, weight, n_rho) -> FloatArray:
     size = b * THETA_BINS * n_rho
     acc = np.bincount(flat, weights=(w * (1.0 - frac)).ravel(), minlength=size)
     acc += np.bincount(flat + 1, weights=(w * frac).ravel(), minlength=size)
-    return acc.reshape(b, THETA_BINS, n_rho)
+    return acc.astype(np.float64, copy=False).reshape(b, THETA_BINS, n_rho)
 
 
 def _not_a_ramp(phi: FloatArray, normal: FloatArray, s: FloatArray, inside) -> NDArray[np.bool_]:

@@ -158,7 +158,7 @@ def time_parameterize(
         velocity = point_bound.constraint(vlim)
     constraints = [velocity, toppra.constraint.JointAccelerationConstraint(alim)]
     n_grid = int(max(50, GRID_PER_M * s[-1]))
-    failure = "toppra found no feasible parametrisation"
+    failure: str | None = "toppra found no feasible parametrisation"
     for _ in range(3):
         grid = np.linspace(0.0, s[-1], n_grid)
         instance = toppra.algorithm.TOPPRA(

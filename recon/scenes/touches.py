@@ -97,7 +97,9 @@ def touch_recording(
     else:
         order = [faces[0]] * min(3, n_touches)
         order += [faces[1 + k % (len(faces) - 1)] for k in range(n_touches - len(order))]
-    points, normals, names = [], [], []
+    points: list[FloatArray] = []
+    normals: list[FloatArray] = []
+    names: list[str] = []
     for face in order:
         # Spread out, as an operator is told to: of a few candidates, the one farthest from the
         # touches already made on this face.
