@@ -753,7 +753,10 @@ def test_a_run_paused_rests_on_its_path_and_goes_on_only_when_approved_again(arm
     job = wait(client, job, timeout_s=120)
     assert job["state"] == "succeeded", job
     summary = client.get(f"/sessions/{sid}/executions/{execution_id}").json()["summary"]
-    assert summary["completed"] and 0 < summary["max_path_deviation_m"] < 5e-3
+    # The fake's arm follows the stream in real time and cuts the box's corner a little, more
+    # on a loaded machine (3.2 mm measured with both cores busy in a plain run, 5.2 mm with the
+    # suite on two workers): a pause or a resume that left the path would be tens of mm.
+    assert summary["completed"] and 0 < summary["max_path_deviation_m"] < 8e-3
     # The record holds the pause (more samples than planned) and ends where the plan ends.
     assert summary["n_samples"] > len(plan) + 100
     assert np.abs(np.array(fake_ur.control("status")["q_rad"]) - plan[-1]).max() < 2e-3
@@ -779,9 +782,10 @@ def test_the_speed_override_slows_the_run_on_its_path(arm, fake_ur):
     assert job["state"] == "succeeded", job
     summary = client.get(f"/sessions/{sid}/executions/{execution_id}").json()["summary"]
     plan = _plan_samples(client, sid, trajectory_id)
-    # Most of the run at half speed: well over the planned count of samples, on the same path.
+    # Most of the run at half speed: well over the planned count of samples, on the same path
+    # (the bound as for the paused run above).
     assert summary["n_samples"] > 1.5 * len(plan)
-    assert summary["completed"] and 0 < summary["max_path_deviation_m"] < 5e-3
+    assert summary["completed"] and 0 < summary["max_path_deviation_m"] < 8e-3
 
 
 @pytest.mark.parametrize(
