@@ -37,12 +37,19 @@ def _view(services) -> dict:
     return _with_speed(services.robot.view(owner), owner, runner)
 
 
-def _view_now(services) -> dict:
-    """The view, for the event loop: the owner from a copy of the runners (a C-level copy under
-    the GIL) instead of the lock a starting execution holds while it reads the arm."""
+def _owner_now(services) -> tuple[str | None, object]:
+    """The execution that owns the arm and its runner, for the event loop: from a copy of the
+    runners (a C-level copy under the GIL) instead of the lock a starting execution holds while
+    it reads the arm."""
     runners = dict(services.live.executions)
     owner = next((eid for eid, runner in runners.items() if runner.running), None)
-    return _with_speed(services.robot.view(owner), owner, runners.get(owner))
+    return owner, runners.get(owner)
+
+
+def _view_now(services) -> dict:
+    """The view, for the event loop (see :func:`_owner_now`)."""
+    owner, runner = _owner_now(services)
+    return _with_speed(services.robot.view(owner), owner, runner)
 
 
 def _run_signature(services) -> tuple | None:
@@ -50,11 +57,11 @@ def _run_signature(services) -> tuple | None:
     once: a run that has ended (the arm free again: with the arm at rest, its readings no longer
     change, and the bar said "busy" until the next keep-alive), a pause asked, the arm come to
     rest."""
-    for execution_id, runner in dict(services.live.executions).items():
-        if runner.running:
-            view = runner.speed_view()
-            return (execution_id, view["speed_fraction"], view["paused"], view["speed_now"] == 0)
-    return None
+    owner, runner = _owner_now(services)
+    if runner is None:
+        return None
+    view = runner.speed_view()
+    return (owner, view["speed_fraction"], view["paused"], view["speed_now"] == 0)
 
 
 def _with_speed(view: dict, owner: str | None, runner) -> dict:

@@ -35,15 +35,21 @@ def _commands(page: Path, heading: str) -> list[list[str]]:
     return commands
 
 
+def _run_all(commands: list[list[str]], folder: Path) -> list[str]:
+    """Run the commands in order in ``folder``, each succeeding; their outputs."""
+    outputs = []
+    for command in commands:
+        result = subprocess.run(command, cwd=folder, capture_output=True, text=True, timeout=240)
+        assert result.returncode == 0, (command, result.stderr)
+        outputs.append(result.stdout)
+    return outputs
+
+
 @pytest.mark.timeout(300)
 def test_the_readmes_first_commands_run_as_written(tmp_path):
     commands = _commands(README, "## The command line on the demo's files")
     assert len(commands) == 4
-    outputs = []
-    for command in commands:
-        result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=240)
-        assert result.returncode == 0, (command, result.stderr)
-        outputs.append(result.stdout)
+    outputs = _run_all(commands, tmp_path)
     for name in (
         "trace.csv",
         "scan.ply",
@@ -61,11 +67,7 @@ def test_the_readmes_first_commands_run_as_written(tmp_path):
 def test_the_worked_example_runs_as_written(tmp_path):
     commands = _commands(MOTION_GUIDE, "## From the demonstration to the arm, safely")
     assert len(commands) == 4
-    outputs = []
-    for command in commands:
-        result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=240)
-        assert result.returncode == 0, (command, result.stderr)
-        outputs.append(result.stdout)
+    outputs = _run_all(commands, tmp_path)
     for name in (
         "trace.csv",
         "scan.ply",

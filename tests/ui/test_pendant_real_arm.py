@@ -94,6 +94,7 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         # Run on arm: behind a confirmation that names the real arm, the speed and the phases.
         run = page.get_by_role("button", name="Run on arm")
         expect(run).to_be_enabled()
+        expect(page.locator("#run-speed")).to_be_hidden()  # no run owns the arm yet
         run.click()
         dialog = page.locator("#confirm-dialog")
         expect(dialog).to_be_visible()
@@ -266,6 +267,8 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         expect(page.locator("#run-form .message")).to_contain_text("the arm stopped in ")
         expect(stop).to_be_hidden()
         expect(page.locator("#arm-owner")).to_have_text("none")
+        # The run's speed goes with it: nothing stale is left beside the bar's state.
+        expect(page.locator("#run-speed")).to_be_hidden()
         # The arm stands where it stopped: no motion after the stop.
         q_stopped = _joints(fake)
         time.sleep(0.5)
