@@ -447,18 +447,30 @@ def _tool_words(params: PlanParams) -> str:
 def check_cell(arm, trajectory: JointTrajectory, cell, params: PlanParams):
     """The collision check of a whole motion: the arm's links and the tool (``params.tool``:
     its spheres, or a capsule of ``tool_radius_m`` from the flange to the TCP) against the
-    cell; the tool may touch the workpiece along the process path only."""
+    cell; the tool may touch the workpiece along the process path only, and where a motion
+    starts with a retract (a move off the workpiece from where a stopped run left the tool),
+    at its first pose.
+
+    The contact zone comes from the samples themselves (their phases and kinematics), never
+    from a stored verdict. As along a plan's own retracts, the touch at the start is allowed
+    only within the first contact radius of TCP travel, and only on what lies no higher than
+    the band above the tip (see :func:`recon.collision.check_motion`).
+    """
     from recon.collision import ContactZone, check_motion
 
-    process = trajectory.phases == int(Phase.PROCESS)
-    run = np.cumsum(np.r_[True, np.diff(process.astype(np.int8)) != 0])  # 1, 2, ... per run
+    phases = trajectory.phases
+    touching = phases == int(Phase.PROCESS)
+    if len(phases) > 1 and phases[0] == int(Phase.RETRACT):
+        # The first period (a piece needs two points; the arm leaves rest, so microns long).
+        touching[:2] = True
+    run = np.cumsum(np.r_[True, np.diff(touching.astype(np.int8)) != 0])  # 1, 2, ... per run
     zone = None  # no process samples: the tool may touch the workpiece nowhere
-    if process.any():
+    if touching.any():
         zone = ContactZone.of_process(
             arm,
-            trajectory.q_rad[process],
+            trajectory.q_rad[touching],
             params.T_flange_tcp,
-            piece=np.unique(run[process], return_inverse=True)[1],
+            piece=np.unique(run[touching], return_inverse=True)[1],
         )
     return check_motion(
         arm,
@@ -738,7 +750,8 @@ class MovePlan:
     Attributes
     ----------
     trajectory : JointTrajectory
-        One transit (two when the base turns first), at rest at both ends.
+        One transit (two when the base turns first), at rest at both ends; after a retract when
+        the arm stands with the tool on the workpiece.
     params : PlanParams
         The target plan's (its tool, payload, transit speeds and clearance).
     start_q_rad, goal_q_rad : ndarray of shape (6,)
@@ -747,6 +760,9 @@ class MovePlan:
         Whether the base turns alone first (the direct move collided).
     collision : CollisionReport or None
         The check against the cell (None: no cell given).
+    retract_m : float
+        How far the tool first moves straight back along its own axis, off the workpiece it
+        stands on (metres; 0: no retract, the joint move starts at once).
     """
 
     trajectory: JointTrajectory
@@ -755,6 +771,7 @@ class MovePlan:
     goal_q_rad: FloatArray
     base_first: bool = False
     collision: CollisionReport | None = None
+    retract_m: float = 0.0
 
     def margins(self) -> dict[str, float]:
         """The smallest joint-limit margin (rad), wrist and elbow |sin| and shoulder margin (m)
@@ -782,10 +799,19 @@ class MovePlan:
         moved = np.degrees(np.abs(self.goal_q_rad - self.start_q_rad))
         tcp = traj.phase_max_tcp_speed_m_s().get(Phase.TRANSIT.label, 0.0)
         lines = [
-            f"{traj.robot}: a joint move of {traj.duration_s:.2f} s to the plan's start "
+            f"{traj.robot}: {'a move' if self.retract_m > 0 else 'a joint move'} of "
+            f"{traj.duration_s:.2f} s to the plan's start "
             f"({len(traj)} samples at {1 / traj.period_s:.0f} Hz), the largest joint turn "
             f"{moved.max():.1f} deg (joint {int(np.argmax(moved)) + 1}), fastest TCP "
             f"{tcp * 1e3:.0f} mm/s" + ("; the base turns alone first" if self.base_first else ""),
+        ]
+        if self.retract_m > 0:
+            lines.append(
+                f"first straight off the workpiece: {self.retract_m * 1e3:.0f} mm back along the "
+                f"tool's axis at {self.params.approach_speed_m_s * 1e3:.0f} mm/s (the tool stands "
+                "on it: a joint move from there would drag it)"
+            )
+        lines += [
             f"from [{', '.join(f'{v:.1f}' for v in np.degrees(self.start_q_rad))}] deg",
             f"to [{', '.join(f'{v:.1f}' for v in np.degrees(self.goal_q_rad))}] deg",
             f"kinematics: {traj.arm.kinematics_words}",
@@ -812,6 +838,11 @@ def plan_move(
     """A joint move (UR's ``movej``: every joint on one trapezoidal profile) from ``q_from_rad``
     to ``q_to_rad`` at the plan's transit speeds, checked against ``cell``; if the direct move
     collides, the base turns alone first, as a plan's transit does.
+
+    Where the arm stands with the tool on the workpiece (a run stopped in its process or
+    approach: the joint move's first period touches the scan with the tool), the move first
+    retracts straight back along the tool's axis by the plan's ``approach_m``, at its approach
+    speed, as a plan's own retract leaves the path; the joint move starts from there.
 
     Parameters
     ----------
@@ -868,4 +899,75 @@ def plan_move(
             report = check_cell(arm, trajectory, cell, params)
         if report is None or report.first_collision is None:
             return MovePlan(trajectory, params, q_from, q_to, base_first, report)
+    if not _tool_stands_on_scan(report):
+        raise _collision_error(report)
+    retract = _retract_from(arm, q_from, params)
+    for base_first in (False, True):
+        trajectory = motion.assemble(
+            arm,
+            [retract, *_transit(arm, retract.q_rad[-1], q_to, base_first, joint_move)],
+            T_flange_tcp=params.T_flange_tcp,
+            requested_speed_m_s=params.transit_tcp_speed_m_s,
+        )
+        report = check_cell(arm, trajectory, cell, params)
+        if report.first_collision is None:
+            return MovePlan(
+                trajectory, params, q_from, q_to, base_first, report, retract_m=params.approach_m
+            )
     raise _collision_error(report)
+
+
+def _tool_stands_on_scan(report) -> bool:
+    """Whether a joint move's check failed in its first period, the tool against the scan: the
+    arm stands with the tool on (or within the margin of) the workpiece."""
+    from recon.collision import ObstacleKind
+
+    first = None if report is None else report.first_collision
+    return (
+        first is not None
+        and first.sample == 0
+        and first.link == "tool"
+        and (first.kind == ObstacleKind.SCAN)
+    )
+
+
+def _retract_from(arm, q_rad: FloatArray, params: PlanParams) -> motion.PhaseSamples:
+    """The straight line from the arm's TCP ``params.approach_m`` back along the tool's axis,
+    in the IK branch the arm stands in.
+
+    Raises
+    ------
+    CollisionError
+        The arm cannot follow the line (a joint limit or singularity on the way): the tool
+        stays on the workpiece, and the operator frees it by hand.
+    """
+    T_tcp = kinematics.forward(arm, q_rad[None])[0] @ params.T_flange_tcp
+    try:
+        return motion.line_move(
+            arm,
+            motion.tool_line(T_tcp, motion.lifted(T_tcp, params.approach_m)),
+            branch=_branch_at(arm, q_rad),
+            q_end_rad=None,
+            q_start_rad=q_rad,
+            T_flange_tcp=params.T_flange_tcp,
+            speed_m_s=params.approach_speed_m_s,
+            velocity_scale=params.velocity_scale,
+            acceleration_scale=params.acceleration_scale,
+            phase=Phase.RETRACT,
+            point_speed_max_m_s=params.point_speed_max_m_s,
+        )
+    except InfeasibleTrajectoryError as error:
+        raise CollisionError(
+            "the tool stands on the workpiece and cannot be moved straight off it along its "
+            f"axis ({error}): jog it clear at the UR pendant (freedrive or the Move tab), then "
+            "move to the start again"
+        ) from None
+
+
+def _branch_at(arm, q_rad: FloatArray) -> int:
+    """The IK branch (see :class:`recon.kinematics.IKSolutions`) whose solution at the arm's
+    own flange pose is the arm's joints (each joint compared modulo a turn)."""
+    solutions = kinematics.inverse(arm, kinematics.forward(arm, q_rad[None]))
+    turned = np.angle(np.exp(1j * (solutions.q_rad[0] - q_rad)))  # (8, 6), in (-pi, pi]
+    distance = np.where(solutions.valid[0], np.abs(turned).max(axis=1), np.inf)
+    return int(np.argmin(distance))

@@ -837,7 +837,8 @@ class MoveOutcome:
             "goal_q_rad": [float(v) for v in move.goal_q_rad],
             "start_from": self.start_from,
             "configuration": target.get("configuration"),
-            "approach_m": None,
+            # The straight move off the workpiece the move starts with, if any.
+            "approach_m": move.retract_m or None,
             "tcp_pose": [float(v) for v in move.params.tcp],
             "payload_kg": move.params.payload_kg,
             "payload_cog_m": list(move.params.payload_cog_m),

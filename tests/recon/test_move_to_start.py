@@ -90,3 +90,144 @@ def test_a_direct_move_through_a_box_turns_the_base_first_and_one_that_cannot_is
 def test_joints_that_are_not_an_arms_are_refused(q_from, words):
     with pytest.raises(ValueError, match=words):
         plan_move(q_from, HOME, params=PlanParams(robot="ur5e"))
+
+
+# -- a move from where a stopped run left the tool on the workpiece ----------------------------
+
+
+@pytest.fixture(scope="module")
+def on_the_cylinder():
+    """The demo plan over the cylinder's edge with its cell (the scan in the base frame), as
+    the service plans it, and a process sample halfway along: where a run stopped in its
+    process leaves the arm, the tool on the workpiece."""
+    from recon import scenes
+    from recon.plan import approach_in, normals_from_scan, plan_path
+    from recon.reconstruct import reconstruct
+    from recon.transforms import apply_transform, invert_transform
+
+    scene = scenes.cylinder_edge(0)
+    recon = reconstruct(scene.recording, scene.scan)
+    T_base_tracker = np.eye(4)
+    T_base_tracker[:3, 3] = [0.45, 0.1, 0.05]
+    params = PlanParams(robot="ur5e", speed_m_s=0.05)
+    normals = normals_from_scan(
+        recon.points_m,
+        recon.mode,
+        recon.scan_model,
+        T_scan_tracker=recon.T_scan_tracker,
+        approach_tracker=approach_in(T_base_tracker, params.approach_direction),
+    )
+    scan_base = apply_transform(
+        T_base_tracker @ invert_transform(recon.T_scan_tracker), scene.scan.points_m
+    )
+    cell = Cell(scan_points_m=scan_base)
+    plan = plan_path(
+        recon.points_m, params=params, T_base_tracker=T_base_tracker, normals=normals, cell=cell
+    )
+    process = np.flatnonzero(plan.trajectory.phases == int(Phase.PROCESS))
+    q_stopped = plan.trajectory.q_rad[process[len(process) // 2]]
+    return plan, cell, q_stopped
+
+
+def test_a_move_from_the_tool_on_the_workpiece_first_retracts_straight_along_its_axis(
+    on_the_cylinder,
+):
+    from recon import motion
+    from recon.collision import ObstacleKind
+    from recon.plan import check_cell
+
+    plan, cell, q_stopped = on_the_cylinder
+    params, arm = plan.params, kinematics.model("ur5e")
+    goal = plan.trajectory.q_rad[0]
+    # The joint move alone (either way) drags the tool through the workpiece from its first
+    # sample: what the planner refused before this move existed.
+    direct = motion.assemble(
+        arm,
+        [
+            motion.joint_move(
+                arm,
+                q_stopped,
+                goal,
+                speed_scale=params.transit_speed_scale,
+                acceleration_scale=params.transit_acceleration_scale,
+                T_flange_tcp=params.T_flange_tcp,
+            )
+        ],
+        T_flange_tcp=params.T_flange_tcp,
+        requested_speed_m_s=params.transit_tcp_speed_m_s,
+    )
+    first = check_cell(arm, direct, cell, params).first_collision
+    assert (first.sample, first.link, first.kind) == (0, "tool", ObstacleKind.SCAN)
+
+    move = plan_move(q_stopped, goal, params=params, cell=cell)
+    traj = move.trajectory
+    assert move.retract_m == params.approach_m == 0.05
+    assert move.collision.first_collision is None
+    np.testing.assert_array_equal(traj.q_rad[0], q_stopped)
+    np.testing.assert_array_equal(traj.q_rad[-1], goal)
+    assert np.abs(traj.qd_rad_s[[0, -1]]).max() == 0.0
+    retract = traj.phases == int(Phase.RETRACT)
+    assert retract[0] and set(traj.phases[~retract].tolist()) == {int(Phase.TRANSIT)}
+    assert np.all(np.diff(retract.astype(int)) <= 0)  # one retract, at the start
+    # The retract: straight back along the tool's axis at the stop, the orientation held, by
+    # the plan's approach distance, no faster than its approach speed.
+    tcp = kinematics.forward(arm, traj.q_rad[retract]) @ params.T_flange_tcp
+    axis = tcp[0, :3, 2]  # the tool's z points into the work
+    travel = tcp[:, :3, 3] - tcp[0, :3, 3]
+    along = travel @ -axis
+    sideways = np.linalg.norm(travel + along[:, None] * axis, axis=1)
+    assert sideways.max() < 1e-5
+    assert np.all(np.diff(along) >= -1e-9)
+    assert along[-1] == pytest.approx(0.05, abs=1e-4)
+    np.testing.assert_allclose(
+        tcp[:, :3, :3], np.broadcast_to(tcp[0, :3, :3], (len(tcp), 3, 3)), atol=1e-6
+    )
+    assert traj.phase_max_tcp_speed_m_s()["retract"] <= params.approach_speed_m_s * 1.001
+    assert "first straight off the workpiece: 50 mm back along the tool's axis" in (
+        " ".join(move.report_lines())
+    )
+
+
+def test_the_touch_at_a_moves_start_is_allowed_there_only(on_the_cylinder):
+    """The contact a move off the workpiece may make is at its first pose, along the first
+    millimetres of a retract: a "retract" that slides along the workpiece instead is refused
+    (the gate checks stored samples this way, whatever their phases say)."""
+    from recon import motion
+    from recon.collision import ObstacleKind
+    from recon.plan import check_cell
+
+    plan, cell, q_stopped = on_the_cylinder
+    params, arm = plan.params, kinematics.model("ur5e")
+    T_tcp = kinematics.forward(arm, q_stopped[None])[0] @ params.T_flange_tcp
+    aside = T_tcp.copy()
+    aside[:3, 3] += 0.03 * T_tcp[:3, 0]  # 30 mm across the tool's axis, on the surface
+    slide = motion.line_move(
+        arm,
+        motion.tool_line(T_tcp, aside),
+        branch=plan.joints.branch,
+        q_end_rad=None,
+        q_start_rad=q_stopped,
+        T_flange_tcp=params.T_flange_tcp,
+        speed_m_s=params.approach_speed_m_s,
+        velocity_scale=params.velocity_scale,
+        acceleration_scale=params.acceleration_scale,
+        phase=Phase.RETRACT,
+    )
+    dragged = motion.assemble(
+        arm, [slide], T_flange_tcp=params.T_flange_tcp, requested_speed_m_s=0.05
+    )
+    first = check_cell(arm, dragged, cell, params).first_collision
+    assert first is not None and (first.link, first.kind) == ("tool", ObstacleKind.SCAN)
+    assert first.sample > 0  # allowed at the start, not along the slide
+
+
+def test_a_retract_blocked_above_the_tool_is_refused_naming_what_blocks_it(on_the_cylinder):
+    plan, cell, q_stopped = on_the_cylinder
+    params, arm = plan.params, kinematics.model("ur5e")
+    T_tcp = kinematics.forward(arm, q_stopped[None])[0] @ params.T_flange_tcp
+    # A box the tool's tip would pass through 40 mm up its axis, beside the flange's way.
+    above = T_tcp[:3, 3] - 0.04 * T_tcp[:3, 2]
+    box = Box(min_m=above - 0.012, max_m=above + 0.012, name="clamp")
+    blocked = Cell(scan_points_m=cell.scan_m, boxes=(box,), voxel_m=0.0)
+    with pytest.raises(CollisionError, match="clamp"):
+        plan_move(q_stopped, plan.trajectory.q_rad[0], params=params, cell=blocked)

@@ -665,6 +665,42 @@ def test_an_arm_moved_away_goes_back_to_the_plans_start_by_a_move_of_its_own(arm
     assert ran["state"] == "succeeded", ran
 
 
+def test_a_run_stopped_with_the_tool_on_the_workpiece_goes_back_by_a_retract_then_a_move(
+    arm, fake_ur
+):
+    """Stopped in its process, the tool on the workpiece: the move to the start first backs
+    the tool straight off it along its axis, and the gate, checking the samples here, allows
+    the touch at the move's first pose only. Dry-run, run on the arm, and it ends at the
+    plan's start."""
+    client, sid, trajectory_id, q_start = arm
+    rows = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}/csv").text.splitlines()
+    header = rows[1].split(",")
+    process = [r.split(",") for r in rows[2:] if r.split(",")[header.index("phase")] == "process"]
+    q_stopped = np.array(process[len(process) // 2][1:7], dtype=float)
+    fake_ur.control("reset", q_rad=q_stopped.tolist())
+    time.sleep(0.5)  # the arm's state is read a few times a second
+    try:
+        job = wait(
+            client,
+            client.post(f"/sessions/{sid}/trajectories/{trajectory_id}/move-to-start").json(),
+        )
+        assert job["state"] == "succeeded", job
+        move_id = job["result"]["trajectory_id"]
+        summary = client.get(f"/sessions/{sid}/trajectories/{move_id}").json()["summary"]
+        assert list(summary["phase_durations_s"]) == ["retract", "transit"]
+        assert summary["approach_m"] == 0.05
+        assert any("first straight off the workpiece: 50 mm" in line for line in summary["report"])
+        run = {"trajectory_id": move_id, "backend": "ur_rtde", "confirm": True}
+        dry = client.post(f"/sessions/{sid}/executions", json={"trajectory_id": move_id})
+        assert wait(client, dry.json())["result"]["completed"]
+        moved = wait(client, client.post(f"/sessions/{sid}/executions", json=run).json())
+        assert moved["state"] == "succeeded", moved
+        q_now = np.array(fake_ur.control("status")["q_rad"])
+        assert np.abs(q_now - q_start).max() < 1e-3, np.degrees(q_now - q_start)
+    finally:
+        fake_ur.control("reset", q_rad=q_start.tolist())
+
+
 def test_a_move_to_start_through_a_keep_out_box_is_refused_naming_it(arm, fake_ur):
     client, sid, trajectory_id, q_start = arm
     jogged = q_start + [0.6, 0.0, 0.0, 0.0, 0.0, 0.0]  # the base turned 34 degrees away

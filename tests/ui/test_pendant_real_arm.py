@@ -213,12 +213,19 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             time.sleep(0.05)
         assert np.abs(_joints(fake) - q_paused).max() > 1e-3
         pendant.shot("half-speed")
-        # Down to 5 %: the arm crawls on while the rest of the test runs, so that the stop below
-        # still lands in the transit however slow the machine (stopped with the tool on the
-        # workpiece, the move back to the start is refused: see the operator's guide).
-        speed_field.fill("5")
-        speed_field.press("Enter")
-        expect(speed_state).to_have_text("5 % of the plan's speed", timeout=15_000)
+        # Where the process (the tool on the workpiece) runs, as the run's progress bar shows
+        # it (a tenth for the start, then the plan's samples sent): the stop below lands there.
+        sid = page.evaluate("sessionStorage.getItem('teachpath.session')")
+        client = arm_server.client
+        plan_id = client.get(f"/sessions/{sid}/trajectories").json()[-1]["id"]
+        rows = client.get(f"/sessions/{sid}/trajectories/{plan_id}/csv").text.splitlines()
+        column = rows[1].split(",").index("phase")
+        phases = [row.split(",")[column] for row in rows[2:]]
+        in_process = [i for i, phase in enumerate(phases) if phase == "process"]
+        process_from, process_to = (
+            0.1 + 0.9 * in_process[0] / (len(phases) - 1),
+            0.1 + 0.9 * in_process[-1] / (len(phases) - 1),
+        )
 
         # A screen that is not signed in (a tablet by the cell, no token) shows the arm owned
         # and a Stop that works: its Escape is the stop that lands. The operator's page presses
@@ -235,10 +242,17 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             near_stop = near.get_by_role("button", name="Stop")
             expect(near_stop).to_be_visible()
             # It shows the run's speed; changing it or pausing takes the token (Stop does not).
-            expect(near.locator("#run-speed-state")).to_have_text("5 % of the plan's speed")
+            expect(near.locator("#run-speed-state")).to_have_text("50 % of the plan's speed")
             expect(near.get_by_role("button", name="Pause")).to_be_hidden()
             expect(near.locator("#run-speed-slider")).to_be_hidden()
             bystander.shot("arm-owned")
+            # Into the process, with the tool on the workpiece: stopped there, the arm goes back
+            # by a retract off the workpiece and a joint move (below).
+            deadline = time.monotonic() + 120
+            while _progress(page, "#run-form") < process_from + 0.02:
+                assert time.monotonic() < deadline, "the run did not reach its process"
+                time.sleep(0.05)
+            assert _progress(page, "#run-form") < process_to, "the process ended before the stop"
             held, near_held = [], []
             page.route("**/executions/*/stop", lambda route: held.append(route))
             near.route("**/executions/*/stop", lambda route: near_held.append(route))
@@ -281,11 +295,10 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             "The arm is not where the plan starts (joint "
         )
         pendant.shot("stopped")
+        expect(result).to_contain_text("stopped in process")
         # The run's record keeps the approval: the checksum of the file the operator confirmed.
-        sid = page.evaluate("sessionStorage.getItem('teachpath.session')")
-        client = arm_server.client
         record = client.get(f"/sessions/{sid}/executions").json()[-1]
-        plan_id = record["inputs"]["trajectory_id"]
+        assert record["inputs"]["trajectory_id"] == plan_id
         plan = client.get(f"/sessions/{sid}/trajectories/{plan_id}").json()
         assert record["params"]["approved_sha256"] == plan["sha256"]
 
@@ -299,7 +312,14 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         page.get_by_role("button", name="Plan the move to the start").click()
         move_summary = page.locator("#move-summary")
         expect(move_summary).to_contain_text("fastest TCP", timeout=60_000)
-        expect(move_summary.locator(".report")).to_contain_text("a joint move of")
+        expect(move_summary.locator(".report")).to_contain_text("a move of")
+        # The tool stands on the workpiece: the move backs it off along its axis first.
+        expect(move_summary.locator("tr", has_text="motion")).to_have_text(
+            re.compile(
+                "straight off the workpiece, 50 mm back along the tool's axis, then a joint move"
+            )
+        )
+        expect(move_summary.locator("tr", has_text="fastest TCP")).to_contain_text("(retract)")
         move_id = move_summary.locator("td").first.inner_text()
         assert move_id.startswith("trj_"), move_id
         expect(page.locator("#workspace")).to_have_attribute("data-move", move_id)
@@ -315,7 +335,8 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         expect(dialog).to_be_visible()
         expect(page.locator("#confirm-title")).to_have_text("Move the arm to the plan's start?")
         expect(dialog.locator("tr", has_text="motion")).to_contain_text(
-            f"a joint move to the start of plan {plan_id}"
+            "straight off the workpiece, 50 mm back along the tool's axis, then a joint move to "
+            f"the start of plan {plan_id}"
         )
         expect(dialog.locator("tr", has_text="move file")).to_contain_text(move_id)
         pendant.shot("move-confirm")

@@ -932,7 +932,7 @@ function renderMove() {
   const busyMove = { "move-plan": "Planning the move…", "move-dryrun": "Dry-running the move…",
     "move-run": "The arm is moving to the plan's start: Stop (or Esc) stops it." }[state.busy];
   $("#move-status").textContent = busyMove || (!gap ? "" : !move
-    ? `The arm stands ${degrees(gap.rad)} (joint ${gap.joint}) from where the plan starts. Plan a move there: a joint move of its own, checked against the cell, which you dry-run and approve before it runs.`
+    ? `The arm stands ${degrees(gap.rad)} (joint ${gap.joint}) from where the plan starts. Plan a move there: a joint move of its own (first straight off the workpiece if the tool stands on it), checked against the cell, which you dry-run and approve before it runs.`
     : stale ? "The arm has moved since this move was planned: plan the move again from where it stands."
       : !passedHere(dry) ? "Dry-run the move (it is drawn in teal in the 3-D view), then move the arm to the start."
         : "The move passed its dry run: press “Move to start on the arm” and confirm. The plan can run after it.");
@@ -941,8 +941,9 @@ function renderMove() {
   $("#move-summary").replaceChildren(
     table([
       ["move", `${move.id}${stale ? " (planned from another pose of the arm)" : ""}`],
+      ["motion", moveWords(sm)],
       ["duration", seconds(sm.duration_s)],
-      ["fastest TCP", sm.phase_max_tcp_speed_m_s?.transit == null ? "–" : mmps(sm.phase_max_tcp_speed_m_s.transit)],
+      ["fastest TCP", moveFastest(sm)],
       ["smallest clearance (arm, tool, cell, scan)", mm(sm.min_clearance_m, 1)],
       ["dry run", !dry ? "not yet" : passedHere(dry) ? "passed" : passed(dry) ? "imported: does not count here" : "did not pass: read its report"],
     ]),
@@ -1625,6 +1626,19 @@ function approvedInputs(traj) {
   ];
 }
 
+/** What a move to a plan's start does, in words: a joint move, after a straight retract off
+ * the workpiece when the arm stood with the tool on it. */
+function moveWords(sm) {
+  const retract = sm.phase_durations_s?.retract != null;
+  return retract ? `straight off the workpiece, ${mm(sm.approach_m, 0)} back along the tool's axis, then a joint move` : "a joint move";
+}
+
+/** A move's fastest TCP speed, of every phase it has, named. */
+function moveFastest(sm) {
+  const speeds = Object.entries(sm.phase_max_tcp_speed_m_s || {});
+  return speeds.length ? speeds.map(([phase, v]) => `${mmps(v)} (${phase})`).join(", ") : "–";
+}
+
 function confirmRun(traj) {
   const sm = traj.summary;
   const robot = state.robot;
@@ -1633,10 +1647,10 @@ function confirmRun(traj) {
   const move = isMove(traj);
   const rows = move ? [
     arm,
-    ["motion", `a joint move to the start of plan ${sm.move_to_start_of}`],
+    ["motion", `${moveWords(sm)} to the start of plan ${sm.move_to_start_of}`],
     ["mode", mode()],
     ["duration", seconds(sm.duration_s)],
-    ["fastest TCP", sm.phase_max_tcp_speed_m_s?.transit == null ? "–" : mmps(sm.phase_max_tcp_speed_m_s.transit)],
+    ["fastest TCP", moveFastest(sm)],
     ["smallest clearance (arm, tool, cell, scan)", mm(sm.min_clearance_m, 1)],
     ["from (joints)", degrees(sm.start_q_rad)],
     ["to (joints)", sm.goal_q_rad ? degrees(sm.goal_q_rad) : "–"],
