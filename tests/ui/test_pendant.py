@@ -23,6 +23,7 @@ def test_token_leaves_the_url_and_the_safety_bar_shows_the_sim_arm(pendant):
     expect(page.locator("#robot-mode")).to_have_text("SIMULATED")
     expect(page.locator("#safety-status")).to_have_text("NORMAL")
     expect(page.locator("#protective-stop")).to_have_text("no")
+    expect(page.locator("#protective-stop-field")).to_be_hidden()  # shown when there is one
     expect(page.locator("#remote-control")).to_have_text("on")
     expect(page.locator("#arm-owner")).to_have_text("none")
     expect(page.locator("#speed-cap")).to_have_text("250 mm/s")

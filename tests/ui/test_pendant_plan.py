@@ -4,6 +4,7 @@ the clicks that reconstruct and plan are tested in test_pendant.py)."""
 
 from __future__ import annotations
 
+import colorsys
 import json
 import math
 import re
@@ -97,6 +98,43 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     assert at_start["drawn"] > without_arm["drawn"], (at_start, without_arm)
     start_digest = canvas_digest(page)
     pendant.shot("timeline-start")
+    # One colour, one meaning: orange is the trace alone. No other layer drawn in a fixed
+    # colour (the path by phase, the frames' axes, the cell, the arms) is orange; the ramps
+    # (displacement, and the path by a quantity) are read with their legend. Colours are
+    # three.js's linear ones, judged as shown on the screen (sRGB).
+    colours = page.evaluate(
+        """() => { const w = document.querySelector('#workspace').workspace; const out = [];
+          w.scene.traverse((o) => {
+            if (!o.material || !o.visible || o.name === 'reconstruction') return;
+            const name = o.name || (o.parent && o.parent.name) || o.type;
+            const attr = o.geometry.attributes.color;
+            if (o.material.vertexColors && attr) {
+              const count = Math.min(attr.count, o.geometry.drawRange.count);
+              const rgb = (i) => [attr.getX(i), attr.getY(i), attr.getZ(i)];
+              for (let i = 0; i < count; i++) out.push([name, ...rgb(i)]);
+              // A line shows the colours between its vertices too (the GPU blends them).
+              const step = o.isLineSegments ? 2 : 1;
+              if (o.isLine) for (let i = 0; i + 1 < count; i += step) {
+                const [a, b] = [rgb(i), rgb(i + 1)];
+                out.push([name, ...a.map((v, k) => (v + b[k]) / 2)]);
+              }
+            } else if (o.material.color) {
+              const c = o.material.color; out.push([name, c.r, c.g, c.b]);
+            }
+          });
+          return out; }"""
+    )
+    assert {name for name, *_ in colours} >= {"trace", "path", "frames", "arm"}
+
+    def shown(linear: float) -> float:
+        return 12.92 * linear if linear <= 0.0031308 else 1.055 * linear ** (1 / 2.4) - 0.055
+
+    def orange(r, g, b) -> bool:
+        hue, lightness, saturation = colorsys.rgb_to_hls(shown(r), shown(g), shown(b))
+        return 20 <= hue * 360 <= 45 and saturation > 0.6 and lightness > 0.4
+
+    orange_layers = {name for name, *rgb in colours if orange(*rgb)}
+    assert orange_layers == {"trace"}, orange_layers
 
     # A click on the speed plot inside the process phase moves the time there: the arm is
     # drawn elsewhere and the waypoint's margins are read out.
@@ -203,6 +241,18 @@ def test_the_plan_timeline_the_path_margins_picking_and_the_review(pendant):
     expect(readout).to_contain_text("fit residuals")
     expect(readout).to_contain_text("(1σ)")
     pendant.shot("picked")
+    # The framing buttons sit on the view: with the readout in sight, another framing keeps it
+    # (it named the point, not the camera), all on one screen at a cell's touch panel's size.
+    page.set_viewport_size({"width": 1280, "height": 800})
+    said = readout.inner_text()
+    for name in ("Top", "Workpiece"):
+        button = page.get_by_role("button", name=name, exact=True)
+        for element in (button, readout, page.locator("#workspace canvas")):
+            box = element.bounding_box()
+            assert box and box["y"] >= 0 and box["y"] + box["height"] <= 800, (name, box)
+        button.click()
+        expect(readout).to_have_text(said)
+    page.set_viewport_size({"width": 1500, "height": 1100})
     page.get_by_label("measure (click two points)").check()
     _click_point(page, "reconstruction", 0)
     _click_point(page, "reconstruction", len(xyz) - 1)
@@ -378,7 +428,7 @@ def test_a_comma_decimal_is_taken_and_a_bad_value_is_said_in_the_fields_words(pe
 
 def test_the_cell_is_edited_in_3d_and_outdates_the_plans_made_in_another(pendant):
     """Calibrate, Cell: a keep-out box added around a point clicked in the 3-D view and a wall
-    typed in mm, drawn as a draft (orange) while unsaved; saved, the plan made before is
+    typed in mm, drawn as a draft (dashed) while unsaved; saved, the plan made before is
     outdated; an edit from a view another pendant changed is refused and discarded; back to the
     start-up settings, the plan is current again."""
     page, client = pendant.page, pendant.server.client

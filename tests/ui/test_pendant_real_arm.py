@@ -164,10 +164,27 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         assert np.linalg.norm(tcp_now - tcp_server) < 0.05  # moving at 20 mm/s, read apart
         pendant.shot("running")
 
+        # The bar while a run shows its speed and Stop: one line on a desk's screen; on a
+        # cell's touch panel, the arm's state above and the run's controls with Stop below.
+        def row_top(selector: str) -> float:
+            box = page.locator(selector).bounding_box()
+            return box["y"] + box["height"] / 2
+
+        page.set_viewport_size({"width": 1920, "height": 1080})
+        expect(page.locator("#run-speed")).to_be_visible()
+        centres = [row_top(f) for f in ("#arm-kind", "#speed-cap", "#run-speed", "#stop")]
+        assert max(centres) - min(centres) < 12, centres
+        page.set_viewport_size({"width": 1280, "height": 800})
+        assert abs(row_top("#arm-kind") - row_top("#speed-cap")) < 12
+        assert abs(row_top("#run-speed") - row_top("#stop")) < 12
+        assert row_top("#stop") > row_top("#speed-cap") + 20
+        assert page.locator("#safety-bar").bounding_box()["height"] < 110
+        page.set_viewport_size({"width": 1500, "height": 1100})
+
         # Pause: the arm comes to rest on its path and holds; the bar says so. Resuming is
         # approved again in a dialog that names the plan's file; cancelling it keeps the pause.
         speed_state = page.locator("#run-speed-state")
-        expect(speed_state).to_have_text("100 % of the plan's speed")
+        expect(speed_state).to_have_text("at 100 %")
         page.get_by_role("button", name="Pause").click()
         expect(speed_state).to_have_text("PAUSED, at rest on the path", timeout=15_000)
         page.wait_for_timeout(400)  # the servo's lookahead settles
@@ -202,7 +219,7 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         resume.click()
         expect(dialog.locator("tr", has_text="speed")).to_contain_text("50 % of the plan's speed")
         page.get_by_role("button", name="Confirm: resume").click()
-        expect(speed_state).to_have_text("50 % of the plan's speed", timeout=15_000)
+        expect(speed_state).to_have_text("at 50 %", timeout=15_000)
         expect(page.get_by_role("button", name="Pause")).to_be_visible()
         expect(page.locator("#step-run .needs")).to_have_text(
             "The arm is moving: press Stop (or Esc) to stop it at once."
@@ -242,7 +259,7 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             near_stop = near.get_by_role("button", name="Stop")
             expect(near_stop).to_be_visible()
             # It shows the run's speed; changing it or pausing takes the token (Stop does not).
-            expect(near.locator("#run-speed-state")).to_have_text("50 % of the plan's speed")
+            expect(near.locator("#run-speed-state")).to_have_text("at 50 %")
             expect(near.get_by_role("button", name="Pause")).to_be_hidden()
             expect(near.locator("#run-speed-slider")).to_be_hidden()
             bystander.shot("arm-owned")
@@ -363,9 +380,12 @@ def test_a_protective_stop_is_shown_and_unlocked_when_the_controller_allows(
         page = pendant.page
         pendant.open()
         expect(page.locator("#protective-stop")).to_have_text("no")
+        # Shown only while there is one (the safety status says NORMAL otherwise).
+        expect(page.locator("#protective-stop-field")).to_be_hidden()
         unlock = page.get_by_role("button", name="Unlock")
         expect(unlock).to_be_hidden()
         fake.control("protective_stop")
+        expect(page.locator("#protective-stop-field")).to_be_visible()
         expect(page.locator("#protective-stop")).to_have_text(
             re.compile(r"^YES \(unlock in \d s\)")
         )
@@ -377,6 +397,7 @@ def test_a_protective_stop_is_shown_and_unlocked_when_the_controller_allows(
         expect(unlock).to_be_enabled(timeout=10_000)
         unlock.click()
         expect(page.locator("#protective-stop")).to_have_text("no")
+        expect(page.locator("#protective-stop-field")).to_be_hidden()
         expect(page.locator("#safety-status")).to_have_text("NORMAL")
         expect(page.locator("#safety-bar")).not_to_have_class(re.compile("alarm"))
         expect(unlock).to_be_hidden()

@@ -86,6 +86,9 @@ function showRobot(robot) {
   $("#protective-stop").textContent = stopped
     ? robot.unlock_in_s > 0 ? `YES (unlock in ${robot.unlock_in_s.toFixed(0)} s)` : "YES"
     : "no";
+  // Shown when there is one (the safety status says NORMAL otherwise): the bar stays one line
+  // wider before it wraps.
+  $("#protective-stop-field").hidden = !stopped;
   const unlock = $("#unlock");
   unlock.hidden = !stopped;
   unlock.disabled = !stopped || robot.unlock_in_s > 0;
@@ -187,11 +190,11 @@ function showRunSpeed(run) {
   if (run.paused) {
     status.textContent = run.speed_now === 0 ? "PAUSED, at rest on the path" : "pausing…";
   } else if (!run.moving) {
-    status.textContent = `${percent(run.speed_fraction)} of the plan's speed, from the start`;
+    status.textContent = `at ${percent(run.speed_fraction)} from the start`;
   } else if (Math.abs(run.speed_now - run.speed_fraction) > 0.005) {
     status.textContent = `${percent(run.speed_now)}, going to ${percent(run.speed_fraction)}`;
   } else {
-    status.textContent = `${percent(run.speed_fraction)} of the plan's speed`;
+    status.textContent = `at ${percent(run.speed_fraction)}`; // of the plan's speed, as the group's title says
   }
   $("#pause").hidden = signedOut || run.paused || !run.moving;
   $("#pause").disabled = Boolean(state.stopping);
@@ -1226,14 +1229,14 @@ function cellDraft() {
   return $("#cell-form").querySelector("input:invalid") ? null : { keep_out_boxes_m: boxes, cell_planes: planes };
 }
 
-/** Typed: the draft drawn in 3-D in orange, and said to be unsaved. */
+/** Typed: the draft drawn in 3-D dashed, and said to be unsaved. */
 function cellEdited() {
   state.cellDirty = true;
   const draft = cellDraft();
   if (draft) state.workspace?.showCell(draft, { draft: true });
   const boxes = draft?.keep_out_boxes_m.length;
   $("#cell-draft").textContent = draft
-    ? `Not saved: ${boxes} box${boxes === 1 ? "" : "es"} and ${draft.cell_planes.length} plane${draft.cell_planes.length === 1 ? "" : "s"}, drawn in orange in the 3-D view. Save the cell to plan and run with it.`
+    ? `Not saved: ${boxes} box${boxes === 1 ? "" : "es"} and ${draft.cell_planes.length} plane${draft.cell_planes.length === 1 ? "" : "s"}, drawn dashed in the 3-D view. Save the cell to plan and run with it.`
     : `Not saved: ${$("#cell-form input:invalid")?.validationMessage || "a field is not valid"} (the field is marked in red).`;
 }
 

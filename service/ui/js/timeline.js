@@ -6,7 +6,8 @@
 
 const SVG = "http://www.w3.org/2000/svg";
 const JOINT_COLOURS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b"];
-const PHASE_FILL = { transit: "#eef2ff", approach: "#fff7e6", process: "#ecfdf3", retract: "#fff7e6", return: "#eef2ff" };
+// The 3-D path's phase colours, pale: blue process, brown approach and retract, grey transit.
+const PHASE_FILL = { transit: "#f0f1f5", approach: "#f4ece4", process: "#e8f0ff", retract: "#f4ece4", return: "#f0f1f5" };
 
 const svg = (tag, attrs = {}) => {
   const node = document.createElementNS(SVG, tag);

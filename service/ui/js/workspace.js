@@ -56,11 +56,18 @@ function parseCsv(text, wanted, every = 1, textColumns = []) {
 /** The reconstruction's per-point diagnostics the pendant shows on a click. */
 const DIAGNOSTICS = ["displacement_m", "mode", "segment", "n_path", "n_surface", "residual_path_m", "residual_surface_m", "alpha", "uncertainty_m", "reason"];
 const MODE_COLOURS = { edge: [0.85, 0.1, 0.1], surface: [0.1, 0.55, 0.2], path: [0.15, 0.3, 0.9], unchanged: [0.5, 0.5, 0.5] };
-const PHASE_COLOURS = { transit: [0.55, 0.6, 0.75], approach: [0.95, 0.55, 0.1], process: [0.12, 0.47, 1.0], retract: [0.95, 0.55, 0.1], return: [0.55, 0.6, 0.75] };
+/** One colour, one meaning in the view: orange is the trace alone (recorded or live), so the
+ * lifts on and off the path are brown, and the cell being edited is the cell's magenta, dashed.
+ * Vertex colours are linear (the screen shows them in sRGB: the brown here is about #8c5424). */
+const PHASE_COLOURS = { transit: [0.55, 0.6, 0.75], approach: [0.26, 0.09, 0.02], process: [0.12, 0.47, 1.0], retract: [0.26, 0.09, 0.02], return: [0.55, 0.6, 0.75] };
+const CELL_COLOUR = 0xc2185b;
+/** The cell being edited: dashes of this length and gap (metres, in the scene). */
+const DRAFT_DASH_M = 0.02;
+const DRAFT_GAP_M = 0.012;
 
 /** How the planned path is coloured: per waypoint, 0 (fine, blue) .. 1 (the limit, red). */
 const PATH_COLOURING = {
-  phase: { legend: "path by phase: blue process, orange approach and retract, grey transit" },
+  phase: { legend: "path by phase: blue process, brown approach and retract, grey transit" },
   speed: { legend: "path by speed: blue at the requested speed, red slowed to a stop",
     risk: (p, i) => 1 - Math.min(1, p.speed_m_s[i] / p.requested_speed_m_s) },
   clearance: { legend: "path by clearance: blue 50 mm or more from the cell, red touching",
@@ -122,8 +129,8 @@ function matrix(rows) {
 
 export class Workspace {
   /**
-   * @param {HTMLElement} container  where the canvas goes
-   * @param {HTMLElement} layers  the layer toggles, point size, colourings and views
+   * @param {HTMLElement} container  where the canvas goes, with the view's framing buttons
+   * @param {HTMLElement} layers  the layer toggles, point size and colourings
    * @param {HTMLElement} legend  the colour legend
    * @param {{onPlan?: Function, onPick?: Function}} hooks  called with the plan's preview and
    *   the execution's review when they change, and with a picked point's description
@@ -160,7 +167,7 @@ export class Workspace {
       });
     }
     this.view = "workpiece";
-    for (const button of layers.querySelectorAll("button[data-view]")) {
+    for (const button of container.querySelectorAll("button[data-view]")) {
       button.addEventListener("click", () => this.frame(button.dataset.view));
     }
     this.visibility = (name) => layers.querySelector(`input[name=${this.toggleOf(name)}]`)?.checked ?? true;
@@ -454,6 +461,8 @@ export class Workspace {
     group.name = "frames";
     const add = (name, m, size) => {
       const axes = new THREE.AxesHelper(size);
+      // x red, y green, z blue, whole (three.js fades x and y to orange: orange is the trace).
+      axes.setColors(0xe00000, 0x00a000, 0x0050e0);
       axes.applyMatrix4(m);
       const tag = label(name);
       tag.position.copy(new THREE.Vector3().setFromMatrixPosition(m));
@@ -594,14 +603,23 @@ export class Workspace {
 
   /** This server's cell (GET /cell): the keep-out boxes' edges and the planes as grids, in the
    * base frame (not drawn while the view is in the tracker's). A `draft` (the cell being edited,
-   * not saved) is drawn in orange instead; `showCell(saved)` draws the saved one again. */
+   * not saved) is drawn dashed beside it; `showCell(saved)` draws the saved one again. */
   showCell(cell, { draft = false } = {}) {
     const name = draft ? "cell-draft" : "cell";
     if (draft) this.cellDraft = cell;
     else this.cell = cell;
     const ends = cell ? [...cell.keep_out_boxes_m.flatMap(boxEdges), ...cell.cell_planes.flatMap((p) => planeGrid(p))] : [];
     if (!ends.length || !this.inBaseFrame) this.clear(name);
-    else this.layer(name, "segments", Float32Array.from(ends), null, draft ? 0xef6c00 : 0xc2185b);
+    else {
+      const object = this.layer(name, "segments", Float32Array.from(ends), null, CELL_COLOUR);
+      if (draft) {
+        if (!object.material.isLineDashedMaterial) {
+          object.material.dispose();
+          object.material = new THREE.LineDashedMaterial({ color: CELL_COLOUR, dashSize: DRAFT_DASH_M, gapSize: DRAFT_GAP_M });
+        }
+        object.computeLineDistances(); // the dashes follow the edges as typed now
+      }
+    }
     // Segments drawn: the saved cell's (data-cell) and the draft's (data-cell-draft).
     this.container.dataset[draft ? "cellDraft" : "cell"] = this.layers[name] ? String(ends.length / 6) : "0";
     const drafting = Boolean(this.layers["cell-draft"]);
