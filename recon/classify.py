@@ -179,7 +179,7 @@ def _edge_candidates(points_m: FloatArray, model: ScanModel):
         if k == 1:
             dist, idx = dist[:, None], idx[:, None]
         present = np.isfinite(dist)
-        corner = np.where(present, gather(edges.corner, idx, fill_index=len(edges)), -3)
+        corner = np.where(present, gather(edges.corner_labels(), idx, fill_index=len(edges)), -3)
         # The first (nearest) sample of each corner in the row.
         seen_before = np.triu(corner[:, :, None] == corner[:, None, :], k=1).any(axis=1)
         first = present & ~seen_before
@@ -245,10 +245,10 @@ def _choose_edge(candidates, seg: slice, length: int) -> _EdgeChoice | None:
     typical = float(np.median(distances[rows, state[rows]]))
     # How far the next candidate was, where there was one: how clearly the trace chose.
     others = []
-    for i, slot in zip(rows, state[rows], strict=True):
-        rest = [j for j in range(c) if j != slot and np.isfinite(distances[i, j])]
+    for row, slot in zip(rows, state[rows], strict=True):
+        rest = [j for j in range(c) if j != slot and np.isfinite(distances[row, j])]
         if rest:
-            gaps = np.linalg.norm(offsets[i, rest] - offsets[i, slot], axis=1)
+            gaps = np.linalg.norm(offsets[row, rest] - offsets[row, slot], axis=1)
             others.append(float(gaps.min()))
     return _EdgeChoice(
         tuple(sorted({int(x) for x in chosen})),

@@ -80,6 +80,11 @@ class EdgePoints:
             legacy = EDGE_VARIANCE_FACTOR * self.residual_m**2 / np.maximum(self.n_points, 1)
             object.__setattr__(self, "variance_m2", np.asarray(legacy, dtype=np.float64))
 
+    def corner_labels(self) -> NDArray[np.int64]:
+        """``corner`` as ``__post_init__`` left it (-1 where not known; never None)."""
+        assert self.corner is not None  # filled by __post_init__
+        return self.corner
+
     @classmethod
     def empty(cls) -> EdgePoints:
         """No edge points (a scan without edges near the path)."""
@@ -95,9 +100,9 @@ class EdgePoints:
             directions=self.directions[keep],
             residual_m=self.residual_m[keep],
             n_points=self.n_points[keep],
-            track=self.track[keep],
-            variance_m2=self.variance_m2[keep],
-            corner=self.corner[keep],
+            track=None if self.track is None else self.track[keep],
+            variance_m2=None if self.variance_m2 is None else self.variance_m2[keep],
+            corner=None if self.corner is None else self.corner[keep],
         )
 
     @classmethod

@@ -135,8 +135,8 @@ def fit_faces(
     residual = np.abs(h - fit.predict_all(design)[..., 0])
     tolerance = 3.0 * np.maximum(fit.rms, HEIGHT_FLOOR_M)[:, None]
     stage_two = agree & (residual <= tolerance)
-    fit, used = fit_linear_robust(design, h, stage_two.astype(np.float64), floor=HEIGHT_FLOOR_M)
-    used = used > 0
+    fit, weights = fit_linear_robust(design, h, stage_two.astype(np.float64), floor=HEIGHT_FLOOR_M)
+    used = weights > 0
 
     at = frame.to_local(centres_m)
     coef = fit.coef[:, :, 0]

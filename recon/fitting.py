@@ -7,6 +7,7 @@ weight (0 for padding), so the reconstruction runs without a Python loop per pat
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -312,7 +313,7 @@ def symmetric_eig3(cov: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 
 def gather(
-    values: FloatArray, index: NDArray[np.int64], fill_index: int | None = None
+    values: NDArray[Any], index: NDArray[np.int64], fill_index: int | None = None
 ) -> FloatArray:
     """``values[index]`` where entries equal to ``fill_index`` (padding) read as zeros.
 

@@ -143,7 +143,12 @@ def register_icp(
     T, distance, scale = _refine(problem, T, distance, scale, max_iterations)
     final = problem.step(T, distance, scale)
     fitness = final.n_inliers / len(source_m)
-    if final.n_inliers < MIN_PAIRS or fitness < MIN_FITNESS or final.constrained_dof == 0:
+    if (
+        final.n_inliers < MIN_PAIRS
+        or fitness < MIN_FITNESS
+        or final.constrained_dof == 0
+        or final.motion is None  # no pairs to centre the twists on
+    ):
         raise RegistrationError(
             f"only {fitness * 100:.0f} % of the path lies within {distance * 1000:.1f} mm of the "
             f"scan's {target_label} points after registration: check that the scan covers the "
@@ -208,7 +213,7 @@ def _descend(
     re-chosen it can be worse, and without this test the iterations crept 10.8 mm across a
     wavy scan fragment to a placement that fitted worse than where they began.
     """
-    if step.twist is None:
+    if step.twist is None or step.motion is None:
         return None  # too few pairs to take a step
     before = step.cost
     twist = step.twist

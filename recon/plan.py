@@ -93,7 +93,7 @@ class Plan:
     start_from: str = "given"
     configuration: kinematics.Configuration | None = None
     approach_m: float = 0.0
-    collision: object | None = None
+    collision: CollisionReport | None = None
     n_pieces: int = 1
 
     def report_lines(self) -> list[str]:
@@ -114,10 +114,14 @@ class Plan:
             + ", ".join(f"{name} {t:.2f} s" for name, t in traj.phase_durations_s().items())
             + f" ({traj.duration_s:.2f} s in all; approach {self.approach_m * mm:.0f} mm)",
             f"starts from {self.start_from} "
-            f"[{', '.join(f'{np.degrees(v):.1f}' for v in self.start_q_rad)}] deg",
+            + (
+                "(joints not given)"
+                if self.start_q_rad is None
+                else f"[{', '.join(f'{np.degrees(v):.1f}' for v in self.start_q_rad)}] deg"
+            ),
             f"tool axis {TOOL_AXIS_WORDS.get(self.tool.source, self.tool.source)}; "
-            f"{self.configuration.words()} "
-            f"(IK branch {joints.branch})",
+            + ("" if self.configuration is None else f"{self.configuration.words()} ")
+            + f"(IK branch {joints.branch})",
             f"kinematics: {traj.arm.kinematics_words}",
             f"margins: joint limits {np.degrees(joints.limit_margin_rad.min()):.1f} deg, wrist "
             f"|sin q5| {joints.wrist_singularity.min():.2f}, elbow |sin q3| "
@@ -255,6 +259,8 @@ def plan_path(
             if first_refusal is None:
                 raise
             break  # no other configuration follows the path: the first refusal is the reason
+    if first_refusal is None:  # no branch allowed at all
+        raise InfeasibleTrajectoryError("no IK configuration was allowed: check the request")
     raise first_refusal
 
 

@@ -100,19 +100,16 @@ def register_to_model(
             "registered to it",
             alternative=_alternative(surface, points, model, bounds, params),
         )
-    surface_error = None
     try:
         surface = _register_surface(points, model, params, T_scan_tracker_init)
     except RegistrationError as error:
         if edge is None:
             raise
-        surface, surface_error = None, error
-    if surface is None:
         # The surface could not be registered to but the edge could: better than nothing, and
         # said so (the path does not follow the edge well).
         return replace(
             edge.registration,
-            reason=f"the surface could not be registered to ({surface_error}); only "
+            reason=f"the surface could not be registered to ({error}); only "
             f"{edge.following * 100:.0f} % of the path follows the edge",
         )
     if edge is None:

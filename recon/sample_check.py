@@ -120,7 +120,7 @@ def sample_problems(
     low, high = q < arm.q_min_rad - 1e-9, q > arm.q_max_rad + 1e-9
     outside = low | high
     if outside.any():
-        i, j = np.unravel_index(int(np.argmax(outside)), outside.shape)
+        i, j = (int(v) for v in np.unravel_index(int(np.argmax(outside)), outside.shape))
         problems.append(
             SampleProblem(
                 "position",
@@ -191,7 +191,7 @@ def sample_problems(
         )
     # The cap is on every point of the arm, as UR's safety limits are on the elbow's speed.
     if point_speed.max() > tcp_speed_max_m_s * (1.0 + SPEED_TOLERANCE):
-        i, k = np.unravel_index(int(np.argmax(point_speed)), point_speed.shape)
+        i, k = (int(v) for v in np.unravel_index(int(np.argmax(point_speed)), point_speed.shape))
         problems.append(
             SampleProblem(
                 "link_speed",
@@ -276,7 +276,12 @@ def tcp_speeds_m_s(
     """The TCP's speed between consecutive samples, m/s, shape (K-1,): from ``tcp_m`` (K, 3)
     when the caller has the positions, else by forward kinematics with ``T_flange_tcp``."""
     period_s = 1.0 / float(rate_hz or arm.control_rate_hz)
-    tcp = tcp_positions_m(arm, q_rad, T_flange_tcp) if tcp_m is None else tcp_m
+    if tcp_m is not None:
+        tcp = tcp_m
+    elif T_flange_tcp is not None:
+        tcp = tcp_positions_m(arm, q_rad, T_flange_tcp)
+    else:
+        raise ValueError("give the TCP's positions (tcp_m) or the tool (T_flange_tcp)")
     return np.linalg.norm(np.diff(tcp, axis=0), axis=1) / period_s
 
 

@@ -142,9 +142,15 @@ class Recording:
     def __len__(self) -> int:
         return len(self.points_m)
 
+    def _labels(self) -> NDArray[np.int64]:
+        """``piece`` as ``__post_init__`` left it (labels, never None after it)."""
+        assert self.piece is not None  # set by __post_init__
+        return self.piece
+
     @property
     def n_pieces(self) -> int:
-        return int(self.piece[-1]) + 1 if len(self.piece) else 0
+        piece = self._labels()
+        return int(piece[-1]) + 1 if len(piece) else 0
 
     @classmethod
     def joined(cls, pieces: list[Recording]) -> Recording:
@@ -173,7 +179,7 @@ class Recording:
                 if self.orientations_xyzw is None
                 else self.orientations_xyzw[rows],
             )
-            for rows in piece_slices(self.piece)
+            for rows in piece_slices(self._labels())
         ]
 
 
@@ -567,7 +573,8 @@ class PlanParams:
         (``tcp_offset_m``, when set, moves the TCP without turning it)."""
         if any(self.tcp_offset_m):
             return (*self.tcp_offset_m, 0.0, 0.0, 0.0)
-        return tuple(self.tcp_pose)
+        x, y, z, rx, ry, rz = self.tcp_pose
+        return (x, y, z, rx, ry, rz)
 
     @property
     def approach_direction(self) -> FloatArray:

@@ -154,9 +154,11 @@ def edge_neighbourhoods(
     index : ndarray of shape (B, K), int
         Into ``model.edges``; ``len(model.edges)`` marks padding.
     """
-    edges = model.edges
+    edges, tree = model.edges, model.edge_tree
+    if tree is None:
+        raise ValueError("the scan model has no edge points to take N_S from")
     k = min(max_points, len(edges))
-    dist, idx = model.edge_tree.query(centres, k=k, distance_upper_bound=radius_m, workers=-1)
+    dist, idx = tree.query(centres, k=k, distance_upper_bound=radius_m, workers=-1)
     if k == 1:
         dist, idx = dist[:, None], idx[:, None]
     pts = gather(edges.points_m, idx, fill_index=len(edges))
@@ -166,7 +168,7 @@ def edge_neighbourhoods(
     if corners is not None:
         # Samples of no known corner (a confirmed corner's edge lines, filled in up to it)
         # belong to whichever edge they run along.
-        sample_corner = gather(edges.corner, idx, fill_index=len(edges))
+        sample_corner = gather(edges.corner_labels(), idx, fill_index=len(edges))
         weights &= np.isin(sample_corner, corners) | (sample_corner == -1)
     return pts, weights.astype(np.float64), idx
 

@@ -99,8 +99,11 @@ def paper_segment(
     degree = min(params.degree, windows.shape[1] - 2)
     scale = params.radius_m
     use_scan = kind != SegmentKind.PATH and params.alpha != 1.0
+    if use_scan and model is None:
+        raise ValueError(f"a {kind.name.lower()} segment follows the scan: give its model")
     if use_scan and kind == SegmentKind.SURFACE:
         # N_S on a surface: the k nearest scan points of every point of N_P.
+        assert model is not None  # refused above otherwise
         _, knn = model.dense_tree.query(points, k=params.surface_k, workers=-1)
     followed = PointMode.EDGE if kind == SegmentKind.EDGE else PointMode.SURFACE
     out = SegmentResult.unchanged(points)
@@ -116,6 +119,7 @@ def paper_segment(
         n_surface = np.zeros(len(x_i), np.int64)
         residual_s = np.full(len(x_i), np.nan)
         if use_scan:
+            assert model is not None  # refused above otherwise
             if kind == SegmentKind.EDGE:
                 ns, ws, _ = edge_neighbourhoods(
                     points[rows], frame.axes[:, :, 0], model, params.radius_m, corners=corners

@@ -110,9 +110,10 @@ class Scene:
                 self.curve, self.length_m, rng, noise=self.noise, extra_offset=self.extra_offset
             )
             if k % 2 == 1:
+                t_s = recording.t_s
                 recording = Recording(
                     points_m=recording.points_m[::-1].copy(),
-                    t_s=recording.t_s[-1] - recording.t_s[::-1],
+                    t_s=None if t_s is None else t_s[-1] - t_s[::-1],
                 )
             out.append(recording)
         return out
