@@ -306,7 +306,8 @@ def confirm_with_scan(
         lines.append(_edge_line(points_scan_m[stretch], edge_points_m, edge_directions, edge_tree))
     if lines[0] is None and lines[1] is None:
         return None
-    if lines[0] is None or lines[1] is None:
+    first, second = lines
+    if first is None or second is None:
         # The path leaves an edge (onto a face, into the air) or the candidate is too near an
         # end for a line: the scan cannot say, the trace's sharpness does.
         return None
@@ -318,7 +319,7 @@ def confirm_with_scan(
             line.rms_m,
             line.n_samples,
         )
-        for line in lines
+        for line in (first, second)
     )
     # The edge's turn: 180 deg less the angle between the two directions pointing away.
     cos_between = float(np.clip(np.dot(before.direction, after.direction), -1.0, 1.0))

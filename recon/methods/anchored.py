@@ -116,6 +116,8 @@ def anchored_segment(
     degree = min(params.degree, windows.shape[1] - 2)
     scale = params.radius_m
     use_scan = kind != SegmentKind.PATH and params.alpha != 1.0
+    if use_scan and model is None:
+        raise ValueError(f"a {kind.name.lower()} segment follows the scan: give its model")
     out = SegmentResult.unchanged(points)
     smoothed = np.empty_like(points)
     var_path_fit = np.zeros(n)
@@ -143,6 +145,7 @@ def anchored_segment(
             out.n_path[rows] = 2 * adaptive.half_width[rows] + 1
             out.residual_path[rows] = adaptive.rms_m[rows]
         if use_scan:
+            assert model is not None  # refused above otherwise
             evidence.fill(
                 rows,
                 weigh_evidence(
@@ -159,6 +162,7 @@ def anchored_segment(
             )
 
     if use_scan:
+        assert model is not None  # refused above otherwise
         # The trees are built on first use: build them here, not once per thread.
         _ = model.edge_tree if kind == SegmentKind.EDGE else model.dense_tree
         _ = model.fine_normals
@@ -355,7 +359,7 @@ def weigh_evidence(
         face_normal = np.zeros_like(centres)
         face_normal[rows] = face.normal
         accept = _explained(centres, face_target, max_move_m, model, face_ok, face_normal) & todo
-        reason = PointReason.ONE_FACE if kind == SegmentKind.EDGE else PointReason.NONE
+        face_reason = PointReason.ONE_FACE if kind == SegmentKind.EDGE else PointReason.NONE
         t = np.zeros_like(centres)
         t[rows] = face.target_m
         var_t = np.full(len(centres), np.inf)
@@ -364,7 +368,7 @@ def weigh_evidence(
         count[rows] = face.count
         resid = np.full(len(centres), np.nan)
         resid[rows] = face.rms_m
-        _take(out, accept, t, var_t, PointMode.SURFACE, reason, count, resid)
+        _take(out, accept, t, var_t, PointMode.SURFACE, face_reason, count, resid)
         if kind == SegmentKind.SURFACE:
             face_failure = np.where(face.ok, PointReason.FAR_FROM_TRACE, PointReason.NO_FEATURE)
             first_failure[rows] = face_failure
