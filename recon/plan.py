@@ -593,16 +593,8 @@ def _whole_motion(
 
 def _approach_and_retract(arm, process, branch, approach_m, params):
     """The straight moves along the tool axis onto a process run's first pose and off its last."""
-    T_flange_tcp = params.T_flange_tcp
-    ends = kinematics.forward(arm, process.q_rad[[0, -1]]) @ T_flange_tcp
-    line = {
-        "branch": branch,
-        "T_flange_tcp": T_flange_tcp,
-        "speed_m_s": params.approach_speed_m_s,
-        "velocity_scale": params.velocity_scale,
-        "acceleration_scale": params.acceleration_scale,
-        "point_speed_max_m_s": params.point_speed_max_m_s,
-    }
+    ends = kinematics.forward(arm, process.q_rad[[0, -1]]) @ params.T_flange_tcp
+    line = _lift_line(params, branch)
     approach = motion.line_move(
         arm,
         motion.tool_line(motion.lifted(ends[0], approach_m), ends[0]),
@@ -620,6 +612,19 @@ def _approach_and_retract(arm, process, branch, approach_m, params):
         **line,
     )
     return approach, retract
+
+
+def _lift_line(params: PlanParams, branch: int) -> dict:
+    """How every straight lift along the tool axis moves (approach, retract, the move off the
+    workpiece): ``motion.line_move``'s settings but the line, its join and its phase."""
+    return {
+        "branch": branch,
+        "T_flange_tcp": params.T_flange_tcp,
+        "speed_m_s": params.approach_speed_m_s,
+        "velocity_scale": params.velocity_scale,
+        "acceleration_scale": params.acceleration_scale,
+        "point_speed_max_m_s": params.point_speed_max_m_s,
+    }
 
 
 def _transit(arm, q_start, q_goal, base_first: bool, joint_move: dict) -> list:
@@ -952,15 +957,10 @@ def _retract_from(arm, q_rad: FloatArray, params: PlanParams) -> motion.PhaseSam
         return motion.line_move(
             arm,
             motion.tool_line(T_tcp, motion.lifted(T_tcp, params.approach_m)),
-            branch=_branch_at(arm, q_rad),
             q_end_rad=None,
             q_start_rad=q_rad,
-            T_flange_tcp=params.T_flange_tcp,
-            speed_m_s=params.approach_speed_m_s,
-            velocity_scale=params.velocity_scale,
-            acceleration_scale=params.acceleration_scale,
             phase=Phase.RETRACT,
-            point_speed_max_m_s=params.point_speed_max_m_s,
+            **_lift_line(params, _branch_at(arm, q_rad)),
         )
     except InfeasibleTrajectoryError as error:
         raise CollisionError(
