@@ -501,6 +501,8 @@ def test_the_cell_is_edited_in_3d_and_outdates_the_plans_made_in_another(pendant
         )
         assert saved["cell_planes"] == [[1.0, 0.0, 0.0, -1.0005]]
         expect(workspace).to_have_attribute("data-cell-draft", "0")
+        # Nothing being edited: its legend entry goes too (the swatch once stayed, unlabelled).
+        expect(page.locator("#legend-cell-draft")).to_be_hidden()
         expect(workspace).to_have_attribute("data-cell", re.compile(r"^(1[3-9]|[2-9]\d)$"))
         cell_line = page.locator("#calibration-current tr", has_text="cell")
         expect(cell_line).to_contain_text("1 keep-out box, 1 plane besides the mounting one")
