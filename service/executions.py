@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
-from drivers.robot.base import backend_config, create_backend
+from drivers.robot.base import create_backend
 from drivers.robot.dryrun import reached_phase, stream_lag_s
 from service import tasks
 from service.arm_runner import ExecutionRunner, journal_record
@@ -36,6 +36,7 @@ from service.gate import (
 )
 from service.pipelines import ExecutionOutcome, cell_for
 from service.provenance import trajectory_outdated
+from service.robot import ur_rtde_config
 from service.schemas import ExecutionCreate
 from service.store import FINISHED, ArtifactRow, JobRow, new_id
 
@@ -166,7 +167,7 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
             outdated=outdated,
             accept_outdated=request.accept_outdated,
         )
-        config = backend_config("ur_rtde", host=settings.ur_host, robot=settings.ur_robot)
+        config = ur_rtde_config(settings)
         job = services.store.create_job(
             session_id, "execution", _job_params(request, trajectory, out_id)
         )
@@ -585,9 +586,7 @@ def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
         mode=job.params.get("mode", "servoj"),
         tolerance_m=job.params.get("tolerance_m", 5e-4),
     )
-    config = backend_config(
-        "ur_rtde", host=services.settings.ur_host or "unknown", robot=trajectory.robot
-    )
+    config = ur_rtde_config(services.settings, robot=trajectory.robot)
     where = reached_phase(trajectory, record, stream_lag_s(request.mode, config.lookahead_s))
     summary = _real_summary(trajectory, record, [record.fault], where, request, config)
     store.add_arrays_artifact(

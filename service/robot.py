@@ -17,11 +17,31 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from drivers.robot.base import backend_config
+from drivers.robot.base import BackendConfig, backend_config
 from drivers.robot.monitor import ArmState, RobotMonitor, create_monitor
 from service.settings import Settings
 
 log = logging.getLogger("teachpath.robot")
+
+
+def ur_rtde_config(settings: Settings, robot: str | None = None) -> BackendConfig:
+    """The ur_rtde backend's settings for the arm at ``settings.ur_host`` (the monitor's, each
+    run's and a recovered run's: one place).
+
+    Parameters
+    ----------
+    settings : Settings
+    robot : str, optional
+        The arm's model when it is not ``settings.ur_robot`` (a recovered run's plan's).
+    """
+    return backend_config(
+        "ur_rtde",
+        host=settings.ur_host or "unknown",
+        robot=robot or settings.ur_robot,
+        watchdog_hz=settings.ur_watchdog_hz,
+        rt_priority=settings.ur_rt_priority,
+    )
+
 
 #: A reading older than this does not count as the arm's state (s).
 FRESH_S = 2.0
@@ -71,7 +91,7 @@ class RobotWatch:
         self.backend = "ur_rtde" if settings.ur_host else "sim"
         if monitor is None:
             if settings.ur_host:
-                config = backend_config("ur_rtde", host=settings.ur_host, robot=settings.ur_robot)
+                config = ur_rtde_config(settings)
             else:
                 config = backend_config(
                     "sim", robot=settings.ur_robot, q_start_rad=tuple(settings.home_q_rad)

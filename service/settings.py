@@ -102,6 +102,21 @@ class Settings(BaseSettings):
     cors_origins: list[str] = Field(default_factory=list, description="closed by default")
     ur_host: str | None = Field(None, description="controller address for backend ur_rtde")
     ur_robot: str = Field("ur5e", description="the model of the arm at ur_host")
+    ur_watchdog_hz: float = Field(
+        2.0,
+        ge=0.5,
+        le=100.0,
+        description="during a motion the controller stops the program when this service has "
+        "written nothing to it for 1/ur_watchdog_hz s (a hung or killed worker)",
+    )
+    ur_rt_priority: int = Field(
+        80,
+        ge=0,
+        le=99,
+        description="realtime priority (SCHED_FIFO) of the servoJ loop while it streams; 0: "
+        "normal priority (a machine that also runs the controller's simulator, or a container "
+        "without CAP_SYS_NICE)",
+    )
     ur_calibration: Path | None = Field(
         None,
         description="the arm's own kinematics calibration: its controller's calibration.conf "

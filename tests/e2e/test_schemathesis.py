@@ -156,7 +156,11 @@ def test_no_server_errors_and_documented_responses(tmp_path, scene_files, fake_u
     server = Server(
         tmp_path / "data",
         token=TOKEN,
-        settings={"TEACHPATH_UR_HOST": fake_ur_process.host, "TEACHPATH_UR_ROBOT": "ur5e"},
+        settings={
+            "TEACHPATH_UR_HOST": fake_ur_process.host,
+            "TEACHPATH_UR_ROBOT": "ur5e",
+            "TEACHPATH_UR_WATCHDOG_HZ": str(fake_ur_fixture.SERVICE_WATCHDOG_HZ),
+        },
     )
     try:
         # The fuzzer sends no valid bundle: the import is made here, first, so that the

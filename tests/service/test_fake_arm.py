@@ -28,6 +28,7 @@ def arm(tmp_path_factory, scene_files, fake_ur_process):
         ur_host=fake_ur_process.host,
         ur_robot="ur5e",
         max_speed_m_s=0.1,
+        ur_watchdog_hz=fake_ur_fixture.SERVICE_WATCHDOG_HZ,
     )
     with TestClient(create_app(settings), headers=AUTH) as client:
         sid, trajectories = planned_session(client, scene_files, (0.1,), name="fake arm")
@@ -195,6 +196,8 @@ def test_a_confirmed_execution_runs_on_the_controller(arm, fake_ur):
     status = fake_ur.control("status")
     assert np.abs(np.array(status["q_rad"]) - q_end).max() < 2e-3
     assert status["payload_kg"] == 2.0  # the installation's, kept
+    # The service's watchdog setting reached the controller (the fixture's, not the default).
+    assert "RTDE watchdog set: 0.5 Hz" in fake_ur.log_text()
 
 
 def test_a_session_that_owns_the_arm_is_not_deleted_until_its_run_ends(arm, fake_ur):

@@ -37,6 +37,7 @@ def arm_server(tmp_path_factory, fake_ur_process):
             "TEACHPATH_UR_HOST": fake_ur_process.host,
             "TEACHPATH_UR_ROBOT": "ur5e",
             "TEACHPATH_MAX_SPEED_M_S": str(CAP_M_S),
+            "TEACHPATH_UR_WATCHDOG_HZ": str(fake_ur_fixture.SERVICE_WATCHDOG_HZ),
             # A cabinet beside the arm and the floor under the table: far from the demo's
             # motion, drawn in the 3-D view.
             "TEACHPATH_KEEP_OUT_BOXES": "[[0.0, 0.7, 0.0, 0.2, 0.9, 0.3]]",

@@ -158,6 +158,8 @@ export const INSTRUCTIONS = {
     "Stopped at your request: the arm stands where it stopped. Check the cell before you run " +
     "again: the plan runs from its start (Move to the plan’s start, in the Run step, takes the " +
     "arm back there).",
+  dry_run_stopped: "The dry run was stopped: nothing moved and it did not pass. Run it again " +
+    "to check the plan before the arm runs it.",
   invalid_file: "The file could not be read: check its format and units, then upload it again.",
   unknown_format: "The file's format is not known: choose the format in the list.",
   upload_too_large: "The file is larger than the server accepts.",

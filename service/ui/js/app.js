@@ -1032,7 +1032,8 @@ async function runJob(step, form, start, onDone) {
       const where = finished.result?.stopped_in;
       const message = where ? `cancelled by Stop: the arm stopped in ${where}`
         : finished.error?.message || "cancelled before it started";
-      showError(box, { code: "cancelled", message });
+      // A stopped dry run moved nothing: its instruction is not the arm's.
+      showError(box, { code: step.endsWith("dryrun") ? "dry_run_stopped" : "cancelled", message });
     } else if (finished.state !== "succeeded") {
       showError(box, { code: finished.error?.code || finished.state, message: finished.error?.message || finished.state });
     }
