@@ -67,6 +67,8 @@ class SuiteVariant:
 
 def touches_for(scene: Scene, seed: int):
     """The scanner registered from a touch recording of the scene (6 touches)."""
+    if scene.scan is None:
+        raise ValueError(f"scene {scene.name} has no scan to register touches against")
     recording = touch_recording(scene, seed).recording
     found = touches_in(recording.points_m, recording.t_s)
     return register_touches(
@@ -186,11 +188,32 @@ class SuiteRow:
     results: list[SeedResult]
     refused: list[tuple[int, str]]
 
-    def median(self, value: Callable[[SeedResult], float]) -> float:
-        return statistics.median(value(r) for r in self.results)
+    def median(self, value: Callable[[SeedResult], float | None]) -> float:
+        """The median over seeds of ``value`` (every seed must have it)."""
+        return statistics.median(self._values(value))
 
-    def worst(self, value: Callable[[SeedResult], float]) -> float:
-        return max(value(r) for r in self.results)
+    def worst(self, value: Callable[[SeedResult], float | None]) -> float:
+        """The largest over seeds of ``value`` (every seed must have it)."""
+        return max(self._values(value))
+
+    def _values(self, value: Callable[[SeedResult], float | None]) -> list[float]:
+        values = [value(r) for r in self.results]
+        present = [v for v in values if v is not None]
+        if len(present) != len(values):
+            raise ValueError(f"{self.variant}: a score is missing for some seeds of {self.scene}")
+        return present
+
+
+def _registered_mean_m(result: SeedResult) -> float | None:
+    return None if result.registered is None else result.registered.mean_m
+
+
+def _registered_max_m(result: SeedResult) -> float | None:
+    return None if result.registered is None else result.registered.max_m
+
+
+def _in_plane_mean_m(result: SeedResult) -> float | None:
+    return None if result.in_plane is None else result.in_plane.mean_m
 
 
 def run_variant(scene: Scene, seed: int, variant: SuiteVariant) -> SeedResult:
@@ -286,9 +309,9 @@ def format_suite(rows: list[SuiteRow]) -> str:
         reg = "- | -"
         if all(r.registered is not None for r in row.results):
             reg = (
-                f"{row.median(lambda r: r.registered.mean_m) / MM:.3f} | "
-                f"{row.median(lambda r: r.registered.max_m) / MM:.2f} / "
-                f"{row.worst(lambda r: r.registered.max_m) / MM:.2f}"
+                f"{row.median(_registered_mean_m) / MM:.3f} | "
+                f"{row.median(_registered_max_m) / MM:.2f} / "
+                f"{row.worst(_registered_max_m) / MM:.2f}"
             )
         height = "-"
         if row.results[0].height_max_m is not None:
@@ -298,7 +321,7 @@ def format_suite(rows: list[SuiteRow]) -> str:
             )
         plane = "-"
         if row.results[0].in_plane is not None:
-            plane = f"{row.median(lambda r: r.in_plane.mean_m) / MM:.3f}"
+            plane = f"{row.median(_in_plane_mean_m) / MM:.3f}"
         out.append(
             f"| {row.variant} "
             f"| {row.median(lambda r: r.tracker.mean_m) / MM:.3f} "

@@ -796,7 +796,7 @@ class Cell:
 
     def obstacle_names(self) -> tuple[str, ...]:
         """What a motion is checked against, by the names collisions report."""
-        names = ("mounting plane",) if self.mounting is not None else ()
+        names: tuple[str, ...] = ("mounting plane",) if self.mounting is not None else ()
         names += tuple(p.name for p in self.planes) + tuple(b.name for b in self.boxes)
         if self.has_scan:
             names += (f"scan ({len(self.scan_m)} points)",)
@@ -928,6 +928,7 @@ class ContactZone:
         each (K, 3, unit; interpolated between the path's points)."""
         from recon.types import piece_slices
 
+        assert self.piece is not None  # labelled by __post_init__
         points, axes = [], []
         for rows in piece_slices(self.piece):
             resampled, at = _resample_polyline(self.path_m[rows], spacing_m, with_position=True)
@@ -1517,7 +1518,7 @@ def check_motion(  # noqa: C901
     # Contact exemption.
     exempt_cols = np.zeros(L, dtype=bool)
     exempt = np.zeros(M, dtype=bool)
-    contact_radius = None
+    contact_radius: float | None = None
     reduced: tuple[cKDTree | None, FloatArray, NDArray[np.int64]] | None = None
     if contact_zone is not None:
         p_tcp = T_ft[:3, 3]
@@ -1538,7 +1539,7 @@ def check_motion(  # noqa: C901
         if w3 - cm.radii_m[7] <= contact_radius:
             exempt_cols[7] = True
         exempt = (phase == Phase.PROCESS) | _travel_windows(arm, q, phase, T_ft, contact_radius)
-        if cell.has_scan and exempt.any():
+        if cell._tree is not None and exempt.any():
             # Points on the path a quarter of the radius apart: what is within the radius of
             # them is within the radius of the path (the tube exempted is never wider). Of
             # those, only what lies no higher than the band above the tip, along the tool's
@@ -1596,7 +1597,7 @@ def check_motion(  # noqa: C901
         take(c[:, arm_cols], p[:, arm_cols], k_mounting, c_full, o_full, p_full, arm_cols)
         tool_cols = slice(len(LINK_NAMES), L)
         cut = (c[:, tool_cols], p[:, tool_cols])
-        if contact_zone is not None:
+        if contact_zone is not None and contact_radius is not None:  # set together above
             reach = np.maximum(np.r_[np.diff(v), 0.0], np.r_[0.0, np.diff(v)])  # (J,)
             tcp = (frames[:, 6] @ T_ft)[:, :3, 3]
             cut = _tip_cut_mounting(
@@ -1630,9 +1631,15 @@ def check_motion(  # noqa: C901
                 for mine, other, point in ((i, jj, on_j), (jj, i, on_i)):
                     if other not in self_index:
                         self_index[other] = add(names[other], ObstacleKind.SELF)
-                    cols = slice(mine, mine + 1)
+                    mine_col = slice(mine, mine + 1)
                     take(
-                        c[:, None], point[:, None], self_index[other], c_full, o_full, p_full, cols
+                        c[:, None],
+                        point[:, None],
+                        self_index[other],
+                        c_full,
+                        o_full,
+                        p_full,
+                        mine_col,
                     )
     c_ex, o_ex, p_ex = c_full.copy(), o_full.copy(), p_full.copy()
     if mounting_tool is not None:
@@ -1652,25 +1659,25 @@ def check_motion(  # noqa: C901
             tree_ex, pts_ex, rows_ex = reduced
             cols_ex = np.flatnonzero(exempt_cols)
             sources.append((tree_ex, pts_ex, rows_ex, c_ex, o_ex, p_ex, cols_ex))
-        for tree, pts, rows, c_arr, o_arr, p_arr, cols in sources:
+        for tree, pts, rows, c_arr, o_arr, p_arr, source_cols in sources:
             if tree is None or len(rows) == 0:
                 continue
-            for j in cols:
+            for col in source_cols:
                 c, p = _scan_clearance(
                     tree,
                     pts,
-                    ends[rows, j],
-                    float(radii[j]),
+                    ends[rows, col],
+                    float(radii[col]),
                     horizon_m=horizon_m,
                     refine_below_m=refine_below,
                     fine_m=fine_m,
                     workers=workers,
                 )
                 c = c - cell.scan_resolution_m
-                better = c < c_arr[rows, j]
-                c_arr[rows[better], j] = c[better]
-                o_arr[rows[better], j] = k_scan
-                p_arr[rows[better], j] = p[better]
+                better = c < c_arr[rows, col]
+                c_arr[rows[better], col] = c[better]
+                o_arr[rows[better], col] = k_scan
+                p_arr[rows[better], col] = p[better]
         if reduced is None:  # no exemption: the same as the full scan
             c_ex, o_ex, p_ex = c_full, o_full, p_full
         else:  # columns not exempt see the full scan in every period
@@ -1712,8 +1719,8 @@ def check_motion(  # noqa: C901
     gov[-1] = J - 1
     use_ex[-1] = last_ex
 
-    cols = np.arange(L)[None, :]
-    obst = np.where(use_ex, o_ex[gov, cols], o_full[gov, cols])
+    every_col = np.arange(L)[None, :]
+    obst = np.where(use_ex, o_ex[gov, every_col], o_full[gov, every_col])
     nearest = np.argmin(bound, axis=1)
     clearance = bound[np.arange(M), nearest]
     kinds = np.array([int(k) for k in obstacle_kinds] + [int(ObstacleKind.NONE)], dtype=np.int8)

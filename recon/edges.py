@@ -85,6 +85,16 @@ class EdgePoints:
         assert self.corner is not None  # filled by __post_init__
         return self.corner
 
+    def track_labels(self) -> NDArray[np.int64]:
+        """``track`` as ``__post_init__`` left it (-1 where not known; never None)."""
+        assert self.track is not None  # filled by __post_init__
+        return self.track
+
+    def variances_m2(self) -> FloatArray:
+        """``variance_m2`` as ``__post_init__`` left it (never None)."""
+        assert self.variance_m2 is not None  # filled by __post_init__
+        return self.variance_m2
+
     @classmethod
     def empty(cls) -> EdgePoints:
         """No edge points (a scan without edges near the path)."""

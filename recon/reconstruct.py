@@ -420,10 +420,10 @@ def evidence_notes(
     mm = 1e3
     for index, (segment, result) in enumerate(zip(segments, results, strict=True)):
         if not segment.scan_trusted:
-            reasons = np.bincount(result.reason.astype(np.int64), minlength=len(PointReason))
+            counts = np.bincount(result.reason.astype(np.int64), minlength=len(PointReason))
             why = ", ".join(
                 f"{count} {PointReason(code).label.replace('_', ' ')}"
-                for code, count in enumerate(reasons)
+                for code, count in enumerate(counts)
                 if count and PointReason(code).fallen_back
             )
             notes.append(
@@ -482,7 +482,12 @@ def transform_sigma_m(
     ndarray of shape (N,), metres
     """
     points = np.asarray(points_tracker_m, dtype=np.float64)
-    if registration is None or registration.covariance is None:
+    if (
+        registration is None
+        or registration.covariance is None
+        or registration.motion_centre_m is None
+        or registration.motion_length_m is None
+    ):
         return np.zeros(len(points))
     motion = RigidMotion(registration.motion_centre_m, registration.motion_length_m)
     in_scan = apply_transform(registration.T_scan_tracker, points)
@@ -574,6 +579,7 @@ def with_corner_edges(model: ScanModel, corners: list[Corner]) -> ScanModel:
     fill it, so both segments follow their edge to where the edges meet.
     """
     confirmed = [c for c in corners if c.split and c.point_m is not None]
+    located = [c.point_m for c in confirmed if c.point_m is not None]  # the same, for the types
     if not confirmed:
         return model
     extra = [
@@ -586,9 +592,9 @@ def with_corner_edges(model: ScanModel, corners: list[Corner]) -> ScanModel:
     # fitted farther out, are the better account of the edge there.
     near_corner = np.zeros(len(model.edges), dtype=bool)
     if len(model.edges):
-        for corner in confirmed:
+        for corner_m in located:
             near_corner |= (
-                np.linalg.norm(model.edges.points_m - corner.point_m, axis=1)
+                np.linalg.norm(model.edges.points_m - corner_m, axis=1)
                 < CORNER_CLEAR_FRACTION * model.edge_fit_radius_m
             )
     return model.with_extra_edges(
@@ -1019,7 +1025,9 @@ def _assemble(
                 angle_deg=c.angle_deg,
                 split=c.split,
                 reason=c.reason,
-                point_m=None if c.point_m is None else tuple(float(v) for v in c.point_m),
+                point_m=None
+                if c.point_m is None
+                else (float(c.point_m[0]), float(c.point_m[1]), float(c.point_m[2])),
             )
             for c in corners
         ),

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -55,7 +56,8 @@ FACE_FOOT_MARGIN_M = 0.002
 ARRAYS_VERSION = 2
 
 # Array keys of to_arrays: (key, attribute of ScanFeatures or EdgePoints, dtype).
-_FEATURE_ARRAYS = (
+#: (key in the arrays, attribute, dtype) of each stored array.
+_FEATURE_ARRAYS: tuple[tuple[str, str, type], ...] = (
     ("points_m", "points_m", np.float64),
     ("dense_points_m", "dense_points_m", np.float64),
     ("normals", "normals", np.float64),
@@ -68,7 +70,7 @@ _FEATURE_SCALARS = (
     ("n_cropped", "n_cropped", int),
     ("n_outliers", "n_outliers", int),
 )
-_EDGE_ARRAYS = (
+_EDGE_ARRAYS: tuple[tuple[str, str, type], ...] = (
     ("edge_points_m", "points_m", np.float64),
     ("edge_directions", "directions", np.float64),
     ("edge_residual_m", "residual_m", np.float64),
@@ -76,7 +78,7 @@ _EDGE_ARRAYS = (
 )
 #: Edge arrays added in version 2 (a version-1 model reads without them: tracks unknown,
 #: variances from the residuals).
-_EDGE_ARRAYS_V2 = (
+_EDGE_ARRAYS_V2: tuple[tuple[str, str, type], ...] = (
     ("edge_track", "track", np.int64),
     ("edge_variance_m2", "variance_m2", np.float64),
     ("edge_corner", "corner", np.int64),
@@ -254,13 +256,13 @@ class ScanModel:
         directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
         residual = float(np.median(edges.residual_m)) if len(edges) else 0.0
         count = int(np.median(edges.n_points)) if len(edges) else 0
-        variance = float(np.median(edges.variance_m2)) if len(edges) else 0.0
+        variance = float(np.median(edges.variances_m2())) if len(edges) else 0.0
         track = np.full(len(points_m), -1, np.int64)
         if len(edges) and len(points_m):
             gap, nearest = cKDTree(edges.points_m).query(points_m)
             along = np.abs(np.einsum("ni,ni->n", edges.directions[nearest], directions))
             same = (gap <= 0.002) & (along >= np.cos(np.radians(30.0)))
-            track = np.where(same, edges.track[nearest], -1)
+            track = np.where(same, edges.track_labels()[nearest], -1)
         grown = EdgePoints.concatenate(
             [
                 edges,
@@ -349,23 +351,21 @@ class ScanModel:
             missing = [k for k, _, _ in _EDGE_ARRAYS_V2 if k not in arrays]
             if missing:
                 raise ValueError(f"the scan model's arrays lack {', '.join(missing)}")
-        feature_kwargs = {
+        feature_kwargs: dict[str, Any] = {
             attr: np.array(arrays[key], dtype=dtype) for key, attr, dtype in _FEATURE_ARRAYS
         }
         feature_kwargs |= {
             attr: kind(np.asarray(arrays[key])) for key, attr, kind in _FEATURE_SCALARS
         }
         edge_arrays = _EDGE_ARRAYS + (_EDGE_ARRAYS_V2 if version >= 2 else ())
-        edges = EdgePoints(
-            **{attr: np.array(arrays[key], dtype=dtype) for key, attr, dtype in edge_arrays}
-        )
+        edge_kwargs: dict[str, Any] = {
+            attr: np.array(arrays[key], dtype=dtype) for key, attr, dtype in edge_arrays
+        }
+        edges = EdgePoints(**edge_kwargs)
         features = ScanFeatures(**feature_kwargs)
         _check_shapes(features, edges)
-        return cls(
-            features=features,
-            edges=edges,
-            **{key: float(np.asarray(arrays[key])) for key in _MODEL_SCALARS},
-        )
+        scalars: dict[str, Any] = {key: float(np.asarray(arrays[key])) for key in _MODEL_SCALARS}
+        return cls(features=features, edges=edges, **scalars)
 
 
 def _check_shapes(features: ScanFeatures, edges: EdgePoints) -> None:
@@ -382,7 +382,11 @@ def _check_shapes(features: ScanFeatures, edges: EdgePoints) -> None:
         raise ValueError("the scan model's edge points and directions must have shape (E, 3)")
     if edges.residual_m.shape != (e,) or edges.n_points.shape != (e,):
         raise ValueError(f"the scan model's edge residuals and counts must have {e} rows")
-    if edges.track.shape != (e,) or edges.variance_m2.shape != (e,) or edges.corner.shape != (e,):
+    if (
+        edges.track_labels().shape != (e,)
+        or edges.variances_m2().shape != (e,)
+        or edges.corner_labels().shape != (e,)
+    ):
         raise ValueError(f"the scan model's edge tracks, variances and corners must have {e} rows")
 
 

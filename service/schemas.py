@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from datetime import datetime
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
@@ -682,9 +682,65 @@ def _request_model(name: str, base: type[BaseModel], cls, names, *, required=())
     return create_model(name, __base__=base, __doc__=base.__doc__, **fields)
 
 
-ReconstructionCreate = _request_model(
-    "ReconstructionCreate", _ReconstructionRequest, ReconParams, RECONSTRUCTION_PARAMS
-)
-TrajectoryCreate = _request_model(
-    "TrajectoryCreate", _TrajectoryRequest, PlanParams, TRAJECTORY_PARAMS, required=("speed_m_s",)
-)
+# The two request models with the core's parameters. At run time they are made from the core's
+# declarations (types, defaults, bounds, help: one place, recon.params); what a type checker and
+# a reader see is declared here, field by field, and tests/service/test_request_models.py
+# checks that the two agree (names, types, defaults, which are required).
+if TYPE_CHECKING:
+
+    class ReconstructionCreate(_ReconstructionRequest):
+        """What to reconstruct, and how; the numbers' defaults and bounds are the core's."""
+
+        radius_m: float = default_of(ReconParams, "radius_m")
+        alpha: float | Literal["auto"] = default_of(ReconParams, "alpha")
+        beta: float = default_of(ReconParams, "beta")
+        degree: int = default_of(ReconParams, "degree")
+        method: Literal["paper", "anchored"] = default_of(ReconParams, "method")
+        spacing_m: float = default_of(ReconParams, "spacing_m")
+        uncertainty_tolerance_m: float = default_of(ReconParams, "uncertainty_tolerance_m")
+
+    class TrajectoryCreate(_TrajectoryRequest):
+        """What to plan; the numbers' defaults and bounds are the core's."""
+
+        robot: str = default_of(PlanParams, "robot")
+        speed_m_s: float
+        orientation: Literal["auto", "scan", "pen", "fixed"] = default_of(PlanParams, "orientation")
+        lead_deg: float = default_of(PlanParams, "lead_deg")
+        tilt_deg: float = default_of(PlanParams, "tilt_deg")
+        heading: Literal["travel", "free"] = default_of(PlanParams, "heading")
+        smooth_m: float = default_of(PlanParams, "smooth_m")
+        tcp_offset_m: tuple[float, float, float] = default_of(PlanParams, "tcp_offset_m")
+        tcp_pose: tuple[float, float, float, float, float, float] = default_of(
+            PlanParams, "tcp_pose"
+        )
+        start_q_rad: tuple[float, float, float, float, float, float] | None = default_of(
+            PlanParams, "start_q_rad"
+        )
+        shoulder: Literal["any", "left", "right"] = default_of(PlanParams, "shoulder")
+        elbow: Literal["up", "down", "any"] = default_of(PlanParams, "elbow")
+        wrist: Literal["any", "flip", "noflip"] = default_of(PlanParams, "wrist")
+        approach_m: float = default_of(PlanParams, "approach_m")
+        approach_speed_m_s: float = default_of(PlanParams, "approach_speed_m_s")
+        transit_speed_scale: float = default_of(PlanParams, "transit_speed_scale")
+        transit_acceleration_scale: float = default_of(PlanParams, "transit_acceleration_scale")
+        transit_tcp_speed_m_s: float = default_of(PlanParams, "transit_tcp_speed_m_s")
+        return_to_start: bool = default_of(PlanParams, "return_to_start")
+        payload_kg: float | None = default_of(PlanParams, "payload_kg")
+        payload_cog_m: tuple[float, float, float] = default_of(PlanParams, "payload_cog_m")
+        tool_radius_m: float = default_of(PlanParams, "tool_radius_m")
+        tool_spheres_m: tuple[float, ...] = default_of(PlanParams, "tool_spheres_m")
+        clearance_m: float = default_of(PlanParams, "clearance_m")
+        joint_margin_deg: float = default_of(PlanParams, "joint_margin_deg")
+        mount_up: tuple[float, float, float] = default_of(PlanParams, "mount_up")
+
+else:
+    ReconstructionCreate = _request_model(
+        "ReconstructionCreate", _ReconstructionRequest, ReconParams, RECONSTRUCTION_PARAMS
+    )
+    TrajectoryCreate = _request_model(
+        "TrajectoryCreate",
+        _TrajectoryRequest,
+        PlanParams,
+        TRAJECTORY_PARAMS,
+        required=("speed_m_s",),
+    )

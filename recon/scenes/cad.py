@@ -25,7 +25,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from recon.scenes.base import MM, Face, Scene, interpolated_curve
-from recon.scenes.depth_camera import DepthCamera, SimulatedScan, hand_held_views, scan_mesh
+from recon.scenes.depth_camera import (
+    DepthCamera,
+    SimulatedScan,
+    cpu_tensor,
+    hand_held_views,
+    scan_mesh,
+)
 from recon.scenes.noise import HandNoise, hand_trace, misalignment
 from recon.transforms import apply_transform
 from recon.types import FloatArray, Scan
@@ -80,30 +86,24 @@ class Part:
 
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(
-            o3d.core.Tensor(self.vertices_m.astype(np.float32)),
-            o3d.core.Tensor(self.triangles.astype(np.uint32)),
+            cpu_tensor(self.vertices_m),
+            cpu_tensor(self.triangles, "uint32"),
         )
         return scene
 
     def inside(self, points_m: FloatArray) -> np.ndarray:
         """Whether each point is inside the part (bool, shape (N,))."""
-        import open3d as o3d
-
-        query = o3d.core.Tensor(np.asarray(points_m, dtype=np.float32).reshape(-1, 3))
+        query = cpu_tensor(np.asarray(points_m).reshape(-1, 3))
         return self.raycasting.compute_occupancy(query).numpy().astype(bool)
 
     def distance(self, points_m: FloatArray) -> FloatArray:
         """Unsigned distance of each point to the part's surface (shape (N,), metres)."""
-        import open3d as o3d
-
-        query = o3d.core.Tensor(np.asarray(points_m, dtype=np.float32).reshape(-1, 3))
+        query = cpu_tensor(np.asarray(points_m).reshape(-1, 3))
         return self.raycasting.compute_distance(query).numpy().astype(np.float64)
 
     def closest(self, points_m: FloatArray) -> FloatArray:
         """The closest point of the surface to each point (shape (N, 3))."""
-        import open3d as o3d
-
-        query = o3d.core.Tensor(np.asarray(points_m, dtype=np.float32).reshape(-1, 3))
+        query = cpu_tensor(np.asarray(points_m).reshape(-1, 3))
         found = self.raycasting.compute_closest_points(query)
         return found["points"].numpy().astype(np.float64)
 
@@ -452,7 +452,7 @@ def touch_faces(part: Part, *, inset_m: float = 4 * MM, count: int = 3) -> tuple
         if any(abs(normal @ normals[label == c][0]) > np.cos(np.radians(30)) for c in chosen):
             continue
         chosen.append(int(region))
-    faces = []
+    faces: list[Face] = []
     for region in chosen:
         members = np.flatnonzero(label == region)
         faces.append(

@@ -29,6 +29,16 @@ from scipy.spatial.transform import Rotation
 
 from recon.types import FloatArray
 
+
+def cpu_tensor(array: np.ndarray, dtype: str = "float32"):
+    """``array`` as an Open3D tensor on the CPU, of ``dtype`` (``"float32"`` or ``"uint32"``):
+    what the raycasting scene takes (a copy; Open3D's stubs want the dtype and device named)."""
+    import open3d as o3d
+
+    values = np.ascontiguousarray(array, dtype=dtype)
+    return o3d.core.Tensor(values, getattr(o3d.core, dtype), o3d.core.Device("CPU:0"))
+
+
 MM = 1e-3
 #: The depth the depth-edge threshold is given at.
 REFERENCE_DEPTH_M = 0.45
@@ -209,8 +219,8 @@ def scan_mesh(
     camera = camera or DepthCamera()
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
-        o3d.core.Tensor(np.asarray(vertices_m, dtype=np.float32)),
-        o3d.core.Tensor(np.asarray(triangles, dtype=np.uint32)),
+        cpu_tensor(vertices_m),
+        cpu_tensor(triangles, "uint32"),
     )
     clouds, surfaces, hit_triangles = [], [], []
     for view in views:
@@ -233,7 +243,6 @@ def scan_mesh(
 def _scan_view(scene, view: View, camera: DepthCamera, rng: np.random.Generator):
     """One view's returns (mesh frame) with the camera's errors (see the module docstring), the
     true hit points and the triangles hit."""
-    import open3d as o3d
 
     h, w, f = camera.height_px, camera.width_px, camera.focal_px
     axes = _camera_axes(view)
@@ -243,7 +252,7 @@ def _scan_view(scene, view: View, camera: DepthCamera, rng: np.random.Generator)
     directions = local @ axes
     directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
     rays = np.concatenate([np.broadcast_to(view.eye_m, directions.shape), directions], axis=-1)
-    hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))
+    hit = scene.cast_rays(cpu_tensor(rays))
     distance = hit["t_hit"].numpy().astype(np.float64)
     normals = hit["primitive_normals"].numpy().astype(np.float64)
     triangle = hit["primitive_ids"].numpy().astype(np.int64)
