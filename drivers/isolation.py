@@ -336,7 +336,8 @@ _BOOTSTRAP = (
 )
 
 #: Statuses made in advance: a child out of memory may have none left to make them.
-_OK, _MEMORY = {"ok": True}, {"memory": True}
+_OK: dict[str, Any] = {"ok": True}
+_MEMORY: dict[str, Any] = {"memory": True}
 _OK_STATUS = json.dumps(_OK).encode()
 
 
@@ -503,4 +504,4 @@ def _save(result, path: Path) -> None:  # pragma: no cover - runs in the child p
         if array.dtype.hasobject:
             raise TypeError(f"result {key!r} is an array of Python objects, which cannot cross")
         arrays[str(key)] = array
-    np.savez(path, **arrays)
+    np.savez(path, **arrays)  # type: ignore[arg-type]  # numpy's stub types allow_pickle

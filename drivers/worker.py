@@ -37,6 +37,7 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 from typing import Any
 
 from drivers.errors import (
@@ -129,7 +130,7 @@ class WorkerClient:
         )
         self.process.start()
         child.close()
-        self._conn = parent
+        self._conn: Connection | None = parent
         self._seq = 0
         self._lock = threading.Lock()
 

@@ -11,7 +11,7 @@ This module imports nothing else of ``recon``: every layer may use it.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 #: Largest entry-wise deviation of ``R R^T`` from the identity, and of the last row from
 #: (0, 0, 0, 1), that still counts as rigid. Matrices written with 6-8 significant digits (JSON
@@ -103,7 +103,7 @@ def is_rigid(T: NDArray[np.float64]) -> bool:
     )
 
 
-def check_rigid(T: NDArray[np.float64], *, name: str = "transform") -> NDArray[np.float64]:
+def check_rigid(T: ArrayLike, *, name: str = "transform") -> NDArray[np.float64]:
     """Validate a 4x4 rigid transform and return it as a float array.
 
     Parameters
@@ -137,7 +137,7 @@ def check_rigid(T: NDArray[np.float64], *, name: str = "transform") -> NDArray[n
 MAX_CELL_TRANSLATION_M = 10.0
 
 
-def check_cell_transform(T: NDArray[np.float64], *, name: str = "transform") -> NDArray[np.float64]:
+def check_cell_transform(T: ArrayLike, *, name: str = "transform") -> NDArray[np.float64]:
     """:func:`check_rigid`, and a translation within :data:`MAX_CELL_TRANSLATION_M`.
 
     Raises

@@ -954,6 +954,11 @@ class Reconstruction:
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
 
+    def point_pieces(self) -> NDArray[np.int64]:
+        """``piece`` as ``__post_init__`` left it (one label per point; never None)."""
+        assert self.piece is not None  # labelled by __post_init__
+        return self.piece
+
     def __len__(self) -> int:
         return len(self.points_m)
 

@@ -6,6 +6,7 @@ import logging
 import threading
 from contextlib import asynccontextmanager
 from importlib import metadata
+from typing import Any
 
 from fastapi import Depends, FastAPI
 from fastapi.middleware.cors import CORSMiddleware
@@ -182,7 +183,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(executions.stop_router)
     app.include_router(pairing.router)
     protected = [Depends(require_token)]
-    documented = {status: {"model": ErrorBody} for status in (401, 404, 409, 413, 422, 503)}
+    documented: dict[int | str, dict[str, Any]] = {
+        status: {"model": ErrorBody} for status in (401, 404, 409, 413, 422, 503)
+    }
     for router in (
         robot.unlock_router,
         robot.cell_router,
@@ -199,7 +202,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     ):
         app.include_router(router, dependencies=protected, responses=documented)
 
-    def openapi() -> dict:
+    def openapi() -> dict[str, Any]:
         """FastAPI's spec with the links between operations (service/api/links.py)."""
         if app.openapi_schema is None:
             spec = FastAPI.openapi(app)  # caches it in app.openapi_schema
@@ -208,9 +211,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             except ValueError:
                 app.openapi_schema = None  # not served without its links
                 raise
+            return spec
         return app.openapi_schema
 
-    app.openapi = openapi
+    app.openapi = openapi  # type: ignore[method-assign]  # FastAPI's documented way to extend it
 
     ui.install(app, settings.guide_dir)
 

@@ -34,7 +34,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, BinaryIO, Literal
+from typing import IO, Any, BinaryIO, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from sqlalchemy import select
@@ -247,7 +247,7 @@ def manifest_bytes(manifest: Manifest) -> bytes:
     return (json.dumps(manifest.model_dump(mode="json"), sort_keys=True, indent=1) + "\n").encode()
 
 
-def export_bundle(store: Store, session_id: str, out: Path | BinaryIO) -> Manifest:
+def export_bundle(store: Store, session_id: str, out: Path | BinaryIO | IO[bytes]) -> Manifest:
     """Write a session's bundle to ``out`` (a path, written atomically, or an open binary file).
 
     Returns
@@ -266,7 +266,7 @@ def export_bundle(store: Store, session_id: str, out: Path | BinaryIO) -> Manife
     return manifest
 
 
-def _write_zip(store: Store, manifest: Manifest, handle: BinaryIO) -> None:
+def _write_zip(store: Store, manifest: Manifest, handle: IO[bytes]) -> None:
     with zipfile.ZipFile(handle, "w") as bundle:
         _add(bundle, MANIFEST_NAME, io.BytesIO(manifest_bytes(manifest)))
         for artifact in manifest.artifacts:

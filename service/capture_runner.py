@@ -58,6 +58,12 @@ class CaptureRunner:
 
     def _run(self) -> None:
         row = self.store.capture(self.capture_id)
+        if row is None:  # its session was deleted before the capture started: nothing to write
+            log.warning(
+                "capture %s is gone before it started; its source is closed", self.capture_id
+            )
+            self.source.close()
+            return
         path = self.store.data_dir / row.path
         count, state, error = 0, "stopped", None
         last_sync = time.monotonic()

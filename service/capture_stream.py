@@ -57,8 +57,9 @@ class CaptureTail:
         # Samples before `from_sample` are read past chunk by chunk, so that a page resuming
         # late in a long capture gets its next samples now, not one chunk per poll.
         while (result := self._read_chunk()) is not None:
-            if result[1] is not None:
-                return result
+            first, batch = result
+            if batch is not None:
+                return first, batch
         return None
 
     def _read_chunk(self) -> tuple[int, SampleBatch | None] | None:

@@ -23,7 +23,7 @@ from service.artifacts import ID_PREFIX, RecordingCodec
 from service.capture_runner import CaptureRunner, read_capture_file
 from service.core import Services
 from service.errors import ApiError, not_found
-from service.schemas import CaptureCreate
+from service.schemas import CaptureCreate, NatNetSourceIn
 from service.store import CaptureRow, SessionDeletedError, new_id
 
 #: Source kinds that run a receiver process of their own (counted against max_live_captures).
@@ -78,7 +78,7 @@ def start(services: Services, session_id: str, request: CaptureCreate) -> Captur
     """
     services.session(session_id)
     kind = request.source.kind
-    if kind in LIVE_KINDS:
+    if isinstance(request.source, NatNetSourceIn):  # a live feed (LIVE_KINDS)
         check_local_interface(request.source.local)
     source = _source_for(services, session_id, request.source)
     cap = services.settings.max_live_captures
@@ -124,13 +124,15 @@ def stop(services: Services, session_id: str, capture_id: str) -> CaptureRow:
     if runner is not None:
         runner.stop()
         runner.thread.join(timeout=10)
-    return services.store.capture(capture_id)
+    return get(services, session_id, capture_id)  # as the stop left it
 
 
 def finish(services: Services, capture_id: str, state: str, error: str | None) -> None:
     """Turn a capture's file into a recording (also for one interrupted by a restart)."""
     store = services.store
     row = store.capture(capture_id)
+    if row is None:  # deleted with its session meanwhile: nothing to turn into a recording
+        return
     session = store.session(row.session_id)
     recording_id, n_samples = None, row.n_samples
     try:

@@ -18,6 +18,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from typing import Any
+
+import numpy as np
 
 from service.errors import ApiError
 from service.store import CellChangedError, Store
@@ -128,7 +131,7 @@ def check_shapes(boxes: object, planes: object) -> tuple[list, list]:
             raise ValueError(
                 f"keep-out box {number}: each maximum (x, y, z) must be above its minimum"
             )
-        Box(min_m=values[:3], max_m=values[3:], name=f"keep-out box {number}")
+        Box(min_m=np.array(values[:3]), max_m=np.array(values[3:]), name=f"keep-out box {number}")
         checked_boxes.append(values)
     checked_planes = []
     for number, plane in enumerate(planes, start=1):
@@ -142,7 +145,7 @@ def check_shapes(boxes: object, planes: object) -> tuple[list, list]:
         # n . p >= d as typed, kept as the unit normal and the distance along it (what the
         # planner checks and the pendant draws).
         unit = (*(v / length for v in values[:3]), values[3] / length)
-        HalfSpace(normal=unit[:3], offset_m=unit[3])
+        HalfSpace(normal=np.array(unit[:3]), offset_m=unit[3])
         if abs(unit[3]) > MAX_COORDINATE_M:
             raise ValueError(
                 f"plane {number}: it is more than {MAX_COORDINATE_M:g} m from the base (were "
@@ -242,7 +245,7 @@ def _numbers(values: object, count: int, name: str) -> tuple[float, ...]:
     return numbers
 
 
-def _as_tuples(values: object, count: int) -> list[tuple[float, ...]]:
+def _as_tuples(values: Any, count: int) -> list[tuple[float, ...]]:
     try:
         return [tuple(float(v) for v in item) for item in values or []]
     except (TypeError, ValueError):

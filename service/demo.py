@@ -19,6 +19,7 @@ def create_demo_session(store: Store) -> SessionRow | None:
     from recon import scenes
 
     scene = scenes.cylinder_edge(0)
+    assert scene.scan is not None  # the cylinder scene is scanned
     session = store.create_session(DEMO_NAME)
     rec_id, scan_id = new_id(ID_PREFIX["recording"]), new_id(ID_PREFIX["scan"])
     store.add_arrays_artifact(

@@ -140,7 +140,7 @@ ERROR_MAP: list[tuple[type[Exception], int, str]] = [
 ]
 
 
-def classify(error: Exception) -> tuple[int, str]:
+def classify(error: BaseException) -> tuple[int, str]:
     """Status and code of an error (500 internal_error for anything unknown)."""
     if isinstance(error, ApiError):
         return error.status, error.code
@@ -154,7 +154,7 @@ def classify(error: Exception) -> tuple[int, str]:
     return 500, "internal_error"
 
 
-def error_body(error: Exception) -> dict:
+def error_body(error: BaseException) -> dict:
     """The JSON body for ``error`` (used by job results too)."""
     status, code = classify(error)
     if status == 500 and code == "internal_error":

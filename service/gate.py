@@ -27,7 +27,7 @@ Each refusal is its own exception class, mapped to 409 and a stable code in
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Set
+from collections.abc import Iterable, Sequence, Set
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -308,7 +308,7 @@ def check_here(
         tool_radius_m=here.tool_radius_m,
         tool_spheres_m=here.tool_spheres_m,
         clearance_m=here.clearance_m,
-        tcp_pose=tuple(float(v) for v in _pose_of(here.T_flange_tcp)),
+        tcp_pose=_pose_of(here.T_flange_tcp),
     )
     # The contact zone comes from the samples' own kinematics (ContactZone.of_process).
     report = check_cell(arm_model, loaded, here.cell, params)
@@ -336,11 +336,12 @@ def check_here(
     )
 
 
-def _pose_of(T: FloatArray) -> list[float]:
+def _pose_of(T: FloatArray) -> tuple[float, float, float, float, float, float]:
     """x, y, z (m), rx, ry, rz (rotation vector) of a 4x4 transform."""
     from recon.transforms import pose_from_transform
 
-    return [float(v) for v in pose_from_transform(np.asarray(T, dtype=np.float64))]
+    x, y, z, rx, ry, rz = (float(v) for v in pose_from_transform(np.asarray(T, dtype=np.float64)))
+    return x, y, z, rx, ry, rz
 
 
 def trajectory_summary(trajectory: ArtifactRow) -> TrajectorySummary:
@@ -401,7 +402,7 @@ def check_approved(approved_sha256: str | None, stored_sha256: str, trajectory_i
         )
 
 
-def check_current(outdated: list[str], *, accept_outdated: bool) -> None:
+def check_current(outdated: Sequence[str], *, accept_outdated: bool) -> None:
     """Refuse a plan made from inputs that are no longer the session's, unless picked.
 
     Raises
@@ -430,7 +431,7 @@ def check_real_arm(
     tolerance_m: float,
     owner: str | None,
     arm: Reading,
-    outdated: list[str] = (),
+    outdated: Sequence[str] = (),
     accept_outdated: bool = False,
 ) -> None:
     """Refuse, naming why, unless the configured arm may run the checked trajectory now.

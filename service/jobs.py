@@ -137,7 +137,7 @@ class JobManager:
             self.store.delete_job(job.id)  # nothing was submitted: no row for it
             raise
         future.add_done_callback(lambda f: self._finish(job.id, f))
-        return self.store.job(job.id)
+        return self.store.job(job.id) or job  # as it stands now (promoted, perhaps finished)
 
     def cancel(self, job_id: str) -> JobRow:
         """Cancel a job that has not started.
@@ -159,7 +159,7 @@ class JobManager:
                 f"job {job_id} is running and cannot be "
                 "cancelled; stop the execution instead if it moves a robot",
             )
-        return self.store.job(job_id)
+        return self.store.job(job_id) or job
 
     def discard(self, job_id: str) -> bool:
         """Stop a job's result from being recorded: queued, it is cancelled; running, it ends
@@ -289,8 +289,7 @@ class JobManager:
                 )
             elif isinstance(future.exception(), BrokenProcessPool):
                 self.store.update_job(job_id, state="failed", error=WORKER_DIED, finished_at=now())
-            elif future.exception() is not None:
-                error = future.exception()
+            elif (error := future.exception()) is not None:
                 body = error_body(error)
                 if body["code"] == "internal_error":
                     log.error("job %s failed", job_id, exc_info=error)

@@ -33,7 +33,7 @@ def save_arrays(path: str | Path, arrays: Arrays) -> None:
     (it lands in the data folder)."""
     with atomic_path(Path(path)) as tmp:
         with tmp.open("wb") as handle:
-            np.savez(handle, **arrays)
+            np.savez(handle, **arrays)  # type: ignore[arg-type]  # numpy's stub types allow_pickle
         os.chmod(tmp, 0o600)
 
 

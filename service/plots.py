@@ -65,7 +65,7 @@ def plot_reconstruction(
             pick = np.random.default_rng(seed).choice(len(scan_m), MAX_SCAN_POINTS, replace=False)
             shown = scan_m[pick]
         ax3d.scatter(*(shown.T * mm), s=0.6, c="0.45", alpha=0.35, linewidths=0, label="scan")
-    breaks = _piece_breaks(recon.piece)
+    breaks = _piece_breaks(recon.point_pieces())
     ax3d.plot(
         *(breaks(recon.input_points_m).T * mm), c="tab:blue", lw=0.8, label="input (resampled)"
     )
@@ -81,7 +81,7 @@ def plot_reconstruction(
     ax = fig.add_subplot(1, 2, 2)
     # Arc length along the traced path: the stretch between two pieces was not traced.
     steps = np.linalg.norm(np.diff(recon.input_points_m, axis=0), axis=1)
-    steps[np.diff(recon.piece) != 0] = 0.0
+    steps[np.diff(recon.point_pieces()) != 0] = 0.0
     arc = np.concatenate(([0.0], np.cumsum(steps))) * mm
     if truth_m is not None:
         ax.plot(
@@ -104,7 +104,7 @@ def plot_reconstruction(
         ax.set_ylabel("distance moved [mm]")
     for segment in recon.segments[1:]:
         ax.axvline(arc[segment.start], c="0.6", lw=0.6, ls=":")
-    for start in np.flatnonzero(np.diff(recon.piece)) + 1:
+    for start in np.flatnonzero(np.diff(recon.point_pieces())) + 1:
         ax.axvline(arc[start], c="tab:red", lw=0.8, ls="--")  # the arm lifts here
     ax.set_xlabel("arc length along the path [mm]")
     ax.grid(alpha=0.3)

@@ -37,11 +37,12 @@ def start(services: Services, session_id: str, request: ReconstructionCreate) ->
         A combination of parameters the core refuses.
     """
     session = services.session(session_id)
+    recording_ids: list[str]
     if request.recording_ids:
         recording_ids = list(dict.fromkeys(request.recording_ids))  # each once, in order
+    elif (only := request.recording_id or session.recording_id) is not None:
+        recording_ids = [only]
     else:
-        recording_ids = [request.recording_id or session.recording_id]
-    if recording_ids[0] is None:
         raise ApiError(
             409,
             "no_recording",
@@ -72,7 +73,7 @@ def start(services: Services, session_id: str, request: ReconstructionCreate) ->
         touches = None  # nothing to place, or asked not to: not an input
     T_init = request.T_scan_tracker or session.T_scan_tracker
     out_id = new_id(ID_PREFIX["reconstruction"])
-    inputs = (
+    inputs: dict[str, str | list[str] | None] = (
         {"recording_id": recordings[0].id}
         if len(recordings) == 1
         else {"recording_ids": [r.id for r in recordings]}

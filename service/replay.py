@@ -332,6 +332,7 @@ def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> 
     )  # the arm the stored plan was solved for, calibrated as it was
     scan = ScanCodec.decode(reader.arrays(scan_id)) if scan_id else None
     try:
+        outcome: pipelines.MoveOutcome | pipelines.PlanOutcome
         if move_of is not None:  # a move to a plan's start: made again from the same joints
             outcome = pipelines.move_to_start(
                 params["start_q_rad"],

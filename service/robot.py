@@ -14,12 +14,16 @@ import logging
 import threading
 import time
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from drivers.robot.base import BackendConfig, backend_config
 from drivers.robot.monitor import ArmState, RobotMonitor, create_monitor
 from service.settings import Settings
+
+if TYPE_CHECKING:
+    from recon.kinematics import URModel
 
 log = logging.getLogger("teachpath.robot")
 
@@ -107,7 +111,8 @@ class RobotWatch:
         self._version = 0
         self._closing = threading.Event()
         self._thread = threading.Thread(target=self._run, name="robot watch", daemon=True)
-        self._arm = None  # the arm's kinematic model, made on the first view with joints
+        # The arm's kinematic model, made on the first view with joints.
+        self._arm: URModel | None = None
 
     def _joint_positions_m(self, state) -> list | None:
         """Where the arm's joints are now (base frame, m), for the pendant's live arm: base, the

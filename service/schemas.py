@@ -204,7 +204,7 @@ class ScanOut(_ArtifactOut):
     summary: ScanSummary
 
 
-_OUTDATED = Field(
+_OUTDATED: Any = Field(
     default_factory=list,
     description="what changed in the session since it was made (a new trace, scan, touches or "
     "calibration), in words; empty: made from the session's current inputs",
@@ -649,7 +649,7 @@ def _bounded(hint, spec):
         ]
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin is tuple:
-        return tuple[tuple(_bounded(a, spec) for a in args)]  # type: ignore[misc]
+        return tuple[tuple(_bounded(a, spec) for a in args)]
     if args and origin not in (typing.Literal,):
         return typing.Union[tuple(_bounded(a, spec) for a in args)]  # noqa: UP007
     return hint

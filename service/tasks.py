@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import json
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -322,8 +322,8 @@ class Plan:
     T_base_tracker: list | None
     out_path: str
     scan_path: str | None = None
-    keep_out_boxes: list = ()
-    cell_planes: list = ()
+    keep_out_boxes: Sequence = ()
+    cell_planes: Sequence = ()
     start_from: str = "given"
     #: The arm's own kinematics calibration (``DHCalibration.as_dict()``); None: nominal.
     calibration: dict | None = None
@@ -392,8 +392,8 @@ class MoveToStart:
     out_path: str
     scan_path: str | None = None
     T_base_tracker: list | None = None
-    keep_out_boxes: list = ()
-    cell_planes: list = ()
+    keep_out_boxes: Sequence = ()
+    cell_planes: Sequence = ()
     start_from: str = "arm"
     calibration: dict | None = None
 

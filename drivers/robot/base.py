@@ -252,7 +252,7 @@ class RobotBackend(ABC):
         tcp_pose: FloatArray,
         *,
         payload_kg: float | None = None,
-        payload_cog_m: FloatArray = (0.0, 0.0, 0.0),
+        payload_cog_m: FloatArray | tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> None:
         """Tell the controller the tool: its TCP in the flange frame (x, y, z, rx, ry, rz, as on
         UR's pendant) and its payload (mass, centre of gravity in the flange frame; a mass of

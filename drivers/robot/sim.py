@@ -83,7 +83,7 @@ class SimBackend(RobotBackend):
         super().__init__(config, clock=clock)
         self._q = np.array(config.q_start_rad, dtype=np.float64)
         self._qd = np.zeros(6)
-        self._t = None  # time the physics was last advanced to
+        self._t: float | None = None  # time the physics was last advanced to
         self._faults: list[_Fault] = []
         self._stopping = False
         self._omega = float(np.sqrt(config.gain))
@@ -229,7 +229,10 @@ class SimBackend(RobotBackend):
         n = len(cursor.q_rad)
         t0 = self.clock.now()
         self._stopping = False
-        times, sent, planned, actual = [], [], [], []
+        times: list[float] = []
+        sent: list = []
+        planned: list = []
+        actual: list = []
         fault = None
         completed = False
         writer = None if journal is None else JournalWriter(journal, capacity_samples=n)

@@ -15,9 +15,11 @@ halts with a popup when any joint is farther than :data:`START_TOLERANCE_RAD` fr
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from drivers.robot.base import START_TOLERANCE_RAD
 from recon.types import FloatArray, JointTrajectory, Phase
@@ -116,12 +118,12 @@ def program_header(meta: dict, source: str) -> list[str]:
 def urscript_program(
     trajectory: JointTrajectory,
     *,
-    tcp_pose: FloatArray,
+    tcp_pose: ArrayLike,
     payload_kg: float | None = None,
-    payload_cog_m: FloatArray = (0.0, 0.0, 0.0),
+    payload_cog_m: ArrayLike = (0.0, 0.0, 0.0),
     mode: Mode = "servoj",
     tolerance_m: float = 5e-4,
-    header: list[str] = (),
+    header: Sequence[str] = (),
     name: str = "teachpath_program",
 ) -> str:
     """The program (text) for a planned whole motion.

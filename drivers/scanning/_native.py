@@ -151,7 +151,7 @@ def read_image(path: Path, label: str):
 
     check_image_file(path, label)
     with captured_native_stderr() as native, quiet_open3d():
-        image = o3d.io.read_image(str(path))
+        image = o3d.io.read_image(Path(path))
     detail = " ".join(native[0].split()) if native and native[0] else ""
     if image.is_empty():
         raise InputFileError(

@@ -110,9 +110,10 @@ class RealSenseBagReader(ScanReader):
 
     def _extract_in_child(self, path: Path, label: str) -> dict[str, Any]:
         opts = self.options
+        memory_bytes = CHILD_MEMORY_BYTES + CHILD_MEMORY_PER_FRAME_BYTES * opts.n_frames
         limits = Limits(
             time_s=opts.timeout_s,
-            memory_bytes=CHILD_MEMORY_BYTES + CHILD_MEMORY_PER_FRAME_BYTES * opts.n_frames,
+            memory_bytes=memory_bytes,
             time_setting="timeout_s",
             memory_setting="n_frames",
         )
@@ -131,7 +132,7 @@ class RealSenseBagReader(ScanReader):
                 )
             else:
                 # The limit in force: lower than asked when this runs under a parse's own.
-                limit_bytes = exc.value or limits.memory_bytes
+                limit_bytes = exc.value or memory_bytes
                 message = (
                     f"reading {label} needed more than {limit_bytes / 2**20:.0f} MB of "
                     f"memory for {opts.n_frames} frames; read fewer frames (n_frames)"

@@ -124,7 +124,7 @@ class ScanReader(ABC):
 
     def __init__(self, options: ReaderOptions | None = None) -> None:
         if options is None:
-            options = self.options_class()
+            options = self.options_class.model_validate({})
         if not isinstance(options, self.options_class):
             raise ValueError(
                 f"the {self.kind} reader takes {self.options_class.__name__}, got "
@@ -337,7 +337,7 @@ def make_reader(
             raise ValueError(f"invalid {cls.kind} reader options: {problems}") from None
     names = dict(limit_names or {})
     if limits:
-        options = _within_limits(options or cls.options_class(), limits, names)
+        options = _within_limits(options or cls.options_class.model_validate({}), limits, names)
     reader = cls(options)
     reader.limits, reader.limit_names = dict(limits or {}), names
     return reader

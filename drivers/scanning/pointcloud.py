@@ -176,7 +176,7 @@ def write_scan(path: Path, scan: Scan) -> None:
     if scan.normals is not None:
         cloud.normals = o3d.utility.Vector3dVector(np.array(scan.normals))
     with quiet_open3d():
-        ok = o3d.io.write_point_cloud(str(path), cloud)
+        ok = o3d.io.write_point_cloud(Path(path), cloud)
     if not ok:
         raise InputFileError(f"could not write {path}")
 
@@ -290,7 +290,7 @@ def _read_with_open3d(path: Path, fmt: str, label: str, declared: int | None):
     ):
         try:
             cloud = o3d.io.read_point_cloud(
-                str(path), format=fmt, remove_nan_points=False, remove_infinite_points=False
+                Path(path), format=fmt, remove_nan_points=False, remove_infinite_points=False
             )
         except RuntimeError as exc:  # raised by some readers on malformed headers
             raise InputFileError(

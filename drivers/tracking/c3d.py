@@ -232,9 +232,10 @@ def _no_marker(name: str, marker: str | None, labels: tuple[str, ...]) -> InputF
 
 def _parse_in_child(path: Path, marker: str | None, size: int, name: str) -> dict[str, np.ndarray]:
     """Run ezc3d on ``path`` in a child process; its arrays, or an InputFileError."""
+    memory_bytes = CHILD_MEMORY_BYTES + CHILD_MEMORY_PER_FILE_BYTE * size
     limits = Limits(
         time_s=CHILD_TIMEOUT_S + CHILD_TIMEOUT_S_PER_MB * size / 1e6,
-        memory_bytes=CHILD_MEMORY_BYTES + CHILD_MEMORY_PER_FILE_BYTE * size,
+        memory_bytes=memory_bytes,
     )
     try:
         return run_isolated(
@@ -245,7 +246,7 @@ def _parse_in_child(path: Path, marker: str | None, size: int, name: str) -> dic
         spent = (
             f"did not finish within {limits.time_s:.0f} s"
             if exc.limit == "time"
-            else f"needed more than {limits.memory_bytes / 2**20:.0f} MB of memory"
+            else f"needed more than {memory_bytes / 2**20:.0f} MB of memory"
         )
         raise ResourceLimitError(
             f"{name} could not be read: the C3D reader {spent}, which a damaged file causes; "
@@ -396,6 +397,7 @@ def _check_frame_count(
         return points, residuals
     ends_on_a_frame = (
         available is not None
+        and layout.frame_bytes is not None
         and size % 512 != 0
         and size == (layout.data_start - 1) * 512 + available * layout.frame_bytes
     )

@@ -253,7 +253,7 @@ def clean_trace(raw: SampleBatch, *, params: GapParams | None = None) -> CleanTr
             from scipy.spatial.transform import Rotation, Slerp
 
             piece_pos[missing] = PchipInterpolator(t[run], pos[run], axis=0)(t[inside][missing])
-            if piece_quat is not None:
+            if piece_quat is not None and quat is not None:
                 slerp = Slerp(t[run], Rotation.from_quat(quat[run]))
                 piece_quat[missing] = slerp(t[inside][missing]).as_quat()
             n_bridged += int(np.count_nonzero(missing))

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import ipaddress
 import multiprocessing
+import multiprocessing.process
 import os
 import select
 import signal
@@ -34,6 +35,7 @@ import struct
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 
 import numpy as np
 
@@ -317,8 +319,8 @@ class NatNetReplayServer:
             "first_frame": int(first_frame),
         }
         self._ctx = multiprocessing.get_context("spawn")
-        self._process = None
-        self._pipe = None
+        self._process: multiprocessing.process.BaseProcess | None = None
+        self._pipe: Connection | None = None
         self._stop = self._ctx.Event()
         self._done = self._ctx.Event()
         self._sent = self._ctx.Value("q", 0, lock=False)

@@ -246,7 +246,7 @@ def trace_from_raw(
     apply_tip = tip_offset_m is not None and (
         tip_needs_orientations or batch.orientation_xyzw is not None
     )
-    if apply_tip:
+    if apply_tip and tip_offset_m is not None:
         batch = apply_tip_offset(batch, tip_offset_m)
     clean = _clean(batch, gaps)
     if piece == "all":

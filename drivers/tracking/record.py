@@ -116,7 +116,7 @@ def record_natnet(
     source = NatNetSource(config)
     finished = threading.Event()
 
-    def watch() -> None:
+    def watch(stop_event: StopEvent) -> None:
         # batches() blocks while the stream is quiet: closing the source is what ends it.
         while not finished.is_set():
             if stop_event.wait(0.1):
@@ -130,7 +130,9 @@ def record_natnet(
     try:
         server = source.connect()
         if stop_event is not None:
-            watcher = threading.Thread(target=watch, name="record stop watcher", daemon=True)
+            watcher = threading.Thread(
+                target=watch, args=(stop_event,), name="record stop watcher", daemon=True
+            )
             watcher.start()
         t_first = None
         try:

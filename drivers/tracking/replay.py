@@ -84,7 +84,7 @@ class ReplaySource(TrackerSource):
     @classmethod
     def from_config(
         cls,
-        config: ReplayConfig,
+        config: SourceConfig,
         *,
         recording: Recording | SampleBatch | None = None,
         clock: Clock | None = None,
@@ -98,6 +98,8 @@ class ReplaySource(TrackerSource):
         """
         if recording is None:
             raise ValueError("a replay needs the recording to replay (recording=...)")
+        if not isinstance(config, ReplayConfig):
+            raise TypeError(f"a replay source needs a ReplayConfig, got {type(config).__name__}")
         return cls(recording, pacer=Pacer(config.speed, clock=clock), batch_s=config.batch_s)
 
     @classmethod

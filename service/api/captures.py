@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import json
 
+import numpy as np
 from fastapi import APIRouter, Query
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
@@ -60,7 +61,11 @@ async def capture_samples(
     session = await run_in_threadpool(services.store.session, session_id)
     live = row.source.get("kind") == "natnet"
     tip = session.tip_offset_m if live and session is not None else None
-    tail = CaptureTail(services.store.data_dir / row.path, from_sample, tip)
+    tail = CaptureTail(
+        services.store.data_dir / row.path,
+        from_sample,
+        None if tip is None else np.asarray(tip, dtype=np.float64),
+    )
 
     async def stream():
         last = None

@@ -42,7 +42,7 @@ async def upload_recording(
         units=units,
         rigid_body=rigid_body,
         marker=marker,
-        piece=piece if piece in (None, "all") else int(piece),
+        piece=None if piece is None else "all" if piece == "all" else int(piece),
     )
     async with received(file, services) as upload:
         return await inputs.add_recording(services, session_id, upload, options)

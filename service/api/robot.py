@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+from typing import TYPE_CHECKING
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
@@ -12,6 +13,10 @@ from service import executions
 from service.api.deps import ServicesDep, has_token
 from service.errors import ApiError
 from service.schemas import CellIn, CellOut, RobotOut
+
+if TYPE_CHECKING:
+    from service.arm_runner import ExecutionRunner
+    from service.core import Services
 
 #: The arm's state: no token needed (the safety bar of any screen by the cell).
 router = APIRouter(prefix="/robot", tags=["robot"])
@@ -37,13 +42,13 @@ def _view(services) -> dict:
     return _with_speed(services.robot.view(owner), owner, runner)
 
 
-def _owner_now(services) -> tuple[str | None, object]:
+def _owner_now(services: Services) -> tuple[str | None, ExecutionRunner | None]:
     """The execution that owns the arm and its runner, for the event loop: from a copy of the
     runners (a C-level copy under the GIL) instead of the lock a starting execution holds while
     it reads the arm."""
     runners = dict(services.live.executions)
     owner = next((eid for eid, runner in runners.items() if runner.running), None)
-    return owner, runners.get(owner)
+    return owner, None if owner is None else runners.get(owner)
 
 
 def _view_now(services) -> dict:
@@ -64,9 +69,9 @@ def _run_signature(services) -> tuple | None:
     return (owner, view["speed_fraction"], view["paused"], view["speed_now"] == 0)
 
 
-def _with_speed(view: dict, owner: str | None, runner) -> dict:
+def _with_speed(view: dict, owner: str | None, runner: ExecutionRunner | None) -> dict:
     """The view with the owning run's speed override (what the safety bar shows beside Stop)."""
-    speed = None if runner is None else executions.speed_view(owner, runner)
+    speed = None if runner is None or owner is None else executions.speed_view(owner, runner)
     return {**view, "run_speed": speed}
 
 

@@ -78,7 +78,7 @@ class GuideFiles(StaticFiles):
 
 
 def _page(response: HTMLResponse, **csp) -> HTMLResponse:
-    html = response.body.decode()
+    html = bytes(response.body).decode()
     return HTMLResponse(html, headers=headers(policy(html, **csp)))
 
 
@@ -112,11 +112,12 @@ def install(app: FastAPI, guide_dir: Path | None = None) -> None:
         return HTMLResponse(html, headers=headers(policy(html)))
 
     vendor = f"{PREFIX}/vendor"
+    openapi_url = app.openapi_url or "/openapi.json"  # the pages are only served with it
 
     @app.get("/docs", response_class=HTMLResponse, include_in_schema=False)
     def swagger_ui() -> HTMLResponse:
         page = get_swagger_ui_html(
-            openapi_url=app.openapi_url,
+            openapi_url=openapi_url,
             title=f"{app.title} - API",
             swagger_js_url=f"{vendor}/swagger-ui/swagger-ui-bundle.js",
             swagger_css_url=f"{vendor}/swagger-ui/swagger-ui.css",
@@ -128,7 +129,7 @@ def install(app: FastAPI, guide_dir: Path | None = None) -> None:
     @app.get("/redoc", response_class=HTMLResponse, include_in_schema=False)
     def redoc() -> HTMLResponse:
         page = get_redoc_html(
-            openapi_url=app.openapi_url,
+            openapi_url=openapi_url,
             title=f"{app.title} - API",
             redoc_js_url=f"{vendor}/redoc/redoc.standalone.js",
             redoc_favicon_url=f"{vendor}/swagger-ui/favicon-32x32.png",

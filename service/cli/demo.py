@@ -36,6 +36,7 @@ def run(args: argparse.Namespace) -> int:
     out_dir = Path(args.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     scene = scenes.cylinder_edge(args.seed)
+    assert scene.scan is not None  # the cylinder scene is scanned
     trace_file, scan_file = out_dir / "trace.csv", out_dir / "scan.ply"
     write_trace_csv(trace_file, scene.recording)
     write_scan(scan_file, scene.scan)

@@ -7,6 +7,7 @@ import json
 import math
 import sys
 from pathlib import Path
+from typing import NoReturn
 
 #: Exit status for bad input or impossible work (argparse uses 2 for bad usage).
 EXIT_FAILURE = 1
@@ -15,7 +16,7 @@ EXIT_FAILURE = 1
 class OneLineParser(argparse.ArgumentParser):
     """An argument parser whose usage errors are one line, like every other error here."""
 
-    def error(self, message: str) -> None:  # noqa: D401 - argparse's name
+    def error(self, message: str) -> NoReturn:  # noqa: D401 - argparse's name
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
@@ -173,7 +174,7 @@ def read_trace_for(args: argparse.Namespace, path: str | None = None, *, piece=N
             note(line)
         if len(trace.clean.pieces) > 1 and trace.piece == "all":
             note(f"using all {len(trace.clean.pieces)} pieces; the arm lifts between them")
-        elif len(trace.clean.pieces) > 1:
+        elif len(trace.clean.pieces) > 1 and isinstance(trace.piece, int):
             start, end = report.pieces[trace.piece]
             note(
                 f"using piece {trace.piece} ({start:.2f}-{end:.2f} s) of "
@@ -331,7 +332,7 @@ def add_param_options(
             _flag(name),
             *(aliases or {}).get(name, ()),
             dest=name,
-            type=None if only_words else _value_type(name, hint, spec),
+            type=str if only_words else _value_type(name, hint, spec),
             choices=words if only_words else None,
             required=name in required,
             metavar=_metavar(hint),

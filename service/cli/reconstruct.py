@@ -72,7 +72,7 @@ def add_parser(commands) -> None:
     rec.set_defaults(handler=run)
 
 
-def sidecar_of(csv_path: Path) -> Path:
+def sidecar_of(csv_path: str | Path) -> Path:
     """Where ``teachpath reconstruct --out OUT.csv`` writes its arrays: ``OUT.npz``."""
     return Path(csv_path).with_suffix(".npz")
 

@@ -767,6 +767,8 @@ class Runner:
     def _execute(self, statement: Statement) -> None:  # noqa: C901
         function, args = statement.function, statement.args
         if function == "=":
+            if statement.target is None:
+                raise ScriptRuntimeError("an assignment without a variable to assign to")
             self.status.executed += 1
             self.variables[statement.target] = self._value(args[0])
             self.pc += 1
