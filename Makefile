@@ -28,8 +28,13 @@ demo: setup
 PG_SUITES = tests/service/test_api.py tests/service/test_session_lifecycle.py \
 	tests/service/test_api_inputs.py
 
+# The numerical core's tests first, one process per core (pure computation: nothing there runs
+# against a clock); then the rest in one process, where the simulated and fake arms stream in
+# real time and a second busy process would slow them past their tolerances.
 test: setup
-	$(BIN)/python -m pytest -q -p no:cacheprovider --durations=25 tests --ignore=tests/bench
+	$(BIN)/python -m pytest -q -p no:cacheprovider -n 2 --dist loadfile tests/recon
+	$(BIN)/python -m pytest -q -p no:cacheprovider --durations=25 tests --ignore=tests/bench \
+		--ignore=tests/recon
 	TEACHPATH_TEST_DATABASE=postgresql $(BIN)/python -m pytest -q -p no:cacheprovider $(PG_SUITES)
 
 # Speed and accuracy tables; never part of `make test` (timings on a shared machine are noisy).
