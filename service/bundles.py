@@ -41,6 +41,7 @@ from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
 from service.artifacts import ID_PREFIX, KindName, check_stored
+from service.parsing import load_arrays
 from service.store import FOLDERS, PRIVATE_FILE, ArtifactRow, SessionRow, Store, file_digest
 
 #: What the manifest's ``format`` says.
@@ -337,8 +338,6 @@ class BundleReader:
 
     def arrays(self, artifact_id: str) -> dict:
         """An artifact's arrays, after checking their file against the manifest."""
-        import numpy as np
-
         entry = self.artifact(artifact_id).data
         try:
             with self._zip.open(entry.path) as handle:
@@ -347,8 +346,7 @@ class BundleReader:
             raise BundleError(f"{self.path.name}: {entry.path} is damaged ({exc})") from None
         if len(content) != entry.size or hashlib.sha256(content).hexdigest() != entry.sha256:
             raise BundleError(f"{self.path.name}: {entry.path} does not match its checksum")
-        with np.load(io.BytesIO(content), allow_pickle=False) as data:
-            return {key: data[key] for key in data.files}
+        return load_arrays(io.BytesIO(content))
 
 
 # -- import ----------------------------------------------------------------------------------------
@@ -783,7 +781,6 @@ def _check_contents(
     into those very arrays: a bundle whose checksums were recomputed after an edit must not
     store what the service cannot read back, nor a raw file that is not what the arrays came
     from."""
-    import numpy as np
 
     where = {entry.path: tmp for (tmp, _), entry in zip(staged, files, strict=True)}
     for artifact in manifest.artifacts:
@@ -792,8 +789,7 @@ def _check_contents(
             # np.savez stores its members uncompressed: a compressed member could unpack to
             # far more memory than the file's size (a bomb inside the bundle).
             _check_npz(path)
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {key: data[key] for key in data.files}
+            arrays = load_arrays(path)
             check_stored(artifact.kind, arrays, artifact.summary)
         except (ValueError, KeyError, OSError, EOFError, zipfile.BadZipFile, MemoryError) as exc:
             raise BundleError(

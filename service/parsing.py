@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Literal
+from typing import IO, Literal
 
 import numpy as np
 
@@ -28,13 +29,22 @@ SUMMARY_KEY = "summary_json"
 Arrays = dict[str, np.ndarray]
 
 
-def save_arrays(path: str | Path, arrays: Arrays) -> None:
+def save_arrays(path: str | Path, arrays: Mapping[str, np.ndarray | None]) -> None:
     """Write arrays as an ``.npz`` that appears only when complete, readable by its owner only
-    (it lands in the data folder)."""
+    (it lands in the data folder). Entries that are None are left out (an optional array a
+    codec did not fill). Every artifact's arrays are written here, read by :func:`load_arrays`.
+    """
+    present = {key: value for key, value in arrays.items() if value is not None}
     with atomic_path(Path(path)) as tmp:
         with tmp.open("wb") as handle:
-            np.savez(handle, **arrays)  # type: ignore[arg-type]  # numpy's stub types allow_pickle
+            np.savez(handle, **present)  # type: ignore[arg-type]  # numpy's stub types allow_pickle
         os.chmod(tmp, 0o600)
+
+
+def load_arrays(path: str | Path | IO[bytes]) -> Arrays:
+    """The arrays of an ``.npz`` written by :func:`save_arrays` (never a pickle)."""
+    with np.load(path, allow_pickle=False) as data:
+        return {key: data[key] for key in data.files}
 
 
 def recording_summary(recording, fmt: str) -> dict:

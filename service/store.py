@@ -21,6 +21,7 @@ import secrets
 import shutil
 import socket
 import threading
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -42,6 +43,7 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
 from drivers.files import atomic_path
+from service.parsing import load_arrays, save_arrays
 
 JOB_STATES = ("queued", "running", "succeeded", "failed", "cancelled")
 FINISHED = ("succeeded", "failed", "cancelled")
@@ -377,14 +379,13 @@ class Store:
 
     # -- files -----------------------------------------------------------------------------------
 
-    def write_arrays(self, artifact_id: str, arrays: dict[str, np.ndarray]) -> tuple[str, str, int]:
+    def write_arrays(
+        self, artifact_id: str, arrays: Mapping[str, np.ndarray | None]
+    ) -> tuple[str, str, int]:
         """Store arrays as ``arrays/<id>.npz``. Returns (relative path, sha256, size)."""
         relative = f"arrays/{artifact_id}.npz"
         target = self.data_dir / relative
-        with atomic_path(target) as tmp:
-            with tmp.open("wb") as handle:
-                np.savez(handle, **{k: v for k, v in arrays.items() if v is not None})
-            os.chmod(tmp, PRIVATE_FILE)
+        save_arrays(target, arrays)
         return relative, *file_digest(target)
 
     def write_bytes(self, relative: str, content: bytes) -> tuple[str, int]:
@@ -397,9 +398,7 @@ class Store:
 
     def read_arrays(self, artifact: ArtifactRow) -> dict[str, np.ndarray]:
         """The arrays of an artifact, after checking the file against its checksum."""
-        path = self.path_of(artifact)
-        with np.load(path, allow_pickle=False) as data:
-            return {key: data[key] for key in data.files}
+        return load_arrays(self.path_of(artifact))
 
     def path_of(self, artifact: ArtifactRow) -> Path:
         path = self.data_dir / artifact.path

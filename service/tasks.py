@@ -24,8 +24,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-import numpy as np
-
 from drivers.errors import InputTooLargeError, ResourceLimitError
 from drivers.isolation import Limits, Usage, run_isolated
 from recon.params import PIVOT_TOLERANCE_M
@@ -39,15 +37,9 @@ from service.artifacts import (
     TrajectoryCodec,
     TrajectorySummary,
 )
-from service.parsing import SUMMARY_KEY, save_arrays
+from service.parsing import SUMMARY_KEY, load_arrays, save_arrays
 from service.parsing import recording_summary as recording_summary  # used by captures, the demo
 from service.parsing import scan_summary as scan_summary
-
-
-def load_arrays(path: str | Path) -> Arrays:
-    with np.load(path, allow_pickle=False) as data:
-        return {key: data[key] for key in data.files}
-
 
 # -- uploads, parsed in a child process of their own -----------------------------------------------
 
