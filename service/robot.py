@@ -20,6 +20,7 @@ import numpy as np
 
 from drivers.robot.base import BackendConfig, backend_config
 from drivers.robot.monitor import ArmState, RobotMonitor, create_monitor
+from service.refusals import RobotUnavailable
 from service.settings import Settings
 
 if TYPE_CHECKING:
@@ -241,8 +242,6 @@ def start_joints(watch: RobotWatch, settings: Settings) -> tuple[np.ndarray, str
         return np.asarray(settings.home_q_rad, dtype=np.float64), "home"
     reading = watch.fresh()
     if not reading.fresh or reading.state.q_rad is None:
-        from service.gate import RobotUnavailable
-
         raise RobotUnavailable(
             f"the arm's joints cannot be read ({reading.state.error or 'no fresh reading'}): "
             "a plan starts where the arm is; give start_q_rad, or connect the arm"
