@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar, Literal
 
@@ -46,7 +47,7 @@ ID_PREFIX: dict[str, str] = {
 }
 
 
-def _present(arrays: Arrays) -> Arrays:
+def _present(arrays: Mapping[str, np.ndarray | None]) -> Arrays:
     """The arrays that exist (optional fields are simply not stored)."""
     return {name: value for name, value in arrays.items() if value is not None}
 
@@ -602,6 +603,7 @@ def check_stored(kind: str, arrays: Arrays, summary: dict) -> None:
         elif kind == "reconstruction":
             ReconstructionCodec.decode(arrays)
         elif kind == "trajectory":
+            assert isinstance(typed, TrajectorySummary)  # SUMMARY_MODELS["trajectory"]
             TrajectoryCodec.decode(arrays, typed)
         elif kind == "execution":
             ExecutionCodec.decode(arrays)

@@ -21,7 +21,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from drivers import errors as driver_errors
 from recon import errors as recon_errors
 from service import bundles, gate
-from service.store import SessionDeletedError, StorageError
+from service.store import RowGoneError, SessionDeletedError, StorageError
 
 #: A 422 lists at most this many problems (a document with 20,000 unknown keys has as many).
 MAX_LISTED_PROBLEMS = 20
@@ -132,6 +132,7 @@ ERROR_MAP: list[tuple[type[Exception], int, str]] = [
     (driver_errors.RobotError, 502, "robot_error"),
     (driver_errors.DriverError, 422, "driver_error"),
     (SessionDeletedError, 409, "session_deleted"),
+    (RowGoneError, 404, "not_found"),
     # Before ValueError, which they subclass.
     (bundles.BundleConflictError, 409, "bundle_conflict"),
     (bundles.BundleError, 422, "bundle_invalid"),

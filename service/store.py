@@ -24,7 +24,7 @@ import threading
 from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import numpy as np
 from sqlalchemy import (
@@ -39,7 +39,7 @@ from sqlalchemy import (
     event,
     select,
 )
-from sqlalchemy.engine import make_url
+from sqlalchemy.engine import CursorResult, make_url
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
 from drivers.files import atomic_path
@@ -183,6 +183,22 @@ class CellChangedError(Exception):
 
 class SessionDeletedError(Exception):
     """Work finished for a session that was deleted meanwhile: nothing is added to it."""
+
+
+_Row = TypeVar("_Row", bound=Base)
+
+
+class RowGoneError(LookupError):
+    """A row to update is gone (deleted, with its session, since it was read)."""
+
+
+def _row_to_update(db, table: type[_Row], key: str, *, lock: bool = False) -> _Row:
+    """The row of ``table`` with primary key ``key`` in ``db`` (locked for the update when
+    ``lock``), or :class:`RowGoneError` naming it."""
+    row = db.get(table, key, with_for_update=lock)
+    if row is None:
+        raise RowGoneError(f"{table.__tablename__} {key!r} no longer exists")
+    return row
 
 
 #: An instance refreshes its heartbeat this often (s) ...
@@ -451,7 +467,7 @@ class Store:
 
     def update_session(self, session_id: str, **fields) -> SessionRow:
         with self.db.begin() as db:
-            row = db.get(SessionRow, session_id, with_for_update=True)
+            row = _row_to_update(db, SessionRow, session_id, lock=True)
             for key, value in fields.items():
                 setattr(row, key, value)
             return row
@@ -462,7 +478,7 @@ class Store:
         # The row is locked (PostgreSQL: SELECT ... FOR UPDATE) so that two instances' updates
         # are applied one after the other; within this process the lock does the same on SQLite.
         with self._calibration_lock, self.db.begin() as db:
-            row = db.get(SessionRow, session_id, with_for_update=True)
+            row = _row_to_update(db, SessionRow, session_id, lock=True)
             row.calibration_report = {**(row.calibration_report or {}), name: entry}
             for key, value in fields.items():
                 setattr(row, key, value)
@@ -517,7 +533,7 @@ class Store:
                     .where(CellRow.name == name, CellRow.revision == expected_revision)
                     .values(**values)
                 )
-                if done.rowcount == 1:
+                if cast(CursorResult, done).rowcount == 1:  # an UPDATE's result
                     return
         except sqlalchemy.exc.IntegrityError:
             pass
@@ -744,11 +760,12 @@ class Store:
         from sqlalchemy import func
 
         with self.db() as db:
-            return db.scalar(select(func.count()).select_from(JobRow).where(JobRow.state == state))
+            count = db.scalar(select(func.count()).select_from(JobRow).where(JobRow.state == state))
+            return count or 0
 
     def update_job(self, job_id: str, **fields) -> JobRow:
         with self.db.begin() as db:
-            row = db.get(JobRow, job_id)
+            row = _row_to_update(db, JobRow, job_id)
             for key, value in fields.items():
                 setattr(row, key, _jsonable(value) if isinstance(value, dict) else value)
         return row
@@ -810,7 +827,7 @@ class Store:
 
     def update_capture(self, capture_id: str, **fields) -> CaptureRow:
         with self.db.begin() as db:
-            row = db.get(CaptureRow, capture_id)
+            row = _row_to_update(db, CaptureRow, capture_id)
             for key, value in fields.items():
                 setattr(row, key, value)
             return row

@@ -400,3 +400,25 @@ def test_a_stop_sent_to_the_instance_that_does_not_drive_the_arm_is_refused(two)
     assert refused.json()["code"] == "other_instance"
     assert "the-arms-instance" in refused.json()["message"]
     assert driver.job(job.id).state == "running"  # nothing was pretended
+
+
+def test_an_update_of_a_row_that_is_gone_names_it(url_of, tmp_path):
+    """An update of a session, job or capture deleted meanwhile is a lookup error naming the
+    row (404 ``not_found`` from a route), never an AttributeError deep in the store."""
+    from service.errors import classify
+    from service.store import RowGoneError
+
+    store = Store(tmp_path / "data", url_of(tmp_path / "data"))
+    try:
+        for update, table in (
+            (lambda: store.update_session("ses_gone", name="x"), "sessions"),
+            (lambda: store.record_calibration("ses_gone", "pivot", {}), "sessions"),
+            (lambda: store.update_job("job_gone", state="failed"), "jobs"),
+            (lambda: store.update_capture("cap_gone", n_samples=1), "captures"),
+        ):
+            with pytest.raises(RowGoneError, match=rf"{table} '\w+_gone' no longer exists") as gone:
+                update()
+            assert classify(gone.value) == (404, "not_found")
+        assert store.count_jobs("running") == 0
+    finally:
+        store.engine.dispose()
