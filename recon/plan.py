@@ -88,10 +88,10 @@ class Plan:
     joints: JointPath
     trajectory: JointTrajectory
     params: PlanParams
+    start_q_rad: FloatArray
+    configuration: kinematics.Configuration
     T_scan_tracker: FloatArray | None = None
-    start_q_rad: FloatArray | None = None
     start_from: str = "given"
-    configuration: kinematics.Configuration | None = None
     approach_m: float = 0.0
     collision: CollisionReport | None = None
     n_pieces: int = 1

@@ -78,9 +78,9 @@ class Services:
         The arm's state, read all the time.
     live : LiveRunners
     uploads : UploadBudget
-        The bytes of uploads in flight (default: capped at ``settings.max_uploads_in_flight_mb``).
+        The bytes of uploads in flight (capped at ``settings.max_uploads_in_flight_mb``).
     parses : ParseLane
-        Where uploads are parsed (default: ``settings.max_parallel_parses`` at once).
+        Where uploads are parsed (``settings.max_parallel_parses`` at once).
     """
 
     settings: Settings
@@ -89,14 +89,12 @@ class Services:
     token: str
     robot: RobotWatch
     live: LiveRunners = field(default_factory=LiveRunners)
-    uploads: UploadBudget | None = None
-    parses: ParseLane | None = None
+    uploads: UploadBudget = field(init=False)
+    parses: ParseLane = field(init=False)
 
     def __post_init__(self) -> None:
-        if self.uploads is None:
-            self.uploads = UploadBudget(self.settings.max_uploads_in_flight_mb)
-        if self.parses is None:
-            self.parses = ParseLane(self.settings.max_parallel_parses)
+        self.uploads = UploadBudget(self.settings.max_uploads_in_flight_mb)
+        self.parses = ParseLane(self.settings.max_parallel_parses)
 
     def session(self, session_id: str) -> SessionRow:
         """The session, or a 404."""

@@ -38,7 +38,7 @@ from service.pipelines import ExecutionOutcome, cell_for
 from service.provenance import trajectory_outdated
 from service.robot import ur_rtde_config
 from service.schemas import ExecutionCreate
-from service.store import FINISHED, ArtifactRow, JobRow, new_id
+from service.store import FINISHED, ArtifactRow, JobRow, StorageError, new_id
 
 log = logging.getLogger("teachpath.executions")
 
@@ -78,7 +78,7 @@ def _job_result(execution_id: str, summary: dict) -> dict:
 
 
 def _artifact_params(services: Services, request: ExecutionCreate) -> dict:
-    params = {
+    params: dict[str, str | float | bool | None] = {
         "backend": request.backend,
         "dry_run": request.backend == "sim",
         "mode": request.mode,
@@ -446,6 +446,10 @@ def stop(services: Services, execution_id: str) -> StopOutcome:
         job_id = job.id
     runner = services.live.executions.get(execution_id)
     job = services.store.job(job_id)
+    if job is None:  # its row deleted with its session: the arm's stop still wins
+        if runner is not None:
+            runner.stop()
+        raise not_found("execution", execution_id)
     already_ended = job.state in FINISHED
     elsewhere = runner is None and job.owner not in (None, services.store.instance_id)
     if elsewhere and (not already_ended or services.store.is_live(job.owner)):
@@ -464,7 +468,7 @@ def stop(services: Services, execution_id: str) -> StopOutcome:
     elif not already_ended:
         # A dry run (a pool job): stopped, it ends cancelled and never counts as passed.
         services.jobs.discard(job_id)
-    return StopOutcome(job=services.store.job(job_id), already_ended=already_ended)
+    return StopOutcome(job=services.store.job(job_id) or job, already_ended=already_ended)
 
 
 def _running_here(services: Services, execution_id: str) -> ExecutionRunner:
@@ -575,6 +579,11 @@ def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
         journal.unlink(missing_ok=True)
         return
     trajectory_row = store.artifact(job.params["trajectory_id"], kind="trajectory")
+    if trajectory_row is None:  # deleted with its session: the journal is kept, unread
+        raise StorageError(
+            f"the plan {job.params['trajectory_id']} of execution {execution_id} is gone: its "
+            f"journal {journal.name} is kept but cannot become an execution record"
+        )
     trajectory = tasks.load_trajectory(store.path_of(trajectory_row), trajectory_row.summary)
     fault = "the service stopped during the execution"
     record = journal_record(trajectory, journal, fault)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from starlette.concurrency import run_in_threadpool
 
@@ -95,7 +95,7 @@ async def add_recording(
     upload: Upload,
     options: TraceOptions,
     *,
-    kind: str = "recording",
+    kind: Literal["recording", "touches"] = "recording",
 ) -> ArtifactRow:
     """Parse an uploaded trace and make it the session's recording (``kind="recording"``), or
     keep it as the session's newest touches of the workpiece (``kind="touches"``: a recording
@@ -201,7 +201,7 @@ async def add_scan(
 
 def trace_task(
     settings: Settings,
-    kind: str,
+    kind: Literal["recording", "touches"],
     upload: Upload,
     options: TraceOptions,
     *,
@@ -279,6 +279,7 @@ def reread_upload(
         not a reader's).
     """
     upload = Upload(content=content, filename=filename)
+    task: tasks.ParseScan | tasks.ParseRecording
     if kind == "scan":
         task = scan_task(
             settings,
@@ -288,12 +289,15 @@ def reread_upload(
             options=params.get("options"),
         )
     elif kind in ("recording", "touches"):
+        trace_kind: Literal["recording", "touches"] = (
+            "recording" if kind == "recording" else "touches"
+        )
         options = TraceOptions(
             **{key: params.get(key) for key in ("format", "units", "rigid_body", "marker", "piece")}
         )
         tip = params.get("tip_offset_m")
         task = trace_task(
-            settings, kind, upload, options, tip_offset_m=None if tip is None else tuple(tip)
+            settings, trace_kind, upload, options, tip_offset_m=None if tip is None else tuple(tip)
         )
     else:
         raise ValueError(f"a {kind} keeps no uploaded file")
@@ -371,7 +375,12 @@ def load_calibration_file(services: Services, session_id: str, content: bytes, f
         message = str(error) if isinstance(error, InputFileError) else f"{label} nests too deep"
         raise ApiError(422, "invalid_file", message) from None
     (field,) = fields
-    entry = {"source_name": filename, "field": field, "created": created, "at": now().isoformat()}
+    entry: dict[str, Any] = {
+        "source_name": filename,
+        "field": field,
+        "created": created,
+        "at": now().isoformat(),
+    }
     if residual is not None:
         entry["residual_rms_m"] = residual
     return services.store.record_calibration(session_id, f"file:{field}", entry, **fields)

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from recon.params import PIVOT_TOLERANCE_M
 from recon.types import FloatArray
@@ -183,7 +184,7 @@ class PointPairOutcome:
 
 
 def point_pairs(
-    base_m: FloatArray, tracker_m: FloatArray, *, tolerance_m: float, accept_poor_fit=False
+    base_m: ArrayLike, tracker_m: ArrayLike, *, tolerance_m: float, accept_poor_fit=False
 ):
     """Fit ``T_base_tracker`` to the same points measured in both frames (metres).
 
@@ -404,7 +405,7 @@ class ReconstructOutcome:
                 }
                 for s in recon.segments
             ],
-            "n_pieces": int(recon.piece[-1]) + 1,
+            "n_pieces": int(recon.point_pieces()[-1]) + 1,
             "T_scan_tracker": None if T is None else np.asarray(T).tolist(),
             "registration": None
             if reg is None
@@ -435,7 +436,7 @@ class ReconstructOutcome:
             ],
             "uncertainty_mean_m": None
             if recon.uncertainty_m is None
-            else _jsonable_or_none(np.mean(recon.uncertainty_m)),
+            else _jsonable_or_none(float(np.mean(recon.uncertainty_m))),
             "uncertainty_max_m": None
             if recon.uncertainty_m is None
             else _jsonable_or_none(np.max(recon.uncertainty_m)),
@@ -1003,14 +1004,14 @@ def dry_run(trajectory, *, mode: str = "servoj", tolerance_m: float = 5e-4) -> E
     InfeasibleTrajectoryError
         Its samples break the arm's limits (checked first: a file is not trusted).
     """
-    from drivers.robot.base import backend_config, create_backend
     from drivers.robot.clock import FakeClock
     from drivers.robot.dryrun import dry_run as run
+    from drivers.robot.sim import SimBackend, SimConfig
     from recon.sample_check import require_within_limits
 
     require_within_limits(trajectory, what="dry-run it")
-    config = backend_config("sim", robot=trajectory.robot, q_start_rad=tuple(trajectory.q_rad[0]))
-    sim = create_backend(config, clock=FakeClock())
+    config = SimConfig(robot=trajectory.robot, q_start_rad=tuple(trajectory.q_rad[0]))
+    sim = SimBackend(config, clock=FakeClock())
     report = run(trajectory, backend=sim, mode=mode, tolerance_m=tolerance_m)
     return ExecutionOutcome(
         report=report, record=sim.last_record, backend="sim", tolerance_m=tolerance_m

@@ -78,7 +78,7 @@ class JournalWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
         self._count = 0
-        self._map = None
+        self._map: mmap.mmap | None = None
         try:
             self._map_rows(max(int(capacity_samples), 1))
         except BaseException:
@@ -89,12 +89,13 @@ class JournalWriter:
         """Size the file for ``capacity`` rows and map it (the rows written so far are kept)."""
         self._release()
         os.ftruncate(self._fd, HEADER_BYTES + capacity * ROW_BYTES)
-        self._map = mmap.mmap(self._fd, HEADER_BYTES + capacity * ROW_BYTES)
-        header = np.frombuffer(self._map, dtype=_HEADER_DTYPE, count=1)
+        mapped = mmap.mmap(self._fd, HEADER_BYTES + capacity * ROW_BYTES)
+        self._map = mapped
+        header = np.frombuffer(mapped, dtype=_HEADER_DTYPE, count=1)
         header["magic"], header["columns"], header["capacity"] = MAGIC, COLUMNS, capacity
         header["count"] = self._count
-        self._count_field = np.frombuffer(self._map, dtype="<u8", count=1, offset=24)
-        self._rows = np.frombuffer(self._map, dtype="<f8", offset=HEADER_BYTES).reshape(
+        self._count_field = np.frombuffer(mapped, dtype="<u8", count=1, offset=24)
+        self._rows = np.frombuffer(mapped, dtype="<f8", offset=HEADER_BYTES).reshape(
             capacity, COLUMNS
         )
         # Touch every page of the free rows now: the first store to a page faults it in.
@@ -203,7 +204,7 @@ def read_journal_with_plan(
 def _check_samples(data: FloatArray, name: str) -> None:
     """Refuse samples that no arm reported: not finite, time going backwards, or a plan clock
     that goes backwards or starts before the plan (a stream only ever moves forward on it)."""
-    bad = ~np.isfinite(data).all(axis=1)
+    bad = np.logical_not(np.isfinite(data).all(axis=1))
     bad[1:] |= np.diff(data[:, 0]) < 0
     if data.shape[1] > 13:
         bad |= data[:, 13] < 0

@@ -101,7 +101,9 @@ class URStateServer(WorkerServer):  # pragma: no cover - runs in the worker proc
     def __init__(self, link: WorkerLink, host: str, upper_range_registers: bool) -> None:
         super().__init__(link)
         self.host, self.upper = host, upper_range_registers
-        self.receive = self.dashboard = None
+        # ur_rtde's clients (no type information), made by connect().
+        self.receive: Any = None
+        self.dashboard: Any = None
 
     def handlers(self) -> Mapping[type[Command], Callable[[Any], Any]]:
         return {ReadState: lambda _: self.read(), UnlockProtectiveStop: lambda _: self.unlock()}

@@ -315,7 +315,7 @@ def _check_pcd(path: Path, label: str) -> int:  # noqa: C901
     width, height = number("WIDTH"), number("HEIGHT")
     absent = [key for key, value in (("WIDTH", width), ("HEIGHT", height), ("POINTS", points))
               if value is None]  # fmt: skip
-    if absent:
+    if absent or width is None or height is None or points is None:
         # Open3D reads such a header with sizes it never set (different points on every read).
         raise InputFileError(
             f"{label} has a PCD header without {' and '.join(absent)}; a PCD file states WIDTH, "

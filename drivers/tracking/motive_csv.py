@@ -217,7 +217,9 @@ def read_motive_csv(  # noqa: C901
         raise InputFileError(
             f"{refusal}. {_movement_ranking(raw, header, table, assets, scale, name)}"
         ) from None
-    cols = _columns_of(table, (kind,), rigid_body or marker, name)
+    label = rigid_body or marker
+    assert label is not None  # _choose names the one it chose
+    cols = _columns_of(table, (kind,), label, name)
     rotation_type = None
     if rigid_body is not None:
         rotation_type = _rotation_type(meta, cols, rigid_body, name)
@@ -236,7 +238,8 @@ def read_motive_csv(  # noqa: C901
     # The error column has no axis label (some exports may give it one).
     error_col = next((j for (part, _), j in cols.items() if part in _ERROR_COMPONENTS), None)
 
-    wanted = [1, *position_cols, *rotation_cols] + ([error_col] if error_col is not None else [])
+    present = [c for c in position_cols if c is not None]  # all three (checked above)
+    wanted = [1, *present, *rotation_cols] + ([error_col] if error_col is not None else [])
     data = _parse_body(raw, header.body_start, header.body_line, wanted, table, name)
     n = len(data)
     expected = _int_or_none(meta.get("Total Exported Frames"))
@@ -273,7 +276,7 @@ def read_motive_csv(  # noqa: C901
         )
     position[~tracked] = np.nan
     error_m = None
-    valid = tracked.copy()
+    valid = np.array(tracked, dtype=bool)
     if error_col is not None:
         error_m = np.where(tracked, data[:, -1] * scale, np.nan)
         if max_marker_error_m is not None:
@@ -479,7 +482,7 @@ def _asset_rows(rows: list[list[str]], name: str) -> tuple[list[str], list[str],
     missing = [r for r in ("Type", "Name") if r not in labelled]
     if components is None:
         missing.append("the Rotation/Position row")
-    if missing:
+    if missing or components is None:
         raise InputFileError(
             f"{name} lacks the header rows {', '.join(missing)}; {_HEADERLESS_HINT}"
         )
@@ -595,8 +598,9 @@ def _movement_ranking(raw, header, table, assets: _Assets, scale: float, name: s
         kinds = assets.kinds[label]
         kind = next(k for k in ("Marker", "Rigid Body Marker", "Bone Marker") if k in kinds)
         cols = _columns_of(table, (kind,), label, name)
-        position_cols = [cols.get(("Position", axis)) for axis in "XYZ"]
-        if None in position_cols:
+        found = [cols.get(("Position", axis)) for axis in "XYZ"]
+        position_cols = [c for c in found if c is not None]
+        if len(position_cols) < 3:
             continue
         data = _parse_body(raw, header.body_start, header.body_line, position_cols, table, name)
         seen = np.isfinite(data).all(axis=1)

@@ -380,7 +380,7 @@ class NatNetReplayServer:
         stats = ReplayStats(self.frames_sent, self.n_frames, 0, 0, 0.0)
         if self._process is not None:
             self._stop.set()
-            if self._pipe.poll(timeout_s):
+            if self._pipe is not None and self._pipe.poll(timeout_s):
                 try:
                     kind, payload = self._pipe.recv()
                     if kind == "stats":

@@ -268,10 +268,10 @@ class FakeController:
     def clear_registers(self) -> None:
         """Zero the general purpose registers (commands, arguments, results)."""
         with self.lock:
-            for registers in (self.in_int, self.out_int):
-                registers[:] = [0] * REGISTER_COUNT
-            for registers in (self.in_double, self.out_double):
-                registers[:] = [0.0] * REGISTER_COUNT
+            for ints in (self.in_int, self.out_int):
+                ints[:] = [0] * REGISTER_COUNT
+            for doubles in (self.in_double, self.out_double):
+                doubles[:] = [0.0] * REGISTER_COUNT
 
     # -- arm ---------------------------------------------------------------------------------------
 
@@ -387,7 +387,7 @@ class FakeController:
             self._register_seen_s = self.t_s
         for name, value in values.items():
             if name.startswith("input_int_register_"):
-                self.in_int[int(name.rsplit("_", 1)[1])] = int(value)  # type: ignore[arg-type]
+                self.in_int[int(name.rsplit("_", 1)[1])] = int(value)  # type: ignore[call-overload]
             elif name.startswith("input_double_register_"):
                 self.in_double[int(name.rsplit("_", 1)[1])] = float(value)  # type: ignore[arg-type]
 
@@ -1099,7 +1099,7 @@ class FakeController:
         start = np.asarray(self.tcp_pose(q0))
         points = np.array([start[:3], *[p[:3] for p in poses]])
         speeds, acceleration = _run_limits(moves, np.linalg.norm(np.diff(points, axis=0), axis=1))
-        path = urscript.tool_path(
+        blended = urscript.tool_path(
             start,
             poses,
             speeds=speeds,
@@ -1107,9 +1107,9 @@ class FakeController:
             blends_m=[m.r for m in moves],
             dt=self.dt_s,
         )
-        samples = path.poses
+        samples = blended.poses
         targets = self._solve_stream(q0, len(samples), lambda a, b: samples[a:b], moves[0].kind)
-        return self._begin(targets, len(samples)), path.move_ticks
+        return self._begin(targets, len(samples)), blended.move_ticks
 
     def _begin(self, targets: Iterator[np.ndarray], count: int) -> _Motion:
         motion = _Motion("move", targets, started_s=self.t_s, expected_s=count * self.dt_s)
