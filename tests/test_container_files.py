@@ -53,3 +53,20 @@ def test_the_dockerfile_copies_what_the_package_needs():
     for folder in ("recon", "drivers", "service"):
         assert f"COPY {folder} ./{folder}" in text
     assert "libusb-1.0-0" in text
+
+
+def test_the_image_serves_the_documentation_site():
+    """The guide at /guide in the container too: built strict in a stage of its own, with the
+    versions of the site's tools pinned as in constraints.txt, and the service pointed at it."""
+    text = (ROOT / "docker" / "Dockerfile").read_text()
+    assert "mkdocs build --strict" in text
+    assert "COPY --from=docs /build/site ./site" in text
+    assert "TEACHPATH_GUIDE_DIR=/app/site" in text
+    pinned = dict(
+        line.split("==")
+        for line in (ROOT / "constraints.txt").read_text().splitlines()
+        if "==" in line and not line.startswith("#")
+    )
+    for tool in ("mkdocs", "mkdocs-material", "mkdocstrings", "mkdocstrings-python",
+                 "pymdown-extensions"):  # fmt: skip
+        assert f"{tool}=={pinned[tool]}" in text, tool
