@@ -562,12 +562,7 @@ def _whole_motion(
     and its heights), then moves the other joints: a joint move that turns the base a long way
     while it unfolds the arm may sweep low through the cell.
     """
-    joint_move = {
-        "speed_scale": params.transit_speed_scale,
-        "acceleration_scale": params.transit_acceleration_scale,
-        "tcp_speed_max_m_s": params.transit_tcp_speed_m_s,
-        "T_flange_tcp": params.T_flange_tcp,
-    }
+    joint_move = _joint_move(params)
     phases: list[motion.PhaseSamples] = []
     q_here = q_start
     for process, offset_m in zip(processes, offsets_m, strict=True):
@@ -624,6 +619,17 @@ def _lift_line(params: PlanParams, branch: int) -> dict:
         "velocity_scale": params.velocity_scale,
         "acceleration_scale": params.acceleration_scale,
         "point_speed_max_m_s": params.point_speed_max_m_s,
+    }
+
+
+def _joint_move(params: PlanParams) -> dict:
+    """How every joint move goes (a plan's transits and returns, a move to a plan's start):
+    ``motion.joint_move``'s settings but its ends."""
+    return {
+        "speed_scale": params.transit_speed_scale,
+        "acceleration_scale": params.transit_acceleration_scale,
+        "tcp_speed_max_m_s": params.transit_tcp_speed_m_s,
+        "T_flange_tcp": params.T_flange_tcp,
     }
 
 
@@ -892,12 +898,7 @@ def plan_move(
             )
         ends.append(q)
     q_from, q_to = ends
-    joint_move = {
-        "speed_scale": params.transit_speed_scale,
-        "acceleration_scale": params.transit_acceleration_scale,
-        "tcp_speed_max_m_s": params.transit_tcp_speed_m_s,
-        "T_flange_tcp": params.T_flange_tcp,
-    }
+    joint_move = _joint_move(params)
     report = None
     for base_first in (False, True):
         trajectory = motion.assemble(
