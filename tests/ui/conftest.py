@@ -212,3 +212,22 @@ def pendant(browser, server, screens, request):
     """The pendant on the simulated arm's server (see :func:`pendant_for`)."""
     with pendant_for(browser, server, screens, request.node.name) as opened:
         yield opened
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """A failed test on a server started here gets the server's last log lines, and the fake
+    controller's, in its report: what the arm did is often the reason a page did not show it."""
+    outcome = yield
+    report = outcome.get_result()
+    if report.when != "call" or not report.failed:
+        return
+    funcargs = getattr(item, "funcargs", {})
+    for name in ("arm_server", "server"):
+        server = funcargs.get(name)
+        if server is not None and getattr(server, "output", None):
+            report.sections.append((f"{name} log (last 60 lines)", "".join(server.output[-60:])))
+    fake = funcargs.get("fake_ur_process")
+    if fake is not None:
+        lines = fake.log_text().splitlines()[-60:]
+        report.sections.append(("fake UR log (last 60 lines)", "\n".join(lines)))
