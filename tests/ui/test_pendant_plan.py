@@ -515,12 +515,14 @@ def test_the_cell_is_edited_in_3d_and_outdates_the_plans_made_in_another(pendant
         expect(page.locator("#steps li[data-step=plan]")).to_have_class("todo")
         pendant.shot("cell-saved")
 
-        # Another pendant removes the wall meanwhile; this one's edit, from the older view, is
-        # refused saying so, and Discard changes shows the other's cell.
-        other = {"keep_out_boxes_m": saved["keep_out_boxes_m"], "cell_planes": [], "revision": 1}
-        assert client.put("/cell", json=other).status_code == 200
+        # This pendant starts an edit; another removes the wall meanwhile. This one's edit, from
+        # the older view, is refused saying so, and Discard changes shows the other's cell. (The
+        # edit starts first: a page not editing takes the newer cell as it arrives, and an edit
+        # begun after that is made from it, rightly saved.)
         pendant.guard.allow(409, "/cell")
         page.get_by_label("box 1 z max (mm)").fill("400")
+        other = {"keep_out_boxes_m": saved["keep_out_boxes_m"], "cell_planes": [], "revision": 1}
+        assert client.put("/cell", json=other).status_code == 200
         page.get_by_role("button", name="Save cell").click()
         message = form.locator(".message")
         expect(message).to_have_attribute("data-code", "cell_changed")
