@@ -44,6 +44,7 @@ def ur_rtde_config(settings: Settings, robot: str | None = None) -> BackendConfi
         host=settings.ur_host or "unknown",
         robot=robot or settings.ur_robot,
         watchdog_hz=settings.ur_watchdog_hz,
+        stale_after_s=settings.ur_stale_after_s,
         rt_priority=settings.ur_rt_priority,
     )
 

@@ -109,6 +109,13 @@ class Settings(BaseSettings):
         description="during a motion the controller stops the program when this service has "
         "written nothing to it for 1/ur_watchdog_hz s (a hung or killed worker)",
     )
+    ur_stale_after_s: float = Field(
+        0.5,
+        gt=0,
+        le=5.0,
+        description="a run on the arm stops and fails when the controller's state has not "
+        "changed for this long (s): the link counts as lost",
+    )
     ur_rt_priority: int = Field(
         80,
         ge=0,

@@ -114,6 +114,13 @@ class URRtdeConfig(BackendConfig):
         "this process has written nothing for 1/watchdog_hz s (a hung or killed worker: the "
         "controller runs movePath and moveJ on its own); between motions it is relaxed",
     )
+    stale_after_s: float = Field(
+        STALE_AFTER_S,
+        gt=0,
+        le=5.0,
+        description="a run stops (servoStop) and fails when the controller's state has not "
+        "changed for this long: the link counts as lost",
+    )
     rt_priority: int = Field(
         80,
         ge=0,
@@ -535,11 +542,14 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         now = time.monotonic()
         if stamp != getattr(self, "_last_stamp", None):
             self._last_stamp, self._last_fresh = stamp, now
-        elif now - getattr(self, "_last_fresh", now) > STALE_AFTER_S:
+        elif now - getattr(self, "_last_fresh", now) > self._stale_after_s():
             self.control.servoStop(self.config["stop_deceleration_rad_s2"])
             raise ConnectionLostError(
-                f"no new data from the controller for {STALE_AFTER_S} s; reconnect"
+                f"no new data from the controller for {self._stale_after_s()} s; reconnect"
             )
+
+    def _stale_after_s(self) -> float:
+        return float(self.config.get("stale_after_s", STALE_AFTER_S))
 
     def _safety(self) -> None:
         if self.receive.isEmergencyStopped():
@@ -551,11 +561,11 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         """Wait for a data package newer than the call (one control period, 2-8 ms): the
         getters keep returning the last values after the controller stops answering."""
         stamp = self.receive.getTimestamp()
-        deadline = time.monotonic() + STALE_AFTER_S
+        deadline = time.monotonic() + self._stale_after_s()
         while self.receive.getTimestamp() == stamp:
             if time.monotonic() > deadline:
                 raise ConnectionLostError(
-                    f"no new data from the controller for {STALE_AFTER_S} s; reconnect",
+                    f"no new data from the controller for {self._stale_after_s()} s; reconnect",
                 )
             time.sleep(0.001)
 

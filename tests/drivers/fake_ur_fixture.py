@@ -36,6 +36,10 @@ START_TIMEOUT_S = 30.0
 #: client silent 0.5 s on a loaded machine. The watchdog's own tests keep 2 Hz
 #: (tests/drivers/test_fake_ur.py).
 SERVICE_WATCHDOG_HZ = 0.5
+#: How long the fake's state may stand still before such a service's run fails as a lost link
+#: (s; 0.5 on a real controller): a run on a loaded test machine once failed "no new data from
+#: the controller for 0.5 s" (the server's log, in the failed browser test's report).
+SERVICE_STALE_AFTER_S = 2.0
 
 
 def _ports_free(host: str) -> bool:

@@ -160,6 +160,7 @@ def test_no_server_errors_and_documented_responses(tmp_path, scene_files, fake_u
             "TEACHPATH_UR_HOST": fake_ur_process.host,
             "TEACHPATH_UR_ROBOT": "ur5e",
             "TEACHPATH_UR_WATCHDOG_HZ": str(fake_ur_fixture.SERVICE_WATCHDOG_HZ),
+            "TEACHPATH_UR_STALE_AFTER_S": str(fake_ur_fixture.SERVICE_STALE_AFTER_S),
         },
     )
     try:

@@ -70,6 +70,7 @@ def test_a_stop_is_answered_and_the_arm_stops_while_clients_flood_the_server(
             "TEACHPATH_UR_ROBOT": "ur5e",
             "TEACHPATH_MAX_SPEED_M_S": "0.1",
             "TEACHPATH_UR_WATCHDOG_HZ": str(fake_ur_fixture.SERVICE_WATCHDOG_HZ),
+            "TEACHPATH_UR_STALE_AFTER_S": str(fake_ur_fixture.SERVICE_STALE_AFTER_S),
         },
     )
     stop_flood = threading.Event()

@@ -29,6 +29,7 @@ def arm(tmp_path_factory, scene_files, fake_ur_process):
         ur_robot="ur5e",
         max_speed_m_s=0.1,
         ur_watchdog_hz=fake_ur_fixture.SERVICE_WATCHDOG_HZ,
+        ur_stale_after_s=fake_ur_fixture.SERVICE_STALE_AFTER_S,
     )
     with TestClient(create_app(settings), headers=AUTH) as client:
         sid, trajectories = planned_session(client, scene_files, (0.1,), name="fake arm")

@@ -11,17 +11,18 @@ from tests.service.conftest import make_settings
 def test_the_arm_s_settings_reach_its_backend(tmp_path, monkeypatch):
     monkeypatch.setenv("TEACHPATH_UR_WATCHDOG_HZ", "0.5")
     monkeypatch.setenv("TEACHPATH_UR_RT_PRIORITY", "0")
+    monkeypatch.setenv("TEACHPATH_UR_STALE_AFTER_S", "2")
     settings = make_settings(tmp_path, ur_host="127.0.0.9", ur_robot="ur10e")
     config = ur_rtde_config(settings)
     assert (config.host, config.robot) == ("127.0.0.9", "ur10e")
-    assert (config.watchdog_hz, config.rt_priority) == (0.5, 0)
+    assert (config.watchdog_hz, config.rt_priority, config.stale_after_s) == (0.5, 0, 2.0)
     # A recovered run is judged with its own plan's arm model.
     assert ur_rtde_config(settings, robot="ur5e").robot == "ur5e"
 
 
 def test_the_defaults_are_a_real_controller_s(tmp_path):
     config = ur_rtde_config(make_settings(tmp_path, ur_host="127.0.0.9"))
-    assert (config.watchdog_hz, config.rt_priority) == (2.0, 80)
+    assert (config.watchdog_hz, config.rt_priority, config.stale_after_s) == (2.0, 80, 0.5)
 
 
 @pytest.mark.parametrize(
@@ -31,6 +32,8 @@ def test_the_defaults_are_a_real_controller_s(tmp_path):
         ({"ur_watchdog_hz": 1e9}, "ur_watchdog_hz"),
         ({"ur_watchdog_hz": float("nan")}, "ur_watchdog_hz"),
         ({"ur_rt_priority": 100}, "ur_rt_priority"),
+        ({"ur_stale_after_s": 0.0}, "ur_stale_after_s"),
+        ({"ur_stale_after_s": 60.0}, "ur_stale_after_s"),
         ({"ur_rt_priority": -1}, "ur_rt_priority"),
     ],
 )

@@ -38,6 +38,7 @@ def arm_server(tmp_path_factory, fake_ur_process):
             "TEACHPATH_UR_ROBOT": "ur5e",
             "TEACHPATH_MAX_SPEED_M_S": str(CAP_M_S),
             "TEACHPATH_UR_WATCHDOG_HZ": str(fake_ur_fixture.SERVICE_WATCHDOG_HZ),
+            "TEACHPATH_UR_STALE_AFTER_S": str(fake_ur_fixture.SERVICE_STALE_AFTER_S),
             # A cabinet beside the arm and the floor under the table: far from the demo's
             # motion, drawn in the 3-D view.
             "TEACHPATH_KEEP_OUT_BOXES": "[[0.0, 0.7, 0.0, 0.2, 0.9, 0.3]]",
@@ -83,10 +84,7 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         # The plan starts where the arm is (the service reads its joints), at a slow speed so
         # that the run lasts long enough to be stopped in the middle.
         expect(page.locator("#plan-speed")).to_have_attribute("max", str(CAP_M_S))
-        # 10 mm/s: about 40 s of process, so that the second pendant below (opened, a session
-        # made) still finds it running on a loaded machine (at 20 mm/s it once found the arm
-        # free: the run had most likely ended).
-        page.locator("#plan-speed").fill("0.01")
+        page.locator("#plan-speed").fill("0.02")
         page.get_by_role("button", name="Plan", exact=True).click()
         summary = page.locator("#plan-summary")
         expect(summary.locator("tr[data-phase=process]")).to_be_visible(timeout=60_000)
@@ -103,7 +101,7 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         dialog = page.locator("#confirm-dialog")
         expect(dialog).to_be_visible()
         expect(dialog).to_contain_text(f"REAL ARM ur5e @ {fake.host}")
-        expect(dialog).to_contain_text("10 mm/s")
+        expect(dialog).to_contain_text("20 mm/s")
         expect(dialog.locator("th", has_text="approach").first).to_be_visible()
         # What the plan was made from, with checksums: the approval names the file that runs.
         expect(dialog).to_contain_text("plan file")
@@ -149,8 +147,8 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             expect(other.get_by_role("button", name="Run on arm")).to_be_disabled()
 
         # Mid-path, Escape stops the arm: a fifth of the way in, so that a loaded machine (two
-        # shared cores, the fake controller in real time beside the browser) still has about 30 s
-        # of the run left for the stop to land.
+        # shared cores, the fake controller in real time beside the browser) still has 16 s of
+        # the 20 s run left for the stop to land.
         deadline = time.monotonic() + 120
         while _progress(page, "#run-form") < 0.2:
             assert time.monotonic() < deadline, "the run did not get a fifth of the way"
@@ -165,7 +163,7 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         )
         tcp_now = np.array(json.loads(page.locator("#workspace").get_attribute("data-live-arm")))
         tcp_server = np.array(arm_server.client.get("/robot").json()["tcp_pose"][:3])
-        assert np.linalg.norm(tcp_now - tcp_server) < 0.05  # moving at 10 mm/s, read apart
+        assert np.linalg.norm(tcp_now - tcp_server) < 0.05  # moving at 20 mm/s, read apart
         pendant.shot("running")
 
         # The bar while a run shows its speed and Stop: one line on a desk's screen; on a
