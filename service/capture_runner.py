@@ -75,10 +75,11 @@ class CaptureRunner:
                     q = batch.orientation_xyzw
                     if q is None:
                         q = np.full((len(batch), 4), np.nan)
+                    t_s = batch.times_s()
                     for i in range(len(batch)):
                         x, y, z = batch.position_m[i]
                         handle.write(
-                            f"{batch.t_s[i]:.6f},{x:.9g},{y:.9g},{z:.9g},"
+                            f"{t_s[i]:.6f},{x:.9g},{y:.9g},{z:.9g},"
                             f"{q[i, 0]:.9g},{q[i, 1]:.9g},{q[i, 2]:.9g},{q[i, 3]:.9g},"
                             f"{int(batch.valid[i])}\n"
                         )

@@ -117,7 +117,7 @@ def samples_event(first: int, batch: SampleBatch) -> dict:
     points = np.round(np.asarray(batch.position_m, dtype=np.float64), 7)
     return {
         "first": int(first),
-        "t_s": np.round(batch.t_s, 6).tolist(),
+        "t_s": np.round(batch.times_s(), 6).tolist(),
         "points_m": [p if ok else None for p, ok in zip(points.tolist(), valid, strict=True)],
         "valid": valid.tolist(),
     }

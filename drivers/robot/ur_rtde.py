@@ -180,7 +180,8 @@ class _RealtimePriority(contextlib.AbstractContextManager):
     priority and the execution's record says so."""
 
     def __init__(self, priority: int) -> None:
-        self.priority, self.status, self._before = priority, "normal priority (not asked)", None
+        self.priority, self.status = priority, "normal priority (not asked)"
+        self._before: tuple[int, os.sched_param] | None = None
 
     def __enter__(self) -> _RealtimePriority:
         if self.priority <= 0:
@@ -244,6 +245,7 @@ class URRtdeBackend(RobotBackend):
 
     kind = "ur_rtde"
     config_class = URRtdeConfig
+    config: URRtdeConfig
 
     def __init__(self, config: URRtdeConfig, *, clock=None) -> None:
         super().__init__(config, clock=clock)
@@ -462,7 +464,11 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         super().__init__(link)
         self.config = config
         self.stop_event = link.stop_event
-        self.control = self.receive = self.dashboard = None
+        # ur_rtde's RTDEControlInterface, RTDEReceiveInterface and DashboardClient once
+        # connected (None before): a compiled library without type information, hence Any.
+        self.control: Any = None
+        self.receive: Any = None
+        self.dashboard: Any = None
 
     def handlers(self) -> Mapping[type[Command], Callable[[Any], Any]]:
         return {

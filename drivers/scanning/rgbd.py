@@ -229,7 +229,7 @@ def parse_intrinsics(value: Any, label: str) -> Intrinsics:
                 f"{label}: intrinsic_matrix {m} is not a pinhole camera matrix "
                 "(expected [fx, 0, 0, 0, fy, 0, cx, cy, 1], column-major as Open3D writes it)"
             )
-        required = ("width", "height")
+        required: tuple[str, ...] = ("width", "height")
     else:
         required = ("fx", "fy", "cx", "cy", "width", "height")
     missing = [key for key in required if key not in value]
@@ -849,7 +849,7 @@ def backproject(
     extrinsic = np.eye(4) if T_world_camera is None else np.linalg.inv(T_world_camera)
     with quiet_open3d():
         cloud = o3d.geometry.PointCloud.create_from_depth_image(
-            o3d.geometry.Image(np.ascontiguousarray(raw)),
+            o3d.geometry.Image(np.ascontiguousarray(raw).data),
             intrinsics.to_open3d(),
             extrinsic,
             depth_scale=depth_scale,
@@ -884,19 +884,20 @@ class _TSDF:
         self.grid = o3d.t.geometry.VoxelBlockGrid(
             attr_names=("tsdf", "weight"),
             attr_dtypes=(o3d.core.float32, o3d.core.float32),
-            attr_channels=((1), (1)),
+            attr_channels=(o3d.core.SizeVector([1]), o3d.core.SizeVector([1])),
             voxel_size=options.voxel_m,
             block_resolution=8,
             block_count=10000,
             device=self.device,
         )
-        self.K = o3d.core.Tensor(intrinsics.matrix, o3d.core.float64)
+        self.K = o3d.core.Tensor(intrinsics.matrix, o3d.core.float64, self.device)
         self.n_frames = 0
 
     def integrate(self, raw: np.ndarray, depth_scale: float, T_world_camera: FloatArray) -> None:
         """Integrate a truncated depth image (see :func:`truncate_depth`)."""
-        depth = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(raw)))
-        extrinsic = o3d.core.Tensor(np.linalg.inv(T_world_camera), o3d.core.float64)
+        # from_numpy shares the copy's memory, of raw's own dtype (uint16 or float32 depth).
+        depth = o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(np.ascontiguousarray(raw)))
+        extrinsic = o3d.core.Tensor(np.linalg.inv(T_world_camera), o3d.core.float64, self.device)
         opts = self.options
         # Everything left in ``raw`` is to be integrated: the limit lies one unit above it.
         trunc = opts.depth_trunc_m + 1.0 / depth_scale
@@ -1081,6 +1082,7 @@ class RGBDReader(ScanReader):
         self, frames: tuple[Frame, ...], intr: Intrinsics, scale: float, fmt: str, notes
     ) -> ScanFile:
         opts = self.options
+        posed = [(f, f.T_world_camera) for f in frames if f.T_world_camera is not None]
         missing = [f.name for f in frames if f.T_world_camera is None]
         if missing:
             raise InputFileError(
@@ -1093,7 +1095,7 @@ class RGBDReader(ScanReader):
         empty: list[str] = []
         checked = False
         n_dropped = 0
-        for frame in frames:
+        for frame, T_world_camera in posed:
             raw = read_depth(frame.depth, intr, frame.name)
             median = depth_median_m(raw, scale)
             if median is None:
@@ -1106,10 +1108,10 @@ class RGBDReader(ScanReader):
             raw, dropped = truncate_depth(raw, depth_scale=scale, depth_trunc_m=opts.depth_trunc_m)
             n_dropped += dropped
             if tsdf is not None:
-                tsdf.integrate(raw, scale, frame.T_world_camera)
+                tsdf.integrate(raw, scale, T_world_camera)
             else:
                 clouds.append(
-                    backproject(raw, intr, depth_scale=scale, T_world_camera=frame.T_world_camera)
+                    backproject(raw, intr, depth_scale=scale, T_world_camera=T_world_camera)
                 )
         used = len(frames) - len(empty)
         if not used:

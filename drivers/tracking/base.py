@@ -34,7 +34,8 @@ class SampleBatch:
 
     Attributes
     ----------
-    t_s : ndarray of shape (B,)
+    t_s : ndarray of shape (B,), or None
+        Sample times (s); None for a recording that has none (a canonical CSV without ``t``).
     position_m : ndarray of shape (B, 3)
         Pen-tip positions (tracker frame).
     orientation_xyzw : ndarray of shape (B, 4), or None
@@ -42,13 +43,25 @@ class SampleBatch:
         False for missing or low-quality frames.
     """
 
-    t_s: FloatArray
+    t_s: FloatArray | None
     position_m: FloatArray
     orientation_xyzw: FloatArray | None
     valid: np.ndarray
 
     def __len__(self) -> int:
-        return len(self.t_s)
+        return len(self.position_m)
+
+    def times_s(self) -> FloatArray:
+        """The sample times (s), of samples that carry them (a source's batches always do).
+
+        Raises
+        ------
+        ValueError
+            Samples read from a trace file without times (a canonical CSV without ``t``).
+        """
+        if self.t_s is None:
+            raise ValueError("these samples carry no times (a trace file without a t column)")
+        return self.t_s
 
 
 def increasing_times(t_s: FloatArray) -> np.ndarray:

@@ -108,7 +108,7 @@ class C3DTrace:
                 f"marker {self.marker!r} is seen in {int(keep.sum())} of {len(keep)} frames; a "
                 "trace needs at least two"
             )
-        return Recording(points_m=self.batch.position_m[keep], t_s=self.batch.t_s[keep])
+        return Recording(points_m=self.batch.position_m[keep], t_s=self.batch.times_s()[keep])
 
 
 def read_c3d(

@@ -141,7 +141,7 @@ class MotiveTrace:
         q = self.batch.orientation_xyzw
         return Recording(
             points_m=self.batch.position_m[keep],
-            t_s=self.batch.t_s[keep],
+            t_s=self.batch.times_s()[keep],
             orientations_xyzw=None if q is None else q[keep],
         )
 

@@ -47,7 +47,7 @@ import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from natnet import NatNetClient, NatNetNetworkError
@@ -274,8 +274,8 @@ class NatNetSource(TrackerSource):
     def __init__(self, config: NatNetConfig) -> None:
         self.config = config
         self._ctx = multiprocessing.get_context("spawn")
-        self._process = None
-        self._queue = None
+        self._process: multiprocessing.process.BaseProcess | None = None
+        self._queue: multiprocessing.queues.Queue | None = None
         self._stop = self._ctx.Event()
         self._lock = threading.Lock()
         self._closed = False
@@ -398,7 +398,7 @@ class NatNetSource(TrackerSource):
         self.connect()
         # Locals: _shutdown() clears the attributes.
         process, q = self._process, self._queue
-        if process is None:
+        if process is None or q is None:
             return
         stall = self.config.stall_timeout_s
         last_data = time.monotonic()
@@ -469,7 +469,7 @@ class NatNetSource(TrackerSource):
         with self._lock:
             process, q = self._process, self._queue
             self._process = self._queue = None
-        if process is None:
+        if process is None or q is None:
             return
         self._stop.set()
         # Drain while the child flushes and exits: its queue feeder must not block on a pipe
@@ -590,7 +590,8 @@ class _Receiver:  # pragma: no cover - runs in the child process
         self.out = out
         self.address = f"{config['server']}:{config['command_port']}"
         self.client: _Client | None = None
-        self.descriptions = None
+        # natnet's model definitions (an untyped library's object) once the server sent them.
+        self.descriptions: Any = None
         self.target_id: int | None = None
         self.pending: list = []  # frames received before the id was known
         self.rows: list[tuple] = []
@@ -598,8 +599,8 @@ class _Receiver:  # pragma: no cover - runs in the child process
 
     def run(self, stop_event) -> None:
         cfg = self.config
-        self.open()
-        info = self.client.server_info
+        client = self.open()
+        info = client.server_info
         self.resolve(cfg["timeout_s"])
         names = tuple(d.name for d in self.descriptions.rigid_bodies)
         self.out.put(
@@ -621,11 +622,11 @@ class _Receiver:  # pragma: no cover - runs in the child process
         parent = os.getppid()
         # A parent killed without closing us leaves this process to init: stop then too.
         while not stop_event.is_set() and os.getppid() == parent:
-            readable, _, _ = select.select(self.client.sockets, [], [], POLL_S)
+            readable, _, _ = select.select(client.sockets, [], [], POLL_S)
             if readable:
-                self.client.update_sync()  # drains both sockets, keep-alive per packet
+                client.update_sync()  # drains both sockets, keep-alive per packet
             elif not cfg["multicast"]:
-                self.client.send_request(NatNetClient.NAT_KEEPALIVE)
+                client.send_request(NatNetClient.NAT_KEEPALIVE)
             now = time.monotonic()
             if self.rows and now - last_flush >= cfg["batch_s"]:
                 self.flush()
@@ -636,9 +637,10 @@ class _Receiver:  # pragma: no cover - runs in the child process
             return
         self.flush()
 
-    def open(self) -> None:
+    def open(self) -> _Client:
+        """Connect to the server; the connected client (also kept as ``client``)."""
         cfg = self.config
-        self.client = _Client(
+        client = self.client = _Client(
             server_ip_address=cfg["server"],
             local_ip_address=cfg["local"],
             multicast_address=cfg["multicast_group"],
@@ -646,11 +648,11 @@ class _Receiver:  # pragma: no cover - runs in the child process
             data_port=cfg["data_port"],
             use_multicast=cfg["multicast"],
         )
-        self.client.on_data_description_received_event.handlers.append(self.on_descriptions)
-        self.client.on_data_frame_received_event.handlers.append(self.on_frame)
+        client.on_data_description_received_event.handlers.append(self.on_descriptions)
+        client.on_data_frame_received_event.handlers.append(self.on_frame)
         mode = "multicast" if cfg["multicast"] else "unicast"
         try:
-            self.client.connect(timeout=cfg["timeout_s"])
+            client.connect(timeout=cfg["timeout_s"])
         except TimeoutError:
             raise TrackerTimeoutError(
                 f"no NatNet server answered at {self.address} within {cfg['timeout_s']:.1f} s; "
@@ -663,9 +665,11 @@ class _Receiver:  # pragma: no cover - runs in the child process
                 f"cannot open a {mode} socket on {cfg['local']} for {self.address}: {reason}; "
                 "'local' must be an address of this machine on the tracker's network",
             ) from None
+        return client
 
     def resolve(self, timeout_s: float) -> None:
         """Wait for the model definitions and find the rigid body's id."""
+        client = self.connected()
         deadline = time.monotonic() + timeout_s
         last_request = -np.inf
         while self.descriptions is None:
@@ -676,11 +680,11 @@ class _Receiver:  # pragma: no cover - runs in the child process
                     f"definitions within {timeout_s:.1f} s",
                 )
             if now - last_request >= MODELDEF_RETRY_S:
-                self.client.request_modeldef()
+                client.request_modeldef()
                 last_request = now
-            readable, _, _ = select.select(self.client.sockets, [], [], 0.05)
+            readable, _, _ = select.select(client.sockets, [], [], 0.05)
             if readable:
-                self.client.update_sync()
+                client.update_sync()
         self.target_id = self.find_id()
         if self.target_id is None:
             names = [d.name for d in self.descriptions.rigid_bodies]
@@ -694,6 +698,12 @@ class _Receiver:  # pragma: no cover - runs in the child process
                 f"no rigid body named {self.config['rigid_body']!r} at the NatNet server "
                 f"{self.address}; {streamed}",
             )
+
+    def connected(self) -> _Client:
+        """The client, once :meth:`open` made it."""
+        if self.client is None:
+            raise TrackerError(f"the NatNet receiver for {self.address} is not connected")
+        return self.client
 
     def find_id(self) -> int | None:
         for description in self.descriptions.rigid_bodies:
@@ -717,7 +727,7 @@ class _Receiver:  # pragma: no cover - runs in the child process
         # and reads this flag from them when Motive streams 4.1.
         now = time.monotonic()
         if frame.suffix.tracked_models_changed and now - self.last_modeldef_request > 1.0:
-            self.client.request_modeldef()
+            self.connected().request_modeldef()
             self.last_modeldef_request = now
         for body in frame.rigid_bodies:
             if body.id_num == self.target_id:

@@ -138,9 +138,9 @@ def record_natnet(
         try:
             for batch in source.batches():
                 if t_first is None:
-                    t_first = float(batch.t_s[0])
+                    t_first = float(batch.times_s()[0])
                 if duration_s is not None:
-                    inside = batch.t_s - t_first < duration_s
+                    inside = np.asarray(batch.times_s() - t_first < duration_s)
                     parts.append(_select(batch, inside))
                     if not inside.all():
                         stop_reason = "duration"

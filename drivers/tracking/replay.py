@@ -122,7 +122,7 @@ class ReplaySource(TrackerSource):
 
     def batches(self) -> Iterator[SampleBatch]:
         samples = self.samples
-        t = samples.t_s
+        t = samples.times_s()
         n = len(t)
         start = 0
         if n:

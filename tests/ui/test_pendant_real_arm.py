@@ -272,6 +272,11 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
                 assert time.monotonic() < deadline, "the run did not reach its process"
                 time.sleep(0.05)
             assert _progress(page, "#run-form") < process_to, "the process ended before the stop"
+            # The least speed from here, so that the stop lands close to this point however long
+            # a loaded machine takes over the presses below (stopped later on this part, the
+            # straight retract would pass inside the scan's margin and the move back is refused).
+            client.post(f"/executions/{owner}/speed", json={"fraction": 0.05}).raise_for_status()
+            expect(near.locator("#run-speed-state")).to_have_text("at 5 %", timeout=15_000)
             held, near_held = [], []
             page.route("**/executions/*/stop", lambda route: held.append(route))
             near.route("**/executions/*/stop", lambda route: near_held.append(route))
