@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 OUT ?= demo_out
 
-.PHONY: setup run demo test bench lint docs clean
+.PHONY: setup run demo test test-fast bench lint docs clean
 
 setup:
 	@scripts/setup.sh
@@ -28,14 +28,23 @@ demo: setup
 PG_SUITES = tests/service/test_api.py tests/service/test_session_lifecycle.py \
 	tests/service/test_api_inputs.py
 
-# The numerical core's tests first, one process per core (pure computation: nothing there runs
-# against a clock); then the rest in one process, where the simulated and fake arms stream in
-# real time and a second busy process would slow them past their tolerances.
+# The numerical core's tests first, then the rest, each on both cores (one process per core, a
+# test file's tests in one process). The simulated and fake arms stream in real time beside the
+# other process: their tests hold to tolerances measured so (the fake controller's lost-link
+# threshold and watchdog are relaxed for them, tests/drivers/fake_ur_fixture.py).
 test: setup
 	$(BIN)/python -m pytest -q -p no:cacheprovider -n 2 --dist loadfile tests/recon
-	$(BIN)/python -m pytest -q -p no:cacheprovider --durations=25 tests --ignore=tests/bench \
-		--ignore=tests/recon
+	$(BIN)/python -m pytest -q -p no:cacheprovider -n 2 --dist loadfile --durations=25 tests \
+		--ignore=tests/bench --ignore=tests/recon
 	TEACHPATH_TEST_DATABASE=postgresql $(BIN)/python -m pytest -q -p no:cacheprovider $(PG_SUITES)
+
+# The edit loop's suite (about 2 minutes): the numerical core's and the drivers' tests that take
+# well under a second or two, on both cores. The slow ones (marked `slow`: a fake controller in
+# real time, dense reference searches, the real parts), the service, the browser and the
+# end-to-end suites run in `make test`, which CI runs.
+test-fast: setup
+	$(BIN)/python -m pytest -q -p no:cacheprovider -n 2 -m "not bench and not slow" tests/recon \
+		tests/drivers
 
 # Speed and accuracy tables; never part of `make test` (timings on a shared machine are noisy).
 bench: setup

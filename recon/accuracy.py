@@ -25,6 +25,7 @@ from __future__ import annotations
 import statistics
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -32,9 +33,9 @@ from recon.errors import ReconError
 from recon.metrics import PathScore, best_savitzky_golay, score_path
 from recon.reconstruct import reconstruct
 from recon.scenes import Scene, touch_recording
-from recon.touches import register_touches, touches_in
+from recon.touches import TouchRegistration, register_touches, touches_in
 from recon.transforms import apply_transform, invert_transform
-from recon.types import FloatArray, ReconParams, Reconstruction
+from recon.types import FloatArray, ReconParams, Reconstruction, Recording
 
 MM = 1e-3
 #: The registered frame's errors are measured against the feature run on this far past its ends.
@@ -62,10 +63,10 @@ class SuiteVariant:
     label: str
     run: Callable[[Scene, int], Reconstruction | FloatArray]
     needs_scan: bool = False
-    inputs: Callable[[Scene, int], list] | None = None
+    inputs: Callable[[Scene, int], list[Recording]] | None = None
 
 
-def touches_for(scene: Scene, seed: int):
+def touches_for(scene: Scene, seed: int) -> TouchRegistration:
     """The scanner registered from a touch recording of the scene (6 touches)."""
     if scene.scan is None:
         raise ValueError(f"scene {scene.name} has no scan to register touches against")
@@ -79,7 +80,7 @@ def touches_for(scene: Scene, seed: int):
     )
 
 
-def _params(scene: Scene, **changes) -> ReconParams:
+def _params(scene: Scene, **changes: Any) -> ReconParams:
     # The defaults everywhere: without a scan the path's windows widen by themselves where the
     # path runs straight (see recon.methods.common.adaptive_smoothing).
     return replace(ReconParams(), **changes)
@@ -88,10 +89,10 @@ def _params(scene: Scene, **changes) -> ReconParams:
 def suite_variants() -> list[SuiteVariant]:
     """The rows of the accuracy tables, in order."""
 
-    def raw(scene, seed):
+    def raw(scene: Scene, seed: int) -> FloatArray:
         return scene.recording.points_m
 
-    def savgol(scene, seed):
+    def savgol(scene: Scene, seed: int) -> FloatArray:
         if scene.in_plane is not None:
             # On a surface, the filter best in the plane (the height is the scan's to fix).
             flat = best_savitzky_golay(
@@ -108,18 +109,18 @@ def suite_variants() -> list[SuiteVariant]:
             ).points_m
         return best_savitzky_golay(scene.recording.points_m, scene.truth_m, spacing_m=1e-3).points_m
 
-    def paper(scene, seed):
+    def paper(scene: Scene, seed: int) -> Reconstruction:
         return reconstruct(scene.recording, scene.scan, params=_params(scene, method="paper"))
 
-    def default(scene, seed):
+    def default(scene: Scene, seed: int) -> Reconstruction:
         return reconstruct(scene.recording, scene.scan, params=_params(scene))
 
-    def touches(scene, seed):
+    def touches(scene: Scene, seed: int) -> Reconstruction:
         return reconstruct(
             scene.recording, scene.scan, params=_params(scene), touches=touches_for(scene, seed)
         )
 
-    def calibrated(scene, seed):
+    def calibrated(scene: Scene, seed: int) -> Reconstruction:
         return reconstruct(
             scene.recording,
             scene.scan,
@@ -127,13 +128,13 @@ def suite_variants() -> list[SuiteVariant]:
             T_scan_tracker_init=scene.T_scan_tracker,
         )
 
-    def demonstrations(scene, seed):
+    def demonstrations(scene: Scene, seed: int) -> list[Recording]:
         return [scene.recording, *scene.traces(N_FUSED - 1, seed)]
 
-    def fused(scene, seed):
+    def fused(scene: Scene, seed: int) -> Reconstruction:
         return reconstruct(demonstrations(scene, seed), scene.scan, params=_params(scene))
 
-    def fused_touches(scene, seed):
+    def fused_touches(scene: Scene, seed: int) -> Reconstruction:
         return reconstruct(
             demonstrations(scene, seed),
             scene.scan,

@@ -178,7 +178,9 @@ def pivot_calibration(
     )
 
 
-def _pivot_fit(R: FloatArray, p: FloatArray, keep: np.ndarray):
+def _pivot_fit(
+    R: FloatArray, p: FloatArray, keep: np.ndarray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     n = int(np.count_nonzero(keep))
     A = np.zeros((n, 3, 6))
     A[:, :, :3] = R[keep]
@@ -383,4 +385,5 @@ def _kabsch(a: FloatArray, b: FloatArray) -> FloatArray:
 
 
 def _pair_errors(T: FloatArray, a: FloatArray, b: FloatArray) -> FloatArray:
-    return np.linalg.norm(apply_transform(T, b) - a, axis=1)
+    errors: FloatArray = np.linalg.norm(apply_transform(T, b) - a, axis=1)
+    return errors

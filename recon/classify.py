@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 
 from recon.fitting import gather
 from recon.types import FloatArray, ReconParams
@@ -150,7 +151,9 @@ NO_CORNER_COST_M = 0.0025
 ENTER_COST = 4.0
 
 
-def _edge_candidates(points_m: FloatArray, model: ScanModel):
+def _edge_candidates(
+    points_m: FloatArray, model: ScanModel
+) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
     """Per point, the corners of the scan near it: up to :data:`CANDIDATES` distinct corners
     within :data:`EDGE_CANDIDATE_REACH_M`, nearest first.
 
@@ -196,7 +199,9 @@ def _edge_candidates(points_m: FloatArray, model: ScanModel):
     return ids, offsets, distances
 
 
-def _choose_edge(candidates, seg: slice, length: int) -> _EdgeChoice | None:
+def _choose_edge(
+    candidates: tuple[NDArray[np.int64], FloatArray, FloatArray], seg: slice, length: int
+) -> _EdgeChoice | None:
     """The corners a segment follows, chosen along it as one: the most likely sequence of
     corners (or none) point by point, where a point pays for its distance to its corner (the
     hand's error), for the change of that offset from the previous point (an edge does not hop

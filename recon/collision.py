@@ -128,6 +128,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import InitVar, dataclass, field
+from typing import Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -367,11 +368,12 @@ def _as_q(q_rad: FloatArray) -> FloatArray:
     return q
 
 
-def _place(frames_T: FloatArray, frame_idx: NDArray, local: FloatArray) -> FloatArray:
+def _place(frames_T: FloatArray, frame_idx: NDArray[np.int64], local: FloatArray) -> FloatArray:
     """End points (M, L, 2, 3) of segments fixed in the given frames (M, 7, 4, 4)."""
     F = frames_T[:, frame_idx]  # (M, L, 4, 4)
     R, t = F[..., :3, :3], F[..., :3, 3]
-    return np.einsum("mlij,lej->mlei", R, local) + t[:, :, None, :]
+    ends: FloatArray = np.einsum("mlij,lej->mlei", R, local) + t[:, :, None, :]
+    return ends
 
 
 def link_capsules(arm: URModel | str, q_rad: FloatArray, *, padding_m: float = 0.0) -> Capsules:
@@ -505,7 +507,8 @@ def segment_point_distance(a_m: FloatArray, b_m: FloatArray, p_m: FloatArray) ->
     denom = np.einsum("...i,...i->...", ab, ab)
     t = np.einsum("...i,...i->...", p - a, ab) / np.where(denom > 0, denom, 1.0)
     t = np.clip(np.where(denom > 0, t, 0.0), 0.0, 1.0)
-    return np.linalg.norm(p - (a + t[..., None] * ab), axis=-1)
+    distance: FloatArray = np.linalg.norm(p - (a + t[..., None] * ab), axis=-1)
+    return distance
 
 
 @dataclass(frozen=True)
@@ -614,7 +617,9 @@ class Box:
 def _box_sdf(p: FloatArray, centre: FloatArray, half: FloatArray) -> FloatArray:
     q = np.abs(p - centre) - half
     out = np.maximum(q, 0.0)
-    return np.sqrt(np.einsum("...i,...i->...", out, out)) + np.minimum(q.max(axis=-1), 0.0)
+    outside: FloatArray = np.sqrt(np.einsum("...i,...i->...", out, out))
+    inside: FloatArray = np.minimum(q.max(axis=-1), 0.0)
+    return outside + inside
 
 
 def _segment_box(
@@ -857,7 +862,7 @@ class ContactZone:
     path_m: FloatArray
     tool_axes: FloatArray
     radius_m: float = 0.005
-    piece: NDArray | None = None
+    piece: NDArray[np.int64] | None = None
 
     def __post_init__(self) -> None:
         from recon.types import piece_labels
@@ -889,7 +894,7 @@ class ContactZone:
         T_flange_tcp: FloatArray,
         *,
         radius_m: float = 0.005,
-        piece: NDArray | None = None,
+        piece: NDArray[np.int64] | None = None,
     ) -> ContactZone:
         """The zone of a process path given as the arm's configurations along it.
 
@@ -1313,7 +1318,7 @@ def _tip_cut_mounting(
 
 
 def _joint_weights(
-    arm: URModel, frame_idx: NDArray, local: FloatArray, radii: FloatArray
+    arm: URModel, frame_idx: NDArray[np.int64], local: FloatArray, radii: FloatArray
 ) -> FloatArray:
     """B_i: a bound on the distance of any capsule point moved by joint i from that joint's axis,
     for any configuration (see the module docstring)."""
@@ -1362,7 +1367,17 @@ def _interpolate(q: FloatArray, u: FloatArray) -> FloatArray:
     return q[i0] + frac * (q[i0 + 1] - q[i0])
 
 
-def _resample_polyline(path: FloatArray, spacing_m: float, *, with_position: bool = False):
+@overload
+def _resample_polyline(
+    path: FloatArray, spacing_m: float, *, with_position: Literal[False] = False
+) -> FloatArray: ...
+@overload
+def _resample_polyline(
+    path: FloatArray, spacing_m: float, *, with_position: Literal[True]
+) -> tuple[FloatArray, FloatArray]: ...
+def _resample_polyline(
+    path: FloatArray, spacing_m: float, *, with_position: bool = False
+) -> FloatArray | tuple[FloatArray, FloatArray]:
     """Points on a polyline (N, 3), at most ``spacing_m`` apart along it, both ends included;
     with ``with_position``, also each one's fractional index into ``path`` (K,)."""
     s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))]
@@ -1379,7 +1394,7 @@ def _resample_polyline(path: FloatArray, spacing_m: float, *, with_position: boo
 
 
 def _travel_windows(
-    arm: URModel, q: FloatArray, phase: NDArray, T_ft: FloatArray, radius_m: float
+    arm: URModel, q: FloatArray, phase: NDArray[np.int8], T_ft: FloatArray, radius_m: float
 ) -> NDArray[np.bool_]:
     """Samples in the last ``radius_m`` of TCP travel of each approach run and the first of each
     retract run."""
@@ -1405,7 +1420,7 @@ def _travel_windows(
 def check_motion(  # noqa: C901
     arm: URModel | str,
     q_rad: FloatArray,
-    phase: NDArray,
+    phase: NDArray[np.int8],
     cell: Cell,
     *,
     T_flange_tcp: FloatArray,
@@ -1573,7 +1588,15 @@ def check_motion(  # noqa: C901
     o_full = np.full((J, L), -1, dtype=np.int64)
     p_full = np.full((J, L, 3), np.nan)
 
-    def take(c, p, k, c_arr, o_arr, p_arr, cols=slice(None)):
+    def take(
+        c: FloatArray,
+        p: FloatArray,
+        k: int,
+        c_arr: FloatArray,
+        o_arr: NDArray[np.int64],
+        p_arr: FloatArray,
+        cols: slice = slice(None),
+    ) -> None:
         better = c < c_arr[:, cols]
         c_arr[:, cols] = np.where(better, c, c_arr[:, cols])
         o_arr[:, cols] = np.where(better, k, o_arr[:, cols])

@@ -17,11 +17,15 @@ Every candidate's fate is reported (:class:`Corner`), with the reason.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from recon.fitting import weighted_pca
 from recon.types import FloatArray
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 #: Candidates are looked for down to this share of the corner threshold: the trace rounds a
 #: corner off (a 60 degree turn can measure 45 over short chords), and the scan's edges, where
@@ -263,7 +267,7 @@ def confirm_with_scan(
     arc_m: FloatArray,
     candidate: Candidate,
     edge_points_m: FloatArray,
-    edge_tree,
+    edge_tree: cKDTree | None,
     *,
     edge_directions: FloatArray,
     angle_deg: float,
@@ -355,7 +359,12 @@ def confirm_with_scan(
     )
 
 
-def _edge_line(path_stretch_m, edge_points_m, edge_directions, edge_tree) -> EdgeLine | None:
+def _edge_line(
+    path_stretch_m: FloatArray,
+    edge_points_m: FloatArray,
+    edge_directions: FloatArray,
+    edge_tree: cKDTree,
+) -> EdgeLine | None:
     """A line fitted to the thinned edge along a stretch of the path (samples near it that run
     its way); None with too few samples."""
     if len(path_stretch_m) < 2:

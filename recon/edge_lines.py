@@ -65,7 +65,9 @@ class EdgeLineFit:
     bisector: FloatArray
 
 
-def _axial_two_means(normals: FloatArray, weights: FloatArray, iterations: int = 5):
+def _axial_two_means(
+    normals: FloatArray, weights: FloatArray, iterations: int = 5
+) -> NDArray[np.bool_]:
     """Split each neighbourhood's normals into two direction clusters, ignoring their signs.
 
     Normals are mapped to doubled angles in the plane of their two main directions, where n and
@@ -199,7 +201,7 @@ def fit_edge_lines(
         trees = (cKDTree(features.points_m), cKDTree(features.dense_points_m))
     starts = range(0, len(query_m), chunk)
 
-    def seeds_of(i):
+    def seeds_of(i: int) -> tuple[FloatArray, ...] | None:
         if seed_planes is None:
             return None
         return tuple(np.asarray(a, dtype=np.float64)[i : i + chunk] for a in seed_planes)
@@ -241,7 +243,9 @@ def fit_edge_lines(
     )
 
 
-def _neighbours(tree: cKDTree, values: FloatArray, query_m: FloatArray, k: int, radius_m: float):
+def _neighbours(
+    tree: cKDTree, values: FloatArray, query_m: FloatArray, k: int, radius_m: float
+) -> tuple[FloatArray, NDArray[np.bool_], NDArray[np.int64]]:
     """Up to ``k`` points of ``tree`` within ``radius_m``: (points (Q, k, 3), present (Q, k))."""
     k = min(k, tree.n)
     # One worker: the caller already runs chunks in parallel threads.
@@ -265,7 +269,8 @@ def _plane(normal: FloatArray, point: FloatArray) -> PCA:
 
 def _dots(vectors: FloatArray, direction: FloatArray) -> FloatArray:
     """Dot product of each of K vectors with one direction per row: (Q, K, 3), (Q, 3) -> (Q, K)."""
-    return np.matmul(vectors, direction[..., None])[..., 0]
+    dots: FloatArray = np.matmul(vectors, direction[..., None])[..., 0]
+    return dots
 
 
 def _masked_median(values: FloatArray, mask: NDArray[np.bool_]) -> FloatArray:
@@ -280,7 +285,12 @@ def _masked_median(values: FloatArray, mask: NDArray[np.bool_]) -> FloatArray:
 
 
 def _fit_edge_lines_chunk(
-    query_m, features, trees, radius_m, min_points, seeds=None
+    query_m: FloatArray,
+    features: ScanFeatures,
+    trees: tuple[cKDTree, cKDTree],
+    radius_m: float,
+    min_points: int,
+    seeds: tuple[FloatArray, ...] | None = None,
 ) -> EdgeLineFit:
     coarse_tree, dense_tree = trees
     if seeds is None:

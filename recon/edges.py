@@ -21,7 +21,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from recon.edge_lines import fit_edge_lines
+from recon.edge_lines import EdgeLineFit, fit_edge_lines
 from recon.features import ScanFeatures
 from recon.fitting import gather, weighted_pca
 from recon.profiles import Profiles
@@ -223,7 +223,17 @@ REFINE_MAX_SCATTER = 1.3
 REFINE_MAX_FACE_TURN_DEG = 15.0
 
 
-def _refined(profiles, station, pair, corners, direction, track, features, trees, radius_m):
+def _refined(
+    profiles: Profiles,
+    station: NDArray[np.intp],
+    pair: NDArray[np.intp],
+    corners: FloatArray,
+    direction: FloatArray,
+    track: NDArray[np.int64],
+    features: ScanFeatures,
+    trees: tuple[cKDTree, cKDTree] | None,
+    radius_m: float,
+) -> tuple[EdgePoints, NDArray[np.bool_]]:
     """Every :data:`REFINE_EVERY` th corner of each track refined in 3-D (see
     :func:`edges_from_profiles`): the refined edge points, and which slice corners they stand
     for."""
@@ -240,7 +250,7 @@ def _refined(profiles, station, pair, corners, direction, track, features, trees
     i, j = profiles.pairs[p, 0], profiles.pairs[p, 1]
     axes = profiles.axes[b]
 
-    def normal3(line):
+    def normal3(line: NDArray[np.int64]) -> FloatArray:
         n2 = profiles.normal[b, line]
         return n2[:, :1] * axes[:, 0] + n2[:, 1:] * axes[:, 1]
 
@@ -301,15 +311,16 @@ def _refined(profiles, station, pair, corners, direction, track, features, trees
     )
 
 
-def _faces_kept(fit, normal_a, normal_b) -> np.ndarray:
+def _faces_kept(fit: EdgeLineFit, normal_a: FloatArray, normal_b: FloatArray) -> NDArray[np.bool_]:
     """Whether a refined fit's faces are still the slice's two (either way round)."""
     cos = np.cos(np.radians(REFINE_MAX_FACE_TURN_DEG))
     # The fit's face normals are not kept; its direction and bisector are: both slice normals
     # must be perpendicular to the fitted edge direction, near enough.
     along = fit.directions
-    return (np.abs(np.einsum("ni,ni->n", along, normal_a)) <= np.sqrt(1 - cos**2)) & (
-        np.abs(np.einsum("ni,ni->n", along, normal_b)) <= np.sqrt(1 - cos**2)
-    )
+    kept: NDArray[np.bool_] = (
+        np.abs(np.einsum("ni,ni->n", along, normal_a)) <= np.sqrt(1 - cos**2)
+    ) & (np.abs(np.einsum("ni,ni->n", along, normal_b)) <= np.sqrt(1 - cos**2))
+    return kept
 
 
 def _tracks(corners: FloatArray, along: FloatArray, station: np.ndarray) -> NDArray[np.int64]:
@@ -328,7 +339,8 @@ def _tracks(corners: FloatArray, along: FloatArray, station: np.ndarray) -> NDAr
     linked = (station[a] != station[b]) & (np.linalg.norm(across, axis=1) <= TRACK_OFFSET_M)
     graph = coo_matrix((np.ones(np.count_nonzero(linked)), (a[linked], b[linked])), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
-    return labels.astype(np.int64)
+    tracks: NDArray[np.int64] = labels.astype(np.int64)
+    return tracks
 
 
 def _track_directions(corners: FloatArray, along: FloatArray, track: np.ndarray) -> FloatArray:
@@ -347,7 +359,8 @@ def _track_directions(corners: FloatArray, along: FloatArray, track: np.ndarray)
     direction = np.where((enough & spread)[:, None], direction, along)
     flip = np.einsum("ni,ni->n", direction, along) < 0
     direction[flip] *= -1
-    return direction / np.linalg.norm(direction, axis=1)[:, None]
+    unit: FloatArray = direction / np.linalg.norm(direction, axis=1)[:, None]
+    return unit
 
 
 #: Slices are cut along the path every this far ...
@@ -375,7 +388,7 @@ def stations_along(path_m: FloatArray) -> tuple[FloatArray, FloatArray]:
     if arc[-1] <= 0:
         return np.zeros((0, 3)), np.zeros((0, 3))
 
-    def at(s):
+    def at(s: FloatArray) -> FloatArray:
         return np.column_stack([np.interp(s, arc, path_m[:, k]) for k in range(3)])
 
     length = arc[-1]

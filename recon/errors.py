@@ -8,6 +8,8 @@ part of the public contract: add new ones rather than re-purposing old ones.
 
 from __future__ import annotations
 
+from typing import Any
+
 
 class ReconError(Exception):
     """Base class of every failure of work the core was asked to do with valid arguments."""
@@ -40,7 +42,7 @@ class PoorFitError(ReconError):
     """A calibration fit is worse than its tolerance (pairs that disagree, a pivot that
     wandered). Refused unless the caller accepts a poor fit; ``detail`` holds the figures."""
 
-    def __init__(self, message: str, *, detail: dict | None = None) -> None:
+    def __init__(self, message: str, *, detail: dict[str, Any] | None = None) -> None:
         super().__init__(message)
         self.detail = detail
 
@@ -53,6 +55,6 @@ class CollisionError(InfeasibleTrajectoryError):
     """The motion would bring the arm or the tool into the cell (the workpiece, the mounting
     plane, a keep-out box). ``detail`` says where: phase, time, link, point, clearance."""
 
-    def __init__(self, message: str, *, detail: dict | None = None) -> None:
+    def __init__(self, message: str, *, detail: dict[str, Any] | None = None) -> None:
         super().__init__(message)
         self.detail = detail

@@ -79,7 +79,9 @@ def registered_truth(scene: Scene, recon: Reconstruction) -> FloatArray:
     return apply_transform(error, scene.truth_m)
 
 
-def height_above_registered(scene: Scene, recon: Reconstruction, points_m: FloatArray):
+def height_above_registered(
+    scene: Scene, recon: Reconstruction, points_m: FloatArray
+) -> FloatArray:
     """Heights of points above the scene's surface as the registered scan shows it."""
     if scene.surface_height is None:
         raise ValueError(f"scene {scene.name} has no surface height")

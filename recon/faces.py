@@ -192,10 +192,13 @@ def _reference_normals(centres_m: FloatArray, model: ScanModel) -> FloatArray:
     if k == 1:
         nearest = nearest[:, None]
     flattest = nearest[np.arange(len(centres_m)), np.argmin(coarse.curvature[nearest], axis=1)]
-    return coarse.normals[flattest]
+    normals: FloatArray = coarse.normals[flattest]
+    return normals
 
 
-def _quadric_slopes(coef: FloatArray, u: FloatArray, v: FloatArray, scale_m: float):
+def _quadric_slopes(
+    coef: FloatArray, u: FloatArray, v: FloatArray, scale_m: float
+) -> tuple[FloatArray, FloatArray]:
     """dh/du and dh/dv of :func:`recon.fitting.quadric_design`'s quadric at (u, v)."""
     # quadric_design: 1, u/s, v/s, (u/s)^2, (u/s)(v/s), (v/s)^2
     us, vs = u / scale_m, v / scale_m

@@ -13,6 +13,7 @@ the corner, not on it: :mod:`recon.edge_lines` recovers the edge itself from the
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,6 +22,9 @@ from scipy.spatial import cKDTree
 from recon.errors import NoOverlapError
 from recon.fitting import symmetric_eig3
 from recon.types import FloatArray
+
+if TYPE_CHECKING:
+    from scipy.sparse import csr_matrix
 
 #: Surface variation never flags an edge below this: a noise-free plane has 0 and a 90-degree
 #: edge about 0.1 at its crest (measured on the synthetic scenes of recon.scenes).
@@ -91,7 +95,8 @@ def crop_near(points_m: FloatArray, path_m: FloatArray, radius_m: float) -> NDAr
     dims = np.floor((hi - lo) / cell).astype(np.int64) + 5
 
     def key(cells: NDArray[np.int64]) -> NDArray[np.int64]:
-        return (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+        keys: NDArray[np.int64] = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+        return keys
 
     path_cells = np.unique(np.floor((path_m - lo) / cell).astype(np.int64) + 2, axis=0)
     offsets = np.stack(np.meshgrid(*[np.arange(-2, 3)] * 3, indexing="ij"), -1).reshape(-1, 3)
@@ -151,7 +156,7 @@ def neighbour_balls(
     radius_m: float,
     max_neighbours: int = 48,
     rows: np.ndarray | None = None,
-):
+) -> csr_matrix:
     """Each point's ball: its nearest ``max_neighbours`` points within ``radius_m`` (a hybrid
     search, as Open3D's ``estimate_covariances``), itself included.
 
@@ -221,10 +226,11 @@ def statistical_inliers(
         return np.ones(len(points_m), dtype=bool)
     distance, _ = tree.query(points_m, k=neighbours, workers=-1)
     spread = distance.mean(axis=1)
-    return spread < spread.mean() + std_ratio * spread.std(ddof=1)
+    inliers: NDArray[np.bool_] = spread < spread.mean() + std_ratio * spread.std(ddof=1)
+    return inliers
 
 
-def ball_covariances(points_m: FloatArray, balls) -> tuple[FloatArray, np.ndarray]:
+def ball_covariances(points_m: FloatArray, balls: csr_matrix) -> tuple[FloatArray, np.ndarray]:
     """The covariance of each point's ball (see :func:`covariance_features`).
 
     Returns
@@ -250,7 +256,7 @@ def ball_covariances(points_m: FloatArray, balls) -> tuple[FloatArray, np.ndarra
     return covariances, counts
 
 
-def covariance_features(points_m: FloatArray, balls) -> tuple[FloatArray, FloatArray]:
+def covariance_features(points_m: FloatArray, balls: csr_matrix) -> tuple[FloatArray, FloatArray]:
     """Normals and surface variation from the covariance of each point's ball.
 
     The balls' first and second moments are the sparse ball matrix times the points'

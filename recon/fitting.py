@@ -66,12 +66,15 @@ class PCA:
         """
         centred = points - (self.mean if points.ndim == 2 else self.mean[:, None, :])
         if points.ndim == 2:
-            return np.matmul(centred[:, None, :], self.axes)[:, 0]
-        return np.matmul(centred, self.axes)
+            local: FloatArray = np.matmul(centred[:, None, :], self.axes)[:, 0]
+        else:
+            local = np.matmul(centred, self.axes)
+        return local
 
     def to_world(self, local: FloatArray) -> FloatArray:
         """Inverse of :meth:`to_local` for one point per neighbourhood, shape (B, 3)."""
-        return self.mean + np.einsum("bij,bj->bi", self.axes, local)
+        world: FloatArray = self.mean + np.einsum("bij,bj->bi", self.axes, local)
+        return world
 
 
 def weighted_pca(points: FloatArray, weights: FloatArray | None = None) -> PCA:
@@ -132,15 +135,20 @@ class LinearFit:
 
     def predict(self, design_row: FloatArray) -> FloatArray:
         """Fitted value at one design row per neighbourhood: (B, p) -> (B, m)."""
-        return np.einsum("bp,bpm->bm", design_row, self.coef)
+        fitted: FloatArray = np.einsum("bp,bpm->bm", design_row, self.coef)
+        return fitted
 
     def predict_all(self, design: FloatArray) -> FloatArray:
         """Fitted values at every point: design (B, K, p) -> (B, K, m)."""
-        return np.matmul(design, self.coef)
+        fitted: FloatArray = np.matmul(design, self.coef)
+        return fitted
 
     def leverage(self, design_row: FloatArray) -> FloatArray:
         """``a^T (A^T W A)^-1 a`` (B,): variance of the fitted value per unit noise variance."""
-        return np.einsum("bp,bpq,bq->b", design_row, self.normal_inverse, design_row)
+        leverage: FloatArray = np.einsum(
+            "bp,bpq,bq->b", design_row, self.normal_inverse, design_row
+        )
+        return leverage
 
     @property
     def fitted(self) -> NDArray[np.bool_]:

@@ -270,7 +270,9 @@ def _on_grid(pieces: list[FloatArray], mean: FloatArray, grid: FloatArray) -> Fl
     return out
 
 
-def _robust_mean(sampled, roughness, used):
+def _robust_mean(
+    sampled: FloatArray, roughness: FloatArray, used: NDArray[np.bool_]
+) -> tuple[FloatArray, NDArray[np.bool_], FloatArray]:
     """Weighted mean of the used traces; outliers (far from the others' median) left out."""
     present = ~np.isnan(sampled[..., 0])
     candidates = np.where(used[:, None, None], sampled, np.nan)
@@ -327,13 +329,17 @@ def _enough(coverage: np.ndarray, used: np.ndarray) -> np.ndarray:
     return coverage >= max(2, int(np.ceil(MIN_COVERAGE * np.count_nonzero(used))))
 
 
-def _covered(mean, sampled, used):
+def _covered(
+    mean: FloatArray, sampled: FloatArray, used: NDArray[np.bool_]
+) -> tuple[FloatArray, NDArray[np.bool_]]:
     coverage = (~np.isnan(sampled[used][..., 0])).sum(axis=0)
     keep = _enough(coverage, used) & ~np.isnan(mean[:, 0])
     return mean, keep
 
 
-def _variance(sampled, fused, roughness):
+def _variance(
+    sampled: FloatArray, fused: FloatArray, roughness: FloatArray
+) -> tuple[FloatArray, NDArray[np.int64]]:
     """Per fused point: the variance of the weighted mean (sum over axes), and the coverage.
 
     The traces' scatter about the mean estimates each one's variance there; the mean's is that

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -313,7 +314,7 @@ class _Problem:
         across = np.einsum("pai,pi->pa", self._axes(partner_idx), move_m)
         return float(np.median(np.linalg.norm(across, axis=1)))
 
-    def _axes(self, partner_idx: np.ndarray) -> FloatArray:
+    def _axes(self, partner_idx: NDArray[np.int64]) -> FloatArray:
         if self.normals is not None:
             return self.normals[partner_idx][:, None, :]
         if self.directions is not None:
@@ -431,7 +432,8 @@ class RigidMotion:
         axes = np.broadcast_to(np.eye(3), (len(points), 3, 3))
         jacobian = self.jacobian(points, axes)  # (N, 3, 6)
         variance = np.einsum("nai,ij,naj->n", jacobian, covariance, jacobian)
-        return np.sqrt(np.maximum(variance, 0.0))
+        spread: FloatArray = np.sqrt(np.maximum(variance, 0.0))
+        return spread
 
     def describe(self, direction: FloatArray) -> str:
         """A twist direction in words: turning about an axis, or sliding along a direction."""
@@ -443,10 +445,11 @@ class RigidMotion:
         return f"sliding along ({x:.2f}, {y:.2f}, {z:.2f})"
 
 
-def fixed_by_ratio(values: FloatArray) -> np.ndarray:
+def fixed_by_ratio(values: FloatArray) -> NDArray[np.bool_]:
     """Which eigenvalues of an information matrix belong to fixed motions: those with at least
     :data:`DEGENERACY_RATIO` of the largest (what a trace's features fix)."""
-    return values > DEGENERACY_RATIO * max(values.max(), 1e-300)
+    fixed: NDArray[np.bool_] = values > DEGENERACY_RATIO * max(values.max(), 1e-300)
+    return fixed
 
 
 def inverse_on_fixed(

@@ -26,6 +26,7 @@ nominal frames for the links' geometry and only the flange is the calibrated one
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -81,7 +82,7 @@ class DHCalibration:
             value.setflags(write=False)
             object.__setattr__(self, name, value)
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         """The offsets as lists and the source: what a trajectory's record keeps."""
         return {
             "delta_theta_rad": self.delta_theta_rad.tolist(),
@@ -92,7 +93,7 @@ class DHCalibration:
         }
 
     @classmethod
-    def from_dict(cls, data: dict) -> DHCalibration:
+    def from_dict(cls, data: dict[str, Any]) -> DHCalibration:
         """The inverse of :meth:`as_dict`.
 
         Raises
@@ -519,9 +520,10 @@ def calibration_difference_m(arm: URModel, q_rad: FloatArray) -> FloatArray:
     -------
     ndarray of shape (...,), metres
     """
-    return np.linalg.norm(
+    difference: FloatArray = np.linalg.norm(
         forward(arm, q_rad)[..., :3, 3] - forward(arm.nominal, q_rad)[..., :3, 3], axis=-1
     )
+    return difference
 
 
 def joint_frames(arm: URModel, q_rad: FloatArray) -> FloatArray:
@@ -977,7 +979,9 @@ def follow_path(
     )
 
 
-def _into_limits(arm: URModel, q: FloatArray, q_near: FloatArray | None):
+def _into_limits(
+    arm: URModel, q: FloatArray, q_near: FloatArray | None
+) -> tuple[FloatArray, tuple[int, str] | None]:
     """Shift each unwrapped joint by whole turns into its limits (nearest ``q_near`` or most
     central). Returns (q, None) or (q, (waypoint, reason))."""
     q = q.copy()

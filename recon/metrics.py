@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.signal import savgol_filter
 from scipy.spatial import cKDTree
 
@@ -49,6 +50,7 @@ def distance_to_curve(points_m: FloatArray, truth_m: FloatArray) -> FloatArray:
     ndarray of shape (N,), metres
     """
     dense = resample_equidistant(truth_m, spacing_m=TRUTH_SPACING_M).points_m
+    distance: FloatArray
     distance, _ = cKDTree(dense).query(points_m, workers=-1)
     return distance
 
@@ -137,7 +139,7 @@ def score_path(
     distance, index = cKDTree(points).query(points_m, workers=-1)
     arc = arcs[index]
 
-    def end_max(mask):
+    def end_max(mask: NDArray[np.bool_]) -> float:
         return float(distance[mask].max()) if np.any(mask) else float("nan")
 
     return PathScore(
@@ -160,7 +162,10 @@ def savitzky_golay(points_m: FloatArray, *, window_points: int, order: int = 2) 
     order : int
     """
     window = min(window_points, len(points_m) - (1 - len(points_m) % 2))
-    return savgol_filter(points_m, window_length=window, polyorder=order, axis=0, mode="interp")
+    smoothed: FloatArray = savgol_filter(
+        points_m, window_length=window, polyorder=order, axis=0, mode="interp"
+    )
+    return smoothed
 
 
 @dataclass(frozen=True)

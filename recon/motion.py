@@ -178,7 +178,13 @@ TCP_SPEED_SEGMENTS = 512
 TCP_SPEED_MARGIN = 0.97
 
 
-def _rate_for_point_speeds(arm, q0, delta, tcp_speed_max_m_s: float, T_flange_tcp) -> float:
+def _rate_for_point_speeds(
+    arm: URModel,
+    q0: FloatArray,
+    delta: FloatArray,
+    tcp_speed_max_m_s: float,
+    T_flange_tcp: FloatArray | None,
+) -> float:
     """The largest ds/dt at which the TCP, the elbow and the wrists (every point of
     :func:`recon.kinematics.speed_points_m`) keep below ``tcp_speed_max_m_s`` along
     q0 + s delta: a real arm's cap is on all of them, as UR's safety limits are."""

@@ -147,7 +147,8 @@ def smooth_directions(vectors: FloatArray, *, sigma_points: float) -> FloatArray
     if sigma_points <= 0 or len(vectors) < 3:
         return vectors
     smoothed = gaussian_filter1d(vectors, sigma_points, axis=0, mode="nearest")
-    return smoothed / np.maximum(np.linalg.norm(smoothed, axis=1), 1e-12)[:, None]
+    unit: FloatArray = smoothed / np.maximum(np.linalg.norm(smoothed, axis=1), 1e-12)[:, None]
+    return unit
 
 
 def _carried(x0: FloatArray, axis: FloatArray) -> FloatArray:

@@ -53,7 +53,7 @@ class Spec:
     gt: float | None = None
     le: float | None = None
     lt: float | None = None
-    choices: tuple | None = None
+    choices: tuple[Any, ...] | None = None
 
     def describe(self) -> str:
         """The bounds in words, e.g. ``(0, 0.2] m``; empty without bounds."""
@@ -77,7 +77,7 @@ def param(
     gt: float | None = None,
     le: float | None = None,
     lt: float | None = None,
-    choices: tuple | None = None,
+    choices: tuple[Any, ...] | None = None,
 ) -> Any:
     """A dataclass field with its default and its :class:`Spec`."""
     spec = Spec(help=help, unit=unit, ge=ge, gt=gt, le=le, lt=lt, choices=choices)
@@ -86,17 +86,17 @@ def param(
     return dataclasses.field(default=default, metadata={SPEC_KEY: spec})
 
 
-def specs(cls) -> dict[str, Spec]:
+def specs(cls: type[Any]) -> dict[str, Spec]:
     """Name -> :class:`Spec` of every declared parameter of a dataclass, in field order."""
     return {f.name: f.metadata[SPEC_KEY] for f in dataclasses.fields(cls) if SPEC_KEY in f.metadata}
 
 
-def type_hints(cls) -> dict[str, Any]:
+def type_hints(cls: type[Any]) -> dict[str, Any]:
     """The resolved annotations of a dataclass's fields."""
     return typing.get_type_hints(cls)
 
 
-def default_of(cls, name: str) -> Any:
+def default_of(cls: type[Any], name: str) -> Any:
     return next(f.default for f in dataclasses.fields(cls) if f.name == name)
 
 
@@ -121,7 +121,7 @@ def _check_number(name: str, value: Any, spec: Spec, *, integer: bool = False) -
         )
 
 
-def check_bounds(instance) -> None:
+def check_bounds(instance: object) -> None:
     """Check every declared parameter of a dataclass instance against its :class:`Spec`.
 
     Numbers are checked against the bounds (each element of a tuple too); text against the
@@ -164,7 +164,7 @@ def check_bounds(instance) -> None:
         _check_number(name, value, spec, integer=hints.get(name) is int)
 
 
-def _literals(hint) -> list:
+def _literals(hint: Any) -> list[Any]:
     """The literal values an annotation names (``Literal["auto"]`` inside a union too)."""
     if hint is None:
         return []
@@ -173,5 +173,5 @@ def _literals(hint) -> list:
     return [value for arg in typing.get_args(hint) for value in _literals(arg)]
 
 
-def _allows_none(hint) -> bool:
+def _allows_none(hint: Any) -> bool:
     return hint is type(None) or type(None) in typing.get_args(hint)

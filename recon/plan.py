@@ -10,16 +10,16 @@ builds the model around the path at a known transform, again without registering
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from recon import kinematics, motion
 from recon.errors import CollisionError, InfeasibleTrajectoryError
 from recon.orient import ScanNormals, fill_along_path, scan_normals, tool_path
 from recon.scan_model import ScanModel, build_scan_model
-from recon.timing import limits_for, time_parameterize
+from recon.timing import Limits, limits_for, time_parameterize
 from recon.transforms import (
     apply_transform,
     check_rigid,
@@ -30,7 +30,7 @@ from recon.transforms import (
 )
 
 if TYPE_CHECKING:
-    from recon.collision import CollisionReport
+    from recon.collision import Cell, CollisionReport
 
 from recon.types import (
     FloatArray,
@@ -153,7 +153,7 @@ MAX_APPROACH_M = 0.5
 MAX_PROCESS_DURATION_S = 3600.0
 
 
-def _check_duration(points_m: FloatArray, pieces, speed_m_s: float) -> None:
+def _check_duration(points_m: FloatArray, pieces: list[slice], speed_m_s: float) -> None:
     """Refuse, before any work, a path that would take longer than the bound at its speed."""
     length_m = sum(
         float(np.linalg.norm(np.diff(points_m[rows], axis=0), axis=1).sum()) for rows in pieces
@@ -175,7 +175,7 @@ def plan_path(
     T_base_tracker: FloatArray | None = None,
     normals: ScanNormals | None = None,
     pen_xyzw: FloatArray | None = None,
-    cell=None,
+    cell: Cell | None = None,
     piece: NDArray[np.int64] | None = None,
     start_from: str | None = None,
     calibration: kinematics.DHCalibration | None = None,
@@ -274,7 +274,18 @@ class _BranchRefused(Exception):
 
 
 def _plan_in(
-    arm, tools, flanges, pieces, allowed, q_start, start_from, limits, params, cell, normals, source
+    arm: kinematics.URModel,
+    tools: list[ToolPath],
+    flanges: list[FloatArray],
+    pieces: list[slice],
+    allowed: tuple[int, ...],
+    q_start: FloatArray,
+    start_from: str,
+    limits: Limits,
+    params: PlanParams,
+    cell: Cell | None,
+    normals: ScanNormals | None,
+    source: str,
 ) -> Plan:
     """The plan in the best of the ``allowed`` IK branches (see :func:`plan_path`).
 
@@ -344,7 +355,9 @@ def _plan_in(
                     joints=joints,
                     trajectory=trajectory,
                     params=params,
-                    T_scan_tracker=normals.T_scan_tracker if source == "scan" else None,
+                    T_scan_tracker=normals.T_scan_tracker
+                    if source == "scan" and normals is not None
+                    else None,
                     start_q_rad=q_start,
                     start_from=start_from,
                     configuration=kinematics.configuration_of(arm, joints.q_rad[0]),
@@ -358,7 +371,9 @@ def _plan_in(
     raise _BranchRefused(joints.branch, _collision_error(report))
 
 
-def _require_joint_margin(arm, trajectory, branch: int, margin_deg: float) -> None:
+def _require_joint_margin(
+    arm: kinematics.URModel, trajectory: JointTrajectory, branch: int, margin_deg: float
+) -> None:
     """Refuse (for this branch) a motion that passes nearer a joint's limit than the margin.
 
     Raises
@@ -380,7 +395,9 @@ def _require_joint_margin(arm, trajectory, branch: int, margin_deg: float) -> No
         )
 
 
-def _configuration_branches(arm, T_flange, want) -> tuple[int, ...] | None:
+def _configuration_branches(
+    arm: kinematics.URModel, T_flange: FloatArray, want: kinematics.Configuration
+) -> tuple[int, ...] | None:
     """The IK branches of the configuration asked for at the path's first pose (None: let
     :func:`kinematics.follow_path` name why the pose is out of reach in any configuration).
 
@@ -450,7 +467,9 @@ def _tool_words(params: PlanParams) -> str:
     return f"{len(spheres)} sphere(s), X, Y, Z, R in the flange frame (mm): {listed}"
 
 
-def check_cell(arm, trajectory: JointTrajectory, cell, params: PlanParams):
+def check_cell(
+    arm: kinematics.URModel, trajectory: JointTrajectory, cell: Cell, params: PlanParams
+) -> CollisionReport:
     """The collision check of a whole motion: the arm's links and the tool (``params.tool``:
     its spheres, or a capsule of ``tool_radius_m`` from the flange to the TCP) against the
     cell; the tool may touch the workpiece along the process path only, and where a motion
@@ -491,8 +510,9 @@ def check_cell(arm, trajectory: JointTrajectory, cell, params: PlanParams):
     )
 
 
-def _collision_error(report) -> CollisionError:
-    first = report.first_collision
+def _collision_error(report: CollisionReport | None) -> CollisionError:
+    first = None if report is None else report.first_collision
+    assert first is not None  # called for a motion found to collide
     return CollisionError(
         f"the motion collides: {first.describe()}. Change the tool orientation (lead, tilt), "
         "the configuration, the start pose or the cell (keep-out boxes, cell planes), or move the "
@@ -510,7 +530,9 @@ def _collision_error(report) -> CollisionError:
     )
 
 
-def _orientation_source(params: PlanParams, normals, pen_xyzw) -> str:
+def _orientation_source(
+    params: PlanParams, normals: ScanNormals | None, pen_xyzw: FloatArray | None
+) -> str:
     """Where the tool axis comes from: the one asked for, or for "auto" the best there is."""
     if params.orientation != "auto":
         return params.orientation
@@ -519,12 +541,20 @@ def _orientation_source(params: PlanParams, normals, pen_xyzw) -> str:
     return "pen" if pen_xyzw is not None else "fixed"
 
 
-def _process_tool_path(points_tracker_m, T_base_tracker, params, source, normals, pen_xyzw, rows):
+def _process_tool_path(
+    points_tracker_m: FloatArray,
+    T_base_tracker: FloatArray,
+    params: PlanParams,
+    source: str,
+    normals: ScanNormals | None,
+    pen_xyzw: FloatArray | None,
+    rows: slice,
+) -> ToolPath:
     """One piece's TCP poses in the base frame (``pen_xyzw`` is the whole path's, cut to
     ``rows`` here)."""
     R = T_base_tracker[:3, :3]
     points = apply_transform(T_base_tracker, points_tracker_m)
-    kwargs = {}
+    kwargs: dict[str, FloatArray] = {}
     if source == "scan":
         if normals is None or not normals.known.any():
             raise ValueError(
@@ -552,7 +582,15 @@ def _process_tool_path(points_tracker_m, T_base_tracker, params, source, normals
 
 
 def _whole_motion(
-    arm, processes, offsets_m, branch, q_start, approach_m, params, *, base_first: bool = False
+    arm: kinematics.URModel,
+    processes: list[JointTrajectory],
+    offsets_m: FloatArray,
+    branch: int,
+    q_start: FloatArray,
+    approach_m: float,
+    params: PlanParams,
+    *,
+    base_first: bool = False,
 ) -> JointTrajectory:
     """Transit, approach, the timed process path, retract, for each piece in turn, and (if
     asked) the return.
@@ -586,7 +624,13 @@ def _whole_motion(
     )
 
 
-def _approach_and_retract(arm, process, branch, approach_m, params):
+def _approach_and_retract(
+    arm: kinematics.URModel,
+    process: JointTrajectory,
+    branch: int,
+    approach_m: float,
+    params: PlanParams,
+) -> tuple[motion.PhaseSamples, motion.PhaseSamples]:
     """The straight moves along the tool axis onto a process run's first pose and off its last."""
     ends = kinematics.forward(arm, process.q_rad[[0, -1]]) @ params.T_flange_tcp
     line = _lift_line(params, branch)
@@ -609,7 +653,7 @@ def _approach_and_retract(arm, process, branch, approach_m, params):
     return approach, retract
 
 
-def _lift_line(params: PlanParams, branch: int) -> dict:
+def _lift_line(params: PlanParams, branch: int) -> dict[str, Any]:
     """How every straight lift along the tool axis moves (approach, retract, the move off the
     workpiece): ``motion.line_move``'s settings but the line, its join and its phase."""
     return {
@@ -622,7 +666,7 @@ def _lift_line(params: PlanParams, branch: int) -> dict:
     }
 
 
-def _joint_move(params: PlanParams) -> dict:
+def _joint_move(params: PlanParams) -> dict[str, Any]:
     """How every joint move goes (a plan's transits and returns, a move to a plan's start):
     ``motion.joint_move``'s settings but its ends."""
     return {
@@ -633,7 +677,13 @@ def _joint_move(params: PlanParams) -> dict:
     }
 
 
-def _transit(arm, q_start, q_goal, base_first: bool, joint_move: dict) -> list:
+def _transit(
+    arm: kinematics.URModel,
+    q_start: FloatArray,
+    q_goal: FloatArray,
+    base_first: bool,
+    joint_move: dict[str, Any],
+) -> list[motion.PhaseSamples]:
     """The joint moves from the start to the approach pose (one, or the base's turn first)."""
     if not base_first or abs(q_goal[0] - q_start[0]) < 1e-6:
         return [motion.joint_move(arm, q_start, q_goal, **joint_move)]
@@ -645,7 +695,7 @@ def _transit(arm, q_start, q_goal, base_first: bool, joint_move: dict) -> list:
     ]
 
 
-def approach_in(T_base_tracker: FloatArray | None, approach_base) -> FloatArray:
+def approach_in(T_base_tracker: FloatArray | None, approach_base: ArrayLike) -> FloatArray:
     """The approach direction expressed in the tracker frame."""
     R = np.eye(3) if T_base_tracker is None else np.asarray(T_base_tracker)[:3, :3]
     return R.T @ np.asarray(approach_base, dtype=np.float64)
@@ -849,7 +899,7 @@ def plan_move(
     q_to_rad: FloatArray,
     *,
     params: PlanParams,
-    cell=None,
+    cell: Cell | None = None,
     calibration: kinematics.DHCalibration | None = None,
 ) -> MovePlan:
     """A joint move (UR's ``movej``: every joint on one trapezoidal profile) from ``q_from_rad``
@@ -913,6 +963,7 @@ def plan_move(
             return MovePlan(trajectory, params, q_from, q_to, base_first, report)
     if not _tool_stands_on_scan(report):
         raise _collision_error(report)
+    assert cell is not None  # the tool stands on the scan: the cell has one
     retract = _retract_from(arm, q_from, params)
     for base_first in (False, True):
         trajectory = motion.assemble(
@@ -929,7 +980,7 @@ def plan_move(
     raise _collision_error(report)
 
 
-def _tool_stands_on_scan(report) -> bool:
+def _tool_stands_on_scan(report: CollisionReport | None) -> bool:
     """Whether a joint move's check failed in its first period, the tool against the scan: the
     arm stands with the tool on (or within the margin of) the workpiece."""
     from recon.collision import ObstacleKind
@@ -943,7 +994,9 @@ def _tool_stands_on_scan(report) -> bool:
     )
 
 
-def _retract_from(arm, q_rad: FloatArray, params: PlanParams) -> motion.PhaseSamples:
+def _retract_from(
+    arm: kinematics.URModel, q_rad: FloatArray, params: PlanParams
+) -> motion.PhaseSamples:
     """The straight line from the arm's TCP ``params.approach_m`` back along the tool's axis,
     in the IK branch the arm stands in.
 
@@ -971,7 +1024,7 @@ def _retract_from(arm, q_rad: FloatArray, params: PlanParams) -> motion.PhaseSam
         ) from None
 
 
-def _branch_at(arm, q_rad: FloatArray) -> int:
+def _branch_at(arm: kinematics.URModel, q_rad: FloatArray) -> int:
     """The IK branch (see :class:`recon.kinematics.IKSolutions`) whose solution at the arm's
     own flange pose is the arm's joints (each joint compared modulo a turn)."""
     solutions = kinematics.inverse(arm, kinematics.forward(arm, q_rad[None]))

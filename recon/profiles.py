@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter1d
+from scipy.spatial import cKDTree
 
 from recon.fitting import gather
 from recon.types import FloatArray
@@ -144,13 +145,16 @@ class Profiles:
     def to_slice(self, points_m: FloatArray) -> FloatArray:
         """Points (one per station, shape (B, 3)) in their station's slice coordinates (B, 2)."""
         rel = points_m - self.origin_m
-        return np.einsum("bki,bi->bk", self.axes, rel)
+        local: FloatArray = np.einsum("bki,bi->bk", self.axes, rel)
+        return local
 
     def to_world(self, slice_m: FloatArray) -> FloatArray:
         """Slice coordinates (B, 2) or (B, P, 2) back to the scan frame (B, 3) or (B, P, 3)."""
         if slice_m.ndim == 2:
-            return self.origin_m + np.einsum("bk,bki->bi", slice_m, self.axes)
-        return self.origin_m[:, None] + np.einsum("bpk,bki->bpi", slice_m, self.axes)
+            world: FloatArray = self.origin_m + np.einsum("bk,bki->bi", slice_m, self.axes)
+        else:
+            world = self.origin_m[:, None] + np.einsum("bpk,bki->bpi", slice_m, self.axes)
+        return world
 
     @property
     def corners_world_m(self) -> FloatArray:
@@ -172,7 +176,7 @@ def find_profiles(
     along: FloatArray,
     dense_points_m: FloatArray,
     dense_normals: FloatArray,
-    dense_tree,
+    dense_tree: cKDTree,
 ) -> Profiles:
     """The lines and corners of the slices across a path (see the module docstring).
 
@@ -242,7 +246,13 @@ def _pairs() -> NDArray[np.int64]:
     return np.column_stack([i, j]).astype(np.int64)
 
 
-def _profiles_chunk(stations, along, dense, normals, tree) -> Profiles:
+def _profiles_chunk(
+    stations: FloatArray,
+    along: FloatArray,
+    dense: FloatArray,
+    normals: FloatArray,
+    tree: cKDTree,
+) -> Profiles:
     b = len(stations)
     axes = slice_axes(along)
     k = min(PROFILE_NEIGHBOURS, len(dense))
@@ -363,7 +373,14 @@ def _profiles_chunk(stations, along, dense, normals, tree) -> Profiles:
     )
 
 
-def _intrinsic_axes(x, y, nx, ny, free, axes):
+def _intrinsic_axes(
+    x: FloatArray,
+    y: FloatArray,
+    nx: FloatArray,
+    ny: FloatArray,
+    free: NDArray[np.bool_],
+    axes: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Turn each slice's axes onto its points' main normal direction (sign: away from their
     centroid) and express the points and normals in them."""
     w = free.astype(np.float64)
@@ -378,7 +395,7 @@ def _intrinsic_axes(x, y, nx, ny, free, axes):
     e[flip] *= -1
     perp = np.column_stack([-e[:, 1], e[:, 0]])
 
-    def turned(u, v, basis):
+    def turned(u: FloatArray, v: FloatArray, basis: FloatArray) -> FloatArray:
         return u * basis[:, :1] + v * basis[:, 1:]
 
     new_axes = np.stack(
@@ -397,7 +414,9 @@ def _intrinsic_axes(x, y, nx, ny, free, axes):
     )
 
 
-def _votes(x, y, phi, weight, n_rho) -> FloatArray:
+def _votes(
+    x: FloatArray, y: FloatArray, phi: FloatArray, weight: NDArray[np.bool_], n_rho: int
+) -> FloatArray:
     """Hough accumulator (B, THETA_BINS, n_rho): each weighted point votes for the lines through
     it whose normals lie within :data:`NORMAL_TOLERANCE_DEG` of its own normal (``phi``), each
     vote shared linearly between the two nearest offset bins."""
@@ -420,7 +439,9 @@ def _votes(x, y, phi, weight, n_rho) -> FloatArray:
     return acc.astype(np.float64, copy=False).reshape(b, THETA_BINS, n_rho)
 
 
-def _not_a_ramp(phi: FloatArray, normal: FloatArray, s: FloatArray, inside) -> NDArray[np.bool_]:
+def _not_a_ramp(
+    phi: FloatArray, normal: FloatArray, s: FloatArray, inside: NDArray[np.bool_]
+) -> NDArray[np.bool_]:
     """Per station, False where the line is a ramp across a low step rather than a face: its
     points (``inside``, (B, K)) lean off it, the median angle between their normals (``phi``)
     and its ``normal`` (B, 2) above :data:`RAMP_ANGLE_DEG`, and they come in two runs along it
@@ -435,7 +456,8 @@ def _not_a_ramp(phi: FloatArray, normal: FloatArray, s: FloatArray, inside) -> N
     with np.errstate(invalid="ignore"):  # inf - inf past the last point: no step
         steps = np.diff(ordered, axis=1)
     gap = np.where(np.isfinite(steps), steps, 0.0).max(axis=1, initial=0.0)
-    return ~(leaning & (gap > RAMP_GAP_M))
+    ramp: NDArray[np.bool_] = leaning & (gap > RAMP_GAP_M)
+    return ~ramp
 
 
 def _along_line(phi: FloatArray, normal: FloatArray) -> NDArray[np.bool_]:
@@ -444,10 +466,19 @@ def _along_line(phi: FloatArray, normal: FloatArray) -> NDArray[np.bool_]:
     line_phi = np.mod(np.arctan2(normal[:, 1], normal[:, 0]), np.pi)[:, None]
     diff = np.abs(phi - line_phi)
     diff = np.minimum(diff, np.pi - diff)
-    return diff <= np.radians(NORMAL_TOLERANCE_DEG)
+    along: NDArray[np.bool_] = diff <= np.radians(NORMAL_TOLERANCE_DEG)
+    return along
 
 
-def _refine(x, y, phi, free, inside, *, passes: int):
+def _refine(
+    x: FloatArray,
+    y: FloatArray,
+    phi: FloatArray,
+    free: NDArray[np.bool_],
+    inside: NDArray[np.bool_],
+    *,
+    passes: int,
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
     """Total least squares on a line's points, then its points again (within a band of its own
     noise, along its direction), ``passes`` times."""
     for _ in range(passes):
@@ -458,7 +489,9 @@ def _refine(x, y, phi, free, inside, *, passes: int):
     return normal, rho, sigma, inside
 
 
-def _straighter_half(x, y, inside, normal):
+def _straighter_half(
+    x: FloatArray, y: FloatArray, inside: NDArray[np.bool_], normal: FloatArray
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Where a line's two halves (split at its median point) run at more than
     :data:`BENT_ANGLE_DEG` to it, and by more than their noise explains (three standard
     deviations of the halves' directions): the points of the half with the smaller scatter,
@@ -486,14 +519,15 @@ def _straighter_half(x, y, inside, normal):
     return np.where(keep_left[:, None], left, right), bent
 
 
-def _masked_std(values, mask):
+def _masked_std(values: FloatArray, mask: NDArray[np.bool_]) -> FloatArray:
     w = mask.astype(np.float64)
     total = np.maximum(w.sum(axis=1), 1e-300)
     mean = (w * values).sum(axis=1) / total
-    return np.sqrt((w * (values - mean[:, None]) ** 2).sum(axis=1) / total)
+    std: FloatArray = np.sqrt((w * (values - mean[:, None]) ** 2).sum(axis=1) / total)
+    return std
 
 
-def _masked_median(values, mask):
+def _masked_median(values: FloatArray, mask: NDArray[np.bool_]) -> FloatArray:
     filled = np.where(mask, values, np.inf)
     ordered = np.sort(filled, axis=1)
     count = mask.sum(axis=1)
@@ -503,7 +537,9 @@ def _masked_median(values, mask):
     return np.where(count > 0, 0.5 * (lo + hi), 0.0)
 
 
-def _total_least_squares(x, y, weight):
+def _total_least_squares(
+    x: FloatArray, y: FloatArray, weight: NDArray[np.bool_]
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Each station's line through its weighted points: unit normal (B, 2), offset (B,) and the
     RMS distance of the points to it (B,)."""
     w = weight.astype(np.float64)
@@ -521,7 +557,9 @@ def _total_least_squares(x, y, weight):
     return normal, rho, sigma
 
 
-def _without_cut_off_corners(corner, corner_ok, pairs):
+def _without_cut_off_corners(
+    corner: FloatArray, corner_ok: NDArray[np.bool_], pairs: NDArray[np.int64]
+) -> NDArray[np.bool_]:
     """Corners a third line cuts off dropped: where lines i and j would meet, but a line k
     crosses both near there, at supported corners at least :data:`CLOSE_CORNERS_M` apart, the
     part is chamfered (k is the chamfer's face) and the meeting of i and j lies in the air; the
@@ -545,7 +583,12 @@ def _without_cut_off_corners(corner, corner_ok, pairs):
     return ok
 
 
-def _strongest_of_close_corners(corner, corner_ok, count, pairs):
+def _strongest_of_close_corners(
+    corner: FloatArray,
+    corner_ok: NDArray[np.bool_],
+    count: NDArray[np.int64],
+    pairs: NDArray[np.int64],
+) -> NDArray[np.bool_]:
     """Of supported corners within :data:`CLOSE_CORNERS_M` of each other in one slice (a corner
     rounded by the slice's thickness can grow a short third line across it), the one between
     the two best-populated lines only."""
@@ -564,7 +607,13 @@ def _strongest_of_close_corners(corner, corner_ok, count, pairs):
     return ok
 
 
-def _without_duplicates(normal, offset, rms, line_ok, members):
+def _without_duplicates(
+    normal: FloatArray,
+    offset: FloatArray,
+    rms: FloatArray,
+    line_ok: NDArray[np.bool_],
+    members: NDArray[np.bool_],
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Lines that repeat an earlier, stronger one (within :data:`DUPLICATE_ANGLE_DEG` of its
     direction and three noise levels of its offset: the noisy tail of the same face) dropped."""
     line_ok = line_ok.copy()
@@ -583,7 +632,16 @@ def _without_duplicates(normal, offset, rms, line_ok, members):
     return line_ok, members
 
 
-def _without_crests(x, y, members, normal, offset, rms, count, line_ok):
+def _without_crests(
+    x: FloatArray,
+    y: FloatArray,
+    members: NDArray[np.bool_],
+    normal: FloatArray,
+    offset: FloatArray,
+    rms: FloatArray,
+    count: NDArray[np.int64],
+    line_ok: NDArray[np.bool_],
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.int64], NDArray[np.bool_]]:
     """Each line refitted without the points that also lie within another line's band: near a
     corner the crest's points sit close to both faces and would pull both lines into the
     corner."""
@@ -611,7 +669,18 @@ def _without_crests(x, y, members, normal, offset, rms, count, line_ok):
     return normal, offset, rms, count, members
 
 
-def _corners(x, y, members, support, normal, offset, rms, count, line_ok, pairs):
+def _corners(
+    x: FloatArray,
+    y: FloatArray,
+    members: NDArray[np.bool_],
+    support: NDArray[np.bool_],
+    normal: FloatArray,
+    offset: FloatArray,
+    rms: FloatArray,
+    count: NDArray[np.int64],
+    line_ok: NDArray[np.bool_],
+    pairs: NDArray[np.int64],
+) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, FloatArray]:
     """Where each pair of lines crosses, and whether both lines' points reach it."""
     i, j = pairs[:, 0], pairs[:, 1]
     na, nb = normal[:, i], normal[:, j]  # (B, P, 2)

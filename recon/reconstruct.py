@@ -14,11 +14,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from recon.classify import PATH_ONLY, SegmentKind, classify_segments
+from recon.classify import PATH_ONLY, SegmentClass, SegmentKind, classify_segments
 from recon.corners import (
     Candidate,
     Corner,
@@ -30,7 +31,7 @@ from recon.corners import (
     lines_to_edge_samples,
 )
 from recon.errors import DegenerateInputError, UnitsMismatchError
-from recon.fusion import fuse_traces
+from recon.fusion import FusedTrace, fuse_traces
 from recon.icp import RigidMotion
 from recon.methods.anchored import CONTINUE_PAST_END_M, anchored_segment
 from recon.methods.common import HAND_ERROR_PRIOR_M, SegmentResult
@@ -50,6 +51,7 @@ from recon.touches import touch_advice as motion_advice
 from recon.transforms import apply_transform, check_rigid, invert_transform
 from recon.types import (
     CornerReport,
+    DemonstrationReport,
     FloatArray,
     Method,
     PointReason,
@@ -195,7 +197,7 @@ def _joined(parts: list[ResampledPath]) -> ResampledPath:
     """Resampled pieces end to end; arc length runs on across the untraced gaps (it measures the
     traced path only)."""
 
-    def stacked(name: str):
+    def stacked(name: str) -> NDArray[Any] | None:
         values = [getattr(p, name) for p in parts]
         return None if any(v is None for v in values) else np.concatenate(values)
 
@@ -382,7 +384,7 @@ def reconstruct(
     )
 
 
-def _with_evidence(segment: Segment, segment_class, result: SegmentResult) -> Segment:
+def _with_evidence(segment: Segment, segment_class: SegmentClass, result: SegmentResult) -> Segment:
     """The segment with its edge's evidence and the share of its points that fell back."""
     fell = np.isin(result.reason, [int(r) for r in PointReason if r.fallen_back])
     distance = segment_class.rms_to_edge_m
@@ -459,12 +461,13 @@ def evidence_notes(
     return notes
 
 
-def _prior_from_fusion(fused, resampled: ResampledPath) -> FloatArray:
+def _prior_from_fusion(fused: FusedTrace, resampled: ResampledPath) -> FloatArray:
     """The fused variance at the resampled points (by arc length), across the path."""
     fused_points = fused.recording.points_m
     arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(fused_points, axis=0), axis=1))))
     variance = np.interp(resampled.arc_length_m, arc, fused.variance_m2)
-    return variance * (2.0 / 3.0)
+    prior: FloatArray = variance * (2.0 / 3.0)
+    return prior
 
 
 def transform_sigma_m(
@@ -963,7 +966,7 @@ def _assemble(
     scan_model: ScanModel | None,
     piece: NDArray[np.int64],
     corners: list[Corner],
-    demonstrations: tuple = (),
+    demonstrations: tuple[DemonstrationReport, ...] = (),
     prior: FloatArray | None = None,
 ) -> Reconstruction:
     """Concatenate segment results; a corner point shared by two segments takes the later one

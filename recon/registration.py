@@ -13,7 +13,9 @@ the result says which was chosen, why, and how the other fared.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -135,14 +137,20 @@ class _EdgeTry:
         self.following = following
 
 
-def _try(make):
+def _try(make: Callable[..., Registration]) -> Registration | None:
     try:
         return make()
     except RegistrationError:
         return None
 
 
-def _try_edge(points, model, bounds, params, T_init) -> _EdgeTry | None:
+def _try_edge(
+    points: FloatArray,
+    model: ScanModel,
+    bounds: list[tuple[int, int]],
+    params: ReconParams,
+    T_init: FloatArray,
+) -> _EdgeTry | None:
     """The edge registration and the fraction of the path that then follows the edge; None
     when the edge is not near enough of the path to try, or its registration fails."""
     edges = model.edges
@@ -185,7 +193,12 @@ def _try_edge(points, model, bounds, params, T_init) -> _EdgeTry | None:
     return _EdgeTry(registration, float(np.mean(on_edge)))
 
 
-def _following(points_scan_m, model, bounds, params) -> np.ndarray:
+def _following(
+    points_scan_m: FloatArray,
+    model: ScanModel,
+    bounds: list[tuple[int, int]],
+    params: ReconParams,
+) -> np.ndarray:
     """Per point: on a segment that follows the scan's edge (scan frame): its points lie within
     :data:`EDGE_FOLLOW_DISTANCE_M` of the thinned edge, on median, along at least
     ``params.edge_fraction`` of it. (A quick look for choosing the registration's target; which
@@ -204,7 +217,13 @@ def _following(points_scan_m, model, bounds, params) -> np.ndarray:
 
 
 def _register_surface(
-    points, model, params, T_init, *, max_source_points=MAX_SOURCE_POINTS, max_iterations=60
+    points: FloatArray,
+    model: ScanModel,
+    params: ReconParams,
+    T_init: FloatArray,
+    *,
+    max_source_points: int = MAX_SOURCE_POINTS,
+    max_iterations: int = 60,
 ) -> Registration:
     features = model.features
     return register_icp(
@@ -220,14 +239,20 @@ def _register_surface(
     )
 
 
-def _alternative(surface, points, model, bounds, params) -> dict | None:
+def _alternative(
+    surface: Registration | None,
+    points: FloatArray,
+    model: ScanModel,
+    bounds: list[tuple[int, int]],
+    params: ReconParams,
+) -> dict[str, Any] | None:
     if surface is None:
         return None
     moved = apply_transform(surface.T_scan_tracker, points)
     return _summary_of(surface, float(np.mean(_following(moved, model, bounds, params))))
 
 
-def _summary_of(registration: Registration, following: float) -> dict:
+def _summary_of(registration: Registration, following: float) -> dict[str, Any]:
     """The figures of a registration that was tried and not chosen."""
     return {
         "target": registration.target,

@@ -21,7 +21,7 @@ import numpy as np
 
 from recon import kinematics
 from recon.kinematics import URModel
-from recon.types import FloatArray
+from recon.types import FloatArray, JointTrajectory
 
 #: Fraction by which a sampled joint or TCP speed may exceed its limit (finite differences of a
 #: planned profile stay within 0.5 % of it).
@@ -205,7 +205,7 @@ def sample_problems(
     return problems
 
 
-def require_within_limits(trajectory, *, what: str) -> None:
+def require_within_limits(trajectory: JointTrajectory, *, what: str) -> None:
     """Refuse a trajectory whose samples break its arm's limits, before it is used: joint
     ranges, speeds and accelerations on the controller's grid, continuity, a start and an end
     at rest (:func:`sample_problems` without a TCP cap). For every consumer of a trajectory
@@ -247,7 +247,9 @@ def require_within_limits(trajectory, *, what: str) -> None:
         )
 
 
-def _first_over(values: FloatArray, limit: FloatArray, tolerance: float):
+def _first_over(
+    values: FloatArray, limit: FloatArray, tolerance: float
+) -> tuple[int, int, float] | None:
     """``(row, joint, share of the limit)`` of the largest value above ``limit * (1 +
     tolerance)`` in ``values`` (R, 6), or None (also for no rows)."""
     if len(values) == 0:
@@ -282,7 +284,8 @@ def tcp_speeds_m_s(
         tcp = tcp_positions_m(arm, q_rad, T_flange_tcp)
     else:
         raise ValueError("give the TCP's positions (tcp_m) or the tool (T_flange_tcp)")
-    return np.linalg.norm(np.diff(tcp, axis=0), axis=1) / period_s
+    speeds: FloatArray = np.linalg.norm(np.diff(tcp, axis=0), axis=1) / period_s
+    return speeds
 
 
 def _shape_problem(t: np.ndarray, q: np.ndarray) -> SampleProblem | None:

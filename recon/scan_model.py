@@ -141,7 +141,8 @@ class ScanModel:
         """The normal of each dense point's nearest voxel (shape (D, 3); sign arbitrary): which
         way the surface faces there, at the curvature ball's scale."""
         _, nearest = self.coarse_tree.query(self.features.dense_points_m, workers=-1)
-        return self.features.normals[nearest]
+        normals: FloatArray = self.features.normals[nearest]
+        return normals
 
     @cached_property
     def fine_normals(self) -> FloatArray:

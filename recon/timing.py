@@ -15,6 +15,7 @@ toppra's Python support may end: only this module imports it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -211,7 +212,15 @@ class PointSpeedBound:
     cap_m_s: float
 
     @classmethod
-    def along(cls, arm, path, length_m, speed_m_s, cap_m_s, T_flange_tcp) -> PointSpeedBound:
+    def along(
+        cls,
+        arm: URModel,
+        path: Any,
+        length_m: float,
+        speed_m_s: float,
+        cap_m_s: float,
+        T_flange_tcp: FloatArray | None,
+    ) -> PointSpeedBound:
         if not cap_m_s > 0:
             raise ValueError(f"point_speed_max_m_s must be positive, got {cap_m_s}")
         T = np.eye(4) if T_flange_tcp is None else np.asarray(T_flange_tcp, dtype=np.float64)
@@ -234,7 +243,7 @@ class PointSpeedBound:
         j = i if self.bound_m_s[i] <= self.bound_m_s[max(i - 1, 0)] else max(i - 1, 0)
         return float(self.bound_m_s[j]), int(self.binding[j])
 
-    def constraint(self, vlim: FloatArray):
+    def constraint(self, vlim: FloatArray) -> Any:
         """toppra's velocity constraint: ``vlim`` with the arc-length coordinate's bound
         lowered to this one."""
         import toppra.constraint
@@ -321,7 +330,7 @@ class ConstAccelTiming:
         return self.s[index] + dt * v0 + 0.5 * dt**2 * u, v0 + dt * u, u
 
 
-def _sample(path, timing: ConstAccelTiming, rate_hz: float) -> dict[str, FloatArray]:
+def _sample(path: Any, timing: ConstAccelTiming, rate_hz: float) -> dict[str, FloatArray]:
     """Samples on the controller's grid (servoJ streams at a fixed period); the last one, at or
     just after the end, holds the final pose at rest.
 
@@ -367,7 +376,13 @@ def _check(samples: dict[str, FloatArray], limits: Limits) -> str | None:
 
 
 def _assemble(
-    arm, samples, limits, joints, tool, T_flange_tcp, point_bound=None
+    arm: URModel,
+    samples: dict[str, FloatArray],
+    limits: Limits,
+    joints: JointPath,
+    tool: ToolPath,
+    T_flange_tcp: FloatArray | None,
+    point_bound: PointSpeedBound | None = None,
 ) -> JointTrajectory:
     q = samples["x"][:, :6]
     flange = forward(arm, q)
@@ -391,7 +406,12 @@ def _assemble(
 
 
 def _speed_drops(
-    arc, speed, joints: JointPath, tool: ToolPath, limits: Limits, point_bound=None
+    arc: FloatArray,
+    speed: FloatArray,
+    joints: JointPath,
+    tool: ToolPath,
+    limits: Limits,
+    point_bound: PointSpeedBound | None = None,
 ) -> list[SpeedDrop]:
     """Stretches where the TCP is slower than requested, with the limit that binds there.
 
@@ -423,7 +443,7 @@ def _speed_drops(
         cap = limits.qd_max_rad_s / np.maximum(np.abs(rates[w]), 1e-12)
         joint = int(np.argmin(cap))
         bound, point = point_bound.at(float(arc[i])) if point_bound else (np.inf, -1)
-        if bound <= 1.05 * speed[i]:
+        if point_bound is not None and bound <= 1.05 * speed[i]:
             cause = (
                 f"the {SPEED_POINT_NAMES[point]} would pass the "
                 f"{point_bound.cap_m_s * 1e3:.0f} mm/s speed cap (the tool turns about its tip)"

@@ -143,7 +143,7 @@ class Dwell:
     @property
     def standard_error_m(self) -> float:
         """The mean's standard error from the tracker's noise (per axis, samples independent)."""
-        return self.spread_m / np.sqrt(3.0 * max(self.n_samples, 1))
+        return float(self.spread_m / np.sqrt(3.0 * max(self.n_samples, 1)))
 
 
 def find_dwells(
@@ -468,7 +468,7 @@ class _Planes:
     variance: FloatArray  # (T,): of the plane's offset at the touch, m^2
 
 
-def _planes(points_scan_m, scan, tree) -> _Planes:
+def _planes(points_scan_m: FloatArray, scan: FloatArray, tree: cKDTree) -> _Planes:
     """The scan's tangent plane under each point, with its offset's variance.
 
     A quadric height field is fitted to the scan within :data:`PLANE_RADIUS_M` (robustly: points
@@ -511,7 +511,16 @@ def _planes(points_scan_m, scan, tree) -> _Planes:
     return _Planes(centre, normal, count, variance)
 
 
-def _match(touches, used, own, scan, tree, T, motion, initial_sigma_m):
+def _match(
+    touches: FloatArray,
+    used: NDArray[np.bool_],
+    own: FloatArray,
+    scan: FloatArray,
+    tree: cKDTree,
+    T: FloatArray,
+    motion: RigidMotion,
+    initial_sigma_m: float,
+) -> tuple[FloatArray, _Planes]:
     """Iterate planes and point-to-plane steps from ``T``; returns (T, planes at T)."""
     for _ in range(MAX_ITERATIONS):
         mapped = apply_transform(T, touches)
@@ -549,7 +558,7 @@ class _Split:
 
     @property
     def n_solved(self) -> int:
-        return self.solved.shape[1]
+        return int(self.solved.shape[1])
 
     @property
     def covariance(self) -> FloatArray:
@@ -580,7 +589,9 @@ def _split(info: FloatArray, tilt: FloatArray, initial_sigma_m: float) -> _Split
     return _Split(axes[:, pinned], values[pinned], np.hstack([tilt_only, axes[:, ~pinned]]))
 
 
-def _normal_and_tilt(points, normals, weights, motion):
+def _normal_and_tilt(
+    points: FloatArray, normals: FloatArray, weights: FloatArray, motion: RigidMotion
+) -> tuple[FloatArray, FloatArray]:
     """The touches' information about a twist of ``motion`` through their planes' normals, and
     what tilts of those planes by :data:`PLANE_TILT_RAD` would feign, both (6, 6).
 
@@ -596,7 +607,14 @@ def _normal_and_tilt(points, normals, weights, motion):
     return info, tilt
 
 
-def _information(touches, used, planes, expected, T, motion):
+def _information(
+    touches: FloatArray,
+    used: NDArray[np.bool_],
+    planes: _Planes,
+    expected: FloatArray,
+    T: FloatArray,
+    motion: RigidMotion,
+) -> tuple[FloatArray, FloatArray]:
     """The touches' information about the twist of ``motion`` (tracker frame), and the tilts'
     (see :func:`_normal_and_tilt`), 6x6 each."""
     ok = used & (planes.count >= MIN_PLANE_POINTS)

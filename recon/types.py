@@ -13,26 +13,27 @@ import functools
 import itertools
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, DTypeLike, NDArray
 
 from recon.params import check_bounds, param
 from recon.transforms import rotation_angle_deg, translation_m
 
 if TYPE_CHECKING:
-    # Annotations only: both modules import this one.
+    # Annotations only: each of these modules imports this one.
     from recon.classify import SegmentKind
-    from recon.kinematics import DHCalibration, URModel
+    from recon.collision import Tool
+    from recon.kinematics import Configuration, DHCalibration, URModel
     from recon.scan_model import ScanModel
 
 FloatArray = NDArray[np.float64]
 
 
 def frozen_array(
-    values, *, dtype=np.float64, shape_tail: tuple[int, ...] = (), name: str
-) -> NDArray:
+    values: ArrayLike, *, dtype: DTypeLike = np.float64, shape_tail: tuple[int, ...] = (), name: str
+) -> NDArray[Any]:
     """Copy ``values`` into a read-only array, checking its trailing shape and finiteness.
 
     Parameters
@@ -62,7 +63,7 @@ def frozen_array(
     return arr
 
 
-def piece_labels(values, n: int, *, name: str = "piece") -> NDArray[np.int64]:
+def piece_labels(values: ArrayLike | None, n: int, *, name: str = "piece") -> NDArray[np.int64]:
     """Check per-point piece labels: 0, 1, ... in order, each piece at least two points long.
 
     Parameters
@@ -158,7 +159,7 @@ class Recording:
         if not pieces:
             raise ValueError("no piece to join")
 
-        def stacked(name: str):
+        def stacked(name: str) -> NDArray[Any] | None:
             values = [getattr(p, name) for p in pieces]
             return None if any(v is None for v in values) else np.concatenate(values)
 
@@ -592,7 +593,7 @@ class PlanParams:
         return max(self.speed_m_s, self.approach_speed_m_s, self.transit_tcp_speed_m_s)
 
     @property
-    def tool(self):
+    def tool(self) -> Tool:
         """The tool's collision shape: :class:`recon.collision.SphereTool` of
         ``tool_spheres_m`` when given, else a :class:`recon.collision.CapsuleTool` of
         ``tool_radius_m`` from the flange to the TCP."""
@@ -610,7 +611,7 @@ class PlanParams:
         return transform_from_pose(np.asarray(self.tcp, dtype=np.float64))
 
     @property
-    def configuration(self):
+    def configuration(self) -> Configuration:
         """The wanted :class:`recon.kinematics.Configuration` ("any" as None)."""
         from recon.kinematics import Configuration
 
@@ -813,7 +814,7 @@ class Registration:
     path_moved_max_m: float = float("nan")
     path_moved_off_feature_median_m: float = float("nan")
     reason: str = ""
-    alternative: dict | None = field(default=None, compare=False)
+    alternative: dict[str, Any] | None = field(default=None, compare=False)
     covariance: FloatArray | None = field(default=None, compare=False, repr=False)
     motion_centre_m: FloatArray | None = field(default=None, compare=False, repr=False)
     motion_length_m: float | None = field(default=None, compare=False, repr=False)

@@ -251,16 +251,16 @@ def check_here(
     # The contact zone comes from the samples' own kinematics (ContactZone.of_process).
     report = check_cell(arm_model, loaded, here.cell, params)
     if report.first_collision is not None:
-        first = report.first_collision
+        collision = report.first_collision
         raise CollidesHere(
-            f"checked here against this cell, the motion collides: {first.describe()}. Plan it "
+            f"checked here against this cell, the motion collides: {collision.describe()}. Plan it "
             "again here (a plan made elsewhere does not know this cell's keep-out boxes)",
             detail={
-                "sample": first.sample,
-                "link": first.link,
-                "obstacle": first.obstacle,
-                "clearance_m": float(first.clearance_m),
-                "margin_m": float(first.margin_m),
+                "sample": collision.sample,
+                "link": collision.link,
+                "obstacle": collision.obstacle,
+                "clearance_m": float(collision.clearance_m),
+                "margin_m": float(collision.margin_m),
             },
         )
     return CheckedHere(

@@ -19,8 +19,10 @@ variance.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter1d
 
 from recon.classify import SegmentKind
@@ -377,7 +379,14 @@ def weigh_evidence(
     return out
 
 
-def _explained(centres, targets, max_move_m, model, candidate, normals=None) -> np.ndarray:
+def _explained(
+    centres: FloatArray,
+    targets: FloatArray,
+    max_move_m: FloatArray,
+    model: ScanModel,
+    candidate: NDArray[np.bool_],
+    normals: FloatArray | None = None,
+) -> NDArray[np.bool_]:
     """Whether moving each point (consecutive points of a segment) to its target is what the
     trace's error explains: a move within the hand's error (``max_move_m``), or, onto a face
     (``normals`` given), a lift-off.
@@ -390,10 +399,10 @@ def _explained(centres, targets, max_move_m, model, candidate, normals=None) -> 
     without a step. Only points where ``candidate`` (the target is on the scan's evidence) count.
     """
     move = np.linalg.norm(targets - centres, axis=1)
-    near = candidate & (move <= max_move_m)
+    near: NDArray[np.bool_] = candidate & (move <= max_move_m)
     if normals is None:
         return near
-    lifted = candidate & ~near & (move <= MAX_LIFT_OFF_M)
+    lifted: NDArray[np.bool_] = candidate & ~near & (move <= MAX_LIFT_OFF_M)
     n = len(centres)
     if np.any(lifted) and n > 1:
         spacing = float(np.median(np.linalg.norm(np.diff(centres, axis=0), axis=1)))
@@ -451,7 +460,7 @@ def _longest_false_run(flags: np.ndarray) -> np.ndarray:
     return longest
 
 
-def _in_free_air(starts: FloatArray, targets: FloatArray, model: ScanModel) -> np.ndarray:
+def _in_free_air(starts: FloatArray, targets: FloatArray, model: ScanModel) -> NDArray[np.bool_]:
     """Whether the straight way from each start to its target (all but its last
     :data:`LIFT_OFF_LANDING_M`) passes no scan point closer than :data:`LINE_OF_SIGHT_M`."""
     way = targets - starts
@@ -466,7 +475,8 @@ def _in_free_air(starts: FloatArray, targets: FloatArray, model: ScanModel) -> n
         probes.reshape(-1, 3), distance_upper_bound=LINE_OF_SIGHT_M, workers=-1
     )
     blocked = np.isfinite(gap).reshape(len(starts), len(steps))
-    return ~blocked.any(axis=1)
+    clear: NDArray[np.bool_] = ~blocked.any(axis=1)
+    return clear
 
 
 #: A pen lifted off the workpiece is farther from it than the hand's error explains: a point may
@@ -496,11 +506,22 @@ LINE_OF_SIGHT_M = 0.0008
 LIFT_OFF_LANDING_M = 0.0025
 
 
-def _take(out: Evidence, accept, target, variance, mode, reason, count, residual) -> None:
+def _take(
+    out: Evidence,
+    accept: NDArray[np.bool_],
+    target: FloatArray,
+    variance: FloatArray,
+    mode: PointMode,
+    reason: NDArray[np.int8] | PointReason,
+    count: np.ndarray,
+    residual: FloatArray,
+) -> None:
     out.target[accept] = target[accept]
     out.variance[accept] = variance[accept]
     out.mode[accept] = mode
-    out.reason[accept] = reason[accept] if np.ndim(reason) else reason
+    out.reason[accept] = (
+        reason[accept] if isinstance(reason, np.ndarray) and reason.ndim else reason
+    )
     out.count[accept] = count[accept]
     out.residual[accept] = residual[accept]
 
@@ -537,10 +558,20 @@ def ramp(supported: np.ndarray, half_width: int) -> FloatArray:
     before = np.where(position > 0, index - gaps[np.maximum(position - 1, 0)], n)
     after = np.where(position < len(gaps), gaps[np.minimum(position, len(gaps) - 1)] - index, n)
     distance = np.minimum(before, after).astype(np.float64)
-    return np.clip(distance / half_width, 0.0, 1.0) * supported
+    weight: FloatArray = np.clip(distance / half_width, 0.0, 1.0) * supported
+    return weight
 
 
-def _edge_targets(centres, direction, model, params, degree, *, corners=None, end_distance_m=None):
+def _edge_targets(
+    centres: FloatArray,
+    direction: FloatArray,
+    model: ScanModel,
+    params: ReconParams,
+    degree: int,
+    *,
+    corners: tuple[int, ...] | None = None,
+    end_distance_m: FloatArray | None = None,
+) -> tuple[NDArray[Any], ...]:
     """Nearest point of the local edge curve to each smoothed path point, over the widest stretch
     of edge that does not bend it.
 
@@ -603,7 +634,16 @@ EDGE_WINDOW_FACTORS = (1, 2, 4)
 EDGE_ICI_GAMMA = 1.5
 
 
-def _edge_targets_within(centres, direction, model, params, degree, corners, factor, near_end):
+def _edge_targets_within(
+    centres: FloatArray,
+    direction: FloatArray,
+    model: ScanModel,
+    params: ReconParams,
+    degree: int,
+    corners: tuple[int, ...] | None,
+    factor: int,
+    near_end: NDArray[np.bool_],
+) -> tuple[FloatArray, FloatArray, NDArray[np.intp], FloatArray, FloatArray]:
     """:func:`_edge_targets` with N_S reaching ``factor`` times :data:`EDGE_SCAN_RADII` radii.
 
     A 3-D polynomial (both transverse components of the edge points' principal frame as
@@ -644,7 +684,7 @@ def _edge_targets_within(centres, direction, model, params, degree, corners, fac
     )
     # The scatter about the local curve hides what neighbouring corners share (their slices
     # overlap), so the corners' own precision bounds the target's variance from below.
-    line_variance = gather(model.edges.variance_m2, idx_s, fill_index=len(model.edges))
+    line_variance = gather(model.edges.variances_m2(), idx_s, fill_index=len(model.edges))
     var_from_fits = (ws * line_variance).sum(axis=1) / np.maximum(ws.sum(axis=1), 1e-300)
     var = np.maximum(var_from_scatter, var_from_fits / factor)
     # Within the samples' span, or continued at most CONTINUE_PAST_END_M past its end; the
@@ -670,7 +710,9 @@ def edge_dependence(model: ScanModel) -> float:
     return EDGE_SAMPLES_PER_INDEPENDENT
 
 
-def _surface_targets(centres, model, params):
+def _surface_targets(
+    centres: FloatArray, model: ScanModel, params: ReconParams
+) -> tuple[NDArray[Any], ...]:
     """Each smoothed path point moved along the local surface normal onto a fitted quadric.
 
     Returns
@@ -690,7 +732,9 @@ def _surface_targets(centres, model, params):
 SURFACE_CHUNK = 256
 
 
-def _surface_targets_of(centres, model, params):
+def _surface_targets_of(
+    centres: FloatArray, model: ScanModel, params: ReconParams
+) -> tuple[FloatArray, FloatArray, np.ndarray, FloatArray]:
     face = fit_faces(
         centres,
         model,
@@ -701,9 +745,10 @@ def _surface_targets_of(centres, model, params):
     return face.target_m, face.variance_m2, face.count, face.rms_m
 
 
-def count_of(weights: FloatArray) -> np.ndarray:
+def count_of(weights: FloatArray) -> NDArray[np.intp]:
     """Points with a weight, per row."""
-    return np.count_nonzero(weights, axis=1)
+    counts: NDArray[np.intp] = np.count_nonzero(weights, axis=1)
+    return counts
 
 
 def _poly_slope(x: FloatArray, *, degree: int, scale: float) -> FloatArray:
@@ -724,7 +769,14 @@ SPAN_SLACK_M = 0.0005
 CONTINUED_NOTE_M = 0.0015
 
 
-def _path_variance(smoothed, target, var_target, var_path_fit, supported, half_width):
+def _path_variance(
+    smoothed: FloatArray,
+    target: FloatArray,
+    var_target: FloatArray,
+    var_path_fit: FloatArray,
+    supported: NDArray[np.bool_],
+    half_width: int,
+) -> FloatArray:
     """The smoothed path's variance against the scan's target, drift included (see the module
     docstring): the mean path-to-target discrepancy over a long stretch less the target's own
     variance, and never below the smoothing's own.
@@ -741,10 +793,13 @@ def _path_variance(smoothed, target, var_target, var_path_fit, supported, half_w
         weight, 1e-12
     )
     var_t = np.where(supported, var_target, 0.0)
-    return np.maximum(mean_discrepancy - var_t, var_path_fit)
+    variance: FloatArray = np.maximum(mean_discrepancy - var_t, var_path_fit)
+    return variance
 
 
-def _auto_alpha(var_target, var_path, supported):
+def _auto_alpha(
+    var_target: FloatArray, var_path: FloatArray, supported: NDArray[np.bool_]
+) -> FloatArray:
     """Inverse-variance weight of the path (see the module docstring)."""
     var_t = np.where(supported, var_target, 0.0)
     return var_t / np.maximum(var_t + var_path, 1e-300)

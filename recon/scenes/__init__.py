@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
+from typing import Any
 
 from recon.scenes.base import MM, Face, Scene
 from recon.scenes.noise import HandNoise, coloured_noise, hand_trace, misalignment
@@ -64,7 +65,7 @@ SCENES: dict[str, Callable[..., Scene]] = {
 }
 
 
-def _named(name: str, make: Callable[..., Scene], **kwargs) -> Callable[[int], Scene]:
+def _named(name: str, make: Callable[..., Scene], **kwargs: Any) -> Callable[[int], Scene]:
     def scene(seed: int = 0) -> Scene:
         return replace(make(seed, **kwargs), name=name)
 

@@ -152,7 +152,7 @@ def interpolated_curve(polyline_m: FloatArray) -> tuple[Curve, float]:
     """
     arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(polyline_m, axis=0), axis=1))))
 
-    def curve(s):
+    def curve(s: FloatArray) -> FloatArray:
         return np.column_stack([np.interp(s, arc, polyline_m[:, k]) for k in range(3)])
 
     return curve, float(arc[-1])

@@ -18,10 +18,13 @@ in that tracker frame. What a scene can trace (:data:`TRACE_KINDS`):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from recon.scenes.base import MM, Face, Scene, interpolated_curve
@@ -35,6 +38,9 @@ from recon.scenes.depth_camera import (
 from recon.scenes.noise import HandNoise, hand_trace, misalignment
 from recon.transforms import apply_transform
 from recon.types import FloatArray, Scan
+
+if TYPE_CHECKING:
+    import open3d as o3d
 
 #: What a scene traces (see the module docstring).
 TRACE_KINDS = ("edge", "past_ends", "face")
@@ -80,7 +86,7 @@ class Part:
     curves_m: tuple[FloatArray, ...]
 
     @cached_property
-    def raycasting(self):
+    def raycasting(self) -> o3d.t.geometry.RaycastingScene:
         """Open3D's ray-casting scene of the mesh (inside/outside and closest-point queries)."""
         import open3d as o3d
 
@@ -91,21 +97,24 @@ class Part:
         )
         return scene
 
-    def inside(self, points_m: FloatArray) -> np.ndarray:
+    def inside(self, points_m: FloatArray) -> NDArray[np.bool_]:
         """Whether each point is inside the part (bool, shape (N,))."""
         query = cpu_tensor(np.asarray(points_m).reshape(-1, 3))
-        return self.raycasting.compute_occupancy(query).numpy().astype(bool)
+        occupied: NDArray[np.bool_] = self.raycasting.compute_occupancy(query).numpy().astype(bool)
+        return occupied
 
     def distance(self, points_m: FloatArray) -> FloatArray:
         """Unsigned distance of each point to the part's surface (shape (N,), metres)."""
         query = cpu_tensor(np.asarray(points_m).reshape(-1, 3))
-        return self.raycasting.compute_distance(query).numpy().astype(np.float64)
+        distance: FloatArray = self.raycasting.compute_distance(query).numpy().astype(np.float64)
+        return distance
 
     def closest(self, points_m: FloatArray) -> FloatArray:
         """The closest point of the surface to each point (shape (N, 3))."""
         query = cpu_tensor(np.asarray(points_m).reshape(-1, 3))
         found = self.raycasting.compute_closest_points(query)
-        return found["points"].numpy().astype(np.float64)
+        closest: FloatArray = found["points"].numpy().astype(np.float64)
+        return closest
 
 
 def stood_on_table(
@@ -121,8 +130,9 @@ def stood_on_table(
         rotation[1] *= -1
     centre = 0.5 * (vertices_m.min(axis=0) + vertices_m.max(axis=0))
 
-    def moved(points):
-        return (np.asarray(points, dtype=np.float64) - centre) @ rotation.T
+    def moved(points: FloatArray) -> FloatArray:
+        turned: FloatArray = (np.asarray(points, dtype=np.float64) - centre) @ rotation.T
+        return turned
 
     v = moved(vertices_m)
     lift = np.array([0.0, 0.0, -v[:, 2].min()])
@@ -404,7 +414,9 @@ def faces_seen(case: CurveCase, scan: SimulatedScan) -> tuple[FloatArray, FloatA
     return seen[0] & seen[1], seen[0] | seen[1]
 
 
-def true_corners(truth_m: FloatArray, *, angle_deg: float = 40.0, chord_m: float = 2 * MM):
+def true_corners(
+    truth_m: FloatArray, *, angle_deg: float = 40.0, chord_m: float = 2 * MM
+) -> FloatArray:
     """Points where a curve turns by more than ``angle_deg`` over ``chord_m`` either side."""
     arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(truth_m, axis=0), axis=1))]
     before = np.searchsorted(arc, arc - chord_m).clip(0, len(arc) - 1)
@@ -461,7 +473,13 @@ def touch_faces(part: Part, *, inset_m: float = 4 * MM, count: int = 3) -> tuple
     return tuple(faces)
 
 
-def _face_sampler(part: Part, members, normals, area, inset_m):
+def _face_sampler(
+    part: Part,
+    members: NDArray[np.intp],
+    normals: FloatArray,
+    area: FloatArray,
+    inset_m: float,
+) -> Callable[[np.random.Generator, int], tuple[FloatArray, FloatArray]]:
     v, f = part.vertices_m, part.triangles[members]
     normal = normals[members[0]]
     # The region's border: triangle edges used once within the region.
@@ -475,7 +493,7 @@ def _face_sampler(part: Part, members, normals, area, inset_m):
     border_tree = cKDTree(border_points)
     weights = area[members] / area[members].sum()
 
-    def sample(rng, n):
+    def sample(rng: np.random.Generator, n: int) -> tuple[FloatArray, FloatArray]:
         out = []
         for _ in range(200):
             tri = rng.choice(len(f), size=4 * n, p=weights)
@@ -590,9 +608,10 @@ def cad_scene(
     up_tree = cKDTree(case.truth_m)
     curve, length = interpolated_curve(traced)
 
-    def up(s):
+    def up(s: FloatArray) -> FloatArray:
         _, nearest = up_tree.query(curve(s))
-        return up_vectors[np.minimum(nearest, len(up_vectors) - 1)]
+        vectors: FloatArray = up_vectors[np.minimum(nearest, len(up_vectors) - 1)]
+        return vectors
 
     recording, _ = hand_trace(curve, length, rng, noise=noise, sample_spacing_m=1 * MM, up=up)
     scan = scan_case(case, scene_rng(case, seed, SCAN_STREAM), views=views, camera=camera)

@@ -23,14 +23,19 @@ cloud to a scan frame.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from recon.types import FloatArray
 
+if TYPE_CHECKING:
+    import open3d as o3d
 
-def cpu_tensor(array: np.ndarray, dtype: str = "float32"):
+
+def cpu_tensor(array: np.ndarray, dtype: str = "float32") -> o3d.core.Tensor:
     """``array`` as an Open3D tensor on the CPU, of ``dtype`` (``"float32"`` or ``"uint32"``):
     what the raycasting scene takes (a copy; Open3D's stubs want the dtype and device named)."""
     import open3d as o3d
@@ -240,7 +245,12 @@ def scan_mesh(
     )
 
 
-def _scan_view(scene, view: View, camera: DepthCamera, rng: np.random.Generator):
+def _scan_view(
+    scene: o3d.t.geometry.RaycastingScene,
+    view: View,
+    camera: DepthCamera,
+    rng: np.random.Generator,
+) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
     """One view's returns (mesh frame) with the camera's errors (see the module docstring), the
     true hit points and the triangles hit."""
 

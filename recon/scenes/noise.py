@@ -63,7 +63,8 @@ def coloured_noise(
     kernel /= np.sqrt(np.sum(kernel**2))  # unit variance of the filtered white noise
     pad = len(kernel)
     white = rng.standard_normal((len(arc_m) + 2 * pad, 3))
-    return sigma_m * convolve1d(white, kernel, axis=0, mode="constant")[pad:-pad]
+    filtered: FloatArray = convolve1d(white, kernel, axis=0, mode="constant")[pad:-pad]
+    return sigma_m * filtered
 
 
 def cross_track_frame(

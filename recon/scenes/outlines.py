@@ -9,6 +9,8 @@ starts and stops, so the ends of the path are scored where the scan still define
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from recon.scenes.base import (
@@ -178,11 +180,13 @@ def turning_edge(
     )
 
 
-def _plate_faces(polygon: FloatArray, geometry: dict, length: float) -> tuple[Face, ...]:
+def _plate_faces(
+    polygon: FloatArray, geometry: dict[str, float], length: float
+) -> tuple[Face, ...]:
     """The plate's top (5 mm inside its outline) and the walls below its two legs."""
     inset = 5 * MM
 
-    def top(rng, n):
+    def top(rng: np.random.Generator, n: int) -> tuple[FloatArray, FloatArray]:
         lo, hi = polygon.min(axis=0), polygon.max(axis=0)
         found = np.zeros((0, 2))
         while len(found) < n:
@@ -195,8 +199,10 @@ def _plate_faces(polygon: FloatArray, geometry: dict, length: float) -> tuple[Fa
         points = np.column_stack([found[:n], np.zeros(n)])
         return points, np.tile([0.0, 0.0, 1.0], (n, 1))
 
-    def wall(lo_m, hi_m):
-        def sample(rng, n):
+    def wall(
+        lo_m: float, hi_m: float
+    ) -> Callable[[np.random.Generator, int], tuple[FloatArray, FloatArray]]:
+        def sample(rng: np.random.Generator, n: int) -> tuple[FloatArray, FloatArray]:
             points, headings = outline(rng.uniform(lo_m, hi_m, n), **geometry)
             points[:, 2] = rng.uniform(inset - WALL_HEIGHT_M, -inset, n)
             return points, -_left(headings)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from recon.scenes.base import (
@@ -13,7 +15,7 @@ from recon.scenes.base import (
 )
 from recon.scenes.noise import HandNoise, hand_trace, misalignment
 from recon.transforms import apply_transform
-from recon.types import Scan
+from recon.types import FloatArray, Scan
 
 
 def cylinder_edge(
@@ -39,7 +41,7 @@ def cylinder_edge(
     R, H = radius_m, height_m
     length = np.radians(sweep_deg) * R
 
-    def curve(s):
+    def curve(s: FloatArray) -> FloatArray:
         a = s / R
         return np.column_stack([R * np.cos(a), R * np.sin(a), np.full_like(a, H)])
 
@@ -81,13 +83,13 @@ def cylinder_edge(
 def _cylinder_faces(R: float, H: float) -> tuple[Face, ...]:
     """The cylinder's top (kept 5 mm inside the rim) and its side wall."""
 
-    def top(rng, n):
+    def top(rng: np.random.Generator, n: int) -> tuple[FloatArray, FloatArray]:
         r = (R - 5 * MM) * np.sqrt(rng.uniform(0.05, 1, n))
         a = rng.uniform(0, 2 * np.pi, n)
         points = np.column_stack([r * np.cos(a), r * np.sin(a), np.full(n, H)])
         return points, np.tile([0.0, 0.0, 1.0], (n, 1))
 
-    def side(rng, n):
+    def side(rng: np.random.Generator, n: int) -> tuple[FloatArray, FloatArray]:
         a = rng.uniform(0, 2 * np.pi, n)
         normals = np.column_stack([np.cos(a), np.sin(a), np.zeros(n)])
         points = R * normals + np.outer(rng.uniform(5 * MM, H - 5 * MM, n), [0.0, 0.0, 1.0])
@@ -118,7 +120,7 @@ def polynomial_ridge(
     crest = np.column_stack([xs, 0.5 * c * xs**2, np.zeros_like(xs)])
     arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(crest, axis=0), axis=1))))
 
-    def curve(s):
+    def curve(s: FloatArray) -> FloatArray:
         return np.column_stack([np.interp(s, arc, crest[:, k]) for k in range(3)])
 
     base = HandNoise()
@@ -163,8 +165,8 @@ def polynomial_ridge(
 def _ridge_faces(c: float, half_length_m: float, width_m: float) -> tuple[Face, ...]:
     """The ridge's two 45-degree faces, kept 3 mm off the crest and the far borders."""
 
-    def face(sign):
-        def sample(rng, n):
+    def face(sign: float) -> Callable[[np.random.Generator, int], tuple[FloatArray, FloatArray]]:
+        def sample(rng: np.random.Generator, n: int) -> tuple[FloatArray, FloatArray]:
             x = rng.uniform(-half_length_m, half_length_m, n)
             d = sign * rng.uniform(3 * MM, width_m - 3 * MM, n)
             points = np.column_stack([x, 0.5 * c * x**2 + d, -np.abs(d)])
@@ -201,10 +203,10 @@ def flat_liftoff(
     arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))))
     length = float(arc[-1])
 
-    def curve(s):
+    def curve(s: FloatArray) -> FloatArray:
         return np.column_stack([np.interp(s, arc, line[:, k]) for k in range(3)])
 
-    def lift(s):
+    def lift(s: FloatArray) -> FloatArray:
         bump = lift_m * np.exp(-0.5 * ((s - 0.55 * length) / lift_width_m) ** 2)
         return np.column_stack([np.zeros_like(s), np.zeros_like(s), bump])
 
@@ -243,7 +245,7 @@ def flat_liftoff(
     )
 
 
-def _plate_top(rng: np.random.Generator, n: int):
+def _plate_top(rng: np.random.Generator, n: int) -> tuple[FloatArray, FloatArray]:
     """Points on the plate (z = 0), kept 10 mm inside its borders."""
     points = np.column_stack(
         [rng.uniform(-90 * MM, 90 * MM, n), rng.uniform(-30 * MM, 30 * MM, n), np.zeros(n)]
@@ -261,7 +263,7 @@ def free_curve(seed: int = 0) -> Scene:
     )
     arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))))
 
-    def curve(s):
+    def curve(s: FloatArray) -> FloatArray:
         return np.column_stack([np.interp(s, arc, line[:, k]) for k in range(3)])
 
     recording, truth = hand_trace(curve, float(arc[-1]), rng, noise=HandNoise())
@@ -294,11 +296,12 @@ def box_corner(
     corner = np.array([100 * MM, 0.0, 0.0])
     leg_a, leg_b = 80 * MM, 60 * MM
 
-    def curve(s):
+    def curve(s: FloatArray) -> FloatArray:
         s = np.asarray(s)
         first = corner + np.outer(np.minimum(s, leg_a) - leg_a, [1.0, 0.0, 0.0])
         second = np.outer(np.clip(s - leg_a, 0.0, None), [0.0, 1.0, 0.0])
-        return first + second
+        points: FloatArray = first + second
+        return points
 
     recording, truth = hand_trace(curve, leg_a + leg_b, rng, noise=HandNoise())
     X, Y, Z = 100 * MM, 80 * MM, 40 * MM
@@ -345,19 +348,19 @@ def _box_faces(X: float, Y: float, Z: float) -> tuple[Face, ...]:
     """The box's top, front (y = 0) and right (x = X) faces, kept 5 mm inside their borders."""
     inset = 5 * MM
 
-    def top(rng, n):
+    def top(rng: np.random.Generator, n: int) -> tuple[FloatArray, FloatArray]:
         points = np.column_stack(
             [rng.uniform(inset, X - inset, n), rng.uniform(inset, Y - inset, n), np.zeros(n)]
         )
         return points, np.tile([0.0, 0.0, 1.0], (n, 1))
 
-    def front(rng, n):
+    def front(rng: np.random.Generator, n: int) -> tuple[FloatArray, FloatArray]:
         points = np.column_stack(
             [rng.uniform(inset, X - inset, n), np.zeros(n), rng.uniform(inset - Z, -inset, n)]
         )
         return points, np.tile([0.0, -1.0, 0.0], (n, 1))
 
-    def right(rng, n):
+    def right(rng: np.random.Generator, n: int) -> tuple[FloatArray, FloatArray]:
         points = np.column_stack(
             [np.full(n, X), rng.uniform(inset, Y - inset, n), rng.uniform(inset - Z, -inset, n)]
         )
@@ -391,7 +394,7 @@ def long_edge(
     line = np.column_stack([radius * np.cos(theta), radius * np.sin(theta), np.zeros_like(theta)])
     arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))))
 
-    def curve(s):
+    def curve(s: FloatArray) -> FloatArray:
         return np.column_stack([np.interp(s, arc, line[:, k]) for k in range(3)])
 
     recording, truth = hand_trace(
@@ -472,7 +475,7 @@ def serpentine_plate(
     line = np.concatenate(pieces)
     arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))))
 
-    def curve(s):
+    def curve(s: FloatArray) -> FloatArray:
         return np.column_stack([np.interp(s, arc, line[:, k]) for k in range(3)])
 
     recording, truth = hand_trace(

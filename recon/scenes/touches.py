@@ -182,18 +182,18 @@ def touches_at(
 
 
 def _record(
-    points,
-    normals,
-    names,
-    rng,
+    points: FloatArray,
+    normals: FloatArray,
+    names: tuple[str, ...],
+    rng: np.random.Generator,
     *,
-    pivot_error=None,
-    rest_error=None,
-    tip_noise_m,
-    dwell_s,
-    rate_hz,
-    lift_m,
-    speed_m_s,
+    pivot_error: FloatArray | None = None,
+    rest_error: FloatArray | None = None,
+    tip_noise_m: float,
+    dwell_s: tuple[float, float],
+    rate_hz: float,
+    lift_m: float,
+    speed_m_s: float,
 ) -> Touches:
     """Rest on each point in turn (off it by the pivot error turned with the pen, or by
     ``rest_error``), moving between them through the air."""
@@ -214,7 +214,9 @@ def _record(
             samples.append(_move(rest, n, points[k + 1], normals[k + 1], lift_m, speed_m_s * dt))
     positions = np.concatenate(samples)
     return Touches(
-        recording=Recording(points_m=positions, t_s=np.arange(len(positions)) * dt),
+        recording=Recording(
+            points_m=positions, t_s=np.arange(len(positions), dtype=np.float64) * dt
+        ),
         points_m=np.asarray(points),
         normals=np.asarray(normals),
         faces=tuple(names),
@@ -225,7 +227,14 @@ def _unit(v: FloatArray) -> FloatArray:
     return v / np.linalg.norm(v)
 
 
-def _move(a, normal_a, b, normal_b, lift_m, step_m) -> FloatArray:
+def _move(
+    a: FloatArray,
+    normal_a: FloatArray,
+    b: FloatArray,
+    normal_b: FloatArray,
+    lift_m: float,
+    step_m: float,
+) -> FloatArray:
     """Up from ``a`` along its normal, across, down onto ``b`` along its normal (excluding both
     ends), in steps of about ``step_m``."""
     waypoints = [a, a + lift_m * normal_a, b + lift_m * normal_b, b]

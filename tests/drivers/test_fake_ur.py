@@ -43,6 +43,9 @@ from tests.motion_fixtures import base_from_tracker, line_process
 fake_ur_process = fake_ur_fixture.fake_ur_process
 fake_ur = fake_ur_fixture.fake_ur
 
+# The fake controller runs in real time: seconds per test (make test-fast leaves them out).
+pytestmark = pytest.mark.slow
+
 UR_RTDE_VERSION = "1.6.5"
 
 # A stand-in control script with the markers and layout the fake relies on (written for these

@@ -27,6 +27,9 @@ from tests.drivers import fake_ur_fixture
 fake_ur_process = fake_ur_fixture.fake_ur_process
 fake_ur = fake_ur_fixture.fake_ur
 
+# The fake controller runs in real time: seconds per test (make test-fast leaves them out).
+pytestmark = pytest.mark.slow
+
 ARM = kinematics.model("ur5e")
 HOME = np.array(HOME_RAD)
 TCP = np.array([0.0, 0.0, 0.12, 0.0, 0.0, 0.0])  # a 12 cm tool along the flange's z

@@ -176,6 +176,7 @@ def test_the_server_speaks_natnet_to_a_plain_socket():
 # -- the source ------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(60)
 def test_every_frame_arrives_with_its_pose_and_lost_frames_are_flagged_invalid():
     rec = synthetic(3.0)
@@ -291,6 +292,7 @@ def test_close_is_clean_idempotent_and_ends_a_running_iteration():
         server.stop()
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(60)
 def test_a_parent_holding_the_gil_for_2_s_loses_no_frame():
     rec = synthetic(4.0)
@@ -360,6 +362,7 @@ def test_the_source_is_registered():
 # -- recording to a file ---------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(60)
 def test_record_writes_the_tracked_frames_until_the_stream_ends(tmp_path):
     rec = synthetic(1.5)
@@ -385,6 +388,7 @@ def test_record_writes_the_tracked_frames_until_the_stream_ends(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["pen.csv"]  # no temporary left behind
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(60)
 def test_record_stops_after_its_duration_or_on_the_stop_event(tmp_path):
     rec = synthetic(2.0)

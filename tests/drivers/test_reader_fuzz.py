@@ -16,6 +16,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from service.settings import Settings
 
 REPO = Path(__file__).resolve().parents[2]
@@ -23,6 +25,7 @@ REPO = Path(__file__).resolve().parents[2]
 EXAMPLES = 120
 
 
+@pytest.mark.slow
 def test_every_reader_reads_or_refuses_fuzzed_input_within_the_memory_limit(tmp_path):
     memory_mb = Settings.model_fields["max_parse_memory_mb"].default
     run = subprocess.run(

@@ -40,7 +40,9 @@ UR_TEST_TIMEOUT_S = 120
 
 def _backends():
     yield pytest.param("sim", id="sim")
-    yield pytest.param("ur_rtde_fake", id="ur_rtde-fake", marks=pytest.mark.timeout(60))
+    yield pytest.param(
+        "ur_rtde_fake", id="ur_rtde-fake", marks=[pytest.mark.timeout(60), pytest.mark.slow]
+    )
     host = os.environ.get("TEACHPATH_UR_HOST")
     yield pytest.param(
         "ur_rtde",

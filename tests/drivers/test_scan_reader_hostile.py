@@ -260,6 +260,7 @@ def far_pose_zip(path: Path, distance_m: float) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_rgbd_zips_that_raised_unexpected_exceptions_are_refused_with_what_to_do(tmp_path):
     huge = "1" + "0" * 3000  # JSON integer of 3001 digits: float() overflows
     cases = {

@@ -495,6 +495,7 @@ def test_fused_frames_cover_the_surface_within_a_voxel(sequence, fused):
     assert any("TSDF" in note for note in fused.notes)
 
 
+@pytest.mark.slow
 def test_points_fusion_is_exact_to_the_quantisation(sequence):
     result = read_scan(sequence[0], options={"fusion": "points", "voxel_m": 0.001})
     assert surface_distance(result.scan.points_m).max() < max_quantisation_error_m(
@@ -505,6 +506,7 @@ def test_points_fusion_is_exact_to_the_quantisation(sequence):
     assert result.scan.normals is None
 
 
+@pytest.mark.slow
 def test_a_zip_of_the_folder_reads_like_the_folder(sequence, fused, tmp_path):
     archive = zip_folder(sequence[0], tmp_path / "scan.zip")
     via_path = read_scan(archive)
@@ -860,6 +862,7 @@ BAD_BAGS = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(BAD_BAGS))
 def test_bad_bags_are_refused_with_a_reason(tmp_path, capfd, case):
     content, message = BAD_BAGS[case]

@@ -114,6 +114,7 @@ def test_a_dial_value_no_one_could_set_counts_as_a_pause(dial):
     assert cursor.fraction == 0.0 and cursor.position == 0.0
 
 
+@pytest.mark.slow
 def test_a_pause_left_for_too_long_is_reported():
     cursor = PlanCursor(_cosine_plan(), PERIOD_S, QDD_MAX, start_fraction=0.0)
     for _ in range(int(MAX_PAUSE_S / PERIOD_S) + 2):
@@ -148,6 +149,7 @@ def test_the_sim_at_half_speed_takes_twice_as_long_and_records_the_plans_samples
     assert np.abs(backend.status().q_rad - trajectory.q_rad[-1]).max() < 1e-3  # settled on it
 
 
+@pytest.mark.slow
 def test_the_sim_pauses_on_the_path_and_resumes_when_told(sim, tmp_path):
     from drivers.robot.journal import read_journal_with_plan
 

@@ -21,7 +21,8 @@ from drivers.robot.base import RobotState
 from drivers.robot.ur_rtde import URRtdeBackend, URRtdeConfig
 
 #: These tests drive ur_rtde, which waits up to 300 s for a command: bound them.
-pytestmark = pytest.mark.timeout(60)
+# Against the fake controller in real time: make test-fast leaves them out.
+pytestmark = [pytest.mark.timeout(60), pytest.mark.slow]
 
 
 def test_an_unreachable_controller_is_a_clear_error():

@@ -153,6 +153,7 @@ def test_the_stop_event_reaches_a_busy_server(client):
         client.stop_event.clear()
 
 
+@pytest.mark.slow
 def test_a_second_caller_waits_within_its_own_bound(client):
     busy = threading.Thread(target=client.call, args=(Sleep(2.0),), kwargs={"timeout_s": 30})
     busy.start()

@@ -40,6 +40,7 @@ def results():
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", EDGE_SCENES)
 def test_with_the_trace_alone_the_method_keeps_within_a_millimetre_ends_included(results, name):
     """Registered frame (where the registered scan puts the feature): the method's own error,
@@ -49,6 +50,7 @@ def test_with_the_trace_alone_the_method_keeps_within_a_millimetre_ends_included
         assert result.registered.ends_max_m < 1.0 * MM, (name, seed)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["box_corner", "polynomial_ridge", "corner_60", "bend_40"])
 def test_with_touches_the_robot_gets_the_feature_within_about_half_a_millimetre(results, name):
     """Tracker frame (what the robot gets): touches keep the hand's drift out of the scanner's
@@ -62,6 +64,7 @@ def test_with_touches_the_robot_gets_the_feature_within_about_half_a_millimetre(
     assert max(r.tracker.max_m for r in done) < 0.9 * MM
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", [*EDGE_SCENES, "cylinder_edge", "flat_liftoff"])
 def test_never_worse_than_the_trace(results, name):
     """Every seed: with touches or a calibrated scanner the result is closer to the truth than
@@ -81,6 +84,7 @@ def test_never_worse_than_the_trace(results, name):
             assert result.registered.mean_m < result.raw_registered.mean_m, (name, seed)
 
 
+@pytest.mark.slow
 def test_the_lift_off_is_gone_and_the_height_comes_from_the_scan(results):
     """The plate: the trace lifts 6 mm off; with a calibrated scanner the height above the
     plate stays within 0.6 mm (the scan's own correlated noise, 0.3 mm, is followed), with
@@ -114,6 +118,7 @@ def test_without_a_scan_as_good_as_the_best_savitzky_golay_within_a_few_percent(
     assert np.median(ratios) < 1.05 and max(ratios) < 1.20, ratios
 
 
+@pytest.mark.slow
 def test_three_fused_demonstrations_with_touches_come_within_a_quarter_of_the_traces(results):
     """Three demonstrations fused, the scanner registered by touches: at median the mean error
     is under 0.25 of the demonstrations' (tracker frame), and no seed is worse than with one

@@ -508,6 +508,7 @@ def _brute_force(arm, q, T_ft, tool, points, planes, boxes):
     return best, 0.25e-3  # the sampled boxes overestimate by at most this
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("voxel_m", [0.0, 0.003])
 def test_agrees_with_an_independent_brute_force_within_the_stated_bound(voxel_m):
     arm = model("ur5e")
@@ -874,6 +875,7 @@ def test_a_path_under_the_table_is_refused_whatever_the_contact():
 # --- the arm against itself --------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_segment_segment_closest_points_match_a_dense_search():
     from recon.collision import segment_segment_closest
 
@@ -914,6 +916,7 @@ def _self_clearance(arm, q, T_ft, tool_radius_m):
     return best
 
 
+@pytest.mark.slow
 def test_the_arm_folding_onto_itself_is_refused_where_it_comes_within_the_margin():
     """Nothing checked the arm against itself: folding the elbow past 150 deg swings wrist 3
     into the shoulder. Now the tool and the wrists are checked against the base, the shoulder

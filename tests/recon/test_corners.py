@@ -115,6 +115,7 @@ def test_the_scan_places_the_corner_where_its_edges_meet(name):
         np.testing.assert_allclose(recon.points_m[second.start], corner.point_m, atol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("radius_mm", [15, 40])
 def test_rounded_bends_are_never_split_with_or_without_a_scan(radius_mm):
     for with_scan in (True, False):

@@ -91,6 +91,7 @@ def test_demonstrations_of_different_paths_are_refused():
         fuse_traces([a], spacing_m=1e-3)
 
 
+@pytest.mark.slow
 def test_three_fused_demonstrations_reconstruct_better_than_one():
     scene = scenes.cylinder_edge(1)
     traces = [scene.recording, *scene.traces(2, 1)]

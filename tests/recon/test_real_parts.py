@@ -41,6 +41,7 @@ def scored(request):
     return {v: score(scene, v, seed) for v in ("known", "trace", "path")}
 
 
+@pytest.mark.slow
 def test_the_curves_are_ones_the_scan_defines():
     """The chosen curves are traceable and the simulated scan shows both faces of each (what
     the bars below are for); the benchmark reports the others apart."""
@@ -53,6 +54,7 @@ def test_the_curves_are_ones_the_scan_defines():
         assert choice.scan_defines_edge, (part, index, choice.defined)
 
 
+@pytest.mark.slow
 def test_with_the_scanner_pose_known_the_path_is_within_a_millimetre(scored):
     known = scored["known"]
     assert not known.refused, known.refused
@@ -63,6 +65,7 @@ def test_with_the_scanner_pose_known_the_path_is_within_a_millimetre(scored):
     assert known.covered_2sigma >= 0.90, known
 
 
+@pytest.mark.slow
 def test_registered_from_the_trace_never_worse_than_the_trace(scored):
     trace = scored["trace"]
     assert not trace.refused, trace.refused
@@ -71,6 +74,7 @@ def test_registered_from_the_trace_never_worse_than_the_trace(scored):
     assert trace.covered_2sigma >= 0.90, trace
 
 
+@pytest.mark.slow
 def test_path_only_is_no_worse_than_the_trace(scored):
     path = scored["path"]
     assert path.ratio < 1.0, path
@@ -99,6 +103,7 @@ def past_ends():
     return scene, out
 
 
+@pytest.mark.slow
 def test_past_the_feature_s_ends_no_jog_and_the_summary_says_what_was_done(past_ends):
     """Where the trace runs on past the edge's end, the end is continued along the edge's line
     (a bounded length) or left to the trace, never pulled sideways, and the summary names which

@@ -49,6 +49,7 @@ def trace_on(scan, seed: int) -> np.ndarray:
     return on_scan + rng.normal(0.0, TRACE_NOISE_M / np.sqrt(3), on_scan.shape)
 
 
+@pytest.mark.slow
 def test_a_trace_lying_on_a_real_scan_fragment_is_left_where_it_is(fragment):
     """Before the descent test, 3-17 mm moves (median 7.4 mm) on these traces; now the
     registration moves them by about the hand noise (a few seeds slide ~2 mm along the
@@ -73,6 +74,7 @@ def test_a_trace_lying_on_a_real_scan_fragment_is_left_where_it_is(fragment):
     assert max(moved_max_m) < 4e-3, moved_max_m
 
 
+@pytest.mark.slow
 def test_a_registered_trace_fits_the_raw_scan_no_worse_than_where_it_lies(fragment):
     """Judged independently of the ICP's own model (voxel averages and their normals): the RMS
     distance of the trace to the raw scan's tangent planes (normals by Open3D), once

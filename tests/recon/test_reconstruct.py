@@ -90,6 +90,7 @@ def test_mirrored_input_gives_mirrored_output(box, method):
     assert np.abs(_mirror(mirrored.points_m) - original.points_m).max() < 3e-5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["paper", "anchored"])
 def test_a_rigid_motion_of_everything_moves_the_result_with_it(cylinder, method):
     T = np.eye(4)

@@ -59,6 +59,7 @@ def test_the_default_plan_keeps_every_joint_above_the_table(cylinder):
     assert plan.collision is not None and plan.collision.clear
 
 
+@pytest.mark.slow
 def test_elbow_down_over_the_demo_cylinder_is_refused_naming_why(cylinder):
     # Against the table alone: the elbow goes under it.
     with pytest.raises(CollisionError) as refused:
@@ -74,6 +75,7 @@ def test_elbow_down_over_the_demo_cylinder_is_refused_naming_why(cylinder):
     assert refused.value.detail["obstacle"] in ("mounting plane", "scan")
 
 
+@pytest.mark.slow
 def test_a_tool_tilted_into_the_workpiece_is_refused_with_its_link_and_place():
     """A flat plate: the tool tilted 60 deg sideways, 30 mm thick, lies on the plate."""
     scene = scenes.flat_liftoff(0)
@@ -104,6 +106,7 @@ def test_a_tool_tilted_into_the_workpiece_is_refused_with_its_link_and_place():
     assert "tool" in str(refused.value) and "scan" in str(refused.value)
 
 
+@pytest.mark.slow
 def test_a_far_start_is_planned_shown_and_dry_run_with_its_duration(cylinder):
     near = _plan(cylinder)
     runs = near.trajectory.runs()

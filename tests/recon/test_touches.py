@@ -87,6 +87,7 @@ def test_a_tip_that_wanders_while_resting_is_named_and_left_out():
     np.testing.assert_allclose(dwells[0].point_m, [0.05, 0, 0], atol=0.02 * MM)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["box_corner", "corner_60", "bend_40"])
 def test_touches_recover_the_scanner_against_ground_truth(name):
     """Six touches on three faces, tip noise 0.07 mm, pivot error 0.1 mm, a scanner misplaced
@@ -290,6 +291,7 @@ def test_touches_that_leave_too_much_at_the_path_are_refused_with_the_millimetre
     assert message.endswith("or do without the touches (the scan is then registered to the trace)")
 
 
+@pytest.mark.slow
 def test_what_the_touches_leave_at_the_path_agrees_with_a_monte_carlo():
     """Independent check of the figure: register the same 3-2-1 layout 60 times, each with fresh
     tip error (0.1 mm per axis, what the registration assumes) and a freshly scanned box

@@ -48,6 +48,7 @@ def _pose(p, rotvec):
     return T
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tolerance_m", [1e-4, 5e-4, 2e-3])
 def test_every_planned_sample_is_within_the_tolerance(arc_trajectory, tolerance_m):
     arm = kinematics.model("ur5e")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import json
 
 import pytest
@@ -47,7 +48,10 @@ def call(app, *, method="POST", headers=(), chunks=(b"{}",)):
         "path": "/sessions",
         "headers": [(k.lower().encode(), v.encode()) for k, v in headers],
     }
-    asyncio.run(app(scope, receive, send))
+    # In a thread of its own: in a process that ran a browser test before, Playwright's sync
+    # API leaves an event loop running in the main thread, where asyncio.run() refuses to start.
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        pool.submit(asyncio.run, app(scope, receive, send)).result()
     status = next(m["status"] for m in sent if m["type"] == "http.response.start")
     body = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
     return status, body, received
