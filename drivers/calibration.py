@@ -26,9 +26,9 @@ import numpy as np
 from drivers.errors import InputFileError, clipped
 from drivers.files import atomic_path
 from drivers.units import metres_per
+from recon.arrays import FloatArray
 from recon.calibrate import MAX_TIP_OFFSET_M
 from recon.transforms import check_rigid
-from recon.types import FloatArray
 
 
 @dataclass(frozen=True)

@@ -16,17 +16,10 @@ import numpy as np
 
 from drivers.errors import InputFileError, TrajectoryMismatchError
 from drivers.files import atomic_path, csv_rows
-from recon.types import (
-    PER_POINT_FIELDS,
-    FloatArray,
-    JointTrajectory,
-    Phase,
-    PointMode,
-    PointReason,
-    ReconstructedPath,
-    Reconstruction,
-    piece_labels,
-)
+from recon.arrays import FloatArray, piece_labels
+from recon.paths import Phase, ReconstructedPath
+from recon.results import PER_POINT_FIELDS, PointMode, PointReason, Reconstruction
+from recon.trajectory import JointTrajectory
 
 QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw")
 #: Columns of a trajectory file (the contract of ``teachpath plan``).

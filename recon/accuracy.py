@@ -29,13 +29,16 @@ from typing import Any
 
 import numpy as np
 
+from recon.arrays import FloatArray
 from recon.errors import ReconError
+from recon.inputs import Recording
 from recon.metrics import PathScore, best_savitzky_golay, score_path
+from recon.recon_params import ReconParams
 from recon.reconstruct import reconstruct
+from recon.results import Reconstruction
 from recon.scenes import Scene, touch_recording
 from recon.touches import TouchRegistration, register_touches, touches_in
 from recon.transforms import apply_transform, invert_transform
-from recon.types import FloatArray, ReconParams, Reconstruction, Recording
 
 MM = 1e-3
 #: The registered frame's errors are measured against the feature run on this far past its ends.

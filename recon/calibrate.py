@@ -19,9 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from recon.arrays import FloatArray
 from recon.errors import DegenerateInputError
 from recon.transforms import apply_transform
-from recon.types import FloatArray
 
 #: The pen must turn through at least this much (about two different axes) for a pivot fit.
 MIN_PIVOT_ROTATION_DEG = 15.0

@@ -1,6 +1,6 @@
 """Classification of path segments: does a segment follow an edge, a surface, or nothing?
 
-:class:`SegmentKind` is a string enum, so a :class:`recon.types.Segment` written to JSON (the
+:class:`SegmentKind` is a string enum, so a :class:`recon.results.Segment` written to JSON (the
 service stores ``dataclasses.asdict(segment)``) reads ``"edge"``, ``"surface"`` or ``"path"``,
 and compares equal to those strings.
 """
@@ -14,8 +14,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from recon.arrays import FloatArray
 from recon.fitting import gather
-from recon.types import FloatArray, ReconParams
+from recon.recon_params import ReconParams
 
 if TYPE_CHECKING:
     # For the annotation only: Segment imports this module for SegmentKind, which should not

@@ -134,10 +134,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from recon.arrays import FloatArray, piece_labels, piece_slices
 from recon.kinematics import URModel, joint_frames
 from recon.kinematics import model as ur_model
+from recon.paths import Phase
 from recon.transforms import check_rigid, invert_transform
-from recon.types import FloatArray, Phase
 
 
 class ObstacleKind(enum.IntEnum):
@@ -855,7 +856,7 @@ class ContactZone:
         Tolerance of the contact around the path (the tool's tip radius and the margin are added,
         see the module docstring).
     piece : ndarray of shape (N,), int, or None
-        The path's pieces (0, 1, ... in order; see :func:`recon.types.piece_labels`): the zone
+        The path's pieces (0, 1, ... in order; see :func:`recon.arrays.piece_labels`): the zone
         follows each piece and never the untraced stretch between two. None: one piece.
     """
 
@@ -865,7 +866,6 @@ class ContactZone:
     piece: NDArray[np.int64] | None = None
 
     def __post_init__(self) -> None:
-        from recon.types import piece_labels
 
         p = np.array(self.path_m, dtype=np.float64)
         if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0 or not np.all(np.isfinite(p)):
@@ -931,7 +931,6 @@ class ContactZone:
     def points_and_axes(self, spacing_m: float) -> tuple[FloatArray, FloatArray]:
         """Points along each piece at most ``spacing_m`` apart (K, 3), and the tool's axis at
         each (K, 3, unit; interpolated between the path's points)."""
-        from recon.types import piece_slices
 
         assert self.piece is not None  # labelled by __post_init__
         points, axes = [], []
@@ -1417,7 +1416,7 @@ def _travel_windows(
     return out
 
 
-def check_motion(  # noqa: C901
+def check_motion(
     arm: URModel | str,
     q_rad: FloatArray,
     phase: NDArray[np.int8],
@@ -1479,19 +1478,7 @@ def check_motion(  # noqa: C901
     """
     arm = _arm(arm)
     q = _as_q(q_rad)
-    M = len(q)
-    phase = np.asarray(phase)
-    if phase.shape != (M,) or not np.issubdtype(phase.dtype, np.integer):
-        raise ValueError(f"phase must be an integer array of shape ({M},), got {phase.shape}")
-    known = [int(p) for p in Phase]
-    if not np.isin(phase, known).all():
-        bad = sorted(set(np.unique(phase).tolist()) - set(known))
-        raise ValueError(f"phase has unknown values {bad}; known: {known} (see Phase)")
-    phase = phase.astype(np.int8)
-    if t_s is not None:
-        t_s = np.asarray(t_s, dtype=np.float64)
-        if t_s.shape != (M,) or not np.all(np.isfinite(t_s)):
-            raise ValueError(f"t_s must be finite with shape ({M},), got {t_s.shape}")
+    phase, t_s = _checked_phase_and_times(phase, t_s, len(q))
     if not (np.isfinite(margin_m) and margin_m > 0):
         raise ValueError(f"margin_m must be > 0, got {margin_m}")
     if not (0 < motion_bound_fraction <= 1):
@@ -1503,6 +1490,165 @@ def check_motion(  # noqa: C901
     T_ft = check_rigid(T_flange_tcp, name="T_flange_tcp")
     tool = CapsuleTool() if tool is None else tool
 
+    # Configurations to check: at most step_m apart in the motion metric.
+    step_m = 2.0 * motion_bound_fraction * margin_m
+    sweep = _sweep(arm, q, T_ft, tool, step_m)
+    fine_m = motion_bound_fraction * margin_m / 2  # spacing of the fine scan queries
+    refine_below = margin_m + 2 * step_m + _REFINE_EXTRA_M
+    horizon_m = max(horizon_m, refine_below)  # exact up to exact_below_m, whatever the horizon
+    worst_tolerance = 2 * motion_bound_fraction * margin_m + fine_m / 2 + cell.scan_resolution_m
+    exemption = _contact_exemption(
+        arm, q, phase, T_ft, tool, cell, contact_zone, sweep, margin_m, worst_tolerance, workers
+    )
+
+    # Clearances at the checked configurations: the mounting plane, planes and boxes, the arm
+    # against itself; then the scan, in full and (for the exempt columns) without the contact.
+    obstacles = _Obstacles()
+    full = _Nearest.empty(len(sweep.u), len(sweep.names))
+    mounting_tool = _mounting_clearances(
+        full, obstacles, sweep, cell, T_ft, tool, contact_zone, exemption.contact_radius_m
+    )
+    for plane in cell.planes:
+        c, p = capsule_halfspace_clearance(sweep.ends, sweep.radii, plane)
+        full.take(c, p, obstacles.add(plane.name, ObstacleKind.PLANE))
+    for box in cell.boxes:
+        c, p = capsule_box_clearance(sweep.ends, sweep.radii, box, far_m=horizon_m)
+        full.take(c, p, obstacles.add(box.name, ObstacleKind.BOX))
+    self_tol = _self_clearances(full, obstacles, sweep) if self_check else 0.0
+    exempt = full.copy()
+    if mounting_tool is not None:
+        # The whole tool against the mounting plane everywhere; where the tip is exempt, the
+        # tool without its tip (see _tip_cut_mounting).
+        c, p, (c_cut, p_cut), k_mounting, tool_cols = mounting_tool
+        full.take(c, p, k_mounting, tool_cols)
+        exempt.take(c_cut, p_cut, k_mounting, tool_cols)
+    scan_tol = 0.0
+    if cell.has_scan:
+        scan_tol = cell.scan_resolution_m + fine_m / 2
+        exempt = _scan_clearances(
+            full, exempt, obstacles, sweep, cell, exemption, horizon_m, refine_below, fine_m,
+            workers,
+        )  # fmt: skip
+
+    bound, gov, use_ex = _period_bounds(sweep, exemption, full, exempt)
+    M, L = bound.shape
+    every_col = np.arange(L)[None, :]
+    obst = np.where(use_ex, exempt.obstacle[gov, every_col], full.obstacle[gov, every_col])
+    nearest = np.argmin(bound, axis=1)
+    clearance = bound[np.arange(M), nearest]
+    kinds = np.array([int(k) for k in obstacles.kinds] + [int(ObstacleKind.NONE)], dtype=np.int8)
+    nearest_kind = kinds[obst[np.arange(M), nearest]]
+    first = None
+    bad = clearance < margin_m
+    if bad.any():
+        s = int(np.argmax(bad))
+        j, g = int(nearest[s]), int(gov[s, nearest[s]])
+        k = int(obst[s, j])
+        pt = (exempt if use_ex[s, j] else full).point_m[g, j]
+        first = Collision(
+            sample=s,
+            t_s=float(t_s[s]) if t_s is not None else None,
+            phase=Phase(int(phase[s])),
+            link=sweep.names[j],
+            obstacle=obstacles.names[k] if k >= 0 else "",
+            kind=obstacles.kinds[k] if k >= 0 else ObstacleKind.NONE,
+            point_m=np.array(pt),
+            clearance_m=float(clearance[s]),
+            margin_m=margin_m,
+        )
+    empty = bound >= _BIG / 2
+    bound[empty] = np.inf
+    clearance = np.where(clearance >= _BIG / 2, np.inf, clearance)
+    J = len(sweep.u)
+    motion_bound = float(np.diff(sweep.v).max()) / 2 if J > 1 else 0.0
+    u = sweep.u
+    for a in (bound, clearance, nearest, nearest_kind, u, phase):
+        a.setflags(write=False)
+    return CollisionReport(
+        names=sweep.names,
+        clearance_m=clearance,
+        link_clearance_m=bound,
+        nearest_link=nearest,
+        nearest_kind=nearest_kind,
+        first_collision=first,
+        margin_m=margin_m,
+        motion_bound_m=motion_bound,
+        tolerance_m=2 * motion_bound + max(scan_tol, self_tol),
+        exact_below_m=refine_below - step_m,
+        scan_resolution_m=cell.scan_resolution_m,
+        contact_radius_m=exemption.contact_radius_m,
+        exempt_links=tuple(n for n, e in zip(sweep.names, exemption.columns, strict=True) if e),
+        checked_samples=u,
+        phase=phase,
+        t_s=t_s,
+        obstacles=cell.obstacle_names(),
+    )
+
+
+# --- the steps of check_motion -----------------------------------------------------------------
+
+
+def _checked_phase_and_times(
+    phase: NDArray[np.int8], t_s: FloatArray | None, M: int
+) -> tuple[NDArray[np.int8], FloatArray | None]:
+    """``phase`` (M,) as known :class:`Phase` values in int8 and ``t_s`` (M,) as finite floats,
+    or a ValueError naming what is wrong."""
+    phase = np.asarray(phase)
+    if phase.shape != (M,) or not np.issubdtype(phase.dtype, np.integer):
+        raise ValueError(f"phase must be an integer array of shape ({M},), got {phase.shape}")
+    known = [int(p) for p in Phase]
+    if not np.isin(phase, known).all():
+        bad = sorted(set(np.unique(phase).tolist()) - set(known))
+        raise ValueError(f"phase has unknown values {bad}; known: {known} (see Phase)")
+    if t_s is not None:
+        t_s = np.asarray(t_s, dtype=np.float64)
+        if t_s.shape != (M,) or not np.all(np.isfinite(t_s)):
+            raise ValueError(f"t_s must be finite with shape ({M},), got {t_s.shape}")
+    return phase.astype(np.int8), t_s
+
+
+@dataclass(frozen=True)
+class _Sweep:
+    """The motion as the check sees it: L capsules (the arm's links, then the tool's) placed at
+    J checked configurations between M samples.
+
+    Attributes
+    ----------
+    names : tuple of L str
+    frame_idx : ndarray of shape (L,), int
+        The DH frame each capsule is fixed in (6: the flange).
+    local : ndarray of shape (L, 2, 3), metres
+        Each capsule's segment in its frame.
+    radii : ndarray of shape (L,), metres
+    C : ndarray of shape (M,), metres
+        The motion metric at the samples (how far a point of the arm can have moved).
+    u : ndarray of shape (J,)
+        The checked configurations, in sample-index units (fractional between samples).
+    v : ndarray of shape (J,), metres
+        The motion metric at them.
+    frames : ndarray of shape (J, 7, 4, 4)
+        The DH frames at them.
+    ends : ndarray of shape (J, L, 2, 3), metres
+        The capsules' segments at them.
+    j0, j1 : ndarray of shape (M - 1,), int
+        Each sample period [m, m + 1] is covered by the check intervals j0[m] .. j1[m].
+    """
+
+    names: tuple[str, ...]
+    frame_idx: NDArray[np.int64]
+    local: FloatArray
+    radii: FloatArray
+    C: FloatArray
+    u: FloatArray
+    v: FloatArray
+    frames: FloatArray
+    ends: FloatArray
+    j0: NDArray[np.intp]
+    j1: NDArray[np.intp]
+
+
+def _sweep(arm: URModel, q: FloatArray, T_ft: FloatArray, tool: Tool, step_m: float) -> _Sweep:
+    """The capsules at configurations at most ``step_m`` apart in the motion metric."""
     # Geometry: the arm's capsules and the tool's, each fixed in one DH frame (6: the flange).
     cm = capsule_model(arm)
     tool_local, tool_r = _tool_local(T_ft, tool)
@@ -1510,211 +1656,290 @@ def check_motion(  # noqa: C901
     local = np.concatenate([cm.local_m, tool_local])
     radii = np.r_[cm.radii_m, tool_r]
     names = LINK_NAMES + (TOOL_NAME,) * len(tool_r)
-    L = len(names)
-
-    # Configurations to check: at most step_m apart in the motion metric.
-    step_m = 2.0 * motion_bound_fraction * margin_m
+    M = len(q)
     w = _joint_weights(arm, frame_idx, local, radii)
     C = np.r_[0.0, np.cumsum(np.abs(np.diff(q, axis=0)) @ w)]
     u = _check_points(C, step_m)
     v = np.interp(u, np.arange(M), C)
     frames = joint_frames(arm, _interpolate(q, u))
-    ends = _place(frames, frame_idx, local)  # (J, L, 2, 3)
-    J = len(u)
-    # Each sample period [m, m + 1] is covered by the check intervals j0[m] .. j1[m].
+    ends = _place(frames, frame_idx, local)
     m_all = np.arange(M - 1)
     j0 = np.searchsorted(u, m_all, side="right") - 1
     j1 = np.searchsorted(u, m_all + 1, side="left") - 1
+    return _Sweep(names, frame_idx, local, radii, C, u, v, frames, ends, j0, j1)
 
-    fine_m = motion_bound_fraction * margin_m / 2  # spacing of the fine scan queries
-    refine_below = margin_m + 2 * step_m + _REFINE_EXTRA_M
-    horizon_m = max(horizon_m, refine_below)  # exact up to exact_below_m, whatever the horizon
 
-    # Contact exemption.
+@dataclass(frozen=True)
+class _Exemption:
+    """Where the tool may touch the scan (see :class:`ContactZone` and the module docstring).
+
+    Attributes
+    ----------
+    columns : ndarray of shape (L,), bool
+        The capsules exempt (the tool's, and wrist 3 when it lies within the contact radius).
+    samples : ndarray of shape (M,), bool
+        The samples exempt (the process, and the travel windows near it).
+    contact_radius_m : float or None
+        None without a contact zone.
+    reduced : (tree, points (P, 3), rows (R,)) or None
+        The scan without what the contact touches, as a tree (None if nothing is left), and the
+        checked configurations that bound an exempt sample period.
+    """
+
+    columns: NDArray[np.bool_]
+    samples: NDArray[np.bool_]
+    contact_radius_m: float | None = None
+    reduced: tuple[cKDTree | None, FloatArray, NDArray[np.intp]] | None = None
+
+
+def _contact_exemption(
+    arm: URModel,
+    q: FloatArray,
+    phase: NDArray[np.int8],
+    T_ft: FloatArray,
+    tool: Tool,
+    cell: Cell,
+    contact_zone: ContactZone | None,
+    sweep: _Sweep,
+    margin_m: float,
+    worst_tolerance: float,
+    workers: int,
+) -> _Exemption:
+    """What is exempt from the scan check, and the scan it sees instead."""
+    L, M, J = len(sweep.names), len(q), len(sweep.u)
     exempt_cols = np.zeros(L, dtype=bool)
     exempt = np.zeros(M, dtype=bool)
-    contact_radius: float | None = None
-    reduced: tuple[cKDTree | None, FloatArray, NDArray[np.int64]] | None = None
-    if contact_zone is not None:
-        p_tcp = T_ft[:3, 3]
-        if isinstance(tool, CapsuleTool):
-            tip_r = tool.radius_m
-        else:
-            near = np.linalg.norm(tool.centers_m - p_tcp, axis=1) <= (
-                tool.radii_m + contact_zone.radius_m
+    if contact_zone is None:
+        return _Exemption(exempt_cols, exempt)
+    cm = capsule_model(arm)
+    p_tcp = T_ft[:3, 3]
+    if isinstance(tool, CapsuleTool):
+        tip_r = tool.radius_m
+    else:
+        near = np.linalg.norm(tool.centers_m - p_tcp, axis=1) <= (
+            tool.radii_m + contact_zone.radius_m
+        )
+        tip_r = float(tool.radii_m[near].max()) if near.any() else 0.0
+    # The tip lies this close to the surface it works on, plus what the check may
+    # underestimate: the contact itself must not read as a collision (module docstring).
+    contact_radius = contact_zone.radius_m + tip_r + margin_m + worst_tolerance
+    exempt_cols[len(LINK_NAMES) :] = True
+    w3_lo = cm.local_m[7, 0, 2] - arm.d6  # wrist 3 in the flange frame: z from w3_lo to 0
+    w3 = segment_point_distance(np.array([0.0, 0.0, w3_lo]), np.zeros(3), p_tcp)
+    if w3 - cm.radii_m[7] <= contact_radius:
+        exempt_cols[7] = True
+    exempt = (phase == Phase.PROCESS) | _travel_windows(arm, q, phase, T_ft, contact_radius)
+    if cell._tree is None or not exempt.any():
+        return _Exemption(exempt_cols, exempt, contact_radius)
+    # Points on the path a quarter of the radius apart: what is within the radius of them is
+    # within the radius of the path (the tube exempted is never wider). Of those, only what lies
+    # no higher than the band above the tip, along the tool's axis there: the surface the tip
+    # works on, never a fixture rising beside it.
+    on_path, axes = contact_zone.points_and_axes(contact_radius / 4)
+    band = contact_zone.radius_m + margin_m + worst_tolerance
+    pts = cell.scan_m
+    near_path = cell._tree.query_ball_point(on_path, contact_radius, workers=workers)
+    touched = np.zeros(len(pts), dtype=bool)
+    counts = np.fromiter((len(h) for h in near_path), dtype=np.int64, count=len(near_path))
+    if counts.sum():
+        hit = np.concatenate([np.asarray(h, dtype=np.int64) for h in near_path if len(h)])
+        at = np.repeat(np.arange(len(near_path)), counts)
+        height = np.einsum("ij,ij->i", pts[hit] - on_path[at], axes[at])
+        touched[hit[height <= band]] = True
+    rest = pts[~touched]
+    tree = cKDTree(rest, balanced_tree=False, compact_nodes=False) if len(rest) else None
+    # Only the configurations that bound an exempt sample period need the exempt scan.
+    periods = np.flatnonzero(exempt[:-1] & exempt[1:])
+    count = np.zeros(J + 1, dtype=np.int64)
+    np.add.at(count, sweep.j0[periods], 1)
+    np.add.at(count, sweep.j1[periods] + 2, -1)
+    need = np.cumsum(count)[:J] > 0
+    need[-1] |= bool(exempt[-1])
+    return _Exemption(exempt_cols, exempt, contact_radius, (tree, rest, np.flatnonzero(need)))
+
+
+class _Obstacles:
+    """The obstacles met so far, in the order their indices were given."""
+
+    def __init__(self) -> None:
+        self.names: list[str] = []
+        self.kinds: list[ObstacleKind] = []
+
+    def add(self, name: str, kind: ObstacleKind) -> int:
+        self.names.append(name)
+        self.kinds.append(kind)
+        return len(self.names) - 1
+
+
+@dataclass
+class _Nearest:
+    """Per checked configuration and capsule, the least clearance found so far, its obstacle
+    (-1: none yet) and its nearest point there: arrays of shape (J, L), (J, L), (J, L, 3)."""
+
+    clearance_m: FloatArray
+    obstacle: NDArray[np.int64]
+    point_m: FloatArray
+
+    @classmethod
+    def empty(cls, J: int, L: int) -> _Nearest:
+        return cls(
+            np.full((J, L), _BIG), np.full((J, L), -1, dtype=np.int64), np.full((J, L, 3), np.nan)
+        )
+
+    def copy(self) -> _Nearest:
+        return _Nearest(self.clearance_m.copy(), self.obstacle.copy(), self.point_m.copy())
+
+    def take(self, c: FloatArray, p: FloatArray, k: int, cols: slice = slice(None)) -> None:
+        """Keep clearances ``c`` (J, l) and points ``p`` (J, l, 3) of obstacle ``k`` where they
+        are smaller, in columns ``cols``."""
+        better = c < self.clearance_m[:, cols]
+        self.clearance_m[:, cols] = np.where(better, c, self.clearance_m[:, cols])
+        self.obstacle[:, cols] = np.where(better, k, self.obstacle[:, cols])
+        self.point_m[:, cols] = np.where(better[..., None], p, self.point_m[:, cols])
+
+
+_MountingTool = tuple[FloatArray, FloatArray, tuple[FloatArray, FloatArray], int, slice]
+
+
+def _mounting_clearances(
+    full: _Nearest,
+    obstacles: _Obstacles,
+    sweep: _Sweep,
+    cell: Cell,
+    T_ft: FloatArray,
+    tool: Tool,
+    contact_zone: ContactZone | None,
+    contact_radius: float | None,
+) -> _MountingTool | None:
+    """The arm's links against the mounting plane (taken into ``full``); the tool's clearances
+    to it, whole and cut at the tip, are returned for the caller to take after the exempt copy
+    is made: (c, p, (c_cut, p_cut), obstacle index, tool columns). None without a mounting."""
+    if cell.mounting is None:
+        return None
+    L = len(sweep.names)
+    band = cell.mounting_band_m if (cell.has_scan or cell.scan_dropped) else 0.0
+    raised = HalfSpace(cell.mounting.normal, cell.mounting.offset_m + band, cell.mounting.name)
+    # Tested ``band`` higher: that covers the scan points dropped as the mounting surface.
+    c, p = capsule_halfspace_clearance(sweep.ends, sweep.radii, raised)
+    p = p - band * raised.normal
+    c[:, 0] = _BIG  # the base stands on it
+    k_mounting = obstacles.add(cell.mounting.name, ObstacleKind.PLANE)
+    arm_cols = slice(0, len(LINK_NAMES))
+    full.take(c[:, arm_cols], p[:, arm_cols], k_mounting, arm_cols)
+    tool_cols = slice(len(LINK_NAMES), L)
+    cut = (c[:, tool_cols], p[:, tool_cols])
+    if contact_zone is not None and contact_radius is not None:  # set together
+        v = sweep.v
+        reach = np.maximum(np.r_[np.diff(v), 0.0], np.r_[0.0, np.diff(v)])  # (J,)
+        tcp = (sweep.frames[:, 6] @ T_ft)[:, :3, 3]
+        cut = _tip_cut_mounting(
+            sweep.ends[:, tool_cols], sweep.radii[tool_cols], tcp, reach, T_ft, tool, raised,
+            band, cell.mounting, contact_radius, contact_zone.radius_m, cut,
+        )  # fmt: skip
+    return (c[:, tool_cols], p[:, tool_cols], cut, k_mounting, tool_cols)
+
+
+def _self_clearances(full: _Nearest, obstacles: _Obstacles, sweep: _Sweep) -> float:
+    """The arm against itself (the pairs of :data:`SELF_PAIRS`), taken into ``full``; returns
+    the tolerance this adds (m).
+
+    Both capsules of a pair move: between two checked configurations their distance changes by
+    up to twice what one point moves, so each configuration's clearance carries the spacing to
+    its farther neighbour less, and the static bound still holds.
+    """
+    J, L = len(sweep.u), len(sweep.names)
+    ends, radii = sweep.ends, sweep.radii
+    spacing = np.diff(sweep.v) if J > 1 else np.zeros(0)
+    reach = np.maximum(np.r_[spacing, 0.0], np.r_[0.0, spacing])  # (J,)
+    self_index: dict[int, int] = {}
+    for i, j in SELF_PAIRS:
+        # The tool is column 8, or columns 8.. (one per sphere of a SphereTool).
+        for jj in [j] if j < len(LINK_NAMES) else range(len(LINK_NAMES), L):
+            distance, on_i, on_j = segment_segment_closest(
+                ends[:, i, 0], ends[:, i, 1], ends[:, jj, 0], ends[:, jj, 1]
             )
-            tip_r = float(tool.radii_m[near].max()) if near.any() else 0.0
-        # The tip lies this close to the surface it works on, plus what the check may
-        # underestimate: the contact itself must not read as a collision (module docstring).
-        worst_tolerance = 2 * motion_bound_fraction * margin_m + fine_m / 2 + cell.scan_resolution_m
-        contact_radius = contact_zone.radius_m + tip_r + margin_m + worst_tolerance
-        exempt_cols[len(LINK_NAMES) :] = True
-        w3_lo = cm.local_m[7, 0, 2] - arm.d6  # wrist 3 in the flange frame: z from w3_lo to 0
-        w3 = segment_point_distance(np.array([0.0, 0.0, w3_lo]), np.zeros(3), p_tcp)
-        if w3 - cm.radii_m[7] <= contact_radius:
-            exempt_cols[7] = True
-        exempt = (phase == Phase.PROCESS) | _travel_windows(arm, q, phase, T_ft, contact_radius)
-        if cell._tree is not None and exempt.any():
-            # Points on the path a quarter of the radius apart: what is within the radius of
-            # them is within the radius of the path (the tube exempted is never wider). Of
-            # those, only what lies no higher than the band above the tip, along the tool's
-            # axis there: the surface the tip works on, never a fixture rising beside it.
-            on_path, axes = contact_zone.points_and_axes(contact_radius / 4)
-            band = contact_zone.radius_m + margin_m + worst_tolerance
-            pts = cell.scan_m
-            near = cell._tree.query_ball_point(on_path, contact_radius, workers=workers)
-            touched = np.zeros(len(pts), dtype=bool)
-            counts = np.fromiter((len(h) for h in near), dtype=np.int64, count=len(near))
-            if counts.sum():
-                hit = np.concatenate([np.asarray(h, dtype=np.int64) for h in near if len(h)])
-                at = np.repeat(np.arange(len(near)), counts)
-                height = np.einsum("ij,ij->i", pts[hit] - on_path[at], axes[at])
-                touched[hit[height <= band]] = True
-            rest = pts[~touched]
-            tree = cKDTree(rest, balanced_tree=False, compact_nodes=False) if len(rest) else None
-            # Only the configurations that bound an exempt sample period need the exempt scan.
-            periods = np.flatnonzero(exempt[:-1] & exempt[1:])
-            count = np.zeros(J + 1, dtype=np.int64)
-            np.add.at(count, j0[periods], 1)
-            np.add.at(count, j1[periods] + 2, -1)
-            need = np.cumsum(count)[:J] > 0
-            need[-1] |= bool(exempt[-1])
-            reduced = (tree, rest, np.flatnonzero(need))
+            c = distance - radii[i] - radii[jj] - reach
+            for mine, other, point in ((i, jj, on_j), (jj, i, on_i)):
+                if other not in self_index:
+                    self_index[other] = obstacles.add(sweep.names[other], ObstacleKind.SELF)
+                full.take(c[:, None], point[:, None], self_index[other], slice(mine, mine + 1))
+    return float(reach.max()) if J > 1 else 0.0
 
-    # Clearances at the checked configurations: planes and boxes, then the scan.
-    obstacle_names: list[str] = []
-    obstacle_kinds: list[ObstacleKind] = []
-    c_full = np.full((J, L), _BIG)
-    o_full = np.full((J, L), -1, dtype=np.int64)
-    p_full = np.full((J, L, 3), np.nan)
 
-    def take(
-        c: FloatArray,
-        p: FloatArray,
-        k: int,
-        c_arr: FloatArray,
-        o_arr: NDArray[np.int64],
-        p_arr: FloatArray,
-        cols: slice = slice(None),
-    ) -> None:
-        better = c < c_arr[:, cols]
-        c_arr[:, cols] = np.where(better, c, c_arr[:, cols])
-        o_arr[:, cols] = np.where(better, k, o_arr[:, cols])
-        p_arr[:, cols] = np.where(better[..., None], p, p_arr[:, cols])
+def _scan_clearances(
+    full: _Nearest,
+    exempt: _Nearest,
+    obstacles: _Obstacles,
+    sweep: _Sweep,
+    cell: Cell,
+    exemption: _Exemption,
+    horizon_m: float,
+    refine_below_m: float,
+    fine_m: float,
+    workers: int,
+) -> _Nearest:
+    """The scan, taken into ``full`` for every capsule and configuration and into ``exempt``
+    (without what the contact touches) for the exempt capsules where they need it; returns the
+    exempt table to use from here (``full`` itself when nothing is exempt)."""
+    k_scan = obstacles.add("scan", ObstacleKind.SCAN)
+    L = len(sweep.names)
+    sources = [(cell._tree, cell.scan_m, np.arange(len(sweep.u)), full, np.arange(L))]
+    if exemption.reduced is not None:
+        tree_ex, pts_ex, rows_ex = exemption.reduced
+        sources.append((tree_ex, pts_ex, rows_ex, exempt, np.flatnonzero(exemption.columns)))
+    for tree, pts, rows, table, source_cols in sources:
+        if tree is None or len(rows) == 0:
+            continue
+        for col in source_cols:
+            c, p = _scan_clearance(
+                tree,
+                pts,
+                sweep.ends[rows, col],
+                float(sweep.radii[col]),
+                horizon_m=horizon_m,
+                refine_below_m=refine_below_m,
+                fine_m=fine_m,
+                workers=workers,
+            )
+            c = c - cell.scan_resolution_m
+            better = c < table.clearance_m[rows, col]
+            table.clearance_m[rows[better], col] = c[better]
+            table.obstacle[rows[better], col] = k_scan
+            table.point_m[rows[better], col] = p[better]
+    if exemption.reduced is None:  # no exemption: the same as the full scan
+        return full
+    # Columns not exempt see the full scan in every period.
+    not_exempt = ~exemption.columns
+    exempt.clearance_m[:, not_exempt] = full.clearance_m[:, not_exempt]
+    exempt.obstacle[:, not_exempt] = full.obstacle[:, not_exempt]
+    exempt.point_m[:, not_exempt] = full.point_m[:, not_exempt]
+    return exempt
 
-    def add(name: str, kind: ObstacleKind) -> int:
-        obstacle_names.append(name)
-        obstacle_kinds.append(kind)
-        return len(obstacle_names) - 1
 
-    mounting_tool = None  # the mounting plane for the tool columns, taken once c_ex is made
-    if cell.mounting is not None:
-        band = cell.mounting_band_m if (cell.has_scan or cell.scan_dropped) else 0.0
-        raised = HalfSpace(cell.mounting.normal, cell.mounting.offset_m + band, cell.mounting.name)
-        # Tested ``band`` higher: that covers the scan points dropped as the mounting surface.
-        c, p = capsule_halfspace_clearance(ends, radii, raised)
-        p = p - band * raised.normal
-        c[:, 0] = _BIG  # the base stands on it
-        k_mounting = add(cell.mounting.name, ObstacleKind.PLANE)
-        arm_cols = slice(0, len(LINK_NAMES))
-        take(c[:, arm_cols], p[:, arm_cols], k_mounting, c_full, o_full, p_full, arm_cols)
-        tool_cols = slice(len(LINK_NAMES), L)
-        cut = (c[:, tool_cols], p[:, tool_cols])
-        if contact_zone is not None and contact_radius is not None:  # set together above
-            reach = np.maximum(np.r_[np.diff(v), 0.0], np.r_[0.0, np.diff(v)])  # (J,)
-            tcp = (frames[:, 6] @ T_ft)[:, :3, 3]
-            cut = _tip_cut_mounting(
-                ends[:, tool_cols], radii[tool_cols], tcp, reach, T_ft, tool, raised, band,
-                cell.mounting, contact_radius, contact_zone.radius_m, cut,
-            )  # fmt: skip
-        mounting_tool = (c[:, tool_cols], p[:, tool_cols], cut, k_mounting, tool_cols)
-    for plane in cell.planes:
-        c, p = capsule_halfspace_clearance(ends, radii, plane)
-        take(c, p, add(plane.name, ObstacleKind.PLANE), c_full, o_full, p_full)
-    for box in cell.boxes:
-        c, p = capsule_box_clearance(ends, radii, box, far_m=horizon_m)
-        take(c, p, add(box.name, ObstacleKind.BOX), c_full, o_full, p_full)
-    self_tol = 0.0
-    if self_check:
-        # The arm against itself. Both capsules of a pair move: between two checked
-        # configurations their distance changes by up to twice what one point moves, so each
-        # configuration's clearance carries the spacing to its farther neighbour less, and the
-        # static bound below still holds.
-        spacing = np.diff(v) if J > 1 else np.zeros(0)
-        reach = np.maximum(np.r_[spacing, 0.0], np.r_[0.0, spacing])  # (J,)
-        self_tol = float(reach.max()) if J > 1 else 0.0
-        self_index: dict[int, int] = {}
-        for i, j in SELF_PAIRS:
-            # The tool is column 8, or columns 8.. (one per sphere of a SphereTool).
-            for jj in [j] if j < len(LINK_NAMES) else range(len(LINK_NAMES), L):
-                distance, on_i, on_j = segment_segment_closest(
-                    ends[:, i, 0], ends[:, i, 1], ends[:, jj, 0], ends[:, jj, 1]
-                )
-                c = distance - radii[i] - radii[jj] - reach
-                for mine, other, point in ((i, jj, on_j), (jj, i, on_i)):
-                    if other not in self_index:
-                        self_index[other] = add(names[other], ObstacleKind.SELF)
-                    mine_col = slice(mine, mine + 1)
-                    take(
-                        c[:, None],
-                        point[:, None],
-                        self_index[other],
-                        c_full,
-                        o_full,
-                        p_full,
-                        mine_col,
-                    )
-    c_ex, o_ex, p_ex = c_full.copy(), o_full.copy(), p_full.copy()
-    if mounting_tool is not None:
-        # The whole tool against the mounting plane everywhere; where the tip is exempt, the
-        # tool without its tip (see _tip_cut_mounting).
-        c, p, (c_cut, p_cut), k_mounting, tool_cols = mounting_tool
-        take(c, p, k_mounting, c_full, o_full, p_full, tool_cols)
-        take(c_cut, p_cut, k_mounting, c_ex, o_ex, p_ex, tool_cols)
+def _period_bounds(
+    sweep: _Sweep, exemption: _Exemption, full: _Nearest, exempt: _Nearest
+) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.bool_]]:
+    """Per sample period, the conservative clearance of each capsule from the checked
+    configurations around it (the last row: the last sample's own).
 
-    scan_tol = 0.0
-    if cell.has_scan:
-        scan_tol = cell.scan_resolution_m + fine_m / 2
-        k_scan = add("scan", ObstacleKind.SCAN)
-        all_rows = np.arange(J)
-        sources = [(cell._tree, cell.scan_m, all_rows, c_full, o_full, p_full, np.arange(L))]
-        if reduced is not None:
-            tree_ex, pts_ex, rows_ex = reduced
-            cols_ex = np.flatnonzero(exempt_cols)
-            sources.append((tree_ex, pts_ex, rows_ex, c_ex, o_ex, p_ex, cols_ex))
-        for tree, pts, rows, c_arr, o_arr, p_arr, source_cols in sources:
-            if tree is None or len(rows) == 0:
-                continue
-            for col in source_cols:
-                c, p = _scan_clearance(
-                    tree,
-                    pts,
-                    ends[rows, col],
-                    float(radii[col]),
-                    horizon_m=horizon_m,
-                    refine_below_m=refine_below,
-                    fine_m=fine_m,
-                    workers=workers,
-                )
-                c = c - cell.scan_resolution_m
-                better = c < c_arr[rows, col]
-                c_arr[rows[better], col] = c[better]
-                o_arr[rows[better], col] = k_scan
-                p_arr[rows[better], col] = p[better]
-        if reduced is None:  # no exemption: the same as the full scan
-            c_ex, o_ex, p_ex = c_full, o_full, p_full
-        else:  # columns not exempt see the full scan in every period
-            c_ex[:, ~exempt_cols] = c_full[:, ~exempt_cols]
-            o_ex[:, ~exempt_cols] = o_full[:, ~exempt_cols]
-            p_ex[:, ~exempt_cols] = p_full[:, ~exempt_cols]
-
-    # Per sample period: the conservative clearance from the checked configurations around it.
-    use_ex_period = (exempt[:-1] & exempt[1:])[:, None] & exempt_cols[None, :]  # (M-1, L)
+    Returns
+    -------
+    bound : ndarray of shape (M, L), metres
+    gov : ndarray of shape (M, L), int
+        The checked configuration that governs each bound.
+    use_ex : ndarray of shape (M, L), bool
+        Whether the bound comes from the exempt table.
+    """
+    C, v, j0, j1 = sweep.C, sweep.v, sweep.j0, sweep.j1
+    M, L, J = len(C), len(sweep.names), len(sweep.u)
+    samples, columns = exemption.samples, exemption.columns
+    c_full, c_ex = full.clearance_m, exempt.clearance_m
+    use_ex_period = (samples[:-1] & samples[1:])[:, None] & columns[None, :]  # (M-1, L)
     bound = np.empty((M, L))
     gov = np.empty((M, L), dtype=np.int64)
     use_ex = np.zeros((M, L), dtype=bool)
     if M > 1:
-        m = m_all
+        m = np.arange(M - 1)
         n = j1 - j0 + 1
         starts = np.cumsum(n) - n
         pm = np.repeat(m, n)
@@ -1737,57 +1962,8 @@ def check_motion(  # noqa: C901
             res[sel] = np.where(better, piece[idx], res[sel])
             res_gov[sel] = np.where(better, piece_gov[idx], res_gov[sel])
         bound[:-1], gov[:-1], use_ex[:-1] = res, res_gov, use_ex_period
-    last_ex = exempt[-1] & exempt_cols
+    last_ex = samples[-1] & columns
     bound[-1] = np.where(last_ex, c_ex[-1], c_full[-1])
     gov[-1] = J - 1
     use_ex[-1] = last_ex
-
-    every_col = np.arange(L)[None, :]
-    obst = np.where(use_ex, o_ex[gov, every_col], o_full[gov, every_col])
-    nearest = np.argmin(bound, axis=1)
-    clearance = bound[np.arange(M), nearest]
-    kinds = np.array([int(k) for k in obstacle_kinds] + [int(ObstacleKind.NONE)], dtype=np.int8)
-    nearest_kind = kinds[obst[np.arange(M), nearest]]
-    first = None
-    bad = clearance < margin_m
-    if bad.any():
-        s = int(np.argmax(bad))
-        j, g = int(nearest[s]), int(gov[s, nearest[s]])
-        k = int(obst[s, j])
-        pt = (p_ex if use_ex[s, j] else p_full)[g, j]
-        first = Collision(
-            sample=s,
-            t_s=float(t_s[s]) if t_s is not None else None,
-            phase=Phase(int(phase[s])),
-            link=names[j],
-            obstacle=obstacle_names[k] if k >= 0 else "",
-            kind=obstacle_kinds[k] if k >= 0 else ObstacleKind.NONE,
-            point_m=np.array(pt),
-            clearance_m=float(clearance[s]),
-            margin_m=margin_m,
-        )
-    empty = bound >= _BIG / 2
-    bound[empty] = np.inf
-    clearance = np.where(clearance >= _BIG / 2, np.inf, clearance)
-    motion_bound = float(np.diff(v).max()) / 2 if J > 1 else 0.0
-    for a in (bound, clearance, nearest, nearest_kind, u, phase):
-        a.setflags(write=False)
-    return CollisionReport(
-        names=names,
-        clearance_m=clearance,
-        link_clearance_m=bound,
-        nearest_link=nearest,
-        nearest_kind=nearest_kind,
-        first_collision=first,
-        margin_m=margin_m,
-        motion_bound_m=motion_bound,
-        tolerance_m=2 * motion_bound + max(scan_tol, self_tol),
-        exact_below_m=refine_below - step_m,
-        scan_resolution_m=cell.scan_resolution_m,
-        contact_radius_m=contact_radius,
-        exempt_links=tuple(n for n, e in zip(names, exempt_cols, strict=True) if e),
-        checked_samples=u,
-        phase=phase,
-        t_s=t_s,
-        obstacles=cell.obstacle_names(),
-    )
+    return bound, gov, use_ex

@@ -21,8 +21,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from recon.arrays import FloatArray
 from recon.fitting import weighted_pca
-from recon.types import FloatArray
 
 if TYPE_CHECKING:
     from scipy.spatial import cKDTree

@@ -17,9 +17,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from recon.arrays import FloatArray
 from recon.features import ScanFeatures
 from recon.fitting import PCA, fit_linear, gather, weighted_pca
-from recon.types import FloatArray
 
 #: Lower bound of the face-fit noise level, as a fraction of the ball radius (see
 #: :func:`fit_edge_lines`).

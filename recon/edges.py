@@ -21,11 +21,11 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from recon.arrays import FloatArray
 from recon.edge_lines import EdgeLineFit, fit_edge_lines
 from recon.features import ScanFeatures
 from recon.fitting import gather, weighted_pca
 from recon.profiles import Profiles
-from recon.types import FloatArray
 
 #: Variance of an edge point from its line fit per unit of face variance over face points,
 #: for edge points stored without their own variance (models stored by an earlier version).

@@ -18,11 +18,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from recon.arrays import FloatArray
 from recon.metrics import ErrorStats, best_savitzky_golay, error_stats
+from recon.recon_params import ReconParams
 from recon.reconstruct import reconstruct
+from recon.results import Reconstruction
 from recon.scenes import Scene
 from recon.transforms import apply_transform, invert_transform
-from recon.types import FloatArray, ReconParams, Reconstruction
 
 
 @dataclass(frozen=True)

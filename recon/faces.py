@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from recon.arrays import FloatArray
 from recon.fitting import fit_linear_robust, gather, quadric_design, weighted_pca
 from recon.scan_model import ScanModel
-from recon.types import FloatArray
 
 #: The seed: this many dense points nearest to the path point (about 15-30 mm^2 of a face).
 SEED_POINTS = 32

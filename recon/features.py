@@ -19,9 +19,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from recon.arrays import FloatArray
 from recon.errors import NoOverlapError
 from recon.fitting import symmetric_eig3
-from recon.types import FloatArray
 
 if TYPE_CHECKING:
     from scipy.sparse import csr_matrix

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from recon.types import FloatArray
+from recon.arrays import FloatArray
 
 
 def window_indices(n_points: int, half_width: int) -> NDArray[np.int64]:

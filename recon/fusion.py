@@ -20,9 +20,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from recon.arrays import FloatArray
 from recon.errors import DegenerateInputError
+from recon.inputs import Recording
 from recon.resample import resample_equidistant
-from recon.types import DemonstrationReport, FloatArray, Recording
+from recon.results import DemonstrationReport
 
 #: Alignment passes (project on the mean, average again).
 PASSES = 3

@@ -21,9 +21,10 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from recon.arrays import FloatArray
 from recon.errors import RegistrationError
+from recon.results import Registration
 from recon.transforms import apply_transform, check_rigid
-from recon.types import FloatArray, Registration
 
 #: Fewest path points that must find a partner for a registration to be trusted.
 MIN_PAIRS = 10

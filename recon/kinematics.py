@@ -32,8 +32,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from recon.arrays import FloatArray
 from recon.errors import InfeasibleTrajectoryError
-from recon.types import FloatArray, JointPath
+from recon.paths import JointPath
 
 ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 #: A home pose for every UR arm: upper arm up, forearm forward, tool pointing down (elbow up).

@@ -9,8 +9,8 @@ from numpy.typing import NDArray
 from scipy.signal import savgol_filter
 from scipy.spatial import cKDTree
 
+from recon.arrays import FloatArray
 from recon.resample import resample_equidistant
-from recon.types import FloatArray
 
 #: Ground-truth curves are densified to this spacing before nearest-point queries, which bounds
 #: the distance error of the polyline approximation at (spacing / 2)^2 / (2 R), far below 1 um.

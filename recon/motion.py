@@ -13,7 +13,7 @@ operator presses play, and the path starts on the workpiece. The whole motion is
 
 Each phase starts and ends at rest, is timed within the arm's limits (the joint moves at a
 fraction of them: ``transit_speed_scale``), and labels its samples with its
-:class:`recon.types.Phase`. The approach and retract keep the process path's IK branch, so the
+:class:`recon.paths.Phase`. The approach and retract keep the process path's IK branch, so the
 arm does not change configuration anywhere; the joint moves go straight in joint space, which is
 what the collision check of :mod:`recon.collision` then looks at.
 """
@@ -25,11 +25,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from recon import kinematics
+from recon.arrays import FloatArray
 from recon.errors import InfeasibleTrajectoryError
 from recon.kinematics import URModel
+from recon.paths import JointPath, Phase, SpeedDrop, ToolPath
 from recon.timing import limits_for, time_parameterize
+from recon.trajectory import JointTrajectory
 from recon.transforms import invert_transform, pose_from_transform
-from recon.types import FloatArray, JointPath, JointTrajectory, Phase, SpeedDrop, ToolPath
 
 #: Spacing of the waypoints of the straight approach and retract lines.
 LINE_STEP_M = 0.001

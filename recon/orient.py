@@ -27,10 +27,12 @@ from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
+from recon.arrays import FloatArray
 from recon.edge_lines import fit_edge_lines
 from recon.fitting import gather, weighted_pca
+from recon.paths import ToolPath
+from recon.results import PointMode
 from recon.scan_model import ScanModel
-from recon.types import FloatArray, PointMode, ToolPath
 
 #: Scan points per local surface-normal fit.
 NORMAL_NEIGHBOURS = 64

@@ -10,16 +10,23 @@ builds the model around the path at a known transform, again without registering
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from recon import kinematics, motion
+from recon.arrays import FloatArray, piece_labels, piece_slices
+from recon.collision import Cell, CollisionReport, ContactZone, ObstacleKind, check_motion
 from recon.errors import CollisionError, InfeasibleTrajectoryError
+from recon.inputs import Scan
 from recon.orient import ScanNormals, fill_along_path, scan_normals, tool_path
+from recon.paths import JointPath, Phase, ToolPath, speed_drop_lines
+from recon.plan_params import PlanParams
+from recon.recon_params import ReconParams
 from recon.scan_model import ScanModel, build_scan_model
 from recon.timing import Limits, limits_for, time_parameterize
+from recon.trajectory import JointTrajectory
 from recon.transforms import (
     apply_transform,
     check_rigid,
@@ -27,23 +34,6 @@ from recon.transforms import (
     rotate_vectors,
     rotation_angle_deg,
     translation_m,
-)
-
-if TYPE_CHECKING:
-    from recon.collision import Cell, CollisionReport
-
-from recon.types import (
-    FloatArray,
-    JointPath,
-    JointTrajectory,
-    Phase,
-    PlanParams,
-    ReconParams,
-    Scan,
-    ToolPath,
-    piece_labels,
-    piece_slices,
-    speed_drop_lines,
 )
 
 #: Where the tool axis came from, in the report's words.
@@ -481,8 +471,6 @@ def check_cell(
     only within the first contact radius of TCP travel, and only on what lies no higher than
     the band above the tip (see :func:`recon.collision.check_motion`).
     """
-    from recon.collision import ContactZone, check_motion
-
     phases = trajectory.phases
     touching = phases == int(Phase.PROCESS)
     if len(phases) > 1 and phases[0] == int(Phase.RETRACT):
@@ -763,7 +751,7 @@ def normals_from_scan(
     points_tracker_m : ndarray of shape (N, 3), metres
         The reconstructed path, tracker frame.
     mode : ndarray of shape (N,), int8
-        :class:`recon.types.PointMode` of each point (``Reconstruction.mode``).
+        :class:`recon.results.PointMode` of each point (``Reconstruction.mode``).
     scan_model : ScanModel
         Scan frame: ``Reconstruction.scan_model``, a stored one
         (:meth:`ScanModel.from_arrays`) or :func:`scan_model_for_path`.
@@ -983,8 +971,6 @@ def plan_move(
 def _tool_stands_on_scan(report: CollisionReport | None) -> bool:
     """Whether a joint move's check failed in its first period, the tool against the scan: the
     arm stands with the tool on (or within the margin of) the workpiece."""
-    from recon.collision import ObstacleKind
-
     first = None if report is None else report.first_collision
     return (
         first is not None

@@ -26,8 +26,8 @@ from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter1d
 from scipy.spatial import cKDTree
 
+from recon.arrays import FloatArray
 from recon.fitting import gather
-from recon.types import FloatArray
 
 #: Half the thickness of each slice (along the path): thick enough for tens of points per face
 #: at a depth camera's density, thin enough that a curved feature stays straight within it.

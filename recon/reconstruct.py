@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from recon.arrays import FloatArray
 from recon.classify import PATH_ONLY, SegmentClass, SegmentKind, classify_segments
 from recon.corners import (
     Candidate,
@@ -33,11 +34,21 @@ from recon.corners import (
 from recon.errors import DegenerateInputError, UnitsMismatchError
 from recon.fusion import FusedTrace, fuse_traces
 from recon.icp import RigidMotion
+from recon.inputs import Recording, Scan
 from recon.methods.anchored import CONTINUE_PAST_END_M, anchored_segment
 from recon.methods.common import HAND_ERROR_PRIOR_M, SegmentResult
 from recon.methods.paper import paper_segment
+from recon.recon_params import Method, ReconParams
 from recon.registration import register_to_model
 from recon.resample import ResampledPath, resample_equidistant
+from recon.results import (
+    CornerReport,
+    DemonstrationReport,
+    PointReason,
+    Reconstruction,
+    Registration,
+    Segment,
+)
 from recon.scan_model import ScanModel, build_scan_model
 from recon.segment import split_at
 from recon.touches import (
@@ -49,19 +60,6 @@ from recon.touches import (
 )
 from recon.touches import touch_advice as motion_advice
 from recon.transforms import apply_transform, check_rigid, invert_transform
-from recon.types import (
-    CornerReport,
-    DemonstrationReport,
-    FloatArray,
-    Method,
-    PointReason,
-    ReconParams,
-    Reconstruction,
-    Recording,
-    Registration,
-    Scan,
-    Segment,
-)
 
 #: One segment's reconstruction: ``method(points, kind, model or None, params, N_P half-width, *,
 #: prior_variance_m2, placement_variance_m2, corners)`` -> SegmentResult (see
@@ -414,7 +412,7 @@ def evidence_notes(
     Returns
     -------
     list of str
-        A line per segment whose points fell back more than :data:`recon.types.DISTRUST_SHARE`
+        A line per segment whose points fell back more than :data:`recon.results.DISTRUST_SHARE`
         ("scan not trusted here", with where and why), and a line per end that was continued
         past the end of the scan's edge or left to the trace there.
     """

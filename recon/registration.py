@@ -19,12 +19,14 @@ from typing import Any
 
 import numpy as np
 
+from recon.arrays import FloatArray
 from recon.classify import EDGE_FOLLOW_DISTANCE_M, SegmentKind, classify_segments
 from recon.errors import RegistrationError
 from recon.icp import MAX_SOURCE_POINTS, RigidMotion, _across, register_icp
+from recon.recon_params import ReconParams
+from recon.results import Registration
 from recon.scan_model import ScanModel
 from recon.transforms import apply_transform
-from recon.types import FloatArray, ReconParams, Registration
 
 #: The edge is tried as the target when the thinned edge lies within the ICP's pairing distance
 #: of at least this fraction of the path ...

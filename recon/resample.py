@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from recon.arrays import FloatArray
 from recon.errors import DegenerateInputError
-from recon.types import FloatArray
 
 
 @dataclass(frozen=True)

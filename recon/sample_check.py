@@ -16,12 +16,18 @@ check is analytic, to 0.1 %).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from recon import kinematics
+from recon.arrays import FloatArray
+from recon.errors import InfeasibleTrajectoryError
 from recon.kinematics import URModel
-from recon.types import FloatArray, JointTrajectory
+
+if TYPE_CHECKING:
+    # Annotations only: recon.trajectory imports this module.
+    from recon.trajectory import JointTrajectory
 
 #: Fraction by which a sampled joint or TCP speed may exceed its limit (finite differences of a
 #: planned profile stay within 0.5 % of it).
@@ -213,7 +219,7 @@ def require_within_limits(trajectory: JointTrajectory, *, what: str) -> None:
 
     Parameters
     ----------
-    trajectory : recon.types.JointTrajectory
+    trajectory : recon.trajectory.JointTrajectory
     what : str
         What was about to be done with it, for the message ("dry-run it", "export it").
 
@@ -222,8 +228,6 @@ def require_within_limits(trajectory: JointTrajectory, *, what: str) -> None:
     InfeasibleTrajectoryError
         Naming each broken limit's first sample, its time and joint.
     """
-    from recon.errors import InfeasibleTrajectoryError
-
     arm = trajectory.arm
     problems = sample_problems(
         arm,

@@ -20,11 +20,13 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from recon.arrays import FloatArray
 from recon.edges import EdgePoints, stations_along, thin_edges
 from recon.features import ScanFeatures, ball_covariances, neighbour_balls, prepare_scan
 from recon.fitting import symmetric_eig3
+from recon.inputs import Scan
 from recon.profiles import Profiles, find_profiles
-from recon.types import FloatArray, ReconParams, Scan
+from recon.recon_params import ReconParams
 
 #: The edge-line fits use balls this much larger than the curvature ball, to reach past the
 #: crest's band of blended normals onto both faces with enough points on each.

@@ -19,10 +19,12 @@ from typing import Any
 
 import numpy as np
 
+from recon.arrays import FloatArray
 from recon.errors import InfeasibleTrajectoryError
 from recon.kinematics import SPEED_POINT_NAMES, URModel, forward, speed_points_m
+from recon.paths import JointPath, SpeedDrop, ToolPath
+from recon.trajectory import JointTrajectory
 from recon.transforms import pose_from_transform
-from recon.types import FloatArray, JointPath, JointTrajectory, SpeedDrop, ToolPath
 
 #: Samples may exceed a limit by this fraction (the parametrizer's own rounding).
 LIMIT_TOLERANCE = 1e-3

@@ -33,12 +33,13 @@ import scipy.linalg
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from recon.arrays import FloatArray
 from recon.classify import SegmentKind, classify_segments
 from recon.errors import DegenerateInputError, RegistrationError, TouchesInsufficientError
 from recon.fitting import fit_linear, quadric_design, weighted_pca
 from recon.icp import RigidMotion, _across
+from recon.recon_params import ReconParams
 from recon.transforms import apply_transform, check_rigid, invert_transform
-from recon.types import FloatArray, ReconParams
 
 if TYPE_CHECKING:
     from recon.scan_model import ScanModel

@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from recon import kinematics
+from recon.arrays import FloatArray
 from recon.kinematics import URModel
+from recon.trajectory import JointTrajectory
 from recon.transforms import invert_transform, transform_from_pose
-from recon.types import FloatArray, JointTrajectory
 
 #: Longest stretch (samples) considered between two waypoints: bounds the work per check.
 MAX_SPAN_SAMPLES = 4000

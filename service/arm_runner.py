@@ -31,7 +31,7 @@ import numpy as np
 from drivers.errors import MotionStoppedError
 from drivers.robot.base import ExecutionRecord, RobotBackend
 from drivers.robot.dryrun import reached_phase, stream_lag_s
-from recon.types import JointTrajectory
+from recon.trajectory import JointTrajectory
 from service.errors import error_body
 from service.store import Store, now
 

@@ -22,15 +22,11 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from recon.types import (
-    PER_POINT_FIELDS,
-    FloatArray,
-    JointTrajectory,
-    ReconstructedPath,
-    Recording,
-    Scan,
-    SpeedDrop,
-)
+from recon.arrays import FloatArray
+from recon.inputs import Recording, Scan
+from recon.paths import ReconstructedPath, SpeedDrop
+from recon.results import PER_POINT_FIELDS
+from recon.trajectory import JointTrajectory
 
 Arrays = dict[str, np.ndarray]
 
@@ -127,7 +123,7 @@ class ReconstructionCodec:
 
     @staticmethod
     def encode(recon) -> Arrays:
-        """Arrays of a :class:`recon.types.Reconstruction`."""
+        """Arrays of a :class:`recon.results.Reconstruction`."""
         arrays = {name: getattr(recon, name) for name in PER_POINT_FIELDS}
         arrays["T_scan_tracker"] = recon.T_scan_tracker
         arrays[PARAMS_KEY] = np.array(json.dumps(dataclasses.asdict(recon.params)))
@@ -156,7 +152,7 @@ class ReconstructionCodec:
     @staticmethod
     def recon_params(arrays: Arrays):
         """The parameters the reconstruction ran with, or None (stored by an older version)."""
-        from recon.types import ReconParams
+        from recon.recon_params import ReconParams
 
         if PARAMS_KEY not in arrays:
             return None
@@ -412,7 +408,7 @@ class SpeedDropSummary(BaseModel):
 
 def as_core_params(params: dict, overrides: dict | None = None) -> dict:
     """Stored parameters (JSON: sequences came back as lists) as the parameter classes
-    (:class:`recon.types.PlanParams`, ``ReconParams``) take them, tuples.
+    (:class:`recon.plan_params.PlanParams`, ``ReconParams``) take them, tuples.
 
     Parameters
     ----------

@@ -15,7 +15,7 @@ import numpy as np
 
 from drivers.errors import InputFileError
 from drivers.tracking.base import SampleBatch
-from recon.types import FloatArray
+from recon.arrays import FloatArray
 
 #: The most bytes one read takes from the file (about 12 000 samples).
 READ_BYTES = 1 << 20

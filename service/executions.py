@@ -231,8 +231,8 @@ def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> Cell
     UnreadableTrajectory
         The plan's tool (radius, clearance, TCP) is not a valid one.
     """
+    from recon.plan_params import PlanParams
     from recon.transforms import transform_from_pose
-    from recon.types import PlanParams
 
     store, settings = services.store, services.settings
     cell_in_force = cell_now(store, settings)  # not the plan's copy of it

@@ -36,8 +36,9 @@ from pydantic import ValidationError
 
 from drivers.robot.base import START_TOLERANCE_RAD
 from recon import kinematics
+from recon.arrays import FloatArray
 from recon.collision import Cell
-from recon.types import FloatArray, JointTrajectory
+from recon.trajectory import JointTrajectory
 from service.artifacts import ExecutionSummary, TrajectorySummary
 from service.refusals import (  # noqa: F401 - re-exported: the gate's refusals
     ApprovalMismatch,
@@ -148,7 +149,7 @@ class CheckedHere:
     Attributes
     ----------
     trajectory_id : str
-    trajectory : recon.types.JointTrajectory
+    trajectory : recon.trajectory.JointTrajectory
     summary : TrajectorySummary
     min_clearance_m : float
         The smallest clearance of the arm and tool to the cell found here.
@@ -207,8 +208,8 @@ def check_here(
     CollidesHere
     """
     from recon.plan import check_cell
+    from recon.plan_params import PlanParams
     from recon.sample_check import sample_problems, tcp_speeds_m_s
-    from recon.types import PlanParams
 
     _require_arm(settings)
     summary = trajectory_summary(trajectory)

@@ -19,17 +19,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
+from recon.arrays import FloatArray
 from recon.params import PIVOT_TOLERANCE_M
-from recon.types import FloatArray
 
 if TYPE_CHECKING:  # the plan module is imported where a plan is made, not for every command
     from drivers.robot.base import ExecutionRecord
     from drivers.robot.dryrun import ExecutionReport
     from recon.calibrate import PivotCalibration, PointPairCalibration
     from recon.plan import MovePlan, Plan
+    from recon.results import Reconstruction, Registration
     from recon.scan_model import ScanModel
     from recon.touches import TouchRegistration
-    from recon.types import Reconstruction, Registration
 
 
 def _off_feature(reg, mm: float) -> str:
@@ -291,15 +291,15 @@ def touch_calibration(
 
     Parameters
     ----------
-    touches : recon.types.Recording
+    touches : recon.inputs.Recording
         The touch recording (with times): the tip rests on each of several points.
-    scan : recon.types.Scan
-    trace : recon.types.Recording, optional
+    scan : recon.inputs.Scan
+    trace : recon.inputs.Recording, optional
         The path these touches are for: without ``T_scan_tracker_init`` the touches start from
         registering it to the scan, and they are judged at it, across its features. Without
         it they are judged over the scanned workpiece around them, in every direction (a path
         there may need any of them).
-    params : recon.types.ReconParams, optional
+    params : recon.recon_params.ReconParams, optional
     T_scan_tracker_init : ndarray of shape (4, 4), optional
         Where to start (identity when neither it nor a trace is given).
     check : bool
@@ -314,6 +314,7 @@ def touch_calibration(
         Too few touches on the scanned surface; (TouchesInsufficientError) they leave more than
         the tolerance, each poorly pinned motion named with its millimetres.
     """
+    from recon.recon_params import ReconParams
     from recon.reconstruct import touches_for_trace
     from recon.touches import (
         INITIAL_GUESS_SIGMA_M,
@@ -322,7 +323,6 @@ def touch_calibration(
         register_touches,
         touches_in,
     )
-    from recon.types import ReconParams
 
     params = params or ReconParams()
     found = touches_in(touches.points_m, touches.t_s)
@@ -367,7 +367,7 @@ class ReconstructOutcome:
 
     Attributes
     ----------
-    reconstruction : recon.types.Reconstruction
+    reconstruction : recon.results.Reconstruction
     scan_tracker_m : ndarray of shape (M, 3), or None
         The scan moved into the tracker frame with the transform the reconstruction used (the
         registration's, else the given one), so the preview draws it where the path saw it.
@@ -378,7 +378,7 @@ class ReconstructOutcome:
 
     def summary(self) -> dict:
         """The artifact's summary (see :class:`service.artifacts.ReconstructionSummary`)."""
-        from recon.types import PointMode, PointReason
+        from recon.results import PointMode, PointReason
 
         recon = self.reconstruction
         reg = recon.registration
@@ -445,7 +445,7 @@ class ReconstructOutcome:
 
     def lines(self) -> list[str]:
         """A few lines on what the reconstruction did (the command line prints them)."""
-        from recon.types import PointMode
+        from recon.results import PointMode
 
         recon, mm = self.reconstruction, 1e3
         counts = ", ".join(
@@ -518,14 +518,14 @@ def reconstruct(
 
     Parameters
     ----------
-    recording : recon.types.Recording or list of them
+    recording : recon.inputs.Recording or list of them
         Several recordings are demonstrations of one path, fused first.
-    scan : recon.types.Scan or None
-    params : recon.types.ReconParams
+    scan : recon.inputs.Scan or None
+    params : recon.recon_params.ReconParams
     T_scan_tracker_init : ndarray of shape (4, 4), optional
         The stored calibration: registration's initial guess, or the transform itself when
         ``params.register`` is False.
-    touches : recon.types.Recording, optional
+    touches : recon.inputs.Recording, optional
         A touch recording: the scanner is registered by it (started from the calibration, or
         from registering the trace) instead of by the trace.
     """
@@ -575,7 +575,7 @@ class PlacedScan:
     model : recon.scan_model.ScanModel
         Scan frame.
     T_scan_tracker : ndarray of shape (4, 4)
-    registration : recon.types.Registration or None
+    registration : recon.results.Registration or None
         Set when the transform had to be found by registering the path here.
     """
 
@@ -591,9 +591,10 @@ def place_scan(scan, path, *, recon_params=None) -> PlacedScan:
     without ``--scan-from-tracker``), the path is registered to the scan first, as the
     reconstruction did; the result says so.
     """
+    from recon.inputs import Recording
     from recon.plan import scan_model_for_path
+    from recon.recon_params import ReconParams
     from recon.reconstruct import plan_segments, prepare_scan_model
-    from recon.types import ReconParams, Recording
 
     params = recon_params or ReconParams()
     if path.T_scan_tracker is not None:
@@ -732,17 +733,17 @@ def plan(
 
     Parameters
     ----------
-    path : recon.types.ReconstructedPath
+    path : recon.paths.ReconstructedPath
         The reconstruction (tracker frame) with the ``T_scan_tracker`` it used.
-    params : recon.types.PlanParams
+    params : recon.plan_params.PlanParams
     T_base_tracker : ndarray of shape (4, 4), optional
         Where the tracker frame is in the robot's base frame (default: the same frame).
     scan_model : recon.scan_model.ScanModel, optional
         The scan's structure near the path (scan frame), for the tool axis from the scan's
         normals. It is used with ``path.T_scan_tracker``: nothing is registered again.
-    recon_params : recon.types.ReconParams, optional
+    recon_params : recon.recon_params.ReconParams, optional
         The reconstruction's parameters (the radii of the normal fits); default the defaults.
-    scan : recon.types.Scan, optional
+    scan : recon.inputs.Scan, optional
         The workpiece, for the collision check (placed with ``path.T_scan_tracker`` and
         ``T_base_tracker``).
     keep_out_boxes : sequence of 6 floats each
@@ -821,7 +822,7 @@ class MoveOutcome:
 
     @property
     def trajectory(self):
-        """The move's samples (:class:`recon.types.JointTrajectory`)."""
+        """The move's samples (:class:`recon.trajectory.JointTrajectory`)."""
         return self.move.trajectory
 
     def summary(self) -> dict:
@@ -887,12 +888,12 @@ def move_to_start(
     ----------
     q_from_rad : array-like of shape (6,)
         Where the arm is.
-    target : recon.types.JointTrajectory
+    target : recon.trajectory.JointTrajectory
         The plan to move to the start of.
     target_id : str
     target_summary : dict
         Its summary (its configuration, IK branch and tracker-to-base transform are the move's).
-    params : recon.types.PlanParams
+    params : recon.plan_params.PlanParams
         The target's parameters (tool, transit speeds, clearance).
     scan, T_scan_tracker, T_base_tracker, keep_out_boxes, cell_planes
         The cell, as :func:`cell_for` takes them.

@@ -14,8 +14,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
 from drivers.files import atomic_path  # noqa: E402
+from recon.arrays import FloatArray  # noqa: E402
 from recon.metrics import distance_to_curve  # noqa: E402
-from recon.types import FloatArray, Reconstruction  # noqa: E402
+from recon.results import Reconstruction
 
 #: Scan points drawn at most (a dense scan would bury the paths and take seconds to render).
 MAX_SCAN_POINTS = 20000
@@ -144,12 +145,12 @@ def plot_plan(path: str | Path, trajectory, *, title: str = "") -> None:
     ----------
     path : str or Path
         The PNG to write (written whole or not at all).
-    trajectory : recon.types.JointTrajectory
+    trajectory : recon.trajectory.JointTrajectory
         ``t_s`` (M,), ``q_rad`` and ``qd_rad_s`` (M, 6), ``tcp_m`` (M, 3), its phases and
         ``speed_drops`` (metres of process path).
     title : str
     """
-    from recon.types import Phase
+    from recon.paths import Phase
     from service.preview import speed_drop_times, tcp_speed_m_s
 
     arm = trajectory.arm
@@ -216,7 +217,7 @@ def plot_plan(path: str | Path, trajectory, *, title: str = "") -> None:
 
 def _phase_spans(phases):
     """(first, last sample, label) of each run of one phase."""
-    from recon.types import Phase
+    from recon.paths import Phase
 
     changes = np.flatnonzero(np.diff(phases)) + 1
     for start, stop in zip(np.r_[0, changes], np.r_[changes, len(phases)], strict=True):

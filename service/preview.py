@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from recon.types import FloatArray, Phase
+from recon.arrays import FloatArray
+from recon.paths import Phase
 
 #: The most samples a preview sends by default (a 30 s plan at 500 Hz has 15 000).
 DEFAULT_SAMPLES = 1500
@@ -87,7 +88,7 @@ def trajectory_preview(
 
     Parameters
     ----------
-    trajectory : recon.types.JointTrajectory
+    trajectory : recon.trajectory.JointTrajectory
         ``t_s`` (M,), ``q_rad`` and ``qd_rad_s`` (M, 6), ``tcp_m`` (M, 3), phases.
     clearance_m : ndarray of shape (M,), optional
         The smallest clearance of the arm and tool to the cell per sample (when checked).
@@ -156,7 +157,7 @@ def execution_review(trajectory, samples, *, max_samples: int = DEFAULT_SAMPLES)
 
     Parameters
     ----------
-    trajectory : recon.types.JointTrajectory
+    trajectory : recon.trajectory.JointTrajectory
         The plan that ran.
     samples : service.artifacts.ExecutionSamples
         ``t_s`` (S,), ``q_planned_rad`` and ``q_actual_rad`` (S, 6) as recorded.

@@ -75,7 +75,8 @@ class Overrides:
         ValueError
             Not such an object, an unknown field, or a value out of its bounds.
         """
-        from recon.types import PlanParams, ReconParams
+        from recon.plan_params import PlanParams
+        from recon.recon_params import ReconParams
 
         try:
             document = json.loads(text)
@@ -224,7 +225,7 @@ def _guarded(reader, artifact, replay: Callable, overrides, tolerance_m) -> dict
 
 
 def _reconstruction(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> dict:
-    from recon.types import ReconParams
+    from recon.recon_params import ReconParams
     from service import pipelines
     from service.artifacts import ReconstructionCodec, RecordingCodec, ScanCodec
 
@@ -298,7 +299,8 @@ def path_deviation_m(stored_m: np.ndarray, replayed_m: np.ndarray) -> np.ndarray
 def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> dict:
     from recon.errors import CollisionError, InfeasibleTrajectoryError
     from recon.kinematics import DHCalibration
-    from recon.types import PlanParams, ReconParams
+    from recon.plan_params import PlanParams
+    from recon.recon_params import ReconParams
     from service import pipelines
     from service.artifacts import (
         ReconstructionCodec,

@@ -19,7 +19,8 @@ from pydantic import (
 )
 
 from recon.params import default_of, specs, type_hints
-from recon.types import PlanParams, ReconParams, check_tool_spheres
+from recon.plan_params import PlanParams, check_tool_spheres
+from recon.recon_params import ReconParams
 from service.artifacts import (
     ExecutionSummary,
     ReconstructionSummary,
@@ -327,7 +328,7 @@ class _ReconstructionRequest(Strict):
     _matrix = field_validator("T_scan_tracker")(_check_matrix)
 
     def recon_params(self) -> dict:
-        """The core's parameters (:class:`recon.types.ReconParams`), checked by the core."""
+        """The core's parameters (:class:`recon.recon_params.ReconParams`), checked by the core."""
         params = {name: getattr(self, name) for name in RECONSTRUCTION_PARAMS}
         params["register"] = self.registration
         ReconParams(**params)
@@ -350,12 +351,12 @@ class _TrajectoryRequest(Strict):
         return value
 
     def plan_params(self) -> dict:
-        """The core's parameters (:class:`recon.types.PlanParams`), checked by the core."""
+        """The core's parameters (:class:`recon.plan_params.PlanParams`), checked by the core."""
         return self.plan_params_with({name: getattr(self, name) for name in TRAJECTORY_PARAMS})
 
     @staticmethod
     def plan_params_with(params: dict) -> dict:
-        """``params`` checked by the core (:class:`recon.types.PlanParams`)."""
+        """``params`` checked by the core (:class:`recon.plan_params.PlanParams`)."""
         PlanParams(**params)
         return params
 

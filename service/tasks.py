@@ -282,7 +282,7 @@ class Reconstruct:
     touches_path: str | None = None
 
     def run(self) -> dict:
-        from recon.types import ReconParams
+        from recon.recon_params import ReconParams
 
         recordings = [RecordingCodec.decode(load_arrays(p)) for p in self.recording_paths]
         scan = ScanCodec.decode(load_arrays(self.scan_path)) if self.scan_path else None
@@ -322,7 +322,8 @@ class Plan:
 
     def run(self) -> dict:
         from recon.kinematics import DHCalibration
-        from recon.types import PlanParams, ReconParams
+        from recon.plan_params import PlanParams
+        from recon.recon_params import ReconParams
 
         arrays = load_arrays(self.reconstruction_path)
         outcome = pipelines.plan(
@@ -359,7 +360,7 @@ class MoveToStart:
     reconstruction_path : str or None
         The plan's reconstruction (where it placed the scan), if stored.
     params : dict
-        :class:`recon.types.PlanParams` of the plan, ``start_q_rad`` where the arm stands.
+        :class:`recon.plan_params.PlanParams` of the plan, ``start_q_rad`` where the arm stands.
     q_from_rad : list of 6 floats
         Where the arm stands.
     out_path : str
@@ -391,7 +392,7 @@ class MoveToStart:
 
     def run(self) -> dict:
         from recon.kinematics import DHCalibration
-        from recon.types import PlanParams
+        from recon.plan_params import PlanParams
 
         T_scan_tracker = None
         if self.reconstruction_path is not None:

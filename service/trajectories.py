@@ -118,7 +118,7 @@ def start_move_to_start(services: Services, session_id: str, trajectory_id: str)
         A real arm is configured but its joints cannot be read now.
     """
     from drivers.robot.base import START_TOLERANCE_RAD
-    from recon.types import PlanParams
+    from recon.plan_params import PlanParams
     from service.errors import ApiError
     from service.schemas import TRAJECTORY_PARAMS
 

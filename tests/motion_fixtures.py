@@ -6,8 +6,8 @@ import functools
 
 import numpy as np
 
+from recon.paths import Phase
 from recon.plan import PlanParams, plan_path
-from recon.types import Phase
 
 #: Where the demo workpiece sits in front of a UR5e (base frame), metres.
 WORKPIECE_IN_BASE = (0.45, 0.1, 0.05)

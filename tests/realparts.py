@@ -21,13 +21,14 @@ from scipy.spatial import cKDTree
 from recon.errors import ReconError
 from recon.icp import register_icp
 from recon.metrics import best_savitzky_golay, distance_to_curve, score_path
+from recon.recon_params import ReconParams
 from recon.reconstruct import reconstruct
 from recon.resample import resample_equidistant
+from recon.results import PointMode, PointReason, Reconstruction
 from recon.scenes import Scene, touch_recording
 from recon.scenes.cad import CaseChoice, CurveCase, cad_scene, traceable_cases
 from recon.touches import register_touches, touches_in
 from recon.transforms import apply_transform, invert_transform
-from recon.types import PointMode, PointReason, ReconParams, Reconstruction
 from tests.corpus import load_part, part_names
 
 MM = 1e-3

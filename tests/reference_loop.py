@@ -66,6 +66,7 @@ from recon.faces import (
     STAGE_ONE_RADIUS_M,
 )
 from recon.fusion import fuse_traces
+from recon.inputs import Recording
 from recon.methods import anchored as A
 from recon.methods.common import (
     ADAPTIVE_FACTORS,
@@ -73,6 +74,8 @@ from recon.methods.common import (
     EDGE_DIRECTION_TOLERANCE_DEG,
     HAND_ERROR_PRIOR_M,
 )
+from recon.recon_params import ReconParams
+from recon.results import PointMode, PointReason
 from recon.scan_model import (
     FACE_FOOT_MARGIN_M,
     FACE_HEIGHT_REACH_M,
@@ -80,7 +83,6 @@ from recon.scan_model import (
     build_scan_model,
 )
 from recon.transforms import apply_transform, invert_transform
-from recon.types import PointMode, PointReason, ReconParams, Recording
 
 # --- Small numerics, one neighbourhood at a time ---------------------------------------------
 

@@ -9,9 +9,10 @@ dry run executes every sample on the simulated arm, faster than real time.
 
 import numpy as np
 
+from recon.plan_params import PlanParams
+from recon.recon_params import ReconParams
 from recon.reconstruct import reconstruct
 from recon.scenes import cylinder_edge
-from recon.types import PlanParams, ReconParams
 from service import pipelines
 
 scene = cylinder_edge(seed=0)

@@ -12,9 +12,9 @@ simulated depth camera), so the true edge is known. With your own files, read th
 
 from scipy.spatial import cKDTree
 
+from recon.recon_params import ReconParams
 from recon.reconstruct import reconstruct
 from recon.scenes import cylinder_edge
-from recon.types import ReconParams
 
 scene = cylinder_edge(seed=0)
 result = reconstruct(scene.recording, scene.scan, params=ReconParams(radius_m=0.004))

@@ -36,8 +36,9 @@ from drivers.errors import (
 from drivers.registry import Registry
 from drivers.robot.clock import Clock, RealClock
 from recon import kinematics
+from recon.arrays import FloatArray
+from recon.trajectory import JointTrajectory
 from recon.transforms import pose_from_transform
-from recon.types import FloatArray, JointTrajectory
 from recon.waypoints import CoarsePath, coarse_waypoints
 
 #: How far (largest joint difference) the arm may be from a trajectory's first sample.

@@ -12,8 +12,10 @@ from drivers.robot.base import ExecutionRecord
 from drivers.robot.clock import FakeClock
 from drivers.robot.sim import SimBackend, SimConfig
 from recon import kinematics
+from recon.arrays import FloatArray
 from recon.metrics import distance_to_curve
-from recon.types import FloatArray, JointTrajectory, Phase, SpeedDrop, speed_drop_lines
+from recon.paths import Phase, SpeedDrop, speed_drop_lines
+from recon.trajectory import JointTrajectory
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.errors import InputFileError
-from recon.types import FloatArray
+from recon.arrays import FloatArray
 
 MAGIC = b"TPJOURN\x02"
 COLUMNS = 14

@@ -42,9 +42,10 @@ from drivers.robot.journal import JournalWriter
 from drivers.robot.monitor import ArmState, RobotMonitor
 from drivers.robot.timescale import MAX_PAUSE_S, PlanCursor
 from recon import kinematics
+from recon.arrays import FloatArray
 from recon.motion import trapezoid, trapezoid_duration
+from recon.trajectory import JointTrajectory
 from recon.transforms import pose_from_transform, transform_from_pose
-from recon.types import FloatArray, JointTrajectory
 from recon.waypoints import CoarsePath
 
 #: A home pose: elbow up, tool pointing down, well away from singularities.

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from recon.types import FloatArray
+from recon.arrays import FloatArray
 
 #: The speed fraction changes by at most this much per second (0 -> 100 % in a second at the
 #: quickest), whatever the acceleration limits would allow: an operator's slider, not a jolt.

@@ -53,7 +53,8 @@ from drivers.robot.base import (
 from drivers.robot.journal import JournalWriter
 from drivers.robot.timescale import MAX_PAUSE_S, PlanCursor
 from drivers.worker import Command, WorkerClient, WorkerLink, WorkerServer
-from recon.types import FloatArray, JointTrajectory
+from recon.arrays import FloatArray
+from recon.trajectory import JointTrajectory
 from recon.waypoints import CoarsePath
 
 #: UR robot modes (RTDE robot_mode) and safety modes used here.

@@ -22,7 +22,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from drivers.robot.base import START_TOLERANCE_RAD
-from recon.types import FloatArray, JointTrajectory, Phase
+from recon.arrays import FloatArray
+from recon.paths import Phase
+from recon.trajectory import JointTrajectory
 
 Mode = Literal["servoj", "movep"]
 #: servoJ's lookahead and gain in the program (as the ur_rtde backend streams).

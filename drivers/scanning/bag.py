@@ -35,7 +35,7 @@ from drivers.scanning.rgbd import (
     depth_median_m,
     truncate_depth,
 )
-from recon.types import Scan
+from recon.inputs import Scan
 
 #: A ROS1 bag (what librealsense records) starts with this line.
 BAG_SIGNATURE = b"#ROSBAG V2.0\n"

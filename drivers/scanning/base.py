@@ -1,7 +1,7 @@
 """Scan readers: one per kind of scanner output, chosen by file suffix or format name.
 
 Every reader turns a file (or a folder, or the bytes of an upload) into a :class:`ScanFile`: a
-:class:`~recon.types.Scan` in metres plus what was left out. The public method
+:class:`~recon.inputs.Scan` in metres plus what was left out. The public method
 :meth:`ScanReader.read` lives here and does what every reader needs (argument checks, uploads
 written to a temporary file, missing files); each reader implements ``_read``.
 
@@ -38,7 +38,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 from drivers.errors import InputFileError, UnknownFormatError
 from drivers.registry import Registry
 from drivers.units import metres_per
-from recon.types import Scan
+from recon.inputs import Scan
 
 #: File suffix -> format name. The longest matching suffix wins (``.rgbd.json``).
 SCAN_SUFFIXES: dict[str, str] = {

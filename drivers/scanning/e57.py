@@ -26,8 +26,9 @@ from scipy.spatial.transform import Rotation
 from drivers.errors import InputFileError
 from drivers.scanning._native import captured_native_stderr
 from drivers.scanning.base import ReaderOptions, ScanFile, ScanReader
+from recon.arrays import FloatArray
+from recon.inputs import Scan
 from recon.transforms import apply_transform
-from recon.types import FloatArray, Scan
 
 #: Every E57 file starts with this signature (the standard's file header).
 E57_SIGNATURE = b"ASTM-E57"

@@ -29,7 +29,7 @@ from drivers.scanning.declared import (
     check_declared_counts,
     ply_layout,
 )
-from recon.types import Scan
+from recon.inputs import Scan
 
 __all__ = [
     "POINT_CLOUD_FORMATS",

@@ -77,8 +77,9 @@ from drivers.errors import InputFileError, InputTooLargeError, clipped
 from drivers.scanning._native import check_image_file, open3d_message, quiet_open3d, read_image
 from drivers.scanning.base import DROPPED_DEPTH, ReaderOptions, ScanFile, ScanReader
 from drivers.scanning.limits import DEFAULT_MAX_FRAME_PIXELS, DEFAULT_MAX_PIXELS
+from recon.arrays import FloatArray
+from recon.inputs import Scan
 from recon.transforms import RIGID_TOLERANCE, is_proper_rotation
-from recon.types import FloatArray, Scan
 
 #: Raw depth units per metre when nothing says otherwise (16-bit PNGs in millimetres).
 DEFAULT_DEPTH_SCALE = 1000.0

@@ -22,10 +22,10 @@ from pydantic import BaseModel, ConfigDict
 from drivers.errors import UnknownBackendError
 from drivers.registry import Registry
 from drivers.robot.clock import Clock, RealClock
-from recon.types import FloatArray
+from recon.arrays import FloatArray
 
 if TYPE_CHECKING:
-    from recon.types import Recording
+    from recon.inputs import Recording
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,8 @@ from drivers.errors import InputFileError, ReaderCrashError, ResourceLimitError
 from drivers.isolation import Limits, run_isolated
 from drivers.tracking.base import SampleBatch, name_excerpt
 from drivers.units import metres_per
-from recon.types import FloatArray, Recording
+from recon.arrays import FloatArray
+from recon.inputs import Recording
 
 #: Metres per unit, by the (lower-case) names found in ``POINT:UNITS``.
 C3D_LENGTH_UNITS: dict[str, float] = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
@@ -95,7 +96,7 @@ class C3DTrace:
         return len(self.batch)
 
     def to_recording(self) -> Recording:
-        """The valid samples as a :class:`~recon.types.Recording` (lost frames left out).
+        """The valid samples as a :class:`~recon.inputs.Recording` (lost frames left out).
 
         Raises
         ------

@@ -12,7 +12,7 @@ from drivers.errors import InputFileError
 from drivers.files import csv_rows
 from drivers.tracking.base import name_excerpt
 from drivers.units import metres_per
-from recon.types import Recording
+from recon.inputs import Recording
 
 POSITION_COLUMNS = ("x", "y", "z")
 QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw")

@@ -4,7 +4,7 @@ Optical trackers lose the pen when a marker is hidden (empty cells in a Motive e
 flagged not tracked in NatNet), and sometimes report a wrong pose for a few frames (a marker
 swap: the position jumps away and back). The reconstruction needs one
 continuous path per piece, so a raw recording is cleaned before it becomes a
-:class:`~recon.types.Recording`:
+:class:`~recon.inputs.Recording`:
 
 1. Samples flagged invalid or with non-finite values are dropped.
 2. Outliers: a sample further than ``outlier_m`` from the moving median of its neighbours
@@ -34,7 +34,8 @@ import numpy as np
 
 from drivers.errors import InputFileError
 from drivers.tracking.base import SampleBatch
-from recon.types import FloatArray, Recording
+from recon.arrays import FloatArray
+from recon.inputs import Recording
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,8 @@ from drivers.errors import InputFileError
 from drivers.files import csv_rows
 from drivers.tracking.base import SampleBatch, name_excerpt
 from drivers.units import metres_per
-from recon.types import FloatArray, Recording
+from recon.arrays import FloatArray
+from recon.inputs import Recording
 
 #: Metres per unit, by the names Motive writes in "Length Units".
 MOTIVE_LENGTH_UNITS: dict[str, float] = {"meters": 1.0, "centimeters": 1e-2, "millimeters": 1e-3}
@@ -124,7 +125,7 @@ class MotiveTrace:
         return len(self.batch)
 
     def to_recording(self) -> Recording:
-        """The valid samples as a :class:`~recon.types.Recording` (lost frames left out).
+        """The valid samples as a :class:`~recon.inputs.Recording` (lost frames left out).
 
         Raises
         ------

@@ -41,7 +41,7 @@ import numpy as np
 
 from drivers.errors import DriverError
 from drivers.units import metres_per
-from recon.types import Recording
+from recon.inputs import Recording
 
 #: The NatNet bitstream version served (Motive 3.0). natnet 0.3.0 parses all of it; its frames
 #: have the 3.x layout, its rigid-body descriptions add marker names.

@@ -14,7 +14,7 @@ import numpy as np
 from drivers.errors import InputFileError
 from drivers.files import csv_rows
 from drivers.units import metres_per
-from recon.types import FloatArray
+from recon.arrays import FloatArray
 
 BASE_COLUMNS = ("base_x", "base_y", "base_z")
 TRACKER_COLUMNS = ("tracker_x", "tracker_y", "tracker_z")

@@ -29,7 +29,8 @@ from drivers.errors import InputFileError, UnknownFormatError
 from drivers.registry import Registry
 from drivers.tracking.base import SampleBatch
 from drivers.tracking.gaps import CleanTrace, GapParams, apply_tip_offset, clean_trace
-from recon.types import FloatArray, Recording
+from recon.arrays import FloatArray
+from recon.inputs import Recording
 
 #: Which piece of a trace split by long dropouts: an index, "all" (kept apart), None (the
 #: longest).

@@ -19,7 +19,7 @@ from drivers.tracking.natnet_source import (
     TrackerError,
     TrackerTimeoutError,
 )
-from recon.types import Recording
+from recon.inputs import Recording
 
 StopReason = Literal["duration", "stop_event", "stream_stalled", "interrupted"]
 

@@ -12,7 +12,7 @@ from pydantic import Field
 
 from drivers.robot.clock import Clock
 from drivers.tracking.base import Pacer, SampleBatch, SourceConfig, TrackerSource
-from recon.types import Recording
+from recon.inputs import Recording
 
 #: Assumed tracker rate for recordings without times (OptiTrack's default is 240 Hz).
 DEFAULT_RATE_HZ = 240.0

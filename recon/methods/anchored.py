@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter1d
 
+from recon.arrays import FloatArray
 from recon.classify import SegmentKind
 from recon.faces import fit_faces
 from recon.fitting import (
@@ -42,8 +43,9 @@ from recon.methods.common import (
     path_fit,
     prior_variance,
 )
+from recon.recon_params import ReconParams
+from recon.results import PointMode, PointReason
 from recon.scan_model import ScanModel
-from recon.types import FloatArray, PointMode, PointReason, ReconParams
 
 #: The drift estimate averages the path-to-scan discrepancy over this many radii.
 DRIFT_WINDOW_RADII = 10.0

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from recon.arrays import FloatArray
 from recon.fitting import (
     PCA,
     LinearFit,
@@ -24,8 +25,8 @@ from recon.fitting import (
     weighted_pca,
     window_indices,
 )
+from recon.results import PointMode, PointReason
 from recon.scan_model import ScanModel
-from recon.types import FloatArray, PointMode, PointReason
 
 #: What a hand trace is off by where nothing but the trace says where the path is, 1 sigma
 #: across the path: the paper measured operators' errors at a standard deviation of 0.5-1 mm
@@ -67,7 +68,7 @@ class SegmentResult:
     ----------
     points : ndarray of shape (n, 3), metres
     mode : ndarray of shape (n,), int8
-        :class:`recon.types.PointMode` of each point.
+        :class:`recon.results.PointMode` of each point.
     n_path, n_surface : ndarray of shape (n,), int
         Sizes of N_P and N_S.
     residual_path, residual_surface : ndarray of shape (n,), metres
@@ -79,7 +80,7 @@ class SegmentResult:
         together), from the fits, the estimated noise of the path and, where the path alone
         decided, :data:`HAND_ERROR_PRIOR_M` (the registration's share is added by the caller).
     reason : ndarray of shape (n,), int8
-        :class:`recon.types.PointReason` of each point.
+        :class:`recon.results.PointReason` of each point.
     """
 
     points: FloatArray

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from recon.arrays import FloatArray
 from recon.classify import SegmentKind
 from recon.fitting import fit_linear_robust, poly_design, weighted_pca, window_indices
 from recon.methods.common import (
@@ -22,8 +23,9 @@ from recon.methods.common import (
     path_fit,
     prior_variance,
 )
+from recon.recon_params import ReconParams
+from recon.results import PointMode
 from recon.scan_model import ScanModel
-from recon.types import FloatArray, PointMode, ReconParams
 
 
 def align_scan_axes(scan_axes: FloatArray, path_axes: FloatArray) -> FloatArray:

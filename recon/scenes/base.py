@@ -8,9 +8,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from recon.arrays import FloatArray
+from recon.inputs import Recording, Scan
 from recon.scenes.noise import HandNoise, hand_trace
 from recon.transforms import apply_transform
-from recon.types import FloatArray, Recording, Scan
 
 MM = 1e-3
 

@@ -27,6 +27,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from recon.arrays import FloatArray
+from recon.inputs import Scan
 from recon.scenes.base import MM, Face, Scene, interpolated_curve
 from recon.scenes.depth_camera import (
     DepthCamera,
@@ -37,7 +39,6 @@ from recon.scenes.depth_camera import (
 )
 from recon.scenes.noise import HandNoise, hand_trace, misalignment
 from recon.transforms import apply_transform
-from recon.types import FloatArray, Scan
 
 if TYPE_CHECKING:
     import open3d as o3d

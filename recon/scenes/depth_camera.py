@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from recon.types import FloatArray
+from recon.arrays import FloatArray
 
 if TYPE_CHECKING:
     import open3d as o3d

@@ -15,7 +15,8 @@ import numpy as np
 from scipy.ndimage import convolve1d
 from scipy.spatial.transform import Rotation
 
-from recon.types import FloatArray, Recording
+from recon.arrays import FloatArray
+from recon.inputs import Recording
 
 MM = 1e-3
 

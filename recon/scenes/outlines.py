@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from recon.arrays import FloatArray
 from recon.scenes.base import (
     MM,
     Face,
@@ -22,7 +23,6 @@ from recon.scenes.base import (
     scan_from_surface,
 )
 from recon.scenes.noise import HandNoise, hand_trace, misalignment
-from recon.types import FloatArray
 
 #: How far the plate's edge (and the scan) runs on past each end of the path.
 EXTENSION_M = 15 * MM

@@ -6,6 +6,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from recon.arrays import FloatArray
+from recon.inputs import Scan
 from recon.scenes.base import (
     MM,
     Face,
@@ -15,7 +17,6 @@ from recon.scenes.base import (
 )
 from recon.scenes.noise import HandNoise, hand_trace, misalignment
 from recon.transforms import apply_transform
-from recon.types import FloatArray, Scan
 
 
 def cylinder_edge(

@@ -16,8 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from recon.arrays import FloatArray
+from recon.inputs import Recording
 from recon.scenes.base import MM, Scene
-from recon.types import FloatArray, Recording
 
 
 @dataclass(frozen=True)

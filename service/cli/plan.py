@@ -46,7 +46,7 @@ def add_parser(commands) -> None:
         help="place the scan with this T_scan_tracker instead (nothing is registered); without "
         "it and without RECON.npz the path is registered to the scan here",
     )
-    from recon.types import PlanParams
+    from recon.plan_params import PlanParams
     from service.schemas import TRAJECTORY_PARAMS
 
     add_param_options(
@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from drivers.export import write_trajectory_csv
-    from recon.types import PlanParams
+    from recon.plan_params import PlanParams
     from service import pipelines
     from service.artifacts import TrajectorySummary
     from service.schemas import TRAJECTORY_PARAMS

@@ -49,7 +49,7 @@ def add_parser(commands) -> None:
         help="stored calibration T_scan_tracker: the initial guess for registration (or the "
         "transform itself with --no-register)",
     )
-    from recon.types import ReconParams
+    from recon.recon_params import ReconParams
     from service.schemas import RECONSTRUCTION_PARAMS
 
     add_param_options(rec, ReconParams, RECONSTRUCTION_PARAMS)
@@ -79,7 +79,7 @@ def sidecar_of(csv_path: str | Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     from drivers.export import write_reconstruction_csv
-    from recon.types import ReconParams
+    from recon.recon_params import ReconParams
     from service import pipelines
     from service.artifacts import ReconstructionCodec
     from service.schemas import RECONSTRUCTION_PARAMS

@@ -13,7 +13,7 @@ import numpy as np
 
 from drivers.scanning.pointcloud import read_scan
 from drivers.tracking.readers import read_trace
-from recon.types import ReconParams
+from recon.recon_params import ReconParams
 from tests.reference_loop import reconstruct_loop
 
 

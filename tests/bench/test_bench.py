@@ -15,7 +15,7 @@ from recon import reconstruct as R
 from recon import scenes
 from recon.evaluation import registered_truth
 from recon.metrics import score_path
-from recon.types import ReconParams
+from recon.recon_params import ReconParams
 
 pytestmark = pytest.mark.bench
 

@@ -17,8 +17,8 @@ import pytest
 from drivers.tracking.natnet_server import NatNetReplayServer
 from drivers.tracking.natnet_source import NatNetConfig, NatNetSource
 from recon import scenes
+from recon.inputs import Recording
 from recon.reconstruct import reconstruct
-from recon.types import Recording
 
 pytestmark = pytest.mark.bench
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from drivers.scanning.pointcloud import write_scan
-from recon.types import Scan
+from recon.inputs import Scan
 from tests.server_process import Server
 from tests.ui.conftest import CHROMIUM_ARGS, chromium_path
 

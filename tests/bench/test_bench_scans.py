@@ -20,7 +20,7 @@ import pytest
 
 from drivers.scanning.base import read_scan
 from drivers.scanning.pointcloud import write_scan
-from recon.types import Scan
+from recon.inputs import Scan
 from tests.drivers.test_scan_readers import (
     intrinsics_json,
     render_depth,

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from drivers.tracking.c3d import read_c3d
 from drivers.tracking.canonical_csv import read_trace_csv, write_trace_csv
 from drivers.tracking.motive_csv import read_motive_csv
-from recon.types import Recording
+from recon.inputs import Recording
 from tests.drivers.tracking_fixtures import PEN_MARKERS_M, helix, write_c3d, write_motive_csv
 
 pytestmark = pytest.mark.bench

@@ -40,7 +40,7 @@ from drivers.scanning.pointcloud import write_scan
 from drivers.tracking.canonical_csv import write_trace_csv
 from drivers.tracking.readers import read_trace
 from recon.errors import ReconError
-from recon.types import Recording, Scan
+from recon.inputs import Recording, Scan
 
 #: Input errors that are no refusal of the input: a native crash, a package that is not
 #: installed, a worker that died.

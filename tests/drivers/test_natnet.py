@@ -30,7 +30,7 @@ from drivers.tracking.natnet_source import (
     UnknownRigidBodyError,
 )
 from drivers.tracking.record import record_natnet
-from recon.types import Recording
+from recon.inputs import Recording
 
 RATE_HZ = 360.0
 T0_S = 1234.5  # Motive's timestamps count from its start, not from zero

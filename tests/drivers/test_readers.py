@@ -7,7 +7,7 @@ from drivers.errors import InputFileError, UnknownFormatError
 from drivers.files import atomic_path
 from drivers.scanning.pointcloud import read_scan, write_scan
 from drivers.tracking.canonical_csv import read_trace_csv, write_trace_csv
-from recon.types import Recording, Scan
+from recon.inputs import Recording, Scan
 
 
 def test_trace_round_trip_with_times_and_orientations(tmp_path):

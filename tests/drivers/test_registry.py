@@ -26,7 +26,7 @@ from drivers.tracking.base import SOURCES, create_source, source_class
 from drivers.tracking.natnet_source import NatNetConfig, NatNetSource
 from drivers.tracking.readers import TRACE_READERS
 from drivers.tracking.replay import ReplayConfig, ReplaySource
-from recon.types import Recording
+from recon.inputs import Recording
 
 GROUP = "teachpath.test_backends"
 

@@ -8,7 +8,7 @@ import pytest
 from drivers.robot.clock import FakeClock
 from drivers.tracking.base import Pacer, SampleBatch, source_class
 from drivers.tracking.replay import ReplaySource
-from recon.types import Recording
+from recon.inputs import Recording
 from tests.drivers.tracking_fixtures import helix, write_motive_csv
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from drivers.export import DIAGNOSTIC_COLUMNS, QUATERNION_COLUMNS, reconstruction_csv_text
-from recon.types import PointMode, PointReason
+from recon.results import PointMode, PointReason
 
 
 def _arrays(
@@ -117,7 +117,7 @@ def test_the_trajectory_csv_is_what_numpy_savetxt_wrote_and_reads_back(tmp_path)
         trajectory_csv_text,
         write_trajectory_csv,
     )
-    from recon.types import Phase
+    from recon.paths import Phase
     from tests.motion_fixtures import line_plan
 
     trajectory = line_plan().trajectory  # every phase, from the arm's home

@@ -38,7 +38,7 @@ from drivers.scanning.base import SCAN_READERS, format_for, make_reader, read_sc
 from drivers.scanning.pointcloud import read_scan as pointcloud_read_scan
 from drivers.scanning.pointcloud import write_scan
 from drivers.scanning.rgbd import Intrinsics
-from recon.types import Scan
+from recon.inputs import Scan
 
 MM = 1e-3
 RIDGE_RADIUS_M = 0.04

@@ -162,7 +162,7 @@ def test_a_missing_or_oversized_file_is_refused(tmp_path):
 def calibrated_plan(calibrated):
     """A 150 mm line in front of a UR10e, planned with its calibration."""
     from recon.plan import plan_path
-    from recon.types import PlanParams
+    from recon.plan_params import PlanParams
 
     s = np.linspace(0.0, 0.15, 151)
     points = np.column_stack([0.6 + 0 * s, -0.075 + s, np.full_like(s, 0.1)])

@@ -7,9 +7,10 @@ import pytest
 
 from recon import scenes
 from recon.classify import SegmentKind, classify_segments
+from recon.recon_params import ReconParams
 from recon.reconstruct import plan_segments, prepare_scan_model
+from recon.results import Segment
 from recon.transforms import apply_transform
-from recon.types import ReconParams, Segment
 
 
 def test_segment_json_keeps_the_plain_strings():

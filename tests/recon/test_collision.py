@@ -34,7 +34,7 @@ from recon.kinematics import (
     joint_frames,
     model,
 )
-from recon.types import PlanParams
+from recon.plan_params import PlanParams
 
 MODELS = sorted(UR_MODELS)
 

@@ -14,9 +14,9 @@ from recon.corners import (
     turning_angle_deg,
 )
 from recon.metrics import score_path
+from recon.recon_params import ReconParams
 from recon.reconstruct import reconstruct
 from recon.transforms import apply_transform
-from recon.types import ReconParams
 
 MM = 1e-3
 
@@ -135,7 +135,7 @@ def test_a_trace_that_only_looks_sharp_is_not_split_where_the_scan_runs_straight
     mid = n // 2
     kink[mid : mid + 12, 1] = np.linspace(0, 4 * MM, 12)
     kink[mid + 12 : mid + 24, 1] = np.linspace(4 * MM, 0, 12)
-    from recon.types import Recording
+    from recon.inputs import Recording
 
     recording = Recording(points_m=points + kink, t_s=scene.recording.t_s)
     recon = reconstruct(recording, scene.scan)
@@ -148,7 +148,7 @@ def test_a_trace_that_only_looks_sharp_is_not_split_where_the_scan_runs_straight
 def test_a_corner_near_the_start_of_a_path_without_a_scan_is_joined():
     """Six millimetres, then a right angle: the first segment is shorter than the lines the
     join fits (it crashed once)."""
-    from recon.types import Recording
+    from recon.inputs import Recording
 
     first = np.column_stack([np.arange(6) * MM, np.zeros(6), np.zeros(6)])
     second = np.column_stack([np.full(40, 5 * MM), np.arange(1, 41) * MM, np.zeros(40)])

@@ -16,8 +16,9 @@ from recon.features import (
     voxel_average,
 )
 from recon.fitting import symmetric_eig3
+from recon.inputs import Scan
+from recon.recon_params import ReconParams
 from recon.scan_model import build_scan_model
-from recon.types import ReconParams, Scan
 
 
 def dihedral(

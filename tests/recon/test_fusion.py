@@ -7,9 +7,9 @@ import pytest
 from recon import scenes
 from recon.errors import DegenerateInputError
 from recon.fusion import fuse_traces
+from recon.inputs import Recording
 from recon.metrics import score_path
 from recon.reconstruct import reconstruct
-from recon.types import Recording
 
 MM = 1e-3
 

@@ -161,9 +161,9 @@ def test_registration_reports_how_far_the_path_moved_not_where_the_scanner_stand
     """A scanner 4 m from the tracker's origin: the transform's translation is metres, the
     path itself moved by about the misalignment (issue: "moved 326.05 mm" for a 1.2 mm move)."""
     from recon import scenes
+    from recon.inputs import Scan
     from recon.reconstruct import reconstruct
     from recon.transforms import apply_transform, translation_m
-    from recon.types import Scan
 
     scene = scenes.cylinder_edge(0)
     far = np.eye(4)

@@ -9,10 +9,10 @@ from recon.errors import InfeasibleTrajectoryError
 from recon.kinematics import HOME_Q_RAD, forward, model
 from recon.metrics import distance_to_curve
 from recon.orient import smooth_directions, tool_path
+from recon.paths import Phase
 from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path
 from recon.reconstruct import reconstruct
 from recon.timing import limits_for
-from recon.types import Phase
 from tests.motion_fixtures import base_from_tracker, line_plan
 
 
@@ -174,7 +174,7 @@ def test_the_vectorised_samples_are_toppras_own():
 
 
 def test_a_summary_lists_the_slowest_speed_drops_and_counts_the_rest():
-    from recon.types import LISTED_SPEED_DROPS, SpeedDrop, speed_drop_lines
+    from recon.paths import LISTED_SPEED_DROPS, SpeedDrop, speed_drop_lines
 
     assert speed_drop_lines([]) == []
     few = [SpeedDrop(0.1 * i, 0.1 * i + 0.01, 0.05 + 0.001 * i, "joint speed") for i in range(3)]

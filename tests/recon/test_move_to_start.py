@@ -9,8 +9,9 @@ import pytest
 from recon import kinematics
 from recon.collision import Box, Cell
 from recon.errors import CollisionError
+from recon.paths import Phase
 from recon.plan import plan_move
-from recon.types import Phase, PlanParams
+from recon.plan_params import PlanParams
 
 HOME = np.array(kinematics.HOME_Q_RAD)
 

@@ -5,12 +5,15 @@ import numpy as np
 import pytest
 
 from recon import scenes
+from recon.arrays import piece_labels, piece_slices
 from recon.collision import ContactZone
+from recon.inputs import Recording
 from recon.kinematics import forward, model
 from recon.metrics import distance_to_curve
+from recon.paths import Phase
 from recon.plan import PlanParams, plan_path
+from recon.recon_params import ReconParams
 from recon.reconstruct import reconstruct
-from recon.types import Phase, ReconParams, Recording, piece_labels, piece_slices
 
 
 @pytest.fixture(scope="module")

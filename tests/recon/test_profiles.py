@@ -14,11 +14,13 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from recon.faces import fit_faces
+from recon.inputs import Scan
 from recon.methods import anchored
+from recon.recon_params import ReconParams
 from recon.reconstruct import reconstruct
+from recon.results import PointMode
 from recon.scan_model import build_scan_model
 from recon.transforms import apply_transform
-from recon.types import PointMode, ReconParams, Scan
 
 MM = 1e-3
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from recon.metrics import distance_to_curve
-from recon.types import PointReason
+from recon.results import PointReason
 from tests.corpus import corpus_dir, require_corpus
 
 MM = 1e-3
@@ -89,8 +89,8 @@ def past_ends():
     scanner's pose known."""
     from dataclasses import replace
 
+    from recon.recon_params import ReconParams
     from recon.reconstruct import reconstruct
-    from recon.types import ReconParams
     from tests.realparts import scene_of
 
     scene = scene_of(_case("fandisk", 15), 0, "past_ends")
@@ -129,8 +129,8 @@ def test_a_trace_on_a_face_beside_an_edge_stays_on_that_face():
     never from a fit across the edge."""
     from dataclasses import replace
 
+    from recon.recon_params import ReconParams
     from recon.reconstruct import reconstruct
-    from recon.types import ReconParams
     from tests.realparts import scene_of
 
     scene = scene_of(_case("block", 5), 0, "face")

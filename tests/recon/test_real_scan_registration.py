@@ -15,8 +15,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from drivers.scanning.pointcloud import read_scan
+from recon.inputs import Recording
+from recon.recon_params import ReconParams
 from recon.transforms import apply_transform
-from recon.types import ReconParams, Recording
 from service import pipelines
 from tests.corpus import require_corpus
 

@@ -9,10 +9,12 @@ from scipy.spatial.transform import Rotation
 from recon import scenes
 from recon.errors import DegenerateInputError, NoOverlapError, UnitsMismatchError
 from recon.evaluation import height_above_registered, registered_truth
+from recon.inputs import Recording, Scan
 from recon.metrics import best_savitzky_golay, error_stats
+from recon.recon_params import ReconParams
 from recon.reconstruct import reconstruct
+from recon.results import PointMode
 from recon.transforms import apply_transform, invert_transform
-from recon.types import PointMode, ReconParams, Recording, Scan
 from tests.reference_loop import reconstruct_loop
 
 MM = 1e-3

@@ -145,8 +145,8 @@ def test_no_point_of_the_arm_passes_the_speed_cap_in_any_phase(cylinder):
     arm keeps under the fastest TCP speed any phase asks for, and the real-arm gate's sample
     check, which judges every point, passes the plan."""
     from recon.kinematics import SPEED_POINT_NAMES, speed_points_m
+    from recon.paths import Phase
     from recon.sample_check import sample_problems
-    from recon.types import Phase
 
     plan = _plan(cylinder, speed_m_s=0.25, transit_tcp_speed_m_s=0.25)
     trajectory, arm = plan.trajectory, model("ur5e")

@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 
 from recon import scenes
+from recon.inputs import Recording
 from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path, scan_model_for_path
+from recon.recon_params import ReconParams
 from recon.reconstruct import plan_segments, prepare_scan_model, reconstruct
+from recon.results import Reconstruction
 from recon.scan_model import ARRAYS_VERSION, ScanModel
-from recon.types import ReconParams, Reconstruction, Recording
 from tests.motion_fixtures import base_from_tracker
 
 

@@ -9,6 +9,7 @@ import pytest
 
 from recon import scenes
 from recon.errors import RegistrationError, TouchesInsufficientError
+from recon.inputs import Recording
 from recon.metrics import score_path
 from recon.reconstruct import reconstruct, registration_sigma_m, touches_for_trace
 from recon.scenes.touches import touches_at
@@ -21,7 +22,6 @@ from recon.touches import (
     touches_in,
 )
 from recon.transforms import apply_transform, invert_transform
-from recon.types import Recording
 
 MM = 1e-3
 #: The faces of scenes.box_corner's box: its top (z = 0), front (y = 0) and right (x = 100 mm).

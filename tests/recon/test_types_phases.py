@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.types import JointTrajectory, Phase
+from recon.paths import Phase
+from recon.trajectory import JointTrajectory
 
 
 def test_the_fastest_tcp_speed_of_each_phase_is_that_of_its_samples():

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from drivers.errors import InputFileError
 from recon import scenes
-from recon.types import Recording
+from recon.inputs import Recording
 from service.app import create_app
 from service.capture_runner import HEADER, read_capture_file
 from tests.recon.test_calibrate import PIVOT_M, TIP_M, pivot_recording

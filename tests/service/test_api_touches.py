@@ -10,8 +10,8 @@ import pytest
 
 from drivers.scanning.pointcloud import write_scan
 from recon import scenes
+from recon.inputs import Recording
 from recon.metrics import score_path
-from recon.types import Recording
 from tests.service.conftest import wait
 
 MM = 1e-3

@@ -10,7 +10,7 @@ import pytest
 
 from drivers.errors import InputFileError
 from drivers.tracking.natnet_server import NatNetReplayServer
-from recon.types import Recording
+from recon.inputs import Recording
 from service.capture_runner import HEADER
 from service.capture_stream import CaptureTail
 from tests.drivers.test_natnet import synthetic

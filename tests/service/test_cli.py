@@ -12,7 +12,7 @@ import pytest
 from drivers.scanning.pointcloud import write_scan
 from drivers.tracking.canonical_csv import write_trace_csv
 from recon import scenes
-from recon.types import Recording, Scan
+from recon.inputs import Recording, Scan
 from service.cli import main
 
 
@@ -508,7 +508,7 @@ def test_a_scan_given_is_always_in_the_collision_check(inputs, reconstructed, tm
 
 
 def test_a_scan_whose_place_is_unknown_is_refused_not_left_out():
-    from recon.types import Scan
+    from recon.inputs import Scan
     from service.pipelines import cell_for
 
     scan = Scan(points_m=np.tile([0.4, 0.0, 0.1], (10, 1)))

@@ -11,7 +11,7 @@ from drivers.calibration import write_calibration, write_tip_calibration
 from drivers.scanning.pointcloud import write_scan
 from drivers.tracking.canonical_csv import write_trace_csv
 from recon import scenes
-from recon.types import Recording
+from recon.inputs import Recording
 from tests.recon.test_calibrate import PIVOT_M, TIP_M, pivot_recording
 from tests.service.test_cli import run
 

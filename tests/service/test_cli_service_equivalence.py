@@ -152,7 +152,7 @@ def test_a_calibrated_scanner_without_registration(client, scene_folder, tmp_pat
 
 def test_the_preview_moves_the_scan_into_the_tracker_frame():
     scene = scenes.box_corner(0)
-    from recon.types import ReconParams
+    from recon.recon_params import ReconParams
 
     outcome = pipelines.reconstruct(
         scene.recording,

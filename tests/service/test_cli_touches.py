@@ -12,9 +12,9 @@ from drivers.calibration import read_calibration
 from drivers.scanning.pointcloud import write_scan
 from drivers.tracking.canonical_csv import write_trace_csv
 from recon import scenes
+from recon.inputs import Recording
 from recon.metrics import score_path
 from recon.transforms import apply_transform, invert_transform
-from recon.types import Recording
 from tests.service.test_cli import run
 
 MM = 1e-3

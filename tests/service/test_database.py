@@ -333,7 +333,7 @@ def test_concurrent_calibration_updates_from_two_instances_lose_nothing(two, tmp
     into the session's calibration report (read, merged, written): with the row locked, both
     entries survive every round, and the fields hold a value one of the requests wrote."""
     from drivers.tracking.canonical_csv import write_trace_csv
-    from recon.types import Recording
+    from recon.inputs import Recording
     from tests.recon.test_calibrate import pivot_recording
 
     (a, b), _, _ = two

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from recon.types import Recording
+from recon.inputs import Recording
 from service.app import create_app
 from tests.recon.test_calibrate import pivot_recording
 from tests.service.conftest import AUTH, make_settings

@@ -12,8 +12,9 @@ from drivers.robot.monitor import ArmState
 from recon import kinematics, motion
 from recon.collision import Box, Cell
 from recon.kinematics import HOME_Q_RAD
+from recon.plan_params import DEFAULT_TCP_POSE
+from recon.trajectory import JointTrajectory
 from recon.transforms import transform_from_pose
-from recon.types import DEFAULT_TCP_POSE, JointTrajectory
 from service import gate
 from service.artifacts import TrajectorySummary
 from service.robot import Reading

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from recon.plan import MAX_PROCESS_DURATION_S, plan_path
-from recon.types import PlanParams
+from recon.plan_params import PlanParams
 
 
 @pytest.mark.parametrize(

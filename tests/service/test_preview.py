@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from recon import kinematics
-from recon.types import Phase
+from recon.paths import Phase
 from service.preview import thinned, trajectory_preview, window_min
 from service.tasks import load_trajectory
 from tests.service.conftest import planned_session, wait

@@ -400,7 +400,7 @@ def test_the_high_contrast_theme_is_switched_on_and_kept(pendant):
 def test_the_calibration_panel_fits_pairs_and_the_tip_and_refuses_poor_fits(pendant, tmp_path):
     import numpy as np
 
-    from recon.types import Recording
+    from recon.inputs import Recording
     from tests.recon.test_calibrate import pivot_recording
     from tests.service.test_api_inputs import _csv
 
