@@ -81,6 +81,7 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         expect(page.locator("#reconstruct-summary")).to_contain_text(
             "max displacement", timeout=90_000
         )
+        expect(page.locator("#legend-displacement")).to_be_visible()
         # The plan starts where the arm is (the service reads its joints), at a slow speed so
         # that the run lasts long enough to be stopped in the middle.
         expect(page.locator("#plan-speed")).to_have_attribute("max", str(CAP_M_S))
@@ -271,6 +272,9 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             expect(near.locator("#run-speed-state")).to_have_text("at 50 %")
             expect(near.get_by_role("button", name="Pause")).to_be_hidden()
             expect(near.locator("#run-speed-slider")).to_be_hidden()
+            expect(near.locator("#run-speed-unit")).to_be_hidden()  # no stray "%" either
+            # Nothing reconstructed is shown here: no colour scale for it.
+            expect(near.locator("#legend-displacement")).to_be_hidden()
             bystander.shot("arm-owned")
             # Into the process, with the tool on the workpiece: stopped there, the arm goes back
             # by a retract off the workpiece and a joint move (below).

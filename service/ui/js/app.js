@@ -174,14 +174,15 @@ function showRunSpeed(run) {
   const value = $("#run-speed-value");
   const status = $("#run-speed-state");
   if (!run.overridable) {
-    slider.hidden = value.hidden = $("#pause").hidden = $("#resume").hidden = true;
+    slider.hidden = value.hidden = $("#run-speed-unit").hidden = true;
+    $("#pause").hidden = $("#resume").hidden = true;
     status.textContent = "fixed: a movePath run is timed by the controller";
     return;
   }
   // A screen that is not signed in shows the speed; changing it, pausing and resuming take the
   // token (Stop does not).
   const signedOut = document.body.classList.contains("signed-out");
-  slider.hidden = value.hidden = signedOut;
+  slider.hidden = value.hidden = $("#run-speed-unit").hidden = signedOut;
   // Never overwrite what the operator is setting.
   if (![slider, value].includes(document.activeElement) && !state.speedSending) {
     slider.value = String(Math.round(run.speed_fraction * 100));

@@ -354,6 +354,9 @@ export class Workspace {
     } else {
       this.reconstruction = null;
       this.clear("reconstruction");
+      // No reconstruction shown: no colour scale for it either.
+      this.legend.querySelector("#legend-displacement").hidden = true;
+      this.legend.querySelector("#legend-modes").hidden = true;
     }
 
     this.showFrames(session.T_base_tracker ? baseTracker : null, baseTracker, session.scan_id ? baseScan : null);
