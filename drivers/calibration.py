@@ -20,6 +20,7 @@ import json
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -85,7 +86,7 @@ def write_calibration(
     matrix: FloatArray,
     *,
     residual_rms_m: float | None = None,
-    extra: dict | None = None,
+    extra: dict[str, Any] | None = None,
 ) -> None:
     """Write a calibration (metres, with the current time); ``extra`` holds JSON-able details
     such as per-pair residuals."""
@@ -117,7 +118,7 @@ def write_tip_calibration(
     *,
     rigid_body: str | None = None,
     residual_rms_m: float | None = None,
-    extra: dict | None = None,
+    extra: dict[str, Any] | None = None,
 ) -> None:
     """Write a tip calibration (metres, with the current time)."""
     offset = np.asarray(offset_m, dtype=np.float64)
@@ -173,7 +174,7 @@ def read_tip_calibration(source: str | Path | bytes, *, label: str | None = None
     )
 
 
-def _residual(data: dict, label: str) -> float | None:
+def _residual(data: dict[str, Any], label: str) -> float | None:
     """The optional ``residual_rms_m`` field: a non-negative number of metres, or absent."""
     value = data.get("residual_rms_m")
     if value is None:
@@ -190,7 +191,7 @@ def _residual(data: dict, label: str) -> float | None:
     return residual
 
 
-def _load_json(source: str | Path | bytes, label: str) -> dict:
+def _load_json(source: str | Path | bytes, label: str) -> dict[str, Any]:
     try:
         raw = source if isinstance(source, bytes) else Path(source).read_bytes()
         data = json.loads(raw)
@@ -203,6 +204,6 @@ def _load_json(source: str | Path | bytes, label: str) -> dict:
     return data
 
 
-def _write_json(path: str | Path, content: dict) -> None:
+def _write_json(path: str | Path, content: dict[str, Any]) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(content, indent=2) + "\n")

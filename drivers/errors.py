@@ -12,6 +12,7 @@ table: nothing received from a child is ever imported or unpickled as an excepti
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 from recon import errors as _recon_errors
 
@@ -137,7 +138,7 @@ class ResourceLimitError(InputFileError):
         self.setting = setting
 
     @property
-    def detail(self) -> dict | None:
+    def detail(self) -> dict[str, Any] | None:
         """The limit as data (the ``detail`` of an error response), or None if unknown (an error
         that crossed from a child process keeps its message only)."""
         if self.limit is None and self.setting is None:

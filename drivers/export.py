@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -47,7 +48,7 @@ def write_reconstruction_csv(path: str | Path, recon: Reconstruction) -> None:
         tmp.write_text(reconstruction_csv_text(arrays))
 
 
-def reconstruction_csv_text(arrays: dict) -> str:
+def reconstruction_csv_text(arrays: dict[str, Any]) -> str:
     """The CSV of a reconstruction from its arrays (the fields of :class:`Reconstruction`).
 
     ``mode`` is written as a word (path, surface, edge, unchanged); NaN residuals (no such fit)
@@ -96,7 +97,7 @@ def csv_table(columns: list[tuple[str, np.ndarray, str]]) -> str:
     A non-finite number is an empty cell; ``%d`` columns are written as integers.
     """
     n = len(columns[0][1]) if columns else 0
-    cells: list = [None] * (n * len(columns))
+    cells: list[Any] = [None] * (n * len(columns))
     formats = []
     for k, (_, values, fmt) in enumerate(columns):
         values = np.asarray(values)
@@ -172,7 +173,9 @@ def read_reconstruction_csv(
 META_PREFIX = "# teachpath: "
 
 
-def write_trajectory_csv(path: str | Path, trajectory: JointTrajectory, *, meta=None) -> None:
+def write_trajectory_csv(
+    path: str | Path, trajectory: JointTrajectory, *, meta: dict[str, Any] | None = None
+) -> None:
     """``t,q0..q5`` (s, rad), the planned TCP ``x,y,z,rx,ry,rz`` (m, rotation vector, base
     frame) and the ``phase`` of each sample, one row per controller period, after a metadata
     line (robot, rate, what was planned and checked). The file appears only when complete."""
@@ -180,7 +183,7 @@ def write_trajectory_csv(path: str | Path, trajectory: JointTrajectory, *, meta=
         tmp.write_text(trajectory_csv_text(trajectory, meta=meta))
 
 
-def trajectory_csv_text(trajectory: JointTrajectory, *, meta: dict | None = None) -> str:
+def trajectory_csv_text(trajectory: JointTrajectory, *, meta: dict[str, Any] | None = None) -> str:
     """The CSV of a trajectory (see :func:`write_trajectory_csv`).
 
     Parameters
@@ -220,7 +223,7 @@ class TrajectoryFile:
     """
 
     trajectory: JointTrajectory
-    meta: dict
+    meta: dict[str, Any]
 
 
 def read_trajectory_csv(
@@ -316,11 +319,13 @@ def read_trajectory_csv(
     return TrajectoryFile(trajectory=trajectory, meta=meta)
 
 
-def _mean_speed(p, t) -> float:
+def _mean_speed(p: FloatArray, t: FloatArray) -> float:
     return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1)) / max(t[-1] - t[0], 1e-12))
 
 
-def _read_rows(source, name):
+def _read_rows(
+    source: str | Path | bytes, name: str | None
+) -> tuple[dict[str, Any], list[list[str]], str]:
     label = name or ("upload" if isinstance(source, bytes) else str(source))
     if isinstance(source, bytes):
         raw = source
@@ -334,7 +339,7 @@ def _read_rows(source, name):
     except UnicodeDecodeError:
         raise InputFileError(f"{label} is not a text CSV file") from None
     lines = text.splitlines()
-    meta = {}
+    meta: dict[str, Any] = {}
     if lines and lines[0].startswith(META_PREFIX):
         try:
             meta = json.loads(lines[0][len(META_PREFIX) :])
@@ -351,7 +356,7 @@ def _read_rows(source, name):
     return meta, rows, label
 
 
-def _numbers(body, columns, label) -> FloatArray:
+def _numbers(body: list[list[str]], columns: list[int], label: str) -> FloatArray:
     try:
         data = np.array([[float(row[c]) for c in columns] for row in body], dtype=np.float64)
     except (ValueError, IndexError):

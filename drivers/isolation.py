@@ -59,6 +59,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 from drivers.errors import (
@@ -140,7 +141,7 @@ class Usage:
 
 def run_isolated(
     target: str,
-    args: tuple = (),
+    args: tuple[Any, ...] = (),
     kwargs: Mapping[str, Any] | None = None,
     *,
     limits: Limits | None = None,
@@ -259,7 +260,7 @@ def run_isolated(
             return {key: data[key] for key in data.files}
 
 
-def _usage(status: dict | None, wall_s: float, asked_bytes: int | None) -> Usage:
+def _usage(status: dict[str, Any] | None, wall_s: float, asked_bytes: int | None) -> Usage:
     """The child's report (in its status) as a :class:`Usage`."""
     report = (status or {}).get("usage") or {}
 
@@ -276,7 +277,7 @@ def _usage(status: dict | None, wall_s: float, asked_bytes: int | None) -> Usage
     )
 
 
-def _read_status(path: Path) -> dict | None:
+def _read_status(path: Path) -> dict[str, Any] | None:
     """The child's status, or None if it wrote none (or no sensible one)."""
     try:
         with path.open("rb") as handle:
@@ -365,7 +366,7 @@ def lower_priority() -> None:
         pass
 
 
-def _child_main(spec: dict) -> None:  # pragma: no cover - runs in the child process
+def _child_main(spec: dict[str, Any]) -> None:  # pragma: no cover - runs in the child process
     """Set the limits, run the call, write its arrays and its status (see the module docstring)."""
     folder = Path(spec["dir"])
     if spec.get("background"):
@@ -408,13 +409,13 @@ def _named(error: BaseException, what: str) -> BaseException:  # pragma: no cove
     return error
 
 
-def _own_usage() -> dict:  # pragma: no cover - runs in the child process
+def _own_usage() -> dict[str, int]:  # pragma: no cover - runs in the child process
     """Peak resident set (its own children's included) and peak address space, bytes.
 
     The process's own peak is ``VmHWM``, not ``getrusage``: Linux carries ``ru_maxrss`` across
     ``exec``, so it would include the parent's size at the fork.
     """
-    usage: dict = {}
+    usage: dict[str, int] = {}
     try:
         with open("/proc/self/status") as handle:
             for line in handle:
@@ -480,7 +481,7 @@ def _confine(memory_bytes: int | None, parent_pid: int) -> int | None:  # pragma
     return memory_bytes
 
 
-def _hard_limit(resource, which: int) -> int | None:  # pragma: no cover - child
+def _hard_limit(resource: ModuleType, which: int) -> int | None:  # pragma: no cover - child
     """The hard limit ``which`` of this process, None if unlimited."""
     try:
         hard = resource.getrlimit(which)[1]
@@ -489,7 +490,7 @@ def _hard_limit(resource, which: int) -> int | None:  # pragma: no cover - child
     return None if hard == resource.RLIM_INFINITY else int(hard)
 
 
-def _save(result, path: Path) -> None:  # pragma: no cover - runs in the child process
+def _save(result: object, path: Path) -> None:  # pragma: no cover - runs in the child process
     if result is None:
         result = {}
     if not isinstance(result, Mapping):

@@ -24,7 +24,7 @@ import shlex
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 from drivers.errors import DriverError, MissingDependencyError
 
@@ -213,7 +213,8 @@ class Registry(Generic[T]):
             raise TypeError(
                 f"{target} (registered as {self.kind} {name!r}) is not a {self.base.__name__}"
             )
-        return obj
+        loaded: T = obj  # checked against ``base`` above when there is one
+        return loaded
 
     # -- entry points ----------------------------------------------------------------------------
 
@@ -249,7 +250,7 @@ class Registry(Generic[T]):
         return self._plugins().get(name)
 
 
-def import_target(target: str):
+def import_target(target: str) -> Any:
     """The object a ``"module:attr"`` string names, its module imported now.
 
     Raises

@@ -38,7 +38,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from drivers.errors import (
     DriverError,
@@ -49,6 +49,10 @@ from drivers.errors import (
     error_to_wire,
 )
 from drivers.registry import import_target
+
+if TYPE_CHECKING:
+    from ctypes import c_double
+    from multiprocessing.synchronize import Event
 
 #: How often the worker checks that its parent is alive (s).
 PARENT_POLL_S = 0.5
@@ -106,7 +110,7 @@ class WorkerClient:
     def __init__(
         self,
         server: str,
-        args: tuple = (),
+        args: tuple[Any, ...] = (),
         *,
         name: str,
         fallback: type[DriverError] = DriverError,
@@ -189,7 +193,14 @@ class WorkerClient:
         finally:
             self._lock.release()
 
-    def _call(self, command, deadline, timeout_s, on_progress, quiet_s=None):
+    def _call(
+        self,
+        command: Command,
+        deadline: float,
+        timeout_s: float,
+        on_progress: ProgressCallback | None,
+        quiet_s: float | None = None,
+    ) -> Any:
         conn = self._conn
         if conn is None:
             raise WorkerLostError(f"{self.name} is closed")
@@ -254,14 +265,14 @@ class WorkerClient:
     def __enter__(self) -> WorkerClient:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
 class WorkerLink:
     """What a server has of its client while it runs a command."""
 
-    def __init__(self, conn, stop_event, dial=None) -> None:
+    def __init__(self, conn: Connection, stop_event: Event, dial: c_double | None = None) -> None:
         self._conn = conn
         #: Set by the client (or by the worker when its parent died): stop what you are doing.
         self.stop_event = stop_event
@@ -302,7 +313,12 @@ class WorkerServer(ABC):
 
 
 def _serve(  # pragma: no cover
-    conn, stop_event, server: str, args: tuple, parent_pid: int, dial=None
+    conn: Connection,
+    stop_event: Event,
+    server: str,
+    args: tuple[Any, ...],
+    parent_pid: int,
+    dial: c_double | None = None,
 ) -> None:
     """Build the server and answer commands until the client closes or goes away."""
     # Ctrl-C reaches the whole process group: the parent decides when its worker stops.
@@ -310,7 +326,7 @@ def _serve(  # pragma: no cover
     _watch_parent(parent_pid, stop_event)
     link = WorkerLink(conn, stop_event, dial)
     instance: WorkerServer | None = None
-    handlers: dict = {}
+    handlers: dict[type[Command], Callable[[Any], Any]] = {}
     failure: Exception | None = None
     try:
         instance = import_target(server)(link, *args)
@@ -347,7 +363,7 @@ def _serve(  # pragma: no cover
         instance.shutdown()
 
 
-def _watch_parent(parent_pid: int, stop_event) -> None:  # pragma: no cover - child process
+def _watch_parent(parent_pid: int, stop_event: Event) -> None:  # pragma: no cover - child process
     """End this worker if its parent dies (a parent killed outright cannot close it)."""
 
     def watch() -> None:

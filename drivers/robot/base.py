@@ -18,7 +18,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -206,7 +206,7 @@ class RobotBackend(ABC):
         self.connect()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # -- reading ---------------------------------------------------------------------------------
@@ -597,7 +597,7 @@ def backend_class(kind: str) -> type[RobotBackend]:
     return BACKENDS.load(kind)
 
 
-def backend_config(kind: str, **fields) -> BackendConfig:
+def backend_config(kind: str, **fields: Any) -> BackendConfig:
     """The config of the backend registered as ``kind``, built from ``fields``.
 
     Raises

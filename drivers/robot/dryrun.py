@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from drivers.errors import RobotError
 from drivers.robot.base import ExecutionRecord
@@ -80,9 +81,9 @@ class ExecutionReport:
     faults: tuple[str, ...] = field(default=())
     n_samples: int = 0
     dry_run: bool = True
-    phase_durations_s: dict = field(default_factory=dict)
-    executed_phase_durations_s: dict = field(default_factory=dict)
-    max_deviation_by_phase_m: dict = field(default_factory=dict)
+    phase_durations_s: dict[str, float] = field(default_factory=dict)
+    executed_phase_durations_s: dict[str, float] = field(default_factory=dict)
+    max_deviation_by_phase_m: dict[str, float] = field(default_factory=dict)
     #: servoJ on a real arm: the longest time between two samples sent, and how many periods
     #: took over :data:`OVERRUN_FACTOR` times the controller's (None: not streamed in real time).
     max_period_s: float | None = None
@@ -222,7 +223,9 @@ def dry_run(
     )
 
 
-def off_path_m(arm, actual_flange: FloatArray, plan_q_rad: FloatArray) -> FloatArray:
+def off_path_m(
+    arm: kinematics.URModel, actual_flange: FloatArray, plan_q_rad: FloatArray
+) -> FloatArray:
     """How far the arm was from its planned path at each recorded sample.
 
     The planned TCP may sit off the flange; the tracking error is the same rigid offset either
@@ -251,7 +254,9 @@ def stream_lag_s(mode: str, lookahead_s: float) -> float:
     return lookahead_s if mode == "servoj" else 0.0
 
 
-def recorded_plan_index(trajectory: JointTrajectory, planned_index, lookahead_s: float):
+def recorded_plan_index(
+    trajectory: JointTrajectory, planned_index: ArrayLike, lookahead_s: float
+) -> NDArray[np.int64]:
     """Which sample of the plan the arm was at for each recorded sample.
 
     servoJ runs the stream a lookahead behind the sample sent with it, so the arm is at the

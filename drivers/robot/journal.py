@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import mmap
 import os
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -102,7 +103,13 @@ class JournalWriter:
         self._rows[self._count :] = 0.0
         self._capacity = capacity
 
-    def add(self, t_s: float, q_rad, tcp_pose, plan_s: float | None = None) -> None:
+    def add(
+        self,
+        t_s: float,
+        q_rad: Iterable[float],
+        tcp_pose: Iterable[float],
+        plan_s: float | None = None,
+    ) -> None:
         """One sample: time (s), joints (6, rad), TCP pose (6), and where on the plan's clock
         the arm was sent (s; None: ``t_s``, a run at the plan's pace)."""
         if self._count == self._capacity:
@@ -135,7 +142,7 @@ class JournalWriter:
     def __enter__(self) -> JournalWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 

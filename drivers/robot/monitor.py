@@ -140,4 +140,5 @@ def create_monitor(config: Any) -> RobotMonitor:
     # Every registered monitor takes its backend's config (checked by the monitors' tests); the
     # abstract base does not say so, since each takes its own config class.
     monitor_class: Any = MONITORS.load(config.kind)
-    return monitor_class(config)
+    monitor: RobotMonitor = monitor_class(config)
+    return monitor

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
 
 from drivers.errors import (
@@ -38,6 +39,7 @@ from drivers.robot.base import (
     RobotBackend,
     RobotState,
 )
+from drivers.robot.clock import Clock
 from drivers.robot.journal import JournalWriter
 from drivers.robot.monitor import ArmState, RobotMonitor
 from drivers.robot.timescale import MAX_PAUSE_S, PlanCursor
@@ -80,7 +82,7 @@ class SimBackend(RobotBackend):
     kind = "sim"
     config_class = SimConfig
 
-    def __init__(self, config: SimConfig, *, clock=None) -> None:
+    def __init__(self, config: SimConfig, *, clock: Clock | None = None) -> None:
         super().__init__(config, clock=clock)
         self._q = np.array(config.q_start_rad, dtype=np.float64)
         self._qd = np.zeros(6)
@@ -195,7 +197,7 @@ class SimBackend(RobotBackend):
 
     def _execute_path(
         self, path: CoarsePath, on_progress: ProgressCallback | None, journal: str | Path | None
-    ):
+    ) -> tuple[FloatArray, FloatArray, bool, str | None]:
         # The controller runs the path itself: joint-space lines between the waypoints at each
         # move's speed, without stopping where a blend is asked for. Fed to the same servo law,
         # which rounds the corners the way blending does. The controller times it: no override.
@@ -212,7 +214,9 @@ class SimBackend(RobotBackend):
         journal: str | Path | None = None,
         *,
         override: bool,
-    ):
+    ) -> tuple[
+        list[float], list[FloatArray], NDArray[np.int64], list[FloatArray], bool, str | None
+    ]:
         """Follow the cursor's targets, one per controller period, as servoJ does; with
         ``override``, at the speed set (:meth:`set_speed`, :meth:`pause`).
 
@@ -231,10 +235,10 @@ class SimBackend(RobotBackend):
         t0 = self.clock.now()
         self._stopping = False
         times: list[float] = []
-        sent: list = []
-        planned: list = []
-        actual: list = []
-        fault = None
+        sent: list[FloatArray] = []
+        planned: list[int] = []
+        actual: list[FloatArray] = []
+        fault: str | None = None
         completed = False
         writer = None if journal is None else JournalWriter(journal, capacity_samples=n)
         T_flange_tcp = transform_from_pose(self.tcp_pose)
@@ -279,7 +283,15 @@ class SimBackend(RobotBackend):
 
     # -- physics ---------------------------------------------------------------------------------
 
-    def _record(self, times, planned, actual, completed, fault, index=None) -> ExecutionRecord:
+    def _record(
+        self,
+        times: list[float],
+        planned: ArrayLike,
+        actual: list[FloatArray],
+        completed: bool,
+        fault: str | None,
+        index: ArrayLike | None = None,
+    ) -> ExecutionRecord:
         record = ExecutionRecord(
             t_s=np.array(times),
             q_planned_rad=np.array(planned).reshape(-1, 6),
@@ -356,18 +368,24 @@ class SimBackend(RobotBackend):
         self._check_faults()
 
 
-def _synchronised_trapezoid(start, goal, speed, acceleration, dt) -> FloatArray:
+def _synchronised_trapezoid(
+    start: FloatArray, goal: ArrayLike, speed: float, acceleration: float, dt: float
+) -> FloatArray:
     """Joint targets (K, 6) of a moveJ: all joints start and stop together (trapezoidal speed
     of the leading joint)."""
     goal = np.asarray(goal, dtype=np.float64)
     distance = float(np.abs(goal - start).max())
     if distance < 1e-12:
-        return goal[None].copy()
+        at_goal: FloatArray = goal[None].copy()
+        return at_goal
     fractions = trapezoid_fractions(distance, speed, acceleration, dt)
-    return start + (goal - start) * fractions[:, None]
+    targets: FloatArray = start + (goal - start) * fractions[:, None]
+    return targets
 
 
-def trapezoid_fractions(distance, speed, acceleration, dt) -> FloatArray:
+def trapezoid_fractions(
+    distance: float, speed: float, acceleration: float, dt: float
+) -> FloatArray:
     """Fractions (K,) of a move of ``distance`` done at each control period ``dt`` (s) with a
     trapezoidal speed profile (``speed`` and ``acceleration`` in distance units per s, s^2;
     triangular when the move is too short to reach ``speed``), from ``dt`` on. The last
@@ -380,7 +398,8 @@ def trapezoid_fractions(distance, speed, acceleration, dt) -> FloatArray:
     t_total = trapezoid_duration(distance, speed, acceleration)
     t = np.arange(dt, t_total + dt, dt)
     position, _, _ = trapezoid(distance, speed, acceleration, t)
-    return position / distance
+    fractions: FloatArray = position / distance
+    return fractions
 
 
 def _path_targets(path: CoarsePath, dt: float) -> FloatArray:

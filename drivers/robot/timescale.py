@@ -26,6 +26,7 @@ exactly.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from recon.arrays import FloatArray
 
@@ -84,9 +85,9 @@ class PlanCursor:
 
     def __init__(
         self,
-        q_rad: FloatArray,
+        q_rad: ArrayLike,
         period_s: float,
-        qdd_max_rad_s2: FloatArray,
+        qdd_max_rad_s2: ArrayLike,
         start_fraction: float = 1.0,
     ) -> None:
         self.q_rad = np.asarray(q_rad, dtype=np.float64)
@@ -164,8 +165,10 @@ class PlanCursor:
         i = int(np.floor(self.position))
         part = self.position - i
         if part == 0.0 or i >= self._last:
-            return self.q_rad[min(i, self._last)].copy()
-        return self.q_rad[i] + part * (self.q_rad[i + 1] - self.q_rad[i])
+            sample: FloatArray = self.q_rad[min(i, self._last)].copy()
+            return sample
+        between: FloatArray = self.q_rad[i] + part * (self.q_rad[i + 1] - self.q_rad[i])
+        return between
 
 
 def _clean(fraction: float) -> float:

@@ -23,7 +23,7 @@ from __future__ import annotations
 import contextlib
 import os
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -50,6 +50,7 @@ from drivers.robot.base import (
     RobotBackend,
     RobotState,
 )
+from drivers.robot.clock import Clock
 from drivers.robot.journal import JournalWriter
 from drivers.robot.timescale import MAX_PAUSE_S, PlanCursor
 from drivers.worker import Command, WorkerClient, WorkerLink, WorkerServer
@@ -174,7 +175,7 @@ class MoveJ(Command):
     acceleration: float
 
 
-class _RealtimePriority(contextlib.AbstractContextManager):
+class _RealtimePriority(contextlib.AbstractContextManager["_RealtimePriority"]):
     """The streaming thread at a realtime priority (SCHED_FIFO) while it streams, as ur_rtde's
     examples run their servo loops; put back after. ``status`` says what it got: a system
     without the privilege (CAP_SYS_NICE, or a container without it) streams at normal
@@ -202,7 +203,7 @@ class _RealtimePriority(contextlib.AbstractContextManager):
             )
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         if self._before is not None:
             with contextlib.suppress(OSError):
                 os.sched_setscheduler(0, *self._before)
@@ -248,7 +249,7 @@ class URRtdeBackend(RobotBackend):
     config_class = URRtdeConfig
     config: URRtdeConfig
 
-    def __init__(self, config: URRtdeConfig, *, clock=None) -> None:
+    def __init__(self, config: URRtdeConfig, *, clock: Clock | None = None) -> None:
         super().__init__(config, clock=clock)
         self._worker: WorkerClient | None = None
 
@@ -281,9 +282,9 @@ class URRtdeBackend(RobotBackend):
         command: Command,
         *,
         timeout_s: float | None = None,
-        on_progress: ProgressCallback | None = None,
+        on_progress: Callable[[Any], None] | None = None,
         quiet_s: float | None = None,
-    ):
+    ) -> Any:
         if self._worker is None:
             raise ConnectionLostError("no connection to the controller: connect() first")
         timeout = self.config.command_timeout_s if timeout_s is None else timeout_s
@@ -368,7 +369,7 @@ class URRtdeBackend(RobotBackend):
     ) -> ExecutionRecord:
         last = max(len(trajectory) - 1, 1)
 
-        def progress(report) -> None:
+        def progress(report: tuple[float, float]) -> None:
             position, self.speed_now = report
             if on_progress is not None:
                 on_progress(position / last)
@@ -406,7 +407,7 @@ class URRtdeBackend(RobotBackend):
 
     def _execute_path(
         self, path: CoarsePath, on_progress: ProgressCallback | None, journal: str | Path | None
-    ):
+    ) -> tuple[FloatArray, FloatArray, bool, str | None]:
         # The controller's own timing may run longer than the plan (it stops where it cannot
         # blend): allow the slowest move profile on top of the margin.
         lead = np.abs(np.diff(path.q_rad, axis=0)).max(axis=1)
@@ -461,7 +462,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         The backend's :class:`URRtdeConfig`, dumped.
     """
 
-    def __init__(self, link: WorkerLink, config: dict) -> None:
+    def __init__(self, link: WorkerLink, config: dict[str, Any]) -> None:
         super().__init__(link)
         self.config = config
         self.stop_event = link.stop_event
@@ -675,7 +676,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             raise ConnectionLostError("the controller refused setWatchdog; reconnect")
 
     @contextlib.contextmanager
-    def _watched(self):
+    def _watched(self) -> Iterator[None]:
         """The watchdog at ``watchdog_hz`` for one motion, relaxed to
         :data:`IDLE_WATCHDOG_HZ` after it (the arm rests; the script may idle between jobs)."""
         self._watchdog(float(self.config["watchdog_hz"]))
@@ -690,7 +691,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
     def _kick(self) -> None:
         self.control.kickWatchdog()
 
-    def move_j(self, q, speed, acceleration) -> None:
+    def move_j(self, q: list[float], speed: float, acceleration: float) -> None:
         self._safety()
         if self.stop_event.is_set():
             return  # a stop came before the command: nothing is sent
@@ -710,7 +711,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
                 self._kick()
                 time.sleep(0.01)
 
-    def set_tool(self, tcp_pose, payload_kg, cog_m) -> None:
+    def set_tool(self, tcp_pose: list[float], payload_kg: float | None, cog_m: list[float]) -> None:
         self._safety()
         if not self.control.setTcp(tcp_pose):
             self._refused()
@@ -719,7 +720,13 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             self._refused()
             raise ConnectionLostError("the controller refused setPayload; reconnect")
 
-    def execute(self, q_rows, period_s, qdd_max, journal=None):
+    def execute(
+        self,
+        q_rows: list[list[float]],
+        period_s: float,
+        qdd_max: list[float],
+        journal: str | None = None,
+    ) -> tuple[list[float], list[list[float]], list[list[float]], list[int], bool, str | None, str]:
         dial = self.link.dial
         cursor = PlanCursor(
             np.asarray(q_rows, dtype=np.float64),
@@ -743,7 +750,9 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             stack.enter_context(self._watched())  # every servoJ feeds it
             return (*self._stream(cursor, writer), realtime.status)
 
-    def _stream(self, cursor: PlanCursor, writer):
+    def _stream(
+        self, cursor: PlanCursor, writer: JournalWriter | None
+    ) -> tuple[list[float], list[list[float]], list[list[float]], list[int], bool, str | None]:
         """servoJ the cursor's position every period, advancing it at the dial's speed."""
         lookahead, gain = self.config["lookahead_s"], self.config["gain"]
         period_s = cursor.period_s
@@ -815,7 +824,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             q_before = q_after
         return q_after, tcp
 
-    def _hold(self, q, period_s) -> bool:
+    def _hold(self, q: list[float], period_s: float) -> bool:
         """Keep servoing the last sample until the arm rests on it; returns whether a stop
         request ended it before (the arm then brakes short of the sample).
 
@@ -843,13 +852,27 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             self.control.waitPeriod(t_cycle)
         return False
 
-    def move_path(self, q_rows, speeds, acceleration, blends, journal=None):
+    def move_path(
+        self,
+        q_rows: list[list[float]],
+        speeds: list[float],
+        acceleration: float,
+        blends: list[float],
+        journal: str | None = None,
+    ) -> tuple[list[float], list[list[float]], bool, str | None]:
         """Run blended moveJ waypoints as one controller-side path (ur_rtde movePath)."""
         with contextlib.ExitStack() as stack:
             writer = None if journal is None else stack.enter_context(JournalWriter(journal))
             return self._move_path(q_rows, speeds, acceleration, blends, writer)
 
-    def _move_path(self, q_rows, speeds, acceleration, blends, writer):
+    def _move_path(
+        self,
+        q_rows: list[list[float]],
+        speeds: list[float],
+        acceleration: float,
+        blends: list[float],
+        writer: JournalWriter | None,
+    ) -> tuple[list[float], list[list[float]], bool, str | None]:
         import rtde_control
 
         self._safety()
@@ -868,7 +891,9 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         with self._watched():
             return self._follow_path(path, q_rows, writer)
 
-    def _follow_path(self, path, q_rows, writer):
+    def _follow_path(
+        self, path: Any, q_rows: list[list[float]], writer: JournalWriter | None
+    ) -> tuple[list[float], list[list[float]], bool, str | None]:
         """Send the path and sample the arm until it ends, kicking the watchdog: the
         controller runs the path on its own, and stops it when this process goes quiet."""
         if self.stop_event.is_set():

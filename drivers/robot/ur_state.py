@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from drivers.errors import (
     ConnectionLostError,
@@ -22,6 +22,9 @@ from drivers.errors import (
 from drivers.registry import missing_dependency
 from drivers.robot.monitor import ROBOT_MODES, SAFETY_MODES, ArmState, RobotMonitor
 from drivers.worker import Command, WorkerClient, WorkerLink, WorkerServer
+
+if TYPE_CHECKING:
+    from drivers.robot.ur_rtde import URRtdeConfig
 
 #: Bound on one reading (s); connecting is allowed longer.
 READ_TIMEOUT_S = 2.0
@@ -54,7 +57,7 @@ class URMonitor(RobotMonitor):
 
     kind = "ur_rtde"
 
-    def __init__(self, config) -> None:
+    def __init__(self, config: URRtdeConfig) -> None:
         self.config = config
         self._worker: WorkerClient | None = None
 
@@ -136,7 +139,7 @@ class URStateServer(WorkerServer):  # pragma: no cover - runs in the worker proc
                 raise ConnectionLostError(f"no new data from the controller for {STALE_AFTER_S} s")
             time.sleep(0.001)
 
-    def read(self) -> dict:
+    def read(self) -> dict[str, Any]:
         if self.receive is None:
             self._connect()
         self._wait_fresh()

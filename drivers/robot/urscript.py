@@ -16,13 +16,14 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Sequence
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from drivers.robot.base import START_TOLERANCE_RAD
 from recon.arrays import FloatArray
+from recon.kinematics import URModel
 from recon.paths import Phase
 from recon.trajectory import JointTrajectory
 
@@ -34,11 +35,11 @@ GAIN = 300
 STOP_ACCELERATION_RAD_S2 = 2.0
 
 
-def _list(values) -> str:
-    return "[" + ", ".join(f"{float(v):.6f}" for v in values) + "]"
+def _list(values: ArrayLike) -> str:
+    return "[" + ", ".join(f"{float(v):.6f}" for v in np.asarray(values)) + "]"
 
 
-def _pose(values) -> str:
+def _pose(values: ArrayLike) -> str:
     return "p" + _list(values)
 
 
@@ -102,7 +103,7 @@ def _tool_rates(part: JointTrajectory) -> tuple[float, float]:
     return max(float(speed.max(initial=0.0)), 1e-3), max(float(acceleration.max(initial=0.0)), 1e-3)
 
 
-def program_header(meta: dict, source: str) -> list[str]:
+def program_header(meta: dict[str, Any], source: str) -> list[str]:
     """The program's header comment: what the plan is and what it passed."""
     lines = [f"teachpath {meta.get('teachpath', '')} program from {source}".strip()]
     for key in ("session_id", "id", "source"):
@@ -272,7 +273,9 @@ def continuous_rotvecs(rotvecs: FloatArray) -> FloatArray:
     return out
 
 
-def _process_lines(arm, process: JointTrajectory, mode: Mode, tolerance_m: float) -> list[str]:
+def _process_lines(
+    arm: URModel, process: JointTrajectory, mode: Mode, tolerance_m: float
+) -> list[str]:
     if mode == "servoj":
         t = process.period_s
         lines = [

@@ -14,8 +14,10 @@ import struct
 import tempfile
 import threading
 import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from drivers.errors import InputFileError, clipped
 
@@ -23,7 +25,7 @@ _NATIVE_STDERR_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
-def captured_native_stderr():
+def captured_native_stderr() -> Iterator[list[str]]:
     """Collect what native code writes to file descriptor 2 while the block runs.
 
     Yields a list that receives the captured text when the block ends. Held under a lock and
@@ -52,7 +54,7 @@ def open3d_message(error: Exception, limit: int = 200) -> str:
     return clipped(" ".join(_ANSI_ESCAPE.sub("", str(error)).split()), limit)
 
 
-def quiet_open3d():
+def quiet_open3d() -> Any:
     """Open3D at Error verbosity: its warnings would reach the terminal, not the caller."""
     import open3d as o3d  # here, not at the top: importing it takes 0.9 s
 
@@ -144,7 +146,7 @@ def _check_png(data: bytes, label: str) -> ImageInfo:
     return ImageInfo("png", width, height, bit_depth, _PNG_CHANNELS.get(colour_type))
 
 
-def read_image(path: Path, label: str):
+def read_image(path: Path, label: str) -> Any:
     """Read a checked PNG or JPEG with Open3D (an ``open3d.geometry.Image``), refusing the empty
     image it returns on failure."""
     import open3d as o3d

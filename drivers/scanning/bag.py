@@ -18,6 +18,7 @@ recording costs an error message, not the service's worker.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -249,7 +250,11 @@ class BagReadError(Exception):
 
 
 def extract_frames(
-    path: str, first_frame: int, n_frames: int, *, reader_factory=None
+    path: str,
+    first_frame: int,
+    n_frames: int,
+    *,
+    reader_factory: Callable[[], Any] | None = None,
 ) -> dict[str, Any]:
     """Decode up to ``n_frames`` depth frames after ``first_frame`` with Open3D's RSBagReader.
 

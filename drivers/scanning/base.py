@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from drivers.errors import InputFileError, UnknownFormatError
@@ -427,7 +428,7 @@ MAX_SCANNER_DISTANCE_M = 100.0
 MIN_SCAN_EXTENT_MM_M = 1e-3
 
 
-def check_scan_units(points_m, units: str, label: str) -> None:
+def check_scan_units(points_m: ArrayLike, units: str, label: str) -> None:
     """Refuse at reading a scan whose size says its numbers are in another unit, or that is
     not of a workpiece at all, rather than at the first reconstruction.
 

@@ -27,6 +27,7 @@ what the file holds.
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -109,7 +110,11 @@ def check_declared_counts(path: Path, fmt: str, label: str) -> int | None:
 
 
 def _header(
-    path: Path, label: str, fmt: str, last, max_line_bytes: int | None = None
+    path: Path,
+    label: str,
+    fmt: str,
+    last: Callable[[str], bool],
+    max_line_bytes: int | None = None,
 ) -> tuple[list[str], int]:
     """The header's lines (decoded, stripped) up to and including the one ``last`` accepts, and
     the offset of the body after it; a line longer than ``max_line_bytes`` as stored (blanks
@@ -156,7 +161,9 @@ def _count(text: str, label: str, fmt: str, line: str) -> int:
     return value
 
 
-def _too_many(label: str, declared: str, count: int, body: int, room: int, each: str):
+def _too_many(
+    label: str, declared: str, count: int, body: int, room: int, each: str
+) -> InputFileError:
     return InputFileError(
         f"{label}: its header declares {count:,} {declared}, but the {body:,} bytes after the "
         f"header hold at most {room:,} ({each}): the file is truncated or its header is wrong; "
@@ -343,7 +350,9 @@ def _check_pcd(path: Path, label: str) -> int:  # noqa: C901
     return points
 
 
-def _check_pcd_fields(names: list[str], sizes: list[int], types: list[str] | None, label: str):
+def _check_pcd_fields(
+    names: list[str], sizes: list[int], types: list[str] | None, label: str
+) -> None:
     """Field sets complete, x, y and z among them, and each field's TYPE and SIZE a PCD pair."""
     present = set(names)
     for field_set in PCD_FIELD_SETS:
@@ -373,7 +382,9 @@ def _check_pcd_fields(names: list[str], sizes: list[int], types: list[str] | Non
             )
 
 
-def _compressed_room(path: Path, offset: int, body: int, point_bytes: int, label: str):
+def _compressed_room(
+    path: Path, offset: int, body: int, point_bytes: int, label: str
+) -> tuple[int, str]:
     """Points a binary_compressed body can hold: its stated uncompressed size, checked."""
     with path.open("rb") as handle:
         handle.seek(offset)

@@ -14,8 +14,9 @@ checked first against the file's size, at the bits a record of the scan's protot
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import pye57
@@ -112,7 +113,7 @@ class _opened:
                 ) from None
         return self.e57
 
-    def __exit__(self, *exc_info) -> None:
+    def __exit__(self, *exc_info: object) -> None:
         self.e57.close()
 
 
@@ -121,7 +122,7 @@ def _first_line(exc: BaseException) -> str:
     return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
 
 
-def _call(e57: pye57.E57, label: str, func):
+def _call(e57: pye57.E57, label: str, func: Callable[..., Any]) -> Any:
     try:
         with captured_native_stderr():
             return func(e57)
@@ -164,7 +165,7 @@ def _read_scan(e57: pye57.E57, index: int, label: str) -> tuple[FloatArray, int]
     return points, n_invalid_state + int(np.count_nonzero(~finite))
 
 
-def record_bits(header) -> int:
+def record_bits(header: Any) -> int:
     """Bits one record of a scan's points takes at least, from its prototype.
 
     Floats take 32 or 64 bits; integers and scaled integers the bits of their range
@@ -210,7 +211,7 @@ def _check_record_counts(e57: pye57.E57, n_scans: int, label: str, file_bytes: i
         left_bits -= total * per_record
 
 
-def _call_header(func, label: str):
+def _call_header(func: Callable[..., Any], label: str) -> Any:
     try:
         with captured_native_stderr():
             return func()
@@ -220,7 +221,7 @@ def _call_header(func, label: str):
         ) from None
 
 
-def _pose(header, index: int, label: str) -> FloatArray:
+def _pose(header: Any, index: int, label: str) -> FloatArray:
     """The scan's pose as a 4x4 transform into the file's frame (identity if it has none)."""
     T = np.eye(4)
     node = header.node

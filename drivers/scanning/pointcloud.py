@@ -278,7 +278,7 @@ def _binary_ply_vertices(
     return points, normals
 
 
-def _read_with_open3d(path: Path, fmt: str, label: str, declared: int | None):
+def _read_with_open3d(path: Path, fmt: str, label: str, declared: int | None) -> Any:
     """Read through Open3D (imported here: it takes 0.9 s), every failure an InputFileError."""
     import open3d as o3d
 

@@ -506,7 +506,7 @@ def _inside(root: Path, relative: str, label: str) -> Path:
     return candidate
 
 
-def _natural_key(name: str) -> list:
+def _natural_key(name: str) -> list[int | str]:
     return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
 
 
@@ -695,7 +695,7 @@ def extract_zip(
     )
 
 
-def _unpack_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo, dest: Path, label: str):
+def _unpack_member(archive: zipfile.ZipFile, info: zipfile.ZipInfo, dest: Path, label: str) -> None:
     """Unpack one member under ``dest``; every way it can fail is an :class:`InputFileError`."""
     shown = clipped(info.filename)
     parts = PurePosixPath(info.filename.replace("\\", "/"))
@@ -777,7 +777,9 @@ def depth_median_m(raw: np.ndarray, depth_scale: float) -> float | None:
     return float(np.median(measured)) / depth_scale
 
 
-def check_depth_scale(median_m: float, depth_scale: float, depth_trunc_m: float, label: str):
+def check_depth_scale(
+    median_m: float, depth_scale: float, depth_trunc_m: float, label: str
+) -> None:
     """Refuse a depth scale that puts the scene where no depth camera sees it.
 
     A scale off by 1000 (metres read as millimetres or the reverse) moves the median depth out of
@@ -953,7 +955,9 @@ class RGBDReader(ScanReader):
     def _upload_suffix(self, fmt: str) -> str:
         return ".zip"
 
-    def read(self, source, *, fmt: str, units: str = "m", name: str | None = None) -> ScanFile:
+    def read(
+        self, source: str | Path | bytes, *, fmt: str, units: str = "m", name: str | None = None
+    ) -> ScanFile:
         if isinstance(source, bytes):
             if not source:
                 raise InputFileError(f"{name or 'upload'} is empty")
@@ -1054,7 +1058,9 @@ class RGBDReader(ScanReader):
                 setting=setting,
             )
 
-    def _single(self, frame: Frame, intr: Intrinsics, scale: float, fmt: str, notes) -> ScanFile:
+    def _single(
+        self, frame: Frame, intr: Intrinsics, scale: float, fmt: str, notes: list[str]
+    ) -> ScanFile:
         opts = self.options
         raw = read_depth(frame.depth, intr, frame.name)
         median = depth_median_m(raw, scale)
@@ -1080,7 +1086,7 @@ class RGBDReader(ScanReader):
         )
 
     def _fused(
-        self, frames: tuple[Frame, ...], intr: Intrinsics, scale: float, fmt: str, notes
+        self, frames: tuple[Frame, ...], intr: Intrinsics, scale: float, fmt: str, notes: list[str]
     ) -> ScanFile:
         opts = self.options
         posed = [(f, f.T_world_camera) for f in frames if f.T_world_camera is not None]

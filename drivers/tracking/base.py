@@ -12,7 +12,7 @@ imported lazily; each has a pydantic config (a :class:`SourceConfig` with a lite
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, ClassVar
 
@@ -91,7 +91,7 @@ def increasing_times(t_s: FloatArray) -> np.ndarray:
 EXCERPT_NAMES = 8
 
 
-def name_excerpt(names, limit: int = EXCERPT_NAMES, *, quote: bool = True) -> str:
+def name_excerpt(names: Iterable[object], limit: int = EXCERPT_NAMES, *, quote: bool = True) -> str:
     """The first ``limit`` of ``names``, comma-separated, and how many more there are.
 
     Parameters

@@ -30,6 +30,7 @@ import struct
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -349,7 +350,7 @@ def parse_with_ezc3d(source: str, marker: str | None, name: str) -> dict[str, np
     return arrays
 
 
-def _first_number(group: dict, key: str) -> float:
+def _first_number(group: dict[str, Any], key: str) -> float:
     values = group.get(key, {}).get("value", [])
     return float(values[0]) if len(values) else -1.0
 
@@ -474,7 +475,8 @@ def _first_int(head: bytes, at: int, processor: int) -> int:
     value_at = at + 2 + dims
     if kind == 2 and value_at + 2 <= len(head):
         # A signed 16-bit INT: 32768-65535 frames are written as negative numbers.
-        return struct.unpack(order + "h", head[value_at : value_at + 2])[0] & 0xFFFF
+        frames: int = struct.unpack(order + "h", head[value_at : value_at + 2])[0] & 0xFFFF
+        return frames
     if kind == 4 and processor != 85 and value_at + 4 <= len(head):
         return int(round(struct.unpack(order + "f", head[value_at : value_at + 4])[0]))
     return -1  # DEC floats, bytes, text: not read here

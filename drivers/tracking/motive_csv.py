@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import io
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from operator import itemgetter, methodcaller
 from pathlib import Path
@@ -517,7 +518,7 @@ def _length_scale(
     return fallback, str(units)
 
 
-def _unique(names) -> list[str]:
+def _unique(names: Iterable[str]) -> list[str]:
     return list(dict.fromkeys(n for n in names if n))
 
 
@@ -590,7 +591,9 @@ def _choose(
 _RANKED_MARKERS = 64
 
 
-def _movement_ranking(raw, header, table, assets: _Assets, scale: float, name: str) -> str:
+def _movement_ranking(
+    raw: bytes, header: _Header, table: _Columns, assets: _Assets, scale: float, name: str
+) -> str:
     """The markers ranked by how far they moved (the extent of what the cameras saw of each),
     for a file that holds only markers: a pen's tip sweeps the path, the workpiece's markers
     and stray reflections barely move."""
@@ -798,12 +801,16 @@ def _to_quaternions(
             line = first_line + int(rows[np.flatnonzero(norm < 1e-9)[0]])
             raise InputFileError(f"{name} line {line} has a zero quaternion")
         # Motive writes six decimals: renormalise what the rounding took away.
-        return rot / norm[:, None]
+        unit: np.ndarray = rot / norm[:, None]
+        return unit
     # Euler angles are written under their axis names; compose them in the declared order.
     angles = rot[:, ["XYZ".index(axis) for axis in rotation_type]]
     if len(angles) == 0:
         return np.empty((0, 4))
-    return Rotation.from_euler(rotation_type, angles, degrees=True).as_quat(scalar_first=False)
+    quaternions: np.ndarray = Rotation.from_euler(rotation_type, angles, degrees=True).as_quat(
+        scalar_first=False
+    )
+    return quaternions
 
 
 def _int_or_none(text: str | None) -> int | None:

@@ -36,12 +36,17 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from drivers.errors import DriverError
 from drivers.units import metres_per
 from recon.inputs import Recording
+
+if TYPE_CHECKING:
+    from ctypes import c_longlong
+    from multiprocessing.synchronize import Event
 
 #: The NatNet bitstream version served (Motive 3.0). natnet 0.3.0 parses all of it; its frames
 #: have the 3.x layout, its rigid-body descriptions add marker names.
@@ -403,7 +408,7 @@ class NatNetReplayServer:
     def __enter__(self) -> NatNetReplayServer:
         return self.start()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()
 
 
@@ -413,7 +418,13 @@ class NatNetReplayServer:
 _IDLE_POLL_S = 0.05
 
 
-def _serve(plan: dict, pipe, stop_event, done_event, sent) -> None:  # pragma: no cover - child
+def _serve(  # pragma: no cover - child
+    plan: dict[str, Any],
+    pipe: Connection,
+    stop_event: Event,
+    done_event: Event,
+    sent: c_longlong,
+) -> None:
     # Ctrl-C reaches the whole process group: the parent decides when the server stops.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
@@ -438,7 +449,7 @@ def _serve(plan: dict, pipe, stop_event, done_event, sent) -> None:  # pragma: n
 
 
 class _Streamer:  # pragma: no cover - runs in the server process
-    def __init__(self, plan: dict, sock: socket.socket, sent) -> None:
+    def __init__(self, plan: dict[str, Any], sock: socket.socket, sent: c_longlong) -> None:
         self.plan, self.sock, self.sent = plan, sock, sent
         self.clients: dict[tuple[str, int], float] = {}
         self.n_clients = 0
@@ -457,7 +468,7 @@ class _Streamer:  # pragma: no cover - runs in the server process
             for _, body_id in plan["bodies"][:-1]
         ]
 
-    def stats(self) -> dict:
+    def stats(self) -> dict[str, Any]:
         return {
             "frames_sent": self.frames_sent,
             "frames_total": len(self.offsets),
@@ -466,7 +477,7 @@ class _Streamer:  # pragma: no cover - runs in the server process
             "max_late_s": self.max_late_s,
         }
 
-    def run(self, stop_event, done_event) -> None:
+    def run(self, stop_event: Event, done_event: Event) -> None:
         n = len(self.offsets)
         if n == 0:
             done_event.set()
@@ -526,7 +537,7 @@ class _Streamer:  # pragma: no cover - runs in the server process
             elif message_id == NAT_REQUEST:
                 self.reply(encode_packet(NAT_UNRECOGNIZED_REQUEST, b""), address)
 
-    def reply(self, packet: bytes, address) -> None:
+    def reply(self, packet: bytes, address: tuple[str, int]) -> None:
         try:
             self.sock.sendto(packet, address)
         except OSError:

@@ -47,10 +47,11 @@ import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from natnet import NatNetClient, NatNetNetworkError
+from numpy.typing import ArrayLike
 from pydantic import Field, field_validator
 
 from drivers.errors import (
@@ -63,6 +64,9 @@ from drivers.errors import (
 )
 from drivers.tracking.base import SampleBatch, SourceConfig, TrackerSource
 from drivers.units import metres_per
+
+if TYPE_CHECKING:
+    from multiprocessing.synchronize import Event
 
 #: Receive buffer asked for on the client's sockets (the kernel caps it at net.core.rmem_max;
 #: 4 MiB holds many seconds of rigid-body frames).
@@ -275,7 +279,7 @@ class NatNetSource(TrackerSource):
         self.config = config
         self._ctx = multiprocessing.get_context("spawn")
         self._process: multiprocessing.process.BaseProcess | None = None
-        self._queue: multiprocessing.queues.Queue | None = None
+        self._queue: multiprocessing.queues.Queue[tuple[str, Any]] | None = None
         self._stop = self._ctx.Event()
         self._lock = threading.Lock()
         self._closed = False
@@ -462,7 +466,7 @@ class NatNetSource(TrackerSource):
     def __enter__(self) -> NatNetSource:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def _shutdown(self) -> None:
@@ -489,7 +493,14 @@ class NatNetSource(TrackerSource):
         # (closing its descriptor under it could even hand the number to another file). It is
         # closed when the last reference goes.
 
-    def _accept(self, frames, t, position, orientation, valid) -> NatNetBatch:
+    def _accept(
+        self,
+        frames: ArrayLike,
+        t: ArrayLike,
+        position: ArrayLike,
+        orientation: ArrayLike,
+        valid: ArrayLike,
+    ) -> NatNetBatch:
         """Count drops, discard late frames, convert units."""
         s = self._stats
         frames = np.asarray(frames, dtype=np.int64)
@@ -533,22 +544,26 @@ class NatNetSource(TrackerSource):
 # -- the receiver process ------------------------------------------------------------------------
 
 
-class _Client(NatNetClient):
+class _Client(NatNetClient):  # type: ignore[misc]  # natnet ships no types: its client is Any
     """natnet's client with our socket set-up (see the module docstring).
 
     natnet 0.3.0 creates its sockets in private methods; these overrides use their mangled
     names, which the pinned version guarantees.
     """
 
-    def __init__(self, **kwargs) -> None:
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.sockets: list[socket.socket] = []
 
-    def _NatNetClient__create_command_socket(self):  # noqa: N802 - natnet's private name
+    def _NatNetClient__create_command_socket(  # noqa: N802 - natnet's private name
+        self,
+    ) -> socket.socket:
         sock = NatNetClient._NatNetClient__create_command_socket(self)
         return self._keep(sock)
 
-    def _NatNetClient__create_data_socket(self, port):  # noqa: N802 - natnet's private name
+    def _NatNetClient__create_data_socket(  # noqa: N802 - natnet's private name
+        self, port: int
+    ) -> socket.socket:
         if self.use_multicast:
             return self._keep(NatNetClient._NatNetClient__create_data_socket(self, port))
         # Unicast frames come to the command socket; this one only has to exist.
@@ -567,7 +582,9 @@ class _Client(NatNetClient):
         return sock
 
 
-def _receiver_main(config: dict, out, stop_event) -> None:  # pragma: no cover - child process
+def _receiver_main(  # pragma: no cover - child process
+    config: dict[str, Any], out: multiprocessing.queues.Queue[tuple[str, Any]], stop_event: Event
+) -> None:
     # Ctrl-C reaches the whole process group: the parent decides when this receiver stops.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     receiver = None
@@ -585,7 +602,9 @@ def _receiver_main(config: dict, out, stop_event) -> None:  # pragma: no cover -
 
 
 class _Receiver:  # pragma: no cover - runs in the child process
-    def __init__(self, config: dict, out) -> None:
+    def __init__(
+        self, config: dict[str, Any], out: multiprocessing.queues.Queue[tuple[str, Any]]
+    ) -> None:
         self.config = config
         self.out = out
         self.address = f"{config['server']}:{config['command_port']}"
@@ -593,11 +612,11 @@ class _Receiver:  # pragma: no cover - runs in the child process
         # natnet's model definitions (an untyped library's object) once the server sent them.
         self.descriptions: Any = None
         self.target_id: int | None = None
-        self.pending: list = []  # frames received before the id was known
-        self.rows: list[tuple] = []
+        self.pending: list[Any] = []  # frames received before the id was known
+        self.rows: list[tuple[Any, ...]] = []
         self.last_modeldef_request = -np.inf
 
-    def run(self, stop_event) -> None:
+    def run(self, stop_event: Event) -> None:
         cfg = self.config
         client = self.open()
         info = client.server_info
@@ -711,7 +730,7 @@ class _Receiver:  # pragma: no cover - runs in the child process
                 return int(description.id_num)
         return None
 
-    def on_descriptions(self, descriptions) -> None:
+    def on_descriptions(self, descriptions: Any) -> None:
         self.descriptions = descriptions
         if self.target_id is not None:
             # Motive re-numbers bodies when assets change: follow the name.
@@ -719,7 +738,7 @@ class _Receiver:  # pragma: no cover - runs in the child process
             if found is not None:
                 self.target_id = found
 
-    def on_frame(self, frame) -> None:
+    def on_frame(self, frame: Any) -> None:
         if self.target_id is None:
             self.pending.append(frame)
             return

@@ -21,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -55,7 +55,7 @@ class RawTrace:
     batch: SampleBatch
     format: str
     rate_hz: float | None = None
-    meta: dict = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -85,7 +85,7 @@ class TraceFile:
     def format(self) -> str:
         return self.raw.format
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """JSON-able facts: format, gaps, pieces."""
         return {
             "format": self.raw.format,
@@ -513,7 +513,7 @@ def _looks_like_rtde(line: str) -> bool:
     )
 
 
-def _jsonable(value) -> bool:
+def _jsonable(value: object) -> bool:
     return isinstance(value, (str, int, float, bool, type(None), list, tuple))
 
 

@@ -5,19 +5,20 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
+from drivers.errors import TrackerError, TrackerTimeoutError
 from drivers.files import atomic_path
 from drivers.tracking.base import increasing_times
 from drivers.tracking.canonical_csv import write_trace_csv
 from drivers.tracking.natnet_source import (
+    NatNetBatch,
     NatNetConfig,
     NatNetServerInfo,
     NatNetSource,
-    TrackerError,
-    TrackerTimeoutError,
 )
 from recon.inputs import Recording
 
@@ -124,7 +125,7 @@ def record_natnet(
                 return
 
     watcher = None
-    parts: list = []
+    parts: list[dict[str, NDArray[Any]]] = []
     # batches() only ends by itself when the watcher closed the source.
     stop_reason: StopReason = "stop_event"
     try:
@@ -161,20 +162,27 @@ def record_natnet(
     return _write(out_path, parts, config.rigid_body, stop_reason, server)
 
 
-def _select(batch, index) -> dict:
+def _select(batch: NatNetBatch, index: NDArray[np.bool_] | slice) -> dict[str, NDArray[Any]]:
+    t, q = batch.t_s, batch.orientation_xyzw
+    if t is None or q is None:  # NatNetSource's batches always carry both
+        raise TypeError("a NatNet batch without sample times or orientations")
     return {
         "frame": np.asarray(batch.frame_numbers)[index],
-        "t": batch.t_s[index],
+        "t": t[index],
         "p": batch.position_m[index],
-        "q": batch.orientation_xyzw[index],
+        "q": q[index],
         "valid": batch.valid[index],
     }
 
 
 def _write(
-    out_path: Path, parts: list, rigid_body: str, stop_reason: StopReason, server
+    out_path: Path,
+    parts: list[dict[str, NDArray[Any]]],
+    rigid_body: str,
+    stop_reason: StopReason,
+    server: NatNetServerInfo,
 ) -> RecordSummary:
-    def column(key, shape_tail=()):
+    def column(key: str, shape_tail: tuple[int, ...] = ()) -> NDArray[Any]:
         if not parts:
             return np.zeros((0, *shape_tail))
         return np.concatenate([p[key] for p in parts])

@@ -109,7 +109,7 @@ class ReplaySource(TrackerSource):
         *,
         pacer: Pacer | None = None,
         batch_s: float = 0.05,
-        **reader_options,
+        **reader_options: str | None,
     ) -> ReplaySource:
         """Replay a trace file in any supported format, lost frames and all.
 

@@ -47,10 +47,12 @@ import bisect
 import logging
 import threading
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation, Slerp
 
 from drivers.errors import ProtectiveStopError
@@ -142,7 +144,7 @@ class Trace:
     def __len__(self) -> int:
         return max(0, len(self.blocks) * TRACE_BLOCK - (TRACE_BLOCK - self.fill))
 
-    def append(self, t_s: float, q, pose, line: int = 0) -> None:
+    def append(self, t_s: float, q: ArrayLike, pose: ArrayLike, line: int = 0) -> None:
         if self.fill == TRACE_BLOCK:
             self.blocks.append(np.empty((TRACE_BLOCK, 14)))
             self.fill = 0
@@ -212,10 +214,10 @@ class FakeController:
         self,
         robot: str = "ur5e",
         *,
-        q_start_rad=HOME_RAD,
+        q_start_rad: Iterable[float] = HOME_RAD,
         powered: bool = True,
         program_start_s: float = 0.0,
-    ):
+    ) -> None:
         self.program_start_s = program_start_s
         self.arm = kinematics.model(robot)
         self.rate_hz = float(self.arm.control_rate_hz)
@@ -275,7 +277,7 @@ class FakeController:
 
     # -- arm ---------------------------------------------------------------------------------------
 
-    def reset_arm(self, q_rad=None) -> None:
+    def reset_arm(self, q_rad: Iterable[float] | None = None) -> None:
         """Put the arm at rest at ``q_rad`` (default: the start pose) with no motion."""
         with self.lock:
             q = self.q_start_rad if q_rad is None else tuple(float(v) for v in q_rad)
@@ -300,7 +302,7 @@ class FakeController:
     def qd(self) -> np.ndarray:
         return self.sim._qd
 
-    def tcp_pose(self, q=None, tcp=None) -> list[float]:
+    def tcp_pose(self, q: ArrayLike | None = None, tcp: ArrayLike | None = None) -> list[float]:
         """The TCP pose at ``q`` (default: now) with ``tcp`` (default: the active TCP)."""
         if q is None and tcp is None:
             # Asked several times a period (stream, trace, status): computed once per state.
@@ -311,11 +313,12 @@ class FakeController:
         offset = self.tcp_offset if tcp is None else np.asarray(tcp, dtype=np.float64)
         return self._tcp_pose(self.q if q is None else np.asarray(q), offset)
 
-    def _tcp_pose(self, q, offset) -> list[float]:
+    def _tcp_pose(self, q: np.ndarray, offset: np.ndarray) -> list[float]:
         T = kinematics.forward(self.arm, q)
         if np.any(offset):
             T = T @ transform_from_pose(offset)
-        return pose_from_transform(T).tolist()
+        pose: list[float] = pose_from_transform(T).tolist()
+        return pose
 
     @property
     def protective_stopped(self) -> bool:
@@ -466,7 +469,7 @@ class FakeController:
         log.warning("program %s refused: %s", name, reason)
         self.run = self._new_run(state="refused", message=reason, ended_s=self.t_s)
 
-    def _new_run(self, **fields) -> urscript.RunState:
+    def _new_run(self, **fields: Any) -> urscript.RunState:
         """The state of the next program, numbered: the controller clock moves in whole
         periods, so two programs (a refused one and the next) can share a start time."""
         self.programs_received += 1
@@ -781,7 +784,7 @@ class FakeController:
             self._write_async_progress(-1)
             self.motion = None
 
-    def _write_pose(self, pose) -> None:
+    def _write_pose(self, pose: Iterable[float]) -> None:
         for k, v in enumerate(pose):
             self.out_double[self._f(k)] = float(v)
 
@@ -916,12 +919,16 @@ class FakeController:
             q = q + qd * self.dt_s
             yield q.copy()
 
-    def _ik(self, pose, q_near, tcp=None) -> np.ndarray | None:
+    def _ik(
+        self, pose: ArrayLike, q_near: ArrayLike, tcp: ArrayLike | None = None
+    ) -> np.ndarray | None:
         """The IK solution of a TCP pose (``tcp``, default the active TCP) nearest ``q_near``
         (None if unreachable)."""
         return self._ik_many(np.asarray(pose, dtype=np.float64)[None], q_near, tcp)[0]
 
-    def _ik_many(self, poses: np.ndarray, q_near, tcp=None) -> list[np.ndarray | None]:
+    def _ik_many(
+        self, poses: np.ndarray, q_near: ArrayLike, tcp: ArrayLike | None = None
+    ) -> list[np.ndarray | None]:
         """IK of TCP poses (N, 6) in order, each solution nearest the previous one (the first
         nearest ``q_near``); None where a pose is unreachable."""
         T = transform_from_pose(poses[:, :6])
@@ -942,7 +949,14 @@ class FakeController:
             out.append(near)
         return out
 
-    def _line_targets(self, q0, pose, speed, acceleration, time_s: float = 0.0):
+    def _line_targets(
+        self,
+        q0: np.ndarray,
+        pose: np.ndarray,
+        speed: float,
+        acceleration: float,
+        time_s: float = 0.0,
+    ) -> tuple[np.ndarray, Iterator[np.ndarray]]:
         """Fractions (K,) of a straight TCP line to ``pose`` (trapezoidal in distance; lasting
         ``time_s`` if > 0) and its joint targets, solved lazily :data:`IK_CHUNK` at a time as
         the motion consumes them -- solving a long line at once would stall the control tick
@@ -965,7 +979,9 @@ class FakeController:
 
         return fractions, self._solve_stream(q0, len(fractions), poses, "movel")
 
-    def _solve_stream(self, q0, count: int, poses, what: str) -> Iterator[np.ndarray]:
+    def _solve_stream(
+        self, q0: ArrayLike, count: int, poses: Callable[[int, int], np.ndarray], what: str
+    ) -> Iterator[np.ndarray]:
         """Joint targets for ``count`` TCP poses (``poses(first, last)`` gives rows first ..
         last - 1), each nearest the previous, solved :data:`IK_CHUNK` at a time with the TCP
         active when the move started."""
@@ -986,7 +1002,7 @@ class FakeController:
 
     # -- the host of a standalone program (urscript.Runner) -------------------------------------
 
-    def actual_q(self):
+    def actual_q(self) -> np.ndarray:
         """The arm's joints now (for a program's start check)."""
         return np.array(self.q, dtype=np.float64)
 
@@ -995,14 +1011,16 @@ class FakeController:
         log.info("textmsg: %s", text)
         self.messages.append(text)
 
-    def set_tcp(self, pose) -> None:
+    def set_tcp(self, pose: ArrayLike) -> None:
         pose = np.asarray(pose, dtype=np.float64)
         if pose.shape != (6,) or not np.all(np.isfinite(pose)):
             raise ScriptRuntimeError("set_tcp: the TCP must be a pose of 6 finite numbers")
         self.tcp_offset = pose.copy()
         log.info("active TCP set to %s", np.round(pose, 6).tolist())
 
-    def set_payload(self, mass, cog=None, inertia=None) -> None:
+    def set_payload(
+        self, mass: float | None, cog: ArrayLike | None = None, inertia: ArrayLike | None = None
+    ) -> None:
         """The active payload (mass None / cog None: kept as it is)."""
         if mass is not None:
             if not (np.isfinite(mass) and mass >= 0):
@@ -1014,10 +1032,10 @@ class FakeController:
             self.payload_inertia = np.asarray(inertia, dtype=np.float64).copy()
         log.info("payload set to %.3f kg at %s", self.payload_kg, self.payload_cog_m.tolist())
 
-    def motion_running(self, motion) -> bool:
+    def motion_running(self, motion: object) -> bool:
         return self.motion is motion
 
-    def servo(self, q, t: float, lookahead_s: float, gain: float) -> int:
+    def servo(self, q: ArrayLike, t: float, lookahead_s: float, gain: float) -> int:
         """servoj: approach ``q`` over ``t`` through the lookahead model; its length in control
         periods (the time the call takes)."""
         self.servo_target = np.asarray(q, dtype=np.float64)
@@ -1048,7 +1066,7 @@ class FakeController:
         self.motion = motion
         return motion
 
-    def start_moves(self, moves) -> tuple[_Motion, np.ndarray]:
+    def start_moves(self, moves: Sequence[urscript._MoveArgs]) -> tuple[_Motion, np.ndarray]:
         """Start one move or a run of blended moves (``urscript._MoveArgs``, one space); the
         motion and the tick at which each move after the first starts."""
         q0 = self.q.copy()
@@ -1216,14 +1234,16 @@ class FakeController:
         return motion.name, self.t_s - motion.started_s, motion.expected_s
 
 
-def _at(move, message: str) -> ScriptRuntimeError:
+def _at(move: urscript._MoveArgs, message: str) -> ScriptRuntimeError:
     """A runtime error at the line of ``move`` (within a run of blended moves)."""
     error = ScriptRuntimeError(message)
     error.line = move.line  # type: ignore[attr-defined]
     return error
 
 
-def _run_limits(moves, lengths) -> tuple[list[float], float]:
+def _run_limits(
+    moves: Sequence[urscript._MoveArgs], lengths: Iterable[float]
+) -> tuple[list[float], float]:
     """Speed caps of a run of blended moves (a move's ``t`` becomes the speed that covers its
     length in ``t``) and the run's acceleration (the lowest ``a`` of its moves)."""
     speeds = [

@@ -49,7 +49,9 @@ class RTDEConnection:
         What ``get urcontrol version`` answers (major, minor, bugfix, build).
     """
 
-    def __init__(self, sock: socket.socket, controller: FakeController, version) -> None:
+    def __init__(
+        self, sock: socket.socket, controller: FakeController, version: tuple[int, int, int, int]
+    ) -> None:
         self.sock = sock
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_SEND_BUFFER)
         self.controller = controller

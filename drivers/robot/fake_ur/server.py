@@ -44,6 +44,8 @@ import re
 import socket
 import threading
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -148,14 +150,16 @@ class FakeUR:
 
     # -- plumbing --------------------------------------------------------------------------------
 
-    def _spawn(self, target, *args, name: str) -> None:
+    def _spawn(self, target: Callable[..., object], *args: Any, name: str) -> None:
         thread = threading.Thread(target=target, args=args, name=name, daemon=True)
         thread.start()
         # One thread per client connection: forget the finished ones so a long-running fake
         # does not keep every connection it ever served.
         self._threads = [t for t in self._threads if t.is_alive()] + [thread]
 
-    def _accept(self, server: socket.socket, handler) -> None:
+    def _accept(
+        self, server: socket.socket, handler: Callable[[socket.socket, int], object]
+    ) -> None:
         while not self._stop.is_set():
             try:
                 sock, _ = server.accept()
@@ -174,7 +178,9 @@ class FakeUR:
                     self._clients.append(sock)
             self._spawn(self._guard, handler, sock, port, name=f"client {port}")
 
-    def _guard(self, handler, sock: socket.socket, port: int) -> None:
+    def _guard(
+        self, handler: Callable[[socket.socket, int], object], sock: socket.socket, port: int
+    ) -> None:
         try:
             handler(sock, port)
         except OSError as exc:
@@ -302,7 +308,7 @@ class FakeUR:
                 self.shutdown()
                 return
 
-    def handle_control(self, request: dict) -> dict | None:  # noqa: C901
+    def handle_control(self, request: dict[str, Any]) -> dict[str, Any] | None:  # noqa: C901
         """Carry out one control channel request (see the module docstring)."""
         c = self.controller
         command = request.get("cmd")
@@ -408,14 +414,14 @@ def _standalone_complete(text: str) -> bool:
     return True
 
 
-def _count(request: dict, name: str, default: int, *, minimum: int = 0) -> int:
+def _count(request: dict[str, Any], name: str, default: int, *, minimum: int = 0) -> int:
     value = request.get(name, default)
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}")
     return value
 
 
-def program_status(c: ctl.FakeController) -> dict:
+def program_status(c: ctl.FakeController) -> dict[str, Any]:
     """What became of the last program (call under the controller's lock).
 
     ``{"state": "none" | "running" | "finished" | "error" | "stopped" | "refused",
@@ -454,7 +460,7 @@ def program_status(c: ctl.FakeController) -> dict:
 
 def program_trace(
     c: ctl.FakeController, *, start: int = 0, stop: int | None = None, every: int = 1
-) -> dict:
+) -> dict[str, Any]:
     """The recorded trace from sample ``start`` (counted from the program's start) to
     ``stop``, every ``every``-th, at most :data:`TRACE_REPLY_MAX` rows a reply.
 

@@ -38,7 +38,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation, Slerp
+
+from recon.arrays import FloatArray
 
 #: Non-blocking statements run in one control period at most (the rest wait for the next one),
 #: so a program of ten thousand ``textmsg`` lines cannot stall the control tick.
@@ -90,11 +93,11 @@ class Name:
 class ListOf:
     """A list literal with names among its items (evaluated at run time)."""
 
-    items: tuple
+    items: tuple[Any, ...]
     pose: bool
 
 
-def _evaluate(expr, variables: dict[str, Any]):
+def _evaluate(expr: Any, variables: dict[str, Any]) -> Any:
     if isinstance(expr, Name):
         if expr.name not in variables:
             raise ScriptRuntimeError(f"variable {expr.name!r} is not defined")
@@ -122,7 +125,9 @@ class Signature:
 
     params: tuple[tuple[str, Any], ...]
 
-    def bind(self, function: str, args: Sequence, kwargs: dict, line: int) -> tuple:
+    def bind(
+        self, function: str, args: Sequence[Any], kwargs: dict[str, Any], line: int
+    ) -> tuple[Any, ...]:
         """Values in parameter order, as URScript binds positional then keyword arguments."""
         names = [name for name, _ in self.params]
         if len(args) > len(names):
@@ -198,7 +203,7 @@ class Statement:
 
     line: int
     function: str
-    args: tuple
+    args: tuple[Any, ...]
     target: str | None = None
     body: tuple[Statement, ...] = ()
 
@@ -282,7 +287,7 @@ class _Tokens:
             raise CompileError(self.line, f"expected {value!r}, found {got or 'end of line'!r}")
 
 
-def _expression(tokens: _Tokens):
+def _expression(tokens: _Tokens) -> float | str | bool | Name | ListOf | Pose | FloatArray:
     kind, value = tokens.take()
     if kind == "number":
         return float(value)
@@ -308,7 +313,7 @@ def _expression(tokens: _Tokens):
     )
 
 
-def _list(tokens: _Tokens, *, pose: bool):
+def _list(tokens: _Tokens, *, pose: bool) -> ListOf | Pose | FloatArray:
     items = []
     if tokens.peek() != ("op", "]"):
         while True:
@@ -333,8 +338,8 @@ def _call(function: str, tokens: _Tokens, line: int) -> Statement:
             line, f"unknown function {function}() (not in the fake's URScript subset)"
         )
     tokens.expect("(")
-    args: list = []
-    kwargs: dict = {}
+    args: list[Any] = []
+    kwargs: dict[str, Any] = {}
     if tokens.peek() != ("op", ")"):
         while True:
             if tokens.peek()[0] == "name" and tokens.peek(1) == ("op", "="):
@@ -361,8 +366,8 @@ def _fast(text: str, line: int) -> Statement | None:
         return None
     values = np.array(match.group("values").split(","), dtype=np.float64)
     first = Pose(values) if match.group("pose") else values
-    args: list = [first]
-    kwargs: dict = {}
+    args: list[Any] = [first]
+    kwargs: dict[str, Any] = {}
     for key, number in _FAST_REST.findall(match.group("rest")):
         if key:
             kwargs[key] = float(number)
@@ -420,7 +425,8 @@ def compile_program(text: str) -> Program:
     name = ""
     state = "bare"  # bare -> (def) body -> after
     called = False
-    guard: tuple[int, tuple, float, list[Statement]] | None = None  # an open joint guard
+    # An open joint guard: its line, (joint, target), limit and body.
+    guard: tuple[int, tuple[int, float], float, list[Statement]] | None = None
     lines = text.splitlines()
     for number, raw in enumerate(lines, start=1):
         code = _strip_comment(raw)
@@ -528,7 +534,7 @@ def tool_path(
     for k in range(1, n):
         radius[k] = max(0.0, min(float(blends_m[k - 1]), lengths[k - 1] / 2, lengths[k] / 2))
     # Pieces in order: ("line", segment, from_m, to_m) and ("blend", waypoint).
-    pieces: list[tuple] = []
+    pieces: list[tuple[Any, ...]] = []
     for k in range(n):
         pieces.append(("line", k, radius[k], lengths[k] - radius[k + 1]))
         if k + 1 < n and radius[k + 1] > 0:
@@ -603,12 +609,15 @@ def tool_path(
     return ToolPath(np.hstack([sample_xyz, rotvec]), move_starts.astype(int))
 
 
-def _bezier(points, directions, radius, k, t):
+def _bezier(
+    points: FloatArray, directions: FloatArray, radius: FloatArray, k: int, t: ArrayLike
+) -> FloatArray:
     """The blend at waypoint ``k``: quadratic Bezier from ``r`` before to ``r`` after it."""
     t = np.asarray(t, dtype=np.float64)[:, None]
     p0 = points[k] - radius[k] * directions[k - 1]
     p2 = points[k] + radius[k] * directions[k]
-    return (1 - t) ** 2 * p0 + 2 * (1 - t) * t * points[k] + t**2 * p2
+    curve: FloatArray = (1 - t) ** 2 * p0 + 2 * (1 - t) * t * points[k] + t**2 * p2
+    return curve
 
 
 def timed_profile(distance: float, acceleration: float, time_s: float) -> tuple[float, float]:
@@ -732,16 +741,16 @@ class Runner:
             if self._wait is not None:
                 return
 
-    def _block_on(self, motion) -> None:
+    def _block_on(self, motion: Any) -> None:
         if motion is None:
             return
         self._motion = motion
         self._wait = lambda: not self.host.motion_running(motion)
 
-    def _value(self, expr):
+    def _value(self, expr: Any) -> Any:
         return _evaluate(expr, self.variables)
 
-    def _number(self, function: str, name: str, expr) -> float:
+    def _number(self, function: str, name: str, expr: Any) -> float:
         value = self._value(expr)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ScriptRuntimeError(f"{function}: {name} must be a number")
@@ -749,7 +758,9 @@ class Runner:
             raise ScriptRuntimeError(f"{function}: {name} must be finite")
         return float(value)
 
-    def _vector(self, function: str, name: str, expr, size: int, *, pose: bool | None):
+    def _vector(
+        self, function: str, name: str, expr: Any, size: int, *, pose: bool | None
+    ) -> tuple[FloatArray, bool]:
         """A list (``pose`` False), a pose (True) or either (None) of ``size`` numbers, and
         whether it was a pose."""
         value = self._value(expr)
@@ -846,7 +857,7 @@ class Runner:
         else:  # pragma: no cover - FUNCTIONS and this dispatch are kept together
             raise ScriptRuntimeError(f"{function}() is not implemented by the fake")
 
-    def _servoj(self, args) -> None:
+    def _servoj(self, args: tuple[Any, ...]) -> None:
         q, _ = self._vector("servoj", "q", args[0], 6, pose=False)
         t = self._number("servoj", "t", args[3])
         lookahead = self._number("servoj", "lookahead_time", args[4])
@@ -903,7 +914,7 @@ class Runner:
             self._group_lines = ()
 
 
-def _text(value) -> str:
+def _text(value: object) -> str:
     if isinstance(value, Pose):
         return "p[" + ", ".join(f"{v:.6g}" for v in value.values) + "]"
     if isinstance(value, np.ndarray):
