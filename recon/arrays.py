@@ -1,10 +1,11 @@
 """Array helpers shared by the core's data: the float array type, read-only copies and
 piece labels.
 
-Conventions (see docs/architecture.md): SI units (m, rad, s); a transform ``T_a_b`` is a 4x4
-homogeneous matrix mapping points of frame ``b`` into frame ``a``; quaternions are scalar-last
-``(x, y, z, w)`` where a field says ``xyzw``. Arrays held by these classes are made read-only so a
-result cannot be changed behind the back of whoever stored it.
+Conventions of all the core's data (docs/architecture.md): SI units (m, rad, s); a transform
+``T_a_b`` is a 4x4 homogeneous matrix mapping points of frame ``b`` into frame ``a``;
+quaternions are scalar-last ``(x, y, z, w)`` where a field says ``xyzw``. Arrays held by the
+dataclasses are made read-only (:func:`frozen_array`) so a result cannot be changed behind the
+back of whoever stored it.
 """
 
 from __future__ import annotations

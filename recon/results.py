@@ -1,10 +1,8 @@
 """What a reconstruction returns (:class:`Reconstruction`), its per-point diagnostics, its
 segments and reports, and the scan-to-tracker registration.
 
-Conventions (see docs/architecture.md): SI units (m, rad, s); a transform ``T_a_b`` is a 4x4
-homogeneous matrix mapping points of frame ``b`` into frame ``a``; quaternions are scalar-last
-``(x, y, z, w)`` where a field says ``xyzw``. Arrays held by these classes are made read-only so a
-result cannot be changed behind the back of whoever stored it.
+Units, frames and quaternion order as docs/architecture.md's conventions say; the arrays held
+here are read-only (:func:`recon.arrays.frozen_array`).
 """
 
 from __future__ import annotations

@@ -1,10 +1,8 @@
 """The time-parameterized joint trajectory (:class:`JointTrajectory`) the arm runs: samples,
 phases, its checks and its summaries.
 
-Conventions (see docs/architecture.md): SI units (m, rad, s); a transform ``T_a_b`` is a 4x4
-homogeneous matrix mapping points of frame ``b`` into frame ``a``; quaternions are scalar-last
-``(x, y, z, w)`` where a field says ``xyzw``. Arrays held by these classes are made read-only so a
-result cannot be changed behind the back of whoever stored it.
+Units, frames and quaternion order as docs/architecture.md's conventions say; the arrays held
+here are read-only (:func:`recon.arrays.frozen_array`).
 """
 
 from __future__ import annotations
@@ -21,6 +19,9 @@ from recon.arrays import FloatArray
 from recon.kinematics import DHCalibration, URModel
 from recon.paths import Phase, SpeedDrop
 from recon.sample_check import tcp_speeds_m_s
+
+#: The per-sample arrays of a :class:`JointTrajectory` (what is stored of one, with its phases).
+SAMPLE_FIELDS = ("t_s", "q_rad", "qd_rad_s", "qdd_rad_s2", "tcp_m", "tcp_rotvec", "arc_length_m")
 
 
 @dataclass(frozen=True)
@@ -66,15 +67,7 @@ class JointTrajectory:
 
     def __post_init__(self) -> None:
         n = len(self.t_s)
-        for name in (
-            "t_s",
-            "q_rad",
-            "qd_rad_s",
-            "qdd_rad_s2",
-            "tcp_m",
-            "tcp_rotvec",
-            "arc_length_m",
-        ):
+        for name in SAMPLE_FIELDS:
             arr = np.array(getattr(self, name), dtype=np.float64)
             if len(arr) != n:
                 raise ValueError(f"{name} has {len(arr)} rows for {n} samples")

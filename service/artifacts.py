@@ -26,7 +26,7 @@ from recon.arrays import FloatArray
 from recon.inputs import Recording, Scan
 from recon.paths import ReconstructedPath, SpeedDrop
 from recon.results import PER_POINT_FIELDS
-from recon.trajectory import JointTrajectory
+from recon.trajectory import SAMPLE_FIELDS, JointTrajectory
 
 Arrays = dict[str, np.ndarray]
 
@@ -172,15 +172,7 @@ class ReconstructionCodec:
 
 
 #: The sample arrays of a trajectory.
-TRAJECTORY_FIELDS = (
-    "t_s",
-    "q_rad",
-    "qd_rad_s",
-    "qdd_rad_s2",
-    "tcp_m",
-    "tcp_rotvec",
-    "arc_length_m",
-)
+TRAJECTORY_FIELDS = SAMPLE_FIELDS
 
 
 class TrajectoryCodec:
