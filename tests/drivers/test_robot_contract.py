@@ -125,8 +125,19 @@ def test_execute_follows_the_trajectory_and_records_it(robot):
     assert len(record) == len(trajectory)
     assert progress[-1] == pytest.approx(1.0) and progress == sorted(progress)
     assert np.abs(robot.status().q_rad - trajectory.q_rad[-1]).max() < 2e-3
-    # The arm follows a lookahead behind, but close to the plan at all times.
-    assert np.abs(record.q_actual_rad - record.q_planned_rad).max() < 0.1
+    # The arm follows a lookahead (and, on a loaded machine, a few control periods) behind the
+    # plan's clock, so compare where it is with the nearest configuration of the planned path,
+    # not with the sample of the same instant: that distance does not depend on the timing.
+    # Measured on the fake controller: 2e-4 to 1e-3 rad on an idle machine, up to 4e-3 rad with
+    # three busy processes on two cores (a starved stream makes the arm catch up in a joint-space
+    # straight line between far targets); the bound before was 0.1 rad on the same-instant lag.
+    off_path_rad = (
+        np.abs(record.q_actual_rad[:, None, :] - trajectory.q_rad[None, :, :])
+        .max(axis=2)
+        .min(axis=1)
+    )
+    print(f"largest distance from the planned path: {off_path_rad.max():.2e} rad")
+    assert off_path_rad.max() < 1e-2
 
 
 def test_execute_path_runs_coarse_waypoints_on_the_plan(robot):
