@@ -186,7 +186,7 @@ def run_isolated(
     InputFileError
         The function raised an exception of another class (its name is in the message).
     """
-    import numpy as np
+    from drivers.npz import read_npz
 
     limits = limits or Limits()
     what = what or target
@@ -256,8 +256,7 @@ def run_isolated(
             )
         if not (Path(tmp) / _RESULT).is_file():
             return {}
-        with np.load(Path(tmp) / _RESULT, allow_pickle=False) as data:
-            return {key: data[key] for key in data.files}
+        return read_npz(Path(tmp) / _RESULT)
 
 
 def _usage(status: dict[str, Any] | None, wall_s: float, asked_bytes: int | None) -> Usage:
@@ -497,12 +496,6 @@ def _save(result: object, path: Path) -> None:  # pragma: no cover - runs in the
         raise TypeError(f"an isolated function returns a mapping of arrays, not {type(result)}")
     if not result:
         return  # no file: nothing to read (and numpy need not load for it)
-    import numpy as np
+    from drivers.npz import write_npz  # numpy loads only for a result to write
 
-    arrays = {}
-    for key, value in result.items():
-        array = np.asarray(value)
-        if array.dtype.hasobject:
-            raise TypeError(f"result {key!r} is an array of Python objects, which cannot cross")
-        arrays[str(key)] = array
-    np.savez(path, **arrays)  # type: ignore[arg-type]  # numpy's stub types allow_pickle
+    write_npz(path, {str(key): value for key, value in result.items()})

@@ -23,14 +23,16 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any, TypeVar
 
 import numpy as np
 
 from drivers.errors import MotionStoppedError
 from drivers.robot.base import ExecutionRecord, RobotBackend
 from drivers.robot.dryrun import reached_phase, stream_lag_s
+from recon.arrays import FloatArray
 from recon.trajectory import JointTrajectory
 from service.errors import error_body
 from service.store import Store, now
@@ -39,6 +41,17 @@ log = logging.getLogger("teachpath.executions")
 
 #: The runner's steps, in order, as the job reports where it is.
 STEPS = ("queued", "connecting", "enabling", "setting the tool", "moving")
+
+#: ``(tcp_pose, payload_kg, payload_cog_m)``: the TCP in the flange frame (x, y, z, rx, ry, rz;
+#: m and rad), the payload's mass (kg; None: the installation's payload stays) and its centre of
+#: gravity (flange frame, m).
+Tool = tuple[Sequence[float] | FloatArray, float | None, Sequence[float] | FloatArray]
+
+#: ``record(execution_record, faults, stopped_in)``: stores the execution (its record so far, or
+#: None; the faults; where it stopped, None when it completed) and returns the job's result.
+Recorder = Callable[[ExecutionRecord | None, list[str], str | None], dict[str, Any]]
+
+_T = TypeVar("_T")
 
 
 class ExecutionRunner:
@@ -52,11 +65,10 @@ class ExecutionRunner:
         A fresh backend (its stop latch unset).
     trajectory : JointTrajectory
         The whole planned motion.
-    record : callable
-        ``record(execution_record, faults, duration_s, stopped_in)`` is called once at the end
-        (also after a fault or a stop, with the record so far or None) and returns the job's
-        result.
-    tool : tuple
+    record : Recorder
+        ``record(execution_record, faults, stopped_in)`` is called once at the end (also after
+        a fault or a stop, with the record so far or None) and returns the job's result.
+    tool : Tool
         ``(tcp_pose, payload_kg, payload_cog_m)`` told to the controller before motion.
     journal : str
         Where the samples are written as they arrive.
@@ -73,9 +85,9 @@ class ExecutionRunner:
         job_id: str,
         backend: RobotBackend,
         trajectory: JointTrajectory,
-        record: Callable,
+        record: Recorder,
         *,
-        tool: tuple,
+        tool: Tool,
         journal: str,
         mode: str = "servoj",
         tolerance_m: float = 5e-4,
@@ -135,7 +147,7 @@ class ExecutionRunner:
     def resume(self) -> None:
         self.backend.resume()
 
-    def speed_view(self) -> dict:
+    def speed_view(self) -> dict[str, Any]:
         """The speed override as the safety bar shows it."""
         backend = self.backend
         return {
@@ -190,7 +202,7 @@ class ExecutionRunner:
             f"the end of job {self.job_id}",
         )
 
-    def _drive(self) -> dict:
+    def _drive(self) -> dict[str, Any]:
         """Run the execution; return the job's final fields (state, result, error, progress)."""
         record: ExecutionRecord | None = None
         try:
@@ -200,7 +212,11 @@ class ExecutionRunner:
             self.backend.enable()
             self._next("setting the tool")
             tcp_pose, payload_kg, cog_m = self.tool
-            self.backend.set_tool(tcp_pose, payload_kg=payload_kg, payload_cog_m=cog_m)
+            self.backend.set_tool(
+                np.asarray(tcp_pose, dtype=np.float64),
+                payload_kg=payload_kg,
+                payload_cog_m=np.asarray(cog_m, dtype=np.float64),
+            )
             self._next("moving")
             self._show_progress(0.1)
             if self.mode == "movepath":
@@ -225,7 +241,7 @@ class ExecutionRunner:
             result = self._record(record, [str(error)], self.where(record))
             return {"state": "failed", "error": error_body(error), "result": result}
 
-    def _ended(self, record: ExecutionRecord | None, faults: list[str]) -> dict:
+    def _ended(self, record: ExecutionRecord | None, faults: list[str]) -> dict[str, Any]:
         """Record the execution; the job succeeded, or was cancelled by a stop.
 
         One verdict for the job and its record: an execution whose arm arrived and settled on
@@ -256,7 +272,9 @@ class ExecutionRunner:
             return from_journal
         return record
 
-    def _record(self, record, faults: list[str], stopped_in) -> dict | None:
+    def _record(
+        self, record: ExecutionRecord | None, faults: list[str], stopped_in: str | None
+    ) -> dict[str, Any] | None:
         """Store the execution's record (retried while the database is busy); None if it
         could not be stored, in which case the journal stays for the next start to recover."""
         return _retrying(
@@ -278,7 +296,7 @@ class ExecutionRunner:
 RECORD_RETRY_S = 120.0
 
 
-def _retrying(write: Callable, what: str):
+def _retrying(write: Callable[[], _T], what: str) -> _T | None:
     """``write()``, retried with backoff for :data:`RECORD_RETRY_S`; None if it never took."""
     deadline, pause = time.monotonic() + RECORD_RETRY_S, 0.5
     while True:

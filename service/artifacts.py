@@ -17,7 +17,7 @@ import dataclasses
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -27,6 +27,12 @@ from recon.inputs import Recording, Scan
 from recon.paths import ReconstructedPath, SpeedDrop
 from recon.results import PER_POINT_FIELDS
 from recon.trajectory import SAMPLE_FIELDS, JointTrajectory
+
+if TYPE_CHECKING:
+    from drivers.robot.base import ExecutionRecord
+    from recon.recon_params import ReconParams
+    from recon.results import Reconstruction
+    from recon.scan_model import ScanModel
 
 Arrays = dict[str, np.ndarray]
 
@@ -122,7 +128,7 @@ class ReconstructionCodec:
     kind: ClassVar[str] = "reconstruction"
 
     @staticmethod
-    def encode(recon) -> Arrays:
+    def encode(recon: Reconstruction) -> Arrays:
         """Arrays of a :class:`recon.results.Reconstruction`."""
         arrays = {name: getattr(recon, name) for name in PER_POINT_FIELDS}
         arrays["T_scan_tracker"] = recon.T_scan_tracker
@@ -150,7 +156,7 @@ class ReconstructionCodec:
         )
 
     @staticmethod
-    def recon_params(arrays: Arrays):
+    def recon_params(arrays: Arrays) -> ReconParams | None:
         """The parameters the reconstruction ran with, or None (stored by an older version)."""
         from recon.recon_params import ReconParams
 
@@ -159,7 +165,7 @@ class ReconstructionCodec:
         return ReconParams(**json.loads(str(arrays[PARAMS_KEY])))
 
     @staticmethod
-    def scan_model(arrays: Arrays):
+    def scan_model(arrays: Arrays) -> ScanModel | None:
         """The stored scan model, or None (no scan was used)."""
         from recon.scan_model import ScanModel
 
@@ -231,7 +237,7 @@ class ExecutionCodec:
     kind: ClassVar[str] = "execution"
 
     @staticmethod
-    def encode(record) -> Arrays:
+    def encode(record: ExecutionRecord | None) -> Arrays:
         """Arrays of a :class:`drivers.robot.base.ExecutionRecord` (or None: nothing ran)."""
         if record is None or len(record) == 0:
             return {}
@@ -398,7 +404,9 @@ class SpeedDropSummary(BaseModel):
     cause: str
 
 
-def as_core_params(params: dict, overrides: dict | None = None) -> dict:
+def as_core_params(
+    params: dict[str, Any], overrides: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """Stored parameters (JSON: sequences came back as lists) as the parameter classes
     (:class:`recon.plan_params.PlanParams`, ``ReconParams``) take them, tuples.
 
@@ -492,7 +500,7 @@ class TrajectorySummary(_Summary):
         "kinematics",
     )
 
-    def file_meta(self) -> dict:
+    def file_meta(self) -> dict[str, Any]:
         """The metadata line of the trajectory's CSV (see :mod:`drivers.export`)."""
         return {key: getattr(self, key) for key in self.FILE_KEYS}
 
@@ -556,7 +564,7 @@ SUMMARY_MODELS: dict[str, type[_Summary]] = {
 }
 
 
-def summary_of(kind: str, summary: dict) -> _Summary:
+def summary_of(kind: str, summary: dict[str, Any]) -> _Summary:
     """The typed summary of a stored artifact (raises pydantic's ValidationError if it does not
     fit its kind's model)."""
     return SUMMARY_MODELS[kind].model_validate(summary)
@@ -573,7 +581,7 @@ AnySummary = Annotated[
 ]
 
 
-def check_stored(kind: str, arrays: Arrays, summary: dict) -> None:
+def check_stored(kind: str, arrays: Arrays, summary: dict[str, Any]) -> None:
     """Raise if ``arrays`` and ``summary`` are not what an artifact of ``kind`` holds (its
     summary model and its codec): for files that come from elsewhere (an imported bundle).
 

@@ -34,15 +34,18 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import IO, Any, BinaryIO, Literal
+from typing import IO, TYPE_CHECKING, Any, BinaryIO, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
 from service.artifacts import ID_PREFIX, KindName, check_stored
-from service.parsing import load_arrays
+from service.parsing import Arrays, load_arrays
 from service.store import FOLDERS, PRIVATE_FILE, ArtifactRow, SessionRow, Store, file_digest
+
+if TYPE_CHECKING:
+    from service.settings import Settings
 
 #: What the manifest's ``format`` says.
 BUNDLE_FORMAT = "teachpath-session-bundle"
@@ -71,7 +74,7 @@ _UPLOAD_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,199}")
 
 #: Reads an artifact's raw upload again as an upload is read: (kind, params, bytes, file name)
 #: -> its arrays (see :func:`service.inputs.reread_upload`); raises what the reader says.
-Reread = Callable[[str, dict, bytes, str], dict]
+Reread = Callable[[str, dict[str, Any], bytes, str], Arrays]
 #: The kinds whose artifacts keep the file they were read from (and only one).
 UPLOAD_KINDS = ("recording", "touches", "scan")
 
@@ -143,11 +146,15 @@ class SessionEntry(_Strict):
 
     @field_validator("T_base_tracker", "T_scan_tracker")
     @classmethod
-    def _rigid(cls, value: list[list[float]] | None, info) -> list[list[float]] | None:
+    def _rigid(
+        cls, value: list[list[float]] | None, info: ValidationInfo
+    ) -> list[list[float]] | None:
         if value is not None:
             from recon.transforms import check_rigid
 
-            check_rigid(value, name=info.field_name)  # raises ValueError: not a rigid 4x4
+            # A field validator always has its field's name (None is for model validators).
+            name = info.field_name or "transform"
+            check_rigid(value, name=name)  # raises ValueError: not a rigid 4x4
         return value
 
     @field_validator("id")
@@ -165,7 +172,7 @@ class Manifest(_Strict):
     session: SessionEntry
     artifacts: list[ArtifactEntry] = Field(max_length=MAX_ENTRIES)
 
-    def content(self) -> dict:
+    def content(self) -> dict[str, Any]:
         """What the bundle holds, without who wrote it (compared on a repeated import)."""
         return self.model_dump(mode="json", exclude={"teachpath_version"})
 
@@ -323,7 +330,7 @@ class BundleReader:
     def __enter__(self) -> BundleReader:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self._zip.close()
 
     def artifacts(self, kind: str) -> list[ArtifactEntry]:
@@ -336,7 +343,7 @@ class BundleReader:
         except KeyError:
             raise BundleError(f"{self.path.name} has no artifact {artifact_id}") from None
 
-    def arrays(self, artifact_id: str) -> dict:
+    def arrays(self, artifact_id: str) -> Arrays:
         """An artifact's arrays, after checking their file against the manifest."""
         entry = self.artifact(artifact_id).data
         try:
@@ -447,7 +454,7 @@ def import_bundle(
 BUNDLE_FILES = 8
 
 
-def import_under(store: Store, source: Path | bytes | BinaryIO, settings) -> ImportResult:
+def import_under(store: Store, source: Path | bytes | BinaryIO, settings: Settings) -> ImportResult:
     """Import a bundle as this server takes one (the service and the CLI alike): each file held
     to the upload limit (``settings.max_upload_mb``), the whole to :data:`BUNDLE_FILES` times
     that, and each raw upload read again by the readers and limits of an upload.
@@ -551,7 +558,7 @@ def _read_manifest(bundle: zipfile.ZipFile) -> Manifest:
         raise BundleError(f"{MANIFEST_NAME} is not a valid manifest: {_first_error(exc)}") from None
 
 
-def _depth(document) -> int:
+def _depth(document: object) -> int:
     """How deeply lists and objects nest in a parsed JSON document (without recursion)."""
     deepest, stack = 0, [(document, 1)]
     while stack:
@@ -700,7 +707,7 @@ def _unpack(
     bundle: zipfile.ZipFile,
     files: list[FileEntry],
     manifest: Manifest,
-    still_here=lambda: None,
+    still_here: Callable[[], None] = lambda: None,
     reread: Reread | None = None,
 ) -> list[Path]:
     """Copy the files out under temporary names, checking each against its size and checksum
@@ -775,7 +782,7 @@ def _check_contents(
     files: list[FileEntry],
     manifest: Manifest,
     reread: Reread | None = None,
-    still_here=lambda: None,
+    still_here: Callable[[], None] = lambda: None,
 ) -> None:
     """Each artifact's arrays and summary as its kind has them, and its raw upload read again
     into those very arrays: a bundle whose checksums were recomputed after an edit must not
@@ -806,7 +813,7 @@ def _check_upload(
     artifact: ArtifactEntry,
     upload: FileEntry,
     raw_path: Path,
-    arrays: dict,
+    arrays: Arrays,
     reread: Reread,
     manifest: Manifest,
 ) -> None:

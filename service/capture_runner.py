@@ -99,7 +99,7 @@ class CaptureRunner:
             self.finalize(self.capture_id, state, error)
 
 
-def read_capture_file(path) -> SampleBatch:
+def read_capture_file(path: str | Path) -> SampleBatch:
     """Every sample of a capture file (lost ones flagged), for cleaning into a recording.
 
     The file may end in a torn line (the process died mid-write) and may hold a stretch where

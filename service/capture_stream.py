@@ -10,6 +10,7 @@ session's tip offset, as the recording will be when the capture stops.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -110,7 +111,7 @@ class CaptureTail:
         return first + skip, batch
 
 
-def samples_event(first: int, batch: SampleBatch) -> dict:
+def samples_event(first: int, batch: SampleBatch) -> dict[str, Any]:
     """One event's body: ``first`` (the index of the first sample), ``t_s``, ``points_m``
     (tracker frame, metres; null where the sample was lost) and ``valid``."""
     valid = np.asarray(batch.valid, dtype=bool) & np.isfinite(batch.position_m).all(axis=1)

@@ -13,6 +13,7 @@ binding to it before the capture starts (the wildcard 0.0.0.0 is refused by the 
 from __future__ import annotations
 
 import socket
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,14 +24,19 @@ from service.artifacts import ID_PREFIX, RecordingCodec
 from service.capture_runner import CaptureRunner, read_capture_file
 from service.core import Services
 from service.errors import ApiError, not_found
-from service.schemas import CaptureCreate, NatNetSourceIn
+from service.schemas import CaptureCreate, NatNetSourceIn, ReplaySource
 from service.store import CaptureRow, SessionDeletedError, new_id
+
+if TYPE_CHECKING:
+    from drivers.tracking.base import TrackerSource
 
 #: Source kinds that run a receiver process of their own (counted against max_live_captures).
 LIVE_KINDS = frozenset({"natnet"})
 
 
-def _source_for(services: Services, session_id: str, source_request):
+def _source_for(
+    services: Services, session_id: str, source_request: ReplaySource | NatNetSourceIn
+) -> TrackerSource:
     """The tracker source a capture request names, built through the sources' registry."""
     from drivers.tracking.base import create_source
 

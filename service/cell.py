@@ -18,12 +18,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from service.errors import ApiError
 from service.store import CellChangedError, Store
+
+if TYPE_CHECKING:
+    from service.core import Services
+    from service.settings import Settings
 
 #: At most this many boxes and planes (a cell has a handful; each costs every collision check).
 MAX_BOXES = 32
@@ -66,8 +70,9 @@ class CellNow:
         """The boxes and planes as JSON lists (as a plan records them and ``GET /cell`` says)."""
         return [list(box) for box in self.keep_out_boxes_m], [list(p) for p in self.cell_planes]
 
-    def differs_from(self, boxes: list, planes: list) -> bool:
-        """Whether ``boxes`` and ``planes`` (as a plan stored them) are not this cell."""
+    def differs_from(self, boxes: list[Any], planes: list[Any]) -> bool:
+        """Whether ``boxes`` and ``planes`` (as a plan stored them: JSON, perhaps not numbers)
+        are not this cell."""
         return (
             _as_tuples(boxes, 6) != self.keep_out_boxes_m
             or _as_tuples(planes, 4) != self.cell_planes
@@ -88,7 +93,9 @@ class CellUnreadable(ApiError):
         )
 
 
-def check_shapes(boxes: object, planes: object) -> tuple[list, list]:
+def check_shapes(
+    boxes: object, planes: object
+) -> tuple[list[tuple[float, ...]], list[tuple[float, ...]]]:
     """Boxes and planes the planner can check against, or the first problem.
 
     Parameters
@@ -119,7 +126,7 @@ def check_shapes(boxes: object, planes: object) -> tuple[list, list]:
             f"a cell holds at most {MAX_BOXES} boxes and {MAX_PLANES} planes "
             f"(got {len(boxes)} and {len(planes)})"
         )
-    checked_boxes = []
+    checked_boxes: list[tuple[float, ...]] = []
     for number, box in enumerate(boxes, start=1):
         values = _numbers(box, 6, f"keep-out box {number}")
         if any(abs(v) > MAX_COORDINATE_M for v in values):
@@ -133,7 +140,7 @@ def check_shapes(boxes: object, planes: object) -> tuple[list, list]:
             )
         Box(min_m=np.array(values[:3]), max_m=np.array(values[3:]), name=f"keep-out box {number}")
         checked_boxes.append(values)
-    checked_planes = []
+    checked_planes: list[tuple[float, ...]] = []
     for number, plane in enumerate(planes, start=1):
         values = _numbers(plane, 4, f"plane {number}")
         length = math.hypot(*values[:3])
@@ -155,7 +162,7 @@ def check_shapes(boxes: object, planes: object) -> tuple[list, list]:
     return checked_boxes, checked_planes
 
 
-def cell_now(store: Store, settings) -> CellNow:
+def cell_now(store: Store, settings: Settings) -> CellNow:
     """The cell that applies now: the one edited for this arm, else the start-up settings.
 
     Raises
@@ -176,14 +183,21 @@ def cell_now(store: Store, settings) -> CellNow:
     return CellNow(boxes, planes, revision=row.revision, edited_at=row.updated_at)
 
 
-def edit_cell(services, boxes: list | None, planes: list | None, *, revision: int) -> CellNow:
+def edit_cell(
+    services: Services,
+    boxes: list[list[float]] | None,
+    planes: list[list[float]] | None,
+    *,
+    revision: int,
+) -> CellNow:
     """Store this arm's cell (``None, None``: back to the start-up settings).
 
     Parameters
     ----------
     services : service.core.Services
-    boxes, planes : list or None
-        As :func:`check_shapes` returns them.
+    boxes, planes : list of list of float, or None
+        As :func:`check_shapes` returns them, each box and plane as a list (as
+        :class:`service.schemas.CellIn` holds them).
     revision : int
         The revision the operator saw and edited.
 

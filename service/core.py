@@ -11,6 +11,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 from service.errors import ApiError, not_found
 from service.jobs import JobManager
@@ -19,6 +20,10 @@ from service.robot import RobotWatch
 from service.settings import Settings
 from service.store import ArtifactRow, SessionRow, Store
 from service.uploads import UploadBudget
+
+if TYPE_CHECKING:
+    from service.arm_runner import ExecutionRunner
+    from service.capture_runner import CaptureRunner
 
 
 @dataclass
@@ -37,9 +42,9 @@ class LiveRunners:
         Open ``/robot/events`` streams.
     """
 
-    executions: dict = field(default_factory=dict)
+    executions: dict[str, ExecutionRunner] = field(default_factory=dict)
     execution_jobs: dict[str, str] = field(default_factory=dict)
-    captures: dict = field(default_factory=dict)
+    captures: dict[str, CaptureRunner] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
     #: Open ``/robot/events`` streams (changed on the event loop only), and of those, the
     #: ones without the token.
@@ -59,8 +64,8 @@ class LiveRunners:
             executions, captures = list(self.executions.values()), list(self.captures.values())
         for runner in executions:
             runner.stop()
-        for runner in captures:
-            runner.stop()
+        for capture in captures:
+            capture.stop()
 
 
 @dataclass
@@ -168,14 +173,14 @@ class Services:
         kind: str,
         artifact_id: str,
         *,
-        inputs: dict,
-        params: dict,
-        result: Callable[[dict], dict],
-    ) -> Callable[[dict], dict]:
+        inputs: dict[str, Any],
+        params: dict[str, Any],
+        result: Callable[[dict[str, Any]], dict[str, Any]],
+    ) -> Callable[[dict[str, Any]], dict[str, Any]]:
         """What a job does with its task's summary when it succeeds: record the artifact whose
         file the worker wrote at :meth:`array_path`, and return the job's ``result(summary)``."""
 
-        def done(summary: dict) -> dict:
+        def done(summary: dict[str, Any]) -> dict[str, Any]:
             self.store.add_file_artifact(
                 artifact_id=artifact_id,
                 session_id=session_id,

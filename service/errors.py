@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import errno
 import logging
-import time
+from collections.abc import Iterable, Mapping
+from typing import Any, TypedDict
 
 import sqlalchemy.exc
 from fastapi import FastAPI, Request
@@ -20,8 +21,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from drivers import errors as driver_errors
 from recon import errors as recon_errors
-from service import bundles, gate
-from service.store import RowGoneError, SessionDeletedError, StorageError
+from service import bundles
+from service.store import RecentFaults, RowGoneError, SessionDeletedError, StorageError
 
 #: A 422 lists at most this many problems (a document with 20,000 unknown keys has as many).
 MAX_LISTED_PROBLEMS = 20
@@ -30,9 +31,6 @@ MAX_LISTED_PROBLEMS = 20
 STORAGE_RETRY_AFTER_S = 10
 STORAGE_FAULT_WINDOW_S = 30.0
 log = logging.getLogger("teachpath.service")
-
-#: code -> when it was last seen (time.monotonic()), for /health.
-_storage_faults: dict[str, float] = {}
 
 
 def storage_fault(error: BaseException) -> tuple[str, str] | None:
@@ -55,10 +53,12 @@ def storage_fault(error: BaseException) -> tuple[str, str] | None:
     return None
 
 
-def recent_storage_faults(now_s: float | None = None) -> list[str]:
-    """The storage faults seen within the last :data:`STORAGE_FAULT_WINDOW_S` (for /health)."""
-    now_s = time.monotonic() if now_s is None else now_s
-    return sorted(c for c, at in _storage_faults.items() if now_s - at <= STORAGE_FAULT_WINDOW_S)
+def note_storage_fault(faults: RecentFaults, error: BaseException) -> None:
+    """Record in ``faults`` (the store's, for /health) that ``error`` was a storage fault, if it
+    was one."""
+    fault = storage_fault(error)
+    if fault is not None:
+        faults.note(fault[0])
 
 
 class ApiError(Exception):
@@ -68,38 +68,140 @@ class ApiError(Exception):
     """
 
     def __init__(
-        self, status: int, code: str, message: str, detail=None, headers: dict | None = None
+        self,
+        status: int,
+        code: str,
+        message: str,
+        detail: dict[str, Any] | None = None,
+        headers: Mapping[str, str] | None = None,
     ) -> None:
         super().__init__(message)
         self.status, self.code, self.message, self.detail = status, code, message, detail
         self.headers = dict(headers or {})
 
 
+class ErrorJson(TypedDict):
+    """Every error response's body (and a failed job's ``error``)."""
+
+    code: str
+    message: str
+    #: What the client may show beside the message (figures, ids, the problems of a 422).
+    detail: Any
+
+
 def not_found(what: str, ident: str) -> ApiError:
     return ApiError(404, "not_found", f"no {what} {ident!r}")
 
 
+# Why the real arm was refused: one exception class per reason, each mapped to 409 and a stable
+# code in ERROR_MAP below. Raised by the gate (service.gate) and by the arm's watch
+# (service.robot: a state that cannot be read); here, where both can import them without
+# importing each other.
+
+
+class RealArmRefused(Exception):
+    """The configured arm may not run this trajectory now (the message says what to do).
+
+    ``detail`` carries what the operator's page shows beside the message (distances, ids).
+    """
+
+    def __init__(self, message: str, *, detail: dict[str, Any] | None = None) -> None:
+        super().__init__(message)
+        self.detail = detail
+
+
+class NoRobotConfigured(RealArmRefused):
+    """No real arm is configured on this server."""
+
+
+class TrajectoryForAnotherRobot(RealArmRefused):
+    """The trajectory was planned for another UR model than the configured arm."""
+
+
+class ConfirmationRequired(RealArmRefused):
+    """The request did not say ``"confirm": true``."""
+
+
+class SpeedCapExceeded(RealArmRefused):
+    """The trajectory's speed is above the server's cap for a real arm."""
+
+
+class ApprovalMismatch(RealArmRefused):
+    """The trajectory file is not the one the operator approved (its checksum differs)."""
+
+
+class OutdatedInputs(RealArmRefused):
+    """The plan was made from inputs that are no longer the session's current ones (a new
+    trace, scan, touches or calibration since), and the request did not pick it explicitly."""
+
+
+class DryRunRequired(RealArmRefused):
+    """No passed dry run of this trajectory in this mode (and tolerance) is on record."""
+
+
+class UnreadableTrajectory(RealArmRefused):
+    """The trajectory's summary cannot be read: what it was planned for is unknown."""
+
+
+class ArmBusy(RealArmRefused):
+    """Another execution owns the arm (one real-arm execution at a time)."""
+
+
+class RobotUnavailable(RealArmRefused):
+    """The arm's state cannot be read now: nothing is decided on a state that is not known."""
+
+
+class ArmInProtectiveStop(RealArmRefused):
+    """The arm is in a protective stop: inspect its cause and unlock it first."""
+
+
+class ArmInEmergencyStop(RealArmRefused):
+    """An emergency stop is engaged."""
+
+
+class RemoteControlOff(RealArmRefused):
+    """The arm is in local control: the pendant must hand it over (remote control) first."""
+
+
+class StartMoved(RealArmRefused):
+    """The arm is not where the trajectory starts (it was moved since the plan)."""
+
+
+class SamplesOutsideLimits(RealArmRefused):
+    """The samples to be sent break a limit of this arm or this server (joint range, speed,
+    acceleration, rest at the ends, the TCP speed cap)."""
+
+
+class CollidesHere(RealArmRefused):
+    """The samples, checked here against this cell, collide or come closer than the margin."""
+
+
+class CellUnknown(RealArmRefused):
+    """What the motion must be checked against cannot be put together (the scan it was planned
+    along is missing or cannot be placed): a check that cannot decide refuses."""
+
+
 #: Domain error class -> (HTTP status, code). Subclasses before their bases.
 ERROR_MAP: list[tuple[type[Exception], int, str]] = [
-    # Why the real arm was refused: one class per reason (service/gate.py).
-    (gate.NoRobotConfigured, 409, "no_robot"),
-    (gate.TrajectoryForAnotherRobot, 409, "trajectory_mismatch"),
-    (gate.ConfirmationRequired, 409, "confirmation_required"),
-    (gate.SpeedCapExceeded, 409, "speed_cap"),
-    (gate.ApprovalMismatch, 409, "approval_mismatch"),
-    (gate.OutdatedInputs, 409, "outdated_inputs"),
-    (gate.DryRunRequired, 409, "dry_run_required"),
-    (gate.UnreadableTrajectory, 409, "trajectory_unreadable"),
-    (gate.ArmBusy, 409, "arm_busy"),
-    (gate.RobotUnavailable, 409, "robot_unavailable"),
-    (gate.ArmInProtectiveStop, 409, "protective_stop"),
-    (gate.ArmInEmergencyStop, 409, "emergency_stop"),
-    (gate.RemoteControlOff, 409, "remote_control_off"),
-    (gate.StartMoved, 409, "start_moved"),
-    (gate.SamplesOutsideLimits, 409, "samples_outside_limits"),
-    (gate.CollidesHere, 409, "collides_here"),
-    (gate.CellUnknown, 409, "cell_unknown"),
-    (gate.RealArmRefused, 409, "real_arm_refused"),
+    # Why the real arm was refused: one class per reason (above, raised by the gate).
+    (NoRobotConfigured, 409, "no_robot"),
+    (TrajectoryForAnotherRobot, 409, "trajectory_mismatch"),
+    (ConfirmationRequired, 409, "confirmation_required"),
+    (SpeedCapExceeded, 409, "speed_cap"),
+    (ApprovalMismatch, 409, "approval_mismatch"),
+    (OutdatedInputs, 409, "outdated_inputs"),
+    (DryRunRequired, 409, "dry_run_required"),
+    (UnreadableTrajectory, 409, "trajectory_unreadable"),
+    (ArmBusy, 409, "arm_busy"),
+    (RobotUnavailable, 409, "robot_unavailable"),
+    (ArmInProtectiveStop, 409, "protective_stop"),
+    (ArmInEmergencyStop, 409, "emergency_stop"),
+    (RemoteControlOff, 409, "remote_control_off"),
+    (StartMoved, 409, "start_moved"),
+    (SamplesOutsideLimits, 409, "samples_outside_limits"),
+    (CollidesHere, 409, "collides_here"),
+    (CellUnknown, 409, "cell_unknown"),
+    (RealArmRefused, 409, "real_arm_refused"),
     (recon_errors.UnitsMismatchError, 422, "units_mismatch"),
     (recon_errors.NoOverlapError, 422, "no_overlap"),
     (recon_errors.DegenerateInputError, 422, "degenerate_input"),
@@ -147,7 +249,6 @@ def classify(error: BaseException) -> tuple[int, str]:
         return error.status, error.code
     fault = storage_fault(error)
     if fault is not None:
-        _storage_faults[fault[0]] = time.monotonic()
         return 503, fault[0]
     for cls, status, code in ERROR_MAP:
         if isinstance(error, cls):
@@ -155,7 +256,7 @@ def classify(error: BaseException) -> tuple[int, str]:
     return 500, "internal_error"
 
 
-def error_body(error: BaseException) -> dict:
+def error_body(error: BaseException) -> ErrorJson:
     """The JSON body for ``error`` (used by job results too)."""
     status, code = classify(error)
     if status == 500 and code == "internal_error":
@@ -199,7 +300,7 @@ def unparsable(error: StarletteHTTPException) -> str:
 _UNION_MEMBERS = {"float", "int", "str", "bool", "none", "list", "dict", "tuple", "list[float]"}
 
 
-def _where(loc) -> str:
+def _where(loc: Iterable[int | str]) -> str:
     """A validation error's location as the operator typed it: ``alpha``, not
     ``body.alpha.constrained-float`` (the body is implied; the union member tried is noise)."""
     parts = [str(p) for p in loc]
@@ -209,14 +310,24 @@ def _where(loc) -> str:
     return ".".join(named) or "request"
 
 
+def _classified(request: Request, error: BaseException) -> int:
+    """The status of ``error``; a storage fault is noted in the store's recent faults."""
+    status, _ = classify(error)
+    if status == 503:
+        note_storage_fault(request.app.state.services.store.faults, error)
+    return status
+
+
 def install(app: FastAPI) -> None:
     """Register the handlers on ``app``."""
 
-    def respond(status: int, body: dict, headers: dict | None = None) -> JSONResponse:
+    def respond(
+        status: int, body: ErrorJson, headers: Mapping[str, str] | None = None
+    ) -> JSONResponse:
         return JSONResponse(status_code=status, content=body, headers=headers)
 
     @app.exception_handler(ApiError)
-    async def _api(request: Request, error: ApiError):
+    async def _api(request: Request, error: ApiError) -> JSONResponse:
         headers = {"WWW-Authenticate": "Bearer"} if error.status == 401 else {}
         headers.update(error.headers)
         return respond(
@@ -226,7 +337,7 @@ def install(app: FastAPI) -> None:
         )
 
     @app.exception_handler(RequestValidationError)
-    async def _validation(request: Request, error: RequestValidationError):
+    async def _validation(request: Request, error: RequestValidationError) -> JSONResponse:
         errors = error.errors()
         problems = [
             {"where": _where(e.get("loc", ())), "problem": e.get("msg")}
@@ -245,7 +356,7 @@ def install(app: FastAPI) -> None:
         )
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http(request: Request, error: StarletteHTTPException):
+    async def _http(request: Request, error: StarletteHTTPException) -> JSONResponse:
         if error.status_code == 400:
             # The framework's "error parsing the body": a malformed request like any other.
             return respond(
@@ -256,14 +367,14 @@ def install(app: FastAPI) -> None:
             error.status_code, {"code": code, "message": str(error.detail), "detail": None}
         )
 
-    async def _domain(request: Request, error: Exception):
-        status, _ = classify(error)
+    async def _domain(request: Request, error: Exception) -> JSONResponse:
+        status = _classified(request, error)
         if status >= 500:
             log.error("error while serving %s %s: %s", request.method, request.url.path, error)
         headers = {"Retry-After": str(STORAGE_RETRY_AFTER_S)} if status == 503 else None
         return respond(status, error_body(error), headers)
 
-    async def _storage_or_internal(request: Request, error: Exception):
+    async def _storage_or_internal(request: Request, error: Exception) -> JSONResponse:
         # An OSError or a database error is the server's: a full disk or a busy database is a
         # named 503 to retry; anything else a 500 (logged with its traceback).
         if storage_fault(error) is not None:
@@ -280,7 +391,7 @@ def install(app: FastAPI) -> None:
         app.add_exception_handler(cls, _domain)
 
     @app.exception_handler(RecursionError)
-    async def _too_deep(request: Request, error: RecursionError):
+    async def _too_deep(request: Request, error: RecursionError) -> JSONResponse:
         # A JSON document nested thousands deep exhausts any recursive reader or validator.
         return respond(
             422,
@@ -292,8 +403,8 @@ def install(app: FastAPI) -> None:
         )
 
     @app.exception_handler(Exception)
-    async def _any(request: Request, error: Exception):
-        status, _ = classify(error)
+    async def _any(request: Request, error: Exception) -> JSONResponse:
+        status = _classified(request, error)
         if status >= 500:
             log.exception("error while serving %s %s", request.method, request.url.path)
         return respond(status, error_body(error))

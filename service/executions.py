@@ -10,24 +10,26 @@ through the ur_rtde backend's own worker process. Both record the same
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import ValidationError
 
-from drivers.robot.base import create_backend
+from drivers.robot.base import BackendConfig, ExecutionRecord, create_backend
 from drivers.robot.dryrun import reached_phase, stream_lag_s
+from recon.arrays import FloatArray
+from recon.trajectory import JointTrajectory
 from service import tasks
-from service.arm_runner import ExecutionRunner, journal_record
+from service.arm_runner import ExecutionRunner, Recorder, Tool, journal_record
 from service.artifacts import ID_PREFIX, ExecutionCodec, ReconstructionCodec, ScanCodec
 from service.cell import cell_now
 from service.core import Services
-from service.errors import ApiError, not_found
+from service.errors import ApiError, CellUnknown, UnreadableTrajectory, not_found
 from service.gate import (
     CellHere,
-    CellUnknown,
-    UnreadableTrajectory,
     check_approved,
     check_current,
     check_here,
@@ -38,7 +40,10 @@ from service.pipelines import ExecutionOutcome, cell_for
 from service.provenance import trajectory_outdated
 from service.robot import ur_rtde_config
 from service.schemas import ExecutionCreate
-from service.store import FINISHED, ArtifactRow, JobRow, StorageError, new_id
+from service.store import FINISHED, ArtifactRow, JobRow, StorageError, Store, new_id
+
+if TYPE_CHECKING:
+    from recon.inputs import Scan
 
 log = logging.getLogger("teachpath.executions")
 
@@ -63,7 +68,7 @@ def start(services: Services, session_id: str, request: ExecutionCreate) -> JobR
     return job
 
 
-def _job_params(request: ExecutionCreate, trajectory: ArtifactRow, out_id: str) -> dict:
+def _job_params(request: ExecutionCreate, trajectory: ArtifactRow, out_id: str) -> dict[str, Any]:
     return {
         "backend": request.backend,
         "mode": request.mode,
@@ -73,11 +78,11 @@ def _job_params(request: ExecutionCreate, trajectory: ArtifactRow, out_id: str) 
     }
 
 
-def _job_result(execution_id: str, summary: dict) -> dict:
+def _job_result(execution_id: str, summary: dict[str, Any]) -> dict[str, Any]:
     return {"execution_id": execution_id, "completed": summary["completed"]}
 
 
-def _artifact_params(services: Services, request: ExecutionCreate) -> dict:
+def _artifact_params(services: Services, request: ExecutionCreate) -> dict[str, Any]:
     params: dict[str, str | float | bool | None] = {
         "backend": request.backend,
         "dry_run": request.backend == "sim",
@@ -89,7 +94,13 @@ def _artifact_params(services: Services, request: ExecutionCreate) -> dict:
     return params
 
 
-def _dry_run(services, session_id, trajectory, request, out_id) -> JobRow:
+def _dry_run(
+    services: Services,
+    session_id: str,
+    trajectory: ArtifactRow,
+    request: ExecutionCreate,
+    out_id: str,
+) -> JobRow:
     done = services.record_when_done(
         session_id,
         "execution",
@@ -120,7 +131,13 @@ def journal_path(services: Services, execution_id: str) -> Path:
     return services.store.data_dir / "journals" / f"{execution_id}.journal"
 
 
-def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
+def _on_arm(
+    services: Services,
+    session_id: str,
+    trajectory: ArtifactRow,
+    request: ExecutionCreate,
+    out_id: str,
+) -> JobRow:
     settings = services.settings
     check_request(settings, confirm=request.confirm)
     check_approved(request.approved_sha256, trajectory.sha256, trajectory.id)
@@ -195,10 +212,10 @@ def _on_arm(services, session_id, trajectory, request, out_id) -> JobRow:
         )
         services.live.executions[out_id] = runner
     runner.start()
-    return services.store.job(job.id)
+    return services.store.job(job.id) or job  # as it stands now (perhaps already running)
 
 
-def _load_for_gate(services: Services, trajectory: ArtifactRow):
+def _load_for_gate(services: Services, trajectory: ArtifactRow) -> JointTrajectory:
     """The trajectory's arrays, or the gate's refusal if they cannot be read."""
     try:
         return tasks.load_trajectory(services.store.path_of(trajectory), trajectory.summary)
@@ -220,7 +237,7 @@ def _dry_runs_made_here(services: Services, session_id: str) -> set[str]:
     }
 
 
-def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> CellHere:
+def _cell_here(services: Services, trajectory: ArtifactRow, tool: Tool) -> CellHere:
     """This server's cell (its planes and keep-out boxes, never the plan's stored copy) with the
     scan the trajectory was planned along, placed as it was planned.
 
@@ -237,7 +254,8 @@ def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> Cell
     store, settings = services.store, services.settings
     cell_in_force = cell_now(store, settings)  # not the plan's copy of it
     summary = trajectory.summary if isinstance(trajectory.summary, dict) else {}
-    scan = T_scan_tracker = None
+    scan: Scan | None = None
+    T_scan_tracker: FloatArray | None = None
     scan_id = trajectory.inputs.get("scan_id")
     if scan_id is not None:
         try:
@@ -295,7 +313,9 @@ def _cell_here(services: Services, trajectory: ArtifactRow, tool: tuple) -> Cell
 SAME_PLACEMENT_M, SAME_PLACEMENT_RAD = 1e-4, 1e-4
 
 
-def _placement_here(store, trajectory: ArtifactRow, planned_with):
+def _placement_here(
+    store: Store, trajectory: ArtifactRow, planned_with: list[list[float]] | None
+) -> FloatArray | list[list[float]] | None:
     """The tracker-to-base transform the motion is checked with: the session's calibration in
     this cell. A plan made with another one (a recalibrated cell, or a forged copy that moves the
     workpiece away from the motion) is refused: the scan would be checked in the wrong place.
@@ -305,10 +325,10 @@ def _placement_here(store, trajectory: ArtifactRow, planned_with):
     CellUnknown
     """
     session = store.session(trajectory.session_id)
-    here = None if session is None else session.T_base_tracker
-    if here is None:
+    stored = None if session is None else session.T_base_tracker
+    if stored is None:
         return planned_with  # no calibration here: the plan's own, as the plan was checked
-    here = np.asarray(here, dtype=np.float64)
+    here = np.asarray(stored, dtype=np.float64)
     if planned_with is not None:
         planned = np.asarray(planned_with, dtype=np.float64)
         moved_m = float(np.linalg.norm(here[:3, 3] - planned[:3, 3]))
@@ -322,7 +342,7 @@ def _placement_here(store, trajectory: ArtifactRow, planned_with):
     return here
 
 
-def _require_this_mount(trajectory: ArtifactRow, mount_up) -> None:
+def _require_this_mount(trajectory: ArtifactRow, mount_up: Sequence[float]) -> None:
     """A plan made for another mount (its tool comes at the work from what is not above here)
     is refused; a plan from before mounts were recorded was made for a floor mount.
 
@@ -343,7 +363,7 @@ def _require_this_mount(trajectory: ArtifactRow, mount_up) -> None:
         )
 
 
-def _tool_of(trajectory: ArtifactRow) -> tuple:
+def _tool_of(trajectory: ArtifactRow) -> tuple[list[float], float | None, list[float]]:
     """The TCP pose and payload a trajectory was planned with (for the controller; a payload
     of None is not set: the installation's stays)."""
     params = trajectory.params
@@ -358,8 +378,16 @@ def _tool_of(trajectory: ArtifactRow) -> tuple:
 
 
 def _recorder(
-    services, session_id, trajectory, request, out_id, loaded, config, *, accepted_outdated=()
-):
+    services: Services,
+    session_id: str,
+    trajectory: ArtifactRow,
+    request: ExecutionCreate,
+    out_id: str,
+    loaded: JointTrajectory,
+    config: BackendConfig,
+    *,
+    accepted_outdated: Sequence[str] = (),
+) -> Recorder:
     """What the runner calls at the end: the execution's artifact, measured as a dry run is.
     ``accepted_outdated``: what had changed since the plan when the operator picked it anyway
     (kept in the record's params)."""
@@ -369,7 +397,9 @@ def _recorder(
     if accepted_outdated:
         params["accepted_outdated"] = list(accepted_outdated)
 
-    def record(execution_record, faults: list[str], stopped_in) -> dict:
+    def record(
+        execution_record: ExecutionRecord | None, faults: list[str], stopped_in: str | None
+    ) -> dict[str, Any]:
         summary = _real_summary(loaded, execution_record, faults, stopped_in, request, config)
         services.store.add_arrays_artifact(
             artifact_id=out_id,
@@ -386,7 +416,14 @@ def _recorder(
     return record
 
 
-def _real_summary(trajectory, record, faults, stopped_in, request, config) -> dict:
+def _real_summary(
+    trajectory: JointTrajectory,
+    record: ExecutionRecord | None,
+    faults: list[str],
+    stopped_in: str | None,
+    request: ExecutionCreate,
+    config: BackendConfig,
+) -> dict[str, Any]:
     from drivers.robot.dryrun import execution_report
 
     outcome = ExecutionOutcome(
@@ -473,7 +510,7 @@ def stop(services: Services, execution_id: str) -> StopOutcome:
 
 def _running_here(services: Services, execution_id: str) -> ExecutionRunner:
     """The runner of an execution this instance is running, or the error that says why not."""
-    runner = services.live.executions.get(execution_id)
+    runner: ExecutionRunner | None = services.live.executions.get(execution_id)
     if runner is None:
         if execution_id in services.live.execution_jobs:
             raise ApiError(
@@ -498,12 +535,12 @@ def _running_here(services: Services, execution_id: str) -> ExecutionRunner:
     return runner
 
 
-def speed_view(execution_id: str, runner: ExecutionRunner) -> dict:
+def speed_view(execution_id: str, runner: ExecutionRunner) -> dict[str, Any]:
     """What :class:`service.schemas.RunSpeedOut` shows."""
     return {"execution_id": execution_id, **runner.speed_view()}
 
 
-def set_speed(services: Services, execution_id: str, fraction: float) -> dict:
+def set_speed(services: Services, execution_id: str, fraction: float) -> dict[str, Any]:
     """Change a running execution's speed (5 .. 100 % of the planned speed)."""
     runner = _running_here(services, execution_id)
     try:
@@ -514,7 +551,7 @@ def set_speed(services: Services, execution_id: str, fraction: float) -> dict:
     return speed_view(execution_id, runner)
 
 
-def pause(services: Services, execution_id: str) -> dict:
+def pause(services: Services, execution_id: str) -> dict[str, Any]:
     """Bring a running execution's arm to rest on its path (idempotent)."""
     runner = _running_here(services, execution_id)
     if runner.step != "moving":
@@ -529,7 +566,7 @@ def pause(services: Services, execution_id: str) -> dict:
     return speed_view(execution_id, runner)
 
 
-def resume(services: Services, execution_id: str, approved_sha256: str) -> dict:
+def resume(services: Services, execution_id: str, approved_sha256: str) -> dict[str, Any]:
     """Go on from a pause, once the operator has approved the run again (idempotent)."""
     runner = _running_here(services, execution_id)
     if runner.approved_sha256 is not None and approved_sha256 != runner.approved_sha256:
@@ -562,8 +599,6 @@ def recover(services: Services) -> None:
 
 
 def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
-    from drivers.robot.base import ExecutionRecord
-
     store = services.store
     job = next(
         (
@@ -597,7 +632,7 @@ def _recover_one(services: Services, execution_id: str, journal: Path) -> None:
     )
     config = ur_rtde_config(services.settings, robot=trajectory.robot)
     where = reached_phase(trajectory, record, stream_lag_s(request.mode, config.lookahead_s))
-    summary = _real_summary(trajectory, record, [record.fault], where, request, config)
+    summary = _real_summary(trajectory, record, [fault], where, request, config)  # its fault
     store.add_arrays_artifact(
         artifact_id=execution_id,
         session_id=job.session_id,

@@ -40,18 +40,16 @@ from recon.arrays import FloatArray
 from recon.collision import Cell
 from recon.trajectory import JointTrajectory
 from service.artifacts import ExecutionSummary, TrajectorySummary
-from service.refusals import (  # noqa: F401 - re-exported: the gate's refusals
+from service.errors import (
     ApprovalMismatch,
     ArmBusy,
     ArmInEmergencyStop,
     ArmInProtectiveStop,
-    CellUnknown,
     CollidesHere,
     ConfirmationRequired,
     DryRunRequired,
     NoRobotConfigured,
     OutdatedInputs,
-    RealArmRefused,
     RemoteControlOff,
     RobotUnavailable,
     SamplesOutsideLimits,

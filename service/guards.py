@@ -19,6 +19,9 @@ from __future__ import annotations
 import hmac
 import json
 import re
+from collections.abc import Callable, Iterable
+
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 #: The largest body a request without the token may send (bytes).
 OPEN_BODY_BYTES = 1024
@@ -26,7 +29,7 @@ OPEN_BODY_BYTES = 1024
 BODILESS = frozenset({"GET", "HEAD", "OPTIONS"})
 
 
-async def _answer(send, status: int, code: str, message: str) -> None:
+async def _answer(send: Send, status: int, code: str, message: str) -> None:
     body = json.dumps({"code": code, "message": message, "detail": None}).encode()
     headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
     if status == 401:
@@ -43,20 +46,22 @@ class TokenGate:
     Parameters
     ----------
     app : ASGI application
-    token : callable returning str
-        The expected token (read per request: the services hold it once started).
+    token : callable returning str or None
+        The expected token (read per request: the services hold it once started; None before).
     open_paths : tuple of str
         Regular expressions of paths that need no token (matched whole).
     """
 
-    def __init__(self, app, token, open_paths: tuple[str, ...] = ()) -> None:
+    def __init__(
+        self, app: ASGIApp, token: Callable[[], str | None], open_paths: tuple[str, ...] = ()
+    ) -> None:
         self.app, self.token = app, token
         self.open_paths = re.compile("|".join(f"(?:{p})" for p in open_paths) or "(?!)")
         # What needs no token takes no more than a pairing code: nobody without the token can
         # make the server receive a large body.
         self.open_limited = BodyLimit(app, OPEN_BODY_BYTES, OPEN_BODY_BYTES)
 
-    async def __call__(self, scope, receive, send):
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope.get("method", "GET") in BODILESS:
             return await self.app(scope, receive, send)
         if self.open_paths.fullmatch(scope.get("path", "")):
@@ -79,8 +84,9 @@ class TokenGate:
         return await self.app(scope, receive, send)
 
 
-def _bearer(scope) -> str | None:
-    for name, value in scope.get("headers") or ():
+def _bearer(scope: Scope) -> str | None:
+    headers: Iterable[tuple[bytes, bytes]] = scope.get("headers") or ()  # ASGI: name, value
+    for name, value in headers:
         if name == b"authorization":
             scheme, _, credentials = value.decode("latin-1").partition(" ")
             if scheme.lower() == "bearer" and credentials.strip():
@@ -97,13 +103,13 @@ class BodyLimit:
     at once; a chunked body is counted as it arrives.
     """
 
-    def __init__(self, app, max_bytes: int, max_json_bytes: int) -> None:
+    def __init__(self, app: ASGIApp, max_bytes: int, max_json_bytes: int) -> None:
         self.app, self.max_bytes, self.max_json_bytes = app, max_bytes, max_json_bytes
 
-    async def __call__(self, scope, receive, send):
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
-        headers = dict(scope.get("headers") or [])
+        headers: dict[bytes, bytes] = dict(scope.get("headers") or [])
         content_type = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
         is_json = content_type == b"application/json" or content_type.endswith(b"+json")
         limit = self.max_json_bytes if is_json else self.max_bytes
@@ -112,7 +118,7 @@ class BodyLimit:
             return await self._refuse(send, limit, is_json)
         received, refused = 0, False
 
-        async def counted():
+        async def counted() -> Message:
             # Past the limit the 413 goes out at once and the application is told the client
             # left (its own answer to that is dropped): a framework that turns any error while
             # reading a body into its own 400 never hides the refusal.
@@ -128,7 +134,7 @@ class BodyLimit:
                     return {"type": "http.disconnect"}
             return message
 
-        async def unless_refused(message):
+        async def unless_refused(message: Message) -> None:
             if not refused:
                 await send(message)
 
@@ -139,7 +145,7 @@ class BodyLimit:
                 raise
 
     @staticmethod
-    async def _refuse(send, limit: int, is_json: bool) -> None:
+    async def _refuse(send: Send, limit: int, is_json: bool) -> None:
         if is_json:
             message = (
                 f"the JSON body exceeds {limit // 1024} KB: no request of this API needs that "

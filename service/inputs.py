@@ -26,6 +26,7 @@ from recon.params import PIVOT_TOLERANCE_M
 from service import pipelines, tasks
 from service.artifacts import ID_PREFIX
 from service.core import Services
+from service.parsing import Arrays
 from service.schemas import BaseCalibrationIn, CalibrationIn
 from service.settings import Settings
 from service.store import ArtifactRow, SessionRow, new_id, now
@@ -81,12 +82,13 @@ class TraceOptions:
     piece: int | Literal["all"] | None = None
 
 
-def _tip_for(session: SessionRow, marker: str | None):
+def _tip_for(session: SessionRow, marker: str | None) -> tuple[float, float, float] | None:
     """The session's tip offset, for recordings of a rigid body (a single marker has no
     orientation to carry an offset)."""
     if session.tip_offset_m is None or marker is not None:
         return None
-    return tuple(session.tip_offset_m)
+    x, y, z = session.tip_offset_m  # stored as 3 numbers (every way of setting it checks that)
+    return (x, y, z)
 
 
 async def add_recording(
@@ -128,12 +130,15 @@ async def add_recording(
     )
 
 
-async def _parsed(services: Services, artifact_id: str, task) -> dict:
+async def _parsed(
+    services: Services, artifact_id: str, task: tasks.ParseRecording | tasks.ParseScan
+) -> dict[str, Any]:
     """Run an upload's parse task, whose child writes the arrays at the artifact's path; its
     summary. The arrays never pass through this process (a 24 MB float PLY is 48 MB of points),
     and a parse that fails leaves no file (nor the partial one of a child ended mid-write)."""
     try:
-        _, summary = await services.parses.run(task)
+        parsed: tuple[Arrays, dict[str, Any]] = await services.parses.run(task)
+        _, summary = parsed
     except BaseException:
         final = Path(services.array_path(artifact_id))
         for path in (final, *final.parent.glob(f".{final.name}.*")):  # see drivers.files
@@ -148,8 +153,8 @@ def _store_upload(
     kind: str,
     artifact_id: str,
     upload: Upload,
-    params: dict,
-    summary: dict,
+    params: dict[str, Any],
+    summary: dict[str, Any],
 ) -> ArtifactRow:
     """Record a parsed upload, whose arrays its parse wrote, as the session's current recording
     or scan, with its bytes (the original bytes too: raw inputs are kept as they came), all or
@@ -176,7 +181,7 @@ async def add_scan(
     *,
     format: str | None,
     units: str,
-    options: dict | None,
+    options: dict[str, Any] | None,
 ) -> ArtifactRow:
     """Parse an uploaded scan and make it the session's scan."""
     await run_in_threadpool(services.session, session_id)
@@ -231,7 +236,7 @@ def scan_task(
     *,
     format: str | None,
     units: str,
-    options: dict | None,
+    options: dict[str, Any] | None,
     out_path: str | None = None,
 ) -> tasks.ParseScan:
     """The parse of a scan upload within the settings' limits."""
@@ -252,8 +257,8 @@ def scan_task(
 
 
 def reread_upload(
-    settings: Settings, kind: str, params: dict, content: bytes, filename: str
-) -> dict:
+    settings: Settings, kind: str, params: dict[str, Any], content: bytes, filename: str
+) -> Arrays:
     """An upload's arrays as reading its bytes again here gives them: the same readers, options
     and limits (child process, memory, time) as an upload of that file. For files that come from
     elsewhere (a bundle's raw uploads are held to what an upload is).
@@ -327,7 +332,9 @@ CALIBRATION_FILES = {
 }
 
 
-def load_calibration_file(services: Services, session_id: str, content: bytes, filename: str):
+def load_calibration_file(
+    services: Services, session_id: str, content: bytes, filename: str
+) -> SessionRow:
     """Set the calibration a stored file holds (``teachpath calibrate`` writes them): a
     tracker-to-base or tracker-to-scan transform, or a pen's tip offset, read by the CLI's
     own readers. The file's name, date and residual go into the session's calibration report.
@@ -394,7 +401,7 @@ async def pivot_calibration(
     *,
     tolerance_m: float = PIVOT_TOLERANCE_M,
     accept_poor_fit: bool = False,
-) -> tuple[SessionRow, dict]:
+) -> tuple[SessionRow, dict[str, Any]]:
     """The tip offset from a pivoting recording; sets the session's ``tip_offset_m`` (a fit
     worse than ``tolerance_m`` RMS is refused unless ``accept_poor_fit``)."""
     await run_in_threadpool(services.session, session_id)
@@ -422,7 +429,7 @@ async def pivot_calibration(
 
 def base_calibration(
     services: Services, session_id: str, request: BaseCalibrationIn
-) -> tuple[SessionRow, dict]:
+) -> tuple[SessionRow, dict[str, Any]]:
     """``T_base_tracker`` from point pairs; sets the session's ``T_base_tracker``."""
     services.session(session_id)
     scale = 1e-3 if request.units == "mm" else 1.0

@@ -29,14 +29,14 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from drivers.isolation import lower_priority
-from service.errors import ApiError, error_body
+from service.errors import ApiError, error_body, note_storage_fault
 from service.store import FINISHED, JobRow, Store, now
 
 log = logging.getLogger("teachpath.jobs")
 
 #: Called in the main process with the task's return value; returns the job's result (the
 #: ids of what it made) after recording the artifact.
-OnSuccess = Callable[[Any], dict]
+OnSuccess = Callable[[Any], dict[str, Any]]
 
 #: The error of a job whose worker process died under it.
 WORKER_DIED = {
@@ -71,7 +71,7 @@ class _Pending:
     session_id: str
     task: Task
     on_success: OnSuccess
-    future: Future
+    future: Future[Any]
     generation: int  # of the pool it was handed to
     outputs: tuple[str, ...]  # the files its worker writes, removed when nothing records them
     discarded: bool = False  # stopped while running: its result is not recorded
@@ -108,7 +108,7 @@ class JobManager:
         self,
         session_id: str,
         kind: str,
-        params: dict,
+        params: dict[str, Any],
         task: Task,
         on_success: OnSuccess,
         *,
@@ -198,7 +198,7 @@ class JobManager:
             initargs=(os.getpid(),),
         )
 
-    def _dispatch(self, task: Task) -> Future:
+    def _dispatch(self, task: Task) -> Future[Any]:
         """Hand ``task`` to the pool (the lock held); a pool found broken is replaced once."""
         if self._closed:
             raise ApiError(503, "shutting_down", "the service is stopping; try again shortly")
@@ -239,7 +239,7 @@ class JobManager:
         old.shutdown(wait=False, cancel_futures=True)
         generation_now = self._generation
 
-        def answered(future: Future) -> None:
+        def answered(future: Future[int]) -> None:
             if future.exception() is None and generation_now == self._generation:
                 self._degraded = False
                 log.info("worker pool replaced")
@@ -253,7 +253,7 @@ class JobManager:
             if row is not None and row.state == "queued":
                 self.store.update_job(job_id, state="running", progress=0.1, started_at=now())
 
-    def _finish(self, job_id: str, future: Future) -> None:
+    def _finish(self, job_id: str, future: Future[Any]) -> None:
         with self._lock:
             pending = self._pending.get(job_id)
         if pending is None or pending.future is not future:
@@ -290,6 +290,7 @@ class JobManager:
             elif isinstance(future.exception(), BrokenProcessPool):
                 self.store.update_job(job_id, state="failed", error=WORKER_DIED, finished_at=now())
             elif (error := future.exception()) is not None:
+                note_storage_fault(self.store.faults, error)
                 body = error_body(error)
                 if body["code"] == "internal_error":
                     log.error("job %s failed", job_id, exc_info=error)
@@ -302,6 +303,7 @@ class JobManager:
                 )
         except Exception as error:  # recording the result failed: the job failed
             log.exception("recording the result of job %s failed", job_id)
+            note_storage_fault(self.store.faults, error)
             self.store.update_job(
                 job_id, state="failed", error=error_body(error), finished_at=now()
             )
@@ -331,7 +333,7 @@ class JobManager:
         return True
 
 
-def _exception(future: Future) -> BaseException | None:
+def _exception(future: Future[Any]) -> BaseException | None:
     return None if future.cancelled() else future.exception()
 
 

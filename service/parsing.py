@@ -14,13 +14,17 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import IO, Literal
+from typing import IO, TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from drivers.files import atomic_path
+from drivers.npz import read_npz, write_npz
+
+if TYPE_CHECKING:
+    from recon.inputs import Recording, Scan
 
 #: Key of a parse's summary among the arrays its child hands back (JSON text in a 0-d array: the
 #: child's results cross as arrays only, never pickles).
@@ -29,28 +33,28 @@ SUMMARY_KEY = "summary_json"
 Arrays = dict[str, np.ndarray]
 
 
-def save_arrays(path: str | Path, arrays: Mapping[str, np.ndarray | None]) -> None:
-    """Write arrays as an ``.npz`` that appears only when complete, readable by its owner only
-    (it lands in the data folder). Entries that are None are left out (an optional array a
-    codec did not fill). Every artifact's arrays are written here, read by :func:`load_arrays`.
+def save_arrays(path: str | Path, arrays: Mapping[str, np.ndarray]) -> None:
+    """Write arrays as an ``.npz`` (:func:`drivers.npz.write_npz`) that appears only when
+    complete, readable by its owner only (it lands in the data folder). Every artifact's arrays
+    are written here (as its codec in :mod:`service.artifacts` encoded them), read by
+    :func:`load_arrays`.
     """
-    present = {key: value for key, value in arrays.items() if value is not None}
     with atomic_path(Path(path)) as tmp:
         with tmp.open("wb") as handle:
-            np.savez(handle, **present)  # type: ignore[arg-type]  # numpy's stub types allow_pickle
+            write_npz(handle, arrays)
         os.chmod(tmp, 0o600)
 
 
 def load_arrays(path: str | Path | IO[bytes]) -> Arrays:
     """The arrays of an ``.npz`` written by :func:`save_arrays` (never a pickle)."""
-    with np.load(path, allow_pickle=False) as data:
-        return {key: data[key] for key in data.files}
+    return read_npz(path)
 
 
-def recording_summary(recording, fmt: str) -> dict:
+def recording_summary(recording: Recording, fmt: str) -> dict[str, Any]:
     """Size and extent of a recording (see :class:`service.artifacts.RecordingSummary`)."""
     points = np.asarray(recording.points_m)
     t = recording.t_s
+    assert recording.piece is not None  # labels, set by Recording.__post_init__
     # Traced length only: the stretch between two pieces kept apart was not traced.
     steps = np.linalg.norm(np.diff(points, axis=0), axis=1)[np.diff(recording.piece) == 0]
     return {
@@ -64,8 +68,13 @@ def recording_summary(recording, fmt: str) -> dict:
 
 
 def scan_summary(
-    scan, fmt: str, *, n_dropped: int = 0, notes=(), dropped_because: str | None = None
-) -> dict:
+    scan: Scan,
+    fmt: str,
+    *,
+    n_dropped: int = 0,
+    notes: Iterable[str] = (),
+    dropped_because: str | None = None,
+) -> dict[str, Any]:
     """Size and extent of a scan (see :class:`service.artifacts.ScanSummary`)."""
     points = np.asarray(scan.points_m)
     return {
@@ -79,7 +88,7 @@ def scan_summary(
     }
 
 
-def _handed_back(arrays: Arrays, summary: dict, out_path: str | None) -> Arrays:
+def _handed_back(arrays: Arrays, summary: dict[str, Any], out_path: str | None) -> Arrays:
     """What a parse's child hands back: ``summary``, and ``arrays`` unless it wrote them to
     ``out_path``."""
     if out_path is not None:
@@ -88,7 +97,7 @@ def _handed_back(arrays: Arrays, summary: dict, out_path: str | None) -> Arrays:
     return {**arrays, SUMMARY_KEY: np.array(json.dumps(summary, default=_plain))}
 
 
-def _plain(value):
+def _plain(value: object) -> object:
     """numpy scalars and arrays as JSON values (``json.dumps``'s ``default``)."""
     if isinstance(value, np.ndarray):
         return value.tolist()
@@ -147,8 +156,21 @@ def parse_recording(
     return _handed_back(RecordingCodec.encode(recording), summary, out_path)
 
 
-def parse_touches(path: str, filename: str, *, out_path: str | None = None, **trace_kwargs):
+def parse_touches(
+    path: str,
+    filename: str,
+    *,
+    format: str | None,
+    units: str | None,
+    rigid_body: str | None,
+    marker: str | None,
+    tip_offset_m: tuple[float, float, float] | None,
+    piece: int | Literal["all"] | None,
+    out_path: str | None = None,
+) -> Arrays:
     """A touch recording: the trace's arrays, with the tip's rests found and summarised.
+
+    The options are :func:`parse_recording`'s.
 
     Raises
     ------
@@ -157,8 +179,17 @@ def parse_touches(path: str, filename: str, *, out_path: str | None = None, **tr
     """
     from recon.touches import touches_in
 
-    handed = parse_recording(path, filename, **trace_kwargs)
-    summary = json.loads(str(handed.pop(SUMMARY_KEY)))
+    handed = parse_recording(
+        path,
+        filename,
+        format=format,
+        units=units,
+        rigid_body=rigid_body,
+        marker=marker,
+        tip_offset_m=tip_offset_m,
+        piece=piece,
+    )
+    summary: dict[str, Any] = json.loads(str(handed.pop(SUMMARY_KEY)))
     arrays = handed
     found = touches_in(arrays["points_m"], arrays.get("t_s"), label=filename)
     dwells, notes = found.dwells, found.notes
@@ -196,9 +227,9 @@ def parse_scan(
     *,
     format: str | None,
     units: str,
-    options: dict | None,
-    limits: dict | None,
-    limit_names: dict | None,
+    options: dict[str, Any] | None,
+    limits: dict[str, float] | None,
+    limit_names: dict[str, str] | None,
     out_path: str | None = None,
 ) -> Arrays:
     """The scan at ``path`` as a scan's arrays and summary."""

@@ -12,9 +12,10 @@ imports this module for every command.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -25,14 +26,22 @@ from recon.params import PIVOT_TOLERANCE_M
 if TYPE_CHECKING:  # the plan module is imported where a plan is made, not for every command
     from drivers.robot.base import ExecutionRecord
     from drivers.robot.dryrun import ExecutionReport
+    from drivers.tracking.readers import RawTrace
     from recon.calibrate import PivotCalibration, PointPairCalibration
+    from recon.collision import Cell, CollisionReport
+    from recon.inputs import Recording, Scan
+    from recon.kinematics import DHCalibration
+    from recon.paths import ReconstructedPath
     from recon.plan import MovePlan, Plan
+    from recon.plan_params import PlanParams
+    from recon.recon_params import ReconParams
     from recon.results import Reconstruction, Registration
     from recon.scan_model import ScanModel
-    from recon.touches import TouchRegistration
+    from recon.touches import Dwell, TouchRegistration
+    from recon.trajectory import JointTrajectory
 
 
-def _off_feature(reg, mm: float) -> str:
+def _off_feature(reg: Registration, mm: float) -> str:
     """ " (x mm of it off the surface, the rest along it)" for a registration report: a path
     moved by millimetres but hardly off its feature slid along it."""
     off = reg.path_moved_off_feature_median_m
@@ -58,7 +67,7 @@ class PivotOutcome:
     rigid_body: str | None
     format: str
 
-    def as_json(self) -> dict:
+    def as_json(self) -> dict[str, Any]:
         c = self.calibration
         return {
             "tip_offset_m": c.tip_offset_m.tolist(),
@@ -84,7 +93,7 @@ class PivotOutcome:
         )
 
 
-def _refuse_poor_fit(what: str, reason: str | None, accept: bool, detail: dict) -> None:
+def _refuse_poor_fit(what: str, reason: str | None, accept: bool, detail: dict[str, Any]) -> None:
     """Raise :class:`PoorFitError` for a fit worse than its tolerance, unless accepted."""
     from recon.errors import PoorFitError
 
@@ -97,7 +106,7 @@ def _refuse_poor_fit(what: str, reason: str | None, accept: bool, detail: dict) 
 
 
 def pivot(
-    raw, *, tolerance_m: float = PIVOT_TOLERANCE_M, accept_poor_fit: bool = False
+    raw: RawTrace, *, tolerance_m: float = PIVOT_TOLERANCE_M, accept_poor_fit: bool = False
 ) -> PivotOutcome:
     """The pen's tip offset from a pivoting recording.
 
@@ -139,7 +148,7 @@ def pivot(
     return outcome
 
 
-def refuse_poor_pivot(result: dict, tolerance_m: float, accept_poor_fit: bool) -> None:
+def refuse_poor_pivot(result: dict[str, Any], tolerance_m: float, accept_poor_fit: bool) -> None:
     """Raise :class:`PoorFitError` for a pivot result (:meth:`PivotOutcome.as_json`) worse than
     ``tolerance_m``, unless ``accept_poor_fit``."""
     from recon.calibrate import pivot_fit_impossible, pivot_fit_problem
@@ -166,7 +175,7 @@ class PointPairOutcome:
 
     fit: PointPairCalibration
 
-    def as_json(self) -> dict:
+    def as_json(self) -> dict[str, Any]:
         fit = self.fit
         return {
             "T_base_tracker": fit.T_a_b.tolist(),
@@ -184,8 +193,8 @@ class PointPairOutcome:
 
 
 def point_pairs(
-    base_m: ArrayLike, tracker_m: ArrayLike, *, tolerance_m: float, accept_poor_fit=False
-):
+    base_m: ArrayLike, tracker_m: ArrayLike, *, tolerance_m: float, accept_poor_fit: bool = False
+) -> PointPairOutcome:
     """Fit ``T_base_tracker`` to the same points measured in both frames (metres).
 
     Raises
@@ -228,10 +237,10 @@ class TouchOutcome:
     """
 
     registration: TouchRegistration
-    dwells: list
+    dwells: list[Dwell]
     notes: list[str]
 
-    def as_json(self) -> dict:
+    def as_json(self) -> dict[str, Any]:
         """What the calibration file and the API keep beside the matrix."""
         reg = self.registration
         judged = reg.judgement
@@ -283,7 +292,13 @@ class TouchOutcome:
 
 
 def touch_calibration(
-    touches, scan, *, trace=None, params=None, T_scan_tracker_init=None, check=True
+    touches: Recording,
+    scan: Scan,
+    *,
+    trace: Recording | None = None,
+    params: ReconParams | None = None,
+    T_scan_tracker_init: ArrayLike | None = None,
+    check: bool = True,
 ) -> TouchOutcome:
     """The scanner registered by touches (see :mod:`recon.touches`), judged by the rule a
     reconstruction applies (:func:`recon.touches.touch_uncertainty`): accepted when the 1-sigma
@@ -300,7 +315,7 @@ def touch_calibration(
         it they are judged over the scanned workpiece around them, in every direction (a path
         there may need any of them).
     params : recon.recon_params.ReconParams, optional
-    T_scan_tracker_init : ndarray of shape (4, 4), optional
+    T_scan_tracker_init : array_like of shape (4, 4), optional
         Where to start (identity when neither it nor a trace is given).
     check : bool
         Refuse touches that leave more than the tolerance (a reconstruction checks again against
@@ -376,7 +391,7 @@ class ReconstructOutcome:
     reconstruction: Reconstruction
     scan_tracker_m: FloatArray | None
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """The artifact's summary (see :class:`service.artifacts.ReconstructionSummary`)."""
         from recon.results import PointMode, PointReason
 
@@ -512,7 +527,12 @@ class ReconstructOutcome:
 
 
 def reconstruct(
-    recording, scan, *, params, T_scan_tracker_init=None, touches=None
+    recording: Recording | list[Recording] | tuple[Recording, ...],
+    scan: Scan | None,
+    *,
+    params: ReconParams,
+    T_scan_tracker_init: ArrayLike | None = None,
+    touches: Recording | None = None,
 ) -> ReconstructOutcome:
     """Reconstruct a trace with the scan's structure (see :func:`recon.reconstruct.reconstruct`).
 
@@ -522,7 +542,7 @@ def reconstruct(
         Several recordings are demonstrations of one path, fused first.
     scan : recon.inputs.Scan or None
     params : recon.recon_params.ReconParams
-    T_scan_tracker_init : ndarray of shape (4, 4), optional
+    T_scan_tracker_init : array_like of shape (4, 4), optional
         The stored calibration: registration's initial guess, or the transform itself when
         ``params.register`` is False.
     touches : recon.inputs.Recording, optional
@@ -584,7 +604,9 @@ class PlacedScan:
     registration: Registration | None
 
 
-def place_scan(scan, path, *, recon_params=None) -> PlacedScan:
+def place_scan(
+    scan: Scan, path: ReconstructedPath, *, recon_params: ReconParams | None = None
+) -> PlacedScan:
     """The scan model around a reconstructed path, placed with the path's ``T_scan_tracker``.
 
     For a path that does not say where the scan was (a reconstruction CSV from the command line
@@ -626,14 +648,14 @@ def _teachpath_version() -> str:
         return "0"
 
 
-def _smallest_clearance_m(report) -> float | None:
+def _smallest_clearance_m(report: CollisionReport | None) -> float | None:
     """The closest approach a collision report found (None: not checked, or no samples)."""
     if report is None or not len(report.clearance_m):
         return None
     return float(np.min(report.clearance_m))
 
 
-def _collision_checks(report) -> list[str]:
+def _collision_checks(report: CollisionReport | None) -> list[str]:
     """The collision check passed, in words (none when no check was made)."""
     if report is None:
         return []
@@ -655,7 +677,7 @@ class PlanOutcome:
     start_from: str = "given"
 
     @property
-    def trajectory(self):
+    def trajectory(self) -> JointTrajectory:
         return self.plan.trajectory
 
     def checks(self) -> list[str]:
@@ -668,7 +690,7 @@ class PlanOutcome:
         ]
         return passed + _collision_checks(plan.collision)
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """The artifact's summary (see :class:`service.artifacts.TrajectorySummary`)."""
         plan, traj = self.plan, self.plan.trajectory
         joints = plan.joints
@@ -717,17 +739,17 @@ class PlanOutcome:
 
 
 def plan(
-    path,
+    path: ReconstructedPath,
     *,
-    params,
-    T_base_tracker=None,
-    scan_model=None,
-    recon_params=None,
-    scan=None,
-    keep_out_boxes=(),
-    cell_planes=(),
+    params: PlanParams,
+    T_base_tracker: ArrayLike | None = None,
+    scan_model: ScanModel | None = None,
+    recon_params: ReconParams | None = None,
+    scan: Scan | None = None,
+    keep_out_boxes: Sequence[Sequence[float]] = (),
+    cell_planes: Sequence[Sequence[float]] = (),
     start_from: str = "given",
-    calibration=None,
+    calibration: DHCalibration | None = None,
 ) -> PlanOutcome:
     """The whole motion along a reconstructed path, checked against the cell.
 
@@ -736,7 +758,7 @@ def plan(
     path : recon.paths.ReconstructedPath
         The reconstruction (tracker frame) with the ``T_scan_tracker`` it used.
     params : recon.plan_params.PlanParams
-    T_base_tracker : ndarray of shape (4, 4), optional
+    T_base_tracker : array_like of shape (4, 4), optional
         Where the tracker frame is in the robot's base frame (default: the same frame).
     scan_model : recon.scan_model.ScanModel, optional
         The scan's structure near the path (scan frame), for the tool axis from the scan's
@@ -817,15 +839,15 @@ class MoveOutcome:
 
     move: MovePlan
     target_id: str
-    target_summary: dict
+    target_summary: dict[str, Any]
     start_from: str = "arm"
 
     @property
-    def trajectory(self):
+    def trajectory(self) -> JointTrajectory:
         """The move's samples (:class:`recon.trajectory.JointTrajectory`)."""
         return self.move.trajectory
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """The artifact's summary: a trajectory's (:class:`service.artifacts.TrajectorySummary`)
         with ``move_to_start_of`` naming the plan; no traced path, no process phase."""
         move, traj, target = self.move, self.move.trajectory, self.target_summary
@@ -867,19 +889,19 @@ class MoveOutcome:
 
 
 def move_to_start(
-    q_from_rad,
-    target,
+    q_from_rad: ArrayLike,
+    target: JointTrajectory,
     *,
     target_id: str,
-    target_summary: dict,
-    params,
-    scan=None,
-    T_scan_tracker=None,
-    T_base_tracker=None,
-    keep_out_boxes=(),
-    cell_planes=(),
+    target_summary: dict[str, Any],
+    params: PlanParams,
+    scan: Scan | None = None,
+    T_scan_tracker: FloatArray | None = None,
+    T_base_tracker: ArrayLike | None = None,
+    keep_out_boxes: Sequence[Sequence[float]] = (),
+    cell_planes: Sequence[Sequence[float]] = (),
     start_from: str = "arm",
-    calibration=None,
+    calibration: DHCalibration | None = None,
 ) -> MoveOutcome:
     """A move of its own from where the arm is to ``target``'s first sample, checked against
     the cell the target is checked against (its scan placed as it was planned).
@@ -916,7 +938,7 @@ def move_to_start(
 
     T_base = None if T_base_tracker is None else np.asarray(T_base_tracker, dtype=np.float64)
     move = plan_move(
-        q_from_rad,
+        np.asarray(q_from_rad, dtype=np.float64),
         target.q_rad[0],
         params=params,
         cell=cell_for(scan, T_scan_tracker, T_base, keep_out_boxes, cell_planes),
@@ -925,9 +947,28 @@ def move_to_start(
     return MoveOutcome(move, target_id, target_summary, start_from)
 
 
-def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=(), cell_planes=()):
+def cell_for(
+    scan: Scan | None,
+    T_scan_tracker: FloatArray | None,
+    T_base_tracker: FloatArray | None,
+    keep_out_boxes: Sequence[Sequence[float]] = (),
+    cell_planes: Sequence[Sequence[float]] = (),
+) -> Cell:
     """The cell a plan is checked against (base frame): the mounting surface (the base's z = 0
     plane), other planes of the cell, the keep-out boxes and the scanned workpiece.
+
+    Parameters
+    ----------
+    scan : recon.inputs.Scan or None
+        The workpiece (scan frame).
+    T_scan_tracker : ndarray of shape (4, 4), or None
+        Where the scan is relative to the tracker (needed with a scan).
+    T_base_tracker : ndarray of shape (4, 4), or None
+        Where the tracker frame is in the robot's base frame (None: the same frame).
+    keep_out_boxes : sequence of 6 floats each
+        ``x_min, y_min, z_min, x_max, y_max, z_max`` in the base frame (m).
+    cell_planes : sequence of 4 floats each
+        ``nx, ny, nz, d``: the arm keeps to ``n . p >= d`` (base frame, m).
 
     Raises
     ------
@@ -939,7 +980,11 @@ def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=(), cell_plane
     from recon.transforms import apply_transform, invert_transform
 
     boxes = tuple(
-        Box(min_m=box[:3], max_m=box[3:], name=f"keep-out box {index + 1}")
+        Box(
+            min_m=np.asarray(box[:3], dtype=np.float64),
+            max_m=np.asarray(box[3:], dtype=np.float64),
+            name=f"keep-out box {index + 1}",
+        )
         for index, box in enumerate(keep_out_boxes)
     )
     points = None
@@ -956,7 +1001,7 @@ def cell_for(scan, T_scan_tracker, T_base_tracker, keep_out_boxes=(), cell_plane
     # n . p >= d with n as given: the half-space of the unit normal at d / |n|.
     planes = tuple(
         HalfSpace(
-            normal=plane[:3],
+            normal=np.asarray(plane[:3], dtype=np.float64),
             offset_m=plane[3] / max(float(np.linalg.norm(plane[:3])), 1e-300),
             name=f"cell plane {index + 1}",
         )
@@ -977,7 +1022,7 @@ class ExecutionOutcome:
     backend: str
     tolerance_m: float
 
-    def summary(self) -> dict:
+    def summary(self) -> dict[str, Any]:
         """The artifact's summary (see :class:`service.artifacts.ExecutionSummary`)."""
         report = asdict(self.report)
         report["faults"] = list(report["faults"])
@@ -997,7 +1042,9 @@ class ExecutionOutcome:
         return bool(self.report.completed and not self.report.faults)
 
 
-def dry_run(trajectory, *, mode: str = "servoj", tolerance_m: float = 5e-4) -> ExecutionOutcome:
+def dry_run(
+    trajectory: JointTrajectory, *, mode: str = "servoj", tolerance_m: float = 5e-4
+) -> ExecutionOutcome:
     """Execute ``trajectory`` on the simulated arm, faster than real time.
 
     Raises

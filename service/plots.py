@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -18,11 +20,18 @@ from recon.arrays import FloatArray  # noqa: E402
 from recon.metrics import distance_to_curve  # noqa: E402
 from recon.results import Reconstruction
 
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from mpl_toolkits.mplot3d.axes3d import Axes3D
+    from numpy.typing import NDArray
+
+    from recon.trajectory import JointTrajectory
+
 #: Scan points drawn at most (a dense scan would bury the paths and take seconds to render).
 MAX_SCAN_POINTS = 20000
 
 
-def _piece_breaks(piece: np.ndarray):
+def _piece_breaks(piece: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """A function that puts a NaN row between pieces of (N, 3) points, so lines break there."""
     starts = np.flatnonzero(np.diff(piece)) + 1
 
@@ -117,7 +126,7 @@ def plot_reconstruction(
     plt.close(fig)
 
 
-def _equal_axes(ax, points: FloatArray) -> None:
+def _equal_axes(ax: Axes3D, points: FloatArray) -> None:
     """Same scale on all three axes, so a circle looks round."""
     centre = (points.max(axis=0) + points.min(axis=0)) / 2
     half = max(float(np.ptp(points, axis=0).max()) / 2, 1e-6)
@@ -136,7 +145,7 @@ _PHASE_COLOURS = {
 }
 
 
-def plot_plan(path: str | Path, trajectory, *, title: str = "") -> None:
+def plot_plan(path: str | Path, trajectory: JointTrajectory, *, title: str = "") -> None:
     """Write the plan's picture: TCP speed along the motion against the requested speed, with
     each slow-down and its cause; joint angles against their limits; joint speeds as a share of
     their limits. The phases (transit, approach, process, retract) are shaded.
@@ -215,7 +224,7 @@ def plot_plan(path: str | Path, trajectory, *, title: str = "") -> None:
         fig.savefig(tmp, format="png", dpi=100)
 
 
-def _phase_spans(phases):
+def _phase_spans(phases: NDArray[np.int8]) -> Iterator[tuple[int, int, str]]:
     """(first, last sample, label) of each run of one phase."""
     from recon.paths import Phase
 
@@ -224,13 +233,13 @@ def _phase_spans(phases):
         yield int(start), int(stop) - 1, Phase(int(phases[start])).label
 
 
-def _shade_phases(ax, t: FloatArray, phases) -> None:
+def _shade_phases(ax: Axes, t: FloatArray, phases: NDArray[np.int8]) -> None:
     """Shade each phase's time span."""
     for first, last, label in _phase_spans(phases):
         ax.axvspan(t[first], t[last], color=_PHASE_COLOURS.get(label, "white"), lw=0)
 
 
-def _name_phases(ax, t: FloatArray, phases, top: float) -> None:
+def _name_phases(ax: Axes, t: FloatArray, phases: NDArray[np.int8], top: float) -> None:
     """Name each phase at the top of its span."""
     for first, last, label in _phase_spans(phases):
         ax.text((t[first] + t[last]) / 2, top * 0.99, label, fontsize=7, ha="center", va="top")

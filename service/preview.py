@@ -9,10 +9,17 @@ the arm.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any, TypedDict
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from recon.arrays import FloatArray
 from recon.paths import Phase
+
+if TYPE_CHECKING:
+    from recon.trajectory import JointTrajectory
+    from service.artifacts import ExecutionSamples
 
 #: The most samples a preview sends by default (a 30 s plan at 500 Hz has 15 000).
 DEFAULT_SAMPLES = 1500
@@ -33,7 +40,16 @@ def window_min(values: FloatArray, keep: np.ndarray) -> FloatArray:
     return np.minimum.reduceat(values, keep)
 
 
-def speed_drop_times(trajectory) -> list[dict]:
+class SpeedDropTimes(TypedDict):
+    """A slow-down of the process path and when it happens (see :func:`speed_drop_times`)."""
+
+    start_s: float
+    end_s: float
+    min_speed_m_s: float
+    cause: str
+
+
+def speed_drop_times(trajectory: JointTrajectory) -> list[SpeedDropTimes]:
     """Each slow-down of the process path with the times it starts and ends.
 
     The drops are counted in metres of process path (the moves between pieces left out);
@@ -41,7 +57,7 @@ def speed_drop_times(trajectory) -> list[dict]:
 
     Returns
     -------
-    list of dict
+    list of SpeedDropTimes
         ``start_s``, ``end_s``, ``min_speed_m_s``, ``cause`` per drop that lies on the path.
     """
     t = trajectory.t_s
@@ -51,7 +67,7 @@ def speed_drop_times(trajectory) -> list[dict]:
     step = np.linalg.norm(np.diff(trajectory.tcp_m[process], axis=0), axis=1)
     step[np.diff(process) != 1] = 0.0
     arc = np.r_[0.0, np.cumsum(step)]
-    out = []
+    out: list[SpeedDropTimes] = []
     for drop in trajectory.speed_drops:
         inside = process[(arc >= drop.start_m) & (arc <= drop.end_m)]
         if len(inside):
@@ -66,24 +82,32 @@ def speed_drop_times(trajectory) -> list[dict]:
     return out
 
 
-def tcp_speed_m_s(trajectory) -> FloatArray:
+def tcp_speed_m_s(trajectory: JointTrajectory) -> FloatArray:
     """The planned TCP's speed at each sample, (M,) m/s."""
-    return np.linalg.norm(np.gradient(trajectory.tcp_m, trajectory.t_s, axis=0), axis=1)
+    speed: FloatArray = np.linalg.norm(
+        np.gradient(trajectory.tcp_m, trajectory.t_s, axis=0), axis=1
+    )
+    return speed
 
 
-def _rounded(values, decimals: int) -> list:
-    return np.round(np.asarray(values, dtype=np.float64), decimals).tolist()
+def _rounded(values: ArrayLike, decimals: int) -> list[Any]:
+    """An array rounded, as (nested) lists of numbers."""
+    rounded: list[Any] = np.round(np.asarray(values, dtype=np.float64), decimals).tolist()
+    return rounded
 
 
-def _finite_or_none(values, decimals: int) -> list:
+def _finite_or_none(values: ArrayLike, decimals: int) -> list[float | None]:
     """A 1-D series rounded, with null for what is not finite (JSON has no inf or NaN)."""
     values = np.asarray(values, dtype=np.float64)
     return [round(float(v), decimals) if np.isfinite(v) else None for v in values]
 
 
 def trajectory_preview(
-    trajectory, clearance_m: FloatArray | None = None, *, max_samples: int = DEFAULT_SAMPLES
-) -> dict:
+    trajectory: JointTrajectory,
+    clearance_m: FloatArray | None = None,
+    *,
+    max_samples: int = DEFAULT_SAMPLES,
+) -> dict[str, Any]:
     """A plan for the pendant: the arm at each kept sample and the margins per waypoint.
 
     Parameters
@@ -152,7 +176,9 @@ def trajectory_preview(
     }
 
 
-def execution_review(trajectory, samples, *, max_samples: int = DEFAULT_SAMPLES) -> dict:
+def execution_review(
+    trajectory: JointTrajectory, samples: ExecutionSamples, *, max_samples: int = DEFAULT_SAMPLES
+) -> dict[str, Any]:
     """What an execution did against its plan, for the pendant.
 
     Parameters
@@ -198,7 +224,7 @@ def execution_review(trajectory, samples, *, max_samples: int = DEFAULT_SAMPLES)
     }
 
 
-def reconstruction_difference(points_m: FloatArray, other_m: FloatArray) -> dict:
+def reconstruction_difference(points_m: FloatArray, other_m: FloatArray) -> dict[str, Any]:
     """How far each point of one reconstruction lies from another's path, for an overlay.
 
     Parameters

@@ -12,7 +12,10 @@ One function per kind, each returning the reasons in the operator's words (empty
 
 from __future__ import annotations
 
+from collections.abc import Sized
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from service.cell import CellNow
 from service.store import ArtifactRow, SessionRow, Store
@@ -138,7 +141,7 @@ def trajectory_outdated(
     return reasons
 
 
-def _count(items, one: str, many: str) -> str:
+def _count(items: Sized, one: str, many: str) -> str:
     return f"{len(items)} {one if len(items) == 1 else many}"
 
 
@@ -163,7 +166,7 @@ def _newer(store: Store, artifact_id: str | None, than: ArtifactRow) -> bool:
     return current is not None and current.created_at > than.created_at
 
 
-def _difference(T_a, T_b) -> tuple[float, float]:
+def _difference(T_a: ArrayLike, T_b: ArrayLike) -> tuple[float, float]:
     """Translation (m) and rotation angle (rad) between two 4x4 transforms."""
     a, b = np.asarray(T_a, dtype=np.float64), np.asarray(T_b, dtype=np.float64)
     moved_m = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))

@@ -21,12 +21,17 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from recon.arrays import FloatArray
 from service.artifacts import as_core_params
-from service.bundles import BundleError, BundleReader
+from service.bundles import ArtifactEntry, BundleError, BundleReader
 from service.reconstructions import NOT_RECON_PARAMS
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 #: The report's columns, in order.
 REPORT_COLUMNS = (
@@ -52,14 +57,17 @@ REPORT_COLUMNS = (
 #: What a row's status says.
 SAME, MOVED, FAILED = "same", "moved", "failed"
 
+#: One report row: a value (text, count or number) for each of :data:`REPORT_COLUMNS`.
+Row = dict[str, str | int | float]
+
 
 @dataclass(frozen=True)
 class Overrides:
     """Parameters that replace the stored ones: ``reconstruction`` (ReconParams fields) and
     ``plan`` (PlanParams fields)."""
 
-    reconstruction: dict
-    plan: dict
+    reconstruction: dict[str, Any]
+    plan: dict[str, Any]
 
     @classmethod
     def none(cls) -> Overrides:
@@ -87,7 +95,7 @@ class Overrides:
                 f'{name} must be a JSON object with "reconstruction" and/or "plan" objects of '
                 'parameters, e.g. {"reconstruction": {"alpha": 0.5}}'
             )
-        parts = {}
+        parts: dict[str, dict[str, Any]] = {}
         for section, params_class in (("reconstruction", ReconParams), ("plan", PlanParams)):
             values = document.get(section, {})
             if not isinstance(values, dict):
@@ -126,8 +134,8 @@ def find_bundles(sources: Iterable[str | Path]) -> list[Path]:
     return found
 
 
-def _row(reader_or_path, **values) -> dict:
-    row = dict.fromkeys(REPORT_COLUMNS, "")
+def _row(reader_or_path: BundleReader | str | Path, **values: str | int | float) -> Row:
+    row: Row = dict.fromkeys(REPORT_COLUMNS, "")
     if isinstance(reader_or_path, BundleReader):
         session = reader_or_path.manifest.session
         row.update(
@@ -141,7 +149,7 @@ def _row(reader_or_path, **values) -> dict:
 
 def replay_bundle(
     path: str, overrides: Overrides, tolerance_m: float, share_cores: int | None = None
-) -> list[dict]:
+) -> list[Row]:
     """Replay one bundle's reconstructions and plans (the task a worker runs).
 
     Parameters
@@ -165,7 +173,7 @@ def replay_bundle(
         reader = BundleReader(path)
     except BundleError as exc:
         return [_row(path, kind="bundle", status=FAILED, error=str(exc))]
-    rows = []
+    rows: list[Row] = []
     with reader:
         for artifact in reader.artifacts("reconstruction"):
             rows.append(_guarded(reader, artifact, _reconstruction, overrides, tolerance_m))
@@ -203,7 +211,17 @@ def _take_share_of_cores(n_workers: int) -> None:
     os.sched_setaffinity(0, cores[start : start + k])
 
 
-def _guarded(reader, artifact, replay: Callable, overrides, tolerance_m) -> dict:
+#: How one stored artifact is replayed: (reader, artifact, overrides, tolerance_m) -> its row.
+Replay = Callable[[BundleReader, ArtifactEntry, Overrides, float], Row]
+
+
+def _guarded(
+    reader: BundleReader,
+    artifact: ArtifactEntry,
+    replay: Replay,
+    overrides: Overrides,
+    tolerance_m: float,
+) -> Row:
     """One artifact's row; what fails is reported in it and stops nothing else."""
     from drivers.errors import DriverError
     from recon.errors import ReconError
@@ -224,7 +242,9 @@ def _guarded(reader, artifact, replay: Callable, overrides, tolerance_m) -> dict
         )
 
 
-def _reconstruction(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> dict:
+def _reconstruction(
+    reader: BundleReader, artifact: ArtifactEntry, overrides: Overrides, tolerance_m: float
+) -> Row:
     from recon.recon_params import ReconParams
     from service import pipelines
     from service.artifacts import ReconstructionCodec, RecordingCodec, ScanCodec
@@ -274,12 +294,12 @@ def _reconstruction(reader: BundleReader, artifact, overrides: Overrides, tolera
     return row
 
 
-def _within(deviation: np.ndarray, tolerance_m: float) -> bool:
+def _within(deviation: FloatArray, tolerance_m: float) -> bool:
     """Every deviation finite and within the tolerance (a NaN has moved, whatever it compares)."""
     return bool(len(deviation)) and bool(np.all(deviation <= tolerance_m))
 
 
-def path_deviation_m(stored_m: np.ndarray, replayed_m: np.ndarray) -> np.ndarray:
+def path_deviation_m(stored_m: FloatArray, replayed_m: FloatArray) -> FloatArray:
     """How far a replayed path lies from the stored one, per point (m).
 
     Point by point when both have the same points (the same parameters resample alike);
@@ -288,7 +308,8 @@ def path_deviation_m(stored_m: np.ndarray, replayed_m: np.ndarray) -> np.ndarray
     """
     stored_m, replayed_m = np.asarray(stored_m), np.asarray(replayed_m)
     if stored_m.shape == replayed_m.shape:
-        return np.linalg.norm(replayed_m - stored_m, axis=1)
+        per_point: FloatArray = np.linalg.norm(replayed_m - stored_m, axis=1)
+        return per_point
     from recon.metrics import distance_to_curve
 
     return np.concatenate(
@@ -296,7 +317,9 @@ def path_deviation_m(stored_m: np.ndarray, replayed_m: np.ndarray) -> np.ndarray
     )
 
 
-def _plan(reader: BundleReader, artifact, overrides: Overrides, tolerance_m) -> dict:
+def _plan(
+    reader: BundleReader, artifact: ArtifactEntry, overrides: Overrides, tolerance_m: float
+) -> Row:
     from recon.errors import CollisionError, InfeasibleTrajectoryError
     from recon.kinematics import DHCalibration
     from recon.plan_params import PlanParams
@@ -423,8 +446,8 @@ def run_replay(
     tolerance_m: float,
     workers: int | None = None,
     scheduler: str | None = None,
-    on_result: Callable[[int, int, list[dict]], None] | None = None,
-    on_cluster: Callable[[object], None] | None = None,
+    on_result: Callable[[int, int, list[Row]], None] | None = None,
+    on_cluster: Callable[[Client], None] | None = None,
 ) -> ReplaySummary:
     """Replay bundles on Dask, one task per bundle, and stream the rows to a CSV report.
 
@@ -462,7 +485,9 @@ def run_replay(
 
         n = workers or len(os.sched_getaffinity(0))
         # Loopback only, no dashboard port on every interface: a replay serves nobody.
-        cluster = LocalCluster(
+        # distributed's LocalCluster, Client, as_completed and Client.close are unannotated
+        # (no-untyped-call under --strict; unused-ignore while service's config is not strict).
+        cluster = LocalCluster(  # type: ignore[no-untyped-call]
             n_workers=n,
             threads_per_worker=1,
             processes=True,
@@ -470,7 +495,7 @@ def run_replay(
             dashboard_address=None,
         )
     try:
-        client = Client(cluster if cluster is not None else scheduler)
+        client = Client(cluster if cluster is not None else scheduler)  # type: ignore[no-untyped-call]
     except BaseException:
         if cluster is not None:
             cluster.close()
@@ -485,9 +510,9 @@ def run_replay(
             for path in bundles
         }
         with _report_writer(report_path) as write:
-            for done, future in enumerate(as_completed(futures), start=1):
+            for done, future in enumerate(as_completed(futures), start=1):  # type: ignore[no-untyped-call]
                 try:
-                    rows = future.result()
+                    rows: list[Row] = future.result()
                 except Exception as exc:  # a worker died or the task raised: report, go on
                     rows = [
                         _row(
@@ -505,7 +530,7 @@ def run_replay(
                 if on_result is not None:
                     on_result(done, len(futures), rows)
     finally:
-        client.close()
+        client.close()  # type: ignore[no-untyped-call]
         if cluster is not None:
             cluster.close()
     return ReplaySummary(len(bundles), n_rows, n_moved, n_failed, time.perf_counter() - start)
@@ -519,19 +544,19 @@ class _report_writer:
         self.path = Path(path)
         self.tmp = self.path.with_name(f".{self.path.name}.partial")
 
-    def __enter__(self) -> Callable[[dict], None]:
+    def __enter__(self) -> Callable[[Row], None]:
         self.handle = self.tmp.open("w", newline="")
         self.writer = csv.DictWriter(self.handle, fieldnames=REPORT_COLUMNS)
         self.writer.writeheader()
         return self._write
 
-    def _write(self, row: dict) -> None:
+    def _write(self, row: Row) -> None:
         self.writer.writerow(
             {k: (f"{v:.9g}" if isinstance(v, float) else v) for k, v in row.items()}
         )
         self.handle.flush()
 
-    def __exit__(self, kind, *_) -> None:
+    def __exit__(self, kind: type[BaseException] | None, *_: object) -> None:
         self.handle.close()
         if kind is None:
             self.tmp.replace(self.path)
@@ -539,7 +564,7 @@ class _report_writer:
             self.tmp.unlink(missing_ok=True)
 
 
-def read_report(path: Path) -> list[dict]:
+def read_report(path: Path) -> list[dict[str, str]]:
     with Path(path).open(newline="") as handle:
         return list(csv.DictReader(handle))
 

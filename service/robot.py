@@ -14,13 +14,14 @@ import logging
 import threading
 import time
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from drivers.robot.base import BackendConfig, backend_config
 from drivers.robot.monitor import ArmState, RobotMonitor, create_monitor
-from service.refusals import RobotUnavailable
+from recon.arrays import FloatArray
+from service.errors import RobotUnavailable
 from service.settings import Settings
 
 if TYPE_CHECKING:
@@ -116,7 +117,7 @@ class RobotWatch:
         # The arm's kinematic model, made on the first view with joints.
         self._arm: URModel | None = None
 
-    def _joint_positions_m(self, state) -> list | None:
+    def _joint_positions_m(self, state: ArmState) -> list[list[float]] | None:
         """Where the arm's joints are now (base frame, m), for the pendant's live arm: base, the
         DH frames 1..6 (6: the flange) from the joints read, then the TCP the controller
         reports. Shape (8, 3) as nested lists; (7, 3) without a TCP; None without joints."""
@@ -136,7 +137,8 @@ class RobotWatch:
         points = kinematics.joint_frames(self._arm, q)[:, :3, 3]
         if state.tcp_pose is not None and np.isfinite(state.tcp_pose[:3]).all():
             points = np.vstack([points, np.asarray(state.tcp_pose[:3], dtype=np.float64)])
-        return np.round(points, 5).tolist()
+        joints_m: list[list[float]] = np.round(points, 5).tolist()
+        return joints_m
 
     def start(self) -> None:
         self._thread.start()
@@ -204,7 +206,7 @@ class RobotWatch:
             self.monitor.unlock_protective_stop()
         self.poll()
 
-    def view(self, owner: str | None) -> dict:
+    def view(self, owner: str | None) -> dict[str, Any]:
         """The state for the API (see :class:`service.schemas.RobotOut`)."""
         reading = self.latest()
         state = reading.state
@@ -230,7 +232,7 @@ class RobotWatch:
         }
 
 
-def start_joints(watch: RobotWatch, settings: Settings) -> tuple[np.ndarray, str]:
+def start_joints(watch: RobotWatch, settings: Settings) -> tuple[FloatArray, str]:
     """Where a plan starts when the request does not say: the real arm's joints now, or the
     simulated arm's home. Returns (joints, "arm" | "home").
 

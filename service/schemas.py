@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import types
+from collections.abc import Iterable
 from datetime import datetime
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -18,7 +20,7 @@ from pydantic import (
     model_validator,
 )
 
-from recon.params import default_of, specs, type_hints
+from recon.params import Spec, default_of, specs, type_hints
 from recon.plan_params import PlanParams, check_tool_spheres
 from recon.recon_params import ReconParams
 from service.artifacts import (
@@ -30,10 +32,16 @@ from service.artifacts import (
     TrajectorySummary,
 )
 
+if TYPE_CHECKING:
+    from pydantic.fields import FieldInfo
+
+    from drivers.tracking.natnet_source import NatNetConfig
+    from drivers.tracking.replay import ReplayConfig
+
 Matrix4 = list[list[float]]
 
 
-def _iso(value):
+def _iso(value: object) -> object:
     """ISO 8601 in UTC (SQLite returns naive datetimes: they were stored as UTC)."""
     if isinstance(value, datetime):
         from service.store import iso
@@ -105,7 +113,7 @@ class CalibrationIn(Strict):
 
     @field_validator("tip_offset_m")
     @classmethod
-    def _tip(cls, value):
+    def _tip(cls, value: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
         from recon.calibrate import MAX_TIP_OFFSET_M
 
         if value is None:
@@ -118,7 +126,7 @@ class CalibrationIn(Strict):
         return value
 
     @model_validator(mode="after")
-    def _something(self):
+    def _something(self) -> CalibrationIn:
         if not self.model_fields_set:
             raise ValueError("name at least one of T_base_tracker, T_scan_tracker, tip_offset_m")
         return self
@@ -130,7 +138,7 @@ class PointPair(Strict):
 
     @field_validator("base", "tracker")
     @classmethod
-    def _finite(cls, value):
+    def _finite(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
         if not all(math.isfinite(v) for v in value):
             raise ValueError("coordinates must be finite numbers")
         return value
@@ -327,7 +335,7 @@ class _ReconstructionRequest(Strict):
 
     _matrix = field_validator("T_scan_tracker")(_check_matrix)
 
-    def recon_params(self) -> dict:
+    def recon_params(self) -> dict[str, Any]:
         """The core's parameters (:class:`recon.recon_params.ReconParams`), checked by the core."""
         params = {name: getattr(self, name) for name in RECONSTRUCTION_PARAMS}
         params["register"] = self.registration
@@ -345,17 +353,17 @@ class _TrajectoryRequest(Strict):
 
     @field_validator("tool_spheres_m", check_fields=False)
     @classmethod
-    def _tool_spheres(cls, value):
+    def _tool_spheres(cls, value: tuple[float, ...]) -> tuple[float, ...]:
         # Before any lookup: a malformed tool is the request's fault whatever it names.
         check_tool_spheres(tuple(value))
         return value
 
-    def plan_params(self) -> dict:
+    def plan_params(self) -> dict[str, Any]:
         """The core's parameters (:class:`recon.plan_params.PlanParams`), checked by the core."""
         return self.plan_params_with({name: getattr(self, name) for name in TRAJECTORY_PARAMS})
 
     @staticmethod
-    def plan_params_with(params: dict) -> dict:
+    def plan_params_with(params: dict[str, Any]) -> dict[str, Any]:
         """``params`` checked by the core (:class:`recon.plan_params.PlanParams`)."""
         PlanParams(**params)
         return params
@@ -397,7 +405,7 @@ class ReplaySource(Strict):
         1.0, gt=0, le=100.0, description="times real time; null: as fast as possible"
     )
 
-    def source_config(self):
+    def source_config(self) -> ReplayConfig:
         """The replay source's configuration (the recording is handed over separately)."""
         from drivers.tracking.replay import ReplayConfig
 
@@ -434,7 +442,7 @@ class NatNetSourceIn(Strict):
 
         return check_server_address(value)
 
-    def source_config(self):
+    def source_config(self) -> NatNetConfig:
         """The NatNet source's configuration: a capture waits for the operator as long as it
         takes (no stall timeout)."""
         from drivers.tracking.natnet_source import NatNetConfig
@@ -447,7 +455,7 @@ class CaptureCreate(Strict):
 
     @field_validator("source", mode="before")
     @classmethod
-    def _replay_by_default(cls, value):
+    def _replay_by_default(cls, value: object) -> object:
         # Before live sources existed, a source was always a replay and named no kind.
         if isinstance(value, dict) and "kind" not in value:
             return {**value, "kind": "replay"}
@@ -637,8 +645,12 @@ class CaptureOut(FromRow):
 # -- request fields generated from the core's parameter declarations (recon.params) ---------------
 
 
-def _bounded(hint, spec):
-    """``hint`` with the spec's bounds on its numbers (inside a union or a tuple too)."""
+def _bounded(hint: Any, spec: Spec) -> Any:
+    """``hint`` with the spec's bounds on its numbers (inside a union or a tuple too).
+
+    ``hint`` and the result are type expressions read and built at run time (``Annotated``,
+    unions, tuples) for pydantic: no static type describes one, hence ``Any``.
+    """
     import typing
 
     if hint in (int, float):
@@ -650,17 +662,17 @@ def _bounded(hint, spec):
         ]
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin is tuple:
-        return tuple[tuple(_bounded(a, spec) for a in args)]
+        return types.GenericAlias(tuple, tuple(_bounded(a, spec) for a in args))
     if args and origin not in (typing.Literal,):
         return typing.Union[tuple(_bounded(a, spec) for a in args)]  # noqa: UP007
     return hint
 
 
-def param_fields(cls, names) -> dict:
+def param_fields(cls: type[object], names: Iterable[str]) -> dict[str, tuple[Any, FieldInfo]]:
     """Pydantic field definitions for the named parameters of a core dataclass: its type with
     its bounds, its default, and its help, unit and bounds as the description."""
     declared, hints = specs(cls), type_hints(cls)
-    fields = {}
+    fields: dict[str, tuple[Any, FieldInfo]] = {}
     for name in names:
         spec = declared[name]
         bounds = spec.describe()
@@ -673,14 +685,24 @@ def param_fields(cls, names) -> dict:
     return fields
 
 
-def _request_model(name: str, base: type[BaseModel], cls, names, *, required=()) -> type:
+def _request_model(
+    name: str,
+    base: type[BaseModel],
+    cls: type[object],
+    names: Iterable[str],
+    *,
+    required: Iterable[str] = (),
+) -> type[BaseModel]:
     from pydantic import create_model
 
     fields = param_fields(cls, names)
     for field_name in required:
         annotation, info = fields[field_name]
         fields[field_name] = (annotation, Field(..., description=info.description))
-    return create_model(name, __base__=base, __doc__=base.__doc__, **fields)
+    # As keywords from a dict, mypy checks each value against every keyword create_model takes
+    # (__config__, __module__, ...), not only the field definitions they all are.
+    definitions: dict[str, Any] = fields
+    return create_model(name, __base__=base, __doc__=base.__doc__, **definitions)
 
 
 # The two request models with the core's parameters. At run time they are made from the core's

@@ -6,11 +6,15 @@ import math
 import os
 import secrets
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pydantic import Field, PrivateAttr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from drivers.scanning.limits import DEFAULT_MAX_FRAME_PIXELS, DEFAULT_MAX_PIXELS
+
+if TYPE_CHECKING:
+    from recon.kinematics import DHCalibration
 
 
 class Settings(BaseSettings):
@@ -130,7 +134,7 @@ class Settings(BaseSettings):
         "(copied from /root/.urcontrol/); plans solve their joints with it (without it UR's "
         "nominal model, millimetres off on a real arm)",
     )
-    _arm_calibration: object = PrivateAttr(default=None)
+    _arm_calibration: DHCalibration | None = PrivateAttr(default=None)
     home_q_rad: tuple[float, float, float, float, float, float] = Field(
         (0.0, -math.pi / 2, math.pi / 2, -math.pi / 2, -math.pi / 2, 0.0),
         description="where plans start on the simulated arm (rad)",
@@ -169,7 +173,9 @@ class Settings(BaseSettings):
 
     @field_validator("keep_out_boxes")
     @classmethod
-    def _boxes(cls, value: list) -> list:
+    def _boxes(
+        cls, value: list[tuple[float, float, float, float, float, float]]
+    ) -> list[tuple[float, float, float, float, float, float]]:
         if value:
             from service.cell import check_shapes
 
@@ -180,7 +186,7 @@ class Settings(BaseSettings):
 
     @field_validator("mount_up")
     @classmethod
-    def _mount_up(cls, value: tuple) -> tuple:
+    def _mount_up(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
         length = math.sqrt(sum(v * v for v in value))
         if not 0.5 <= length <= 1.5:
             raise ValueError(
@@ -191,7 +197,9 @@ class Settings(BaseSettings):
 
     @field_validator("cell_planes")
     @classmethod
-    def _planes(cls, value: list) -> list:
+    def _planes(
+        cls, value: list[tuple[float, float, float, float]]
+    ) -> list[tuple[float, float, float, float]]:
         if value:
             from service.cell import check_shapes
 
@@ -232,7 +240,7 @@ class Settings(BaseSettings):
         return self
 
     @property
-    def arm_calibration(self):
+    def arm_calibration(self) -> DHCalibration | None:
         """The arm's :class:`recon.kinematics.DHCalibration` read from ``ur_calibration`` at
         start (None without one), checked against ``ur_robot``."""
         return self._arm_calibration

@@ -21,10 +21,11 @@ import secrets
 import shutil
 import socket
 import threading
-from collections.abc import Mapping
+import time
+from collections.abc import Callable, Iterator, Mapping
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, TypeVar, cast
+from typing import Any, TypedDict, TypeVar, Unpack, cast, overload
 
 import numpy as np
 from sqlalchemy import (
@@ -39,8 +40,10 @@ from sqlalchemy import (
     event,
     select,
 )
-from sqlalchemy.engine import CursorResult, make_url
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+from sqlalchemy.engine import CursorResult, Engine, make_url
+from sqlalchemy.engine.interfaces import DBAPIConnection
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
+from sqlalchemy.pool import ConnectionPoolEntry
 
 from drivers.files import atomic_path
 from service.parsing import load_arrays, save_arrays
@@ -188,11 +191,21 @@ class SessionDeletedError(Exception):
 _Row = TypeVar("_Row", bound=Base)
 
 
+class ArtifactFields(TypedDict, total=False):
+    """What :meth:`Store.add_artifact` takes besides the artifact's id, session, kind and file."""
+
+    inputs: dict[str, Any] | None
+    params: dict[str, Any] | None
+    summary: dict[str, Any] | None
+    source_name: str | None
+    session_fields: Mapping[str, object] | None
+
+
 class RowGoneError(LookupError):
     """A row to update is gone (deleted, with its session, since it was read)."""
 
 
-def _row_to_update(db, table: type[_Row], key: str, *, lock: bool = False) -> _Row:
+def _row_to_update(db: Session, table: type[_Row], key: str, *, lock: bool = False) -> _Row:
     """The row of ``table`` with primary key ``key`` in ``db`` (locked for the update when
     ``lock``), or :class:`RowGoneError` naming it."""
     row = db.get(table, key, with_for_update=lock)
@@ -249,6 +262,30 @@ def database_url(url: str) -> str:
     return url
 
 
+class RecentFaults:
+    """When each kind of storage fault (a full disk, a busy database) was last met by this
+    store's requests and jobs, for ``/health`` to report for a while after.
+
+    One per :class:`Store`, so that one service instance's faults are its own (a test's app or a
+    second instance in the same process never sees another's).
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._last_seen_s: dict[str, float] = {}  # code -> time.monotonic() when last met
+
+    def note(self, code: str) -> None:
+        """Record that a request or a job met the storage fault ``code`` now."""
+        with self._lock:
+            self._last_seen_s[code] = time.monotonic()
+
+    def within(self, window_s: float, now_s: float | None = None) -> list[str]:
+        """The codes met within the last ``window_s`` seconds, sorted."""
+        now_s = time.monotonic() if now_s is None else now_s
+        with self._lock:
+            return sorted(c for c, at in self._last_seen_s.items() if now_s - at <= window_s)
+
+
 class Store:
     """The database and the array files of one data folder.
 
@@ -267,6 +304,7 @@ class Store:
 
     def __init__(self, data_dir: Path, url: str, *, instance_id: str | None = None) -> None:
         self.data_dir = Path(data_dir)
+        self.faults = RecentFaults()
         # Uploads, calibrations and the token are the site's: only the service's user reads them.
         for folder in (self.data_dir, *(self.data_dir / name for name in FOLDERS)):
             folder.mkdir(mode=PRIVATE_DIR, parents=True, exist_ok=True)
@@ -294,7 +332,8 @@ class Store:
         if sqlite:
 
             @event.listens_for(self.engine, "connect")
-            def _pragmas(conn, _record):  # WAL: readers do not wait for the writer
+            def _pragmas(conn: DBAPIConnection, _record: ConnectionPoolEntry) -> None:
+                # WAL: readers do not wait for the writer
                 cursor = conn.cursor()
                 cursor.execute("PRAGMA journal_mode=WAL")
                 cursor.execute("PRAGMA synchronous=NORMAL")
@@ -311,13 +350,15 @@ class Store:
 
     # -- instances -------------------------------------------------------------------------------
 
-    def _db_now(self, db) -> datetime:
+    def _db_now(self, db: Session) -> datetime:
         """The database's clock (PostgreSQL's ``now()``): instances on several hosts compare
         heartbeats on one clock, whatever their own clocks say. SQLite is one host's: its clock."""
         if self.engine.dialect.name == "postgresql":
             from sqlalchemy import func
 
-            return _aware(db.scalar(select(func.now())))
+            moment = db.scalar(select(func.now()))
+            assert isinstance(moment, datetime)  # now() is never NULL
+            return _aware(moment)
         return now()
 
     def heartbeat(self, instance_id: str | None = None) -> None:
@@ -341,7 +382,7 @@ class Store:
                 row.heartbeat_at = moment
 
     @contextlib.contextmanager
-    def presence(self, what: str):
+    def presence(self, what: str) -> Iterator[Callable[[], None]]:
         """Count as a live instance while a block runs (a bundle import from the command line
         writes files before it records them: a service starting meanwhile must not take them for
         a crash's leftovers). Yields a function that refreshes the heartbeat (call it now and
@@ -361,7 +402,7 @@ class Store:
             if row is not None:
                 db.delete(row)
 
-    def live_instances(self, db=None) -> set[str]:
+    def live_instances(self, db: Session | None = None) -> set[str]:
         """Ids of the instances whose heartbeat is fresh on the database's clock (this one
         included once it beat), read in ``db`` if given (a transaction under way)."""
         if db is None:
@@ -396,7 +437,7 @@ class Store:
     # -- files -----------------------------------------------------------------------------------
 
     def write_arrays(
-        self, artifact_id: str, arrays: Mapping[str, np.ndarray | None]
+        self, artifact_id: str, arrays: Mapping[str, np.ndarray]
     ) -> tuple[str, str, int]:
         """Store arrays as ``arrays/<id>.npz``. Returns (relative path, sha256, size)."""
         relative = f"arrays/{artifact_id}.npz"
@@ -465,14 +506,16 @@ class Store:
             row = db.get(SessionRow, session_id)
             return None if row is None or row.deleted_at is not None else row
 
-    def update_session(self, session_id: str, **fields) -> SessionRow:
+    def update_session(self, session_id: str, **fields: object) -> SessionRow:
         with self.db.begin() as db:
             row = _row_to_update(db, SessionRow, session_id, lock=True)
             for key, value in fields.items():
                 setattr(row, key, value)
             return row
 
-    def record_calibration(self, session_id: str, name: str, entry: dict, **fields) -> SessionRow:
+    def record_calibration(
+        self, session_id: str, name: str, entry: dict[str, Any], **fields: object
+    ) -> SessionRow:
         """Set calibration fields and file ``entry`` under ``name`` in the session's calibration
         report, in one step (two calibrations landing together both stay in the report)."""
         # The row is locked (PostgreSQL: SELECT ... FOR UPDATE) so that two instances' updates
@@ -492,7 +535,12 @@ class Store:
             return db.get(CellRow, name)
 
     def set_cell(
-        self, name: str, *, boxes: list | None, planes: list | None, expected_revision: int
+        self,
+        name: str,
+        *,
+        boxes: list[list[float]] | None,
+        planes: list[list[float]] | None,
+        expected_revision: int,
     ) -> None:
         """Store the cell ``name`` (None, None: back to the start-up settings) if its revision
         is still ``expected_revision`` (0: never stored).
@@ -501,8 +549,8 @@ class Store:
         ----------
         name : str
             The arm's name (``Settings.cell_key``).
-        boxes, planes : list or None
-            As :func:`service.cell.check_shapes` returns them.
+        boxes, planes : list of list of float, or None
+            As :func:`service.cell.check_shapes` returns them (each box and plane a list).
         expected_revision : int
             The revision the edit was made from.
 
@@ -533,7 +581,8 @@ class Store:
                     .where(CellRow.name == name, CellRow.revision == expected_revision)
                     .values(**values)
                 )
-                if cast(CursorResult, done).rowcount == 1:  # an UPDATE's result
+                # An UPDATE's result is a CursorResult (Session.execute says Result).
+                if cast("CursorResult[*tuple[Any, ...]]", done).rowcount == 1:
                     return
         except sqlalchemy.exc.IntegrityError:
             pass
@@ -551,11 +600,11 @@ class Store:
         path: str,
         sha256: str,
         size: int,
-        inputs: dict | None = None,
-        params: dict | None = None,
-        summary: dict | None = None,
+        inputs: dict[str, Any] | None = None,
+        params: dict[str, Any] | None = None,
+        summary: dict[str, Any] | None = None,
         source_name: str | None = None,
-        session_fields: dict | None = None,
+        session_fields: Mapping[str, object] | None = None,
     ) -> ArtifactRow:
         """Record an artifact whose file is written; ``session_fields`` (``recording_id``, ...)
         are set on its session in the same transaction.
@@ -598,13 +647,13 @@ class Store:
         artifact_id: str,
         session_id: str,
         kind: str,
-        arrays: dict | None,
+        arrays: Mapping[str, np.ndarray] | None,
         upload_path: str,
         content: bytes,
-        session_fields: dict,
-        inputs: dict | None = None,
-        params: dict | None = None,
-        summary: dict | None = None,
+        session_fields: Mapping[str, object],
+        inputs: dict[str, Any] | None = None,
+        params: dict[str, Any] | None = None,
+        summary: dict[str, Any] | None = None,
         source_name: str | None = None,
     ) -> ArtifactRow:
         """Record a parsed upload, all or nothing: its arrays (unless its parse wrote them at
@@ -665,7 +714,13 @@ class Store:
         return row
 
     def add_arrays_artifact(
-        self, *, artifact_id: str, session_id: str, kind: str, arrays: dict, **fields
+        self,
+        *,
+        artifact_id: str,
+        session_id: str,
+        kind: str,
+        arrays: Mapping[str, np.ndarray],
+        **fields: Unpack[ArtifactFields],
     ) -> ArtifactRow:
         """Write ``arrays`` and record them as a new artifact (fields: inputs, params, summary,
         source_name)."""
@@ -685,7 +740,13 @@ class Store:
             raise
 
     def add_file_artifact(
-        self, *, artifact_id: str, session_id: str, kind: str, path: str, **fields
+        self,
+        *,
+        artifact_id: str,
+        session_id: str,
+        kind: str,
+        path: str,
+        **fields: Unpack[ArtifactFields],
     ) -> ArtifactRow:
         """Record an artifact whose file a worker already wrote at ``path`` (relative)."""
         os.chmod(self.data_dir / path, PRIVATE_FILE)
@@ -723,7 +784,7 @@ class Store:
 
     # -- jobs ------------------------------------------------------------------------------------
 
-    def create_job(self, session_id: str, kind: str, params: dict) -> JobRow:
+    def create_job(self, session_id: str, kind: str, params: dict[str, Any]) -> JobRow:
         row = JobRow(
             id=new_id("job"),
             session_id=session_id,
@@ -763,7 +824,7 @@ class Store:
             count = db.scalar(select(func.count()).select_from(JobRow).where(JobRow.state == state))
             return count or 0
 
-    def update_job(self, job_id: str, **fields) -> JobRow:
+    def update_job(self, job_id: str, **fields: object) -> JobRow:
         with self.db.begin() as db:
             row = _row_to_update(db, JobRow, job_id)
             for key, value in fields.items():
@@ -805,7 +866,7 @@ class Store:
 
     # -- captures --------------------------------------------------------------------------------
 
-    def create_capture(self, session_id: str, source: dict) -> CaptureRow:
+    def create_capture(self, session_id: str, source: dict[str, Any]) -> CaptureRow:
         capture_id = new_id("cap")
         row = CaptureRow(
             id=capture_id,
@@ -825,7 +886,7 @@ class Store:
         with self.db() as db:
             return db.get(CaptureRow, capture_id)
 
-    def update_capture(self, capture_id: str, **fields) -> CaptureRow:
+    def update_capture(self, capture_id: str, **fields: object) -> CaptureRow:
         with self.db.begin() as db:
             row = _row_to_update(db, CaptureRow, capture_id)
             for key, value in fields.items():
@@ -841,12 +902,17 @@ class Store:
             return [row for row in rows if row.owner not in live]
 
 
-def _jsonable(value):
+@overload
+def _jsonable(value: Mapping[str, Any]) -> dict[str, Any]: ...
+@overload
+def _jsonable(value: list[Any]) -> list[Any]: ...
+def _jsonable(value: Mapping[str, Any] | list[Any]) -> dict[str, Any] | list[Any]:
     """Plain JSON types (numpy scalars and arrays become floats and lists)."""
-    return json.loads(json.dumps(value, default=_default))
+    plain: dict[str, Any] | list[Any] = json.loads(json.dumps(value, default=_default))
+    return plain
 
 
-def _default(value):
+def _default(value: object) -> object:
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, np.generic):
@@ -862,7 +928,7 @@ MIGRATIONS = Path(__file__).with_name("migrations")
 _MIGRATION_LOCK = 0x7465616368707468 & 0x7FFFFFFFFFFFFFFF
 
 
-def migrate(engine, *, lock_path: str | None = None) -> None:
+def migrate(engine: Engine, *, lock_path: str | None = None) -> None:
     """Bring the database to the newest schema with Alembic (``service/migrations``).
 
     An empty database gets every table; one made by a release before Alembic (no
@@ -898,7 +964,7 @@ def migrate(engine, *, lock_path: str | None = None) -> None:
             lock.close()
 
 
-def schema_revision(engine) -> str | None:
+def schema_revision(engine: Engine) -> str | None:
     """The Alembic revision the database is at (None: not under Alembic)."""
     from alembic.runtime.migration import MigrationContext
 

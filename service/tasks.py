@@ -22,7 +22,7 @@ import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from drivers.errors import InputTooLargeError, ResourceLimitError
 from drivers.isolation import Limits, Usage, run_isolated
@@ -37,9 +37,14 @@ from service.artifacts import (
     TrajectoryCodec,
     TrajectorySummary,
 )
-from service.parsing import SUMMARY_KEY, load_arrays, save_arrays
+from service.parsing import SUMMARY_KEY
+from service.parsing import load_arrays as load_arrays  # used by the executions, the command line
 from service.parsing import recording_summary as recording_summary  # used by captures, the demo
+from service.parsing import save_arrays as save_arrays
 from service.parsing import scan_summary as scan_summary
+
+if TYPE_CHECKING:
+    from recon.trajectory import JointTrajectory
 
 # -- uploads, parsed in a child process of their own -----------------------------------------------
 
@@ -85,7 +90,7 @@ def parse_in_child(
     *,
     out_path: str | None = None,
     on_usage: Callable[[Usage], None] | None = None,
-) -> tuple[Arrays, dict]:
+) -> tuple[Arrays, dict[str, Any]]:
     """Run the parse function ``target`` of :mod:`service.parsing` on ``content`` in a child
     process.
 
@@ -149,7 +154,7 @@ def parse_in_child(
                 value=exc.value,
                 setting=exc.setting,
             ) from None
-    summary = json.loads(str(arrays.pop(SUMMARY_KEY)))
+    summary: dict[str, Any] = json.loads(str(arrays.pop(SUMMARY_KEY)))
     return arrays, summary
 
 
@@ -181,7 +186,7 @@ class ParseRecording:
     #: (:func:`service.parsing.parse_touches`); ``recording``: a trace.
     kind: Literal["recording", "touches"] = "recording"
 
-    def run(self, on_usage: Callable[[Usage], None] | None = None) -> tuple[Arrays, dict]:
+    def run(self, on_usage: Callable[[Usage], None] | None = None) -> tuple[Arrays, dict[str, Any]]:
         kwargs = {
             "format": self.format,
             "units": self.units,
@@ -215,7 +220,7 @@ class ParsePivot:
     tolerance_m: float = PIVOT_TOLERANCE_M
     accept_poor_fit: bool = False
 
-    def run(self, on_usage: Callable[[Usage], None] | None = None) -> dict:
+    def run(self, on_usage: Callable[[Usage], None] | None = None) -> dict[str, Any]:
         kwargs = {"format": self.format, "units": self.units, "rigid_body": self.rigid_body}
         _, result = parse_in_child(
             "parse_pivot", self.content, self.filename, kwargs, self.parse_limits, on_usage=on_usage
@@ -239,13 +244,13 @@ class ParseScan:
     filename: str
     format: str | None
     units: str
-    options: dict | None = None
-    limits: dict | None = None
-    limit_names: dict | None = None
+    options: dict[str, Any] | None = None
+    limits: dict[str, float] | None = None
+    limit_names: dict[str, str] | None = None
     parse_limits: ParseLimits = ParseLimits()
     out_path: str | None = None
 
-    def run(self, on_usage: Callable[[Usage], None] | None = None) -> tuple[Arrays, dict]:
+    def run(self, on_usage: Callable[[Usage], None] | None = None) -> tuple[Arrays, dict[str, Any]]:
         kwargs = {
             "format": self.format,
             "units": self.units,
@@ -273,15 +278,15 @@ class Reconstruct:
 
     recording_paths: tuple[str, ...]
     scan_path: str | None
-    params: dict
+    params: dict[str, Any]
     out_path: str
     preview_path: str
     preview_title: str
-    T_scan_tracker_init: list | None = None
+    T_scan_tracker_init: list[list[float]] | None = None
     #: A touch recording: the scanner is registered by it rather than by the trace.
     touches_path: str | None = None
 
-    def run(self) -> dict:
+    def run(self) -> dict[str, Any]:
         from recon.recon_params import ReconParams
 
         recordings = [RecordingCodec.decode(load_arrays(p)) for p in self.recording_paths]
@@ -309,18 +314,18 @@ class Plan:
     """
 
     reconstruction_path: str
-    params: dict
-    recon_params: dict
-    T_base_tracker: list | None
+    params: dict[str, Any]
+    recon_params: dict[str, Any]
+    T_base_tracker: list[list[float]] | None
     out_path: str
     scan_path: str | None = None
-    keep_out_boxes: Sequence = ()
-    cell_planes: Sequence = ()
+    keep_out_boxes: Sequence[Sequence[float]] = ()
+    cell_planes: Sequence[Sequence[float]] = ()
     start_from: str = "given"
     #: The arm's own kinematics calibration (``DHCalibration.as_dict()``); None: nominal.
-    calibration: dict | None = None
+    calibration: dict[str, Any] | None = None
 
-    def run(self) -> dict:
+    def run(self) -> dict[str, Any]:
         from recon.kinematics import DHCalibration
         from recon.plan_params import PlanParams
         from recon.recon_params import ReconParams
@@ -377,20 +382,20 @@ class MoveToStart:
     """
 
     target_path: str
-    target_summary: dict
+    target_summary: dict[str, Any]
     target_id: str
     reconstruction_path: str | None
-    params: dict
-    q_from_rad: list
+    params: dict[str, Any]
+    q_from_rad: list[float]
     out_path: str
     scan_path: str | None = None
-    T_base_tracker: list | None = None
-    keep_out_boxes: Sequence = ()
-    cell_planes: Sequence = ()
+    T_base_tracker: list[list[float]] | None = None
+    keep_out_boxes: Sequence[Sequence[float]] = ()
+    cell_planes: Sequence[Sequence[float]] = ()
     start_from: str = "arm"
-    calibration: dict | None = None
+    calibration: dict[str, Any] | None = None
 
-    def run(self) -> dict:
+    def run(self) -> dict[str, Any]:
         from recon.kinematics import DHCalibration
         from recon.plan_params import PlanParams
 
@@ -425,7 +430,7 @@ class MoveToStart:
         return outcome.summary()
 
 
-def load_trajectory(path: str | Path, summary: dict):
+def load_trajectory(path: str | Path, summary: dict[str, Any]) -> JointTrajectory:
     """A stored trajectory, with what its summary says it was planned for."""
     return TrajectoryCodec.decode(load_arrays(path), TrajectorySummary.model_validate(summary))
 
@@ -438,12 +443,12 @@ class DryRun:
     """
 
     trajectory_path: str
-    trajectory_summary: dict
+    trajectory_summary: dict[str, Any]
     out_path: str
     mode: str = "servoj"
     tolerance_m: float = 5e-4
 
-    def run(self) -> dict:
+    def run(self) -> dict[str, Any]:
         trajectory = load_trajectory(self.trajectory_path, self.trajectory_summary)
         outcome = pipelines.dry_run(trajectory, mode=self.mode, tolerance_m=self.tolerance_m)
         save_arrays(self.out_path, ExecutionCodec.encode(outcome.record))

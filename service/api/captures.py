@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+from collections.abc import AsyncIterator
+from typing import Any
 
 import numpy as np
 from fastapi import APIRouter, Query
@@ -14,24 +16,25 @@ from drivers.errors import InputFileError
 from service import captures
 from service.api.deps import ServicesDep
 from service.schemas import CaptureCreate, CaptureOut
+from service.store import CaptureRow
 
 router = APIRouter(prefix="/sessions/{session_id}/captures", tags=["captures"])
 
 
 @router.post("", status_code=201, response_model=CaptureOut)
-def start_capture(session_id: str, body: CaptureCreate, services: ServicesDep):
+def start_capture(session_id: str, body: CaptureCreate, services: ServicesDep) -> CaptureRow:
     """Start capturing; the samples are stored as they arrive and become a recording when the
     capture stops or the source ends."""
     return captures.start(services, session_id, body)
 
 
 @router.get("/{capture_id}", response_model=CaptureOut)
-def get_capture(session_id: str, capture_id: str, services: ServicesDep):
+def get_capture(session_id: str, capture_id: str, services: ServicesDep) -> CaptureRow:
     return captures.get(services, session_id, capture_id)
 
 
 @router.post("/{capture_id}/stop", response_model=CaptureOut)
-def stop_capture(session_id: str, capture_id: str, services: ServicesDep):
+def stop_capture(session_id: str, capture_id: str, services: ServicesDep) -> CaptureRow:
     return captures.stop(services, session_id, capture_id)
 
 
@@ -67,8 +70,8 @@ async def capture_samples(
         None if tip is None else np.asarray(tip, dtype=np.float64),
     )
 
-    async def stream():
-        last = None
+    async def stream() -> AsyncIterator[str]:
+        last: dict[str, Any] | None = None
         while True:
             # The state first, then the file: a capture seen ended has all its samples written.
             now = await run_in_threadpool(services.store.capture, capture_id)

@@ -3,20 +3,31 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable, Mapping
 from typing import Any
 
-from fastapi import APIRouter, UploadFile
+from fastapi import APIRouter, Request, UploadFile
 from fastapi.responses import Response
+from pydantic import BaseModel
 
 from service.api.deps import ServicesDep
+from service.core import Services
 from service.errors import ApiError
 from service.inputs import Upload
+from service.store import ArtifactRow, SessionRow
 from service.uploads import clean_filename
+
+#: ``outdated(services, session, row)``: what changed since an artifact was made.
+Outdated = Callable[[Services, SessionRow, ArtifactRow], list[str]]
 
 
 def add_artifact_routes(
-    router: APIRouter, kind: str, plural: str, model: type, *, outdated=None
+    router: APIRouter,
+    kind: str,
+    plural: str,
+    model: type[BaseModel],
+    *,
+    outdated: Outdated | None = None,
 ) -> None:
     """``GET /{plural}`` (oldest first) and ``GET /{plural}/{artifact_id}`` for one kind.
 
@@ -25,18 +36,20 @@ def add_artifact_routes(
     inputs and calibration, the cell).
     """
 
-    def shown(services, session, row):
+    def shown(services: Services, session: SessionRow, row: ArtifactRow) -> ArtifactRow | BaseModel:
         if outdated is None:
             return row
         return model.model_validate(row).model_copy(
             update={"outdated": outdated(services, session, row)}
         )
 
-    def list_artifacts(session_id: str, services: ServicesDep):
+    def list_artifacts(session_id: str, services: ServicesDep) -> list[ArtifactRow | BaseModel]:
         session = services.session(session_id)
         return [shown(services, session, row) for row in services.store.artifacts(session_id, kind)]
 
-    def get_artifact(session_id: str, artifact_id: str, services: ServicesDep):
+    def get_artifact(
+        session_id: str, artifact_id: str, services: ServicesDep
+    ) -> ArtifactRow | BaseModel:
         session = services.session(session_id)
         return shown(services, session, services.artifact(session_id, kind, artifact_id))
 
@@ -59,7 +72,7 @@ def add_artifact_routes(
 
 
 @contextlib.asynccontextmanager
-async def received(file: UploadFile, services) -> AsyncIterator[Upload]:
+async def received(file: UploadFile, services: Services) -> AsyncIterator[Upload]:
     """The uploaded file, counted as in flight until the block ends (parsed and stored).
 
     Its size is known before its bytes are read (the form parser spooled it to disk), so an
@@ -87,7 +100,7 @@ async def received(file: UploadFile, services) -> AsyncIterator[Upload]:
         yield Upload(content=content, filename=clean_filename(file.filename))
 
 
-def _require_room(services, size: int) -> None:
+def _require_room(services: Services, size: int) -> None:
     """503 ``storage_full`` when the data folder's disk has no room for an upload of ``size``
     bytes and its arrays (kept twice over: the raw file and what it is parsed to), before the
     upload is parsed: a parse that fails for the server's full disk is not the file's fault."""
@@ -109,7 +122,7 @@ def download(content: bytes | str, *, media_type: str, filename: str) -> Respons
     )
 
 
-def gzip_json(content, request) -> Response:
+def gzip_json(content: Mapping[str, Any], request: Request) -> Response:
     """JSON for the pendant's drawings, gzip-compressed (``Content-Encoding: gzip``) for a
     client that accepts it (every browser), plain for one that does not."""
     import gzip

@@ -16,7 +16,8 @@ _bearer = HTTPBearer(auto_error=False, description="the access token printed at 
 
 async def services(request: Request) -> Services:
     """The app's :class:`~service.core.Services` (built in the lifespan)."""
-    return request.app.state.services
+    services: Services = request.app.state.services
+    return services
 
 
 async def require_token(

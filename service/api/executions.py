@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+from typing import Any
 
 import anyio
 import anyio.to_thread
@@ -24,6 +25,7 @@ from service.schemas import (
     SpeedIn,
     StopOut,
 )
+from service.store import JobRow
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["executions"])
 stop_router = APIRouter(prefix="/executions", tags=["executions"])
@@ -32,7 +34,7 @@ control_router = APIRouter(prefix="/executions", tags=["executions"])
 
 
 @router.post("/executions", status_code=202, response_model=JobOut)
-def start_execution(session_id: str, body: ExecutionCreate, services: ServicesDep):
+def start_execution(session_id: str, body: ExecutionCreate, services: ServicesDep) -> JobRow:
     """Run a trajectory: on the simulated arm (a dry run, the default) or, confirmed and after
     a passed dry run, on the configured real arm."""
     return executions.start(services, session_id, body)
@@ -42,7 +44,7 @@ add_artifact_routes(router, "execution", "executions", ExecutionOut)
 
 
 @router.get("/executions/{artifact_id}/csv", response_class=Response, responses=CSV)
-def execution_csv(session_id: str, artifact_id: str, services: ServicesDep):
+def execution_csv(session_id: str, artifact_id: str, services: ServicesDep) -> Response:
     """What ran: t, planned and actual joints."""
     row = services.artifact(session_id, "execution", artifact_id)
     samples = ExecutionCodec.decode(services.store.read_arrays(row))
@@ -65,7 +67,7 @@ def execution_review(
     services: ServicesDep,
     request: Request,
     max_samples: int = Query(1500, ge=10, le=20_000, description="about this many samples"),
-):
+) -> Response:
     """Planned against actual (gzip JSON): where the TCP was (base frame, m) and how far the
     arm was from the planned path along the execution, with the largest deviation and when."""
     from service.preview import execution_review as review
@@ -85,7 +87,9 @@ STOP_THREADS = anyio.CapacityLimiter(4)
 
 
 @stop_router.post("/{execution_id}/stop", response_model=StopOut)
-async def stop_execution(execution_id: str, services: ServicesDep, request: Request) -> dict:
+async def stop_execution(
+    execution_id: str, services: ServicesDep, request: Request
+) -> dict[str, Any]:
     """Stop the arm (decelerating; nothing of this execution moves afterwards) or cancel an
     execution that has not started; says whether it had already ended. Needs no token for an
     execution this instance started (any screen by the cell stops the arm); with the token,
@@ -114,7 +118,7 @@ async def stop_execution(execution_id: str, services: ServicesDep, request: Requ
 
 
 @control_router.post("/{execution_id}/speed", response_model=RunSpeedOut)
-async def set_speed(execution_id: str, body: SpeedIn, services: ServicesDep) -> dict:
+async def set_speed(execution_id: str, body: SpeedIn, services: ServicesDep) -> dict[str, Any]:
     """Run a real-arm execution (servoJ) at a fraction of its planned speed from now on, as a
     UR program's speed slider does: the arm ramps to it within the joints' acceleration limits,
     on the same path, never faster than planned."""
@@ -122,7 +126,7 @@ async def set_speed(execution_id: str, body: SpeedIn, services: ServicesDep) -> 
 
 
 @control_router.post("/{execution_id}/pause", response_model=RunSpeedOut)
-async def pause(execution_id: str, services: ServicesDep) -> dict:
+async def pause(execution_id: str, services: ServicesDep) -> dict[str, Any]:
     """Bring a moving real-arm execution (servoJ) to rest on its path, within the acceleration
     limits; it holds there until resumed (an approval) or stopped. A pause longer than 10
     minutes ends the run as stopped."""
@@ -130,7 +134,7 @@ async def pause(execution_id: str, services: ServicesDep) -> dict:
 
 
 @control_router.post("/{execution_id}/resume", response_model=RunSpeedOut)
-async def resume(execution_id: str, body: ResumeIn, services: ServicesDep) -> dict:
+async def resume(execution_id: str, body: ResumeIn, services: ServicesDep) -> dict[str, Any]:
     """Go on along the path from where a pause left the arm, at the speed set: the operator
     approves it again (``confirm`` true, and the running trajectory's sha256)."""
     if body.confirm is not True:

@@ -5,11 +5,12 @@ from __future__ import annotations
 import functools
 import shutil
 from importlib import metadata
+from typing import Any
 
 from fastapi import APIRouter
 
 from service.api.deps import ServicesDep
-from service.errors import recent_storage_faults, storage_fault
+from service.errors import STORAGE_FAULT_WINDOW_S, storage_fault
 from service.schemas import Health
 
 router = APIRouter(prefix="/health", tags=["health"])
@@ -29,14 +30,14 @@ MIN_FREE_BYTES = 64 << 20
 
 
 @router.get("", response_model=Health)
-def health(services: ServicesDep) -> dict:
+def health(services: ServicesDep) -> dict[str, Any]:
     """Liveness, versions and the robot backends' state. ``degraded`` while the worker pool is
     being replaced after a worker died (jobs queue and run once it is back), while the data
     folder's disk is (nearly) full, and for 30 s after a request met a full disk or a busy
     database (``problems`` names which)."""
     settings = services.settings
     problems = ["worker_pool_replaced"] if services.jobs.degraded else []
-    problems += recent_storage_faults()
+    problems += services.store.faults.within(STORAGE_FAULT_WINDOW_S)
     try:
         if shutil.disk_usage(services.store.data_dir).free < MIN_FREE_BYTES:
             problems.append("storage_full")

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+from collections.abc import AsyncIterator
+from typing import Any
 
 from fastapi import APIRouter
 from fastapi.concurrency import run_in_threadpool
@@ -15,6 +17,7 @@ from fastapi.responses import StreamingResponse
 
 from service import executions
 from service.api.deps import ServicesDep
+from service.core import Services
 from service.errors import not_found
 from service.schemas import JobOut
 from service.store import FINISHED, JobRow
@@ -26,7 +29,7 @@ session_router = APIRouter(prefix="/sessions/{session_id}/jobs", tags=["jobs"])
 POLL_S = 0.2
 
 
-def _job(services, job_id: str) -> JobRow:
+def _job(services: Services, job_id: str) -> JobRow:
     job = services.store.job(job_id)
     if job is None:
         raise not_found("job", job_id)
@@ -34,19 +37,19 @@ def _job(services, job_id: str) -> JobRow:
 
 
 @router.get("/{job_id}", response_model=JobOut)
-def get_job(job_id: str, services: ServicesDep):
+def get_job(job_id: str, services: ServicesDep) -> JobRow:
     """State (queued, running, succeeded, failed, cancelled), progress 0..1, result or error."""
     return _job(services, job_id)
 
 
 @session_router.get("", response_model=list[JobOut])
-def list_jobs(session_id: str, services: ServicesDep):
+def list_jobs(session_id: str, services: ServicesDep) -> list[JobRow]:
     services.session(session_id)
     return services.store.jobs(session_id)
 
 
 @router.post("/{job_id}/cancel", response_model=JobOut)
-def cancel_job(job_id: str, services: ServicesDep):
+def cancel_job(job_id: str, services: ServicesDep) -> JobRow:
     """Cancel a job that has not started (409 once it runs or has finished). An execution is
     stopped instead, running or not (as ``POST /executions/{id}/stop``)."""
     job = _job(services, job_id)
@@ -65,8 +68,8 @@ async def job_events(job_id: str, services: ServicesDep) -> StreamingResponse:
     """Server-sent events: the job as JSON each time it changes, until it has finished."""
     first = await run_in_threadpool(_job, services, job_id)
 
-    async def stream():
-        last = None
+    async def stream() -> AsyncIterator[str]:
+        last: dict[str, Any] | None = None
         job = first
         while True:
             body = JobOut.model_validate(job).model_dump(mode="json")

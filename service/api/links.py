@@ -9,6 +9,7 @@ exist (a renamed route fails the spec, not a client later).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 SESSION = "/sessions/{session_id}"
 RECORDING = SESSION + "/recordings/{artifact_id}"
@@ -38,10 +39,10 @@ class Link:
     path: str
     description: str
     parameters: dict[str, str] = field(default_factory=dict)
-    request_body: dict | None = None
+    request_body: dict[str, Any] | None = None
 
-    def openapi(self, operation_id: str) -> dict:
-        entry = {
+    def openapi(self, operation_id: str) -> dict[str, Any]:
+        entry: dict[str, Any] = {
             "operationId": operation_id,
             "description": self.description,
             "parameters": dict(self.parameters),
@@ -260,17 +261,18 @@ LINKS: dict[tuple[str, str, int], list[Link]] = {
 }
 
 
-def add_links(spec: dict) -> dict:
+def add_links(spec: dict[str, Any]) -> dict[str, Any]:
     """``spec`` (FastAPI's OpenAPI document) with :data:`LINKS` on its responses."""
     paths = spec["paths"]
 
-    def operation(method: str, path: str) -> dict:
+    def operation(method: str, path: str) -> dict[str, Any]:
         try:
-            return paths[path][method.lower()]
+            found: dict[str, Any] = paths[path][method.lower()]
         except KeyError:
             raise ValueError(
                 f"OpenAPI link to or from a missing operation {method} {path}"
             ) from None
+        return found
 
     for (method, path, status), links in LINKS.items():
         response = operation(method, path)["responses"].get(str(status))

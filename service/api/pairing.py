@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 from fastapi import APIRouter, Depends, Request
 
@@ -17,7 +18,7 @@ router = APIRouter(prefix="/pairing", tags=["pairing"])
 
 
 @router.post("", response_model=PairingOut, responses={401: {"model": ErrorBody}})
-async def pair(body: PairingIn, request: Request) -> dict:
+async def pair(body: PairingIn, request: Request) -> dict[str, Any]:
     """Give the pairing code, get the access token. The code works once, for 10 minutes and
     for 5 wrong tries; then ask for a new one ("Pair a screen" on a signed-in pendant)."""
     outcome = request.app.state.pairing.redeem(body.code)
@@ -39,7 +40,7 @@ async def pair(body: PairingIn, request: Request) -> dict:
     dependencies=[Depends(require_token)],
     responses={401: {"model": ErrorBody}},
 )
-async def new_pairing_code(request: Request) -> dict:
+async def new_pairing_code(request: Request) -> dict[str, Any]:
     """A new pairing code for another screen (a signed-in screen asks; the old code is void).
     The server's log shows it too."""
     pairing = request.app.state.pairing

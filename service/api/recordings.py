@@ -13,6 +13,7 @@ from service.api.common import CSV, add_artifact_routes, download, received
 from service.api.deps import ServicesDep
 from service.artifacts import RecordingCodec
 from service.schemas import RecordingOut, TouchesOut
+from service.store import ArtifactRow
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["recordings"])
 
@@ -33,7 +34,7 @@ async def upload_recording(
         description="after long dropouts: which piece (0-based), or `all` of them (the arm "
         "lifts between pieces); default the longest",
     ),
-):
+) -> ArtifactRow:
     """Upload a trace; it becomes the session's recording. The session's tip offset is applied,
     short dropouts are bridged and long ones split it (the summary says what was done). A bad
     file is a 422 and changes nothing."""
@@ -62,7 +63,7 @@ async def upload_touches(
     units: Literal["m", "mm"] | None = Form(None, description="if the file states none (m)"),
     rigid_body: str | None = Form(None, description="Motive: the pen's rigid body"),
     marker: str | None = Form(None, description="Motive or C3D: a single marker as the pen"),
-):
+) -> ArtifactRow:
     """Upload touches of the workpiece: the tip rests 0.3 s or more on each of at least three
     points, on two or three faces, and moves between them. Reconstructions with a scan then
     register the scanner by them (the newest touches; ``use_touches: false`` opts out), so the
@@ -79,7 +80,7 @@ add_artifact_routes(router, "touches", "touches", TouchesOut)
 
 
 @router.get("/recordings/{artifact_id}/csv", response_class=Response, responses=CSV)
-def recording_csv(session_id: str, artifact_id: str, services: ServicesDep):
+def recording_csv(session_id: str, artifact_id: str, services: ServicesDep) -> Response:
     """The recording as the canonical trace CSV (metres, seconds)."""
     from drivers.tracking.canonical_csv import write_trace_csv
 

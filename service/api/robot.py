@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import json
-from typing import TYPE_CHECKING
+from collections.abc import AsyncIterator
+from typing import TYPE_CHECKING, Any
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
@@ -34,8 +35,12 @@ MAX_EVENT_STREAMS = 64
 #: the slots the signed-in pendants need.
 MAX_ANONYMOUS_STREAMS = 16
 
+#: Which run owns the arm and what of its speed the safety bar shows: (its execution's id, the
+#: speed fraction, paused, at rest).
+RunSignature = tuple[str | None, float, bool, bool]
 
-def _view(services) -> dict:
+
+def _view(services: Services) -> dict[str, Any]:
     with services.live.lock:
         owner = services.live.arm_owner()
         runner = services.live.executions.get(owner) if owner else None
@@ -51,13 +56,13 @@ def _owner_now(services: Services) -> tuple[str | None, ExecutionRunner | None]:
     return owner, None if owner is None else runners.get(owner)
 
 
-def _view_now(services) -> dict:
+def _view_now(services: Services) -> dict[str, Any]:
     """The view, for the event loop (see :func:`_owner_now`)."""
     owner, runner = _owner_now(services)
     return _with_speed(services.robot.view(owner), owner, runner)
 
 
-def _run_signature(services) -> tuple | None:
+def _run_signature(services: Services) -> RunSignature | None:
     """Which run owns the arm and what of its speed the safety bar shows. A change is sent at
     once: a run that has ended (the arm free again: with the arm at rest, its readings no longer
     change, and the bar said "busy" until the next keep-alive), a pause asked, the arm come to
@@ -69,14 +74,16 @@ def _run_signature(services) -> tuple | None:
     return (owner, view["speed_fraction"], view["paused"], view["speed_now"] == 0)
 
 
-def _with_speed(view: dict, owner: str | None, runner: ExecutionRunner | None) -> dict:
+def _with_speed(
+    view: dict[str, Any], owner: str | None, runner: ExecutionRunner | None
+) -> dict[str, Any]:
     """The view with the owning run's speed override (what the safety bar shows beside Stop)."""
     speed = None if runner is None or owner is None else executions.speed_view(owner, runner)
     return {**view, "run_speed": speed}
 
 
 @router.get("", response_model=RobotOut)
-def robot_state(services: ServicesDep) -> dict:
+def robot_state(services: ServicesDep) -> dict[str, Any]:
     """Backend, robot mode, safety status, protective stop (and when it may be unlocked),
     remote control, joints and TCP, who owns the arm, and the server's speed cap."""
     return _view(services)
@@ -105,12 +112,13 @@ async def robot_events(services: ServicesDep, request: Request) -> StreamingResp
             "already: close a pendant, sign in, or poll GET /robot",
         )
 
-    async def stream():
+    async def stream() -> AsyncIterator[str]:
         # Counted while it runs (on the event loop: no lock needed).
         live.event_streams += 1
         live.anonymous_streams += anonymous
         loop = asyncio.get_running_loop()
-        version, run = -1, None
+        version: int = -1
+        run: RunSignature | None = None
         try:
             while True:
                 # On a change, or after KEEPALIVE_S: either way the page gets the state.
@@ -134,13 +142,13 @@ async def robot_events(services: ServicesDep, request: Request) -> StreamingResp
 
 
 @unlock_router.post("/unlock", response_model=RobotOut)
-def unlock_protective_stop(services: ServicesDep) -> dict:
+def unlock_protective_stop(services: ServicesDep) -> dict[str, Any]:
     """Unlock a protective stop (after its cause is gone; UR refuses within 5 s of it)."""
     services.robot.unlock_protective_stop()
     return _view(services)
 
 
-def _cell_view(services) -> dict:
+def _cell_view(services: Services) -> dict[str, Any]:
     from service.cell import cell_now
 
     settings = services.settings
@@ -148,6 +156,8 @@ def _cell_view(services) -> dict:
     with services.live.lock:
         editable = services.live.arm_owner() is None
     boxes, planes = cell.as_lists()
+    # The arm's calibration is read from that file at start (settings.arm_calibration).
+    calibration_file = settings.ur_calibration
     return {
         "robot": settings.ur_robot,
         "keep_out_boxes_m": boxes,
@@ -157,15 +167,15 @@ def _cell_view(services) -> dict:
         "editable": editable,
         "mount_up": list(settings.mount_up),
         "arm_kinematics": (
-            f"calibrated ({settings.ur_calibration.name})"
-            if settings.arm_calibration is not None
+            f"calibrated ({calibration_file.name})"
+            if settings.arm_calibration is not None and calibration_file is not None
             else "UR's nominal kinematics (no calibration.conf given)"
         ),
     }
 
 
 @cell_router.get("", response_model=CellOut)
-def cell(services: ServicesDep) -> dict:
+def cell(services: ServicesDep) -> dict[str, Any]:
     """This server's cell, as every plan and the real-arm gate check against it: the keep-out
     boxes and planes (base frame, m), how the arm is mounted, and whether its kinematics are
     the controller's calibration or UR's nominal ones. The boxes and planes are the start-up
@@ -174,7 +184,7 @@ def cell(services: ServicesDep) -> dict:
 
 
 @cell_router.put("", response_model=CellOut)
-def edit_cell(body: CellIn, services: ServicesDep) -> dict:
+def edit_cell(body: CellIn, services: ServicesDep) -> dict[str, Any]:
     """Set this arm's keep-out boxes and planes. Plans made before are then outdated, and the
     real-arm gate checks every run against the new cell. Refused (409) while a real-arm
     execution runs, and when the cell changed since the revision named (``cell_changed``)."""
@@ -188,7 +198,7 @@ def edit_cell(body: CellIn, services: ServicesDep) -> dict:
 def reset_cell(
     services: ServicesDep,
     revision: int = Query(..., ge=0, le=2**31 - 1, description="the revision this was seen at"),
-) -> dict:
+) -> dict[str, Any]:
     """Go back to the start-up settings' boxes and planes (refused as an edit is)."""
     from service import cell as cells
 

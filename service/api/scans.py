@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import tempfile
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from fastapi import APIRouter, File, Form, Query, Response, UploadFile
 
@@ -15,6 +15,7 @@ from service.api.deps import ServicesDep
 from service.artifacts import ScanCodec
 from service.errors import ApiError
 from service.schemas import ScanOut
+from service.store import ArtifactRow
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["scans"])
 
@@ -23,7 +24,7 @@ router = APIRouter(prefix="/sessions/{session_id}", tags=["scans"])
 MAX_OPTIONS_CHARS = 4096
 
 
-def _reader_options(options: str | None) -> dict | None:
+def _reader_options(options: str | None) -> dict[str, Any] | None:
     if not options:
         return None
     if len(options) > MAX_OPTIONS_CHARS:
@@ -57,7 +58,7 @@ async def upload_scan(
         description='the reader\'s options as a JSON object, e.g. {"depth_scale": 1000} for '
         "RGB-D frames",
     ),
-):
+) -> ArtifactRow:
     """Upload a scan; it becomes the session's scan. A bad file is a 422 and changes nothing."""
     reader_options = _reader_options(options)
     async with received(file, services) as upload:
@@ -70,7 +71,7 @@ add_artifact_routes(router, "scan", "scans", ScanOut)
 
 
 @router.get("/scans/{artifact_id}/ply", response_class=Response, responses=BINARY)
-def scan_ply(session_id: str, artifact_id: str, services: ServicesDep):
+def scan_ply(session_id: str, artifact_id: str, services: ServicesDep) -> Response:
     """The scan as a binary PLY (metres)."""
     from drivers.scanning.pointcloud import write_scan
 
@@ -98,7 +99,7 @@ def scan_points(
     max_points: int = Query(
         200_000, ge=1, le=MAX_VIEW_POINTS, description="at most this many points (every k-th)"
     ),
-):
+) -> Response:
     """The scan's points for drawing: every k-th point so that at most ``max_points`` remain,
     as little-endian float32 x, y, z triples (scan frame, metres), gzip-compressed
     (``Content-Encoding: gzip``). ``X-Point-Count``: the points sent; ``X-Point-Total``: the

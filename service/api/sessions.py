@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from fastapi import APIRouter, File, Form, Response, UploadFile
 from fastapi.concurrency import run_in_threadpool
@@ -23,18 +23,19 @@ from service.schemas import (
     SessionCreate,
     SessionOut,
 )
+from service.store import ArtifactRow, SessionRow
 
 router = APIRouter(prefix="/sessions", tags=["sessions"])
 
 
 @router.post("", status_code=201, response_model=SessionOut)
-def create_session(body: SessionCreate, services: ServicesDep):
+def create_session(body: SessionCreate, services: ServicesDep) -> SessionRow:
     """A new, empty session."""
     return services.store.create_session(body.name)
 
 
 @router.get("", response_model=list[SessionOut])
-def list_sessions(services: ServicesDep):
+def list_sessions(services: ServicesDep) -> list[SessionRow]:
     return services.store.sessions()
 
 
@@ -48,7 +49,7 @@ async def import_session(
     services: ServicesDep,
     response: Response,
     file: UploadFile = File(..., description="a session bundle (GET /sessions/{id}/bundle)"),
-) -> dict:
+) -> dict[str, Any]:
     """Import a session bundle: every checksum, the manifest and the schema are checked before
     anything changes (422 ``bundle_invalid`` says what is wrong). A session that is here already
     with the same content is left as it is (200, ``created`` false); one with the same id and
@@ -107,7 +108,7 @@ async def export_session(session_id: str, services: ServicesDep) -> FileResponse
 
 
 @router.get("/{session_id}", response_model=SessionOut)
-def get_session(session_id: str, services: ServicesDep):
+def get_session(session_id: str, services: ServicesDep) -> SessionRow:
     return services.session(session_id)
 
 
@@ -121,7 +122,7 @@ def delete_session(session_id: str, services: ServicesDep) -> Response:
 
 
 @router.get("/{session_id}/artifacts", response_model=list[ArtifactOut])
-def list_artifacts(session_id: str, services: ServicesDep):
+def list_artifacts(session_id: str, services: ServicesDep) -> list[ArtifactRow]:
     """Every artifact of the session, of every kind, oldest first: what it is made of and what
     each was made from (inputs, parameters, checksum)."""
     services.session(session_id)
@@ -129,7 +130,7 @@ def list_artifacts(session_id: str, services: ServicesDep):
 
 
 @router.put("/{session_id}/calibration", response_model=SessionOut)
-def set_calibration(session_id: str, body: CalibrationIn, services: ServicesDep):
+def set_calibration(session_id: str, body: CalibrationIn, services: ServicesDep) -> SessionRow:
     """Set calibrations: T_base_tracker (tracker -> robot base), T_scan_tracker (tracker ->
     scan, the initial guess for registration), tip_offset_m (the pen's tip in its rigid body's
     frame, applied to recordings uploaded or captured afterwards). Fields left out keep their
@@ -144,15 +145,16 @@ async def load_calibration_file(
     file: UploadFile = File(
         ..., description="a calibration `teachpath calibrate` wrote (JSON, at most 64 KB)"
     ),
-):
+) -> SessionRow:
     """Set the calibration a stored file holds: T_base_tracker, T_scan_tracker (4x4, as
     ``teachpath calibrate base|scan`` writes them) or the pen's tip offset (``calibrate
     pivot``); checked as the CLI checks them (rigid, units). 422 ``invalid_file`` otherwise,
     and nothing changes."""
     async with received(file, services) as upload:
-        return await run_in_threadpool(
+        row: SessionRow = await run_in_threadpool(
             inputs.load_calibration_file, services, session_id, upload.content, upload.filename
         )
+        return row
 
 
 @router.post("/{session_id}/calibration/pivot", response_model=CalibrationResult)
@@ -169,7 +171,7 @@ async def pivot_calibration(
     accept_poor_fit: Literal["true", "false"] = Form(
         "false", description="store a fit worse than the tolerance (default: refused, 422)"
     ),
-) -> dict:
+) -> dict[str, Any]:
     """Pivot calibration: the tip offset from a recording where the tip stays on one point
     while the pen tilts in every direction. Sets the session's tip_offset_m; a fit worse than
     the tolerance is refused (422 poor_fit with its figures) unless accepted."""
@@ -186,7 +188,9 @@ async def pivot_calibration(
 
 
 @router.post("/{session_id}/calibration/base", response_model=CalibrationResult)
-def base_calibration(session_id: str, body: BaseCalibrationIn, services: ServicesDep) -> dict:
+def base_calibration(
+    session_id: str, body: BaseCalibrationIn, services: ServicesDep
+) -> dict[str, Any]:
     """T_base_tracker from point pairs (the same points in the base and tracker frames, at
     least 3 not on a line); pairs off by more than the tolerance are reported and left out.
     Sets the session's T_base_tracker."""

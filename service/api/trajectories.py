@@ -12,21 +12,23 @@ from service.api.common import CSV, add_artifact_routes, download, gzip_json
 from service.api.deps import ServicesDep
 from service.artifacts import TrajectorySummary
 from service.cell import CellUnreadable, cell_now
+from service.core import Services
 from service.provenance import trajectory_outdated
 from service.schemas import JobOut, TrajectoryCreate, TrajectoryOut
+from service.store import ArtifactRow, JobRow, SessionRow
 
 router = APIRouter(prefix="/sessions/{session_id}", tags=["trajectories"])
 
 
 @router.post("/trajectories", status_code=202, response_model=JobOut)
-def start_trajectory(session_id: str, body: TrajectoryCreate, services: ServicesDep):
+def start_trajectory(session_id: str, body: TrajectoryCreate, services: ServicesDep) -> JobRow:
     """Plan a timed joint trajectory along a reconstruction; the result holds the feasibility
     report."""
     return trajectories.start(services, session_id, body)
 
 
 @router.post("/trajectories/{trajectory_id}/move-to-start", status_code=202, response_model=JobOut)
-def start_move_to_start(session_id: str, trajectory_id: str, services: ServicesDep):
+def start_move_to_start(session_id: str, trajectory_id: str, services: ServicesDep) -> JobRow:
     """Plan a move of its own from where the arm is now to this plan's start (a joint move at
     the plan's transit speeds, checked against the cell). The result is a trajectory like any
     other (its summary's ``move_to_start_of`` names the plan): dry-run it, approve it and run
@@ -34,7 +36,7 @@ def start_move_to_start(session_id: str, trajectory_id: str, services: ServicesD
     return trajectories.start_move_to_start(services, session_id, trajectory_id)
 
 
-def _outdated(services, session, row) -> list[str]:
+def _outdated(services: Services, session: SessionRow, row: ArtifactRow) -> list[str]:
     try:
         cell = cell_now(services.store, services.settings)
     except CellUnreadable as exc:  # the list stays readable; the plans cannot run
@@ -46,7 +48,7 @@ add_artifact_routes(router, "trajectory", "trajectories", TrajectoryOut, outdate
 
 
 @router.get("/trajectories/{artifact_id}/csv", response_class=Response, responses=CSV)
-def trajectory_csv(session_id: str, artifact_id: str, services: ServicesDep):
+def trajectory_csv(session_id: str, artifact_id: str, services: ServicesDep) -> Response:
     """t,q0..q5 (s, rad) and the planned TCP x,y,z,rx,ry,rz (base frame), as `teachpath plan`
     writes it."""
     from drivers.export import trajectory_csv_text
@@ -68,13 +70,13 @@ def trajectory_preview(
     services: ServicesDep,
     request: Request,
     max_samples: int = Query(1500, ge=10, le=20_000, description="about this many samples"),
-):
+) -> Response:
     """The plan as the pendant animates it (gzip JSON): per kept sample the time, phase, the
     arm's joint positions from its DH chain and the TCP (base frame, m), TCP speed, joint
     angles, and each margin as the smallest since the previous sample sent (joint limits,
     wrist and elbow singularity, clearance to the cell); the slow-downs with their causes."""
+    from service.parsing import load_arrays
     from service.preview import trajectory_preview as preview
-    from service.tasks import load_arrays
 
     row = services.artifact(session_id, "trajectory", artifact_id)
     path = services.store.path_of(row)
@@ -88,7 +90,7 @@ def trajectory_preview(
     response_class=Response,
     responses={200: {"content": {"image/png": {}}}},
 )
-def trajectory_plot(session_id: str, artifact_id: str, services: ServicesDep):
+def trajectory_plot(session_id: str, artifact_id: str, services: ServicesDep) -> Response:
     """The plan preview as a picture: TCP speed against the requested speed with the causes of
     slow-downs, joint angles and speeds against their limits, the phases shaded (what
     `teachpath plan --plot` writes)."""
@@ -116,7 +118,7 @@ def trajectory_urscript(
     services: ServicesDep,
     mode: Literal["servoj", "movep"] = Query("servoj", description="the path as servoj or movep"),
     tolerance_m: float = Query(5e-4, gt=0, le=0.01, description="movep: largest deviation"),
-):
+) -> Response:
     """The trajectory as a standalone URScript program for the teach pendant (see
     `teachpath export-urscript`)."""
     from drivers.robot.urscript import program_header, urscript_program

@@ -15,8 +15,9 @@ from pathlib import Path
 
 from fastapi import FastAPI
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
-from fastapi.responses import HTMLResponse
+from fastapi.responses import FileResponse, HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
+from starlette.types import Scope
 
 UI_DIR = Path(__file__).resolve().parent.parent / "ui"
 VENDOR_DIR = UI_DIR / "vendor"
@@ -58,7 +59,7 @@ def headers(csp: str) -> dict[str, str]:
 class UiFiles(StaticFiles):
     """The pendant's files, with the security headers."""
 
-    async def get_response(self, path, scope):
+    async def get_response(self, path: str, scope: Scope) -> Response:
         response = await super().get_response(path, scope)
         response.headers.update(headers(policy()))
         return response
@@ -68,16 +69,17 @@ class GuideFiles(StaticFiles):
     """The documentation site (``make docs``), with the security headers: each page's inline
     scripts allowed by their hashes; inline styles allowed (the diagrams draw with them)."""
 
-    async def get_response(self, path, scope):
+    async def get_response(self, path: str, scope: Scope) -> Response:
         response = await super().get_response(path, scope)
         html = ""
-        if response.media_type == "text/html" and getattr(response, "path", None):
+        # A file's response (not a 304, nor a redirect) has the path of the page.
+        if response.media_type == "text/html" and isinstance(response, FileResponse):
             html = Path(response.path).read_text(errors="replace")
         response.headers.update(headers(policy(html, style="'self' 'unsafe-inline'")))
         return response
 
 
-def _page(response: HTMLResponse, **csp) -> HTMLResponse:
+def _page(response: HTMLResponse, **csp: str) -> HTMLResponse:
     html = bytes(response.body).decode()
     return HTMLResponse(html, headers=headers(policy(html, **csp)))
 

@@ -5,11 +5,16 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from service.cli.options import OneLineParser, check_output
 
+if TYPE_CHECKING:
+    from service.settings import Settings
+    from service.store import Store
 
-def add_parser(commands) -> None:
+
+def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     bundle = commands.add_parser(
         "bundle",
         help="export a session as one zip, or import one",
@@ -44,13 +49,13 @@ def _data_dir(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data-dir", help="the service's data folder (default ./teachpath_data)")
 
 
-def _settings(args: argparse.Namespace):
+def _settings(args: argparse.Namespace) -> Settings:
     from service.settings import Settings
 
     return Settings(**({"data_dir": args.data_dir} if args.data_dir else {}))
 
 
-def _store(args: argparse.Namespace, *, must_exist: bool):
+def _store(args: argparse.Namespace, *, must_exist: bool) -> Store:
     from service.store import Store
 
     settings = _settings(args)

@@ -19,7 +19,7 @@ from service.cli.options import (
 )
 
 
-def add_parser(commands) -> None:
+def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     calibrate = commands.add_parser(
         "calibrate",
         help="pen-tip (pivot), tracker-to-robot (point pairs) and tracker-to-scanner (touches) "
@@ -95,7 +95,7 @@ def add_parser(commands) -> None:
     scan.set_defaults(handler=run_scan)
 
 
-def _accept_poor_fit(parser) -> None:
+def _accept_poor_fit(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--accept-poor-fit",
         action="store_true",

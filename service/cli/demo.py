@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from service.cli.options import OneLineParser
 
-def add_parser(commands) -> None:
+
+def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     demo = commands.add_parser(
         "demo",
         help="run the bundled demo: a synthetic cylinder-edge trace and scan, reconstructed",

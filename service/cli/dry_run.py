@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 
-from service.cli.options import EXIT_FAILURE
+from service.cli.options import EXIT_FAILURE, OneLineParser
 
 
-def add_parser(commands) -> None:
+def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     dry = commands.add_parser(
         "dry-run",
         help="execute a planned trajectory on the simulated arm and report",

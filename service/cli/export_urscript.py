@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from service.cli.options import check_output, positive
+from service.cli.options import OneLineParser, check_output, positive
 
 
-def add_parser(commands) -> None:
+def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     export = commands.add_parser(
         "export-urscript",
         help="write a planned trajectory as a standalone URScript program",

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 
+from service.cli.options import OneLineParser
 
-def add_parser(commands) -> None:
+
+def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     from drivers.robot import fake_ur  # light: imports argparse and logging only
 
     fake = commands.add_parser(

@@ -6,8 +6,17 @@ import argparse
 import json
 import math
 import sys
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
+
+if TYPE_CHECKING:
+    from drivers.tracking.readers import Piece
+    from recon.arrays import FloatArray
+    from recon.inputs import Recording, Scan
+    from recon.params import Spec
+
+_Params = TypeVar("_Params")
 
 #: Exit status for bad input or impossible work (argparse uses 2 for bad usage).
 EXIT_FAILURE = 1
@@ -38,7 +47,7 @@ def positive(value: str) -> float:
     return number
 
 
-def numbers(count: int, what: str):
+def numbers(count: int, what: str) -> Callable[[str], tuple[float, ...]]:
     """An argparse type for ``count`` comma-separated finite numbers (``what`` names them)."""
 
     def parse(value: str) -> tuple[float, ...]:
@@ -62,11 +71,13 @@ _four = numbers(4, "NX,NY,NZ,D")
 
 def box6(value: str) -> tuple[float, ...]:
     """An argparse type for a keep-out box, checked as the planner checks it."""
+    import numpy as np
+
     from recon.collision import Box
 
     box = _six(value)
     try:
-        Box(min_m=box[:3], max_m=box[3:])
+        Box(min_m=np.array(box[:3]), max_m=np.array(box[3:]))
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
     return box
@@ -74,11 +85,13 @@ def box6(value: str) -> tuple[float, ...]:
 
 def cell_plane(value: str) -> tuple[float, ...]:
     """An argparse type for a plane of the cell, checked as the planner checks it."""
+    import numpy as np
+
     from recon.collision import HalfSpace
 
     plane = _four(value)
     try:
-        HalfSpace(normal=plane[:3], offset_m=plane[3])
+        HalfSpace(normal=np.array(plane[:3]), offset_m=plane[3])
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
     return plane
@@ -139,7 +152,9 @@ def add_units_option(parser: argparse.ArgumentParser, help: str) -> None:
     parser.add_argument("--units", choices=("m", "mm"), help=help)
 
 
-def read_trace_for(args: argparse.Namespace, path: str | None = None, *, piece=None):
+def read_trace_for(
+    args: argparse.Namespace, path: str | None = None, *, piece: Piece = None
+) -> Recording:
     """The trace of a command (``args.path_file`` unless ``path`` is given), with its tip
     calibration applied and its gaps cleaned; what the cleaning did goes to stderr.
 
@@ -204,13 +219,13 @@ def add_scan_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def read_scan_for(args: argparse.Namespace):
+def read_scan_for(args: argparse.Namespace) -> Scan:
     """The scan of a command, with its format, unit and reader options; its notes go to
     stderr."""
     from drivers.scanning.base import format_for
     from drivers.scanning.pointcloud import POINT_CLOUD_FORMATS, read_scan
 
-    options = {}
+    options: dict[str, Any] = {}  # JSON values, as the reader's options take them
     for item in args.scan_option:
         key, sep, value = item.partition("=")
         if not sep or not key:
@@ -232,7 +247,7 @@ def read_scan_for(args: argparse.Namespace):
     return scan_file.scan
 
 
-def read_matrix(path: str | None, expect: str):
+def read_matrix(path: str | None, expect: str) -> FloatArray | None:
     """A stored calibration's 4x4 matrix, or None without a file."""
     if not path:
         return None
@@ -248,7 +263,7 @@ def _flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def _value_type(name: str, hint, spec):
+def _value_type(name: str, hint: Any, spec: Spec) -> Callable[[str], object]:
     """An argparse type for one parameter: numbers, words its annotation names, or X,Y,Z."""
     import typing
 
@@ -266,9 +281,9 @@ def _value_type(name: str, hint, spec):
     if tuples:
         count = len(typing.get_args(tuples[0]))
         return numbers(count, ",".join(["N"] * count))
-    numeric = int if hint is int or int in args else float
+    numeric: type[int] | type[float] = int if hint is int or int in args else float
 
-    def parse(value: str):
+    def parse(value: str) -> str | int | float:
         if value in words:
             return value
         try:
@@ -305,7 +320,12 @@ def _boolean(value: str) -> bool:
 
 
 def add_param_options(
-    parser: argparse.ArgumentParser, cls, names, *, required=(), aliases=None
+    parser: argparse.ArgumentParser,
+    cls: type[object],
+    names: Iterable[str],
+    *,
+    required: Collection[str] = (),
+    aliases: Mapping[str, Sequence[str]] | None = None,
 ) -> None:
     """Options for the named parameters of a core dataclass, with its help, default and bounds.
 
@@ -340,7 +360,7 @@ def add_param_options(
         )
 
 
-def _metavar(hint) -> str | None:
+def _metavar(hint: Any) -> str | None:
     import typing
 
     if hint is bool:
@@ -354,7 +374,9 @@ def _metavar(hint) -> str | None:
     return None
 
 
-def params_from_args(cls, args: argparse.Namespace, names, **fixed):
+def params_from_args(
+    cls: Callable[..., _Params], args: argparse.Namespace, names: Iterable[str], **fixed: object
+) -> _Params:
     """The core's parameters: its defaults, with the named options the command line was given.
 
     Raises

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from service.cli.options import (
+    OneLineParser,
     add_param_options,
     add_scan_options,
     add_units_option,
@@ -20,8 +22,14 @@ from service.cli.options import (
     read_scan_for,
 )
 
+if TYPE_CHECKING:
+    from recon.kinematics import DHCalibration
+    from recon.paths import ReconstructedPath
+    from recon.recon_params import ReconParams
+    from recon.scan_model import ScanModel
 
-def add_parser(commands) -> None:
+
+def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     plan = commands.add_parser(
         "plan",
         help="plan a timed UR joint trajectory along a reconstructed path",
@@ -97,14 +105,16 @@ def add_parser(commands) -> None:
     plan.set_defaults(handler=run)
 
 
-def _reconstruction(recon_file: str):
+def _reconstruction(
+    recon_file: str,
+) -> tuple[ReconstructedPath, ScanModel | None, ReconParams | None]:
     """The reconstruction to plan along: its CSV, and the arrays ``teachpath reconstruct`` wrote
     beside it (``RECON.npz``: the transform, parameters and scan model it used) when they are
     there and belong to it. Returns (path, scan model or None, parameters or None)."""
     from drivers.export import read_reconstruction_csv
     from service.artifacts import ReconstructionCodec
     from service.cli.reconstruct import sidecar_of
-    from service.tasks import load_arrays
+    from service.parsing import load_arrays
 
     path = read_reconstruction_csv(recon_file)
     sidecar = sidecar_of(recon_file)
@@ -185,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _calibration(path: str | None, robot: str):
+def _calibration(path: str | None, robot: str) -> DHCalibration | None:
     """The arm's calibration from ``--ur-calibration``, checked against the robot model before
     any work (None without the option).
 

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from service.cli.options import (
+    OneLineParser,
     add_param_options,
     add_scan_options,
     add_trace_options,
@@ -18,7 +19,7 @@ from service.cli.options import (
 )
 
 
-def add_parser(commands) -> None:
+def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     rec = commands.add_parser(
         "reconstruct",
         help="reconstruct a traced path with a scan of the workpiece",
@@ -82,8 +83,8 @@ def run(args: argparse.Namespace) -> int:
     from recon.recon_params import ReconParams
     from service import pipelines
     from service.artifacts import ReconstructionCodec
+    from service.parsing import save_arrays
     from service.schemas import RECONSTRUCTION_PARAMS
-    from service.tasks import save_arrays
 
     out = check_output(args.out, ".csv")
     plot = check_output(args.plot, ".png") if args.plot else None

@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from service.cli.options import check_output, positive
+from service.cli.options import OneLineParser, check_output, positive
 
 
-def add_parser(commands) -> None:
+def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     record = commands.add_parser(
         "record",
         help="record the pen from Motive (OptiTrack NatNet) into a trace CSV",

@@ -6,11 +6,17 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from service.cli.options import EXIT_FAILURE, check_output, positive
+from service.cli.options import EXIT_FAILURE, OneLineParser, check_output, positive
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+    from service.replay import Row
 
 
-def add_parser(commands) -> None:
+def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     replay = commands.add_parser(
         "replay",
         help="re-run archived sessions (bundles) and report what changed",
@@ -68,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     bundles = find_bundles(args.sources)
     interactive = sys.stderr.isatty()
 
-    def show_cluster(client) -> None:
+    def show_cluster(client: Client) -> None:
         where = args.scheduler or f"a local cluster of {len(client.scheduler_info()['workers'])}"
         link = client.dashboard_link if args.scheduler else None
         print(
@@ -78,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
             flush=True,
         )
 
-    def progress(done: int, total: int, rows: list[dict]) -> None:
+    def progress(done: int, total: int, rows: list[Row]) -> None:
         width = 30
         filled = width * done // total
         failed = [r for r in rows if r["status"] == "failed"]

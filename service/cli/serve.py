@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 
+from service.cli.options import OneLineParser
 
-def add_parser(commands) -> None:
+
+def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     serve = commands.add_parser(
         "serve",
         help="start the HTTP service (REST API, teach-pendant page)",

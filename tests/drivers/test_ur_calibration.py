@@ -213,6 +213,7 @@ def test_the_gate_refuses_joints_solved_for_another_model_of_the_arm(calibrated_
     a server without one a calibrated plan), naming how far the flange would be off."""
     from dataclasses import replace
 
+    from service import errors as refusals
     from service import gate
     from service.settings import Settings
 
@@ -222,9 +223,9 @@ def test_the_gate_refuses_joints_solved_for_another_model_of_the_arm(calibrated_
     without = Settings(data_dir=tmp_path / "b", ur_robot="ur10e")
     planned = calibrated_plan.trajectory
     assert gate._arm_here(with_it, planned).calibration is not None
-    with pytest.raises(gate.TrajectoryForAnotherRobot, match=r"nominal kinematics.*mm from"):
+    with pytest.raises(refusals.TrajectoryForAnotherRobot, match=r"nominal kinematics.*mm from"):
         gate._arm_here(with_it, replace(planned, calibration=None))
-    with pytest.raises(gate.TrajectoryForAnotherRobot, match="no ur_calibration"):
+    with pytest.raises(refusals.TrajectoryForAnotherRobot, match="no ur_calibration"):
         gate._arm_here(without, planned)
     assert gate._arm_here(without, replace(planned, calibration=None)).calibration is None
     # Two calibrations: the difference named is between them, not against the nominal model.
@@ -235,12 +236,12 @@ def test_the_gate_refuses_joints_solved_for_another_model_of_the_arm(calibrated_
         },
         source="other.conf",
     )
-    with pytest.raises(gate.TrajectoryForAnotherRobot, match="other.conf") as refused:
+    with pytest.raises(refusals.TrajectoryForAnotherRobot, match="other.conf") as refused:
         gate._arm_here(with_it, replace(planned, calibration=other))
     assert 0.5e-3 < refused.value.detail["flange_difference_m"] <= 1.0e-3 + 1e-9
     # A calibration that is not this arm type's (a forged file): refused, not a crash.
     wrong = kinematics.DHCalibration(**{**other.as_dict(), "delta_d_m": [0.5] * 6})
-    with pytest.raises(gate.TrajectoryForAnotherRobot, match="not this ur10e's"):
+    with pytest.raises(refusals.TrajectoryForAnotherRobot, match="not this ur10e's"):
         gate._arm_here(without, replace(planned, calibration=wrong))
 
 

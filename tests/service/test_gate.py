@@ -15,6 +15,7 @@ from recon.kinematics import HOME_Q_RAD
 from recon.plan_params import DEFAULT_TCP_POSE
 from recon.trajectory import JointTrajectory
 from recon.transforms import transform_from_pose
+from service import errors as refusals
 from service import gate
 from service.artifacts import TrajectorySummary
 from service.robot import Reading
@@ -158,25 +159,25 @@ def test_a_passed_dry_run_in_the_same_mode_lets_the_arm_run(settings, trajectory
     ],
 )
 def test_dry_runs_that_do_not_count(settings, trajectory, dry_run, why):
-    with pytest.raises(gate.DryRunRequired):
+    with pytest.raises(refusals.DryRunRequired):
         check(settings, trajectory, [row("exe_1", dry_run)])
 
 
 def test_a_dry_run_of_another_trajectory_does_not_count(settings, trajectory):
-    with pytest.raises(gate.DryRunRequired):
+    with pytest.raises(refusals.DryRunRequired):
         check(settings, trajectory, [row("exe_1", passed_dry_run(), trajectory_id="trj_2")])
 
 
 def test_movepath_needs_a_dry_run_with_the_same_tolerance(settings, trajectory):
     dry = [row("exe_1", passed_dry_run(mode="movepath", tolerance_m=1e-3))]
-    with pytest.raises(gate.DryRunRequired, match="tolerance_m"):
+    with pytest.raises(refusals.DryRunRequired, match="tolerance_m"):
         check(settings, trajectory, dry, mode="movepath", tolerance_m=5e-4)
     assert check(settings, trajectory, dry, mode="movepath", tolerance_m=1e-3)
 
 
 @pytest.mark.parametrize("confirm", [False, None, "yes", 1, "true"])
 def test_only_the_boolean_true_confirms(settings, trajectory, confirm):
-    with pytest.raises(gate.ConfirmationRequired):
+    with pytest.raises(refusals.ConfirmationRequired):
         check(settings, trajectory, [row("exe_1", passed_dry_run())], confirm=confirm)
 
 
@@ -187,12 +188,12 @@ def test_the_speed_cap(settings, trajectory):
         inputs={},
         summary={**TRAJECTORY_SUMMARY, "requested_speed_m_s": 0.2},
     )
-    with pytest.raises(gate.SpeedCapExceeded, match="0.1 m/s"):
+    with pytest.raises(refusals.SpeedCapExceeded, match="0.1 m/s"):
         check(settings, fast, [row("exe_1", passed_dry_run())])
 
 
 def test_no_arm_configured(tmp_path, trajectory):
-    with pytest.raises(gate.NoRobotConfigured):
+    with pytest.raises(refusals.NoRobotConfigured):
         check(Settings(data_dir=tmp_path), trajectory, [row("exe_1", passed_dry_run())])
 
 
@@ -200,25 +201,25 @@ def test_a_trajectory_for_another_robot(settings):
     other = ArtifactRow(
         id="trj_1", kind="trajectory", inputs={}, summary={**TRAJECTORY_SUMMARY, "robot": "ur10e"}
     )
-    with pytest.raises(gate.TrajectoryForAnotherRobot, match="ur10e"):
+    with pytest.raises(refusals.TrajectoryForAnotherRobot, match="ur10e"):
         check(settings, other, [row("exe_1", passed_dry_run())])
 
 
 def test_a_trajectory_whose_summary_cannot_be_read_is_refused(settings):
     broken = ArtifactRow(id="trj_1", kind="trajectory", inputs={}, summary={"robot": "ur5e"})
-    with pytest.raises(gate.UnreadableTrajectory):
+    with pytest.raises(refusals.UnreadableTrajectory):
         check(settings, broken, [row("exe_1", passed_dry_run())])
 
 
 def test_one_arm_owner(settings, trajectory):
-    with pytest.raises(gate.ArmBusy, match="exe_7") as refused:
+    with pytest.raises(refusals.ArmBusy, match="exe_7") as refused:
         check(settings, trajectory, [row("exe_1", passed_dry_run())], owner="exe_7")
     assert refused.value.detail == {"execution_id": "exe_7"}
 
 
 def test_an_arm_away_from_the_start_is_refused_with_the_distance(settings, trajectory):
     moved = np.array(START) + [0.0, 0.0, 0.05, 0.0, 0.0, 0.0]
-    with pytest.raises(gate.StartMoved, match="joint 3") as refused:
+    with pytest.raises(refusals.StartMoved, match="joint 3") as refused:
         check(settings, trajectory, [row("exe_1", passed_dry_run())], arm=arm_at(moved))
     assert refused.value.detail["max_joint_deg"] == pytest.approx(np.degrees(0.05))
     assert refused.value.detail["flange_distance_m"] > 0.01
@@ -230,9 +231,12 @@ def test_an_arm_away_from_the_start_is_refused_with_the_distance(settings, traje
 @pytest.mark.parametrize(
     ("state", "refusal"),
     [
-        ({"protective_stop": True, "safety_status": "PROTECTIVE_STOP"}, gate.ArmInProtectiveStop),
-        ({"emergency_stop": True}, gate.ArmInEmergencyStop),
-        ({"remote_control": False}, gate.RemoteControlOff),
+        (
+            {"protective_stop": True, "safety_status": "PROTECTIVE_STOP"},
+            refusals.ArmInProtectiveStop,
+        ),
+        ({"emergency_stop": True}, refusals.ArmInEmergencyStop),
+        ({"remote_control": False}, refusals.RemoteControlOff),
     ],
 )
 def test_an_arm_that_cannot_run_now_is_refused(settings, trajectory, state, refusal):
@@ -242,41 +246,29 @@ def test_an_arm_that_cannot_run_now_is_refused(settings, trajectory, state, refu
 
 def test_an_arm_whose_state_is_not_known_is_refused(settings, trajectory):
     unreachable = Reading(ArmState.unreachable("ur_rtde", "127.0.0.9: no answer"), 0.0, None)
-    with pytest.raises(gate.RobotUnavailable, match="127.0.0.9"):
+    with pytest.raises(refusals.RobotUnavailable, match="127.0.0.9"):
         check(settings, trajectory, [row("exe_1", passed_dry_run())], arm=unreachable)
     stale = Reading(arm_at(START).state, time.monotonic() - 60.0, None)
-    with pytest.raises(gate.RobotUnavailable, match="60"):
+    with pytest.raises(refusals.RobotUnavailable, match="60"):
         check(settings, trajectory, [row("exe_1", passed_dry_run())], arm=stale)
 
 
 def test_every_refusal_has_its_own_code():
+    """Every reason the gate can give (each subclass of RealArmRefused) has a 409 and a code of
+    its own, not the base's generic one: a new reason without its code fails here."""
     from service.errors import classify
 
-    refusals = [
-        gate.NoRobotConfigured,
-        gate.TrajectoryForAnotherRobot,
-        gate.ConfirmationRequired,
-        gate.SpeedCapExceeded,
-        gate.DryRunRequired,
-        gate.UnreadableTrajectory,
-        gate.ArmBusy,
-        gate.RobotUnavailable,
-        gate.ArmInProtectiveStop,
-        gate.ArmInEmergencyStop,
-        gate.RemoteControlOff,
-        gate.StartMoved,
-        gate.SamplesOutsideLimits,
-        gate.CollidesHere,
-        gate.CellUnknown,
-    ]
-    codes = [classify(cls("x")) for cls in refusals]
+    reasons = refusals.RealArmRefused.__subclasses__()
+    assert len(reasons) >= 17
+    codes = [classify(cls("x")) for cls in reasons]
     assert all(status == 409 for status, _ in codes)
-    assert len({code for _, code in codes}) == len(refusals)
+    assert "real_arm_refused" not in {code for _, code in codes}
+    assert len({code for _, code in codes}) == len(reasons)
 
 
 def test_a_dry_run_not_made_here_does_not_count(settings, trajectory):
     """An imported dry run (no job of this service made it) proves nothing here."""
-    with pytest.raises(gate.DryRunRequired, match="imported"):
+    with pytest.raises(refusals.DryRunRequired, match="imported"):
         check(settings, trajectory, [row("exe_1", passed_dry_run())], made_here=set())
 
 
@@ -316,7 +308,7 @@ def test_samples_faster_than_the_arm_or_the_cap_are_refused_whatever_the_summary
     """The forged bundle: arrays run several times faster than planned, a summary that says
     0.05 m/s. The samples decide."""
     fast = retimed(a_trajectory(), 40.0)
-    with pytest.raises(gate.SamplesOutsideLimits) as refused:
+    with pytest.raises(refusals.SamplesOutsideLimits) as refused:
         gate.check_here(settings, trajectory, fast, EMPTY_CELL)
     assert {"speed", "tcp_speed"} <= set(refused.value.detail["checks"])
     assert "mm/s" in str(refused.value) or "rad/s" in str(refused.value)
@@ -326,7 +318,7 @@ def test_a_transit_above_the_servers_tcp_cap_is_refused(tmp_path, trajectory):
     """Joint speeds within the arm's limits, the TCP (and the wrists with it) faster than this
     server allows: the cap holds for every point of the arm, as UR's safety limits do."""
     slow_cap = Settings(data_dir=tmp_path, ur_host="127.0.0.9", ur_robot="ur5e", max_speed_m_s=0.05)
-    with pytest.raises(gate.SamplesOutsideLimits, match="50 mm/s cap") as refused:
+    with pytest.raises(refusals.SamplesOutsideLimits, match="50 mm/s cap") as refused:
         gate.check_here(slow_cap, trajectory, a_trajectory(), EMPTY_CELL)
     assert refused.value.detail["checks"] == ["tcp_speed", "link_speed"]
 
@@ -336,7 +328,7 @@ def test_samples_off_the_controllers_grid_are_refused(settings, trajectory):
 
     planned = a_trajectory()
     stretched = replace(planned, t_s=planned.t_s * 1.5)
-    with pytest.raises(gate.SamplesOutsideLimits, match="every 2 ms"):
+    with pytest.raises(refusals.SamplesOutsideLimits, match="every 2 ms"):
         gate.check_here(settings, trajectory, stretched, EMPTY_CELL)
 
 
@@ -349,7 +341,7 @@ def test_a_keep_out_box_of_this_cell_on_the_motion_is_refused(settings, trajecto
     cell = gate.CellHere(
         cell=Cell(boxes=(box,)), T_flange_tcp=TOOL, tool_radius_m=0.02, clearance_m=0.01
     )
-    with pytest.raises(gate.CollidesHere, match="keep-out box 1") as refused:
+    with pytest.raises(refusals.CollidesHere, match="keep-out box 1") as refused:
         gate.check_here(settings, trajectory, planned, cell)
     assert refused.value.detail["obstacle"] == "keep-out box 1"
 
@@ -367,11 +359,11 @@ def test_the_tool_is_checked_here_as_it_was_planned_spheres_included(settings, t
     gate.check_here(settings, trajectory, planned, capsule)
     tip = TOOL[:3, 3]
     spheres = replace(capsule, tool_spheres_m=(*tip, 0.1))
-    with pytest.raises(gate.CollidesHere, match="keep-out box 1") as refused:
+    with pytest.raises(refusals.CollidesHere, match="keep-out box 1") as refused:
         gate.check_here(settings, trajectory, planned, spheres)
     assert refused.value.detail["link"] == "tool"
 
 
 def test_a_trajectory_for_another_arm_is_refused_even_if_the_summary_agrees(settings, trajectory):
-    with pytest.raises(gate.TrajectoryForAnotherRobot):
+    with pytest.raises(refusals.TrajectoryForAnotherRobot):
         gate.check_here(settings, trajectory, a_trajectory("ur10e"), EMPTY_CELL)

@@ -11,6 +11,7 @@ import sqlalchemy.exc
 from fastapi.testclient import TestClient
 
 from service import errors
+from service.api import health as health_route
 from service.app import create_app
 from tests.service.conftest import AUTH, make_settings
 
@@ -22,7 +23,6 @@ def app_client(tmp_path):
     app = create_app(make_settings(tmp_path / "data"))
     with TestClient(app, headers=AUTH) as client:
         yield app.state.services, client
-    errors._storage_faults.clear()
 
 
 def test_an_upload_onto_a_full_disk_is_a_503_storage_full_and_recovers(
@@ -45,7 +45,7 @@ def test_an_upload_onto_a_full_disk_is_a_503_storage_full_and_recovers(
         f"/sessions/{sid}/recording", files={"file": ("t.csv", scene_files["trace"])}
     )
     assert stored.status_code == 201, stored.text
-    monkeypatch.setattr(errors, "STORAGE_FAULT_WINDOW_S", 0.0)
+    monkeypatch.setattr(health_route, "STORAGE_FAULT_WINDOW_S", 0.0)
     assert client.get("/health").json()["status"] == "ok"
 
 
@@ -69,6 +69,22 @@ def test_a_busy_database_is_a_503_database_busy_and_loses_nothing(app_client, mo
     assert client.post("/sessions", json={"name": "new"}).status_code == 201
     assert {s["name"] for s in client.get("/sessions").json()} == {"kept", "new"}
     assert client.get(f"/sessions/{kept}").status_code == 200
+
+
+def test_a_fault_is_reported_by_the_instance_that_met_it_only(app_client, monkeypatch, tmp_path):
+    """The faults /health reports are the store's own: another service in the same process (a
+    second instance, the next test's app) is not degraded by them."""
+    services, client = app_client
+
+    def locked(*args, **kwargs):
+        raise sqlalchemy.exc.OperationalError("INSERT", {}, Exception("database is locked"))
+
+    monkeypatch.setattr(services.store, "create_session", locked)
+    assert client.post("/sessions", json={"name": "new"}).json()["code"] == "database_busy"
+    assert "database_busy" in client.get("/health").json()["problems"]
+    other = create_app(make_settings(tmp_path / "other"))
+    with TestClient(other, headers=AUTH) as other_client:
+        assert other_client.get("/health").json()["status"] == "ok"
 
 
 def test_other_os_errors_stay_internal_errors_without_a_traceback(app_client, monkeypatch):
