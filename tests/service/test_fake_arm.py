@@ -360,19 +360,19 @@ def test_a_controller_that_stops_answering_fails_the_job_and_the_service_stays_r
     job = _execute_until(client, sid, trajectory_id, progress=0.3)
     deadline = time.monotonic() + 120
     fake_ur.control("freeze")
-    # While the controller is silent, every request is still answered at once.
-    slowest_s = 0.0
+    # While the controller is silent, requests are still answered: many of them while the job
+    # waits out the silence. A service blocked by the robot link would answer none until the
+    # adapter's timeout (seconds, or ur_rtde's 300 s command wait) failed the job. (Counted,
+    # not timed: a loaded machine makes each answer slower, not fewer of them possible.)
+    answered_while_silent = 0
     while (state := client.get(f"/jobs/{job['id']}").json())["state"] == "running":
-        started = time.monotonic()
         assert client.get("/health").status_code == 200
-        slowest_s = max(slowest_s, time.monotonic() - started)
+        answered_while_silent += 1
         assert time.monotonic() < deadline, "the job never noticed the silence"
         time.sleep(0.05)
     assert state["state"] == "failed", state
     assert state["error"]["code"] in ("robot_connection_lost", "robot_timeout"), state
-    # A service blocked by the robot link would stall for the adapter's timeouts (seconds, or
-    # ur_rtde's 300 s command wait); the bound is loose for a busy shared machine.
-    assert slowest_s < 3.0
+    assert answered_while_silent >= 3, answered_while_silent
     fake_ur.control("unfreeze")
 
 
