@@ -119,7 +119,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         services = Services(
             settings=settings,
             store=store,
-            jobs=JobManager(store, settings.cpu_workers),
+            jobs=JobManager(store, settings.cpu_workers, warm=settings.warm_workers),
             token=settings.access_token(),
             robot=RobotWatch(settings),
         )

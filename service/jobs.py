@@ -18,6 +18,7 @@ talk back while they compute. Executions on a real arm report progress as sample
 
 from __future__ import annotations
 
+import importlib
 import logging
 import multiprocessing
 import os
@@ -85,11 +86,16 @@ class JobManager:
     store : Store
     workers : int
         Worker processes.
+    warm : bool
+        Start the workers at once and have each import what the jobs need
+        (:data:`WARM_MODULES`) before its first job; otherwise a worker starts with the first
+        job it is needed for.
     """
 
-    def __init__(self, store: Store, workers: int) -> None:
+    def __init__(self, store: Store, workers: int, *, warm: bool = False) -> None:
         self.store = store
         self.workers = workers
+        self.warm = warm
         self._lock = threading.Lock()
         self._pending: dict[str, _Pending] = {}
         self._order: list[str] = []  # unfinished jobs, oldest first
@@ -98,6 +104,11 @@ class JobManager:
         self._degraded = False
         self._closed = False
         self._pool = self._new_pool()
+        #: When warm: one future per worker, done once that worker has started and imported
+        #: what the jobs need (the pool starts its processes on demand: these start them now).
+        self.warmed: list[Future[int]] = (
+            [self._pool.submit(_ready) for _ in range(workers)] if warm else []
+        )
 
     @property
     def degraded(self) -> bool:
@@ -195,7 +206,7 @@ class JobManager:
             max_workers=self.workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_worker_init,
-            initargs=(os.getpid(),),
+            initargs=(os.getpid(), self.warm),
         )
 
     def _dispatch(self, task: Task) -> Future[Any]:
@@ -346,13 +357,34 @@ def _remove(path: str) -> None:
         log.warning("could not remove %s: %s", path, exc)
 
 
-def _worker_init(server_pid: int) -> None:
+#: What the jobs import on their first run: the pipelines, the reconstruction and planning code
+#: with the libraries under them (SciPy, toppra), the plots (matplotlib), the dry run's simulated
+#: arm. A warmed worker imports them as it starts, so that the operator's first job does not wait
+#: for them (a first reconstruction of 1k / 100k points through the service took 5.1-5.7 s,
+#: the next ones 2.4 s; warmed, the first 2.6 s: docs/guides/service.md).
+WARM_MODULES = (
+    "service.tasks",
+    "service.plots",
+    "recon.reconstruct",
+    "recon.plan",
+    "recon.touches",
+    "recon.calibrate",
+    "drivers.robot.dryrun",
+    "drivers.robot.sim",
+)
+
+
+def _worker_init(server_pid: int, warm: bool) -> None:
     """Runs first in each worker process: end with the server, lower its priority below the
-    server's (:func:`drivers.isolation.lower_priority`), and make every file it writes (arrays,
-    preview pictures) private to the service's user, as the data folder is."""
+    server's (:func:`drivers.isolation.lower_priority`), make every file it writes (arrays,
+    preview pictures) private to the service's user, as the data folder is, and, when ``warm``,
+    import :data:`WARM_MODULES` (at its lowered priority, beside a server that is answering)."""
     os.umask(0o077)
     _watch_parent(server_pid)
     lower_priority()
+    if warm:
+        for name in WARM_MODULES:
+            importlib.import_module(name)
 
 
 #: How often a worker looks whether the server is still there (s).

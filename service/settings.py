@@ -103,6 +103,11 @@ class Settings(BaseSettings):
         description="processes for reconstruction and "
         "planning (the event loop keeps a core on a 2-core machine)",
     )
+    warm_workers: bool = Field(
+        True,
+        description="start the worker processes with the service and import the "
+        "reconstruction and planning code in them, so that the first job does not wait for it",
+    )
     cors_origins: list[str] = Field(default_factory=list, description="closed by default")
     ur_host: str | None = Field(None, description="controller address for backend ur_rtde")
     ur_robot: str = Field("ur5e", description="the model of the arm at ur_host")

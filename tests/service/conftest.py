@@ -52,6 +52,9 @@ def make_settings(data_dir, **overrides) -> Settings:
     url = test_database_url()
     if url is not None:
         overrides.setdefault("database_url", url)
+    # A worker warmed at start imports the pipelines (about a second of CPU): hundreds of test
+    # apps that never run a job would pay it; the warm start has its own test.
+    overrides.setdefault("warm_workers", False)
     return Settings(data_dir=data_dir, token=TOKEN, cpu_workers=1, max_upload_mb=5, **overrides)
 
 

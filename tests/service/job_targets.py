@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,3 +33,14 @@ class Pid:
 
     def run(self) -> dict:
         return {"pid": os.getpid()}
+
+
+@dataclass(frozen=True)
+class LoadedModules:
+    """Which of ``names`` the worker had imported before this task ran (this module imports
+    none of them)."""
+
+    names: tuple[str, ...]
+
+    def run(self) -> dict:
+        return {"loaded": [name for name in self.names if name in sys.modules]}
