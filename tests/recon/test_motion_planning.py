@@ -13,6 +13,7 @@ from recon.paths import Phase
 from recon.plan import PlanParams, approach_in, normals_from_scan, plan_path
 from recon.reconstruct import reconstruct
 from recon.timing import limits_for
+from recon.trajectory import SAMPLE_FIELDS
 from tests.motion_fixtures import base_from_tracker, line_plan
 
 
@@ -306,3 +307,41 @@ def test_a_round_tool_free_about_its_axis_keeps_wrist_3_still_on_a_three_turn_ci
     along = PlanParams(speed_m_s=0.05, orientation="fixed", heading="travel")
     with pytest.raises(InfeasibleTrajectoryError, match="joint 6"):
         plan_path(circle, params=along)
+
+
+def test_the_varying_speed_bound_gives_toppra_the_same_limits_as_one_call_per_gridpoint(
+    monkeypatch,
+):
+    """The point-speed bound hands toppra its limits for the whole grid at once; a plan made so
+    is the plan made with toppra's own one-call-per-gridpoint constraint, bit for bit."""
+    import toppra.constraint
+
+    from recon import timing
+
+    s = np.linspace(0.0, 0.3, 301)
+    # A line whose tool turns about its tip: the flange's speed, not the tip's, binds.
+    points = np.column_stack([0.4 + 0 * s, -0.15 + s, np.full_like(s, 0.1)])
+    params = PlanParams(robot="ur5e", speed_m_s=0.25)
+    fast = plan_path(points, params=params).trajectory
+
+    def one_call_per_gridpoint(bound, vlim):
+        def limits_at(s_m):
+            out = np.array(vlim, dtype=np.float64)
+            speed = bound.at(s_m)[0]
+            out[-1] = (-speed, speed)
+            return out
+
+        return toppra.constraint.JointVelocityConstraintVarying(limits_at)
+
+    monkeypatch.setattr(timing.PointSpeedBound, "constraint", one_call_per_gridpoint)
+    reference = plan_path(points, params=params).trajectory
+    assert len(fast) == len(reference)
+    for name in SAMPLE_FIELDS:
+        assert np.array_equal(getattr(fast, name), getattr(reference, name)), name
+    # And the bound's table is the bound, position by position.
+    bound = timing.PointSpeedBound(
+        np.array([0.0, 0.1, 0.2]), np.array([0.3, 0.1, 0.2]), np.array([0, 2, 1]), 0.3
+    )
+    grid = np.array([0.0, 0.05, 0.1, 0.15, 0.2, 0.25])
+    assert [bound.at(x) for x in grid] == list(zip(*map(list, bound.along_grid(grid)), strict=True))
+    assert bound.at(0.05) == (0.1, 2) and bound.at(0.15) == (0.1, 2) and bound.at(0.0) == (0.3, 0)
