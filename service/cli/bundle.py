@@ -14,10 +14,15 @@ if TYPE_CHECKING:
     from service.store import Store
 
 
+#: The command's name, and its line in ``teachpath --help``.
+NAME = "bundle"
+HELP = "export a session as one zip, or import one"
+
+
 def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     bundle = commands.add_parser(
-        "bundle",
-        help="export a session as one zip, or import one",
+        NAME,
+        help=HELP,
         description="A bundle holds a session with its calibrations and every artifact (raw "
         "uploads, arrays, summaries) with their checksums. Settings such as "
         "TEACHPATH_DATABASE_URL apply as for `teachpath serve`.",

@@ -18,12 +18,17 @@ from service.cli.options import (
     read_trace_for,
 )
 
+#: The command's name, and its line in ``teachpath --help``.
+NAME = "calibrate"
+HELP = (
+    "pen-tip (pivot), tracker-to-robot (point pairs) and tracker-to-scanner (touches) calibrations"
+)
+
 
 def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     calibrate = commands.add_parser(
-        "calibrate",
-        help="pen-tip (pivot), tracker-to-robot (point pairs) and tracker-to-scanner (touches) "
-        "calibrations",
+        NAME,
+        help=HELP,
         description="Compute a calibration, print its residuals and save it as JSON.",
     )
     kinds = calibrate.add_subparsers(dest="kind", required=True, parser_class=OneLineParser)

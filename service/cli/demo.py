@@ -7,11 +7,15 @@ from pathlib import Path
 
 from service.cli.options import OneLineParser
 
+#: The command's name, and its line in ``teachpath --help``.
+NAME = "demo"
+HELP = "run the bundled demo: a synthetic cylinder-edge trace and scan, reconstructed"
+
 
 def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     demo = commands.add_parser(
-        "demo",
-        help="run the bundled demo: a synthetic cylinder-edge trace and scan, reconstructed",
+        NAME,
+        help=HELP,
         description="Generates the paper's Fig. 4 scene (a noisy trace along the circular edge "
         "of a cylinder and a misplaced, noisy scan of it), writes them as files, reconstructs "
         "them as `teachpath reconstruct` does and prints the accuracy table.",

@@ -6,11 +6,15 @@ import argparse
 
 from service.cli.options import EXIT_FAILURE, OneLineParser
 
+#: The command's name, and its line in ``teachpath --help``.
+NAME = "dry-run"
+HELP = "execute a planned trajectory on the simulated arm and report"
+
 
 def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     dry = commands.add_parser(
-        "dry-run",
-        help="execute a planned trajectory on the simulated arm and report",
+        NAME,
+        help=HELP,
         description="Runs TRAJ.csv on a simulated UR arm (faster than real time) and prints "
         "duration, tracking deviation, margins, speed drops and faults.",
     )

@@ -7,11 +7,15 @@ from pathlib import Path
 
 from service.cli.options import OneLineParser, check_output, positive
 
+#: The command's name, and its line in ``teachpath --help``.
+NAME = "export-urscript"
+HELP = "write a planned trajectory as a standalone URScript program"
+
 
 def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     export = commands.add_parser(
-        "export-urscript",
-        help="write a planned trajectory as a standalone URScript program",
+        NAME,
+        help=HELP,
         description="Writes TRAJ.csv (from teachpath plan) as a URScript program for the teach "
         "pendant: the TCP and payload set, movej to the approach pose, movel down, the path "
         "as servoj at the controller rate (or movep blends within --tolerance-m), movel up. "

@@ -6,13 +6,17 @@ import argparse
 
 from service.cli.options import OneLineParser
 
+#: The command's name, and its line in ``teachpath --help``.
+NAME = "fake-ur"
+HELP = "run a fake UR controller on a loopback address (for the ur_rtde backend)"
+
 
 def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     from drivers.robot import fake_ur  # light: imports argparse and logging only
 
     fake = commands.add_parser(
-        "fake-ur",
-        help="run a fake UR controller on a loopback address (for the ur_rtde backend)",
+        NAME,
+        help=HELP,
         description="Serves RTDE (30004), the dashboard (29999) and the script ports "
         "(30001-30003) of an emulated UR controller that ur_rtde drives, so the service's "
         "real-robot path can be tried without a robot: start the service with "

@@ -29,10 +29,15 @@ if TYPE_CHECKING:
     from recon.scan_model import ScanModel
 
 
+#: The command's name, and its line in ``teachpath --help``.
+NAME = "plan"
+HELP = "plan a timed UR joint trajectory along a reconstructed path"
+
+
 def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     plan = commands.add_parser(
-        "plan",
-        help="plan a timed UR joint trajectory along a reconstructed path",
+        NAME,
+        help=HELP,
         description="Tool poses along a reconstructed path (axis from the scan, the pen or "
         "fixed), inverse kinematics for a UR arm and time-optimal timing within its limits. "
         "Writes t,q0..q5 (s, rad) and the planned TCP x,y,z,rx,ry,rz (base frame) as CSV and "

@@ -18,11 +18,15 @@ from service.cli.options import (
     read_trace_for,
 )
 
+#: The command's name, and its line in ``teachpath --help``.
+NAME = "reconstruct"
+HELP = "reconstruct a traced path with a scan of the workpiece"
+
 
 def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     rec = commands.add_parser(
-        "reconstruct",
-        help="reconstruct a traced path with a scan of the workpiece",
+        NAME,
+        help=HELP,
         description="Reconstruct a traced path, using the scan's structure where there is one. "
         "Writes the path (x,y,z, metres) with per-point diagnostics as CSV, and beside it "
         "OUT.npz: the same with the scan's transform and model, which `teachpath plan` reuses.",

@@ -7,11 +7,15 @@ import sys
 
 from service.cli.options import OneLineParser, check_output, positive
 
+#: The command's name, and its line in ``teachpath --help``.
+NAME = "record"
+HELP = "record the pen from Motive (OptiTrack NatNet) into a trace CSV"
+
 
 def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     record = commands.add_parser(
-        "record",
-        help="record the pen from Motive (OptiTrack NatNet) into a trace CSV",
+        NAME,
+        help=HELP,
         description="Receives the rigid body from Motive (unicast unless --multicast) until "
         "--duration seconds of stream time, Ctrl-C, or the stream stops, then writes the "
         "tracked frames as a canonical trace CSV (t,x,y,z,qx,qy,qz,qw; metres; seconds from the "

@@ -16,10 +16,15 @@ if TYPE_CHECKING:
     from service.replay import Row
 
 
+#: The command's name, and its line in ``teachpath --help``.
+NAME = "replay"
+HELP = "re-run archived sessions (bundles) and report what changed"
+
+
 def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     replay = commands.add_parser(
-        "replay",
-        help="re-run archived sessions (bundles) and report what changed",
+        NAME,
+        help=HELP,
         description="Runs every stored reconstruction of each bundle again (and plans every "
         "stored trajectory again from its reconstruction), with the stored parameters or "
         "--params, one Dask task per bundle, and writes a CSV report (and a PNG summary "

@@ -6,11 +6,15 @@ import argparse
 
 from service.cli.options import OneLineParser
 
+#: The command's name, and its line in ``teachpath --help``.
+NAME = "serve"
+HELP = "start the HTTP service (REST API, teach-pendant page)"
+
 
 def add_parser(commands: argparse._SubParsersAction[OneLineParser]) -> None:
     serve = commands.add_parser(
-        "serve",
-        help="start the HTTP service (REST API, teach-pendant page)",
+        NAME,
+        help=HELP,
         description="Starts the service. Settings also come from TEACHPATH_* environment "
         "variables (TEACHPATH_TOKEN, TEACHPATH_UR_HOST, TEACHPATH_DATABASE_URL, ...).",
     )
