@@ -34,7 +34,7 @@ from drivers.robot.base import ExecutionRecord, RobotBackend
 from drivers.robot.dryrun import reached_phase, stream_lag_s
 from recon.arrays import FloatArray
 from recon.trajectory import JointTrajectory
-from service.errors import error_body
+from service.errors import error_body, note_storage_fault
 from service.store import Store, now
 
 log = logging.getLogger("teachpath.executions")
@@ -239,6 +239,7 @@ class ExecutionRunner:
                 return self._ended(record, [str(error)])
             log.warning("execution job %s failed: %s", self.job_id, error)
             result = self._record(record, [str(error)], self.where(record))
+            note_storage_fault(self.store.faults, error)  # /health reports it, as for jobs
             return {"state": "failed", "error": error_body(error), "result": result}
 
     def _ended(self, record: ExecutionRecord | None, faults: list[str]) -> dict[str, Any]:

@@ -78,6 +78,23 @@ class _Pending:
     discarded: bool = False  # stopped while running: its result is not recorded
 
 
+#: What the jobs import on their first run: the pipelines, the reconstruction and planning code
+#: with the libraries under them (SciPy, toppra), the plots (matplotlib), the dry run's simulated
+#: arm. A warmed worker imports them as it starts, so that the operator's first job does not wait
+#: for them (a first reconstruction of 1k / 100k points through the service took 5.1-5.7 s,
+#: the next ones 2.4 s; warmed, the first 2.6 s: docs/guides/service.md).
+WARM_MODULES = (
+    "service.tasks",
+    "service.plots",
+    "recon.reconstruct",
+    "recon.plan",
+    "recon.touches",
+    "recon.calibrate",
+    "drivers.robot.dryrun",
+    "drivers.robot.sim",
+)
+
+
 class JobManager:
     """Runs jobs and keeps their rows current.
 
@@ -88,14 +105,24 @@ class JobManager:
         Worker processes.
     warm : bool
         Start the workers at once and have each import what the jobs need
-        (:data:`WARM_MODULES`) before its first job; otherwise a worker starts with the first
-        job it is needed for.
+        (``warm_modules``) before its first job; otherwise a worker starts with the first job
+        it is needed for.
+    warm_modules : tuple of str
+        What a warm worker imports: :data:`WARM_MODULES`.
     """
 
-    def __init__(self, store: Store, workers: int, *, warm: bool = False) -> None:
+    def __init__(
+        self,
+        store: Store,
+        workers: int,
+        *,
+        warm: bool = False,
+        warm_modules: tuple[str, ...] = WARM_MODULES,
+    ) -> None:
         self.store = store
         self.workers = workers
         self.warm = warm
+        self.warm_modules = warm_modules
         self._lock = threading.Lock()
         self._pending: dict[str, _Pending] = {}
         self._order: list[str] = []  # unfinished jobs, oldest first
@@ -206,7 +233,7 @@ class JobManager:
             max_workers=self.workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=_worker_init,
-            initargs=(os.getpid(), self.warm),
+            initargs=(os.getpid(), self.warm_modules if self.warm else ()),
         )
 
     def _dispatch(self, task: Task) -> Future[Any]:
@@ -357,34 +384,23 @@ def _remove(path: str) -> None:
         log.warning("could not remove %s: %s", path, exc)
 
 
-#: What the jobs import on their first run: the pipelines, the reconstruction and planning code
-#: with the libraries under them (SciPy, toppra), the plots (matplotlib), the dry run's simulated
-#: arm. A warmed worker imports them as it starts, so that the operator's first job does not wait
-#: for them (a first reconstruction of 1k / 100k points through the service took 5.1-5.7 s,
-#: the next ones 2.4 s; warmed, the first 2.6 s: docs/guides/service.md).
-WARM_MODULES = (
-    "service.tasks",
-    "service.plots",
-    "recon.reconstruct",
-    "recon.plan",
-    "recon.touches",
-    "recon.calibrate",
-    "drivers.robot.dryrun",
-    "drivers.robot.sim",
-)
-
-
-def _worker_init(server_pid: int, warm: bool) -> None:
+def _worker_init(server_pid: int, warm_modules: tuple[str, ...]) -> None:
     """Runs first in each worker process: end with the server, lower its priority below the
     server's (:func:`drivers.isolation.lower_priority`), make every file it writes (arrays,
-    preview pictures) private to the service's user, as the data folder is, and, when ``warm``,
-    import :data:`WARM_MODULES` (at its lowered priority, beside a server that is answering)."""
+    preview pictures) private to the service's user, as the data folder is, and import
+    ``warm_modules`` (at its lowered priority, beside a server that is answering; one that
+    fails to import is logged and left to the job that needs it)."""
     os.umask(0o077)
     _watch_parent(server_pid)
     lower_priority()
-    if warm:
-        for name in WARM_MODULES:
+    for name in warm_modules:
+        try:
             importlib.import_module(name)
+        except Exception:  # noqa: BLE001 - a warm-up must never break the pool
+            # An initializer that raises breaks the whole pool (every job would fail as a dead
+            # worker); unwarmed, the job that needs the module fails with its own error, as
+            # before, and the others run.
+            logging.getLogger("teachpath.jobs").exception("warming up: importing %s failed", name)
 
 
 #: How often a worker looks whether the server is still there (s).

@@ -486,7 +486,7 @@ def run_replay(
         n = workers or len(os.sched_getaffinity(0))
         # Loopback only, no dashboard port on every interface: a replay serves nobody.
         # distributed's LocalCluster, Client, as_completed and Client.close are unannotated
-        # (no-untyped-call under --strict; unused-ignore while service's config is not strict).
+        # (mypy's strict no-untyped-call).
         cluster = LocalCluster(  # type: ignore[no-untyped-call]
             n_workers=n,
             threads_per_worker=1,

@@ -54,11 +54,13 @@ def prior_variance(prior_variance_m2: FloatArray | None, n: int) -> FloatArray:
 
 
 #: Rows processed at once; bounds memory (a chunk holds chunk x K neighbours, and on a dense
-#: surface K is hundreds). Measured with whole commands (farm-bench, alternating, the outputs
-#: identical): a 10 m serpentine trace on a 1M-point plate scan 23.3 s and 1.33 GB peak with
-#: 2048 rows, 17.9 s and 0.52 GB with 512 (allocating fresh pages is what the larger chunks
-#: cost); 1k / 100k on the long edge 2.57 s against 2.38 s (two chunks run on two threads).
-CHUNK = 512
+#: surface K is hundreds). It is also the unit in which lift-off runs are judged
+#: (anchored._explained: a run across a chunk's boundary is judged in two halves), so it is
+#: not only a speed setting: 512 rows measured 17.9 s and 0.52 GB against 23.3 s and 1.33 GB
+#: on a 10 m serpentine trace over a 1M-point scan (identical outputs there, a scene without
+#: lift-offs), but it would cut segments longer than 0.5 m instead of 2 m. Judging lift-offs
+#: over the whole segment first is the change that lets the chunks shrink.
+CHUNK = 2048
 #: Edge points whose direction differs from the path's by more than this are another edge
 #: (the other leg of a corner) and are left out of N_S.
 EDGE_DIRECTION_TOLERANCE_DEG = 30.0

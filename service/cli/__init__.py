@@ -74,6 +74,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv if argv else None)
     args = parser.parse_args(argv)
+    if not hasattr(args, "handler"):  # a command listed by name only: never built, never run
+        parser.error(f"could not tell the command from {' '.join(argv)!r}")
     try:
         return int(args.handler(args) or 0)
     except (ReconError, DriverError, ValueError) as exc:

@@ -11,9 +11,9 @@ from service.store import Store
 from tests.service.job_targets import LoadedModules
 
 
-def _loaded_in_a_worker(tmp_path, *, warm: bool) -> list[str]:
+def _loaded_in_a_worker(tmp_path, *, warm: bool, modules=WARM_MODULES) -> list[str]:
     store = Store(tmp_path, f"sqlite:///{tmp_path / 'db.sqlite'}")
-    jobs = JobManager(store, workers=1, warm=warm)
+    jobs = JobManager(store, workers=1, warm=warm, warm_modules=modules)
     try:
         for started in jobs.warmed:
             started.result(timeout=120)  # the worker is up and has imported WARM_MODULES
@@ -31,6 +31,15 @@ def test_a_warm_worker_has_the_pipelines_imported_before_its_first_job(tmp_path,
         assert loaded == list(WARM_MODULES)
     else:  # what the warm start saves: a cold worker imports them in its first job
         assert "recon.reconstruct" not in loaded and "service.plots" not in loaded
+
+
+def test_a_module_that_fails_to_import_leaves_the_pool_working(tmp_path):
+    """An initializer that raises breaks a process pool for good (every job would fail as a
+    dead worker): a warm-up import that fails is logged, and the worker runs its jobs."""
+    loaded = _loaded_in_a_worker(
+        tmp_path, warm=True, modules=("teachpath_no_such_module", "service.plots")
+    )
+    assert "service.plots" in loaded  # the worker ran this job, and the rest was imported
 
 
 def test_the_service_warms_its_workers_by_default():
