@@ -45,6 +45,10 @@ class Server:
         if token is None:
             env.pop("TEACHPATH_TOKEN")
         env.pop("TEACHPATH_UR_HOST", None)  # never a real controller from a test
+        # The suites start dozens of servers, most never running a job: a warm start would
+        # import the pipelines in a worker beside each (CPU the real-time tests next to them
+        # need). The warm start has its own tests (tests/service/test_warm_workers.py).
+        env.setdefault("TEACHPATH_WARM_WORKERS", "false")
         env.update(settings or {})
         command = [sys.executable, "-m", "service.cli", "serve", "--port", "0"]
         command += ["--data-dir", str(data_dir)] + (["--demo"] if demo else [])
