@@ -367,7 +367,8 @@ def test_two_reconstructions_overlaid_with_their_difference(pendant):
     before = canvas_digest(page)
     row.get_by_role("button", name="Overlay").click()
     note = page.locator("#overlay-note")
-    expect(note).to_contain_text(f"{older} over {current}")
+    # The older reconstruction's arrays are fetched and drawn first (slow on a loaded machine).
+    expect(note).to_contain_text(f"{older} over {current}", timeout=30_000)
     expected = client.get(
         f"/sessions/{sid}/reconstructions/{older}/difference?against={current}"
     ).json()

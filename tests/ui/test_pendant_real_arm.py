@@ -253,6 +253,16 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             0.1 + 0.9 * in_process[0] / (len(phases) - 1),
             0.1 + 0.9 * in_process[-1] / (len(phases) - 1),
         )
+        # The least speed from here on, before the process, so that the stop below lands at the
+        # same point of it however long a loaded machine takes over the presses (run at half
+        # speed, a busy machine saw the process end before the stop; stopped later in it, the
+        # straight retract passes inside the scan's margin and the move back is refused).
+        deadline = time.monotonic() + 120
+        while _progress(page, "#run-form") < process_from - 0.03:  # the approach's start
+            assert time.monotonic() < deadline, "the run did not reach its approach"
+            time.sleep(0.05)
+        client.post(f"/executions/{owner}/speed", json={"fraction": 0.05}).raise_for_status()
+        expect(page.locator("#run-speed-state")).to_have_text("at 5 %", timeout=15_000)
 
         # A screen that is not signed in (a tablet by the cell, no token) shows the arm owned
         # and a Stop that works: its Escape is the stop that lands. The operator's page presses
@@ -269,7 +279,7 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             near_stop = near.get_by_role("button", name="Stop")
             expect(near_stop).to_be_visible()
             # It shows the run's speed; changing it or pausing takes the token (Stop does not).
-            expect(near.locator("#run-speed-state")).to_have_text("at 50 %")
+            expect(near.locator("#run-speed-state")).to_have_text("at 5 %")
             expect(near.get_by_role("button", name="Pause")).to_be_hidden()
             expect(near.locator("#run-speed-slider")).to_be_hidden()
             expect(near.locator("#run-speed-unit")).to_be_hidden()  # no stray "%" either
@@ -283,11 +293,6 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
                 assert time.monotonic() < deadline, "the run did not reach its process"
                 time.sleep(0.05)
             assert _progress(page, "#run-form") < process_to, "the process ended before the stop"
-            # The least speed from here, so that the stop lands close to this point however long
-            # a loaded machine takes over the presses below (stopped later on this part, the
-            # straight retract would pass inside the scan's margin and the move back is refused).
-            client.post(f"/executions/{owner}/speed", json={"fraction": 0.05}).raise_for_status()
-            expect(near.locator("#run-speed-state")).to_have_text("at 5 %", timeout=15_000)
             held, near_held = [], []
             page.route("**/executions/*/stop", lambda route: held.append(route))
             near.route("**/executions/*/stop", lambda route: near_held.append(route))
