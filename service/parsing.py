@@ -16,7 +16,7 @@ import json
 import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any, Literal
+from typing import IO, TYPE_CHECKING, Any, Literal, TypedDict, Unpack
 
 import numpy as np
 
@@ -108,6 +108,18 @@ def _plain(value: object) -> object:
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
+class TraceOptions(TypedDict):
+    """How to read a trace: :func:`parse_recording`'s options, which :func:`parse_touches`
+    passes on."""
+
+    format: str | None
+    units: str | None
+    rigid_body: str | None
+    marker: str | None
+    tip_offset_m: tuple[float, float, float] | None
+    piece: int | Literal["all"] | None
+
+
 def parse_recording(
     path: str,
     filename: str,
@@ -160,13 +172,8 @@ def parse_touches(
     path: str,
     filename: str,
     *,
-    format: str | None,
-    units: str | None,
-    rigid_body: str | None,
-    marker: str | None,
-    tip_offset_m: tuple[float, float, float] | None,
-    piece: int | Literal["all"] | None,
     out_path: str | None = None,
+    **trace_options: Unpack[TraceOptions],
 ) -> Arrays:
     """A touch recording: the trace's arrays, with the tip's rests found and summarised.
 
@@ -179,16 +186,7 @@ def parse_touches(
     """
     from recon.touches import touches_in
 
-    handed = parse_recording(
-        path,
-        filename,
-        format=format,
-        units=units,
-        rigid_body=rigid_body,
-        marker=marker,
-        tip_offset_m=tip_offset_m,
-        piece=piece,
-    )
+    handed = parse_recording(path, filename, **trace_options)
     summary: dict[str, Any] = json.loads(str(handed.pop(SUMMARY_KEY)))
     arrays = handed
     found = touches_in(arrays["points_m"], arrays.get("t_s"), label=filename)
