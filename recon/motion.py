@@ -163,13 +163,11 @@ def joint_move(
     t = np.arange(int(np.ceil(t_total / dt - 1e-9)) + 1, dtype=np.float64) * dt
     s, sd, sdd = trapezoid(1.0, s_rate, s_acc, t)
     s[-1] = 1.0
-    return PhaseSamples(
-        Phase.TRANSIT,
-        t,
-        q0 + s[:, None] * delta,
-        sd[:, None] * delta,
-        sdd[:, None] * delta,
-    )
+    q = q0 + s[:, None] * delta
+    # q0 + (q1 - q0) can miss q1 by a rounding: the move ends exactly where it was asked to (the
+    # next phase starts there, and a gate compares the two).
+    q[-1] = q1
+    return PhaseSamples(Phase.TRANSIT, t, q, sd[:, None] * delta, sdd[:, None] * delta)
 
 
 #: Chords along a joint move over which its largest TCP speed per unit of s is taken.
