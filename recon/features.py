@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from recon.arrays import FloatArray
 from recon.errors import NoOverlapError
 from recon.fitting import symmetric_eig3
+from recon.kernels import PointGrid, compiled, csr_row_sums
 
 if TYPE_CHECKING:
     from scipy.sparse import csr_matrix
@@ -184,10 +185,15 @@ def neighbour_balls(
     m = len(points_m)
     k = min(max_neighbours, m)
     wanted = np.arange(m) if rows is None else np.asarray(rows, dtype=np.int64)
+    # The compiled grid search where it is built (the same balls, recon.kernels), else the tree.
+    grid = PointGrid(points_m, radius_m) if compiled() is not None and m else None
     counts, columns = [], []
     for start in range(0, len(wanted), NEIGHBOUR_CHUNK):
         query = points_m[wanted[start : start + NEIGHBOUR_CHUNK]]
-        distance, index = tree.query(query, k=k, distance_upper_bound=radius_m, workers=-1)
+        if grid is not None:
+            distance, index = grid.nearest(query, k=k, radius_m=radius_m)
+        else:
+            distance, index = tree.query(query, k=k, distance_upper_bound=radius_m, workers=-1)
         inside = np.isfinite(distance.reshape(len(query), k))
         counts.append(inside.sum(axis=1))
         columns.append(index.reshape(len(query), k)[inside].astype(np.int32))
@@ -230,6 +236,84 @@ def statistical_inliers(
     return inliers
 
 
+def ball_moments(
+    points_m: FloatArray,
+    tree: cKDTree | None,
+    *,
+    radius_m: float,
+    max_neighbours: int = 48,
+    rows: np.ndarray | None = None,
+) -> tuple[FloatArray, np.ndarray]:
+    """The covariance of the balls of :func:`neighbour_balls`, of all points or of ``rows``.
+
+    With the compiled kernels (:mod:`recon.kernels`) the balls are summed as they are found,
+    without the sparse matrix; the numbers are the same to the bit as the matrix's.
+
+    Parameters
+    ----------
+    points_m : ndarray of shape (M, 3)
+    tree : cKDTree or None
+        Over ``points_m``, for the numpy reference (built here when None and needed).
+    radius_m, max_neighbours :
+        As for :func:`neighbour_balls`.
+    rows : ndarray of shape (S,), int, optional
+        Only these points' balls, increasing.
+
+    Returns
+    -------
+    covariances : ndarray of shape (S, 3, 3)
+        S is M without ``rows``.
+    counts : ndarray of shape (S,), int
+    """
+    points_m = np.asarray(points_m, dtype=np.float64)
+    m = len(points_m)
+    wanted = np.arange(m) if rows is None else np.asarray(rows, dtype=np.int64)
+    if rows is not None and len(wanted) and np.any(np.diff(wanted) <= 0):
+        raise ValueError("rows must be increasing")
+    if compiled() is None or m == 0:
+        balls = neighbour_balls(
+            points_m,
+            tree if tree is not None else cKDTree(points_m),
+            radius_m=radius_m,
+            max_neighbours=max_neighbours,
+            rows=rows,
+        )
+        covariances, counts = ball_covariances(points_m, balls)
+        return covariances[wanted], counts[wanted]
+    columns = _moment_columns(points_m)
+    grid = PointGrid(points_m, radius_m)
+    sums = np.empty((len(wanted), columns.shape[1]))
+    counts = np.empty(len(wanted), np.int64)
+    for start in range(0, len(wanted), NEIGHBOUR_CHUNK):
+        part = slice(start, start + NEIGHBOUR_CHUNK)
+        sums[part], counts[part] = grid.ball_sums(
+            points_m[wanted[part]], columns, k=min(max_neighbours, m), radius_m=radius_m
+        )
+    return _covariances_from_sums(sums, counts), counts
+
+
+def _moment_columns(points_m: FloatArray) -> FloatArray:
+    """The coordinates and their products whose ball sums give the balls' moments (M, 9)."""
+    m = len(points_m)
+    # Coordinates about the cloud's centre keep E[p p^T] - E[p] E[p]^T precise: the cloud spans
+    # a metre at most and the smallest variance is about (0.1 mm)^2, far above the cancellation.
+    centred = points_m - points_m.mean(axis=0) if m else points_m
+    columns: FloatArray = np.column_stack(
+        [centred] + [centred[:, i] * centred[:, j] for i, j in _PRODUCTS]
+    )
+    return columns
+
+
+def _covariances_from_sums(sums: FloatArray, counts: np.ndarray) -> FloatArray:
+    """Covariances (S, 3, 3) from the ball sums of :func:`_moment_columns` and the counts."""
+    n = np.maximum(counts, 1)[:, None]
+    mean, second = sums[:, :3] / n, sums[:, 3:] / n
+    covariances = np.empty((len(sums), 3, 3))
+    for c, (i, j) in enumerate(_PRODUCTS):
+        covariances[:, i, j] = covariances[:, j, i] = second[:, c] - mean[:, i] * mean[:, j]
+    return covariances
+
+
 def ball_covariances(points_m: FloatArray, balls: csr_matrix) -> tuple[FloatArray, np.ndarray]:
     """The covariance of each point's ball (see :func:`covariance_features`).
 
@@ -240,20 +324,10 @@ def ball_covariances(points_m: FloatArray, balls: csr_matrix) -> tuple[FloatArra
         Points in each ball.
     """
     points_m = np.asarray(points_m, dtype=np.float64)
-    m = len(points_m)
     balls = balls.tocsr()
-    # Coordinates about the cloud's centre keep E[p p^T] - E[p] E[p]^T precise: the cloud spans
-    # a metre at most and the smallest variance is about (0.1 mm)^2, far above the cancellation.
-    centred = points_m - points_m.mean(axis=0) if m else points_m
-    columns = np.column_stack([centred] + [centred[:, i] * centred[:, j] for i, j in _PRODUCTS])
-    sums = balls @ columns
+    sums = csr_row_sums(balls, _moment_columns(points_m))
     counts = np.diff(balls.indptr)
-    n = np.maximum(counts, 1)[:, None]
-    mean, second = sums[:, :3] / n, sums[:, 3:] / n
-    covariances = np.empty((m, 3, 3))
-    for c, (i, j) in enumerate(_PRODUCTS):
-        covariances[:, i, j] = covariances[:, j, i] = second[:, c] - mean[:, i] * mean[:, j]
-    return covariances, counts
+    return _covariances_from_sums(sums, counts), counts
 
 
 def covariance_features(points_m: FloatArray, balls: csr_matrix) -> tuple[FloatArray, FloatArray]:
@@ -277,7 +351,14 @@ def covariance_features(points_m: FloatArray, balls: csr_matrix) -> tuple[FloatA
         ``l3 / (l1 + l2 + l3)``; 1/3 (isotropic, i.e. no surface) where a ball holds < 3 points
         (whose normal is then arbitrary, as Open3D's is).
     """
-    covariances, counts = ball_covariances(points_m, balls)
+    return normals_and_curvature(*ball_covariances(points_m, balls))
+
+
+def normals_and_curvature(
+    covariances: FloatArray, counts: np.ndarray
+) -> tuple[FloatArray, FloatArray]:
+    """Normals and surface variation of balls from their covariances (S, 3, 3) and sizes (S,)
+    (see :func:`covariance_features`)."""
     values, normals = symmetric_eig3(covariances)
     total = values.sum(axis=1)
     surface = (counts >= 3) & (total > 0)
@@ -398,8 +479,9 @@ def prepare_scan(
     points = coarse[inliers]
     if not np.all(inliers):
         tree = cKDTree(points)
-    balls = neighbour_balls(points, tree, radius_m=curvature_radius_m)
-    normals, curvature = covariance_features(points, balls)
+    normals, curvature = normals_and_curvature(
+        *ball_moments(points, tree, radius_m=curvature_radius_m)
+    )
     threshold = edge_curvature if edge_curvature is not None else edge_threshold(curvature)
     dense = _thin_randomly(
         cropped, n_voxels=n_before, voxel_m=voxel_m, spacing_m=dense_spacing_m, seed=seed

@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from recon.arrays import FloatArray
 from recon.fitting import gather
+from recon.kernels import hough_votes
 
 #: Half the thickness of each slice (along the path): thick enough for tens of points per face
 #: at a depth camera's density, thin enough that a curved feature stays straight within it.
@@ -418,25 +419,20 @@ def _votes(
     x: FloatArray, y: FloatArray, phi: FloatArray, weight: NDArray[np.bool_], n_rho: int
 ) -> FloatArray:
     """Hough accumulator (B, THETA_BINS, n_rho): each weighted point votes for the lines through
-    it whose normals lie within :data:`NORMAL_TOLERANCE_DEG` of its own normal (``phi``), each
-    vote shared linearly between the two nearest offset bins."""
-    b, _k = x.shape
-    step = np.pi / THETA_BINS
-    window = np.arange(-VOTE_HALF_WINDOW, VOTE_HALF_WINDOW + 1)
-    centre = np.floor(phi / step).astype(np.int64)
-    t_bin = np.mod(centre[:, :, None] + window, THETA_BINS)  # (B, K, W)
-    theta = (t_bin + 0.5) * step
-    rho = x[:, :, None] * np.cos(theta) + y[:, :, None] * np.sin(theta)
-    position = (rho + PROFILE_RADIUS_M + RHO_BIN_M) / RHO_BIN_M - 0.5
-    low = np.floor(position).astype(np.int64)
-    frac = position - low
-    low = np.clip(low, 0, n_rho - 2)
-    w = np.broadcast_to(weight[:, :, None].astype(np.float64), rho.shape)
-    flat = ((np.arange(b)[:, None, None] * THETA_BINS + t_bin) * n_rho + low).ravel()
-    size = b * THETA_BINS * n_rho
-    acc = np.bincount(flat, weights=(w * (1.0 - frac)).ravel(), minlength=size)
-    acc += np.bincount(flat + 1, weights=(w * frac).ravel(), minlength=size)
-    return acc.astype(np.float64, copy=False).reshape(b, THETA_BINS, n_rho)
+    it whose normals lie within :data:`VOTE_HALF_WINDOW` direction bins of its own normal
+    (``phi``), each vote shared linearly between the two nearest offset bins
+    (:func:`recon.kernels.hough_votes`)."""
+    return hough_votes(
+        x,
+        y,
+        phi,
+        weight,
+        n_theta=THETA_BINS,
+        half_window=VOTE_HALF_WINDOW,
+        radius_m=PROFILE_RADIUS_M,
+        rho_bin_m=RHO_BIN_M,
+        n_rho=n_rho,
+    )
 
 
 def _not_a_ramp(

@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 
 from recon.arrays import FloatArray
 from recon.edges import EdgePoints, stations_along, thin_edges
-from recon.features import ScanFeatures, ball_covariances, neighbour_balls, prepare_scan
+from recon.features import ScanFeatures, ball_moments, prepare_scan
 from recon.fitting import symmetric_eig3
 from recon.inputs import Scan
 from recon.profiles import Profiles, find_profiles
@@ -168,14 +168,13 @@ class ScanModel:
         normals = np.zeros_like(dense)
         if len(wanted) == 0:
             return normals
-        balls = neighbour_balls(
+        covariances, counts = ball_moments(
             dense,
-            self.dense_tree,
+            self.dense_tree if "dense_tree" in self.__dict__ else None,
             radius_m=FINE_NORMAL_RADIUS_M,
             max_neighbours=FINE_NORMAL_NEIGHBOURS,
             rows=wanted,
         )
-        covariances, counts = ball_covariances(dense, balls)
         values, vectors = symmetric_eig3(covariances)
         planar = (counts >= MIN_FINE_NORMAL_POINTS) & (
             values[:, 1] - values[:, 0] >= PLANE_EIGEN_GAP * np.maximum(values[:, 1], 1e-30)

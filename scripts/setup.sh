@@ -6,7 +6,9 @@
 #      `npm ci --ignore-scripts`, copied into service/ui/vendor/ (scripts/vendor-ui.sh);
 #   4. Debian's curl and jq, for the service guide's REST walk-through (a test runs it);
 #   5. Debian's chromium, which the pendant's browser tests (tests/ui, Playwright) drive;
-#   6. Debian's postgresql, whose server the database tests start in a temporary folder.
+#   6. Debian's postgresql, whose server the database tests start in a temporary folder;
+#   7. the compiled kernels (recon/_kernels.c, by setup.py; gcc and Python's headers from Debian
+#      if missing), compiled again whenever their source or setup.py changed (.venv/.kernels).
 # The stamp file .venv/.installed records the pyproject.toml and constraints.txt (the exact versions)
 # it was installed from, so a changed dependency list triggers a re-install and an unchanged one
 # costs nothing.
@@ -79,16 +81,6 @@ if ! command -v chromium >/dev/null; then
     apt_install --no-install-recommends chromium fonts-liberation
 fi
 
-want=$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)
-if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ]; then
-    exit 0
-fi
-
-if [ ! -x "$VENV/bin/python" ]; then
-    echo "setup: creating $VENV"
-    "$PYTHON" -m venv "$VENV"
-fi
-echo "setup: installing teachpath and its dependencies into $VENV"
 # pip warns about every package-index folder this machine lists but lacks; show its output only
 # when it fails, without those lines.
 quiet_pip() {
@@ -101,6 +93,55 @@ quiet_pip() {
     fi
     rm -f "$log"
 }
+
+# The compiled kernels (recon/_kernels.c, setup.py) need a C compiler and Python's headers.
+if ! command -v cc >/dev/null && ! command -v gcc >/dev/null; then
+    echo "setup: installing Debian package gcc (to compile teachpath's kernels)"
+    apt_install gcc libc6-dev
+fi
+has_python_headers() {
+    "$PYTHON" -c 'import os, sys, sysconfig; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))'
+}
+if ! has_python_headers; then
+    echo "setup: installing Debian package python3-dev (Python's headers, for the kernels)"
+    apt_install python3-dev
+fi
+
+# The kernels again whenever their source or build flags changed since they were built (an
+# editable install does not rebuild them by itself): the stamp holds the checksum they were
+# built from.
+KERNEL_STAMP=$VENV/.kernels
+kernels_want=$(cat recon/_kernels.c setup.py | sha256sum | cut -d' ' -f1)
+rebuild_kernels() {
+    echo "setup: compiling teachpath's kernels (recon/_kernels.c)"
+    rm -f recon/_kernels*.so
+    quiet_pip install -q --no-deps -e .
+    "$VENV/bin/python" -c 'import recon._kernels' || {
+        echo "setup: the kernels did not build (see above)" >&2
+        exit 1
+    }
+    echo "$kernels_want" > "$KERNEL_STAMP"
+}
+
+want=$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$want" ]; then
+    if [ "$(cat "$KERNEL_STAMP" 2>/dev/null)" != "$kernels_want" ] \
+        || ! ls recon/_kernels*.so >/dev/null 2>&1; then
+        rebuild_kernels
+    fi
+    exit 0
+fi
+
+if [ ! -x "$VENV/bin/python" ]; then
+    echo "setup: creating $VENV"
+    "$PYTHON" -m venv "$VENV"
+fi
+echo "setup: installing teachpath and its dependencies into $VENV"
 quiet_pip install -q --upgrade pip
 quiet_pip install -q -c constraints.txt -e '.[all,dev]'
+"$VENV/bin/python" -c 'import recon._kernels' || {
+    echo "setup: the kernels did not build (see above)" >&2
+    exit 1
+}
+echo "$kernels_want" > "$KERNEL_STAMP"
 echo "$want" > "$STAMP"

@@ -55,6 +55,18 @@ def test_the_dockerfile_copies_what_the_package_needs():
     assert "libusb-1.0-0" in text
 
 
+def test_the_image_is_built_with_the_compiled_kernels():
+    """The kernels are compiled in a stage with a compiler (setup.py is copied there), the image
+    installs that wheel and checks that the kernels load; no compiler in the image itself."""
+    text = (ROOT / "docker" / "Dockerfile").read_text()
+    wheel_stage, _, image = text.partition("FROM python:3.11-slim-bookworm\n")
+    assert "COPY pyproject.toml setup.py" in wheel_stage and "gcc=" in wheel_stage
+    assert "pip wheel" in wheel_stage
+    assert "COPY --from=wheel /wheels /wheels" in image
+    assert 'python -c "import recon._kernels"' in image
+    assert "gcc" not in image
+
+
 def test_the_image_serves_the_documentation_site():
     """The guide at /guide in the container too: built strict in a stage of its own, with the
     versions of the site's tools pinned as in constraints.txt, and the service pointed at it."""

@@ -1,0 +1,627 @@
+/*
+ * teachpath's compiled kernels: the loops of the scan model that numpy can only do with large
+ * temporaries or a Python loop. Each has a pure-numpy reference in recon/kernels.py, and the
+ * tests compare the two (bit for bit where the arithmetic is the same, see each function).
+ *
+ * Conventions
+ * - Every array arrives through the buffer protocol as a C-contiguous block; recon/kernels.py
+ *   makes it so and passes the shapes. Each function checks that every buffer holds exactly the
+ *   bytes its shape says (a caller's mistake raises ValueError, never reads past a buffer).
+ * - The GIL is released while a kernel runs, so recon/kernels.py can run parts of one call on
+ *   several threads.
+ * - Compiled with -ffp-contract=off (setup.py): no fused multiply-add, so a product followed by
+ *   a sum rounds twice exactly as numpy's separate ufuncs do.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* A buffer of `count` items of `item` bytes, or a ValueError naming it. */
+static int expect_size(const Py_buffer *view, Py_ssize_t count, Py_ssize_t item, const char *name)
+{
+    if (count < 0 || (item > 0 && count > PY_SSIZE_T_MAX / item) || view->len != count * item) {
+        PyErr_Format(PyExc_ValueError, "%s holds %zd bytes, its shape says %zd", name, view->len,
+                     count >= 0 && count <= PY_SSIZE_T_MAX / (item > 0 ? item : 1) ? count * item
+                                                                                   : (Py_ssize_t)-1);
+        return -1;
+    }
+    return 0;
+}
+
+/* ---------------------------------------------------------------------------------------- */
+/* Nearest points within a radius, on a uniform grid                                          */
+/* ---------------------------------------------------------------------------------------- */
+
+typedef struct {
+    double d2;
+    int64_t index;
+} Candidate;
+
+/* Order of candidates: nearer first, the smaller original index first among equals. */
+static inline int worse(const Candidate *a, const Candidate *b)
+{
+    return a->d2 > b->d2 || (a->d2 == b->d2 && a->index > b->index);
+}
+
+/* Max-heap on `worse`: heap[0] is the worst of the kept candidates. */
+static void sift_down(Candidate *heap, Py_ssize_t size, Py_ssize_t at)
+{
+    for (;;) {
+        Py_ssize_t left = 2 * at + 1, right = left + 1, top = at;
+        if (left < size && worse(&heap[left], &heap[top])) top = left;
+        if (right < size && worse(&heap[right], &heap[top])) top = right;
+        if (top == at) return;
+        Candidate swap = heap[at];
+        heap[at] = heap[top];
+        heap[top] = swap;
+        at = top;
+    }
+}
+
+static void sift_up(Candidate *heap, Py_ssize_t at)
+{
+    while (at > 0) {
+        Py_ssize_t parent = (at - 1) / 2;
+        if (!worse(&heap[at], &heap[parent])) return;
+        Candidate swap = heap[at];
+        heap[at] = heap[parent];
+        heap[parent] = swap;
+        at = parent;
+    }
+}
+
+static int by_distance(const void *a, const void *b)
+{
+    const Candidate *x = a, *y = b;
+    return worse(x, y) ? 1 : (worse(y, x) ? -1 : 0);
+}
+
+/* First position in sorted `keys[0:n]` whose key is >= `key`. */
+static Py_ssize_t lower_bound(const int64_t *keys, Py_ssize_t n, int64_t key)
+{
+    Py_ssize_t lo = 0, hi = n;
+    while (lo < hi) {
+        Py_ssize_t mid = lo + (hi - lo) / 2;
+        if (keys[mid] < key) lo = mid + 1; else hi = mid;
+    }
+    return lo;
+}
+
+/* The grid cell of one coordinate, clamped to [-1, dim] so that far or non-finite queries
+ * cannot overflow the conversion (they find no cell). */
+static int64_t cell_of(double value, double origin, double cell, int64_t dim)
+{
+    double c = floor((value - origin) / cell);
+    if (!(c >= -1.0)) return -1; /* also NaN */
+    if (c > (double)dim) return dim;
+    return (int64_t)c;
+}
+
+/* Distance along one axis from a coordinate to the slab of cell `index` (0 inside it). */
+static inline double gap_to_cell(double value, double origin, double cell, int64_t index)
+{
+    double lo = origin + (double)index * cell, hi = lo + cell;
+    return value < lo ? lo - value : (value > hi ? value - hi : 0.0);
+}
+
+/* A grid of points and the state of a search in it: the candidates of the last query's cell
+ * (coordinates apart, so the distance loop vectorises) and room for the hits. */
+typedef struct {
+    /* The grid (read-only, from the caller's buffers). */
+    const double *points, *origin;
+    const int64_t *order, *keys, *starts, *dims;
+    Py_ssize_t n, u;
+    double cell, r2, reach2;
+    int64_t span;
+    /* The candidates of the cell last searched from. */
+    int64_t last_cx, last_cy, last_cz;
+    Py_ssize_t capacity, n_candidates;
+    double *cand_x, *cand_y, *cand_z, *cand_d2;
+    int64_t *cand_index;
+    Candidate *hits;
+} Search;
+
+static void search_free(Search *s)
+{
+    free(s->cand_x);
+    free(s->cand_y);
+    free(s->cand_z);
+    free(s->cand_d2);
+    free(s->cand_index);
+    free(s->hits);
+}
+
+/* Room for `needed` candidates; 0 when memory ran out. */
+static int search_reserve(Search *s, Py_ssize_t needed)
+{
+    if (needed <= s->capacity) return 1;
+    Py_ssize_t capacity = s->capacity > 0 ? s->capacity : 1024;
+    while (capacity < needed) capacity *= 2;
+    double *x = realloc(s->cand_x, (size_t)capacity * sizeof(double));
+    if (x) s->cand_x = x;
+    double *y = realloc(s->cand_y, (size_t)capacity * sizeof(double));
+    if (y) s->cand_y = y;
+    double *z = realloc(s->cand_z, (size_t)capacity * sizeof(double));
+    if (z) s->cand_z = z;
+    double *d2 = realloc(s->cand_d2, (size_t)capacity * sizeof(double));
+    if (d2) s->cand_d2 = d2;
+    int64_t *index = realloc(s->cand_index, (size_t)capacity * sizeof(int64_t));
+    if (index) s->cand_index = index;
+    Candidate *hits = realloc(s->hits, (size_t)capacity * sizeof(Candidate));
+    if (hits) s->hits = hits;
+    if (!x || !y || !z || !d2 || !index || !hits) return 0;
+    s->capacity = capacity;
+    return 1;
+}
+
+/* Gather the points of the cells within reach of cell (cx, cy, cz); 0 when memory ran out. */
+static int search_gather(Search *s, int64_t cx, int64_t cy, int64_t cz)
+{
+    const int64_t *dim = s->dims;
+    int64_t span = s->span, side = 2 * span + 1;
+    int64_t x0 = cx - span < 0 ? 0 : cx - span;
+    int64_t x1 = cx + span >= dim[0] ? dim[0] - 1 : cx + span;
+    s->n_candidates = 0;
+    s->last_cx = cx, s->last_cy = cy, s->last_cz = cz;
+    for (int64_t r = 0; r < side * side && x0 <= x1; r++) {
+        int64_t iy = cy - span + r % side, iz = cz - span + r / side;
+        if (iy < 0 || iy >= dim[1] || iz < 0 || iz >= dim[2]) continue;
+        /* Rows farther across y and z than the reach from every point of the cell. */
+        double gy = (double)(llabs(iy - cy) > 0 ? llabs(iy - cy) - 1 : 0) * s->cell;
+        double gz = (double)(llabs(iz - cz) > 0 ? llabs(iz - cz) - 1 : 0) * s->cell;
+        if (gy * gy + gz * gz >= s->reach2) continue;
+        /* One row of cells along x is one run of consecutive keys. */
+        int64_t row = dim[0] * (iy + dim[1] * iz);
+        Py_ssize_t c0 = lower_bound(s->keys, s->u, row + x0);
+        Py_ssize_t c1 = lower_bound(s->keys, s->u, row + x1 + 1);
+        if (c0 >= c1) continue;
+        int64_t j0 = s->starts[c0], j1 = s->starts[c1];
+        if (!search_reserve(s, s->n_candidates + (Py_ssize_t)(j1 - j0))) return 0;
+        for (int64_t j = j0; j < j1; j++, s->n_candidates++) {
+            s->cand_x[s->n_candidates] = s->points[3 * j];
+            s->cand_y[s->n_candidates] = s->points[3 * j + 1];
+            s->cand_z[s->n_candidates] = s->points[3 * j + 2];
+            s->cand_index[s->n_candidates] = s->order[j];
+        }
+    }
+    return 1;
+}
+
+/* The k nearest points strictly within the radius of (x, y, z), nearest first (ties by the
+ * smaller index), into s->hits; returns how many, or -1 when memory ran out. */
+static Py_ssize_t search_query(Search *s, double x, double y, double z, Py_ssize_t k)
+{
+    if (!(isfinite(x) && isfinite(y) && isfinite(z))) return 0;
+    int64_t cx = cell_of(x, s->origin[0], s->cell, s->dims[0]);
+    int64_t cy = cell_of(y, s->origin[1], s->cell, s->dims[1]);
+    int64_t cz = cell_of(z, s->origin[2], s->cell, s->dims[2]);
+    if (cx != s->last_cx || cy != s->last_cy || cz != s->last_cz) {
+        if (!search_gather(s, cx, cy, cz)) return -1;
+    }
+    Py_ssize_t count = s->n_candidates, found = 0;
+    const double *px = s->cand_x, *py = s->cand_y, *pz = s->cand_z;
+    double *d2 = s->cand_d2;
+    for (Py_ssize_t j = 0; j < count; j++) {
+        double dx = px[j] - x, dy = py[j] - y, dz = pz[j] - z;
+        d2[j] = dx * dx + dy * dy + dz * dz;
+    }
+    Candidate *hits = s->hits;
+    for (Py_ssize_t j = 0; j < count; j++) {
+        if (d2[j] < s->r2) {
+            hits[found].d2 = d2[j];
+            hits[found].index = s->cand_index[j];
+            found++;
+        }
+    }
+    if (found > k) {
+        /* The k best of the hits: a max-heap of k over them. */
+        for (Py_ssize_t m = 0; m < k; m++) sift_up(hits, m);
+        for (Py_ssize_t m = k; m < found; m++) {
+            if (worse(&hits[0], &hits[m])) {
+                hits[0] = hits[m];
+                sift_down(hits, k, 0);
+            }
+        }
+        found = k;
+    }
+    if (found > 32) {
+        qsort(hits, (size_t)found, sizeof(Candidate), by_distance);
+    } else {
+        for (Py_ssize_t m = 1; m < found; m++) {
+            Candidate c = hits[m];
+            Py_ssize_t at = m;
+            while (at > 0 && worse(&hits[at - 1], &c)) {
+                hits[at] = hits[at - 1];
+                at--;
+            }
+            hits[at] = c;
+        }
+    }
+    return found;
+}
+
+/* Parses and checks the grid's part of the arguments; 0 with an exception set when they do not
+ * fit together. The buffers stay the caller's to release. */
+static int search_init(Search *s, Py_buffer *points, Py_buffer *order, Py_buffer *keys,
+                       Py_buffer *starts, Py_buffer *origin, double cell, Py_buffer *dims,
+                       double radius)
+{
+    memset(s, 0, sizeof(*s));
+    s->n = points->len / (Py_ssize_t)(3 * sizeof(double));
+    s->u = keys->len / (Py_ssize_t)sizeof(int64_t);
+    if (!(cell > 0.0) || !isfinite(cell) || !(radius >= 0.0) || !isfinite(radius)) {
+        PyErr_SetString(PyExc_ValueError, "cell_m must be positive and radius finite, >= 0");
+        return 0;
+    }
+    if (expect_size(points, s->n, 3 * sizeof(double), "points") ||
+        expect_size(order, s->n, sizeof(int64_t), "order") ||
+        expect_size(starts, s->u + 1, sizeof(int64_t), "cell_starts") ||
+        expect_size(origin, 3, sizeof(double), "origin") ||
+        expect_size(dims, 3, sizeof(int64_t), "dims"))
+        return 0;
+    s->points = points->buf, s->order = order->buf, s->keys = keys->buf;
+    s->starts = starts->buf, s->origin = origin->buf, s->dims = dims->buf;
+    for (int a = 0; a < 3; a++) {
+        if (s->dims[a] < 1 || s->dims[a] > (INT64_C(1) << 20)) {
+            PyErr_SetString(PyExc_ValueError, "each grid dimension must be in [1, 2**20]");
+            return 0;
+        }
+    }
+    /* Every run of points a cell names lies within the points, and the keys increase (checked
+     * once here, so the searches cannot read past a buffer). */
+    if (s->starts[0] != 0 || s->starts[s->u] != s->n) {
+        PyErr_SetString(PyExc_ValueError, "cell_starts must run from 0 to the number of points");
+        return 0;
+    }
+    for (Py_ssize_t c = 0; c < s->u; c++) {
+        int64_t key = s->keys[c];
+        if (s->starts[c + 1] < s->starts[c] || (c > 0 && key <= s->keys[c - 1]) || key < 0 ||
+            key >= s->dims[0] * s->dims[1] * s->dims[2]) {
+            PyErr_SetString(PyExc_ValueError,
+                            "cell_keys must increase within the grid and cell_starts with them");
+            return 0;
+        }
+    }
+    /* Cells are pruned with a slightly larger reach, so that rounding at a cell's boundary
+     * never drops a point the exact test (d2 < r2) would keep. */
+    double reach = radius * (1.0 + 1e-9) + cell * 1e-9;
+    double reach_cells = floor(reach / cell) + 1.0;
+    if (!(reach_cells <= 1024.0)) {
+        PyErr_SetString(PyExc_ValueError,
+                        "the radius spans more than 1024 cells: build the grid with larger cells");
+        return 0;
+    }
+    s->cell = cell, s->r2 = radius * radius, s->reach2 = reach * reach;
+    s->span = (int64_t)reach_cells;
+    s->last_cx = s->last_cy = s->last_cz = -2;
+    return 1;
+}
+
+PyDoc_STRVAR(grid_nearest_doc,
+"grid_nearest(points, order, cell_keys, cell_starts, origin, cell_m, dims, queries, k, radius,\n"
+"             out_distance, out_index, n_points)\n"
+"\n"
+"For each query, its k nearest points strictly within radius (as scipy's cKDTree.query with\n"
+"distance_upper_bound), nearest first, ties by the smaller index; missing ones get distance\n"
+"inf and index n_points. points (N, 3) float64 are sorted by cell, order (N,) int64 their\n"
+"original indices, cell_keys (U,) int64 the occupied cells' keys ix + dx (iy + dy iz)\n"
+"ascending, cell_starts (U + 1,) int64 where each cell's points start; origin (3,) float64,\n"
+"dims (3,) int64; queries (Q, 3) float64, fastest in the grid's order; out_distance (Q, k)\n"
+"float64, out_index (Q, k) int64.");
+
+static PyObject *grid_nearest(PyObject *self, PyObject *args)
+{
+    Py_buffer points = {0}, order = {0}, keys = {0}, starts = {0}, origin = {0}, dims = {0};
+    Py_buffer queries = {0}, out_distance = {0}, out_index = {0};
+    double cell, radius;
+    Py_ssize_t k, n_points;
+    PyObject *result = NULL;
+    Search s;
+    memset(&s, 0, sizeof(s));
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*dy*y*ndw*w*n", &points, &order, &keys, &starts,
+                          &origin, &cell, &dims, &queries, &k, &radius, &out_distance,
+                          &out_index, &n_points))
+        return NULL;
+    Py_ssize_t q = queries.len / (Py_ssize_t)(3 * sizeof(double));
+    if (k < 1 || (q > 0 && k > PY_SSIZE_T_MAX / 8 / q)) {
+        PyErr_SetString(PyExc_ValueError, "k must be at least 1 and k x queries addressable");
+        goto done;
+    }
+    if (!search_init(&s, &points, &order, &keys, &starts, &origin, cell, &dims, radius) ||
+        expect_size(&queries, q, 3 * sizeof(double), "queries") ||
+        expect_size(&out_distance, q * k, sizeof(double), "out_distance") ||
+        expect_size(&out_index, q * k, sizeof(int64_t), "out_index"))
+        goto done;
+    const double *qs = queries.buf;
+    double *distance = out_distance.buf;
+    int64_t *index = out_index.buf;
+    int out_of_memory = 0;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < q; i++) {
+        Py_ssize_t found = search_query(&s, qs[3 * i], qs[3 * i + 1], qs[3 * i + 2], k);
+        if (found < 0) {
+            out_of_memory = 1;
+            break;
+        }
+        for (Py_ssize_t m = 0; m < k; m++) {
+            distance[i * k + m] = m < found ? sqrt(s.hits[m].d2) : INFINITY;
+            index[i * k + m] = m < found ? s.hits[m].index : n_points;
+        }
+    }
+    Py_END_ALLOW_THREADS
+    if (out_of_memory) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    result = Py_NewRef(Py_None);
+done:
+    search_free(&s);
+    PyBuffer_Release(&points);
+    PyBuffer_Release(&order);
+    PyBuffer_Release(&keys);
+    PyBuffer_Release(&starts);
+    PyBuffer_Release(&origin);
+    PyBuffer_Release(&dims);
+    PyBuffer_Release(&queries);
+    PyBuffer_Release(&out_distance);
+    PyBuffer_Release(&out_index);
+    return result;
+}
+
+PyDoc_STRVAR(grid_ball_sums_doc,
+"grid_ball_sums(points, order, cell_keys, cell_starts, origin, cell_m, dims, queries, k, radius,\n"
+"               columns, n_columns, out_sums, out_counts)\n"
+"\n"
+"For each query, the sum of columns[j] over its ball: the points j that grid_nearest returns\n"
+"for it, added in that order (nearest first) from zero, as the CSR product of\n"
+"recon.features.neighbour_balls' matrix with the columns sums them. The grid arguments as for\n"
+"grid_nearest; columns (N, C) float64 in the points' original order; out_sums (Q, C) float64,\n"
+"out_counts (Q,) int64 the balls' sizes.");
+
+static PyObject *grid_ball_sums(PyObject *self, PyObject *args)
+{
+    Py_buffer points = {0}, order = {0}, keys = {0}, starts = {0}, origin = {0}, dims = {0};
+    Py_buffer queries = {0}, columns = {0}, out_sums = {0}, out_counts = {0};
+    double cell, radius;
+    Py_ssize_t k, c;
+    PyObject *result = NULL;
+    Search s;
+    memset(&s, 0, sizeof(s));
+    if (!PyArg_ParseTuple(args, "y*y*y*y*y*dy*y*ndy*nw*w*", &points, &order, &keys, &starts,
+                          &origin, &cell, &dims, &queries, &k, &radius, &columns, &c, &out_sums,
+                          &out_counts))
+        return NULL;
+    Py_ssize_t q = queries.len / (Py_ssize_t)(3 * sizeof(double));
+    if (k < 1 || c < 1 || c > 64 || (q > 0 && c > PY_SSIZE_T_MAX / 8 / q)) {
+        PyErr_SetString(PyExc_ValueError, "k must be at least 1 and n_columns in [1, 64]");
+        goto done;
+    }
+    if (!search_init(&s, &points, &order, &keys, &starts, &origin, cell, &dims, radius) ||
+        expect_size(&queries, q, 3 * sizeof(double), "queries") ||
+        expect_size(&columns, s.n, c * sizeof(double), "columns") ||
+        expect_size(&out_sums, q, c * sizeof(double), "out_sums") ||
+        expect_size(&out_counts, q, sizeof(int64_t), "out_counts"))
+        goto done;
+    /* The order array maps grid positions to original indices; each must be a valid row of
+     * the columns. */
+    for (Py_ssize_t j = 0; j < s.n; j++) {
+        if (s.order[j] < 0 || s.order[j] >= s.n) {
+            PyErr_SetString(PyExc_ValueError, "order must hold indices of the points");
+            goto done;
+        }
+    }
+    const double *qs = queries.buf, *col = columns.buf;
+    double *sums = out_sums.buf;
+    int64_t *counts = out_counts.buf;
+    int out_of_memory = 0;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < q; i++) {
+        Py_ssize_t found = search_query(&s, qs[3 * i], qs[3 * i + 1], qs[3 * i + 2], k);
+        if (found < 0) {
+            out_of_memory = 1;
+            break;
+        }
+        double *row = sums + i * c;
+        for (Py_ssize_t a = 0; a < c; a++) row[a] = 0.0;
+        for (Py_ssize_t m = 0; m < found; m++) {
+            const double *v = col + s.hits[m].index * c;
+            for (Py_ssize_t a = 0; a < c; a++) row[a] += v[a];
+        }
+        counts[i] = found;
+    }
+    Py_END_ALLOW_THREADS
+    if (out_of_memory) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    result = Py_NewRef(Py_None);
+done:
+    search_free(&s);
+    PyBuffer_Release(&points);
+    PyBuffer_Release(&order);
+    PyBuffer_Release(&keys);
+    PyBuffer_Release(&starts);
+    PyBuffer_Release(&origin);
+    PyBuffer_Release(&dims);
+    PyBuffer_Release(&queries);
+    PyBuffer_Release(&columns);
+    PyBuffer_Release(&out_sums);
+    PyBuffer_Release(&out_counts);
+    return result;
+}
+
+/* ---------------------------------------------------------------------------------------- */
+/* Row sums of a 0/1 sparse matrix times dense columns                                         */
+/* ---------------------------------------------------------------------------------------- */
+
+PyDoc_STRVAR(csr_row_sums_doc,
+"csr_row_sums(indptr, indices, columns, n_columns, out)\n"
+"\n"
+"out[i] = sum of columns[j] over the column indices j of row i of a CSR matrix of ones, in\n"
+"their stored order, from zero: scipy's CSR product with a dense matrix, to the bit. indptr\n"
+"(R + 1,) int64, indices (nnz,) int32, columns (M, C) float64, out (R, C) float64.");
+
+static PyObject *csr_row_sums(PyObject *self, PyObject *args)
+{
+    Py_buffer indptr = {0}, indices = {0}, columns = {0}, out = {0};
+    Py_ssize_t c;
+    PyObject *result = NULL;
+    if (!PyArg_ParseTuple(args, "y*y*y*nw*", &indptr, &indices, &columns, &c, &out)) return NULL;
+    Py_ssize_t rows = indptr.len / (Py_ssize_t)sizeof(int64_t) - 1;
+    Py_ssize_t nnz = indices.len / (Py_ssize_t)sizeof(int32_t);
+    if (c < 1 || rows < 0) {
+        PyErr_SetString(PyExc_ValueError, "n_columns must be at least 1 and indptr non-empty");
+        goto done;
+    }
+    Py_ssize_t m = columns.len / (Py_ssize_t)(c * sizeof(double));
+    if (expect_size(&indptr, rows + 1, sizeof(int64_t), "indptr") ||
+        expect_size(&indices, nnz, sizeof(int32_t), "indices") ||
+        expect_size(&columns, m, c * sizeof(double), "columns") ||
+        expect_size(&out, rows, c * sizeof(double), "out"))
+        goto done;
+    const int64_t *ptr = indptr.buf;
+    const int32_t *idx = indices.buf;
+    const double *col = columns.buf;
+    double *sums = out.buf;
+    int bad = 0;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < rows && !bad; i++) {
+        double *row = sums + i * c;
+        for (Py_ssize_t a = 0; a < c; a++) row[a] = 0.0;
+        int64_t j0 = ptr[i], j1 = ptr[i + 1];
+        if (j0 < 0 || j1 > nnz || j0 > j1) { bad = 1; break; }
+        for (int64_t jj = j0; jj < j1; jj++) {
+            int32_t j = idx[jj];
+            if (j < 0 || j >= m) { bad = 1; break; }
+            const double *v = col + (Py_ssize_t)j * c;
+            for (Py_ssize_t a = 0; a < c; a++) row[a] += v[a];
+        }
+    }
+    Py_END_ALLOW_THREADS
+    if (bad) {
+        PyErr_SetString(PyExc_ValueError, "indptr or indices out of range");
+        goto done;
+    }
+    result = Py_NewRef(Py_None);
+done:
+    PyBuffer_Release(&indptr);
+    PyBuffer_Release(&indices);
+    PyBuffer_Release(&columns);
+    PyBuffer_Release(&out);
+    return result;
+}
+
+/* ---------------------------------------------------------------------------------------- */
+/* The slices' Hough votes                                                                    */
+/* ---------------------------------------------------------------------------------------- */
+
+PyDoc_STRVAR(hough_votes_doc,
+"hough_votes(x, y, phi, weight, b, k, cos_theta, sin_theta, step, half_window, radius_m,\n"
+"            rho_bin_m, n_rho, out)\n"
+"\n"
+"recon.profiles' Hough accumulator: each weighted point (x, y, phi (B, K) float64, weight\n"
+"(B, K) uint8) votes in its normal's direction bin (phi / step) and half_window bins either\n"
+"side, shared linearly between the two nearest offset bins. cos_theta, sin_theta (T,) float64\n"
+"are the bins' directions; out (B, T, n_rho) float64. The same arithmetic in the same order\n"
+"as the numpy reference (two bincounts, added), so the result is the same to the bit.");
+
+static PyObject *hough_votes(PyObject *self, PyObject *args)
+{
+    Py_buffer xs = {0}, ys = {0}, phis = {0}, weights = {0}, cos_t = {0}, sin_t = {0}, out = {0};
+    Py_ssize_t b, k, half_window, n_rho;
+    double step, radius, bin;
+    PyObject *result = NULL;
+    double *upper = NULL;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*nny*y*dnddnw*", &xs, &ys, &phis, &weights, &b, &k,
+                          &cos_t, &sin_t, &step, &half_window, &radius, &bin, &n_rho, &out))
+        return NULL;
+    Py_ssize_t t = cos_t.len / (Py_ssize_t)sizeof(double);
+    if (b < 0 || k < 0 || t < 1 || n_rho < 2 || half_window < 0 || !(step > 0.0) ||
+        !(bin > 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "bad Hough grid: need B, K >= 0, T >= 1, n_rho >= 2");
+        goto done;
+    }
+    if (b > 0 && k > PY_SSIZE_T_MAX / b) {
+        PyErr_SetString(PyExc_ValueError, "B x K is too large");
+        goto done;
+    }
+    if (b > 0 && t * n_rho > PY_SSIZE_T_MAX / (Py_ssize_t)sizeof(double) / b) {
+        PyErr_SetString(PyExc_ValueError, "B x T x n_rho is too large");
+        goto done;
+    }
+    if (expect_size(&xs, b * k, sizeof(double), "x") ||
+        expect_size(&ys, b * k, sizeof(double), "y") ||
+        expect_size(&phis, b * k, sizeof(double), "phi") ||
+        expect_size(&weights, b * k, 1, "weight") ||
+        expect_size(&sin_t, t, sizeof(double), "sin_theta") ||
+        expect_size(&out, b * t * n_rho, sizeof(double), "out"))
+        goto done;
+    Py_ssize_t size = b * t * n_rho;
+    upper = calloc(size > 0 ? (size_t)size : 1, sizeof(double));
+    if (upper == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    const double *x = xs.buf, *y = ys.buf, *phi = phis.buf, *ct = cos_t.buf, *st = sin_t.buf;
+    const uint8_t *w = weights.buf;
+    double *lower = out.buf;
+    Py_BEGIN_ALLOW_THREADS
+    memset(lower, 0, (size_t)size * sizeof(double));
+    for (Py_ssize_t s = 0; s < b; s++) {
+        for (Py_ssize_t j = 0; j < k; j++) {
+            Py_ssize_t at = s * k + j;
+            if (!w[at]) continue; /* adds zeros in the reference */
+            double centre_f = floor(phi[at] / step);
+            /* phi lies in [0, pi): the bin is small; anything else is clamped, never indexed
+             * out of range. */
+            int64_t centre = isfinite(centre_f) ? (int64_t)fmax(fmin(centre_f, 1e6), -1e6) : 0;
+            for (Py_ssize_t d = -half_window; d <= half_window; d++) {
+                int64_t tb = (centre + d) % (int64_t)t;
+                if (tb < 0) tb += t;
+                double rho = x[at] * ct[tb] + y[at] * st[tb];
+                double position = ((rho + radius) + bin) / bin - 0.5;
+                double low_f = floor(position);
+                double frac = position - low_f;
+                int64_t low;
+                if (!(low_f >= 0.0)) low = 0; /* also NaN */
+                else if (low_f > (double)(n_rho - 2)) low = n_rho - 2;
+                else low = (int64_t)low_f;
+                Py_ssize_t flat = (s * t + tb) * n_rho + low;
+                lower[flat] += 1.0 - frac;
+                upper[flat + 1] += frac;
+            }
+        }
+    }
+    for (Py_ssize_t i = 0; i < size; i++) lower[i] += upper[i];
+    Py_END_ALLOW_THREADS
+    result = Py_NewRef(Py_None);
+done:
+    free(upper);
+    PyBuffer_Release(&xs);
+    PyBuffer_Release(&ys);
+    PyBuffer_Release(&phis);
+    PyBuffer_Release(&weights);
+    PyBuffer_Release(&cos_t);
+    PyBuffer_Release(&sin_t);
+    PyBuffer_Release(&out);
+    return result;
+}
+
+static PyMethodDef methods[] = {
+    {"grid_nearest", grid_nearest, METH_VARARGS, grid_nearest_doc},
+    {"grid_ball_sums", grid_ball_sums, METH_VARARGS, grid_ball_sums_doc},
+    {"csr_row_sums", csr_row_sums, METH_VARARGS, csr_row_sums_doc},
+    {"hough_votes", hough_votes, METH_VARARGS, hough_votes_doc},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "recon._kernels",
+    "teachpath's compiled kernels (see recon/kernels.py, which is what to import).", -1, methods,
+};
+
+PyMODINIT_FUNC PyInit__kernels(void) { return PyModule_Create(&module); }

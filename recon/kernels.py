@@ -1,0 +1,428 @@
+"""The scan model's hot loops, compiled, each beside the numpy reference it must agree with.
+
+The compiled module (``recon._kernels``, from ``recon/_kernels.c``) is built by the install
+(``setup.py``; ``make setup`` does it). Each function here runs it when it is there and the
+numpy reference otherwise, or always the reference when the environment variable
+``TEACHPATH_KERNELS`` is ``numpy`` (what the tests compare against, and a way to rule the kernels
+out when a result looks wrong). A missing compiled module is logged once, never an error: the
+references give the same results, only slower.
+
+How close each kernel is to its reference (tests/recon/test_kernels.py holds them to it):
+
+- :func:`nearest_within`: the same neighbours at the same distances, to the bit, as
+  ``scipy.spatial.cKDTree.query`` with ``distance_upper_bound``; among points at exactly the
+  same distance the kernel lists the smaller index first (the tree's order there is its own), so
+  the sets can differ only where the k-th and the (k+1)-th neighbour are equally far.
+- :func:`csr_row_sums`: scipy's product of a 0/1 CSR matrix with dense columns, to the bit.
+- :func:`hough_votes`: :mod:`recon.profiles`' two ``bincount`` calls, to the bit.
+
+Why C and not numba (docs/speed.md): a C extension loads in well under a millisecond and is
+compiled once at install, where numba added 0.35-0.6 s to every process start and half a minute
+of compiling on first use.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+from concurrent.futures import ThreadPoolExecutor
+from functools import cache
+from types import ModuleType
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from recon.arrays import FloatArray
+
+if TYPE_CHECKING:
+    from scipy.sparse import csr_matrix
+
+log = logging.getLogger(__name__)
+
+#: Environment variable choosing the implementation: ``numpy`` for the references; anything
+#: else (or unset) for the compiled kernels where they are built.
+KERNELS_ENV = "TEACHPATH_KERNELS"
+#: A grid never has more cells than this along an axis (the kernel refuses more): a cloud
+#: spanning more than this many radii gets coarser cells, slower but still right.
+MAX_CELLS_PER_AXIS = 1 << 20
+#: Queries per thread below which one thread does the whole call (starting threads costs more).
+MIN_QUERIES_PER_THREAD = 2048
+
+
+@cache
+def _compiled_module() -> ModuleType | None:
+    try:
+        from recon import _kernels
+    except ImportError as error:  # an install without a C compiler, or a stale build
+        log.warning(
+            "teachpath's compiled kernels are not built (%s): using the numpy references, "
+            "several times slower; reinstall with a C compiler (make setup) to build them",
+            error,
+        )
+        return None
+    return _kernels
+
+
+def compiled() -> ModuleType | None:
+    """The compiled kernels, or None when they are not built or ``TEACHPATH_KERNELS=numpy``."""
+    if os.environ.get(KERNELS_ENV, "").strip().lower() == "numpy":
+        return None
+    return _compiled_module()
+
+
+@cache
+def _threads() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=os.cpu_count() or 1, thread_name_prefix="kernels")
+
+
+def _parts(n: int) -> list[slice]:
+    """Slices of ``range(n)`` for the threads (one slice when the work is small)."""
+    workers = min(os.cpu_count() or 1, max(1, n // MIN_QUERIES_PER_THREAD))
+    edges = np.linspace(0, n, workers + 1).astype(int)
+    return [slice(int(a), int(b)) for a, b in itertools.pairwise(edges) if b > a]
+
+
+class PointGrid:
+    """Points binned on a uniform grid, for :meth:`nearest` queries of a given radius.
+
+    Parameters
+    ----------
+    points_m : ndarray of shape (N, 3)
+        Finite coordinates.
+    cell_m : float
+        Edge of a cell: the radius the queries will mostly use (a query reaches as many cells
+        either side as its radius needs, so any radius is answered right).
+    """
+
+    def __init__(self, points_m: FloatArray, cell_m: float) -> None:
+        points = np.ascontiguousarray(points_m, dtype=np.float64).reshape(-1, 3)
+        if not np.all(np.isfinite(points)):
+            raise ValueError("grid points must be finite")
+        if not cell_m > 0:
+            raise ValueError(f"a grid cell must be positive, not {cell_m}")
+        self.n_points = len(points)
+        self.origin = points.min(axis=0) if len(points) else np.zeros(3)
+        span = (points.max(axis=0) - self.origin) if len(points) else np.zeros(3)
+        # Coarser cells where the cloud spans more than the kernel's cells per axis.
+        self.cell_m = float(max(cell_m, float(span.max()) / (MAX_CELLS_PER_AXIS - 2)))
+        self.dims = (np.floor(span / self.cell_m).astype(np.int64) + 1).clip(1, MAX_CELLS_PER_AXIS)
+        keys = self._keys(points)
+        self.order = np.argsort(keys, kind="stable").astype(np.int64)
+        self.points = np.ascontiguousarray(points[self.order])
+        self.cell_keys, first = np.unique(keys[self.order], return_index=True)
+        self.cell_starts = np.append(first, len(points)).astype(np.int64)
+
+    def nearest(
+        self, queries_m: FloatArray, *, k: int, radius_m: float
+    ) -> tuple[FloatArray, NDArray[np.int64]]:
+        """Each query's ``k`` nearest grid points strictly within ``radius_m``, nearest first.
+
+        Parameters
+        ----------
+        queries_m : ndarray of shape (Q, 3)
+        k : int
+            At least 1.
+        radius_m : float
+
+        Returns
+        -------
+        distance_m : ndarray of shape (Q, k)
+            ``inf`` past the last neighbour found.
+        index : ndarray of shape (Q, k), int64
+            Into the points the grid was built from; ``N`` past the last neighbour found.
+        """
+        kernels = compiled()
+        if kernels is None:
+            raise RuntimeError("the compiled kernels are not available (see compiled())")
+        queries = np.asarray(queries_m, dtype=np.float64).reshape(-1, 3)
+        q = len(queries)
+        if self.n_points == 0:
+            return np.full((q, k), np.inf), np.zeros((q, k), np.int64)
+        # Queries in the grid's order: neighbouring queries then read the same cells, which
+        # stay in the cache (twice as fast on a scan's dense cloud as queries in scan order).
+        by_cell = np.argsort(self._keys(queries), kind="stable")
+        queries = np.ascontiguousarray(queries[by_cell])
+        distance = np.empty((q, k))
+        index = np.empty((q, k), np.int64)
+
+        def run(part: slice) -> None:
+            kernels.grid_nearest(
+                self.points,
+                self.order,
+                self.cell_keys,
+                self.cell_starts,
+                self.origin,
+                self.cell_m,
+                self.dims,
+                queries[part],
+                k,
+                float(radius_m),
+                distance[part],
+                index[part],
+                self.n_points,
+            )
+
+        parts = _parts(q)
+        if len(parts) <= 1:
+            run(slice(0, q))
+        else:
+            list(_threads().map(run, parts))
+        in_order_distance, in_order_index = np.empty_like(distance), np.empty_like(index)
+        in_order_distance[by_cell], in_order_index[by_cell] = distance, index
+        return in_order_distance, in_order_index
+
+    def ball_sums(
+        self, queries_m: FloatArray, columns: FloatArray, *, k: int, radius_m: float
+    ) -> tuple[FloatArray, NDArray[np.int64]]:
+        """Sums of ``columns`` over each query's ball (its :meth:`nearest` neighbours), added
+        nearest first from zero: ``neighbour_balls(...) @ columns`` without the matrix.
+
+        Parameters
+        ----------
+        queries_m : ndarray of shape (Q, 3)
+        columns : ndarray of shape (N, C)
+            One row per grid point (in the order the grid was built from), C at most 64.
+        k : int
+        radius_m : float
+
+        Returns
+        -------
+        sums : ndarray of shape (Q, C)
+        counts : ndarray of shape (Q,), int64
+            Points in each ball.
+        """
+        kernels = compiled()
+        if kernels is None:
+            raise RuntimeError("the compiled kernels are not available (see compiled())")
+        queries = np.asarray(queries_m, dtype=np.float64).reshape(-1, 3)
+        columns = np.ascontiguousarray(columns, dtype=np.float64)
+        q, c = len(queries), columns.shape[1]
+        if self.n_points == 0:
+            return np.zeros((q, c)), np.zeros(q, np.int64)
+        by_cell = np.argsort(self._keys(queries), kind="stable")
+        queries = np.ascontiguousarray(queries[by_cell])
+        sums = np.empty((q, c))
+        counts = np.empty(q, np.int64)
+
+        def run(part: slice) -> None:
+            kernels.grid_ball_sums(
+                self.points,
+                self.order,
+                self.cell_keys,
+                self.cell_starts,
+                self.origin,
+                self.cell_m,
+                self.dims,
+                queries[part],
+                k,
+                float(radius_m),
+                columns,
+                c,
+                sums[part],
+                counts[part],
+            )
+
+        parts = _parts(q)
+        if len(parts) <= 1:
+            run(slice(0, q))
+        else:
+            list(_threads().map(run, parts))
+        in_order_sums, in_order_counts = np.empty_like(sums), np.empty_like(counts)
+        in_order_sums[by_cell], in_order_counts[by_cell] = sums, counts
+        return in_order_sums, in_order_counts
+
+    def _keys(self, points_m: FloatArray) -> NDArray[np.int64]:
+        """The cell key of each point (cells clamped into the grid; for ordering only)."""
+        with np.errstate(invalid="ignore"):
+            scaled = np.nan_to_num((points_m - self.origin) / self.cell_m, posinf=0, neginf=0)
+        cells = np.floor(scaled).clip(0, self.dims - 1).astype(np.int64)
+        keys: NDArray[np.int64] = cells[:, 0] + self.dims[0] * (
+            cells[:, 1] + self.dims[1] * cells[:, 2]
+        )
+        return keys
+
+
+def nearest_within(
+    points_m: FloatArray,
+    queries_m: FloatArray,
+    *,
+    k: int,
+    radius_m: float,
+    grid: PointGrid | None = None,
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """Each query's ``k`` nearest points strictly within ``radius_m``, nearest first: what
+    ``cKDTree(points_m).query(queries_m, k, distance_upper_bound=radius_m)`` returns (2-D even
+    for ``k`` 1).
+
+    Parameters
+    ----------
+    points_m : ndarray of shape (N, 3)
+    queries_m : ndarray of shape (Q, 3)
+    k : int
+    radius_m : float
+    grid : PointGrid, optional
+        Built over ``points_m`` (reused across calls); made here when None.
+
+    Returns
+    -------
+    distance_m : ndarray of shape (Q, k)
+        ``inf`` past the last neighbour found.
+    index : ndarray of shape (Q, k), int64
+        ``N`` past the last neighbour found.
+    """
+    if k < 1:
+        raise ValueError(f"k must be at least 1, not {k}")
+    if compiled() is None:
+        return nearest_within_reference(points_m, queries_m, k=k, radius_m=radius_m)
+    grid = grid if grid is not None else PointGrid(points_m, radius_m)
+    return grid.nearest(queries_m, k=k, radius_m=radius_m)
+
+
+def nearest_within_reference(
+    points_m: FloatArray, queries_m: FloatArray, *, k: int, radius_m: float
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """:func:`nearest_within` by SciPy's k-d tree (the reference)."""
+    from scipy.spatial import cKDTree
+
+    queries = np.asarray(queries_m, dtype=np.float64).reshape(-1, 3)
+    distance, index = cKDTree(points_m).query(
+        queries, k=k, distance_upper_bound=radius_m, workers=-1
+    )
+    shape = (len(queries), k)
+    return distance.reshape(shape), index.astype(np.int64).reshape(shape)
+
+
+def csr_row_sums(matrix: csr_matrix, columns: FloatArray) -> FloatArray:
+    """``matrix @ columns`` for a CSR matrix of ones (each row lists a ball's points).
+
+    Parameters
+    ----------
+    matrix : scipy.sparse.csr_matrix of shape (R, M)
+        Every stored value 1 (the kernel does not read them).
+    columns : ndarray of shape (M, C)
+
+    Returns
+    -------
+    ndarray of shape (R, C)
+    """
+    kernels = compiled()
+    if kernels is None:
+        return csr_row_sums_reference(matrix, columns)
+    columns = np.ascontiguousarray(columns, dtype=np.float64)
+    indptr = np.ascontiguousarray(matrix.indptr, dtype=np.int64)
+    indices = np.ascontiguousarray(matrix.indices, dtype=np.int32)
+    out = np.empty((matrix.shape[0], columns.shape[1]))
+    kernels.csr_row_sums(indptr, indices, columns, columns.shape[1], out)
+    return out
+
+
+def csr_row_sums_reference(matrix: csr_matrix, columns: FloatArray) -> FloatArray:
+    """:func:`csr_row_sums` by scipy's sparse product (the reference)."""
+    sums: FloatArray = np.asarray(matrix @ columns, dtype=np.float64)
+    return sums
+
+
+def hough_votes(
+    x: FloatArray,
+    y: FloatArray,
+    phi: FloatArray,
+    weight: NDArray[np.bool_],
+    *,
+    n_theta: int,
+    half_window: int,
+    radius_m: float,
+    rho_bin_m: float,
+    n_rho: int,
+) -> FloatArray:
+    """The Hough accumulator of slices' points (:func:`recon.profiles._votes` documents it).
+
+    Parameters
+    ----------
+    x, y : ndarrays of shape (B, K)
+        The points in their slice, metres.
+    phi : ndarray of shape (B, K)
+        Their normals' angles in [0, pi).
+    weight : ndarray of shape (B, K), bool
+        The points that vote.
+    n_theta : int
+        Direction bins over [0, pi).
+    half_window : int
+        A point votes in its own direction bin and this many either side.
+    radius_m, rho_bin_m : float
+        Offsets run from ``-radius_m - rho_bin_m`` in bins of ``rho_bin_m``.
+    n_rho : int
+        Offset bins.
+
+    Returns
+    -------
+    ndarray of shape (B, n_theta, n_rho)
+    """
+    kernels = compiled()
+    if kernels is None:
+        return hough_votes_reference(
+            x,
+            y,
+            phi,
+            weight,
+            n_theta=n_theta,
+            half_window=half_window,
+            radius_m=radius_m,
+            rho_bin_m=rho_bin_m,
+            n_rho=n_rho,
+        )
+    b, k = x.shape
+    step = np.pi / n_theta
+    theta = (np.arange(n_theta) + 0.5) * step
+    out = np.empty((b, n_theta, n_rho))
+    kernels.hough_votes(
+        np.ascontiguousarray(x, dtype=np.float64),
+        np.ascontiguousarray(y, dtype=np.float64),
+        np.ascontiguousarray(phi, dtype=np.float64),
+        np.ascontiguousarray(weight, dtype=np.uint8),
+        b,
+        k,
+        np.cos(theta),
+        np.sin(theta),
+        step,
+        half_window,
+        radius_m,
+        rho_bin_m,
+        n_rho,
+        out,
+    )
+    return out
+
+
+def hough_votes_reference(
+    x: FloatArray,
+    y: FloatArray,
+    phi: FloatArray,
+    weight: NDArray[np.bool_],
+    *,
+    n_theta: int,
+    half_window: int,
+    radius_m: float,
+    rho_bin_m: float,
+    n_rho: int,
+) -> FloatArray:
+    """:func:`hough_votes` in numpy (the reference): each vote shared linearly between the two
+    nearest offset bins, summed by two ``bincount`` calls."""
+    b, _k = x.shape
+    step = np.pi / n_theta
+    window = np.arange(-half_window, half_window + 1)
+    centre = np.floor(phi / step).astype(np.int64)
+    t_bin = np.mod(centre[:, :, None] + window, n_theta)  # (B, K, W)
+    theta = (t_bin + 0.5) * step
+    rho = x[:, :, None] * np.cos(theta) + y[:, :, None] * np.sin(theta)
+    position = (rho + radius_m + rho_bin_m) / rho_bin_m - 0.5
+    low = np.floor(position).astype(np.int64)
+    frac = position - low
+    low = np.clip(low, 0, n_rho - 2)
+    w = np.broadcast_to(weight[:, :, None].astype(np.float64), rho.shape)
+    flat = ((np.arange(b)[:, None, None] * n_theta + t_bin) * n_rho + low).ravel()
+    size = b * n_theta * n_rho
+    acc = np.bincount(flat, weights=(w * (1.0 - frac)).ravel(), minlength=size)
+    acc += np.bincount(flat + 1, weights=(w * frac).ravel(), minlength=size)
+    return acc.astype(np.float64, copy=False).reshape(b, n_theta, n_rho)

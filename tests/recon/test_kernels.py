@@ -1,0 +1,301 @@
+"""The compiled kernels (recon/_kernels.c) against their numpy references (recon/kernels.py),
+bit for bit where the arithmetic is the same, and against hostile arguments.
+
+``make setup`` builds the kernels; without them every function falls back to its reference, so
+the first test fails loudly when the build did not happen (every comparison below would
+otherwise compare the reference with itself).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.sparse import csr_matrix
+from scipy.spatial import cKDTree
+
+from recon import kernels
+from recon.features import ball_covariances, ball_moments, neighbour_balls
+from recon.kernels import (
+    KERNELS_ENV,
+    PointGrid,
+    csr_row_sums,
+    csr_row_sums_reference,
+    hough_votes,
+    hough_votes_reference,
+    nearest_within,
+    nearest_within_reference,
+)
+
+MM = 1e-3
+
+
+@pytest.fixture
+def reference_only(monkeypatch):
+    """Every kernel runs its numpy reference for the duration of the test."""
+    monkeypatch.setenv(KERNELS_ENV, "numpy")
+
+
+def _surface_cloud(n: int, seed: int) -> np.ndarray:
+    """A scan-like cloud: two noisy faces meeting at an edge, 0.1 m long (about a point per
+    square millimetre, as a depth camera's)."""
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(0.0, 0.1, n)
+    v = rng.uniform(0.0, 0.02, n)
+    wall = rng.random(n) < 0.5
+    points = np.column_stack([u, np.where(wall, 0.0, v), np.where(wall, v, 0.0)])
+    return points + rng.normal(0.0, 0.2 * MM, points.shape)
+
+
+def test_the_compiled_kernels_are_built():
+    """make setup compiles recon/_kernels.c; a missing build would silently run the
+    references (and make every comparison here compare them with themselves)."""
+    assert kernels.compiled() is not None, "recon._kernels is not built: run make setup"
+
+
+def test_the_environment_variable_selects_the_references(monkeypatch):
+    monkeypatch.setenv(KERNELS_ENV, "numpy")
+    assert kernels.compiled() is None
+    monkeypatch.setenv(KERNELS_ENV, "")
+    assert kernels.compiled() is not None
+
+
+@pytest.mark.parametrize(
+    ("n", "k", "radius_m"),
+    [(20_000, 16, 4 * MM), (20_000, 48, 8 * MM), (5_000, 1, 2 * MM), (3_000, 768, 12.6 * MM)],
+)
+def test_nearest_within_is_the_trees_answer_to_the_bit(n, k, radius_m):
+    points = _surface_cloud(n, seed=k)
+    rng = np.random.default_rng(1)
+    # The points themselves, points near them, and queries far outside the cloud.
+    queries = np.concatenate(
+        [points[::3], points[::7] + rng.normal(0, 2 * MM, (len(points[::7]), 3)), [[5.0, 5, 5]]]
+    )
+    distance, index = nearest_within(points, queries, k=k, radius_m=radius_m)
+    tree_distance, tree_index = nearest_within_reference(points, queries, k=k, radius_m=radius_m)
+    np.testing.assert_array_equal(distance, tree_distance)
+    np.testing.assert_array_equal(index, tree_index)
+    assert np.all(np.isinf(distance[-1])) and np.all(index[-1] == n)
+
+
+def test_nearest_within_keeps_the_radius_strict_and_breaks_ties_by_index():
+    """On a lattice many neighbours are equally far: the distances are still the tree's, and
+    among equals the smaller index comes first (the tree's own order there is arbitrary)."""
+    axis = np.arange(12) * MM
+    points = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    queries = points[::17]
+    for k, radius_m in ((7, 1.0 * MM), (7, 1.0001 * MM), (30, 2.5 * MM)):
+        distance, index = nearest_within(points, queries, k=k, radius_m=radius_m)
+        tree_distance, _ = nearest_within_reference(points, queries, k=k, radius_m=radius_m)
+        np.testing.assert_array_equal(distance, tree_distance)
+        found = np.isfinite(distance)
+        # Exactly one millimetre away is not within one millimetre.
+        assert np.all(distance[found] < radius_m)
+        d0, d1, i0, i1 = distance[:, :-1], distance[:, 1:], index[:, :-1], index[:, 1:]
+        ordered = (d0 < d1) | ((d0 == d1) & (i0 < i1))
+        assert np.all(ordered[found[:, 1:]])
+        assert np.any((d0 == d1) & found[:, 1:]), "the lattice has equally far neighbours"
+        # Each neighbour listed really is at that distance.
+        rows = np.nonzero(found)
+        gap = np.linalg.norm(points[index[rows]] - queries[rows[0]], axis=1)
+        np.testing.assert_array_equal(gap, distance[rows])
+
+
+def test_nearest_within_answers_queries_that_find_nothing():
+    points = _surface_cloud(500, seed=3)
+    queries = np.array([[np.nan, 0, 0], [np.inf, 0, 0], [-1e300, 1e300, 0], [0.05, 0.0, 0.0]])
+    distance, index = nearest_within(points, queries, k=4, radius_m=3 * MM)
+    assert np.all(np.isinf(distance[:3])) and np.all(index[:3] == len(points))
+    assert np.isfinite(distance[3, 0])
+    empty_distance, empty_index = PointGrid(np.zeros((0, 3)), 0.001).nearest(
+        queries, k=2, radius_m=0.001
+    )
+    assert np.all(np.isinf(empty_distance)) and empty_index.shape == (4, 2)
+
+
+def test_a_grid_spanning_more_cells_than_the_kernel_allows_coarsens():
+    """A cloud kilometres wide with a millimetre radius: the grid takes coarser cells (at most
+    2**20 per axis) and still answers right."""
+    points = np.array([[0.0, 0, 0], [0.0005, 0, 0], [3000.0, 0, 0]])
+    grid = PointGrid(points, 0.001)
+    assert grid.cell_m > 0.001 and np.all(grid.dims <= kernels.MAX_CELLS_PER_AXIS)
+    distance, index = grid.nearest(points[:1], k=3, radius_m=0.001)
+    assert list(index[0]) == [0, 1, 3] and distance[0, 1] == 0.0005
+
+
+def test_ball_sums_are_the_sparse_products_to_the_bit():
+    points = _surface_cloud(30_000, seed=5)
+    columns = np.column_stack([points, points**2, points[:, :1] * points[:, 1:]])
+    balls = neighbour_balls(points, cKDTree(points), radius_m=4 * MM, max_neighbours=16)
+    expected = csr_row_sums_reference(balls, columns)
+    sums, counts = PointGrid(points, 4 * MM).ball_sums(points, columns, k=16, radius_m=4 * MM)
+    np.testing.assert_array_equal(sums, expected)
+    np.testing.assert_array_equal(counts, np.diff(balls.indptr))
+    np.testing.assert_array_equal(csr_row_sums(balls, columns), expected)
+
+
+@pytest.mark.parametrize("rows", [None, "some"])
+def test_ball_moments_are_the_references_to_the_bit(rows, monkeypatch):
+    points = _surface_cloud(30_000, seed=6)
+    wanted = None if rows is None else np.arange(0, len(points), 5)
+    covariances, counts = ball_moments(points, None, radius_m=8 * MM, rows=wanted)
+    monkeypatch.setenv(KERNELS_ENV, "numpy")
+    ref_covariances, ref_counts = ball_moments(
+        points, cKDTree(points), radius_m=8 * MM, rows=wanted
+    )
+    np.testing.assert_array_equal(covariances, ref_covariances)
+    np.testing.assert_array_equal(counts, ref_counts)
+    # And the sparse route of the tests and tools that build the matrix themselves.
+    balls = neighbour_balls(points, cKDTree(points), radius_m=8 * MM, rows=wanted)
+    matrix_covariances, _ = ball_covariances(points, balls)
+    selected = slice(None) if wanted is None else wanted
+    np.testing.assert_array_equal(matrix_covariances[selected], ref_covariances)
+
+
+def test_ball_moments_refuse_rows_out_of_order():
+    points = _surface_cloud(100, seed=7)
+    with pytest.raises(ValueError, match="increasing"):
+        ball_moments(points, None, radius_m=8 * MM, rows=np.array([5, 3]))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_hough_votes_are_the_references_to_the_bit(seed):
+    rng = np.random.default_rng(seed)
+    b, k = 40, 300
+    x = rng.uniform(-0.012, 0.012, (b, k))
+    y = rng.uniform(-0.012, 0.012, (b, k))
+    phi = rng.uniform(0.0, np.pi, (b, k))
+    phi[:, :3] = [0.0, np.nextafter(np.pi, 0), np.pi / 30 * 7]  # the bins' borders
+    weight = rng.random((b, k)) < 0.7
+    grid = {"n_theta": 30, "half_window": 1, "radius_m": 0.012, "rho_bin_m": 0.0005, "n_rho": 50}
+    np.testing.assert_array_equal(
+        hough_votes(x, y, phi, weight, **grid), hough_votes_reference(x, y, phi, weight, **grid)
+    )
+
+
+def test_the_scan_model_is_the_same_with_and_without_the_kernels(monkeypatch):
+    """The whole reconstruction of a scene gives the same numbers to the bit either way."""
+    from recon import scenes
+    from recon.reconstruct import reconstruct
+
+    scene = scenes.long_edge(600, 40_000, seed=2)
+    compiled = reconstruct(scene.recording, scene.scan)
+    monkeypatch.setenv(KERNELS_ENV, "numpy")
+    reference = reconstruct(scene.recording, scene.scan)
+    np.testing.assert_array_equal(compiled.points_m, reference.points_m)
+    np.testing.assert_array_equal(compiled.uncertainty_m, reference.uncertainty_m)
+    ours, theirs = compiled.scan_model.to_arrays(), reference.scan_model.to_arrays()
+    assert ours.keys() == theirs.keys()
+    for key in ours:
+        np.testing.assert_array_equal(ours[key], theirs[key], err_msg=key)
+
+
+# Hostile arguments straight to the compiled module: shapes that lie, indices out of range,
+# sizes that overflow. Each is refused with a ValueError, never a read past a buffer.
+
+
+def _grid_arguments(n: int = 50):
+    grid = PointGrid(_surface_cloud(n, seed=8), 2 * MM)
+    return [
+        grid.points,
+        grid.order,
+        grid.cell_keys,
+        grid.cell_starts,
+        grid.origin,
+        grid.cell_m,
+        grid.dims,
+    ]
+
+
+def _nearest(arguments, queries, k=4, radius=2 * MM, distance=None, index=None, n=50):
+    distance = np.empty((len(queries), k)) if distance is None else distance
+    index = np.empty((len(queries), k), np.int64) if index is None else index
+    kernels.compiled().grid_nearest(*arguments, queries, k, radius, distance, index, n)
+    return distance, index
+
+
+def test_the_kernels_refuse_buffers_whose_shapes_lie():
+    arguments = _grid_arguments()
+    queries = np.zeros((3, 3))
+    with pytest.raises(ValueError, match="out_distance"):
+        _nearest(arguments, queries, distance=np.empty((2, 4)))
+    with pytest.raises(ValueError, match="order"):
+        _nearest([arguments[0], arguments[1][:-1], *arguments[2:]], queries)
+    with pytest.raises(ValueError, match="queries"):
+        _nearest(
+            arguments, np.zeros(7), distance=np.empty((2, 4)), index=np.empty((2, 4), np.int64)
+        )
+    with pytest.raises(ValueError, match="k must be"):
+        _nearest(arguments, queries, k=2**62, distance=np.empty(1), index=np.empty(1, np.int64))
+    with pytest.raises(ValueError, match="k must be"):
+        _nearest(arguments, queries, k=0)
+
+
+def test_the_kernels_refuse_a_grid_that_does_not_hold_together():
+    points, order, keys, starts, origin, cell, dims = _grid_arguments()
+    queries = np.zeros((2, 3))
+    bad_starts = starts.copy()
+    bad_starts[1] = 10**9
+    with pytest.raises(ValueError, match="cell_keys must increase|cell_starts"):
+        _nearest([points, order, keys, bad_starts, origin, cell, dims], queries)
+    bad_keys = keys[::-1].copy()
+    with pytest.raises(ValueError, match="cell_keys must increase"):
+        _nearest([points, order, bad_keys, starts, origin, cell, dims], queries)
+    with pytest.raises(ValueError, match="grid dimension"):
+        _nearest([points, order, keys, starts, origin, cell, np.array([1, 1, 2**40])], queries)
+    with pytest.raises(ValueError, match="1024 cells"):
+        _nearest([points, order, keys, starts, origin, cell, dims], queries, radius=1e6)
+    for radius in (np.nan, np.inf, -1.0):
+        with pytest.raises(ValueError, match="radius"):
+            _nearest([points, order, keys, starts, origin, cell, dims], queries, radius=radius)
+    bad_order = order.copy()
+    bad_order[0] = 10**12
+    with pytest.raises(ValueError, match="order must hold"):
+        kernels.compiled().grid_ball_sums(
+            points, bad_order, keys, starts, origin, cell, dims, queries, 4, 0.002,
+            np.zeros((len(points), 9)), 9, np.empty((2, 9)), np.empty(2, np.int64),
+        )  # fmt: skip
+
+
+def test_the_sparse_sums_refuse_indices_out_of_range():
+    columns = np.ones((3, 2))
+    matrix = csr_matrix((np.ones(2), np.array([0, 2]), np.array([0, 1, 2])), shape=(2, 3))
+    out = np.empty((2, 2))
+    module = kernels.compiled()
+    with pytest.raises(ValueError, match="out of range"):
+        module.csr_row_sums(np.array([0, 1, 2]), np.array([0, 7], np.int32), columns, 2, out)
+    with pytest.raises(ValueError, match="out of range"):
+        module.csr_row_sums(np.array([0, 5, 2]), np.array([0, 2], np.int32), columns, 2, out)
+    with pytest.raises(ValueError, match="columns"):
+        module.csr_row_sums(np.array([0, 1, 2]), np.array([0, 2], np.int32), columns, 4, out)
+    np.testing.assert_array_equal(csr_row_sums(matrix, columns), [[1.0, 1.0], [1.0, 1.0]])
+
+
+def test_the_hough_kernel_refuses_a_grid_that_overflows():
+    module = kernels.compiled()
+    small = np.zeros(4)
+    with pytest.raises(ValueError, match="too large|shape says"):
+        module.hough_votes(
+            small, small, small, np.zeros(4, np.uint8), 2, 2, np.ones(30), np.ones(30),
+            0.1, 1, 0.012, 0.0005, 2**61, np.empty(1),
+        )  # fmt: skip
+    with pytest.raises(ValueError, match="x holds"):
+        module.hough_votes(
+            small, small, small, np.zeros(4, np.uint8), 3, 2, np.ones(30), np.ones(30),
+            0.1, 1, 0.012, 0.0005, 50, np.empty(3 * 30 * 50),
+        )  # fmt: skip
+    with pytest.raises(ValueError, match="Hough grid"):
+        module.hough_votes(
+            small, small, small, np.zeros(4, np.uint8), 2, 2, np.ones(30), np.ones(30),
+            0.1, 1, 0.012, 0.0005, 1, np.empty(2 * 30),
+        )  # fmt: skip
+
+
+def test_the_references_run_when_selected(reference_only):
+    """With TEACHPATH_KERNELS=numpy nothing touches the compiled module."""
+    points = _surface_cloud(2_000, seed=9)
+    distance, index = nearest_within(points, points[:10], k=5, radius_m=3 * MM)
+    tree_distance, tree_index = cKDTree(points).query(points[:10], k=5, distance_upper_bound=3 * MM)
+    np.testing.assert_array_equal(distance, tree_distance)
+    np.testing.assert_array_equal(index, tree_index)
+    with pytest.raises(RuntimeError, match="not available"):
+        PointGrid(points, 0.003).nearest(points[:2], k=1, radius_m=0.003)
