@@ -87,6 +87,9 @@ WARM_MODULES = (
     "service.tasks",
     "service.plots",
     "recon.reconstruct",
+    # The compiled kernels: a build that does not load is then logged at start-up, not at the
+    # operator's first reconstruction.
+    "recon._kernels",
     "recon.plan",
     "recon.touches",
     "recon.calibrate",
