@@ -611,11 +611,102 @@ done:
     return result;
 }
 
+/* ---------------------------------------------------------------------------------------- */
+/* One real point per voxel                                                                   */
+/* ---------------------------------------------------------------------------------------- */
+
+PyDoc_STRVAR(voxel_nearest_centre_doc,
+"voxel_nearest_centre(points, order, keys, origin, scale, out_kept) -> (kept, resolution2)\n"
+"\n"
+"For points (N, 3) float64 visited in `order` (N,) int64, a permutation that groups equal\n"
+"`keys` (N,) int64 together (a stable sort of the keys), keeps of each group the point nearest\n"
+"its voxel's centre (the smaller index among equals) into out_kept (N,) int64, and returns how\n"
+"many groups there were and the largest squared distance (m^2) of a point from the point kept\n"
+"for its voxel. A point's voxel is the integer part of (p - origin) * scale (origin (3,));\n"
+"its distance from the centre is measured in voxel units, as recon.collision's reference does,\n"
+"so the two pick the same points.");
+
+static PyObject *voxel_nearest_centre(PyObject *self, PyObject *args)
+{
+    Py_buffer points = {0}, order = {0}, keys = {0}, origin = {0}, out_kept = {0};
+    double scale;
+    PyObject *result = NULL;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*dw*", &points, &order, &keys, &origin, &scale,
+                          &out_kept))
+        return NULL;
+    Py_ssize_t n = points.len / (Py_ssize_t)(3 * sizeof(double));
+    if (expect_size(&points, n, 3 * sizeof(double), "points") ||
+        expect_size(&order, n, sizeof(int64_t), "order") ||
+        expect_size(&keys, n, sizeof(int64_t), "keys") ||
+        expect_size(&origin, 3, sizeof(double), "origin") ||
+        expect_size(&out_kept, n, sizeof(int64_t), "out_kept"))
+        goto done;
+    if (!(scale > 0.0) || !isfinite(scale)) {
+        PyErr_SetString(PyExc_ValueError, "scale must be positive and finite");
+        goto done;
+    }
+    const double *p = points.buf, *o = origin.buf;
+    const int64_t *ord = order.buf, *key = keys.buf;
+    int64_t *kept = out_kept.buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (ord[i] < 0 || ord[i] >= n) {
+            PyErr_SetString(PyExc_ValueError, "order must hold indices of the points");
+            goto done;
+        }
+    }
+    Py_ssize_t groups = 0;
+    double worst2 = 0.0;
+    Py_BEGIN_ALLOW_THREADS
+    Py_ssize_t start = 0;
+    while (start < n) {
+        int64_t group_key = key[ord[start]];
+        Py_ssize_t end = start;
+        int64_t best = -1;
+        double best_to_centre = INFINITY;
+        while (end < n && key[ord[end]] == group_key) {
+            int64_t j = ord[end];
+            double to_centre = 0.0;
+            double f[3];
+            for (int a = 0; a < 3; a++) {
+                double rel = (p[3 * j + a] - o[a]) * scale;
+                f[a] = (rel - (double)(int64_t)rel) - 0.5;
+            }
+            to_centre = f[0] * f[0] + f[1] * f[1] + f[2] * f[2];
+            /* Visited in index order within the group (a stable sort): a strictly smaller
+             * distance wins, so among equals the smaller index stays. */
+            if (to_centre < best_to_centre || best < 0) {
+                best_to_centre = to_centre;
+                best = j;
+            }
+            end++;
+        }
+        for (Py_ssize_t m = start; m < end; m++) {
+            int64_t j = ord[m];
+            double d[3];
+            for (int a = 0; a < 3; a++) d[a] = p[3 * j + a] - p[3 * best + a];
+            double d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+            if (d2 > worst2) worst2 = d2;
+        }
+        kept[groups++] = best;
+        start = end;
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_BuildValue("nd", groups, worst2);
+done:
+    PyBuffer_Release(&points);
+    PyBuffer_Release(&order);
+    PyBuffer_Release(&keys);
+    PyBuffer_Release(&origin);
+    PyBuffer_Release(&out_kept);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"grid_nearest", grid_nearest, METH_VARARGS, grid_nearest_doc},
     {"grid_ball_sums", grid_ball_sums, METH_VARARGS, grid_ball_sums_doc},
     {"csr_row_sums", csr_row_sums, METH_VARARGS, csr_row_sums_doc},
     {"hough_votes", hough_votes, METH_VARARGS, hough_votes_doc},
+    {"voxel_nearest_centre", voxel_nearest_centre, METH_VARARGS, voxel_nearest_centre_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -59,3 +59,6 @@ def hough_votes(
     out: Buffer,
     /,
 ) -> None: ...
+def voxel_nearest_centre(
+    points: Buffer, order: Buffer, keys: Buffer, origin: Buffer, scale: float, out_kept: Buffer, /
+) -> tuple[int, float]: ...

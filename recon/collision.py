@@ -135,6 +135,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from recon.arrays import FloatArray, piece_labels, piece_slices
+from recon.kernels import nearest_to_voxel_centres
 from recon.kinematics import URModel, joint_frames
 from recon.kinematics import model as ur_model
 from recon.paths import Phase
@@ -825,18 +826,8 @@ def _voxel_downsample(points: FloatArray, voxel_m: float) -> tuple[FloatArray, f
             "crop the scan (is it in millimetres?)"
         )
     key = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
-    frac = rel - idx - 0.5
-    to_centre = np.einsum("ij,ij->i", frac, frac)  # squared, voxel units, < 0.75
-    if n_voxels < 2.0**40:  # one float sort: voxel first, then distance to its centre
-        order = np.argsort(key + to_centre / 0.76)
-    else:
-        order = np.lexsort((to_centre, key))
-    key_sorted = key[order]
-    first = np.flatnonzero(np.r_[True, key_sorted[1:] != key_sorted[:-1]])
-    kept = points[order[first]]
-    owner = np.repeat(np.arange(len(first)), np.diff(np.r_[first, len(order)]))
-    resolution = float(np.sqrt(np.einsum("ij,ij->i", d := points[order] - kept[owner], d).max()))
-    return kept, resolution
+    kept, resolution = nearest_to_voxel_centres(points, origin, 1.0 / voxel_m, key)
+    return points[kept], resolution
 
 
 @dataclass(frozen=True)

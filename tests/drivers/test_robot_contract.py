@@ -60,11 +60,18 @@ def make(kind: str, host: str | None = None):
         return SimBackend(SimConfig(), clock=FakeClock())
     from drivers.robot.ur_rtde import URRtdeConfig
 
-    return create_backend(
-        URRtdeConfig(
-            host=host or os.environ["TEACHPATH_UR_HOST"],
-            robot=os.environ.get("TEACHPATH_UR_ROBOT", "ur5e") if host is None else "ur5e",
+    if host is None:  # a real controller: its own settings
+        return create_backend(
+            URRtdeConfig(
+                host=os.environ["TEACHPATH_UR_HOST"],
+                robot=os.environ.get("TEACHPATH_UR_ROBOT", "ur5e"),
+            )
         )
+    # The fake shares two cores with the other test process: the lost-link bound of the
+    # services that drive it (a run here failed "no new data from the controller for 0.5 s"
+    # under load; fake_ur_fixture.SERVICE_STALE_AFTER_S).
+    return create_backend(
+        URRtdeConfig(host=host, robot="ur5e", stale_after_s=fake_ur_fixture.SERVICE_STALE_AFTER_S)
     )
 
 

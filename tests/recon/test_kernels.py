@@ -299,3 +299,44 @@ def test_the_references_run_when_selected(reference_only):
     np.testing.assert_array_equal(index, tree_index)
     with pytest.raises(RuntimeError, match="not available"):
         PointGrid(points, 0.003).nearest(points[:2], k=1, radius_m=0.003)
+
+
+def _voxel_keys(points: np.ndarray, voxel_m: float):
+    origin = points.min(axis=0)
+    scale = 1.0 / voxel_m
+    cells = ((points - origin) * scale).astype(np.int64)
+    dims = cells.max(axis=0) + 1
+    return origin, scale, (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+
+
+@pytest.mark.parametrize("voxel_m", [0.5 * MM, 2 * MM, 10 * MM])
+def test_voxel_centres_are_the_references_to_the_bit(voxel_m):
+    points = _surface_cloud(40_000, seed=10)
+    points[:500] = points[500:1000]  # repeated points: equally near their centre
+    origin, scale, keys = _voxel_keys(points, voxel_m)
+    kept, resolution = kernels.nearest_to_voxel_centres(points, origin, scale, keys)
+    ref_kept, ref_resolution = kernels.nearest_to_voxel_centres_reference(
+        points, origin, scale, keys
+    )
+    np.testing.assert_array_equal(kept, ref_kept)
+    assert resolution == ref_resolution
+    # One point per voxel, each the nearest of its voxel to the centre, none missing.
+    assert len(np.unique(keys[kept])) == len(kept) == len(np.unique(keys))
+    assert np.all(np.diff(keys[kept]) > 0)
+    assert resolution <= np.sqrt(3) * voxel_m
+
+
+def test_the_voxel_kernel_refuses_an_order_that_is_not_the_points():
+    points = _surface_cloud(10, seed=11)
+    origin, scale, keys = _voxel_keys(points, 2 * MM)
+    order = np.arange(10, dtype=np.int64)
+    order[3] = 10
+    module = kernels.compiled()
+    with pytest.raises(ValueError, match="order must hold"):
+        module.voxel_nearest_centre(points, order, keys, origin, scale, np.empty(10, np.int64))
+    with pytest.raises(ValueError, match="keys holds"):
+        module.voxel_nearest_centre(points, order, keys[:5], origin, scale, np.empty(10, np.int64))
+    with pytest.raises(ValueError, match="scale"):
+        module.voxel_nearest_centre(
+            points, np.arange(10), keys, origin, np.nan, np.empty(10, np.int64)
+        )
