@@ -79,6 +79,10 @@ def _threads() -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=os.cpu_count() or 1, thread_name_prefix="kernels")
 
 
+# A process forked after the pool started inherits it without its threads: it makes its own.
+os.register_at_fork(after_in_child=_threads.cache_clear)
+
+
 def _parts(n: int) -> list[slice]:
     """Slices of ``range(n)`` for the threads (one slice when the work is small)."""
     workers = min(os.cpu_count() or 1, max(1, n // MIN_QUERIES_PER_THREAD))

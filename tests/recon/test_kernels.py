@@ -340,3 +340,18 @@ def test_the_voxel_kernel_refuses_an_order_that_is_not_the_points():
         module.voxel_nearest_centre(
             points, np.arange(10), keys, origin, np.nan, np.empty(10, np.int64)
         )
+
+
+def test_a_forked_process_runs_the_threaded_kernels():
+    """The kernels' thread pool does not survive a fork; a forked child makes its own rather
+    than waiting forever on threads it does not have."""
+    import multiprocessing
+
+    points = _surface_cloud(20_000, seed=12)
+    expected = nearest_within(points, points, k=8, radius_m=3 * MM)  # the parent's pool starts
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        distance, index = pool.apply_async(
+            nearest_within, (points, points), {"k": 8, "radius_m": 3 * MM}
+        ).get(timeout=120)
+    np.testing.assert_array_equal(distance, expected[0])
+    np.testing.assert_array_equal(index, expected[1])
