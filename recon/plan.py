@@ -9,6 +9,8 @@ builds the model around the path at a known transform, again without registering
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -818,6 +820,9 @@ class MovePlan:
     retract_m : float
         How far the tool first moves straight back along its own axis, off the workpiece it
         stands on (metres; 0: no retract, the joint move starts at once).
+    via_q_rad : ndarray of shape (V, 6), or None
+        Where the move stops at rest on the way, in order (one of :func:`plan_move`'s ``ways``:
+        the direct ways collided); None: straight to the start.
     """
 
     trajectory: JointTrajectory
@@ -827,6 +832,7 @@ class MovePlan:
     base_first: bool = False
     collision: CollisionReport | None = None
     retract_m: float = 0.0
+    via_q_rad: FloatArray | None = None
 
     def margins(self) -> dict[str, float]:
         """The smallest joint-limit margin (rad), wrist and elbow |sin| and shoulder margin (m)
@@ -860,6 +866,13 @@ class MovePlan:
             f"{moved.max():.1f} deg (joint {int(np.argmax(moved)) + 1}), fastest TCP "
             f"{tcp * 1e3:.0f} mm/s" + ("; the base turns alone first" if self.base_first else ""),
         ]
+        if self.via_q_rad is not None:
+            last = self.via_q_rad[-1]
+            lines.append(
+                f"by way of {len(self.via_q_rad)} stop(s) at rest, the last at "
+                f"[{', '.join(f'{v:.1f}' for v in np.degrees(last))}] deg: the direct joint "
+                "move collided"
+            )
         if self.retract_m > 0:
             lines.append(
                 f"first straight off the workpiece: {self.retract_m * 1e3:.0f} mm back along the "
@@ -889,10 +902,19 @@ def plan_move(
     params: PlanParams,
     cell: Cell | None = None,
     calibration: kinematics.DHCalibration | None = None,
+    ways: Sequence[ArrayLike] = (),
 ) -> MovePlan:
     """A joint move (UR's ``movej``: every joint on one trapezoidal profile) from ``q_from_rad``
     to ``q_to_rad`` at the plan's transit speeds, checked against ``cell``; if the direct move
-    collides, the base turns alone first, as a plan's transit does.
+    collides, the base turns alone first, as a plan's transit does; if that collides too, each
+    of ``ways`` in turn: joint moves through its configurations, at rest at each, then on to the
+    start as before.
+
+    :func:`ways_back` gives the ways for a run stopped on a plan's path: by the plan's approach
+    start (from there the plan's own transit leads back), and back along the path lifted off
+    the workpiece. A direct joint move from the middle of a path may swing the wrist past the
+    arm's own links: 38 of 104 stops along the cylinder demo's path were refused before the
+    ways were tried (tests/recon/test_move_to_start.py).
 
     Where the arm stands with the tool on the workpiece (a run stopped in its process or
     approach: the joint move's first period touches the scan with the tool), the move first
@@ -909,6 +931,9 @@ def plan_move(
         What the arm must not touch (the tool touches nothing on a move).
     calibration : recon.kinematics.DHCalibration, optional
         The arm's own kinematics calibration (default: UR's nominal model).
+    ways : sequence of array-like of shape (V, 6)
+        Configurations the move may stop at on the way, one array per way, tried in order after
+        the direct ways (:func:`ways_back`).
 
     Returns
     -------
@@ -924,48 +949,176 @@ def plan_move(
     arm = kinematics.model(params.robot)
     if calibration is not None:
         arm = kinematics.with_calibration(arm, calibration)
-    ends = []
-    for name, q in (("the arm's joints", q_from_rad), ("the plan's start", q_to_rad)):
-        q = np.asarray(q, dtype=np.float64).reshape(-1)
-        if q.shape != (6,) or not np.all(np.isfinite(q)):
-            raise ValueError(f"{name} must be six finite joint angles (rad), got {q}")
-        if np.any(kinematics.limit_margins_rad(arm, q[None]) < -MOVE_LIMIT_TOLERANCE_RAD):
-            raise ValueError(
-                f"{name} [{', '.join(f'{v:.1f}' for v in np.degrees(q))}] deg are outside the "
-                f"{arm.name}'s joint limits"
-            )
-        ends.append(q)
-    q_from, q_to = ends
+    q_from = _move_joints(arm, "the arm's joints", q_from_rad)
+    q_to = _move_joints(arm, "the plan's start", q_to_rad)
+    ways_checked = [_move_way(arm, w, way) for w, way in enumerate(ways)]
     joint_move = _joint_move(params)
+    # Every way, in the order tried: (stop on the way or None, the base turns first on the way
+    # to the start).
+    routes: list[tuple[FloatArray | None, bool]] = [(None, False), (None, True)]
+    routes += [
+        (way, base_first) for way in ways_checked if len(way) for base_first in (False, True)
+    ]
+
+    def legs(q_start: FloatArray, way: FloatArray | None, base_first: bool) -> list[Any]:
+        if way is None:
+            return _transit(arm, q_start, q_to, base_first, joint_move)
+        stops = np.vstack([q_start[None], way])
+        return [
+            *(motion.joint_move(arm, a, b, **joint_move) for a, b in itertools.pairwise(stops)),
+            *_transit(arm, way[-1], q_to, base_first, joint_move),
+        ]
+
     report = None
-    for base_first in (False, True):
+    for via, base_first in routes:
         trajectory = motion.assemble(
             arm,
-            _transit(arm, q_from, q_to, base_first, joint_move),
+            legs(q_from, via, base_first),
             T_flange_tcp=params.T_flange_tcp,
             requested_speed_m_s=params.transit_tcp_speed_m_s,
         )
         if cell is not None:
             report = check_cell(arm, trajectory, cell, params)
         if report is None or report.first_collision is None:
-            return MovePlan(trajectory, params, q_from, q_to, base_first, report)
+            return MovePlan(trajectory, params, q_from, q_to, base_first, report, via_q_rad=via)
+        if _tool_stands_on_scan(report):
+            break  # no joint move leaves from here: the tool first moves off the workpiece
     if not _tool_stands_on_scan(report):
         raise _collision_error(report)
     assert cell is not None  # the tool stands on the scan: the cell has one
     retract = _retract_from(arm, q_from, params)
-    for base_first in (False, True):
+    first_report = None
+    for via, base_first in routes:
         trajectory = motion.assemble(
             arm,
-            [retract, *_transit(arm, retract.q_rad[-1], q_to, base_first, joint_move)],
+            [retract, *legs(retract.q_rad[-1], via, base_first)],
             T_flange_tcp=params.T_flange_tcp,
             requested_speed_m_s=params.transit_tcp_speed_m_s,
         )
         report = check_cell(arm, trajectory, cell, params)
+        first_report = first_report or report
         if report.first_collision is None:
             return MovePlan(
-                trajectory, params, q_from, q_to, base_first, report, retract_m=params.approach_m
+                trajectory,
+                params,
+                q_from,
+                q_to,
+                base_first,
+                report,
+                retract_m=params.approach_m,
+                via_q_rad=via,
             )
-    raise _collision_error(report)
+    # The direct way's collision: what the operator would see moving the arm straight there.
+    raise _collision_error(first_report)
+
+
+#: A way back along a stopped plan's path stops at rest each time a joint has turned this much
+#: since the last stop: a joint move between two poses this close stays near the lifted path.
+WAY_BACK_TURN_RAD = float(np.radians(10.0))
+#: The arm stands on a plan's path when its joints are within this of one of the path's samples
+#: (a stop on the path decelerates along it).
+ON_PATH_TOLERANCE_RAD = float(np.radians(2.0))
+
+
+def ways_back(
+    target: JointTrajectory,
+    q_from_rad: ArrayLike,
+    params: PlanParams,
+    *,
+    calibration: kinematics.DHCalibration | None = None,
+) -> list[FloatArray]:
+    """Ways from where a run of ``target`` stopped back to its start, for :func:`plan_move`.
+
+    1. By the target's first approach start: from there the target's own transit (checked
+       with the target) leads to its start.
+    2. When the arm stands on the target's path (its joints within
+       :data:`ON_PATH_TOLERANCE_RAD` of a process sample): back along the path to the start of
+       its piece, lifted off the workpiece by the approach distance along the tool's axis, at
+       rest every :data:`WAY_BACK_TURN_RAD` of joint turn, in the arm's IK branch; then the
+       first approach start.
+
+    Parameters
+    ----------
+    target : JointTrajectory
+        The plan the move goes to the start of.
+    q_from_rad : array-like of shape (6,)
+        Where the arm stands.
+    params : PlanParams
+        The target's (its tool and approach distance).
+    calibration : recon.kinematics.DHCalibration, optional
+
+    Returns
+    -------
+    list of ndarray of shape (V, 6)
+        The ways, in the order to try them (none when the target has no approach).
+    """
+    arm = kinematics.model(params.robot)
+    if calibration is not None:
+        arm = kinematics.with_calibration(arm, calibration)
+    q_from = np.asarray(q_from_rad, dtype=np.float64).reshape(-1)
+    phases, q = target.phases, target.q_rad
+    approach = np.flatnonzero(phases == int(Phase.APPROACH))
+    process = np.flatnonzero(phases == int(Phase.PROCESS))
+    if len(approach) == 0 or q_from.shape != (6,):
+        return []
+    first_approach = q[approach[0]]
+    ways = [first_approach[None].copy()]
+    if len(process) == 0:
+        return ways
+    gap = np.abs(q[process] - q_from).max(axis=1)
+    if gap.min() > ON_PATH_TOLERANCE_RAD:
+        return ways
+    stop = int(process[np.argmin(gap)])
+    start = stop
+    while start > 0 and phases[start - 1] == int(Phase.PROCESS):
+        start -= 1
+    picked, last = [], q[stop]
+    for i in range(stop - 1, start - 1, -1):
+        if np.abs(q[i] - last).max() >= WAY_BACK_TURN_RAD:
+            picked.append(i)
+            last = q[i]
+    if start != stop and (not picked or picked[-1] != start):
+        picked.append(start)
+    if not picked:
+        return ways
+    T_tcp = kinematics.forward(arm, q[picked]) @ params.T_flange_tcp
+    lifted = np.array([motion.lifted(T, params.approach_m) for T in T_tcp])
+    try:
+        joints = kinematics.follow_path(
+            arm,
+            lifted @ invert_transform(params.T_flange_tcp),
+            q_near_rad=q_from,
+            allowed_branches=(_branch_at(arm, q_from),),
+        )
+    except InfeasibleTrajectoryError:
+        return ways  # the lifted path leaves the arm's reach or branch: the first way only
+    back = joints.q_rad
+    if np.abs(back[-1] - first_approach).max() > 1e-6:
+        back = np.vstack([back, first_approach])
+    return [*ways, back]
+
+
+def _move_joints(arm: kinematics.URModel, name: str, q_rad: ArrayLike) -> FloatArray:
+    """Six finite joint angles within the arm's limits, or a ValueError naming ``name``."""
+    q = np.asarray(q_rad, dtype=np.float64).reshape(-1)
+    if q.shape != (6,) or not np.all(np.isfinite(q)):
+        raise ValueError(f"{name} must be six finite joint angles (rad), got {q}")
+    if np.any(kinematics.limit_margins_rad(arm, q[None]) < -MOVE_LIMIT_TOLERANCE_RAD):
+        raise ValueError(
+            f"{name} [{', '.join(f'{v:.1f}' for v in np.degrees(q))}] deg are outside the "
+            f"{arm.name}'s joint limits"
+        )
+    return q
+
+
+def _move_way(arm: kinematics.URModel, index: int, way: ArrayLike) -> FloatArray:
+    """One of :func:`plan_move`'s ways as checked configurations (V, 6)."""
+    rows = np.asarray(way, dtype=np.float64)
+    if rows.ndim != 2 or rows.shape[1:] != (6,):
+        raise ValueError(f"way {index + 1} must be configurations of six joints, shape (V, 6)")
+    return np.array(
+        [_move_joints(arm, f"way {index + 1}'s stop {i + 1}", q) for i, q in enumerate(rows)]
+    ).reshape(-1, 6)
 
 
 def _tool_stands_on_scan(report: CollisionReport | None) -> bool:

@@ -934,15 +934,18 @@ def move_to_start(
     CollisionError
         The move collides whichever way it is made.
     """
-    from recon.plan import plan_move
+    from recon.plan import plan_move, ways_back
 
     T_base = None if T_base_tracker is None else np.asarray(T_base_tracker, dtype=np.float64)
+    q_from = np.asarray(q_from_rad, dtype=np.float64)
     move = plan_move(
-        np.asarray(q_from_rad, dtype=np.float64),
+        q_from,
         target.q_rad[0],
         params=params,
         cell=cell_for(scan, T_scan_tracker, T_base, keep_out_boxes, cell_planes),
         calibration=calibration,
+        # Where the direct move collides: by the target's approach start, or back along its path.
+        ways=ways_back(target, q_from, params, calibration=calibration),
     )
     return MoveOutcome(move, target_id, target_summary, start_from)
 

@@ -232,3 +232,100 @@ def test_a_retract_blocked_above_the_tool_is_refused_naming_what_blocks_it(on_th
     blocked = Cell(scan_points_m=cell.scan_m, boxes=(box,), voxel_m=0.0)
     with pytest.raises(CollisionError, match="clamp"):
         plan_move(q_stopped, plan.trajectory.q_rad[0], params=params, cell=blocked)
+
+
+# -- the ways back from a run stopped on its path -------------------------------------------
+
+
+def _stops_along(plan, every: int) -> np.ndarray:
+    """Samples of the plan's approach, process and retract: where a stopped run leaves the arm."""
+    phases = plan.trajectory.phases
+    moving = (Phase.APPROACH, Phase.PROCESS, Phase.RETRACT)
+    return np.flatnonzero(np.isin(phases, [int(p) for p in moving]))[::every]
+
+
+@pytest.mark.slow
+def test_from_stops_along_the_path_the_way_back_is_found_or_its_retract_named(on_the_cylinder):
+    """From stops all along the cylinder demo's path: a direct joint move back swings the wrist
+    past the arm's own links from a third of them; by the ways back (the approach start, the
+    path lifted off the workpiece) most of those get a checked move; the rest (mostly where
+    the straight retract itself passes the workpiece) are refused naming where and what."""
+    from recon.plan import ways_back
+
+    plan, cell, _ = on_the_cylinder
+    traj, params = plan.trajectory, plan.params
+    goal = traj.q_rad[0]
+    direct_refused, by_a_way, refused = 0, 0, []
+    for i in _stops_along(plan, 80):
+        q_stop = traj.q_rad[i]
+        try:
+            plan_move(q_stop, goal, params=params, cell=cell)
+        except CollisionError:
+            direct_refused += 1
+        try:
+            move = plan_move(
+                q_stop, goal, params=params, cell=cell, ways=ways_back(traj, q_stop, params)
+            )
+        except CollisionError as error:
+            refused.append(str(error))
+            continue
+        assert move.collision.first_collision is None
+        np.testing.assert_array_equal(move.trajectory.q_rad[0], q_stop)
+        np.testing.assert_array_equal(move.trajectory.q_rad[-1], goal)
+        if move.via_q_rad is not None:
+            by_a_way += 1
+            # At rest at each stop of the way, exactly there.
+            for via in move.via_q_rad:
+                at = np.flatnonzero(np.all(move.trajectory.q_rad == via, axis=1))
+                assert len(at) and np.abs(move.trajectory.qd_rad_s[at]).max() == 0.0
+            assert "stop(s) at rest" in " ".join(move.report_lines())
+    assert direct_refused >= 10, "the scene no longer shows the problem the ways solve"
+    assert by_a_way >= direct_refused - len(refused) > 0
+    assert len(refused) < direct_refused / 2
+    assert all(message.startswith("the motion collides: ") for message in refused), refused
+
+
+def test_a_way_back_runs_along_the_path_lifted_off_it(on_the_cylinder):
+    """The second way from a stop on the path: the path's own poses back to its start, each
+    lifted by the approach distance along the tool's axis, in the arm's branch; then the
+    approach start. A stop off the path gets the approach start's way only."""
+    from recon.plan import WAY_BACK_TURN_RAD, ways_back
+
+    plan, _, q_stopped = on_the_cylinder
+    traj, params, arm = plan.trajectory, plan.params, kinematics.model("ur5e")
+    approach_start = traj.q_rad[np.flatnonzero(traj.phases == int(Phase.APPROACH))[0]]
+    ways = ways_back(traj, q_stopped, params)
+    assert len(ways) == 2
+    np.testing.assert_array_equal(ways[0], approach_start[None])
+    back = ways[1]
+    # Its last stop: the approach start, or the path's start lifted (the same pose, solved apart).
+    np.testing.assert_allclose(back[-1], approach_start, atol=1e-6)
+    # Each stop lies above the path by the approach distance, against the tool's axis.
+    process = traj.q_rad[traj.phases == int(Phase.PROCESS)]
+    path_tcp = kinematics.forward(arm, process) @ params.T_flange_tcp
+    lifted_tcp = kinematics.forward(arm, back) @ params.T_flange_tcp
+    for T in lifted_tcp:
+        below = T[:3, 3] + params.approach_m * T[:3, 2]
+        assert np.linalg.norm(path_tcp[:, :3, 3] - below, axis=1).min() < 1e-6
+    # Neighbouring stops are close in every joint (a joint move between them stays near the
+    # lifted path), and the way goes back towards the path's start.
+    assert np.abs(np.diff(back, axis=0)).max() <= 2 * WAY_BACK_TURN_RAD
+    assert np.linalg.norm(lifted_tcp[-1, :3, 3] - path_tcp[0, :3, 3]) == pytest.approx(
+        params.approach_m, abs=1e-6
+    )
+    off_path = ways_back(traj, HOME, params)
+    assert len(off_path) == 1
+
+
+@pytest.mark.parametrize(
+    "way, words",
+    [
+        (np.zeros((2, 5)), "shape \\(V, 6\\)"),
+        ([[0.0, 0.0, np.nan, 0.0, 0.0, 0.0]], "way 1's stop 1 must be six finite"),
+        ([HOME, [0.0, 0.0, 4.0, 0.0, 0.0, 0.0]], "way 1's stop 2 .* outside the ur5e's"),
+    ],
+    ids=["five-joints", "nan", "past-a-limit"],
+)
+def test_ways_that_are_not_an_arms_are_refused(way, words):
+    with pytest.raises(ValueError, match=words):
+        plan_move(HOME, HOME + 0.1, params=PlanParams(robot="ur5e"), ways=[way])
