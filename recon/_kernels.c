@@ -473,8 +473,9 @@ static PyObject *csr_row_sums(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "y*y*y*nw*", &indptr, &indices, &columns, &c, &out)) return NULL;
     Py_ssize_t rows = indptr.len / (Py_ssize_t)sizeof(int64_t) - 1;
     Py_ssize_t nnz = indices.len / (Py_ssize_t)sizeof(int32_t);
-    if (c < 1 || rows < 0) {
-        PyErr_SetString(PyExc_ValueError, "n_columns must be at least 1 and indptr non-empty");
+    if (c < 1 || c > (1 << 20) || rows < 0) {
+        PyErr_SetString(PyExc_ValueError,
+                        "n_columns must be in [1, 2**20] and indptr non-empty");
         goto done;
     }
     Py_ssize_t m = columns.len / (Py_ssize_t)(c * sizeof(double));
@@ -549,7 +550,8 @@ static PyObject *hough_votes(PyObject *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, "B x K is too large");
         goto done;
     }
-    if (b > 0 && t * n_rho > PY_SSIZE_T_MAX / (Py_ssize_t)sizeof(double) / b) {
+    if (n_rho > PY_SSIZE_T_MAX / t ||
+        (b > 0 && t * n_rho > PY_SSIZE_T_MAX / (Py_ssize_t)sizeof(double) / b)) {
         PyErr_SetString(PyExc_ValueError, "B x T x n_rho is too large");
         goto done;
     }
@@ -557,6 +559,7 @@ static PyObject *hough_votes(PyObject *self, PyObject *args)
         expect_size(&ys, b * k, sizeof(double), "y") ||
         expect_size(&phis, b * k, sizeof(double), "phi") ||
         expect_size(&weights, b * k, 1, "weight") ||
+        expect_size(&cos_t, t, sizeof(double), "cos_theta") ||
         expect_size(&sin_t, t, sizeof(double), "sin_theta") ||
         expect_size(&out, b * t * n_rho, sizeof(double), "out"))
         goto done;
