@@ -13,7 +13,7 @@ the far side of an edge, whose heights or normals differ, stay out.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -77,7 +77,39 @@ class FaceFit:
     ok: np.ndarray
 
 
+#: Path points whose faces are fitted at once: each holds up to ``neighbours`` (a thousand) scan
+#: points with their normals, local coordinates and design rows (about 20 MB for 256), so a
+#: per-point stage's chunk of 2,048 points would hold about ten times that per thread.
+FIT_CHUNK = 256
+
+
 def fit_faces(
+    centres_m: FloatArray, model: ScanModel, *, radius_m: float, neighbours: int, scale_m: float
+) -> FaceFit:
+    """The face under each path point (see the module docstring), :data:`FIT_CHUNK` points at a
+    time (each point's fit is its own: the parts are the whole's, row for row).
+
+    Parameters and returns as :func:`_fit_faces_part`.
+    """
+    centres_m = np.asarray(centres_m, dtype=np.float64)
+    parts = [
+        _fit_faces_part(
+            centres_m[i : i + FIT_CHUNK],
+            model,
+            radius_m=radius_m,
+            neighbours=neighbours,
+            scale_m=scale_m,
+        )
+        for i in range(0, max(len(centres_m), 1), FIT_CHUNK)
+    ]
+    if len(parts) == 1:
+        return parts[0]
+    return FaceFit(
+        **{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(FaceFit)}
+    )
+
+
+def _fit_faces_part(
     centres_m: FloatArray, model: ScanModel, *, radius_m: float, neighbours: int, scale_m: float
 ) -> FaceFit:
     """The face under each path point (see the module docstring).

@@ -721,22 +721,7 @@ def _surface_targets(
     -------
     target : (B, 3); var : (B,) (inf where unfit); count : (B,); residual : (B,)
     """
-    # Up to a thousand neighbours per point: a few hundred points at a time bound the memory
-    # (256 x 1024 neighbours is about 20 MB of coordinates and design matrix).
-    parts = [
-        _surface_targets_of(centres[i : i + SURFACE_CHUNK], model, params)
-        for i in range(0, len(centres), SURFACE_CHUNK)
-    ]
-    return tuple(np.concatenate(arrays) for arrays in zip(*parts, strict=True))
-
-
-#: Path points whose surface targets are fitted at once.
-SURFACE_CHUNK = 256
-
-
-def _surface_targets_of(
-    centres: FloatArray, model: ScanModel, params: ReconParams
-) -> tuple[FloatArray, FloatArray, np.ndarray, FloatArray]:
+    # Up to a thousand neighbours per point: fit_faces takes a few hundred points at a time.
     face = fit_faces(
         centres,
         model,

@@ -257,3 +257,26 @@ def test_a_lift_off_is_followed_down_only_through_free_air():
         [rng.uniform(-0.005, 0.005, 400), rng.uniform(-0.005, 0.005, 400), np.full(400, 0.003)]
     )
     assert not anchored._in_free_air(lifted, target, plate_model(np.concatenate([plate, shelf])))[0]
+
+
+def test_faces_fitted_in_parts_are_the_whole_fit_to_the_bit():
+    """fit_faces bounds its memory by fitting FIT_CHUNK points at a time: each point's fit is
+    its own, so the parts give the very numbers of one fit over all the points."""
+    from dataclasses import fields
+
+    from recon import faces
+
+    scan = step(np.random.default_rng(15))
+    spacing = {"spacing_m": 0.0002}  # 201 points each
+    centres = np.concatenate(
+        [along_x(-0.003, 0.0008, **spacing), along_x(0.004, 0.0041, **spacing)]
+    )
+    model = model_for(scan, centres)
+    assert len(centres) > faces.FIT_CHUNK
+    kwargs = {"radius_m": 0.008, "neighbours": 400, "scale_m": 0.004}
+    in_parts = fit_faces(centres, model, **kwargs)
+    whole = faces._fit_faces_part(centres, model, **kwargs)
+    for field in fields(faces.FaceFit):
+        np.testing.assert_array_equal(
+            getattr(in_parts, field.name), getattr(whole, field.name), err_msg=field.name
+        )
