@@ -99,7 +99,7 @@ class PointGrid:
         Finite coordinates.
     cell_m : float
         Edge of a cell: the radius the queries will mostly use (a query reaches as many cells
-        either side as its radius needs, so any radius is answered right).
+        either side as its radius needs, up to 1,024; a larger radius is refused).
     """
 
     def __init__(self, points_m: FloatArray, cell_m: float) -> None:
