@@ -1029,6 +1029,9 @@ def ways_back(
 ) -> list[FloatArray]:
     """Ways from where a run of ``target`` stopped back to its start, for :func:`plan_move`.
 
+    Only where a stopped run leaves the arm: within :data:`ON_PATH_TOLERANCE_RAD` of one of
+    the target's approach, process or retract samples (none from anywhere else):
+
     1. By the target's first approach start: from there the target's own transit (checked
        with the target) leads to its start.
     2. When the arm stands on the target's path (its joints within
@@ -1058,11 +1061,18 @@ def ways_back(
     q_from = np.asarray(q_from_rad, dtype=np.float64).reshape(-1)
     phases, q = target.phases, target.q_rad
     approach = np.flatnonzero(phases == int(Phase.APPROACH))
-    process = np.flatnonzero(phases == int(Phase.PROCESS))
     if len(approach) == 0 or q_from.shape != (6,):
+        return []
+    # Only from the target's own way (where a stopped run leaves the arm): from anywhere else
+    # (a jog) a detour by the workpiece is no way back, and the direct moves' verdict stands.
+    moving = np.flatnonzero(
+        np.isin(phases, [int(Phase.APPROACH), int(Phase.PROCESS), int(Phase.RETRACT)])
+    )
+    if np.abs(q[moving] - q_from).max(axis=1).min() > ON_PATH_TOLERANCE_RAD:
         return []
     first_approach = q[approach[0]]
     ways = [first_approach[None].copy()]
+    process = np.flatnonzero(phases == int(Phase.PROCESS))
     if len(process) == 0:
         return ways
     gap = np.abs(q[process] - q_from).max(axis=1)

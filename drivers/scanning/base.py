@@ -470,7 +470,7 @@ def check_scan_units(points_m: ArrayLike, units: str, label: str) -> None:
         if units == "m" and in_mm_fits:
             raise UnitsMismatchError(
                 f"{said}: its numbers look like millimetres (it would span "
-                f"{extent_m:.4g} mm); upload it with units=mm (--units mm)"
+                f"{extent_m:.4g} mm); upload it with its units set to mm (units=mm, --units mm)"
             )
         raise UnitsMismatchError(
             f"{said}: that is a scan of a site, not of a workpiece in a robot's cell; crop it to "
@@ -479,6 +479,6 @@ def check_scan_units(points_m: ArrayLike, units: str, label: str) -> None:
     if units == "mm" and extent_m < MIN_SCAN_EXTENT_MM_M:
         raise UnitsMismatchError(
             f"the scan {label}, read as millimetres, spans only {extent_m * 1e3:.3g} mm: if its "
-            f"numbers are metres it spans {extent_m * 1e3:.3g} m; upload it with units=m "
-            "(--units m)"
+            f"numbers are metres it spans {extent_m * 1e3:.3g} m; upload it with its units set "
+            "to m (units=m, --units m)"
         )

@@ -314,15 +314,15 @@ def check_trace_units(points_m: FloatArray, units: str | None) -> None:
         raise UnitsMismatchError(
             f"the trace, {stated}, spans {extent_m:.3g} m and reaches {farthest_m:.3g} m from "
             "the tracker's origin, beyond any robot cell: its numbers look like millimetres; "
-            "upload it with units=mm (--units mm)"
+            "upload it with its units set to mm (units=mm, --units mm)"
         )
     as_metres_m = extent_m * 1e3
     plausible = MIN_TRACE_EXTENT_M <= as_metres_m <= MAX_TRACE_EXTENT_M
     if units == "mm" and extent_m < MIN_TRACE_EXTENT_M and plausible:
         raise UnitsMismatchError(
             f"the trace, read as millimetres, spans only {extent_m * 1e3:.3g} mm: if its "
-            f"numbers are metres it would span {as_metres_m:.3g} m; upload it with units=m "
-            "(--units m). Otherwise the pen did not move: record the trace again"
+            f"numbers are metres it would span {as_metres_m:.3g} m; upload it with its units "
+            "set to m (units=m, --units m). Otherwise the pen did not move: record the trace again"
         )
 
 

@@ -135,12 +135,12 @@ def _line(n=480, length_m=0.1, offset_m=(0.4, 0.1, 0.05)):
     "recording, units, words",
     [
         # A 100 mm trace written in metres, uploaded as millimetres: 0.1 mm.
-        (_line(), "mm", "upload it with units=m"),
+        (_line(), "mm", "units set to m (units=m"),
         # The same trace written in millimetres, uploaded as metres: 100 m.
         (
             Recording(points_m=_line().points_m * 1e3, t_s=_line().t_s),
             "m",
-            "upload it with units=mm",
+            "units set to mm (units=mm",
         ),
     ],
     ids=["metres-as-mm", "mm-as-metres"],

@@ -93,17 +93,52 @@ def test_uploads_show_the_422_inline_and_then_take_good_files(pendant, scene_fil
     expect(message).to_have_text("trace.csv uploaded.")
     expect(page.locator("#recording-current")).to_contain_text("samples")
     scan = page.locator("#scan-form")
+    # A scan written in millimetres, uploaded as metres (a 100 m part): refused at the upload,
+    # saying which unit its numbers look like and what to pick on this form; nothing stored.
+    pendant.guard.allow(422, "/scan")
     scan.get_by_label("File", exact=True).set_input_files(
-        {"name": "scan.ply", "mimeType": "application/octet-stream", "buffer": scene_files["scan"]}
+        {"name": "scan_mm.ply", "mimeType": "application/octet-stream", "buffer": _scan_in_mm()}
     )
     scan.get_by_label(re.compile("^Format")).select_option("ply")
     scan.get_by_role("button", name="Upload scan").click()
-    expect(page.locator("#scan-current")).to_contain_text("points")
+    scan_message = scan.locator(".message")
+    expect(scan_message).to_have_attribute("data-code", "units_mismatch")
+    expect(scan_message).to_contain_text("pick its Units (m or mm)")
+    expect(scan_message).to_contain_text("look like millimetres")
+    expect(scan_message).to_contain_text("units set to mm")
+    expect(page.locator("#scan-current")).to_have_text("none yet")
+    pendant.shot("scan-units-refused")
+    # The same file as millimetres: taken, its size on the card in millimetres.
+    scan.get_by_label(re.compile("^Units")).select_option("mm")
+    scan.get_by_role("button", name="Upload scan").click()
+    size = re.compile(r"points, \d+ × \d+ × \d+ mm$")
+    expect(page.locator("#scan-current")).to_have_text(size)
+    in_mm = page.locator("#scan-current").inner_text().split(": ", 1)[1]
+    # The scan in metres: the same part, the same size on its card.
+    scan.get_by_label("File", exact=True).set_input_files(
+        {"name": "scan.ply", "mimeType": "application/octet-stream", "buffer": scene_files["scan"]}
+    )
+    scan.get_by_label(re.compile("^Units")).select_option("m")
+    scan.get_by_role("button", name="Upload scan").click()
+    expect(page.locator("#scan-current")).to_have_text(f"scan.ply: {in_mm}")
     expect(page.locator("#steps li[data-step=inputs]")).to_have_class("done")
     expect(page.locator("#step-calibration .needs")).to_contain_text("T_base_tracker")
     expect(page.get_by_role("button", name="Reconstruct")).to_be_enabled()
     expect(page.get_by_role("button", name="Plan", exact=True)).to_be_disabled()
     pendant.shot("uploaded")
+
+
+def _scan_in_mm() -> bytes:
+    """The pendant tests' scene scan (recon.scenes.box_corner) written with its coordinates in
+    millimetres."""
+    from drivers.scanning.pointcloud import write_scan
+    from recon import scenes
+    from recon.inputs import Scan
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "scan_mm.ply"
+        write_scan(path, Scan(points_m=scenes.box_corner(0).scan.points_m * 1e3))
+        return path.read_bytes()
 
 
 def canvas_pixels(page) -> dict:

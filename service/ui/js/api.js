@@ -173,7 +173,9 @@ export const INSTRUCTIONS = {
   infeasible_trajectory: "The arm cannot follow this path: change the plan's options.",
   registration_failed: "The trace could not be matched to the scan: check the calibration.",
   no_overlap: "The trace and the scan do not overlap: check the calibration and the units.",
-  units_mismatch: "The trace and the scan look like different units: check the units.",
+  units_mismatch:
+    "A file’s size says its numbers are in another unit (or it is not of a workpiece): pick " +
+    "its Units (m or mm) as the message below says, and upload it again.",
   cell_changed:
     "Another pendant saved the cell since you started editing: press “Discard changes” to see " +
     "theirs, then edit again.",
