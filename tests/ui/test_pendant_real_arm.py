@@ -57,6 +57,16 @@ def _progress(page, form: str) -> float:
     return float(page.locator(f"{form} progress").evaluate("bar => bar.value"))
 
 
+def _job_progress(client, sid: str, execution_id: str) -> float:
+    """An execution's progress as the server has it (its job's)."""
+    (job,) = [
+        j
+        for j in client.get(f"/sessions/{sid}/jobs").json()
+        if j["kind"] == "execution" and j["params"].get("execution_id") == execution_id
+    ]
+    return float(job["progress"])
+
+
 def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pendant(
     browser, arm_server, fake_ur_process, screens
 ):
@@ -261,8 +271,10 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         # same point of it however long a loaded machine takes over the presses (run at half
         # speed, a busy machine saw the process end before the stop; stopped later in it, the
         # straight retract passes inside the scan's margin and the move back is refused).
+        # Where the run is, from the server (the page's bar follows it a moment later: on a
+        # loaded machine that moment let the run pass the process before the stop below).
         deadline = time.monotonic() + 120
-        while _progress(page, "#run-form") < process_from - 0.03:  # the approach's start
+        while _job_progress(client, sid, owner) < process_from - 0.03:  # the approach's start
             assert time.monotonic() < deadline, "the run did not reach its approach"
             time.sleep(0.05)
         client.post(f"/executions/{owner}/speed", json={"fraction": 0.05}).raise_for_status()
@@ -293,10 +305,12 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             # Into the process, with the tool on the workpiece: stopped there, the arm goes back
             # by a retract off the workpiece and a joint move (below).
             deadline = time.monotonic() + 120
-            while _progress(page, "#run-form") < process_from + 0.02:
+            while _job_progress(client, sid, owner) < process_from + 0.02:
                 assert time.monotonic() < deadline, "the run did not reach its process"
                 time.sleep(0.05)
-            assert _progress(page, "#run-form") < process_to, "the process ended before the stop"
+            assert _job_progress(client, sid, owner) < process_to, (
+                "the process ended before the stop"
+            )
             held, near_held = [], []
             page.route("**/executions/*/stop", lambda route: held.append(route))
             near.route("**/executions/*/stop", lambda route: near_held.append(route))
