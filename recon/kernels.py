@@ -28,10 +28,11 @@ from __future__ import annotations
 import itertools
 import logging
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 from types import ModuleType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -90,6 +91,13 @@ def _parts(n: int) -> list[slice]:
     return [slice(int(a), int(b)) for a, b in itertools.pairwise(edges) if b > a]
 
 
+def _unsorted(rows: NDArray[Any], by_cell: NDArray[np.intp]) -> NDArray[Any]:
+    """Rows computed in grid order, back in the queries' order."""
+    out = np.empty_like(rows)
+    out[by_cell] = rows
+    return out
+
+
 class PointGrid:
     """Points binned on a uniform grid, for :meth:`nearest` queries of a given radius.
 
@@ -146,23 +154,12 @@ class PointGrid:
         q = len(queries)
         if self.n_points == 0:
             return np.full((q, k), np.inf), np.zeros((q, k), np.int64)
-        # Queries in the grid's order: neighbouring queries then read the same cells, which
-        # stay in the cache (twice as fast on a scan's dense cloud as queries in scan order).
-        by_cell = np.argsort(self._keys(queries), kind="stable")
-        queries = np.ascontiguousarray(queries[by_cell])
-        distance = np.empty((q, k))
-        index = np.empty((q, k), np.int64)
+        distance, index = np.empty((q, k)), np.empty((q, k), np.int64)
 
-        def run(part: slice) -> None:
+        def run(sorted_queries: FloatArray, part: slice) -> None:
             kernels.grid_nearest(
-                self.points,
-                self.order,
-                self.cell_keys,
-                self.cell_starts,
-                self.origin,
-                self.cell_m,
-                self.dims,
-                queries[part],
+                *self._grid_arguments(),
+                sorted_queries[part],
                 k,
                 float(radius_m),
                 distance[part],
@@ -170,14 +167,8 @@ class PointGrid:
                 self.n_points,
             )
 
-        parts = _parts(q)
-        if len(parts) <= 1:
-            run(slice(0, q))
-        else:
-            list(_threads().map(run, parts))
-        in_order_distance, in_order_index = np.empty_like(distance), np.empty_like(index)
-        in_order_distance[by_cell], in_order_index[by_cell] = distance, index
-        return in_order_distance, in_order_index
+        by_cell = self._run_in_grid_order(queries, run)
+        return _unsorted(distance, by_cell), _unsorted(index, by_cell)
 
     def ball_sums(
         self, queries_m: FloatArray, columns: FloatArray, *, k: int, radius_m: float
@@ -207,21 +198,12 @@ class PointGrid:
         q, c = len(queries), columns.shape[1]
         if self.n_points == 0:
             return np.zeros((q, c)), np.zeros(q, np.int64)
-        by_cell = np.argsort(self._keys(queries), kind="stable")
-        queries = np.ascontiguousarray(queries[by_cell])
-        sums = np.empty((q, c))
-        counts = np.empty(q, np.int64)
+        sums, counts = np.empty((q, c)), np.empty(q, np.int64)
 
-        def run(part: slice) -> None:
+        def run(sorted_queries: FloatArray, part: slice) -> None:
             kernels.grid_ball_sums(
-                self.points,
-                self.order,
-                self.cell_keys,
-                self.cell_starts,
-                self.origin,
-                self.cell_m,
-                self.dims,
-                queries[part],
+                *self._grid_arguments(),
+                sorted_queries[part],
                 k,
                 float(radius_m),
                 columns,
@@ -230,14 +212,38 @@ class PointGrid:
                 counts[part],
             )
 
-        parts = _parts(q)
+        by_cell = self._run_in_grid_order(queries, run)
+        return _unsorted(sums, by_cell), _unsorted(counts, by_cell)
+
+    def _grid_arguments(self) -> tuple[Any, ...]:
+        """The grid as every grid kernel takes it first."""
+        return (
+            self.points,
+            self.order,
+            self.cell_keys,
+            self.cell_starts,
+            self.origin,
+            self.cell_m,
+            self.dims,
+        )
+
+    def _run_in_grid_order(
+        self, queries: FloatArray, run: Callable[[FloatArray, slice], None]
+    ) -> NDArray[np.intp]:
+        """``run(sorted_queries, part)`` over the queries sorted by cell, parts on threads.
+
+        In the grid's order neighbouring queries read the same cells, which stay in the cache
+        (twice as fast on a scan's dense cloud as queries in scan order). ``run`` writes rows
+        ``part`` of its outputs in that order; the permutation returned puts them back.
+        """
+        by_cell = np.argsort(self._keys(queries), kind="stable")
+        sorted_queries = np.ascontiguousarray(queries[by_cell])
+        parts = _parts(len(queries))
         if len(parts) <= 1:
-            run(slice(0, q))
+            run(sorted_queries, slice(0, len(queries)))
         else:
-            list(_threads().map(run, parts))
-        in_order_sums, in_order_counts = np.empty_like(sums), np.empty_like(counts)
-        in_order_sums[by_cell], in_order_counts[by_cell] = sums, counts
-        return in_order_sums, in_order_counts
+            list(_threads().map(lambda part: run(sorted_queries, part), parts))
+        return by_cell
 
     def _keys(self, points_m: FloatArray) -> NDArray[np.int64]:
         """The cell key of each point (cells clamped into the grid; for ordering only)."""
