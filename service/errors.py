@@ -159,6 +159,11 @@ class ArmInEmergencyStop(RealArmRefused):
     """An emergency stop is engaged."""
 
 
+class ArmNotRunning(RealArmRefused):
+    """The arm is not powered on with its brakes released (UR's robot mode is not RUNNING): after
+    an emergency stop it is powered off, and no motion can be sent."""
+
+
 class RemoteControlOff(RealArmRefused):
     """The arm is in local control: the pendant must hand it over (remote control) first."""
 
@@ -196,6 +201,7 @@ ERROR_MAP: list[tuple[type[Exception], int, str]] = [
     (RobotUnavailable, 409, "robot_unavailable"),
     (ArmInProtectiveStop, 409, "protective_stop"),
     (ArmInEmergencyStop, 409, "emergency_stop"),
+    (ArmNotRunning, 409, "arm_not_running"),
     (RemoteControlOff, 409, "remote_control_off"),
     (StartMoved, 409, "start_moved"),
     (SamplesOutsideLimits, 409, "samples_outside_limits"),

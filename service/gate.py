@@ -45,6 +45,7 @@ from service.errors import (
     ArmBusy,
     ArmInEmergencyStop,
     ArmInProtectiveStop,
+    ArmNotRunning,
     CollidesHere,
     ConfirmationRequired,
     DryRunRequired,
@@ -424,7 +425,8 @@ def check_arm_state(arm: Reading, q_start_rad: FloatArray, *, robot: str) -> Non
 
     Raises
     ------
-    RobotUnavailable, ArmInEmergencyStop, ArmInProtectiveStop, RemoteControlOff, StartMoved
+    RobotUnavailable, ArmInEmergencyStop, ArmInProtectiveStop, ArmNotRunning, RemoteControlOff,
+    StartMoved
     """
     state = arm.state
     if not arm.fresh or state.q_rad is None:
@@ -438,6 +440,13 @@ def check_arm_state(arm: Reading, q_start_rad: FloatArray, *, robot: str) -> Non
         raise ArmInProtectiveStop(
             "the arm is in a protective stop: inspect its cause, then unlock it (POST "
             "/robot/unlock) before running"
+        )
+    if state.robot_mode != "RUNNING":
+        # Powered off after an emergency stop, brakes still on, booting: no motion can be sent,
+        # and a mode not read (UNKNOWN) decides nothing.
+        raise ArmNotRunning(
+            f"the arm is not running (robot mode {state.robot_mode}): power it on and release "
+            "its brakes on the teach pendant first"
         )
     if state.remote_control is False:
         raise RemoteControlOff(

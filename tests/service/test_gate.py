@@ -237,6 +237,11 @@ def test_an_arm_away_from_the_start_is_refused_with_the_distance(settings, traje
         ),
         ({"emergency_stop": True}, refusals.ArmInEmergencyStop),
         ({"remote_control": False}, refusals.RemoteControlOff),
+        # Released after an emergency stop, the arm is still powered off; a mode not read
+        # decides nothing.
+        ({"robot_mode": "POWER_OFF"}, refusals.ArmNotRunning),
+        ({"robot_mode": "IDLE"}, refusals.ArmNotRunning),
+        ({"robot_mode": "UNKNOWN"}, refusals.ArmNotRunning),
     ],
 )
 def test_an_arm_that_cannot_run_now_is_refused(settings, trajectory, state, refusal):

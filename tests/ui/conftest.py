@@ -185,10 +185,13 @@ def screens(tmp_path_factory) -> Path:
 
 
 @contextlib.contextmanager
-def pendant_for(browser, server: Server, screens: Path, name: str) -> Iterator[Pendant]:
+def pendant_for(
+    browser, server: Server, screens: Path, name: str, **context_options
+) -> Iterator[Pendant]:
     """A fresh browser context and page on ``server``, guarded (checked when it closes);
-    ``pendant.shot(step)`` saves a screenshot named after ``name``."""
-    context = browser.new_context(viewport={"width": 1500, "height": 1100})
+    ``pendant.shot(step)`` saves a screenshot named after ``name``. ``context_options`` go to
+    the context (``has_touch=True``: a touch screen)."""
+    context = browser.new_context(viewport={"width": 1500, "height": 1100}, **context_options)
     context.set_default_timeout(30_000)
     page = context.new_page()
     guard = Guard(context, page)

@@ -276,6 +276,8 @@ def test_demo_session_from_reconstruction_to_the_run_refusal(pendant, scene_file
     pendant.shot("dry-run-passed")
     _every_download_is_the_servers_file(pendant, "#plan-summary", "trajectories", 3)
     _every_download_is_the_servers_file(pendant, "#dryrun-summary", "executions", 1)
+    _every_download_is_the_servers_file(pendant, "#reconstruct-summary", "reconstructions", 1)
+    _every_download_is_the_servers_file(pendant, "#scan-files", "scans", 1)
 
     # The workspace draws the scan, trace, reconstruction and path.
     page.wait_for_function("document.querySelector('#legend-max').textContent.endsWith('mm')")
@@ -561,7 +563,7 @@ def _every_download_is_the_servers_file(pendant, box: str, collection: str, coun
     sid = page.evaluate("sessionStorage.getItem('teachpath.session')")
     buttons = details.get_by_role("button", name=re.compile("^Download "))
     expect(buttons).to_have_count(count)
-    suffixes = {"csv": "csv", "script": "urscript", "png": "plot.png"}
+    suffixes = {"csv": "csv", "script": "urscript", "png": "plot.png", "ply": "ply"}
     with tempfile.TemporaryDirectory() as folder:
         for index in range(count):
             with page.expect_download() as info:

@@ -72,6 +72,35 @@ def _on_screen(page, selector: str, width: int, height: int, top: float) -> dict
     return box
 
 
+def _a_refused_field_is_brought_below_the_bar(page, width: int, height: int, below_bar: float):
+    """A field the browser refuses on Plan (its validation bubble points at it), scrolled out of
+    its column above, is brought back into view below the safety bar, focused, not under it."""
+    speed = page.locator("#plan-speed-mm")
+    speed.fill("")
+    # Scroll the steps' column until Plan is at its top: the speed field is out of view above.
+    column_top = page.evaluate(
+        """() => {
+        const button = document.querySelector('#plan-form button[type=submit]');
+        let column = button.parentElement;
+        while (column && !(column.scrollHeight > column.clientHeight
+                           && getComputedStyle(column).overflowY !== 'visible')) {
+          column = column.parentElement;
+        }
+        column.scrollTop += button.getBoundingClientRect().top
+          - column.getBoundingClientRect().top - 4;
+        return column.getBoundingClientRect().top;
+        }"""
+    )
+    hidden = speed.bounding_box()
+    assert hidden["y"] + hidden["height"] <= column_top, (hidden, column_top)
+    page.locator("#plan-form button[type=submit]").click()
+    expect(speed).to_be_focused()
+    assert speed.evaluate("(field) => field.validationMessage")  # the bubble's text
+    shown = _on_screen(page, "#plan-speed-mm", width, height, below_bar)
+    assert shown["y"] >= column_top - 0.5, (shown, column_top)
+    speed.fill("50")
+
+
 @pytest.mark.parametrize("width, height", SIZES)
 def test_one_screen_the_view_and_the_timeline_stay_while_pressing_each_step(
     browser, server, screens, width, height
@@ -113,6 +142,7 @@ def test_one_screen_the_view_and_the_timeline_stay_while_pressing_each_step(
             )
             assert page_scroll <= 1, f"the page itself scrolls by {page_scroll} px"
             assert page.locator("#safety-bar").bounding_box()["y"] == 0
+        _a_refused_field_is_brought_below_the_bar(page, width, height, below_bar)
         # The workspace column scrolls to its plots and layers; the view and the timeline's
         # controls stay where they are.
         page.locator("#layers").scroll_into_view_if_needed()

@@ -555,3 +555,71 @@ def test_the_cell_is_edited_in_3d_and_outdates_the_plans_made_in_another(pendant
     finally:
         revision = client.get("/cell").json()["revision"]
         client.delete("/cell", params={"revision": revision})
+
+
+def test_a_finger_picks_within_its_reach_where_a_mouse_must_come_closer(browser, server, screens):
+    """On a touch screen a tap picks the nearest point within a finger's reach (22 px); a mouse
+    click there, farther than 10 px from every point, picks nothing. Both on the spot itself
+    pick the point under them."""
+    from tests.ui.conftest import pendant_for
+
+    _, rid = _reconstruct_demo(server)
+    with pendant_for(browser, server, screens, "touch-pick", has_touch=True) as pendant:
+        page = pendant.page
+        pendant.open()
+        page.get_by_role("button", name="demo", exact=True).click()
+        page.wait_for_function(
+            "(rid) => (document.querySelector('#workspace').dataset.shown || '').includes(rid)",
+            arg=rid,
+        )
+        for name in ("scan", "raw trace", "planned TCP path", "planned arm", "arm now", "frames"):
+            box = page.get_by_label(name, exact=True)
+            if box.count() and box.is_checked():
+                box.uncheck()
+        page.locator("#workspace canvas").scroll_into_view_if_needed()
+        # Where every reconstruction point is drawn, and the canvas.
+        drawn = np.array(
+            page.evaluate(
+                """() => {
+                const ws = document.querySelector('#workspace').workspace;
+                const n = ws.layers.reconstruction.geometry.drawRange.count;
+                return Array.from({length: n}, (_, i) => {
+                    const p = ws.screenOf('reconstruction', i); return [p.x, p.y]; });
+            }"""
+            )
+        )
+        canvas = page.locator("#workspace canvas").bounding_box()
+        middle = len(drawn) // 2
+        along = drawn[min(middle + 10, len(drawn) - 1)] - drawn[max(middle - 10, 0)]
+        normal = np.array([-along[1], along[0]]) / np.linalg.norm(along)
+        # A spot beside the path's middle, 16 px from the nearest drawn point: out of a mouse's
+        # reach (10 px), within a finger's (22 px).
+        spot = None
+        for offset_px in np.arange(12.0, 22.0, 0.5):
+            for side in (1.0, -1.0):
+                candidate = drawn[middle] + side * offset_px * normal
+                nearest_px = float(np.linalg.norm(drawn - candidate, axis=1).min())
+                inside = (
+                    canvas["x"] + 60 < candidate[0] < canvas["x"] + canvas["width"] - 120
+                    and canvas["y"] + 20 < candidate[1] < canvas["y"] + canvas["height"] - 20
+                )
+                if inside and 15.0 <= nearest_px <= 17.0:
+                    spot = candidate
+                    break
+            if spot is not None:
+                break
+        assert spot is not None, "no spot 15-17 px beside the path's middle"
+        readout = page.locator("#pick-readout")
+        page.mouse.click(*spot)
+        expect(readout).to_have_text("Nothing under the cursor: click on a point of a shown layer.")
+        page.touchscreen.tap(*spot)
+        expect(readout).to_contain_text(re.compile(r"^reconstruction point \d+ at"))
+        expect(readout).to_contain_text("displacement")
+        # The diagnostics are beside the view, on the same screen.
+        view = page.locator("#workspace").bounding_box()
+        shown = readout.bounding_box()
+        assert shown["y"] < 1100 and abs(shown["x"] - view["x"]) < view["width"]
+        # A mouse click on a point itself picks it.
+        page.mouse.click(*drawn[middle])
+        expect(readout).to_contain_text(f"reconstruction point {middle} at")
+        pendant.shot("tapped")

@@ -49,6 +49,12 @@ def arm_server(tmp_path_factory, fake_ur_process):
     server.stop()
 
 
+def client_plan(server: Server) -> dict:
+    """The demo session's newest plan, as the server lists it."""
+    (demo,) = [s for s in server.client.get("/sessions").json() if s["name"] == "demo"]
+    return server.client.get(f"/sessions/{demo['id']}/trajectories").json()[-1]
+
+
 def _joints(fake) -> np.ndarray:
     return np.array(fake.control("status")["q_rad"])
 
@@ -116,8 +122,31 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         expect(dialog.locator("th", has_text="approach").first).to_be_visible()
         # What the plan was made from, with checksums: the approval names the file that runs.
         expect(dialog).to_contain_text("plan file")
-        expect(dialog.locator("tr", has_text="trace")).to_contain_text("sha256")
-        expect(dialog.locator("tr", has_text="scan")).to_contain_text("sha256")
+        for name in ("trace", "scan"):
+            row = dialog.locator("tr").filter(has=page.locator("th").get_by_text(name, exact=True))
+            expect(row).to_contain_text("sha256")
+        # Every phase with its duration and fastest TCP speed, never above the cap; the TCP in
+        # mm and degrees and the payload, as a PolyScope operator checks them.
+        rows = dict(
+            page.locator("#confirm-table tr").evaluate_all(
+                "(rows) => rows.map((r) => [r.cells[0].textContent, r.cells[1].textContent])"
+            )
+        )
+        plan = client_plan(arm_server)
+        fastest_by_phase = plan["summary"]["phase_max_tcp_speed_m_s"]
+        assert {"transit", "approach", "process", "retract"} <= set(fastest_by_phase)
+        for phase, fastest in fastest_by_phase.items():
+            assert fastest <= CAP_M_S + 1e-9, (phase, fastest)
+            shown_mm_s = int(np.floor(fastest * 1000 + 0.5))  # as the page rounds (Math.round)
+            assert rows[f"  {phase}"].endswith(f"TCP up to {shown_mm_s} mm/s"), rows
+        tcp = plan["summary"]["tcp_pose"]
+        assert re.fullmatch(
+            rf"x {tcp[0] * 1000:.1f}, y {tcp[1] * 1000:.1f}, z {tcp[2] * 1000:.1f} mm; "
+            r"rx [-\d.]+, ry [-\d.]+, rz [-\d.]+ deg",
+            rows["TCP"],
+        ), rows["TCP"]
+        assert tcp[2] > 0.05  # the plan's tool, not a flange at 0, 0, 0
+        assert rows["payload"].startswith("not set by the plan: the controller's"), rows
         pendant.shot("confirm")
         q_before = _joints(fake)
         # Cancelling sends nothing; the run is asked for again.
@@ -498,3 +527,244 @@ def test_an_imported_plan_must_be_dry_run_here_and_the_pendant_says_so(
         expect(page.locator("#step-dryrun .needs")).to_have_text("", timeout=60_000)
         expect(page.locator("#step-run .needs")).to_contain_text("Run on arm")
         pendant.shot("dry-run-here")
+
+
+def test_an_outdated_plan_runs_only_when_taken_on_purpose_with_its_inputs_in_view(
+    browser, arm_server, fake_ur_process, screens, tmp_path
+):
+    """A new trace outdates the session's plans: none is offered for the arm. The operator
+    selects the older of two plans, reads what it was made from and what changed since, takes
+    it through a confirmation that names them (a Cancel changes nothing), dry-runs it and runs
+    it; the run's confirmation says first that the plan is outdated, the request says it was
+    accepted, and the run's record keeps what had changed. A reload forgets the choice."""
+    from drivers.scanning.pointcloud import write_scan
+    from drivers.tracking.canonical_csv import write_trace_csv
+    from recon import scenes
+    from recon.kinematics import HOME_Q_RAD
+    from tests.service.conftest import T_BASE_TRACKER, planned_session
+
+    fake_ur_process.control("reset")
+    client = arm_server.client
+    scene = scenes.box_corner(0)
+    write_trace_csv(tmp_path / "first-trace.csv", scene.recording)
+    write_trace_csv(tmp_path / "second-trace.csv", scenes.box_corner(1).recording)
+    write_scan(tmp_path / "scan.ply", scene.scan)
+    files = {
+        "trace": (tmp_path / "first-trace.csv").read_bytes(),
+        "scan": (tmp_path / "scan.ply").read_bytes(),
+    }
+    sid, plans = planned_session(
+        client, files, [0.03, 0.05], name="older plan", start_q_rad=HOME_Q_RAD
+    )
+    first_trace = client.get(f"/sessions/{sid}").json()["recording_id"]
+    # A second trace arrives (uploaded, captured or replayed): both plans are of the first.
+    second = client.put(
+        f"/sessions/{sid}/recording",
+        files={"file": ("second-trace.csv", (tmp_path / "second-trace.csv").read_bytes())},
+    )
+    assert second.status_code == 201, second.text
+    older, newest = plans[0.03], plans[0.05]
+    with pendant_for(browser, arm_server, screens, "older-plan") as pendant:
+        page = pendant.page
+        pendant.open()
+        page.get_by_role("button", name="older plan", exact=True).click()
+        expect(page.locator("#plan-summary .outdated")).to_contain_text("the trace")
+        run = page.get_by_role("button", name="Run on arm")
+        expect(run).to_be_disabled()
+        expect(page.locator("#step-run .needs")).to_contain_text("The plan is outdated")
+        # Both plans are listed, newest first and in use, each marked outdated.
+        choice = page.locator("#plan-choice")
+        expect(choice).to_be_visible()
+        options = page.locator("#plan-pick option")
+        expect(options).to_have_count(2)
+        expect(options.nth(0)).to_contain_text(f"{newest}, ")
+        expect(options.nth(0)).to_contain_text("newest · OUTDATED · in use")
+        expect(options.nth(1)).to_contain_text(f"{older}, ")
+        expect(options.nth(1)).to_contain_text("30 mm/s")
+        expect(options.nth(1)).to_contain_text("OUTDATED")
+        # Selecting the older plan shows what it was made from and what changed since.
+        page.locator("#plan-pick").select_option(older)
+        inputs = page.locator("#plan-pick-inputs")
+        expect(inputs.locator("tr", has_text="changed since it was made")).to_contain_text(
+            f"the trace: made from {first_trace}"
+        )
+        row = lambda box, name: box.locator("tr").filter(  # noqa: E731
+            has=page.locator("th").get_by_text(name, exact=True)
+        )
+        expect(row(inputs, "trace")).to_contain_text(f"t.csv ({first_trace}, sha256 ")
+        expect(inputs.locator("tr", has_text="speed")).to_contain_text("30 mm/s")
+        expect(inputs.locator("tr", has_text="plan file")).to_contain_text(older)
+        expect(row(inputs, "tracker → base")).to_contain_text(
+            "translation (350.0, -50.0, 100.0) mm, turned 0.0°, the session's (set directly"
+        )
+        expect(row(inputs, "tracker → scan")).to_contain_text("registered by rcn_")
+        expect(row(inputs, "arm kinematics")).to_contain_text("ur5e")
+        choice.scroll_into_view_if_needed()
+        pendant.shot("older-plan-selected")
+        # Taken only through a confirmation that names them; Cancel changes nothing.
+        use = page.get_by_role("button", name="Use this plan…")
+        use.click()
+        dialog = page.locator("#confirm-dialog")
+        expect(dialog).to_be_visible()
+        expect(page.locator("#confirm-title")).to_have_text("Use this outdated plan?")
+        expect(page.locator("#confirm-warning")).to_have_text(re.compile("^Nothing moves now"))
+        table = page.locator("#confirm-table")
+        expect(table.locator("tr", has_text="changed since it was made")).to_contain_text(
+            "the trace"
+        )
+        expect(row(table, "trace")).to_contain_text(first_trace)
+        expect(table.locator("tr", has_text="plan file")).to_contain_text(older)
+        pendant.shot("older-plan-confirm")
+        page.get_by_role("button", name="Cancel").click()
+        expect(dialog).to_be_hidden()
+        expect(options.nth(0)).to_contain_text("in use")
+        expect(run).to_be_disabled()
+        use.click()
+        page.get_by_role("button", name="Confirm: use this plan").click()
+        expect(dialog).to_be_hidden()
+        expect(options.nth(1)).to_contain_text("OUTDATED · in use")
+        expect(page.locator("#plan-summary tr", has_text="trajectory")).to_contain_text(older)
+        expect(page.locator("#plan-summary .outdated")).to_contain_text("Taken on purpose")
+        expect(page.locator("#steps li[data-step=plan]")).to_have_class(re.compile("done"))
+        expect(use).to_be_disabled()  # it is the plan in use
+        # The 3-D view and the timeline show the plan taken.
+        expect(page.locator("#workspace")).to_have_attribute(
+            "data-shown", re.compile(f"/{older}/"), timeout=30_000
+        )
+        pendant.shot("older-plan-taken")
+        page.get_by_role("button", name="Dry run").click()
+        expect(page.locator("#dryrun-summary")).to_contain_text("passed", timeout=120_000)
+        dry = client.get(f"/sessions/{sid}/executions").json()[-1]
+        assert dry["inputs"]["trajectory_id"] == older and dry["params"]["dry_run"]
+        expect(run).to_be_enabled()
+        run.click()
+        expect(page.locator("#confirm-title")).to_have_text("Run on the arm?")
+        first_row = page.locator("#confirm-table tr").first
+        expect(first_row).to_contain_text("OUTDATED, taken on purpose")
+        expect(first_row).to_contain_text("the trace")
+        expect(page.locator("#confirm-table tr", has_text="plan file")).to_contain_text(older)
+        pendant.shot("older-plan-run-confirm")
+        page.get_by_role("button", name="Confirm: run on arm").click()
+        expect(page.locator("#run-summary")).to_contain_text("passed", timeout=180_000)
+        record = client.get(f"/sessions/{sid}/executions").json()[-1]
+        assert record["inputs"]["trajectory_id"] == older and not record["params"]["dry_run"]
+        assert record["summary"]["completed"]
+        (accepted,) = record["params"]["accepted_outdated"]
+        assert accepted.startswith(f"the trace: made from {first_trace}")
+        # A reload forgets the choice: the newest plan again, outdated, not offered.
+        page.reload()
+        expect(page.locator("#session-title")).to_have_text("Session older plan")
+        expect(options.nth(0)).to_contain_text("newest · OUTDATED · in use")
+        expect(run).to_be_disabled()
+        expect(page.locator("#step-run .needs")).to_contain_text("The plan is outdated")
+        # Recalibrated since: the plan can be taken to dry-run it, but the arm is not offered
+        # (the service would refuse it: its scan would be checked in the wrong place).
+        shifted = np.array(T_BASE_TRACKER)
+        shifted[0, 3] += 0.005
+        recalibrated = client.put(
+            f"/sessions/{sid}/calibration", json={"T_base_tracker": shifted.tolist()}
+        )
+        assert recalibrated.status_code == 200, recalibrated.text
+        page.reload()
+        expect(page.locator("#session-title")).to_have_text("Session older plan")
+        page.locator("#plan-pick").select_option(older)
+        expect(
+            page.locator("#plan-pick-inputs tr", has_text="changed since it was made")
+        ).to_contain_text("5.0 mm")
+        use.click()
+        expect(page.locator("#confirm-table tr", has_text="then")).to_contain_text(
+            "It can be dry-run, not run."
+        )
+        page.get_by_role("button", name="Confirm: use this plan").click()
+        expect(options.nth(1)).to_contain_text("in use")
+        expect(page.locator("#step-run .needs")).to_contain_text(
+            "made with another tracker-to-base calibration than the session's (5.0 mm"
+        )
+        expect(row(page.locator("#plan-pick-inputs"), "tracker → base")).to_contain_text(
+            "NOT the session's calibration now"
+        )
+        expect(run).to_be_disabled()
+        pendant.shot("older-plan-recalibrated")
+
+
+def test_the_run_step_says_why_the_arm_cannot_run_through_its_stops_and_offers_it_after(
+    browser, arm_server, fake_ur_process, screens, tmp_path
+):
+    """A dry-run plan ready to run: a protective stop, an emergency stop, the arm powered off
+    after its release, and local control each disable Run on arm with the reason and what to
+    do (as the server's gate would refuse); once each is cleared the run is offered again."""
+    from drivers.scanning.pointcloud import write_scan
+    from drivers.tracking.canonical_csv import write_trace_csv
+    from recon import scenes
+    from recon.kinematics import HOME_Q_RAD
+    from tests.service.conftest import planned_session, wait
+
+    fake = fake_ur_process
+    fake.control("reset")
+    fake.control("configure", unlock_wait_s=0.0)  # UR's 5 s wait is tested above
+    client = arm_server.client
+    scene = scenes.box_corner(0)
+    write_trace_csv(tmp_path / "trace.csv", scene.recording)
+    write_scan(tmp_path / "scan.ply", scene.scan)
+    files = {
+        "trace": (tmp_path / "trace.csv").read_bytes(),
+        "scan": (tmp_path / "scan.ply").read_bytes(),
+    }
+    sid, plans = planned_session(client, files, [0.05], name="stops", start_q_rad=HOME_Q_RAD)
+    dry = client.post(f"/sessions/{sid}/executions", json={"trajectory_id": plans[0.05]})
+    assert wait(client, dry.json())["result"]["completed"]
+    with pendant_for(browser, arm_server, screens, "run-step-stops") as pendant:
+        page = pendant.page
+        pendant.open()
+        page.get_by_role("button", name="stops", exact=True).click()
+        needs = page.locator("#step-run .needs")
+        run = page.get_by_role("button", name="Run on arm")
+        ready = "Ready: press “Run on arm” and confirm."
+        expect(needs).to_have_text(ready)
+        expect(run).to_be_enabled()
+
+        fake.control("protective_stop")
+        expect(needs).to_have_text(
+            "The arm is in a protective stop: clear its cause, then press Unlock in the safety bar."
+        )
+        expect(run).to_be_disabled()
+        pendant.shot("protective-stop")
+        page.get_by_role("button", name="Unlock").click()
+        expect(needs).to_have_text(ready)
+        expect(run).to_be_enabled()
+
+        fake.control("emergency_stop")
+        expect(needs).to_have_text(
+            "The arm is in an emergency stop: release it on the teach pendant, then power it on."
+        )
+        expect(run).to_be_disabled()
+        expect(page.locator("#safety-status")).to_have_text("EMERGENCY STOP")
+        pendant.shot("emergency-stop")
+        # Released, the arm is still powered off: nothing can move it yet.
+        fake.control("release_emergency_stop")
+        expect(needs).to_have_text(
+            "The arm is not running (mode POWER_OFF): power it on and release its brakes on the "
+            "UR teach pendant."
+        )
+        expect(run).to_be_disabled()
+        expect(page.locator("#safety-bar")).to_have_class(re.compile("alarm"))
+        # The server refuses it too, naming the same reason.
+        refused = client.post(
+            f"/sessions/{sid}/executions",
+            json={"trajectory_id": plans[0.05], "backend": "ur_rtde", "confirm": True},
+        )
+        assert refused.status_code == 409, refused.text
+        assert refused.json()["code"] == "arm_not_running", refused.text
+        fake.control("reset")  # powered on and brakes released, at the plan's start
+        expect(needs).to_have_text(ready)
+        expect(run).to_be_enabled()
+
+        fake.control("configure", remote_control=False)
+        expect(needs).to_have_text(
+            "The arm is in local control: switch the UR teach pendant to Remote Control."
+        )
+        expect(run).to_be_disabled()
+        expect(page.locator("#remote-control")).to_have_text("OFF (local)")
+        fake.control("configure", remote_control=True)
+        expect(needs).to_have_text(ready)
+        expect(run).to_be_enabled()

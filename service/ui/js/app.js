@@ -41,6 +41,8 @@ const state = {
   speedSending: false, // a run speed is on its way to the server
   schema: null,
   workspace: null,
+  pick: null, // {id, outdated}: a plan taken on purpose instead of the newest, and what had changed then
+  pickView: null, // the plan the choice of plan shows (its inputs are read before taking it)
 };
 
 // -- errors shown as instructions ---------------------------------------------------------------
@@ -96,7 +98,8 @@ function showRobot(robot) {
     robot.remote_control == null ? "–" : robot.remote_control ? "on" : "OFF (local)";
   $("#arm-owner").textContent = robot.owner_execution_id || "none";
   $("#speed-cap").textContent = mmps(robot.max_speed_m_s);
-  $("#safety-bar").classList.toggle("alarm", stopped || robot.emergency_stop || !robot.reachable);
+  const notRunning = robot.real_arm && robot.reachable && robot.robot_mode !== "RUNNING"; // powered off, brakes on
+  $("#safety-bar").classList.toggle("alarm", stopped || robot.emergency_stop || !robot.reachable || notRunning);
   state.workspace?.showLiveArm(robot.reachable ? robot.joints_m : null);
   updateStop();
   showRunSpeed(robot.run_speed);
@@ -295,7 +298,7 @@ async function loadSessions() {
 }
 
 function closeSession() {
-  state.session = null;
+  Object.assign(state, { session: null, pick: null, pickView: null });
   state.capture.sessionClosed();
   state.workspace?.showLive(null);
   remember("sessionStorage", SESSION_KEY, null);
@@ -323,6 +326,7 @@ function recall(kind, key) {
 
 async function openSession(id) {
   state.session = await api(`/sessions/${id}`);
+  Object.assign(state, { pick: null, pickView: null }); // a plan is taken in its own session
   remember("sessionStorage", SESSION_KEY, id);
   $("#session-view").hidden = false;
   $("#session-title").textContent = `Session ${state.session.name}`;
@@ -393,7 +397,7 @@ async function refresh() {
 function showWorkspace() {
   if (!state.session) return;
   state.reviewExecution = [lastRun(), dryRun()].find((e) => e?.summary.n_samples > 0) || null;
-  state.workspace?.show(state.session.id, state).catch((err) => {
+  state.workspace?.show(state.session.id, { ...state, plan: trajectory() }).catch((err) => {
     $("#workspace-note").textContent = `workspace: ${err.message}`;
   });
 }
@@ -407,10 +411,42 @@ const reconstruction = () => last(state.reconstructions);
 // A move to a plan's start is a trajectory of its own (move_to_start_of names the plan): never
 // "the plan".
 const isMove = (t) => Boolean(t?.inputs.move_to_start_of);
-const trajectory = () => {
+/** The session's plans (not the moves to their starts), newest first. */
+const plans = () => state.trajectories.filter((t) => !isMove(t)).reverse();
+/** The newest plan of the newest reconstruction: the plan used unless the operator picks another. */
+const newestPlan = () => {
   const rec = reconstruction();
   return last(state.trajectories.filter((t) => t.inputs.reconstruction_id === rec?.id && !isMove(t)));
 };
+/** The plan shown, dry-run and run: the one the operator picked on purpose, else the newest. */
+const trajectory = () => (state.pick && state.trajectories.find((t) => t.id === state.pick.id)) || newestPlan();
+/** Whether the operator took `traj` (or, for a move, the plan it moves to the start of) on purpose
+ * after a confirmation that named what had changed since it was made: true only while nothing
+ * more has changed (a new change needs a new look). */
+function acceptedOutdated(traj) {
+  const id = isMove(traj) ? traj.inputs.move_to_start_of : traj?.id;
+  if (!id || state.pick?.id !== id) return false;
+  return outdated(traj).every((reason) => state.pick.outdated.includes(reason));
+}
+/** How far the tracker-to-base calibration `traj` was planned with is from the session's, when
+ * the service would refuse it on the arm for that (service/executions.py, _placement_here: its
+ * scan would be checked in the wrong place); null when it is the same or either is missing. */
+function otherCalibration(traj) {
+  const [a, b] = [traj?.params?.T_base_tracker, state.session?.T_base_tracker];
+  if (!a || !b) return null;
+  const movedM = Math.hypot(...[0, 1, 2].map((i) => a[i][3] - b[i][3]));
+  let trace = 0;
+  for (let i = 0; i < 3; i += 1) for (let k = 0; k < 3; k += 1) trace += a[k][i] * b[k][i];
+  const turnedRad = Math.acos(Math.min(1, Math.max(-1, (trace - 1) / 2)));
+  return movedM > SAME_PLACEMENT_M || turnedRad > SAME_PLACEMENT_RAD ? { movedM, turnedRad } : null;
+}
+const [SAME_PLACEMENT_M, SAME_PLACEMENT_RAD] = [1e-4, 1e-4];
+const OTHER_CALIBRATION = (gap) => `This plan was made with another tracker-to-base calibration than the session's `
+  + `(${(gap.movedM * 1000).toFixed(1)} mm, ${(gap.turnedRad * 180 / Math.PI).toFixed(2)}° apart): the service refuses it on the arm, `
+  + "since its motion would be checked against the workpiece in the wrong place. Plan again with the session's calibration.";
+/** A plan the arm may be offered: current, or outdated and taken on purpose; never one made
+ * with another calibration. */
+const usable = (traj) => Boolean(traj) && (!outdated(traj).length || acceptedOutdated(traj)) && !otherCalibration(traj);
 // The server's gate: a run starts only with the arm this close to the plan's first sample (rad).
 const START_TOLERANCE_RAD = 0.01;
 /** How far the real arm stands from where `traj` starts: the largest joint difference (rad) and
@@ -456,13 +492,23 @@ function stepStates() {
   const dry = dryRun();
   // A result made from inputs that are no longer the session's is shown, but is not a done step:
   // the steps after it wait for it to be made again.
-  if (traj && outdated(traj).length) {
-    const again = outdated(rec).length ? "Reconstruct and plan again" : "Plan again";
-    const waiting = { done: false, needs: `The plan is outdated: ${again} first.` };
+  const recStates = outdated(rec).length ? { reconstruct: { done: false, needs: `${outdatedText(rec)} Press Reconstruct.` } } : {};
+  if (traj && outdated(traj).length && acceptedOutdated(traj)) {
+    // An older plan the operator took on purpose, having seen what changed since: it may be
+    // dry-run and run (the run says so to the server, and its record keeps what was accepted).
     return {
       ...stepStatesOf(s, rec, traj, dry),
-      ...(outdated(rec).length ? { reconstruct: { done: false, needs: `${outdatedText(rec)} Press Reconstruct.` } } : {}),
-      plan: { done: false, needs: `${outdatedText(traj)} ${again}.` },
+      ...recStates,
+      plan: { done: true, needs: `Older plan ${traj.id} in use, taken on purpose: made before ${outdated(traj).join("; ")}.` },
+    };
+  }
+  if (traj && outdated(traj).length) {
+    const again = outdated(rec).length ? "Reconstruct and plan again" : "Plan again";
+    const waiting = { done: false, needs: `The plan is outdated: ${again} first, or take it on purpose in the Plan step.` };
+    return {
+      ...stepStatesOf(s, rec, traj, dry),
+      ...recStates,
+      plan: { done: false, needs: `${outdatedText(traj)} ${again}, or press “Use this plan…” to see its inputs and take it anyway.` },
       dryrun: waiting,
       run: waiting,
     };
@@ -508,9 +554,14 @@ function armBlocker() {
     return "No real arm on this server (simulation only): the dry run is as far as a plan goes here. "
       + "To run on an arm, start the service with TEACHPATH_UR_HOST set to the controller's address.";
   }
-  if (robot.emergency_stop) return "The arm is in an emergency stop: release it on the teach pendant, then unlock it.";
-  if (robot.protective_stop) return "The arm is in a protective stop: clear its cause, then press Unlock in the safety bar.";
+  // As the server's gate decides (service/gate.py, check_arm_state), in the same order.
   if (!robot.reachable) return "The arm's controller does not answer: check its network and power.";
+  if (robot.emergency_stop) return "The arm is in an emergency stop: release it on the teach pendant, then power it on.";
+  if (robot.protective_stop) return "The arm is in a protective stop: clear its cause, then press Unlock in the safety bar.";
+  if (robot.robot_mode !== "RUNNING") {
+    return `The arm is not running (mode ${robot.robot_mode}): power it on and release its brakes on the UR teach pendant.`;
+  }
+  if (robot.remote_control === false) return "The arm is in local control: switch the UR teach pendant to Remote Control.";
   return null;
 }
 
@@ -525,14 +576,16 @@ function runState(dry) {
   if (owner) {
     return { done: false, needs: `The arm is busy: execution ${owner} owns it. Wait until it ends, or press Stop.` };
   }
+  const traj = trajectory();
+  const gap = otherCalibration(traj);
+  if (gap) return { done: false, needs: OTHER_CALIBRATION(gap) }; // whatever ran before
   if (lastRun()?.summary.completed) return { done: true, needs: "" };
   const blocker = armBlocker();
   if (blocker) return { done: false, needs: blocker };
   if (dry && passed(dry) && !passedHere(dry)) return { done: false, needs: IMPORTED_DRY_RUN };
-  const traj = trajectory();
   if (passedHere(dry) && awayFromStart(traj)) {
-    const gap = startGap(traj);
-    return { done: false, needs: `The arm is not where the plan starts (joint ${gap.joint} is ${(gap.rad * 180 / Math.PI).toFixed(1)}° away): move it there first (below), or plan again from where it stands.` };
+    const away = startGap(traj);
+    return { done: false, needs: `The arm is not where the plan starts (joint ${away.joint} is ${(away.rad * 180 / Math.PI).toFixed(1)}° away): move it there first (below), or plan again from where it stands.` };
   }
   return { done: false, needs: passedHere(dry) ? "Ready: press “Run on arm” and confirm." : "Needs a passed dry run of this plan in this mode." };
 }
@@ -586,12 +639,14 @@ function updateButtons() {
   set("#reconstruct-form button[type=submit]", !busy && Boolean(s?.recording_id) && Boolean(state.schema));
   set("#plan-form button[type=submit]", !busy && Boolean(reconstruction()) && Boolean(s?.T_base_tracker));
   set("#dryrun-form button[type=submit]", !busy && Boolean(traj));
-  // An outdated plan is never offered for the arm (the server refuses it too: outdated_inputs).
+  // An outdated plan is offered for the arm only when taken on purpose (the server refuses it
+  // too, outdated_inputs, unless the run says it was accepted).
   set("#run-form button[type=submit]",
-    !busy && passedHere(dry) && !canMove() && !outdated(traj).length && !armBlocker() && !awayFromStart(traj));
+    !busy && passedHere(dry) && !canMove() && usable(traj) && !armBlocker() && !awayFromStart(traj));
   const move = moveTo(traj);
-  const fresh = move && !awayFromStart(move) && !outdated(move).length; // it starts where the arm stands
-  set("#move-plan-form button[type=submit]", !busy && !canMove() && Boolean(traj) && !outdated(traj).length);
+  const fresh = move && !awayFromStart(move) && usable(move); // it starts where the arm stands
+  set("#move-plan-form button[type=submit]", !busy && !canMove() && usable(traj));
+  set("#plan-use", !busy && !canMove() && canTakeViewedPlan());
   set("#move-dryrun-form button[type=submit]", !busy && Boolean(fresh));
   set("#move-run-form button[type=submit]",
     !busy && Boolean(fresh) && passedHere(dryRun(move)) && !canMove() && !armBlocker());
@@ -847,13 +902,15 @@ async function overlay(id) {
 }
 
 function renderPlan() {
+  renderPlanChoice();
   const traj = trajectory();
   const box = $("#plan-summary");
   if (!traj) return box.replaceChildren();
   const sm = traj.summary;
   const feasible = sm.checks.length ? `passed: ${sm.checks.join(", ")}` : "";
   box.replaceChildren(
-    ...(outdated(traj).length ? [el("p", { class: "outdated", role: "status", text: outdatedText(traj) })] : []),
+    ...(outdated(traj).length ? [el("p", { class: "outdated", role: "status",
+      text: `${outdatedText(traj)}${acceptedOutdated(traj) ? " Taken on purpose for the dry run and the run." : ""}` })] : []),
     table([
       ["trajectory", traj.id],
       ["robot", sm.robot],
@@ -874,6 +931,86 @@ function renderPlan() {
     report(sm.report),
     ...provenance("trajectory", traj),
   );
+}
+
+/** The plan the choice shows (the operator's selection, else the plan in use). */
+const viewedPlan = () => plans().find((t) => t.id === state.pickView) || trajectory();
+
+/** What an operator reads of a plan before taking it: when it was made, what changed in the
+ * session since, and what it was made from. */
+function planRows(t) {
+  const sm = t.summary;
+  return [
+    ["changed since it was made", outdated(t).join("; ") || "nothing: made from the session's current inputs"],
+    ["speed", mmps(sm.requested_speed_m_s)],
+    ["duration", seconds(sm.duration_s)],
+    ["starts from", startFrom(sm.start_from)],
+    ["TCP", tcpText(sm.tcp_pose)],
+    ...approvedInputs(t),
+  ];
+}
+
+/** The choice of plan: shown when the session has more than one, or the plan in use is
+ * outdated. A plan is taken only through a confirmation that names its inputs and what changed
+ * since it was made. */
+function renderPlanChoice() {
+  const panel = $("#plan-choice");
+  const all = plans();
+  const traj = trajectory();
+  panel.hidden = !traj || (all.length < 2 && !outdated(traj).length);
+  if (panel.hidden) return;
+  const newest = newestPlan();
+  const label = (t) => [
+    `${t.id}, ${new Date(t.created_at).toLocaleString()}, ${mmps(t.summary.requested_speed_m_s)}`,
+    t.id === newest?.id ? "newest" : "",
+    outdated(t).length ? "OUTDATED" : "",
+    t.id === traj.id ? "in use" : "",
+  ].filter(Boolean).join(" · ");
+  const options = all.map((t) => [t.id, label(t)]);
+  const select = $("#plan-pick");
+  const key = JSON.stringify(options);
+  if (select.dataset.key !== key) {
+    select.replaceChildren(...options.map(([id, text]) => el("option", { value: id, text })));
+    select.dataset.key = key;
+  }
+  // The row the operator is reading stays selected (the steps are drawn on every arm state).
+  if (!all.some((t) => t.id === state.pickView)) state.pickView = traj.id;
+  select.value = state.pickView;
+  $("#plan-pick-inputs").replaceChildren(table(planRows(viewedPlan())));
+}
+
+/** Whether the viewed plan can be taken: another plan than the one in use, or the one in use
+ * while it is outdated and not yet taken on purpose. */
+function canTakeViewedPlan() {
+  const viewed = viewedPlan();
+  const traj = trajectory();
+  if (!viewed || !traj) return false;
+  return viewed.id !== traj.id || (outdated(traj).length > 0 && !acceptedOutdated(traj));
+}
+
+/** Take the viewed plan for the dry run and the run, after a confirmation naming its inputs. */
+async function takeViewedPlan() {
+  const t = viewedPlan();
+  if (!t || !canTakeViewedPlan()) return;
+  const changed = outdated(t);
+  const ok = await askDialog(
+    changed.length ? "Use this outdated plan?" : "Use this plan?",
+    "Confirm: use this plan",
+    [
+      ["plan", `${t.id}, made ${new Date(t.created_at).toLocaleString()}`],
+      ...planRows(t),
+      ["then", otherCalibration(t) ? `It can be dry-run, not run. ${OTHER_CALIBRATION(otherCalibration(t))}`
+        : changed.length
+          ? "Its dry run and run use it as it is, made from the inputs above and not the session's current ones. The run tells the server you accepted that; its record keeps what had changed."
+          : "Its dry run and run use it instead of the newest plan."],
+    ],
+    "Nothing moves now. The dry run and the run each ask again before they start.",
+  );
+  if (!ok) return;
+  // The newest current plan is the default: taking it is forgetting the pick.
+  state.pick = t.id === newestPlan()?.id && !changed.length ? null : { id: t.id, outdated: changed };
+  renderSteps();
+  showWorkspace();
 }
 
 /** The largest deviation anywhere in an execution and the phase it was in (from the record's
@@ -925,7 +1062,7 @@ function renderMove() {
   const panel = $("#move-to-start");
   const gap = startGap(traj);
   const move = moveTo(traj);
-  const away = Boolean(traj) && !outdated(traj).length && awayFromStart(traj) && !state.moving;
+  const away = usable(traj) && awayFromStart(traj) && !state.moving;
   // Shown while the arm is away, and while a move of this plan is being made.
   panel.hidden = !away && !["move-plan", "move-dryrun", "move-run"].includes(state.busy);
   state.workspace?.showMove(state.session.id, panel.hidden ? null : move).catch(() => {});
@@ -1622,12 +1759,23 @@ function approvedInputs(traj) {
     return row ? `${row.source_name || row.id} (${row.id}, sha256 ${row.sha256.slice(0, 12)}…, ${new Date(row.created_at).toLocaleString()})` : id || "none";
   };
   const recordings = rec ? (rec.inputs.recording_ids || [rec.inputs.recording_id]) : [];
+  const sm = traj.summary;
   const T = traj.params?.T_base_tracker;
+  // The session's calibration is the plan's when they agree (then where it came from, and when).
+  const base = !T ? "–" : `${transformText(T)}${!state.session.T_base_tracker ? "" : otherCalibration(traj)
+    ? " — NOT the session's calibration now" : `, the session's${calibrationSource(state.session, "T_base_tracker")}`}`;
+  const registered = rec?.summary.T_scan_tracker;
+  const touches = rec?.inputs.touches_id ? `, placed by touches ${named(state.touches || [], rec.inputs.touches_id)}` : "";
+  const armModel = sm.calibration
+    ? `${sm.kinematics || sm.robot}, calibration ${sm.calibration.source || "(unnamed)"}` : sm.kinematics || `${sm.robot}, UR's nominal model`;
   return [
     ["plan file", `${traj.id}, sha256 ${traj.sha256.slice(0, 12)}…, ${new Date(traj.created_at).toLocaleString()}`],
     ["trace", recordings.map((id) => named(state.recordings, id)).join("; ") || "–"],
     ["scan", named(state.scans, rec?.inputs.scan_id)],
-    ["tracker → base", T ? `translation ${T.slice(0, 3).map((row) => mm(row[3], 1)).join(", ")}` : "–"],
+    ["tracker → base", base],
+    ["tracker → scan", registered ? `${transformText(registered)} (${rec.summary.registration
+      ? `registered by ${rec.id}, ${rec.summary.registration.target}${touches}` : "as given, not registered"})` : "–"],
+    ["arm kinematics", armModel],
   ];
 }
 
@@ -1644,12 +1792,19 @@ function moveFastest(sm) {
   return speeds.length ? speeds.map(([phase, v]) => `${mmps(v)} (${phase})`).join(", ") : "–";
 }
 
+/** What a real-arm request says of an outdated plan taken on purpose (nothing for a current one:
+ * the server then refuses a plan that became outdated meanwhile). */
+const acceptance = (traj) => (outdated(traj).length && acceptedOutdated(traj) ? { accept_outdated: true } : {});
+
 function confirmRun(traj) {
   const sm = traj.summary;
   const robot = state.robot;
   const degrees = (q) => `${q.map((v) => (v * 180 / Math.PI).toFixed(1)).join(", ")}°`;
   const arm = ["robot", `${robot.real_arm ? "REAL ARM" : "SIM (no real arm configured)"} ${sm.robot}${robot.host ? ` @ ${robot.host}` : ""}`];
   const move = isMove(traj);
+  // An outdated plan (or a move to its start) runs only when taken on purpose: said first.
+  const taken = outdated(traj).length
+    ? [["OUTDATED, taken on purpose", `made before ${outdated(traj).join("; ")}`]] : [];
   const rows = move ? [
     arm,
     ["motion", `${moveWords(sm)} to the start of plan ${sm.move_to_start_of}`],
@@ -1679,13 +1834,16 @@ function confirmRun(traj) {
   return askDialog(
     move ? "Move the arm to the plan's start?" : "Run on the arm?",
     move ? "Confirm: move to start" : "Confirm: run on arm",
-    rows,
+    [...taken, ...rows],
   );
 }
 
-/** The confirmation dialog: a title, rows of what will happen, Cancel focused. */
-function askDialog(title, button, rows) {
+const MOVES_WARNING = "The arm will move. Keep clear of it; Stop (or Esc) stops it.";
+
+/** The confirmation dialog: a title, rows of what will happen, a warning, Cancel focused. */
+function askDialog(title, button, rows, warning = MOVES_WARNING) {
   $("#confirm-title").textContent = title;
+  $("#confirm-warning").textContent = warning;
   $("#confirm-run").textContent = button;
   $("#confirm-table").replaceChildren(...rows.map(([k, v]) => el("tr", {}, el("th", { text: k }), el("td", { text: v }))));
   const dialog = $("#confirm-dialog");
@@ -1775,7 +1933,10 @@ function wire() {
     } catch (err) {
       return showError($(".message", form), err);
     }
-    runJob("plan", form, () => api(`/sessions/${state.session.id}/trajectories`, { method: "POST", json: body }));
+    runJob("plan", form, () => api(`/sessions/${state.session.id}/trajectories`, { method: "POST", json: body }),
+      (finished) => {
+        if (finished.state === "succeeded") Object.assign(state, { pick: null, pickView: null }); // the new plan is used
+      });
   });
 
   // The move to the plan's start: planned, dry-run and approved as a plan is, then run.
@@ -1800,7 +1961,8 @@ function wire() {
     const move = moveTo(trajectory());
     if (!move || !passedHere(dryRun(move)) || state.busy) return;
     if (!(await confirmRun(move))) return;
-    const body = { trajectory_id: move.id, backend: "ur_rtde", mode: mode(), confirm: true, approved_sha256: move.sha256 };
+    const body = { trajectory_id: move.id, backend: "ur_rtde", mode: mode(), confirm: true, approved_sha256: move.sha256,
+      ...acceptance(move) };
     runJob("move-run", form, async () => {
       const job = await api(`/sessions/${state.session.id}/executions`, { method: "POST", json: body });
       state.moving = { executionId: job.params.execution_id, jobId: job.id };
@@ -1835,7 +1997,8 @@ function wire() {
     if (!traj || !passedHere(dry) || state.busy) return;
     if (!(await confirmRun(traj))) return;
     // The plan's checksum as shown in the confirmation: the server runs only that file.
-    const body = { trajectory_id: traj.id, backend: "ur_rtde", mode: mode(), confirm: true, approved_sha256: traj.sha256 };
+    const body = { trajectory_id: traj.id, backend: "ur_rtde", mode: mode(), confirm: true, approved_sha256: traj.sha256,
+      ...acceptance(traj) };
     runJob("run", form, async () => {
       const job = await api(`/sessions/${state.session.id}/executions`, { method: "POST", json: body });
       state.moving = { executionId: job.params.execution_id, jobId: job.id };
@@ -1855,6 +2018,11 @@ function wire() {
   theme(contrast.checked);
   contrast.addEventListener("change", () => theme(contrast.checked));
   $("#pair-screen").addEventListener("click", pairScreen);
+  $("#plan-pick").addEventListener("change", (event) => {
+    state.pickView = event.target.value;
+    renderSteps();
+  });
+  $("#plan-use").addEventListener("click", takeViewedPlan);
   $("#unlock").addEventListener("click", async () => {
     try {
       showRobot(await api("/robot/unlock", { method: "POST" }));

@@ -272,11 +272,10 @@ export class Workspace {
   }
 
   /** Fill the layers from a session's artifacts (each fetched only when it changed);
-   * `reviewExecution` is the execution reviewed against the plan (null: none). */
-  async show(sid, { session, reconstructions, trajectories, reviewExecution = null, touches: allTouches = [] }) {
+   * `plan` is the plan in use (the page chooses it; a move to its start is drawn by showMove),
+   * `reviewExecution` the execution reviewed against it (null: none). */
+  async show(sid, { session, reconstructions, plan: traj = null, reviewExecution = null, touches: allTouches = [] }) {
     const rec = reconstructions[reconstructions.length - 1] || null;
-    // The plan (a move to its start is drawn by showMove, not as the plan).
-    const traj = rec ? [...trajectories].reverse().find((t) => t.inputs.reconstruction_id === rec.id && !t.inputs.move_to_start_of) : null;
     // The execution the page's tables show (the caller chooses), if it is of this plan.
     const exec = traj && reviewExecution?.inputs.trajectory_id === traj.id ? reviewExecution : null;
     const calibration = JSON.stringify([session.T_base_tracker, session.T_scan_tracker, rec?.summary.T_scan_tracker]);
