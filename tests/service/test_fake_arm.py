@@ -213,8 +213,11 @@ def test_a_session_that_owns_the_arm_is_not_deleted_until_its_run_ends(arm, fake
     assert refused.status_code == 409 and refused.json()["code"] == "session_owns_arm"
     assert execution_id in refused.json()["message"]
     assert client.get(f"/sessions/{sid}").status_code == 200  # still there, nothing changed
+    running = client.get(f"/jobs/{job['id']}").json()["progress"]
     assert client.post(f"/executions/{execution_id}/stop").status_code == 200
     job = wait(client, job, timeout_s=60)
+    # A stopped run's progress stays where it was shown while it ran: it never goes back.
+    assert job["state"] == "cancelled" and running <= job["progress"] < 1.0, (running, job)
     execution = client.get(f"/sessions/{sid}/executions/{execution_id}").json()
     assert execution["summary"]["n_samples"] > 0  # the record of what moved is kept
     assert client.get("/health").json()["jobs_running"] == 0
