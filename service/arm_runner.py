@@ -127,8 +127,9 @@ class ExecutionRunner:
 
     @property
     def overridable(self) -> bool:
-        """Whether this run's speed can be changed and the run paused: a servoJ stream."""
-        return self.mode == "servoj"
+        """Whether this run's speed can be changed and the run paused: a servoJ stream, or a
+        movePath on a backend that scales it with the controller's speed slider."""
+        return self.mode == "servoj" or self.backend.speed_override_paths
 
     def set_speed(self, fraction: float) -> None:
         """The run's speed as a fraction of the planned speed (any time before its end).

@@ -140,6 +140,9 @@ class RobotBackend(ABC):
     kind: ClassVar[str]
     #: Its config model (what :func:`create_backend` takes for it).
     config_class: ClassVar[type[BackendConfig]]
+    #: Whether :meth:`set_speed` and :meth:`pause` reach :meth:`execute_path` too (the
+    #: controller's speed slider); the streamed :meth:`execute` always takes them.
+    speed_override_paths: ClassVar[bool] = False
 
     def __init__(self, config: BackendConfig, *, clock: Clock | None = None) -> None:
         self.config = config
@@ -394,8 +397,8 @@ class RobotBackend(ABC):
 
         Any thread, any time; the stream ramps to it within the joints' acceleration limits and
         never runs faster than planned (:mod:`drivers.robot.timescale`). Applies to
-        :meth:`execute` (the stream is timed here), not to :meth:`execute_path` (the
-        controller times it).
+        :meth:`execute` (the stream is timed here), and to :meth:`execute_path` where the
+        backend says so (:attr:`speed_override_paths`: the controller's speed slider).
 
         Raises
         ------

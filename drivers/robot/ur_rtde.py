@@ -14,6 +14,11 @@ records the actual joints every period; :meth:`~drivers.robot.base.RobotBackend.
 sends coarse blended moveJ waypoints as one movePath instead. Stopping decelerates with
 servoStop / stopJ.
 
+The speed override and pause reach both: the servoJ stream is retimed here
+(:mod:`drivers.robot.timescale`); a movePath is scaled by the controller's speed slider
+(RTDEIOInterface.setSpeedSlider, 0 to pause), never above the slider as the run found it, and
+the slider is put back when the run ends.
+
 Enabling does not power the arm on or release its brakes unless ``power_on`` is set: on a shop
 floor that is the operator's decision, at the teach pendant.
 """
@@ -66,6 +71,8 @@ POWER_ON_TIMEOUT_S = 25.0
 SAFETY_MODE_NORMAL = 1
 #: Progress is reported every this many samples.
 PROGRESS_EVERY = 50
+#: A movePath run reports where it is and its speed at least this often (s), paused too.
+PATH_REPORT_S = 0.2
 #: Without new data from the controller for this long, the link counts as lost (ur_rtde itself
 #: gives up on a socket after 2.5 s of silence).
 STALE_AFTER_S = 0.5
@@ -248,6 +255,7 @@ class URRtdeBackend(RobotBackend):
     kind = "ur_rtde"
     config_class = URRtdeConfig
     config: URRtdeConfig
+    speed_override_paths = True  # movePath through the controller's speed slider
 
     def __init__(self, config: URRtdeConfig, *, clock: Clock | None = None) -> None:
         super().__init__(config, clock=clock)
@@ -408,6 +416,11 @@ class URRtdeBackend(RobotBackend):
     def _execute_path(
         self, path: CoarsePath, on_progress: ProgressCallback | None, journal: str | Path | None
     ) -> tuple[FloatArray, FloatArray, bool, str | None]:
+        def progress(report: tuple[int, float]) -> None:
+            position, self.speed_now = report
+            if on_progress is not None:
+                on_progress(position / len(path))
+
         # The controller's own timing may run longer than the plan (it stops where it cannot
         # blend): allow the slowest move profile on top of the margin.
         lead = np.abs(np.diff(path.q_rad, axis=0)).max(axis=1)
@@ -424,9 +437,11 @@ class URRtdeBackend(RobotBackend):
                     None if journal is None else str(journal),
                 ),
                 timeout_s=self._motion_bound_s(expected_s),
-                on_progress=(
-                    None if on_progress is None else (lambda i: on_progress(i / len(path)))
-                ),
+                on_progress=progress,
+                # Slowed or paused by the speed slider, a path takes longer than planned: the
+                # worker reports every PATH_REPORT_S, paused too; silence beyond the margin is
+                # a hang.
+                quiet_s=self._motion_bound_s(0.0),
             )
         except RobotError:
             self.last_record = ExecutionRecord(
@@ -452,6 +467,45 @@ class URRtdeBackend(RobotBackend):
 # -- the child process ---------------------------------------------------------------------------
 
 
+class _SpeedSlider:  # pragma: no cover - runs in the worker process
+    """The controller's speed slider during a movePath run: the run's speed override, never
+    above the slider as the run found it (the operator may have turned it down on the teach
+    pendant), and put back as found when the run ends.
+
+    Parameters
+    ----------
+    io : rtde_io.RTDEIOInterface
+    found : float
+        The slider's value at the start (RTDE target_speed_fraction, 0..1).
+    """
+
+    def __init__(self, io: Any, found: float) -> None:
+        self.io = io
+        self.found = min(max(found, 0.0), 1.0) if found == found else 1.0  # NaN: untouched
+        self.wanted = self.found
+        self.sent: float | None = None
+
+    def follow(self, override: float) -> None:
+        """Set the slider to ``override`` (0..1, 0: pause) within what it was found at."""
+        self.wanted = min(self.found, max(float(override), 0.0))
+        if self.wanted != self.sent:
+            if not self.io.setSpeedSlider(self.wanted):
+                raise ConnectionLostError("the controller refused the speed slider; reconnect")
+            self.sent = self.wanted
+
+    def share(self, receive: Any) -> float:
+        """The controller's speed scaling now, as a share of the slider as found: what the
+        override reads (1 when the run goes at the speed it would have gone without it; a
+        pendant's slider turned down before the run is the operator's, shown on the pendant)."""
+        scaling = float(receive.getSpeedScaling())
+        return min(scaling / self.found, 1.0) if self.found > 0 else 0.0
+
+    def restore(self) -> None:
+        """The slider as the run found it (only if this run changed it)."""
+        if self.sent is not None and self.sent != self.found:
+            self.io.setSpeedSlider(self.found)
+
+
 class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker process
     """The ur_rtde clients, in the worker process; one method per command.
 
@@ -471,6 +525,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         self.control: Any = None
         self.receive: Any = None
         self.dashboard: Any = None
+        self.io: Any = None  # RTDEIOInterface: the speed slider, for movePath runs
 
     def handlers(self) -> Mapping[type[Command], Callable[[Any], Any]]:
         return {
@@ -888,14 +943,40 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         if self.stop_event.is_set():
             # A stop came while the path was built or sent here: the command is never sent.
             return [], [], False, "stopped on request"
-        with self._watched():
-            return self._follow_path(path, q_rows, writer)
+        slider = _SpeedSlider(self._io(), float(self.receive.getTargetSpeedFraction()))
+        try:
+            with self._watched():
+                return self._follow_path(path, q_rows, writer, slider)
+        finally:
+            slider.restore()
+
+    def _io(self) -> Any:
+        """ur_rtde's RTDEIOInterface (the speed slider), connected on first use: its
+        constructor blocks this process for a moment, never the service's."""
+        if self.io is None:
+            import rtde_io
+
+            try:
+                self.io = rtde_io.RTDEIOInterface(
+                    self.config["host"], False, self.config["upper_range_registers"]
+                )
+            except RuntimeError as exc:
+                raise ConnectionLostError(
+                    f"cannot reach the controller's speed slider at {self.config['host']}: {exc}"
+                ) from None
+        return self.io
 
     def _follow_path(
-        self, path: Any, q_rows: list[list[float]], writer: JournalWriter | None
+        self,
+        path: Any,
+        q_rows: list[list[float]],
+        writer: JournalWriter | None,
+        slider: _SpeedSlider,
     ) -> tuple[list[float], list[list[float]], bool, str | None]:
         """Send the path and sample the arm until it ends, kicking the watchdog: the
-        controller runs the path on its own, and stops it when this process goes quiet."""
+        controller runs the path on its own, and stops it when this process goes quiet. The
+        client's dial (speed override, 0 while paused) goes to the controller's speed slider,
+        which scales the path along its own way."""
         if self.stop_event.is_set():
             # A stop came while the watchdog was set: the path is never sent.
             return [], [], False, "stopped on request"
@@ -907,8 +988,11 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
         times, actual, tcp, fault, completed = [], [], [], None, False
         start = time.monotonic()
         period_s = 1.0 / 125.0  # sampling the actual joints; the controller runs the path
-        reported = -1
+        reported, reported_at = -1, start
+        dial = self.link.dial
+        paused_since: float | None = None
         while True:
+            slider.follow(1.0 if dial is None else dial.value)
             status = self.control.getAsyncOperationProgressEx()
             times.append(time.monotonic() - start)
             q_now, tcp_now = self._sample()
@@ -926,12 +1010,19 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
                 break
             if self.receive.isProtectiveStopped():
                 raise ProtectiveStopError("protective stop during the path")
-            if status.progress() != reported:
-                reported = status.progress()
-                self.link.progress(max(reported, 0))
+            now = time.monotonic()
+            paused_since = None if slider.wanted > 0 else (paused_since or now)
+            if paused_since is not None and now - paused_since > MAX_PAUSE_S:
+                self.control.stopJ(self.config["stop_deceleration_rad_s2"])
+                fault = f"stopped: paused for longer than {MAX_PAUSE_S / 60:.0f} min"
+                break
+            if status.progress() != reported or now - reported_at > PATH_REPORT_S:
+                reported, reported_at = status.progress(), now
+                self.link.progress((max(reported, 0), slider.share(self.receive)))
             self._kick()
             time.sleep(period_s)
-        self.link.progress(len(q_rows) if completed else max(reported, 0))
+        done_at = len(q_rows) if completed else max(reported, 0)
+        self.link.progress((done_at, slider.share(self.receive)))
         return times, actual, completed, fault
 
     def close(self) -> None:
@@ -940,7 +1031,7 @@ class URRtdeServer(WorkerServer):  # pragma: no cover - runs in the worker proce
             self.control.stopScript()
 
     def shutdown(self) -> None:
-        for client in (self.control, self.receive):
+        for client in (self.control, self.receive, self.io):
             if client is not None:
                 try:
                     client.disconnect()

@@ -185,6 +185,79 @@ def test_the_emulated_script_runs_a_synchronous_move_j():
     assert c.out_int[24] == 1
 
 
+def _move_j_ticks(c, goal, slider_at=()):
+    """Run a synchronous moveJ to ``goal`` from where the arm is; ``slider_at``: (tick,
+    fraction) pairs written to the speed slider as a client would. Returns the joints of every
+    tick until the move is done, shape (T, 6)."""
+    c.in_double[24:32] = [*goal, 1.0, 2.0]
+    c.in_int[25] = 0
+    c.in_int[24] = cs.CMD_MOVEJ
+    changes = dict(slider_at)
+    q = []
+    for tick in range(int(30 * c.rate_hz)):
+        if tick in changes:
+            c.apply_inputs({"speed_slider_mask": 1, "speed_slider_fraction": changes[tick]})
+        c.step()
+        q.append(c.q.copy())
+        if c.out_int[24] == 2:
+            c.in_int[24] = 0
+            c.step()
+            return np.array(q)
+    raise AssertionError("the move never ended")
+
+
+def test_the_speed_slider_scales_a_timed_move_along_the_same_way_and_holds_it_at_zero():
+    """UR's speed slider (RTDE speed_slider_fraction): a moveJ at half the slider takes twice
+    as long along the same joint path; at 0 the arm comes to rest on that path and waits, and
+    goes on to the goal when the slider is raised. The scaling ramps, never jumps; a package
+    without the mask, or a value that is not a number, changes nothing; one outside 0..1 takes
+    the nearest end."""
+    goal = np.array(HOME_RAD) + [0.6, -0.3, 0.4, 0.0, 0.0, 0.5]
+    full = ctl.FakeController("ur5e")
+    assert full.load_program(_script(24))
+    at_full = _move_j_ticks(full, goal)
+    half = ctl.FakeController("ur5e")
+    assert half.load_program(_script(24))
+    at_half = _move_j_ticks(half, goal, slider_at=[(0, 0.5)])
+    assert half.outputs()["target_speed_fraction"] == 0.5
+    assert half.outputs()["speed_scaling"] == 0.5
+
+    def crossing(q, share):  # the tick the lead joint passes ``share`` of its way
+        return int(np.argmax(np.abs(q[:, 0] - q[0, 0]) >= share * abs(goal[0] - q[0, 0])))
+
+    span_full = crossing(at_full, 0.9) - crossing(at_full, 0.1)
+    span_half = crossing(at_half, 0.9) - crossing(at_half, 0.1)
+    assert 1.95 < span_half / span_full < 2.05, (span_half, span_full)
+    # The same way: every joint position of the slow move lies on the full-speed one.
+    gap = cKDTree(at_full).query(at_half)[0]
+    assert gap.max() < 2e-3, gap.max()
+    np.testing.assert_allclose(at_half[-1], goal, atol=2e-3)
+
+    # Held at 0 halfway, then released: at rest on the way, then on to the goal.
+    held = ctl.FakeController("ur5e")
+    assert held.load_program(_script(24))
+    middle = crossing(at_full, 0.4)
+    stop_at = middle + int(2.0 * held.rate_hz)
+    path = _move_j_ticks(held, goal, slider_at=[(middle, 0.0), (stop_at, 1.0)])
+    resting = path[stop_at - int(0.5 * held.rate_hz) : stop_at]
+    assert np.abs(resting - resting[-1]).max() < 1e-6, "the arm did not wait at slider 0"
+    assert cKDTree(at_full).query(resting[-1])[0] < 2e-3  # on the way, not off it
+    assert 0.1 < np.abs(resting[-1] - at_full[0]).max() < np.abs(goal - at_full[0]).max() - 0.05
+    np.testing.assert_allclose(path[-1], goal, atol=2e-3)
+    # The scaling ramped: no jump of joint speed bigger than a ramp step allows.
+    speed = np.abs(np.diff(path, axis=0)).max(axis=1) * held.rate_hz
+    assert np.abs(np.diff(speed)).max() < 0.05, np.abs(np.diff(speed)).max()
+
+    c = ctl.FakeController("ur5e")
+    c.apply_inputs({"speed_slider_mask": 0, "speed_slider_fraction": 0.3})
+    c.apply_inputs({"speed_slider_mask": 1, "speed_slider_fraction": float("nan")})
+    assert c.speed_slider == 1.0
+    c.apply_inputs({"speed_slider_mask": 1, "speed_slider_fraction": 2.0})
+    assert c.speed_slider == 1.0
+    c.apply_inputs({"speed_slider_mask": 1, "speed_slider_fraction": -1.0})
+    assert c.speed_slider == 0.0
+
+
 def _command(c, cmd, doubles=(), ints=()):
     """Write a command's arguments and id the way the client does (one data package)."""
     c.in_double[: len(doubles)] = list(doubles)
@@ -792,6 +865,93 @@ def test_a_dry_run_sized_trajectory_streams_with_servoj_and_runs_as_a_path(fake_
     record = robot.execute_path(trajectory, tolerance_m=5e-4)
     assert record.completed
     assert np.abs(robot.status().q_rad - trajectory.q_rad[-1]).max() < 2e-3
+
+
+@pytest.mark.timeout(120)
+def test_a_path_run_is_slowed_paused_and_resumed_by_the_speed_slider_then_put_back(fake_ur, robot):
+    """A movePath run takes the speed override and the pause through the controller's speed
+    slider: set to 30 % the slider says so; paused, the arm comes to rest on its way and the
+    run waits; resumed, it ends at its last waypoint, and the slider is back as it was found."""
+    trajectory = line_process("ur5e", 0.02)
+    fake_ur.control("reset", q_rad=trajectory.q_rad[0].tolist())
+    robot.close()  # the reset stopped the control script: connect afresh
+    robot.connect()
+    robot.enable()
+    assert robot.speed_override_paths
+    progress: list[float] = []
+    outcome: dict = {}
+
+    def run() -> None:
+        try:
+            outcome["record"] = robot.execute_path(
+                trajectory, tolerance_m=5e-4, on_progress=progress.append
+            )
+        except Exception as error:  # reported below
+            outcome["error"] = error
+
+    def status() -> dict:
+        return fake_ur.control("status")
+
+    def wait_for(condition, what: str, timeout_s: float = 20.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not condition():
+            assert time.monotonic() < deadline, what
+            time.sleep(0.02)
+
+    runner = threading.Thread(target=run)
+    runner.start()
+    wait_for(lambda: progress, "the path did not start")
+    robot.set_speed(0.3)
+    wait_for(lambda: status()["speed_slider"] == 0.3, "the slider did not follow the speed")
+    wait_for(lambda: status()["speed_scaling"] == 0.3, "the scaling did not ramp to the slider")
+    robot.pause()
+    wait_for(lambda: status()["speed_scaling"] == 0.0, "the pause did not reach the slider")
+    time.sleep(0.3)  # the arm settles on its way
+    q_paused = np.array(status()["q_rad"])
+    time.sleep(1.0)
+    assert np.abs(np.array(status()["q_rad"]) - q_paused).max() < 1e-6, "it moved while paused"
+    assert runner.is_alive() and robot.paused
+    assert np.abs(q_paused - trajectory.q_rad[-1]).max() > 1e-3  # not at its end yet
+    assert robot.speed_now == 0.0  # the worker reports the controller's scaling, paused too
+    robot.resume()
+    runner.join(timeout=60)
+    assert not runner.is_alive() and "error" not in outcome, outcome
+    assert outcome["record"].completed
+    assert np.abs(robot.status().q_rad - trajectory.q_rad[-1]).max() < 2e-3
+    assert status()["speed_slider"] == 1.0  # put back as the run found it
+
+
+def test_the_speed_slider_never_goes_above_where_the_run_found_it():
+    """The teach pendant's slider turned down to 50 % before a movePath run: the run's override
+    stays within it, the pause sets 0, and the end puts 50 % back; a slider left untouched is
+    not written again at the end."""
+    from drivers.robot.ur_rtde import _SpeedSlider
+
+    class IO:
+        def __init__(self) -> None:
+            self.sent: list[float] = []
+
+        def setSpeedSlider(self, value: float) -> bool:  # noqa: N802 - ur_rtde's name
+            self.sent.append(value)
+            return True
+
+    io = IO()
+    slider = _SpeedSlider(io, 0.5)
+    for override in (1.0, 0.3, 0.0, 1.0):
+        slider.follow(override)
+    slider.restore()
+    assert io.sent == [0.5, 0.3, 0.0, 0.5]  # the last follow already put 50 % back
+
+    class Receive:
+        def getSpeedScaling(self) -> float:  # noqa: N802 - ur_rtde's name
+            return 0.25
+
+    assert slider.share(Receive()) == 0.5  # the override's view: half of the found 50 %
+    untouched = IO()
+    full = _SpeedSlider(untouched, float("nan"))  # not read: taken as 100 %
+    full.follow(1.0)
+    full.restore()
+    assert untouched.sent == [1.0]
 
 
 # -- the controller's RTDE watchdog ------------------------------------------------------------

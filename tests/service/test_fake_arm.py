@@ -875,10 +875,60 @@ def test_the_controls_of_a_run_need_the_token_and_a_run_this_instance_drives(arm
     assert nested.status_code in (400, 413, 422), nested.text
 
 
-def test_a_movepath_run_refuses_the_override_and_says_why(arm, tmp_path):
-    """The controller times a movePath itself: there is no stream here to slow or pause."""
+def test_a_movepath_run_is_slowed_and_paused_through_the_arms_speed_slider(arm, fake_ur):
+    """On the UR arm a movePath run takes the override and the pause too: the service sets the
+    controller's speed slider, the safety bar's state follows the controller's scaling (at rest
+    when paused), the resume needs the approval again, and the slider is back at the end."""
+    client, sid, trajectory_id, q_start = arm
+    fake_ur.control("reset", q_rad=q_start.tolist())
+    movepath = {"trajectory_id": trajectory_id, "mode": "movepath"}
+    dry = client.post(f"/sessions/{sid}/executions", json=movepath)
+    assert wait(client, dry.json())["result"]["completed"]
+    started = client.post(
+        f"/sessions/{sid}/executions", json={**movepath, "backend": "ur_rtde", "confirm": True}
+    )
+    assert started.status_code == 202, started.text
+    job = started.json()
+    execution_id = job["params"]["execution_id"]
+    _robot_until(client, lambda r: r["run_speed"] and r["run_speed"]["moving"], "never moving")
+    slowed = client.post(f"/executions/{execution_id}/speed", json={"fraction": 0.5})
+    assert slowed.status_code == 200, slowed.text
+    assert slowed.json()["overridable"] is True and slowed.json()["speed_fraction"] == 0.5
+    assert _wait_fake(fake_ur, lambda st: st["speed_slider"] == 0.5), "the slider stayed"
+    _robot_until(client, lambda r: r["run_speed"]["speed_now"] == 0.5, "the scaling stayed")
+    assert client.post(f"/executions/{execution_id}/pause").status_code == 200
+    _robot_until(client, lambda r: r["run_speed"]["speed_now"] == 0.0, "never at rest")
+    time.sleep(0.4)
+    q_a = np.array(fake_ur.control("status")["q_rad"])
+    time.sleep(0.5)
+    assert np.abs(np.array(fake_ur.control("status")["q_rad"]) - q_a).max() < 1e-4
+    assert client.get(f"/jobs/{job['id']}").json()["state"] == "running"
+    sha = client.get(f"/sessions/{sid}/trajectories/{trajectory_id}").json()["sha256"]
+    resumed = client.post(
+        f"/executions/{execution_id}/resume", json={"confirm": True, "approved_sha256": sha}
+    )
+    assert resumed.status_code == 200, resumed.text
+    job = wait(client, job, timeout_s=120)
+    assert job["state"] == "succeeded", job
+    assert fake_ur.control("status")["speed_slider"] == 1.0  # as the run found it
+
+
+def _wait_fake(fake_ur, predicate, timeout_s: float = 15.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not predicate(fake_ur.control("status")):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def test_a_movepath_run_refuses_the_override_where_no_slider_reaches_it(arm, tmp_path):
+    """A movePath on a backend without the controller's speed slider (the simulated arm) is
+    timed where it runs: there is no stream here to slow or pause, and the refusal says so. On
+    the ur_rtde backend the slider takes the override (tests/drivers/test_fake_ur.py)."""
     from drivers.robot.clock import FakeClock
     from drivers.robot.sim import SimBackend, SimConfig
+    from drivers.robot.ur_rtde import URRtdeBackend, URRtdeConfig
     from service.arm_runner import ExecutionRunner
     from tests.motion_fixtures import line_process
 
@@ -903,3 +953,14 @@ def test_a_movepath_run_refuses_the_override_and_says_why(arm, tmp_path):
             assert "teach pendant" in refused.json()["message"]
     finally:
         del services.live.executions["exe_movepath"]
+    on_ur = ExecutionRunner(
+        services.store,
+        "job_none",
+        URRtdeBackend(URRtdeConfig(host="127.0.0.1")),  # never connected
+        line_process("ur5e", 0.1),
+        lambda *a: None,
+        tool=(np.zeros(6), None, np.zeros(3)),
+        journal=str(tmp_path / "k.journal"),
+        mode="movepath",
+    )
+    assert on_ur.overridable

@@ -38,7 +38,14 @@ Not emulated:
 - speedJ's ``t``: the pinned script re-issues speedj in a loop, so it has no visible effect
   there either; speedL, servoC, force mode, contact detection, jogging, teach mode and I/O
   commands: acknowledged without effect; the payload has no effect on the motion;
-- speed scaling (always 1), joint currents and temperatures, collision detection.
+- joint currents and temperatures, collision detection; speed scaling comes from the speed
+  slider only (RTDE's ``speed_slider_fraction``, ur_rtde's setSpeedSlider), never from the
+  controller slowing a move near a limit.
+
+The speed slider scales the moves the controller times (moveJ, moveL, movePath and a program's
+moves) as UR's does: the motion goes on along the same targets at the scaled speed, its scaling
+ramping to the slider's value within :data:`SLIDER_RAMP_S`; at 0 the arm comes to rest on its
+way and waits. servoJ follows the client's targets whatever the slider says.
 """
 
 from __future__ import annotations
@@ -116,6 +123,12 @@ UNLOCK_WAIT_S = 5.0
 #: moveL solves IK for this many line points at once: one call costs about as much as one
 #: point, and solving them one chunk per tick keeps the control tick short.
 IK_CHUNK = 16
+#: The speed scaling follows the speed slider at most this fast: from 100 % to 0 (or back) in
+#: this long (s), so a change never jumps the arm's speed.
+SLIDER_RAMP_S = 0.4
+#: The motions whose timing is the controller's: the speed slider scales them (a servo target
+#: is the client's, a brake is a stop).
+SCALED_MOTIONS = ("move", "path")
 #: Bounds on the logs kept for tests and status (entries).
 COMMAND_LOG_MAX = 1000
 MESSAGES_MAX = 200
@@ -192,6 +205,12 @@ class _Motion:
     settling: int = 0
     last: np.ndarray | None = None  # last target fed: a move settles on it
     reported: int = 0  # last async progress written (0: started)
+    # Speed-scaled playback of the targets (controller-timed moves): how far along them (in
+    # targets), the two around that point, and whether the iterator ran out.
+    cursor: float = 0.0
+    around: tuple[np.ndarray, np.ndarray] | None = None
+    pulled: int = 0
+    exhausted: bool = False
 
 
 class FakeController:
@@ -247,6 +266,10 @@ class FakeController:
         self.command_log: deque[tuple[float, int]] = deque(maxlen=COMMAND_LOG_MAX)
         self.unlock_wait_s = UNLOCK_WAIT_S
         self.protective_stop_s = 0.0  # controller time of the last protective stop
+        # The speed slider (RTDE speed_slider_fraction, 0..1) and the scaling the timed moves
+        # run at now, following it (see SLIDER_RAMP_S).
+        self.speed_slider = 1.0
+        self.speed_scaling = 1.0
         # RTDE input fields and the connection that set them up (one writer per field).
         self.input_owners: dict[str, object] = {}
         # A standalone URScript program and what became of the last program of either kind.
@@ -362,8 +385,8 @@ class FakeController:
             "joint_mode": [253 if self.robot_mode == ROBOT_MODE_RUNNING else 236] * 6,
             "safety_mode": self.safety_mode,
             "safety_status": self.safety_mode,
-            "speed_scaling": 1.0,
-            "target_speed_fraction": 1.0,
+            "speed_scaling": self.speed_scaling,
+            "target_speed_fraction": self.speed_slider,
             "runtime_state": self.runtime_state,
             "robot_status_bits": status,
             "safety_status_bits": safety_bits,
@@ -388,6 +411,10 @@ class FakeController:
         package that writes the command register feeds the RTDE watchdog, whatever it holds."""
         if f"input_int_register_{self._i(0)}" in values:
             self._register_seen_s = self.t_s
+        if values.get("speed_slider_mask") == 1 and "speed_slider_fraction" in values:
+            fraction = float(values["speed_slider_fraction"])  # type: ignore[arg-type]
+            if np.isfinite(fraction):  # UR takes 0..1; outside, the nearest end
+                self.speed_slider = min(max(fraction, 0.0), 1.0)
         for name, value in values.items():
             if name.startswith("input_int_register_"):
                 self.in_int[int(name.rsplit("_", 1)[1])] = int(value)  # type: ignore[call-overload]
@@ -1148,9 +1175,14 @@ class FakeController:
     def _follow(self, motion: _Motion | None) -> None:
         """One period of the servo law towards the motion's next target (None: brake hard)."""
         target = None
+        self._follow_slider()
         if motion is not None and self.can_move:
             try:
-                target = next(motion.targets, None)
+                target = (
+                    self._scaled_target(motion)
+                    if motion.name in SCALED_MOTIONS
+                    else next(motion.targets, None)
+                )
             except ScriptRuntimeError as error:
                 self.runtime_error(str(error))  # the motion is now a brake
                 motion, target = None, None
@@ -1160,7 +1192,10 @@ class FakeController:
                 elif motion.name in ("move", "path"):
                     motion.settling += 1
                     target = motion.last
-                motion.tick += 1
+                # How far along its targets (speed-scaled for the timed moves: a program's
+                # groups and the async progress follow the path, not the clock).
+                scaled = motion.name in SCALED_MOTIONS
+                motion.tick = int(motion.cursor) if scaled else motion.tick + 1
                 if motion.is_async and motion.waypoint_ticks:
                     # The script signals the index of the move it starts (0 .. n-1).
                     passed = bisect.bisect_left(motion.waypoint_ticks, motion.tick)
@@ -1170,6 +1205,38 @@ class FakeController:
         except ProtectiveStopError as error:  # a joint ran into its limit
             self.sim._active = None
             self.protective_stop(str(error))
+
+    def _follow_slider(self) -> None:
+        """The speed scaling, one period closer to the slider (at most 1 / SLIDER_RAMP_S per
+        second)."""
+        step = self.dt_s / SLIDER_RAMP_S
+        change = self.speed_slider - self.speed_scaling
+        # Exactly the slider once within a step (full speed plays the targets unchanged).
+        if abs(change) <= step:
+            self.speed_scaling = self.speed_slider
+        else:
+            self.speed_scaling += float(np.sign(change)) * step
+
+    def _scaled_target(self, motion: _Motion) -> np.ndarray | None:
+        """A timed move's target this period at the speed scaling: its targets (one per period
+        at full speed) played back at the scaling, between two of them by linear interpolation;
+        at scaling 0 the same point again. None once past the last one."""
+        if motion.around is None:
+            motion.around = (self.q.copy(), self.q.copy())  # where it starts
+        motion.cursor += self.speed_scaling
+        while motion.pulled < np.ceil(motion.cursor - 1e-9) and not motion.exhausted:
+            following = next(motion.targets, None)
+            if following is None:
+                motion.exhausted = True
+                break
+            motion.around = (motion.around[1], np.asarray(following, dtype=np.float64))
+            motion.pulled += 1
+        if motion.exhausted and motion.cursor > motion.pulled:
+            return None
+        # Between target pulled - 1 (around[0]) and target pulled (around[1]).
+        share = 1.0 - (motion.pulled - motion.cursor)
+        before, after = motion.around
+        return after if share >= 1.0 else before + min(max(share, 0.0), 1.0) * (after - before)
 
     def _brake_step(self, motion: _Motion) -> None:
         """One period of braking at the motion's deceleration (stopj / stopl)."""

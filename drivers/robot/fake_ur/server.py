@@ -331,6 +331,8 @@ class FakeUR:
                     "int_offset": c.script.int_offset if c.script else None,
                     "commands": [cmd for _, cmd in list(c.command_log)[-50:]],
                     "path_moves": len(c.script.path) if c.script else 0,
+                    "speed_slider": c.speed_slider,
+                    "speed_scaling": c.speed_scaling,
                     "rtde_clients": len(self._rtde),
                 }
         if command == "program_status":
@@ -372,6 +374,7 @@ class FakeUR:
                 c.unlock_wait_s = ctl.UNLOCK_WAIT_S
                 c.remote_control = True
                 c.reset_tool()
+                c.speed_slider = c.speed_scaling = 1.0
                 c.runner, c.run, c.script = None, None, None
                 c.program_name = "<none>"
                 c.trace = ctl.Trace()
