@@ -55,6 +55,17 @@ def client_plan(server: Server) -> dict:
     return server.client.get(f"/sessions/{demo['id']}/trajectories").json()[-1]
 
 
+def _robot_at_rest(client, timeout_s: float = 30.0) -> None:
+    """Wait until the owning run stands paused at rest on its path."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        run = client.get("/robot").json()["run_speed"]
+        if run and run["paused"] and run["speed_now"] == 0.0:
+            return
+        assert time.monotonic() < deadline, f"the run did not come to rest: {run}"
+        time.sleep(0.05)
+
+
 def _joints(fake) -> np.ndarray:
     return np.array(fake.control("status")["q_rad"])
 
@@ -337,6 +348,13 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
             while _job_progress(client, sid, owner) < process_from + 0.02:
                 assert time.monotonic() < deadline, "the run did not reach its process"
                 time.sleep(0.05)
+            # Held there (paused at rest on the path) for the stops below: where they land then
+            # does not depend on how long a loaded machine takes over the presses (twice in
+            # this session's runs the process went by before the stop landed, once into the
+            # retract).
+            paused = client.post(f"/executions/{owner}/pause")
+            assert paused.status_code == 200, paused.text
+            _robot_at_rest(client)
             assert _job_progress(client, sid, owner) < process_to, (
                 "the process ended before the stop"
             )
