@@ -214,7 +214,9 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         )
         tcp_now = np.array(json.loads(page.locator("#workspace").get_attribute("data-live-arm")))
         tcp_server = np.array(arm_server.client.get("/robot").json()["tcp_pose"][:3])
-        assert np.linalg.norm(tcp_now - tcp_server) < 0.05  # moving at 20 mm/s, read apart
+        # Read apart while the transit moves the tool at up to the 100 mm/s cap (54 mm apart
+        # once on a loaded machine): within a second's travel.
+        assert np.linalg.norm(tcp_now - tcp_server) < CAP_M_S * 1.0
         pendant.shot("running")
 
         # The bar while a run shows its speed and Stop: one line on a desk's screen; on a
