@@ -740,44 +740,48 @@ def test_the_run_step_says_why_the_arm_cannot_run_through_its_stops_and_offers_i
         needs = page.locator("#step-run .needs")
         run = page.get_by_role("button", name="Run on arm")
         ready = "Ready: press “Run on arm” and confirm."
-        expect(needs).to_have_text(ready)
-        expect(run).to_be_enabled()
 
-        fake.control("protective_stop")
-        expect(needs).to_have_text(
-            "The arm is in a protective stop: clear its cause, then press Unlock in the safety bar."
+        def offered() -> None:
+            expect(needs).to_have_text(ready)
+            expect(run).to_be_enabled()
+
+        def refused(command: str, why: str) -> None:
+            """The fake arm in a state (a control command): Run on arm disabled, saying why."""
+            fake.control(command)
+            expect(needs).to_have_text(why)
+            expect(run).to_be_disabled()
+
+        offered()
+        refused(
+            "protective_stop",
+            "The arm is in a protective stop: clear its cause, then press Unlock in the safety "
+            "bar.",
         )
-        expect(run).to_be_disabled()
         pendant.shot("protective-stop")
         page.get_by_role("button", name="Unlock").click()
-        expect(needs).to_have_text(ready)
-        expect(run).to_be_enabled()
-
-        fake.control("emergency_stop")
-        expect(needs).to_have_text(
-            "The arm is in an emergency stop: release it on the teach pendant, then power it on."
+        offered()
+        refused(
+            "emergency_stop",
+            "The arm is in an emergency stop: release it on the teach pendant, then power it on.",
         )
-        expect(run).to_be_disabled()
         expect(page.locator("#safety-status")).to_have_text("EMERGENCY STOP")
         pendant.shot("emergency-stop")
         # Released, the arm is still powered off: nothing can move it yet.
-        fake.control("release_emergency_stop")
-        expect(needs).to_have_text(
+        refused(
+            "release_emergency_stop",
             "The arm is not running (mode POWER_OFF): power it on and release its brakes on the "
-            "UR teach pendant."
+            "UR teach pendant.",
         )
-        expect(run).to_be_disabled()
         expect(page.locator("#safety-bar")).to_have_class(re.compile("alarm"))
         # The server refuses it too, naming the same reason.
-        refused = client.post(
+        answer = client.post(
             f"/sessions/{sid}/executions",
             json={"trajectory_id": plans[0.05], "backend": "ur_rtde", "confirm": True},
         )
-        assert refused.status_code == 409, refused.text
-        assert refused.json()["code"] == "arm_not_running", refused.text
+        assert answer.status_code == 409, answer.text
+        assert answer.json()["code"] == "arm_not_running", answer.text
         fake.control("reset")  # powered on and brakes released, at the plan's start
-        expect(needs).to_have_text(ready)
-        expect(run).to_be_enabled()
+        offered()
 
         fake.control("configure", remote_control=False)
         expect(needs).to_have_text(
@@ -786,5 +790,4 @@ def test_the_run_step_says_why_the_arm_cannot_run_through_its_stops_and_offers_i
         expect(run).to_be_disabled()
         expect(page.locator("#remote-control")).to_have_text("OFF (local)")
         fake.control("configure", remote_control=True)
-        expect(needs).to_have_text(ready)
-        expect(run).to_be_enabled()
+        offered()
