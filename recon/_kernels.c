@@ -704,12 +704,72 @@ done:
     return result;
 }
 
+/* ---------------------------------------------------------------------------------------- */
+/* Rows gathered by index, padding as zeros                                                   */
+/* ---------------------------------------------------------------------------------------- */
+
+PyDoc_STRVAR(gather_rows_doc,
+"gather_rows(values, m, c, index, fill, out)\n"
+"\n"
+"out[i] = values[index[i]] for each of the N indices (int64), zeros where index[i] == fill:\n"
+"values (m, c) and out (N, c) float64. An index outside [0, m) other than fill is a\n"
+"ValueError (nothing is read past values). Copies only, so the result is the reference's to\n"
+"the bit.");
+
+static PyObject *gather_rows(PyObject *self, PyObject *args)
+{
+    Py_buffer values = {0}, index = {0}, out = {0};
+    Py_ssize_t m, c;
+    long long fill;
+    PyObject *result = NULL;
+    if (!PyArg_ParseTuple(args, "y*nny*Lw*", &values, &m, &c, &index, &fill, &out)) return NULL;
+    if (m < 0 || c < 1 || c > (1 << 20)) {
+        PyErr_SetString(PyExc_ValueError, "m must be >= 0 and c in [1, 2**20]");
+        goto done;
+    }
+    Py_ssize_t n = index.len / (Py_ssize_t)sizeof(int64_t);
+    if (expect_size(&values, m, c * (Py_ssize_t)sizeof(double), "values") ||
+        expect_size(&index, n, sizeof(int64_t), "index") ||
+        expect_size(&out, n, c * (Py_ssize_t)sizeof(double), "out"))
+        goto done;
+    const double *src = values.buf;
+    const int64_t *at = index.buf;
+    double *dst = out.buf;
+    Py_ssize_t bad = -1;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < n; i++) {
+        int64_t j = at[i];
+        double *row = dst + i * c;
+        if (j == fill) {
+            memset(row, 0, (size_t)c * sizeof(double));
+        } else if (j < 0 || j >= m) {
+            bad = i;
+            break;
+        } else {
+            memcpy(row, src + (Py_ssize_t)j * c, (size_t)c * sizeof(double));
+        }
+    }
+    Py_END_ALLOW_THREADS
+    if (bad >= 0) {
+        PyErr_Format(PyExc_ValueError, "index %lld (entry %zd) is outside [0, %zd)",
+                     (long long)at[bad], bad, m);
+        goto done;
+    }
+    result = Py_NewRef(Py_None);
+done:
+    PyBuffer_Release(&values);
+    PyBuffer_Release(&index);
+    PyBuffer_Release(&out);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"grid_nearest", grid_nearest, METH_VARARGS, grid_nearest_doc},
     {"grid_ball_sums", grid_ball_sums, METH_VARARGS, grid_ball_sums_doc},
     {"csr_row_sums", csr_row_sums, METH_VARARGS, csr_row_sums_doc},
     {"hough_votes", hough_votes, METH_VARARGS, hough_votes_doc},
     {"voxel_nearest_centre", voxel_nearest_centre, METH_VARARGS, voxel_nearest_centre_doc},
+    {"gather_rows", gather_rows, METH_VARARGS, gather_rows_doc},
     {NULL, NULL, 0, NULL},
 };
 

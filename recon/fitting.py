@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from recon.arrays import FloatArray
+from recon.kernels import gather_rows
 
 
 def window_indices(n_points: int, half_width: int) -> NDArray[np.int64]:
@@ -334,6 +335,9 @@ def gather(
     """
     if fill_index is None:
         return values[index]
+    compiled = gather_rows(values, index, fill_index)
+    if compiled is not None:
+        return compiled
     dtype = np.result_type(values.dtype, np.float64)
     missing = index == fill_index
     if len(values) == 0:

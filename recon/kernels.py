@@ -17,6 +17,7 @@ How close each kernel is to its reference (tests/recon/test_kernels.py holds the
 - :func:`hough_votes`: :mod:`recon.profiles`' two ``bincount`` calls, to the bit.
 - :func:`nearest_to_voxel_centres` (the collision checks' thinned scan): a stable sort by voxel
   and distance to its centre, to the bit.
+- :func:`gather_rows`: numpy's fancy indexing with the padding zeroed, to the bit (a copy).
 
 Why C and not numba (docs/speed.md): a C extension loads in well under a millisecond and is
 compiled once at install, where numba added 0.35-0.6 s to every process start and half a minute
@@ -76,12 +77,14 @@ def compiled() -> ModuleType | None:
 
 
 @cache
-def _threads() -> ThreadPoolExecutor:
+def thread_pool() -> ThreadPoolExecutor:
+    """The threads the kernels' callers share (one per core): a kernel releases the GIL, and
+    so does numpy on the larger arrays, so parts of one stage run side by side."""
     return ThreadPoolExecutor(max_workers=os.cpu_count() or 1, thread_name_prefix="kernels")
 
 
 # A process forked after the pool started inherits it without its threads: it makes its own.
-os.register_at_fork(after_in_child=_threads.cache_clear)
+os.register_at_fork(after_in_child=thread_pool.cache_clear)
 
 
 def _parts(n: int) -> list[slice]:
@@ -242,7 +245,7 @@ class PointGrid:
         if len(parts) <= 1:
             run(sorted_queries, slice(0, len(queries)))
         else:
-            list(_threads().map(lambda part: run(sorted_queries, part), parts))
+            list(thread_pool().map(lambda part: run(sorted_queries, part), parts))
         return by_cell
 
     def _keys(self, points_m: FloatArray) -> NDArray[np.int64]:
@@ -498,3 +501,36 @@ def nearest_to_voxel_centres_reference(
     d = points[order] - points[owner]
     worst2 = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]).max()
     return kept, float(np.sqrt(worst2))
+
+
+def gather_rows(values: FloatArray, index: NDArray[np.int64], fill_index: int) -> FloatArray | None:
+    """``values[index]`` with the entries equal to ``fill_index`` read as zero rows, in one pass
+    (numpy's fancy indexing and the zeroing take three), or None where the kernel does not
+    apply (kernels off, ``values`` not float64 or empty, ``index`` not integers): the caller
+    then runs :func:`recon.fitting.gather`'s numpy code, the reference.
+
+    Parameters
+    ----------
+    values : ndarray of shape (M,) or (M, C), float64
+    index : ndarray of shape (...), int
+        In ``[0, M)`` or equal to ``fill_index``; anything else is a ValueError.
+    fill_index : int
+
+    Returns
+    -------
+    ndarray of shape (*index.shape, *values.shape[1:]), or None
+    """
+    kernels = compiled()
+    if (
+        kernels is None
+        or values.dtype != np.float64
+        or values.ndim not in (1, 2)
+        or len(values) == 0
+        or not np.issubdtype(np.asarray(index).dtype, np.integer)
+    ):
+        return None
+    rows = np.ascontiguousarray(values).reshape(len(values), -1)
+    flat = np.ascontiguousarray(index, dtype=np.int64)
+    out = np.empty((*flat.shape, *values.shape[1:]))
+    kernels.gather_rows(rows, len(rows), rows.shape[1], flat, int(fill_index), out)
+    return out

@@ -39,6 +39,7 @@ from recon.methods.common import (
     SegmentResult,
     adaptive_smoothing,
     edge_neighbourhoods,
+    edge_query,
     for_each_chunk,
     path_fit,
     prior_variance,
@@ -603,8 +604,18 @@ def _edge_targets(
         if end_distance_m is None
         else np.asarray(end_distance_m) <= CONTINUE_PAST_END_M + SPAN_SLACK_M
     )
+    # One query of the widest window: each narrower one's neighbours are its first columns.
+    widest = max(EDGE_WINDOW_FACTORS)
+    wider = edge_query(
+        model,
+        centres,
+        k=EDGE_NEIGHBOURS * widest,
+        radius_m=EDGE_SCAN_RADII * params.radius_m * widest,
+    )
     fits = [
-        _edge_targets_within(centres, direction, model, params, degree, corners, factor, near_end)
+        _edge_targets_within(
+            centres, direction, model, params, degree, corners, factor, near_end, wider
+        )
         for factor in EDGE_WINDOW_FACTORS
     ]
     rows = np.arange(len(centres))
@@ -645,8 +656,10 @@ def _edge_targets_within(
     corners: tuple[int, ...] | None,
     factor: int,
     near_end: NDArray[np.bool_],
+    wider: tuple[FloatArray, NDArray[np.int64]],
 ) -> tuple[FloatArray, FloatArray, NDArray[np.intp], FloatArray, FloatArray]:
-    """:func:`_edge_targets` with N_S reaching ``factor`` times :data:`EDGE_SCAN_RADII` radii.
+    """:func:`_edge_targets` with N_S reaching ``factor`` times :data:`EDGE_SCAN_RADII` radii
+    (its neighbours read from ``wider``, the edge query of the widest window).
 
     A 3-D polynomial (both transverse components of the edge points' principal frame as
     functions of the first) is fitted robustly to the thinned edge points near the point.
@@ -658,6 +671,7 @@ def _edge_targets_within(
         EDGE_SCAN_RADII * params.radius_m * factor,
         corners=corners,
         max_points=EDGE_NEIGHBOURS * factor,
+        wider=wider,
     )
     frame = weighted_pca(ns, ws)
     axes = frame.axes.copy()

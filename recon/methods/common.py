@@ -136,6 +136,7 @@ def edge_neighbourhoods(
     *,
     corners: tuple[int, ...] | None = None,
     max_points: int = 64,
+    wider: tuple[FloatArray, NDArray[np.int64]] | None = None,
 ) -> tuple[FloatArray, FloatArray, NDArray[np.int64]]:
     """N_S on an edge: thinned edge points within ``radius_m`` that run along the path.
 
@@ -153,6 +154,11 @@ def edge_neighbourhoods(
         .classify_segments`); every edge when not given.
     max_points : int
         At most this many (the nearest).
+    wider : (distance, index), optional
+        The edge tree's answer to the same centres with at least ``max_points`` neighbours and
+        at least ``radius_m`` (nearest first, as :func:`edge_query` returns it): the
+        neighbours are read from it rather than queried again. Its first ``max_points``
+        columns closer than ``radius_m`` are the same neighbours.
 
     Returns
     -------
@@ -165,9 +171,15 @@ def edge_neighbourhoods(
     if tree is None:
         raise ValueError("the scan model has no edge points to take N_S from")
     k = min(max_points, len(edges))
-    dist, idx = tree.query(centres, k=k, distance_upper_bound=radius_m, workers=-1)
-    if k == 1:
-        dist, idx = dist[:, None], idx[:, None]
+    if wider is None:
+        dist, idx = edge_query(model, centres, k=k, radius_m=radius_m)
+    else:
+        dist, idx = wider[0][:, :k], wider[1][:, :k]
+        if dist.shape[1] < k:
+            raise ValueError(f"the wider query has {dist.shape[1]} neighbours, not {k}")
+        outside = ~(dist < radius_m)
+        dist = np.where(outside, np.inf, dist)
+        idx = np.where(outside, len(edges), idx)
     pts = gather(edges.points_m, idx, fill_index=len(edges))
     dirs = gather(edges.directions, idx, fill_index=len(edges))
     along = np.abs(np.einsum("bki,bi->bk", dirs, path_direction))
@@ -178,6 +190,26 @@ def edge_neighbourhoods(
         sample_corner = gather(edges.corner_labels(), idx, fill_index=len(edges))
         weights &= np.isin(sample_corner, corners) | (sample_corner == -1)
     return pts, weights.astype(np.float64), idx
+
+
+def edge_query(
+    model: ScanModel, centres: FloatArray, *, k: int, radius_m: float
+) -> tuple[FloatArray, NDArray[np.int64]]:
+    """The ``k`` nearest thinned edge points within ``radius_m`` of each centre, nearest first.
+
+    Returns
+    -------
+    distance_m : ndarray of shape (B, k)
+        ``inf`` past the last one found.
+    index : ndarray of shape (B, k), int
+        Into ``model.edges``; ``len(model.edges)`` past the last one found.
+    """
+    tree = model.edge_tree
+    if tree is None:
+        raise ValueError("the scan model has no edge points to take N_S from")
+    k = min(k, len(model.edges))
+    dist, idx = tree.query(centres, k=k, distance_upper_bound=radius_m, workers=-1)
+    return dist.reshape(len(centres), k), idx.reshape(len(centres), k).astype(np.int64)
 
 
 @dataclass(frozen=True)

@@ -355,3 +355,56 @@ def test_a_forked_process_runs_the_threaded_kernels():
         ).get(timeout=120)
     np.testing.assert_array_equal(distance, expected[0])
     np.testing.assert_array_equal(index, expected[1])
+
+
+@pytest.mark.parametrize("columns", [None, 1, 3, 7])
+def test_gathered_rows_are_numpys_to_the_bit(columns, monkeypatch):
+    """recon.fitting.gather through the kernel and through numpy's indexing: the same copy,
+    padding (the fill index) as zeros, for the shapes the callers use."""
+    from recon.fitting import gather
+
+    rng = np.random.default_rng(11)
+    shape = (500,) if columns is None else (500, columns)
+    values = rng.normal(size=shape)
+    index = rng.integers(0, 501, size=(40, 33))  # 500 is the fill index
+    index[:, -5:] = 500
+    assert kernels.gather_rows(values, index, 500) is not None
+    compiled = gather(values, index, fill_index=500)
+    monkeypatch.setenv(KERNELS_ENV, "numpy")
+    assert kernels.gather_rows(values, index, 500) is None
+    reference = gather(values, index, fill_index=500)
+    assert compiled.shape == reference.shape == (40, 33, *shape[1:])
+    np.testing.assert_array_equal(compiled, reference)
+    assert not np.any(compiled[:, -5:])
+
+
+def test_gathered_rows_leave_other_types_to_numpy():
+    """Integer or boolean values (corner labels), empty tables: the numpy path, as before."""
+    from recon.fitting import gather
+
+    labels = np.array([3, -1, 7])
+    assert kernels.gather_rows(labels, np.array([0, 3]), 3) is None
+    np.testing.assert_array_equal(gather(labels, np.array([[0, 3, 2]]), fill_index=3), [[3, 0, 7]])
+    assert kernels.gather_rows(np.zeros((0, 3)), np.array([0]), 0) is None
+    np.testing.assert_array_equal(gather(np.zeros((0, 3)), np.array([[0]]), fill_index=0), 0.0)
+
+
+def test_the_gather_kernel_refuses_indices_out_of_range_and_lying_shapes():
+    module = kernels.compiled()
+    values = np.ones((4, 3))
+    out = np.empty((2, 3))
+    with pytest.raises(ValueError, match="outside"):
+        module.gather_rows(values, 4, 3, np.array([0, 9]), 4, out)
+    with pytest.raises(ValueError, match="outside"):
+        module.gather_rows(values, 4, 3, np.array([-1, 0]), 4, out)
+    with pytest.raises(ValueError, match="values holds"):
+        module.gather_rows(values, 5, 3, np.array([0, 1]), 5, out)
+    with pytest.raises(ValueError, match="out holds"):
+        module.gather_rows(values, 4, 3, np.array([0, 1, 2]), 4, out)
+    with pytest.raises(ValueError, match="c in"):
+        module.gather_rows(values, 4, 2**40, np.array([0, 1]), 4, out)
+    # Through recon.fitting.gather a bad index is an error too, never a read past the table.
+    from recon.fitting import gather
+
+    with pytest.raises(ValueError, match="outside"):
+        gather(values, np.array([[0, 7]]), fill_index=4)

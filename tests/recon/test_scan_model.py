@@ -204,3 +204,38 @@ def test_a_model_built_for_a_stored_path_at_a_known_transform_gives_the_same_nor
     assert np.median(angle_deg) < 0.5 and angle_deg.max() < 3.0
     with pytest.raises(ValueError, match="T_scan_tracker"):
         scan_model_for_path(scene.scan, recon.points_m, T_scan_tracker=2 * np.eye(4))
+
+
+@pytest.mark.parametrize("factor", [1, 2, 4])
+def test_narrower_edge_neighbourhoods_read_from_the_widest_query_are_the_trees(cylinder, factor):
+    """The per-point stage queries the edge once for its widest window and reads the narrower
+    ones from it (recon.methods.anchored._edge_targets): the same neighbours, weights and
+    padding as a query of their own."""
+    from recon.methods.anchored import EDGE_NEIGHBOURS, EDGE_SCAN_RADII
+    from recon.methods.common import edge_neighbourhoods, edge_query
+
+    _, recon = cylinder
+    model = recon.scan_model
+    assert model is not None and model.edge_tree is not None
+    centres = recon.scan_model.edges.points_m[::7] + 0.4e-3  # on and a little off the edge
+    direction = np.tile(np.array([1.0, 0.0, 0.0]), (len(centres), 1))
+    radius = EDGE_SCAN_RADII * 1.5e-3 * factor
+    wider = edge_query(model, centres, k=EDGE_NEIGHBOURS * 4, radius_m=EDGE_SCAN_RADII * 6e-3)
+    own = edge_neighbourhoods(
+        centres, direction, model, radius, max_points=EDGE_NEIGHBOURS * factor
+    )
+    read = edge_neighbourhoods(
+        centres, direction, model, radius, max_points=EDGE_NEIGHBOURS * factor, wider=wider
+    )
+    for a, b in zip(own, read, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert own[1].sum() > 0 and np.any(own[2] == len(model.edges))  # found some, padded some
+    with pytest.raises(ValueError, match="wider query"):
+        edge_neighbourhoods(
+            centres,
+            direction,
+            model,
+            radius,
+            max_points=EDGE_NEIGHBOURS * 8,
+            wider=(wider[0][:, :3], wider[1][:, :3]),
+        )
