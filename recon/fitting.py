@@ -293,32 +293,48 @@ def symmetric_eig3(cov: FloatArray) -> tuple[FloatArray, FloatArray]:
     diag = (a[:, 0, 0] - q) ** 2 + (a[:, 1, 1] - q) ** 2 + (a[:, 2, 2] - q) ** 2
     p = np.sqrt((diag + 2.0 * off) / 6.0)
     safe_p = np.where(p > 0, p, 1.0)
-    b = (a - q[:, None, None] * np.eye(3)) / safe_p[:, None, None]
+    # The diagonal shifted in place rather than by a broadcast identity matrix (an (M, 3, 3)
+    # product and difference each): the same numbers, off the diagonal x - 0 is x.
+    b = _minus_diagonal(a, q)
+    b /= safe_p[:, None, None]
     r = np.clip(np.linalg.det(b) / 2.0, -1.0, 1.0)
     phi = np.arccos(r) / 3.0
     largest = q + 2.0 * p * np.cos(phi)
     smallest_value = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
     middle = 3.0 * q - largest - smallest_value
     values = np.stack([smallest_value, middle, largest], axis=1)
-    shifted = a - smallest_value[:, None, None] * np.eye(3)
-    crosses = np.stack(
-        [
-            np.cross(shifted[:, 0], shifted[:, 1]),
-            np.cross(shifted[:, 0], shifted[:, 2]),
-            np.cross(shifted[:, 1], shifted[:, 2]),
-        ],
-        axis=1,
-    )
-    norms = np.linalg.norm(crosses, axis=2)
-    best = np.argmax(norms, axis=1)
-    rows = np.arange(len(a))
-    vector = crosses[rows, best]
-    length = norms[rows, best]
+    shifted = _minus_diagonal(a, smallest_value)
+    # The three cross products of the rows and their lengths written out component by component,
+    # in np.cross's and np.linalg.norm's order of operations (the same bits, without their
+    # (M, 3, 3) stacks); the longest is taken, the first among equals as argmax would.
+    rows = [shifted[:, i] for i in range(3)]
+    best_vector = np.zeros((len(a), 3))
+    best_length = np.full(len(a), -np.inf)
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        u, v = rows[i], rows[j]
+        cross = np.empty((len(a), 3))
+        cross[:, 0] = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
+        cross[:, 1] = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
+        cross[:, 2] = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+        squares = cross * cross
+        length = np.sqrt(squares[:, 0] + squares[:, 1] + squares[:, 2])
+        longer = (length > best_length) | (np.isnan(length) & ~np.isnan(best_length))
+        best_vector = np.where(longer[:, None], cross, best_vector)
+        best_length = np.where(longer, length, best_length)
+    vector, length = best_vector, best_length
     fallback = np.tile([0.0, 0.0, 1.0], (len(a), 1))
     vector = np.where(
         length[:, None] > 1e-300, vector / np.where(length > 0, length, 1.0)[:, None], fallback
     )
     return values, vector
+
+
+def _minus_diagonal(a: FloatArray, shift: FloatArray) -> FloatArray:
+    """``a - shift[:, None, None] * I`` for (M, 3, 3) ``a`` and (M,) ``shift``, as a new array."""
+    out = a.copy()
+    for i in range(3):
+        out[:, i, i] -= shift
+    return out
 
 
 def gather(
