@@ -200,6 +200,21 @@ def _edge_candidates(
     return ids, offsets, distances
 
 
+#: Steps of the Viterbi pass whose transition costs are computed together (bounds the memory:
+#: about 1.3 kB a step).
+VITERBI_BLOCK = 4096
+
+
+def _transitions(offsets: FloatArray, c: int) -> FloatArray:
+    """The cost of every move between the candidates (and "none", the last state) of
+    consecutive points: offsets (S + 1, c, 3) -> (S, c + 1, c + 1), from x to."""
+    step = offsets[1:, None, :, :] - offsets[:-1, :, None, :]  # (S, from, to, 3)
+    transitions = np.full((len(step), c + 1, c + 1), ENTER_COST)
+    transitions[:, :c, :c] = np.einsum("iabk,iabk->iab", step, step) / OFFSET_STEP_SIGMA_M**2
+    transitions[:, c, c] = 0.0
+    return transitions
+
+
 def _choose_edge(
     candidates: tuple[NDArray[np.int64], FloatArray, FloatArray], seg: slice, length: int
 ) -> _EdgeChoice | None:
@@ -215,7 +230,7 @@ def _choose_edge(
         the median distance to them, and the median distance from them to the next candidate
         corner where there was one (inf when never); None when no point has a corner.
     """
-    ids, offsets, distances = (a[seg] for a in candidates)
+    ids, offsets, distances = candidates[0][seg], candidates[1][seg], candidates[2][seg]
     n = len(ids)
     if n == 0 or not np.isfinite(distances).any():
         return None
@@ -230,15 +245,15 @@ def _choose_edge(
     )
     cost = emit[0].copy()
     back = np.zeros((n, c + 1), np.int64)
+    states = np.arange(c + 1)
     for i in range(1, n):
-        step = offsets[i][None, :, :] - offsets[i - 1][:, None, :]  # (from, to, 3)
-        move = np.einsum("abk,abk->ab", step, step) / OFFSET_STEP_SIGMA_M**2
-        trans = np.full((c + 1, c + 1), ENTER_COST)
-        trans[:c, :c] = move
-        trans[none, none] = 0.0
-        total = cost[:, None] + trans
+        if (i - 1) % VITERBI_BLOCK == 0:
+            # The transition costs of a block of steps at once (the loop is then a few small
+            # operations per point: it was a quarter of a second on a 10k-point edge).
+            transitions = _transitions(offsets[i - 1 : i + VITERBI_BLOCK], c)
+        total = cost[:, None] + transitions[(i - 1) % VITERBI_BLOCK]
         back[i] = np.argmin(total, axis=0)
-        cost = total[back[i], np.arange(c + 1)] + emit[i]
+        cost = total[back[i], states] + emit[i]
     state = np.empty(n, np.int64)
     state[-1] = int(np.argmin(cost))
     for i in range(n - 1, 0, -1):
@@ -250,12 +265,11 @@ def _choose_edge(
     chosen = ids[rows, state[rows]]
     typical = float(np.median(distances[rows, state[rows]]))
     # How far the next candidate was, where there was one: how clearly the trace chose.
-    others = []
-    for row, slot in zip(rows, state[rows], strict=True):
-        rest = [j for j in range(c) if j != slot and np.isfinite(distances[row, j])]
-        if rest:
-            gaps = np.linalg.norm(offsets[row, rest] - offsets[row, slot], axis=1)
-            others.append(float(gaps.min()))
+    slots = state[rows]
+    gaps = np.linalg.norm(offsets[rows] - offsets[rows, slots][:, None, :], axis=2)  # (R, c)
+    rest = np.isfinite(distances[rows]) & (np.arange(c)[None, :] != slots[:, None])
+    has_rest = rest.any(axis=1)
+    others = np.where(rest, gaps, np.inf).min(axis=1)[has_rest].tolist()
     return _EdgeChoice(
         tuple(sorted({int(x) for x in chosen})),
         float(np.count_nonzero(on)) / length,
