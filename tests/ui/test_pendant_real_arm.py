@@ -136,6 +136,8 @@ def test_run_on_the_arm_stopped_mid_path_with_escape_and_seen_from_a_second_pend
         for name in ("trace", "scan"):
             row = dialog.locator("tr").filter(has=page.locator("th").get_by_text(name, exact=True))
             expect(row).to_contain_text("sha256")
+        # A plan of the current inputs: nothing in the confirmation is styled as a warning.
+        expect(dialog.locator("tr.warning")).to_have_count(0)
         # Every phase with its duration and fastest TCP speed, never above the cap; the TCP in
         # mm and degrees and the payload, as a PolyScope operator checks them.
         rows = dict(
@@ -662,6 +664,9 @@ def test_an_outdated_plan_runs_only_when_taken_on_purpose_with_its_inputs_in_vie
         first_row = page.locator("#confirm-table tr").first
         expect(first_row).to_contain_text("OUTDATED, taken on purpose")
         expect(first_row).to_contain_text("the trace")
+        # Styled as the warning it is, and the only row so styled.
+        expect(first_row).to_have_class(re.compile(r"\bwarning\b"))
+        expect(page.locator("#confirm-table tr.warning")).to_have_count(1)
         expect(page.locator("#confirm-table tr", has_text="plan file")).to_contain_text(older)
         pendant.shot("older-plan-run-confirm")
         page.get_by_role("button", name="Confirm: run on arm").click()

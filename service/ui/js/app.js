@@ -1804,7 +1804,7 @@ function confirmRun(traj) {
   const move = isMove(traj);
   // An outdated plan (or a move to its start) runs only when taken on purpose: said first.
   const taken = outdated(traj).length
-    ? [["OUTDATED, taken on purpose", `made before ${outdated(traj).join("; ")}`]] : [];
+    ? [["OUTDATED, taken on purpose", `made before ${outdated(traj).join("; ")}`, "warning"]] : [];
   const rows = move ? [
     arm,
     ["motion", `${moveWords(sm)} to the start of plan ${sm.move_to_start_of}`],
@@ -1845,7 +1845,9 @@ function askDialog(title, button, rows, warning = MOVES_WARNING) {
   $("#confirm-title").textContent = title;
   $("#confirm-warning").textContent = warning;
   $("#confirm-run").textContent = button;
-  $("#confirm-table").replaceChildren(...rows.map(([k, v]) => el("tr", {}, el("th", { text: k }), el("td", { text: v }))));
+  // A row's optional third item is its class ("warning": what the operator must not miss).
+  $("#confirm-table").replaceChildren(...rows.map(([k, v, kind]) =>
+    el("tr", kind ? { class: kind } : {}, el("th", { text: k }), el("td", { text: v }))));
   const dialog = $("#confirm-dialog");
   dialog.returnValue = "";
   dialog.showModal();
