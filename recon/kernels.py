@@ -42,6 +42,7 @@ from recon.arrays import FloatArray
 
 if TYPE_CHECKING:
     from scipy.sparse import csr_matrix
+    from scipy.spatial import cKDTree
 
 log = logging.getLogger(__name__)
 
@@ -273,6 +274,7 @@ def nearest_within(
     k: int,
     radius_m: float,
     grid: PointGrid | None = None,
+    tree: cKDTree | None = None,
 ) -> tuple[FloatArray, NDArray[np.int64]]:
     """Each query's ``k`` nearest points strictly within ``radius_m``, nearest first: what
     ``cKDTree(points_m).query(queries_m, k, distance_upper_bound=radius_m)`` returns (2-D even
@@ -286,6 +288,8 @@ def nearest_within(
     radius_m : float
     grid : PointGrid, optional
         Built over ``points_m`` (reused across calls); made here when None.
+    tree : scipy.spatial.cKDTree, optional
+        Over ``points_m``, for the reference (reused across calls); made there when None.
 
     Returns
     -------
@@ -297,21 +301,26 @@ def nearest_within(
     if k < 1:
         raise ValueError(f"k must be at least 1, not {k}")
     if compiled() is None:
-        return nearest_within_reference(points_m, queries_m, k=k, radius_m=radius_m)
+        return nearest_within_reference(points_m, queries_m, k=k, radius_m=radius_m, tree=tree)
     grid = grid if grid is not None else PointGrid(points_m, radius_m)
     return grid.nearest(queries_m, k=k, radius_m=radius_m)
 
 
 def nearest_within_reference(
-    points_m: FloatArray, queries_m: FloatArray, *, k: int, radius_m: float
+    points_m: FloatArray,
+    queries_m: FloatArray,
+    *,
+    k: int,
+    radius_m: float,
+    tree: cKDTree | None = None,
 ) -> tuple[FloatArray, NDArray[np.int64]]:
-    """:func:`nearest_within` by SciPy's k-d tree (the reference)."""
+    """:func:`nearest_within` by SciPy's k-d tree (the reference; ``tree`` over ``points_m``
+    when the caller has one)."""
     from scipy.spatial import cKDTree
 
     queries = np.asarray(queries_m, dtype=np.float64).reshape(-1, 3)
-    distance, index = cKDTree(points_m).query(
-        queries, k=k, distance_upper_bound=radius_m, workers=-1
-    )
+    tree = tree if tree is not None else cKDTree(points_m)
+    distance, index = tree.query(queries, k=k, distance_upper_bound=radius_m, workers=-1)
     shape = (len(queries), k)
     return distance.reshape(shape), index.astype(np.int64).reshape(shape)
 

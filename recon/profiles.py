@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from recon.arrays import FloatArray
 from recon.fitting import gather
-from recon.kernels import PointGrid, compiled, hough_votes, thread_pool
+from recon.kernels import PointGrid, compiled, hough_votes, nearest_within, thread_pool
 
 #: Half the thickness of each slice (along the path): thick enough for tens of points per face
 #: at a depth camera's density, thin enough that a curved feature stays straight within it.
@@ -208,26 +208,22 @@ def find_profiles(
     stations_m = np.asarray(stations_m, dtype=np.float64)
     along = np.asarray(along, dtype=np.float64)
     along = along / np.maximum(np.linalg.norm(along, axis=1), 1e-300)[:, None]
-    # The compiled grid finds the same neighbours as the tree, at the same distances, in a third
-    # of the time (recon.kernels.nearest_within); the tree is the reference.
+    # The compiled grid, built once, finds the same neighbours as the tree at the same
+    # distances, in a third of the time (recon.kernels.nearest_within); the tree is the
+    # reference.
     grid = (
         PointGrid(dense_points_m, _REACH_M)
         if compiled() is not None and len(stations_m) and len(dense_points_m)
         else None
     )
-
     k = min(PROFILE_NEIGHBOURS, len(dense_points_m))
     parts: list[Profiles] = []
     # Neighbours of many stations per query (the grid's threads share them), sliced per chunk.
     for start in range(0, len(stations_m), STATION_CHUNK * QUERY_CHUNKS):
         block = slice(start, start + STATION_CHUNK * QUERY_CHUNKS)
-        if grid is not None:
-            dist, idx = grid.nearest(stations_m[block], k=k, radius_m=_REACH_M)
-        else:
-            dist, idx = dense_tree.query(
-                stations_m[block], k=k, distance_upper_bound=_REACH_M, workers=-1
-            )
-            dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
+        dist, idx = nearest_within(
+            dense_points_m, stations_m[block], k=k, radius_m=_REACH_M, grid=grid, tree=dense_tree
+        )
 
         # numpy releases the GIL on the chunks' arrays: two threads take a fifth off the stage.
         def chunk(

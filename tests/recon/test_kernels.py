@@ -408,3 +408,15 @@ def test_the_gather_kernel_refuses_indices_out_of_range_and_lying_shapes():
 
     with pytest.raises(ValueError, match="outside"):
         gather(values, np.array([[0, 7]]), fill_index=4)
+
+
+def test_the_reference_search_reuses_a_callers_tree(reference_only):
+    """nearest_within with the caller's tree (find_profiles passes the scan model's) answers as
+    with the tree it would build."""
+    points = _surface_cloud(3_000, seed=12)
+    queries = points[::50] + 0.3 * MM
+    own = nearest_within(points, queries, k=7, radius_m=2 * MM)
+    given = nearest_within(points, queries, k=7, radius_m=2 * MM, tree=cKDTree(points))
+    for a, b in zip(own, given, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert np.isfinite(own[0]).any() and own[1].dtype == np.int64
