@@ -1675,12 +1675,17 @@ class _Exemption:
     reduced : (tree, points (P, 3), rows (R,)) or None
         The scan without what the contact touches, as a tree (None if nothing is left), and the
         checked configurations that bound an exempt sample period.
+    full_rows : ndarray of shape (F,), int, or None
+        The checked configurations whose clearance to the full scan the exempt capsules need:
+        those that bound a sample period not exempt (the others' bounds read the exempt table,
+        so their full-scan clearance is never used). None: every configuration.
     """
 
     columns: NDArray[np.bool_]
     samples: NDArray[np.bool_]
     contact_radius_m: float | None = None
     reduced: tuple[cKDTree | None, FloatArray, NDArray[np.intp]] | None = None
+    full_rows: NDArray[np.intp] | None = None
 
 
 def _contact_exemption(
@@ -1697,7 +1702,7 @@ def _contact_exemption(
     workers: int,
 ) -> _Exemption:
     """What is exempt from the scan check, and the scan it sees instead."""
-    L, M, J = len(sweep.names), len(q), len(sweep.u)
+    L, M = len(sweep.names), len(q)
     exempt_cols = np.zeros(L, dtype=bool)
     exempt = np.zeros(M, dtype=bool)
     if contact_zone is None:
@@ -1729,24 +1734,82 @@ def _contact_exemption(
     on_path, axes = contact_zone.points_and_axes(contact_radius / 4)
     band = contact_zone.radius_m + margin_m + worst_tolerance
     pts = cell.scan_m
-    near_path = cell._tree.query_ball_point(on_path, contact_radius, workers=workers)
-    touched = np.zeros(len(pts), dtype=bool)
-    counts = np.fromiter((len(h) for h in near_path), dtype=np.int64, count=len(near_path))
-    if counts.sum():
-        hit = np.concatenate([np.asarray(h, dtype=np.int64) for h in near_path if len(h)])
-        at = np.repeat(np.arange(len(near_path)), counts)
-        height = np.einsum("ij,ij->i", pts[hit] - on_path[at], axes[at])
-        touched[hit[height <= band]] = True
+    touched = _touched_by_contact(cell._tree, pts, on_path, axes, contact_radius, band)
     rest = pts[~touched]
     tree = cKDTree(rest, balanced_tree=False, compact_nodes=False) if len(rest) else None
-    # Only the configurations that bound an exempt sample period need the exempt scan.
-    periods = np.flatnonzero(exempt[:-1] & exempt[1:])
+    # Only the configurations that bound an exempt sample period need the exempt scan; only
+    # those that bound one not exempt need the full scan for the exempt capsules.
+    exempt_period = exempt[:-1] & exempt[1:]
+    need_exempt = _bounding_configurations(sweep, exempt_period)
+    need_exempt[-1] |= bool(exempt[-1])
+    need_full = _bounding_configurations(sweep, ~exempt_period)
+    need_full[-1] |= not exempt[-1]
+    return _Exemption(
+        exempt_cols,
+        exempt,
+        contact_radius,
+        (tree, rest, np.flatnonzero(need_exempt)),
+        np.flatnonzero(need_full),
+    )
+
+
+_PAIR_CHUNK = 65_536  # (path point, scan point) pairs per step: a few MB, in cache
+
+
+def _touched_by_contact(
+    tree: cKDTree,
+    points_m: FloatArray,
+    on_path_m: FloatArray,
+    axes: FloatArray,
+    radius_m: float,
+    band_m: float,
+) -> NDArray[np.bool_]:
+    """The scan points the contact touches: within ``radius_m`` of a point on the path and no
+    higher than ``band_m`` above it along the tool's axis there.
+
+    Parameters
+    ----------
+    tree : cKDTree
+        Of ``points_m``.
+    points_m : ndarray of shape (P, 3)
+    on_path_m, axes : ndarray of shape (K, 3)
+        Points along the path and the tool's unit axis at each.
+
+    Returns
+    -------
+    ndarray of shape (P,), bool
+    """
+    # The pairs as two index arrays in one call (a ball query per path point returns Python
+    # lists: millions of ints to convert), then their heights a cache-sized chunk at a time.
+    pairs = cKDTree(on_path_m).sparse_distance_matrix(tree, radius_m, output_type="ndarray")
+    at, hit = pairs["i"], pairs["j"]
+    touched = np.zeros(len(points_m), dtype=bool)
+    for start in range(0, len(hit), _PAIR_CHUNK):
+        h, a = hit[start : start + _PAIR_CHUNK], at[start : start + _PAIR_CHUNK]
+        height = np.einsum("ij,ij->i", points_m[h] - on_path_m[a], axes[a])
+        touched[h[height <= band_m]] = True
+    return touched
+
+
+def _bounding_configurations(sweep: _Sweep, periods: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Which checked configurations bound at least one of the given sample periods.
+
+    Parameters
+    ----------
+    periods : ndarray of shape (M - 1,), bool
+        The sample periods (from sample m to m + 1) in question.
+
+    Returns
+    -------
+    ndarray of shape (J,), bool
+        Configuration j bounds period m when ``j0[m] <= j <= j1[m] + 1`` (see :class:`_Sweep`).
+    """
+    J = len(sweep.u)
+    rows = np.flatnonzero(periods)
     count = np.zeros(J + 1, dtype=np.int64)
-    np.add.at(count, sweep.j0[periods], 1)
-    np.add.at(count, sweep.j1[periods] + 2, -1)
-    need = np.cumsum(count)[:J] > 0
-    need[-1] |= bool(exempt[-1])
-    return _Exemption(exempt_cols, exempt, contact_radius, (tree, rest, np.flatnonzero(need)))
+    np.add.at(count, sweep.j0[rows], 1)
+    np.add.at(count, sweep.j1[rows] + 2, -1)
+    return np.cumsum(count)[:J] > 0
 
 
 class _Obstacles:
@@ -1873,11 +1936,17 @@ def _scan_clearances(
     (without what the contact touches) for the exempt capsules where they need it; returns the
     exempt table to use from here (``full`` itself when nothing is exempt)."""
     k_scan = obstacles.add("scan", ObstacleKind.SCAN)
-    L = len(sweep.names)
-    sources = [(cell._tree, cell.scan_m, np.arange(len(sweep.u)), full, np.arange(L))]
+    every_row = np.arange(len(sweep.u))
+    columns = exemption.columns
+    full_rows = every_row if exemption.full_rows is None else exemption.full_rows
+    # (tree, its points, the configurations, the table, its columns)
+    sources = [
+        (cell._tree, cell.scan_m, every_row, full, np.flatnonzero(~columns)),
+        (cell._tree, cell.scan_m, full_rows, full, np.flatnonzero(columns)),
+    ]
     if exemption.reduced is not None:
         tree_ex, pts_ex, rows_ex = exemption.reduced
-        sources.append((tree_ex, pts_ex, rows_ex, exempt, np.flatnonzero(exemption.columns)))
+        sources.append((tree_ex, pts_ex, rows_ex, exempt, np.flatnonzero(columns)))
     for tree, pts, rows, table, source_cols in sources:
         if tree is None or len(rows) == 0:
             continue

@@ -950,3 +950,75 @@ def test_the_arm_folding_onto_itself_is_refused_where_it_comes_within_the_margin
     turn = np.tile(HOME_Q_RAD, (n, 1))
     turn[:, 0] = np.linspace(0.0, 1.5, n)
     assert check_motion(arm, turn, np.zeros(n, int), Cell(mounting=None), T_flange_tcp=T_ft).clear
+
+
+def test_the_scan_the_contact_touches_is_what_a_brute_force_finds():
+    """``_touched_by_contact`` (pairs from two trees, heights a chunk at a time) against every
+    (path point, scan point) pair measured directly; chunks smaller than the pairs."""
+    from recon import collision
+
+    rng = np.random.default_rng(7)
+    on_path = np.c_[np.linspace(0.0, 0.2, 60), 0.01 * np.sin(np.linspace(0, 6, 60)), np.zeros(60)]
+    axes = rng.normal([0.0, 0.0, 1.0], 0.3, size=(60, 3))
+    axes /= np.linalg.norm(axes, axis=1)[:, None]
+    points = rng.uniform([-0.02, -0.04, -0.02], [0.22, 0.04, 0.03], size=(20_000, 3))
+    tree = cKDTree(points)
+    for radius_m, band_m in ((0.01, 0.002), (0.02, -0.005), (0.0, 0.0)):
+        distance = np.linalg.norm(points[None, :, :] - on_path[:, None, :], axis=2)
+        height = np.einsum("kpj,kj->kp", points[None, :, :] - on_path[:, None, :], axes)
+        expected = ((distance <= radius_m) & (height <= band_m)).any(axis=0)
+        got = collision._touched_by_contact(tree, points, on_path, axes, radius_m, band_m)
+        assert np.array_equal(got, expected)
+        assert radius_m == 0.0 or 0 < expected.sum() < len(points)  # not vacuous
+    old = collision._PAIR_CHUNK
+    try:
+        collision._PAIR_CHUNK = 97
+        got = collision._touched_by_contact(tree, points, on_path, axes, 0.01, 0.002)
+    finally:
+        collision._PAIR_CHUNK = old
+    assert np.array_equal(
+        got, collision._touched_by_contact(tree, points, on_path, axes, 0.01, 0.002)
+    )
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 60.0])
+def test_the_exempt_tool_skips_only_full_scan_queries_no_bound_reads(
+    tilt_deg, workpiece_cell, monkeypatch
+):
+    """The exempt capsules' clearance to the whole scan is computed only at the configurations
+    that bound a period not exempt; every report is the same as with it computed everywhere."""
+    from dataclasses import replace
+
+    from recon import collision
+
+    arm = model("ur5e")
+    upright, *_ = _contact_plan(arm, 0.0)
+    joints, phase, T_ft, _, t = _contact_plan(arm, tilt_deg, branch=upright.branch)
+    kw = {
+        "T_flange_tcp": T_ft,
+        "tool": CapsuleTool(0.02),
+        "margin_m": 0.01,
+        "contact_zone": ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft),
+        "t_s": t,
+    }
+    seen = []
+    exemption_of = collision._contact_exemption
+
+    def recorded(*args, **kwargs):
+        seen.append(exemption_of(*args, **kwargs))
+        return seen[-1]
+
+    monkeypatch.setattr(collision, "_contact_exemption", recorded)
+    skipped = check_motion(arm, joints.q_rad, phase, workpiece_cell, **kw)
+    assert seen[-1].full_rows is not None
+    assert 0 < len(seen[-1].full_rows) < len(skipped.checked_samples)  # something was skipped
+    monkeypatch.setattr(
+        collision,
+        "_contact_exemption",
+        lambda *a, **k: replace(exemption_of(*a, **k), full_rows=None),
+    )
+    everywhere = check_motion(arm, joints.q_rad, phase, workpiece_cell, **kw)
+    for name in ("clearance_m", "link_clearance_m", "nearest_link", "nearest_kind"):
+        assert np.array_equal(getattr(skipped, name), getattr(everywhere, name)), name
+    assert repr(skipped.first_collision) == repr(everywhere.first_collision)
+    assert (skipped.first_collision is None) == (tilt_deg == 0.0)
