@@ -24,6 +24,7 @@ from recon.arrays import FloatArray
 from recon.errors import InfeasibleTrajectoryError
 from recon.kinematics import SPEED_POINT_NAMES, URModel, forward, speed_points_m
 from recon.paths import JointPath, SpeedDrop, ToolPath
+from recon.toppra_import import import_toppra
 from recon.trajectory import JointTrajectory
 from recon.transforms import pose_from_transform
 
@@ -131,10 +132,7 @@ def time_parameterize(
         No parametrisation exists within the limits, or the samples still break them after
         refining the grid.
     """
-    import toppra
-    import toppra.algorithm
-    import toppra.constraint
-
+    toppra = import_toppra()
     toppra.setup_logging("WARNING")
     rate = float(rate_hz or arm.control_rate_hz)
     arc = np.asarray(tool.arc_length_m, dtype=np.float64)
@@ -291,8 +289,7 @@ class PointSpeedBound:
         whole grid at once and answers toppra's calls from that table (0.02 s), with the same
         numbers (the plans are the same bit for bit, tests/recon/test_motion_planning.py).
         """
-        import toppra.constraint
-
+        toppra = import_toppra()
         bound = self
         on_grid: dict[float, FloatArray] = {}  # the current grid's limits, by path position
 

@@ -91,6 +91,10 @@ WARM_MODULES = (
     # operator's first reconstruction.
     "recon._kernels",
     "recon.plan",
+    # Planning imports toppra on first use (recon.toppra_import), not with recon.plan.
+    "recon.toppra_import",
+    "toppra.algorithm",
+    "toppra.constraint",
     "recon.touches",
     "recon.calibrate",
     "drivers.robot.dryrun",

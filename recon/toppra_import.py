@@ -1,0 +1,76 @@
+"""toppra, imported without the plotting library it loads for helpers teachpath never calls.
+
+toppra's algorithm and parametrizer modules import ``matplotlib.pyplot`` at the top, for their
+``plot_*`` helpers. That import is 0.3 s of ``teachpath plan``'s start-up (``python -X
+importtime``: about all of toppra's 0.33 s), for nothing: teachpath never plots. While toppra is
+imported, :func:`import_toppra` puts stand-ins for ``matplotlib`` and ``matplotlib.pyplot`` in
+``sys.modules`` and takes them out again afterwards; toppra keeps a stand-in as its ``plt``, and
+the first attribute read from it imports the real module and answers from that (so a plot helper
+still works, only later).
+
+Why not ``importlib.util.LazyLoader``: in Python 3.11 two threads touching a lazy module for the
+first time can both run its loader; the service plans on worker threads. Here one lock covers the
+swap in ``sys.modules`` and the real import, and the stand-ins are in ``sys.modules`` only while
+that lock is held, so no other import of matplotlib ever sees one.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import threading
+import types
+from typing import Any
+
+#: Modules toppra imports at the top only for plotting.
+DEFERRED = ("matplotlib", "matplotlib.pyplot")
+
+_LOCK = threading.RLock()
+
+
+class _Deferred(types.ModuleType):
+    """Stands in for a module until one of its attributes is read; then imports the real one
+    and answers from it."""
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("__") and name.endswith("__"):
+            # Probes (``__path__``, ``__file__``, ...) are not a use: they import nothing.
+            raise AttributeError(name)
+        return getattr(_real(self.__name__), name)
+
+
+def _real(name: str) -> types.ModuleType:
+    """The real module ``name``, imported now if need be (stand-ins taken out first)."""
+    with _LOCK:
+        for deferred in DEFERRED:
+            if isinstance(sys.modules.get(deferred), _Deferred):
+                del sys.modules[deferred]
+        return importlib.import_module(name)
+
+
+def import_toppra() -> types.ModuleType:
+    """``toppra`` with ``toppra.algorithm`` and ``toppra.constraint`` imported, without
+    importing matplotlib (unless something else already has).
+
+    Safe to call from several threads at once, and as often as wanted.
+    """
+    with _LOCK:
+        if "toppra.algorithm" in sys.modules and "toppra.constraint" in sys.modules:
+            return sys.modules["toppra"]
+        placed = [name for name in DEFERRED if name not in sys.modules]
+        if "matplotlib.pyplot" not in placed:
+            placed = []  # pyplot is loaded already: nothing to spare
+        for name in placed:
+            sys.modules[name] = _Deferred(name)
+        if "matplotlib" in placed:
+            # ``import matplotlib.pyplot as plt`` reads the parent's attribute.
+            sys.modules["matplotlib"].pyplot = sys.modules["matplotlib.pyplot"]
+        try:
+            import toppra
+            import toppra.algorithm
+            import toppra.constraint
+        finally:
+            for name in placed:
+                if isinstance(sys.modules.get(name), _Deferred):
+                    del sys.modules[name]
+        return toppra
