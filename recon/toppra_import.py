@@ -48,9 +48,10 @@ def _real(name: str) -> types.ModuleType:
         return importlib.import_module(name)
 
 
-def import_toppra() -> types.ModuleType:
-    """``toppra`` with ``toppra.algorithm`` and ``toppra.constraint`` imported, without
-    importing matplotlib (unless something else already has).
+def import_toppra() -> Any:
+    """The ``toppra`` module, with ``toppra.algorithm`` and ``toppra.constraint`` imported,
+    without importing matplotlib (unless something else already has). Typed ``Any``: toppra
+    has no type information.
 
     Safe to call from several threads at once, and as often as wanted.
     """
@@ -64,7 +65,8 @@ def import_toppra() -> types.ModuleType:
             sys.modules[name] = _Deferred(name)
         if "matplotlib" in placed:
             # ``import matplotlib.pyplot as plt`` reads the parent's attribute.
-            sys.modules["matplotlib"].pyplot = sys.modules["matplotlib.pyplot"]
+            parent: Any = sys.modules["matplotlib"]
+            parent.pyplot = sys.modules["matplotlib.pyplot"]
         try:
             import toppra
             import toppra.algorithm
