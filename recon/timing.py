@@ -289,7 +289,7 @@ class PointSpeedBound:
         whole grid at once and answers toppra's calls from that table (0.02 s), with the same
         numbers (the plans are the same bit for bit, tests/recon/test_motion_planning.py).
         """
-        toppra = import_toppra()
+        varying: Any = import_toppra().constraint.JointVelocityConstraintVarying
         bound = self
         on_grid: dict[float, FloatArray] = {}  # the current grid's limits, by path position
 
@@ -297,7 +297,7 @@ class PointSpeedBound:
             row = on_grid.get(s_m)
             return row if row is not None else bound.velocity_limits(vlim, np.array([s_m]))[0]
 
-        class GridVelocityConstraint(toppra.constraint.JointVelocityConstraintVarying):  # type: ignore[misc]
+        class GridVelocityConstraint(varying):  # type: ignore[misc]
             def compute_constraint_params(self, path: Any, gridpoints: FloatArray) -> Any:
                 grid = np.asarray(gridpoints, dtype=np.float64)
                 on_grid.clear()
