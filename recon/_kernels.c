@@ -620,87 +620,175 @@ done:
 /* ---------------------------------------------------------------------------------------- */
 
 PyDoc_STRVAR(voxel_nearest_centre_doc,
-"voxel_nearest_centre(points, order, keys, origin, scale, out_kept) -> (kept, resolution2)\n"
+"voxel_nearest_centre(points, origin, scale, dims, out_kept) -> (kept, resolution2)\n"
 "\n"
-"For points (N, 3) float64 visited in `order` (N,) int64, a permutation that groups equal\n"
-"`keys` (N,) int64 together (a stable sort of the keys), keeps of each group the point nearest\n"
-"its voxel's centre (the smaller index among equals) into out_kept (N,) int64, and returns how\n"
-"many groups there were and the largest squared distance (m^2) of a point from the point kept\n"
-"for its voxel. A point's voxel is the integer part of (p - origin) * scale (origin (3,));\n"
-"its distance from the centre is measured in voxel units, as recon.collision's reference does,\n"
-"so the two pick the same points.");
+"Of the points (N, 3) float64 in each voxel, keeps the one nearest the voxel's centre (the\n"
+"smaller index among equals) into out_kept (N,) int64, in the order of the voxels' keys, and\n"
+"returns how many voxels hold points and the largest squared distance (m^2) of a point from\n"
+"the point kept for its voxel. A point's voxel is the integer part c of (p - origin) * scale\n"
+"(origin (3,)), its key (c0 * dims1 + c1) * dims2 + c2 (dims (3,) int64, each voxel count at\n"
+"least 1, their product below 2^62); every point must lie in that grid. Its distance from the\n"
+"centre is measured in voxel units, as recon.kernels' reference does, so the two pick the\n"
+"same points. The voxels are found by hashing their keys (no sort of the points).");
+
+typedef struct {
+    int64_t key; /* -1: empty */
+    int64_t best;
+    double to_centre;
+} VoxelSlot;
+
+static int by_voxel_key(const void *a, const void *b)
+{
+    const VoxelSlot *x = a, *y = b;
+    return (x->key > y->key) - (x->key < y->key);
+}
+
+/* The voxel key of point i, and its distance from the voxel's centre (voxel units, squared);
+ * -1 for a point outside the grid (or not finite). */
+static inline int64_t voxel_key(const double *p, const double *o, double scale, const int64_t *dims,
+                                double *to_centre)
+{
+    int64_t c[3];
+    double f[3];
+    for (int a = 0; a < 3; a++) {
+        double rel = (p[a] - o[a]) * scale;
+        if (!(rel >= 0.0) || !(rel < (double)dims[a])) return -1;
+        c[a] = (int64_t)rel;
+        if (c[a] >= dims[a]) return -1;
+        f[a] = (rel - (double)c[a]) - 0.5;
+    }
+    *to_centre = f[0] * f[0] + f[1] * f[1] + f[2] * f[2];
+    return (c[0] * dims[1] + c[1]) * dims[2] + c[2];
+}
+
+/* The slot of `key` in the open-addressed table (mask + 1 slots, a power of two): its own,
+ * or the empty one where it belongs. */
+static inline Py_ssize_t voxel_slot(const VoxelSlot *table, size_t mask, int64_t key)
+{
+    size_t h = ((uint64_t)key * UINT64_C(0x9E3779B97F4A7C15)) >> 20;
+    for (;; h++) {
+        const VoxelSlot *slot = &table[h & mask];
+        if (slot->key == key || slot->key < 0) return (Py_ssize_t)(h & mask);
+    }
+}
 
 static PyObject *voxel_nearest_centre(PyObject *self, PyObject *args)
 {
-    Py_buffer points = {0}, order = {0}, keys = {0}, origin = {0}, out_kept = {0};
+    Py_buffer points = {0}, origin = {0}, dims_view = {0}, out_kept = {0};
     double scale;
     PyObject *result = NULL;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*dw*", &points, &order, &keys, &origin, &scale,
-                          &out_kept))
+    VoxelSlot *table = NULL;
+    if (!PyArg_ParseTuple(args, "y*y*dy*w*", &points, &origin, &scale, &dims_view, &out_kept))
         return NULL;
     Py_ssize_t n = points.len / (Py_ssize_t)(3 * sizeof(double));
     if (expect_size(&points, n, 3 * sizeof(double), "points") ||
-        expect_size(&order, n, sizeof(int64_t), "order") ||
-        expect_size(&keys, n, sizeof(int64_t), "keys") ||
         expect_size(&origin, 3, sizeof(double), "origin") ||
+        expect_size(&dims_view, 3, sizeof(int64_t), "dims") ||
         expect_size(&out_kept, n, sizeof(int64_t), "out_kept"))
         goto done;
     if (!(scale > 0.0) || !isfinite(scale)) {
         PyErr_SetString(PyExc_ValueError, "scale must be positive and finite");
         goto done;
     }
-    const double *p = points.buf, *o = origin.buf;
-    const int64_t *ord = order.buf, *key = keys.buf;
-    int64_t *kept = out_kept.buf;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        if (ord[i] < 0 || ord[i] >= n) {
-            PyErr_SetString(PyExc_ValueError, "order must hold indices of the points");
+    const int64_t *dims = dims_view.buf;
+    double voxels = 1.0;
+    for (int a = 0; a < 3; a++) {
+        if (dims[a] < 1) {
+            PyErr_SetString(PyExc_ValueError, "dims must be at least 1 voxel along each axis");
             goto done;
         }
+        voxels *= (double)dims[a];
     }
-    Py_ssize_t groups = 0;
+    if (voxels >= 4611686018427387904.0) { /* 2^62: keys must fit, with room to spare */
+        PyErr_SetString(PyExc_ValueError, "dims hold too many voxels (2^62 or more)");
+        goto done;
+    }
+    /* The table grows with the voxels found (kept at most half full): a scan thinned tenfold
+     * keeps it a tenth of the points' size, and its random reads in cache. */
+    size_t capacity = 1024;
+    table = PyMem_RawMalloc(capacity * sizeof(VoxelSlot));
+    if (table == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    const double *p = points.buf, *o = origin.buf;
+    int64_t *kept = out_kept.buf;
+    size_t mask = capacity - 1;
+    Py_ssize_t groups = 0, outside = -1;
+    int out_of_memory = 0;
     double worst2 = 0.0;
     Py_BEGIN_ALLOW_THREADS
-    Py_ssize_t start = 0;
-    while (start < n) {
-        int64_t group_key = key[ord[start]];
-        Py_ssize_t end = start;
-        int64_t best = -1;
-        double best_to_centre = INFINITY;
-        while (end < n && key[ord[end]] == group_key) {
-            int64_t j = ord[end];
-            double to_centre = 0.0;
-            double f[3];
-            for (int a = 0; a < 3; a++) {
-                double rel = (p[3 * j + a] - o[a]) * scale;
-                f[a] = (rel - (double)(int64_t)rel) - 0.5;
-            }
-            to_centre = f[0] * f[0] + f[1] * f[1] + f[2] * f[2];
-            /* Visited in index order within the group (a stable sort): a strictly smaller
-             * distance wins, so among equals the smaller index stays. */
-            if (to_centre < best_to_centre || best < 0) {
-                best_to_centre = to_centre;
-                best = j;
-            }
-            end++;
+    for (size_t h = 0; h < capacity; h++) table[h].key = -1;
+    /* Points in index order: a strictly smaller distance wins, so among equals the smaller
+     * index stays (as the reference's stable sort keeps it). */
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double to_centre;
+        int64_t key = voxel_key(&p[3 * i], o, scale, dims, &to_centre);
+        if (key < 0) {
+            outside = i;
+            break;
         }
-        for (Py_ssize_t m = start; m < end; m++) {
-            int64_t j = ord[m];
+        VoxelSlot *slot = &table[voxel_slot(table, mask, key)];
+        if (slot->key < 0) {
+            slot->key = key;
+            slot->best = i;
+            slot->to_centre = to_centre;
+            if (2 * (size_t)++groups > capacity) {
+                VoxelSlot *wider = PyMem_RawMalloc(2 * capacity * sizeof(VoxelSlot));
+                if (wider == NULL) {
+                    out_of_memory = 1;
+                    break;
+                }
+                size_t wider_mask = 2 * capacity - 1;
+                for (size_t h = 0; h < 2 * capacity; h++) wider[h].key = -1;
+                for (size_t h = 0; h < capacity; h++)
+                    if (table[h].key >= 0)
+                        wider[voxel_slot(wider, wider_mask, table[h].key)] = table[h];
+                PyMem_RawFree(table);
+                table = wider;
+                capacity *= 2;
+                mask = wider_mask;
+            }
+        } else if (to_centre < slot->to_centre) {
+            slot->best = i;
+            slot->to_centre = to_centre;
+        }
+    }
+    if (outside < 0 && !out_of_memory) {
+        for (Py_ssize_t i = 0; i < n; i++) {
+            double to_centre;
+            int64_t key = voxel_key(&p[3 * i], o, scale, dims, &to_centre);
+            int64_t best = table[voxel_slot(table, mask, key)].best;
             double d[3];
-            for (int a = 0; a < 3; a++) d[a] = p[3 * j + a] - p[3 * best + a];
+            for (int a = 0; a < 3; a++) d[a] = p[3 * i + a] - p[3 * best + a];
             double d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
             if (d2 > worst2) worst2 = d2;
         }
-        kept[groups++] = best;
-        start = end;
+        /* The voxels in the order of their keys. */
+        Py_ssize_t used = 0;
+        for (size_t h = 0; h < capacity; h++)
+            if (table[h].key >= 0) table[used++] = table[h];
+        qsort(table, (size_t)used, sizeof(VoxelSlot), by_voxel_key);
+        for (Py_ssize_t g = 0; g < used; g++) kept[g] = table[g].best;
     }
     Py_END_ALLOW_THREADS
+    if (out_of_memory) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    if (outside >= 0) {
+        PyErr_Format(PyExc_ValueError,
+                     "point %zd lies outside the voxel grid (below the origin, beyond dims, or "
+                     "not finite)",
+                     outside);
+        goto done;
+    }
     result = Py_BuildValue("nd", groups, worst2);
 done:
+    PyMem_RawFree(table);
     PyBuffer_Release(&points);
-    PyBuffer_Release(&order);
-    PyBuffer_Release(&keys);
     PyBuffer_Release(&origin);
+    PyBuffer_Release(&dims_view);
     PyBuffer_Release(&out_kept);
     return result;
 }

@@ -15,8 +15,9 @@ How close each kernel is to its reference (tests/recon/test_kernels.py holds the
   the sets can differ only where the k-th and the (k+1)-th neighbour are equally far.
 - :func:`csr_row_sums`: scipy's product of a 0/1 CSR matrix with dense columns, to the bit.
 - :func:`hough_votes`: :mod:`recon.profiles`' two ``bincount`` calls, to the bit.
-- :func:`nearest_to_voxel_centres` (the collision checks' thinned scan): a stable sort by voxel
-  and distance to its centre, to the bit.
+- :func:`nearest_to_voxel_centres` (the collision checks' thinned scan): the reference's stable
+  sort by voxel and distance to its centre, to the bit (the kernel hashes the voxels instead
+  of sorting the points).
 - :func:`gather_rows`: numpy's fancy indexing with the padding zeroed, to the bit (a copy).
 
 Why C and not numba (docs/speed.md): a C extension loads in well under a millisecond and is
@@ -460,7 +461,7 @@ def hough_votes_reference(
 
 
 def nearest_to_voxel_centres(
-    points_m: FloatArray, origin_m: FloatArray, scale_per_m: float, keys: NDArray[np.int64]
+    points_m: FloatArray, origin_m: FloatArray, scale_per_m: float, dims: NDArray[np.int64]
 ) -> tuple[NDArray[np.int64], float]:
     """Of each voxel's points, the one nearest the voxel's centre (the smaller index among
     equals), and how far any point lies from the one kept for its voxel.
@@ -469,12 +470,13 @@ def nearest_to_voxel_centres(
     ----------
     points_m : ndarray of shape (N, 3)
     origin_m : ndarray of shape (3,)
-        The grid's corner: a point's voxel is the integer part of
+        The grid's corner: a point's voxel is the integer part ``c`` of
         ``(p - origin_m) * scale_per_m`` (no coordinate below the origin).
     scale_per_m : float
         Voxels per metre.
-    keys : ndarray of shape (N,), int64
-        Each point's voxel as one number (equal for the points of one voxel).
+    dims : ndarray of shape (3,), int
+        Voxels along each axis (every point's ``c`` below them; their product below 2**62). A
+        voxel's key is ``(c0 * dims[1] + c1) * dims[2] + c2``.
 
     Returns
     -------
@@ -485,19 +487,21 @@ def nearest_to_voxel_centres(
     """
     kernels = compiled()
     if kernels is None:
-        return nearest_to_voxel_centres_reference(points_m, origin_m, scale_per_m, keys)
+        return nearest_to_voxel_centres_reference(points_m, origin_m, scale_per_m, dims)
     points = np.ascontiguousarray(points_m, dtype=np.float64)
-    keys = np.ascontiguousarray(keys, dtype=np.int64)
-    order = np.argsort(keys, kind="stable").astype(np.int64, copy=False)
     kept = np.empty(len(points), np.int64)
     groups, worst2 = kernels.voxel_nearest_centre(
-        points, order, keys, np.ascontiguousarray(origin_m, dtype=np.float64), scale_per_m, kept
+        points,
+        np.ascontiguousarray(origin_m, dtype=np.float64),
+        scale_per_m,
+        np.ascontiguousarray(dims, dtype=np.int64),
+        kept,
     )
     return kept[:groups].copy(), float(np.sqrt(worst2))
 
 
 def nearest_to_voxel_centres_reference(
-    points_m: FloatArray, origin_m: FloatArray, scale_per_m: float, keys: NDArray[np.int64]
+    points_m: FloatArray, origin_m: FloatArray, scale_per_m: float, dims: NDArray[np.int64]
 ) -> tuple[NDArray[np.int64], float]:
     """:func:`nearest_to_voxel_centres` in numpy (the reference): a sort by voxel, then by the
     distance to the voxel's centre, stable (the smaller index first among equals)."""
@@ -505,7 +509,9 @@ def nearest_to_voxel_centres_reference(
     if len(points) == 0:
         return np.zeros(0, np.int64), 0.0
     rel = (points - origin_m) * scale_per_m
-    frac = rel - rel.astype(np.int64) - 0.5
+    cells = rel.astype(np.int64)  # floor: rel >= 0
+    keys = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    frac = rel - cells - 0.5
     # Written out rather than as einsum, whose vector path may fuse the multiply and add: the
     # kernel rounds each product and sum as these do.
     to_centre = frac[:, 0] * frac[:, 0] + frac[:, 1] * frac[:, 1] + frac[:, 2] * frac[:, 2]

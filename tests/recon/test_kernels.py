@@ -301,22 +301,22 @@ def test_the_references_run_when_selected(reference_only):
         PointGrid(points, 0.003).nearest(points[:2], k=1, radius_m=0.003)
 
 
-def _voxel_keys(points: np.ndarray, voxel_m: float):
+def _voxel_grid(points: np.ndarray, voxel_m: float):
     origin = points.min(axis=0)
     scale = 1.0 / voxel_m
     cells = ((points - origin) * scale).astype(np.int64)
     dims = cells.max(axis=0) + 1
-    return origin, scale, (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+    return origin, scale, dims, (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
 
 
-@pytest.mark.parametrize("voxel_m", [0.5 * MM, 2 * MM, 10 * MM])
+@pytest.mark.parametrize("voxel_m", [0.5 * MM, 2 * MM, 10 * MM, 1.0])
 def test_voxel_centres_are_the_references_to_the_bit(voxel_m):
     points = _surface_cloud(40_000, seed=10)
     points[:500] = points[500:1000]  # repeated points: equally near their centre
-    origin, scale, keys = _voxel_keys(points, voxel_m)
-    kept, resolution = kernels.nearest_to_voxel_centres(points, origin, scale, keys)
+    origin, scale, dims, keys = _voxel_grid(points, voxel_m)
+    kept, resolution = kernels.nearest_to_voxel_centres(points, origin, scale, dims)
     ref_kept, ref_resolution = kernels.nearest_to_voxel_centres_reference(
-        points, origin, scale, keys
+        points, origin, scale, dims
     )
     np.testing.assert_array_equal(kept, ref_kept)
     assert resolution == ref_resolution
@@ -324,22 +324,56 @@ def test_voxel_centres_are_the_references_to_the_bit(voxel_m):
     assert len(np.unique(keys[kept])) == len(kept) == len(np.unique(keys))
     assert np.all(np.diff(keys[kept]) > 0)
     assert resolution <= np.sqrt(3) * voxel_m
+    # Of the repeated points, the smaller index is the one kept.
+    assert not np.isin(kept, np.arange(500, 1000)[np.isin(np.arange(500), kept)]).any()
 
 
-def test_the_voxel_kernel_refuses_an_order_that_is_not_the_points():
+def test_voxel_centres_of_one_point_and_of_points_in_one_voxel():
+    one = np.array([[0.1, 0.2, 0.3]])
+    assert kernels.nearest_to_voxel_centres(one, one[0], 500.0, np.ones(3, np.int64)) == (
+        [0],
+        0.0,
+    )
+    same = np.repeat(one, 7, axis=0)
+    kept, resolution = kernels.nearest_to_voxel_centres(same, one[0], 500.0, np.ones(3, np.int64))
+    np.testing.assert_array_equal(kept, [0])
+    assert resolution == 0.0
+
+
+def test_the_voxel_kernel_refuses_points_outside_its_grid_and_shapes_that_lie():
     points = _surface_cloud(10, seed=11)
-    origin, scale, keys = _voxel_keys(points, 2 * MM)
-    order = np.arange(10, dtype=np.int64)
-    order[3] = 10
+    origin, scale, dims, _ = _voxel_grid(points, 2 * MM)
     module = kernels.compiled()
-    with pytest.raises(ValueError, match="order must hold"):
-        module.voxel_nearest_centre(points, order, keys, origin, scale, np.empty(10, np.int64))
-    with pytest.raises(ValueError, match="keys holds"):
-        module.voxel_nearest_centre(points, order, keys[:5], origin, scale, np.empty(10, np.int64))
+    out = np.empty(10, np.int64)
+    with pytest.raises(ValueError, match="outside the voxel grid"):
+        module.voxel_nearest_centre(points, origin + 1.0, scale, dims, out)  # below the origin
+    with pytest.raises(ValueError, match="outside the voxel grid"):
+        module.voxel_nearest_centre(points, origin, scale, np.ones(3, np.int64), out)
+    nan = points.copy()
+    nan[4, 1] = np.nan
+    with pytest.raises(ValueError, match="point 4 lies outside"):
+        module.voxel_nearest_centre(nan, origin, scale, dims, out)
+    with pytest.raises(ValueError, match="out_kept holds"):
+        module.voxel_nearest_centre(points, origin, scale, dims, np.empty(5, np.int64))
+    with pytest.raises(ValueError, match="points holds"):
+        module.voxel_nearest_centre(points.ravel()[:-1], origin, scale, dims, out)
+    with pytest.raises(ValueError, match="dims holds"):
+        module.voxel_nearest_centre(points, origin, scale, dims[:2], out)
+    with pytest.raises(ValueError, match="at least 1"):
+        module.voxel_nearest_centre(points, origin, scale, np.array([0, 5, 5]), out)
+    with pytest.raises(ValueError, match="too many"):
+        module.voxel_nearest_centre(points, origin, scale, np.full(3, 2**21), out)
     with pytest.raises(ValueError, match="scale"):
-        module.voxel_nearest_centre(
-            points, np.arange(10), keys, origin, np.nan, np.empty(10, np.int64)
-        )
+        module.voxel_nearest_centre(points, origin, np.nan, dims, out)
+
+
+def test_a_scan_too_wide_for_its_voxels_is_refused_before_any_cast():
+    from recon.collision import Cell
+
+    with pytest.raises(ValueError, match="too many"):
+        Cell(scan_points_m=np.array([[0.0, 0.0, 0.1], [1e300, 1e300, 1e300]]))
+    with pytest.raises(ValueError, match="millimetres"):
+        Cell(scan_points_m=np.array([[0.0, 0.0, 0.1], [4e6, 4e6, 4e6]]), voxel_m=0.002)
 
 
 def test_a_forked_process_runs_the_threaded_kernels():
