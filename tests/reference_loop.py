@@ -495,8 +495,9 @@ def _lifted_off(centres, targets, near, lifted, model) -> np.ndarray:
     on each side the segment has by a point ``near`` its face, the scan running from each flank's
     target to the lifted one's, and free air between the lifted point and its target.
 
-    The runs are the whole segment's (the batched code takes them within each chunk of
-    ``recon.methods.common.CHUNK`` points, which only a segment longer than that tells apart).
+    The runs are the whole segment's (the batched code takes them within each of its chunks,
+    ``recon.methods.common.balanced_chunks``, which only a segment longer than
+    ``recon.methods.common.CHUNK`` points tells apart).
     """
     n = len(centres)
     out = np.zeros(n, bool)

@@ -304,3 +304,19 @@ def test_inverse_registration_maps_the_scan_onto_the_trace(box):
     T = recon.registration.T_scan_tracker
     back = apply_transform(invert_transform(T), apply_transform(T, box.truth_m))
     np.testing.assert_allclose(back, box.truth_m, atol=1e-12)
+
+
+def test_chunks_are_balanced_over_the_threads_and_cover_every_row_once():
+    from recon.methods.common import CHUNK, balanced_chunks
+
+    assert balanced_chunks(0, 2) == []
+    assert balanced_chunks(CHUNK, 2) == [slice(0, CHUNK)]  # not cut: no more often than CHUNK
+    for n in (CHUNK + 1, 5 * CHUNK - 7, 10_000, 100_000):
+        for threads in (1, 2, 4):
+            rows = balanced_chunks(n, threads)
+            assert np.array_equal(np.concatenate([np.arange(n)[r] for r in rows]), np.arange(n))
+            sizes = [r.stop - r.start for r in rows]
+            assert max(sizes) <= CHUNK
+            assert len(rows) % threads == 0  # no thread idle while another works
+            # Equal but for the last, which is short by less than one row per chunk.
+            assert len(set(sizes[:-1])) == 1 and 0 <= sizes[0] - sizes[-1] < len(rows)
