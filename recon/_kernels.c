@@ -852,6 +852,208 @@ done:
     return result;
 }
 
+/* ---------------------------------------------------------------------------------------- */
+/* Weighted moments of batches of 3-D neighbourhoods                                          */
+/* ---------------------------------------------------------------------------------------- */
+
+PyDoc_STRVAR(weighted_moments_doc,
+"weighted_moments(points, weights, b, k, out_total, out_mean, out_cov)\n"
+"\n"
+"For each of b neighbourhoods of k points (points (b, k, 3), weights (b, k), float64): the\n"
+"total weight, the weighted mean (sum w p / total; total 1 where it is not positive) and the\n"
+"weighted covariance about that mean (sum w (p - mean)(p - mean)^T / the same), into\n"
+"out_total (b,), out_mean (b, 3), out_cov (b, 3, 3). The reference (recon.fitting's numpy\n"
+"weighted_pca) sums through BLAS in its own order: the two agree to rounding, not to the bit.");
+
+static PyObject *weighted_moments(PyObject *self, PyObject *args)
+{
+    Py_buffer points = {0}, weights = {0}, out_total = {0}, out_mean = {0}, out_cov = {0};
+    Py_ssize_t b, k;
+    PyObject *result = NULL;
+    if (!PyArg_ParseTuple(args, "y*y*nnw*w*w*", &points, &weights, &b, &k, &out_total,
+                          &out_mean, &out_cov))
+        return NULL;
+    if (b < 0 || k < 0 || (b > 0 && k > PY_SSIZE_T_MAX / 24 / b)) {
+        PyErr_SetString(PyExc_ValueError, "b and k must be >= 0 (and b * k * 3 floats fit)");
+        goto done;
+    }
+    if (expect_size(&points, b * k, 3 * sizeof(double), "points") ||
+        expect_size(&weights, b * k, sizeof(double), "weights") ||
+        expect_size(&out_total, b, sizeof(double), "out_total") ||
+        expect_size(&out_mean, b, 3 * sizeof(double), "out_mean") ||
+        expect_size(&out_cov, b, 9 * sizeof(double), "out_cov"))
+        goto done;
+    const double *p = points.buf, *w = weights.buf;
+    double *total = out_total.buf, *mean = out_mean.buf, *cov = out_cov.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < b; i++) {
+        const double *pi = p + i * k * 3, *wi = w + i * k;
+        double t = 0.0, m[3] = {0.0, 0.0, 0.0};
+        for (Py_ssize_t j = 0; j < k; j++) {
+            t += wi[j];
+            m[0] += wi[j] * pi[3 * j];
+            m[1] += wi[j] * pi[3 * j + 1];
+            m[2] += wi[j] * pi[3 * j + 2];
+        }
+        double safe = t > 0.0 ? t : 1.0;
+        for (int a = 0; a < 3; a++) m[a] /= safe;
+        double c00 = 0, c01 = 0, c02 = 0, c11 = 0, c12 = 0, c22 = 0;
+        for (Py_ssize_t j = 0; j < k; j++) {
+            double d0 = pi[3 * j] - m[0], d1 = pi[3 * j + 1] - m[1], d2 = pi[3 * j + 2] - m[2];
+            double w0 = wi[j] * d0, w1 = wi[j] * d1, w2 = wi[j] * d2;
+            c00 += w0 * d0;
+            c01 += w0 * d1;
+            c02 += w0 * d2;
+            c11 += w1 * d1;
+            c12 += w1 * d2;
+            c22 += w2 * d2;
+        }
+        total[i] = t;
+        for (int a = 0; a < 3; a++) mean[3 * i + a] = m[a];
+        double *ci = cov + 9 * i;
+        ci[0] = c00 / safe;
+        ci[1] = ci[3] = c01 / safe;
+        ci[2] = ci[6] = c02 / safe;
+        ci[4] = c11 / safe;
+        ci[5] = ci[7] = c12 / safe;
+        ci[8] = c22 / safe;
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_NewRef(Py_None);
+done:
+    PyBuffer_Release(&points);
+    PyBuffer_Release(&weights);
+    PyBuffer_Release(&out_total);
+    PyBuffer_Release(&out_mean);
+    PyBuffer_Release(&out_cov);
+    return result;
+}
+
+/* ---------------------------------------------------------------------------------------- */
+/* Weighted least squares in batches of neighbourhoods                                        */
+/* ---------------------------------------------------------------------------------------- */
+
+/* Shapes of a batch of least-squares problems, checked against the buffers. */
+static int expect_least_squares(const Py_buffer *design, const Py_buffer *y,
+                                const Py_buffer *weights, Py_ssize_t b, Py_ssize_t k,
+                                Py_ssize_t p, Py_ssize_t m)
+{
+    if (b < 0 || k < 0 || p < 1 || p > 64 || m < 1 || m > 64 ||
+        (b > 0 && k > PY_SSIZE_T_MAX / 8 / 64 / b)) {
+        PyErr_SetString(PyExc_ValueError,
+                        "b and k must be >= 0, p and m in [1, 64] (and b * k * 64 floats fit)");
+        return -1;
+    }
+    if (expect_size(design, b * k, p * (Py_ssize_t)sizeof(double), "design") ||
+        expect_size(y, b * k, m * (Py_ssize_t)sizeof(double), "y") ||
+        expect_size(weights, b * k, sizeof(double), "weights"))
+        return -1;
+    return 0;
+}
+
+PyDoc_STRVAR(normal_equations_doc,
+"normal_equations(design, y, weights, b, k, p, m, out_normal, out_rhs)\n"
+"\n"
+"For each of b problems of k rows (design (b, k, p), y (b, k, m), weights (b, k), float64):\n"
+"out_normal (b, p, p) = A^T W A and out_rhs (b, p, m) = A^T W y, summed over the rows in\n"
+"order (p and m at most 64). The reference (recon.fitting's numpy fit_linear) multiplies\n"
+"through BLAS in its own order: the two agree to rounding, not to the bit.");
+
+static PyObject *normal_equations(PyObject *self, PyObject *args)
+{
+    Py_buffer design = {0}, y = {0}, weights = {0}, out_normal = {0}, out_rhs = {0};
+    Py_ssize_t b, k, p, m;
+    PyObject *result = NULL;
+    if (!PyArg_ParseTuple(args, "y*y*y*nnnnw*w*", &design, &y, &weights, &b, &k, &p, &m,
+                          &out_normal, &out_rhs))
+        return NULL;
+    if (expect_least_squares(&design, &y, &weights, b, k, p, m) ||
+        expect_size(&out_normal, b, p * p * (Py_ssize_t)sizeof(double), "out_normal") ||
+        expect_size(&out_rhs, b, p * m * (Py_ssize_t)sizeof(double), "out_rhs"))
+        goto done;
+    const double *a = design.buf, *yy = y.buf, *w = weights.buf;
+    double *normal = out_normal.buf, *rhs = out_rhs.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < b; i++) {
+        double *ni = normal + i * p * p, *ri = rhs + i * p * m;
+        memset(ni, 0, (size_t)(p * p) * sizeof(double));
+        memset(ri, 0, (size_t)(p * m) * sizeof(double));
+        for (Py_ssize_t j = 0; j < k; j++) {
+            Py_ssize_t row = i * k + j;
+            double wj = w[row];
+            if (wj == 0.0) continue; /* padding adds nothing (a finite row times zero) */
+            const double *aj = a + row * p, *yj = yy + row * m;
+            for (Py_ssize_t r = 0; r < p; r++) {
+                double wa = wj * aj[r];
+                for (Py_ssize_t c = r; c < p; c++) ni[r * p + c] += wa * aj[c];
+                for (Py_ssize_t c = 0; c < m; c++) ri[r * m + c] += wa * yj[c];
+            }
+        }
+        for (Py_ssize_t r = 0; r < p; r++)
+            for (Py_ssize_t c = 0; c < r; c++) ni[r * p + c] = ni[c * p + r];
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_NewRef(Py_None);
+done:
+    PyBuffer_Release(&design);
+    PyBuffer_Release(&y);
+    PyBuffer_Release(&weights);
+    PyBuffer_Release(&out_normal);
+    PyBuffer_Release(&out_rhs);
+    return result;
+}
+
+PyDoc_STRVAR(residual_squares_doc,
+"residual_squares(design, y, weights, coef, b, k, p, m, out)\n"
+"\n"
+"out (b,) = sum over rows and outputs of w (y - A coef)^2 for each of b problems (design\n"
+"(b, k, p), y (b, k, m), weights (b, k), coef (b, p, m), float64). Agrees with the numpy\n"
+"reference to rounding.");
+
+static PyObject *residual_squares(PyObject *self, PyObject *args)
+{
+    Py_buffer design = {0}, y = {0}, weights = {0}, coef = {0}, out = {0};
+    Py_ssize_t b, k, p, m;
+    PyObject *result = NULL;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*nnnnw*", &design, &y, &weights, &coef, &b, &k, &p, &m,
+                          &out))
+        return NULL;
+    if (expect_least_squares(&design, &y, &weights, b, k, p, m) ||
+        expect_size(&coef, b, p * m * (Py_ssize_t)sizeof(double), "coef") ||
+        expect_size(&out, b, sizeof(double), "out"))
+        goto done;
+    const double *a = design.buf, *yy = y.buf, *w = weights.buf, *cf = coef.buf;
+    double *sq = out.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < b; i++) {
+        const double *ci = cf + i * p * m;
+        double total = 0.0;
+        for (Py_ssize_t j = 0; j < k; j++) {
+            Py_ssize_t row = i * k + j;
+            if (w[row] == 0.0) continue;
+            const double *aj = a + row * p, *yj = yy + row * m;
+            double part = 0.0;
+            for (Py_ssize_t c = 0; c < m; c++) {
+                double fitted = 0.0;
+                for (Py_ssize_t r = 0; r < p; r++) fitted += aj[r] * ci[r * m + c];
+                double e = yj[c] - fitted;
+                part += e * e;
+            }
+            total += w[row] * part;
+        }
+        sq[i] = total;
+    }
+    Py_END_ALLOW_THREADS
+    result = Py_NewRef(Py_None);
+done:
+    PyBuffer_Release(&design);
+    PyBuffer_Release(&y);
+    PyBuffer_Release(&weights);
+    PyBuffer_Release(&coef);
+    PyBuffer_Release(&out);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"grid_nearest", grid_nearest, METH_VARARGS, grid_nearest_doc},
     {"grid_ball_sums", grid_ball_sums, METH_VARARGS, grid_ball_sums_doc},
@@ -859,6 +1061,9 @@ static PyMethodDef methods[] = {
     {"hough_votes", hough_votes, METH_VARARGS, hough_votes_doc},
     {"voxel_nearest_centre", voxel_nearest_centre, METH_VARARGS, voxel_nearest_centre_doc},
     {"gather_rows", gather_rows, METH_VARARGS, gather_rows_doc},
+    {"weighted_moments", weighted_moments, METH_VARARGS, weighted_moments_doc},
+    {"normal_equations", normal_equations, METH_VARARGS, normal_equations_doc},
+    {"residual_squares", residual_squares, METH_VARARGS, residual_squares_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -822,7 +822,9 @@ def _voxel_downsample(points: FloatArray, voxel_m: float) -> tuple[FloatArray, f
     # The largest voxel index along each axis is the farthest point's: (p - origin) * scale
     # never decreases as p grows, nor does its integer part (the kernel takes each point's).
     span = (top - origin) * scale
-    if float(np.prod(np.floor(span) + 1.0)) >= 2.0**62:  # before any cast to int64
+    with np.errstate(over="ignore"):  # an inf product is as refused as a finite one
+        voxels = float(np.prod(np.floor(span) + 1.0))
+    if voxels >= 2.0**62:  # before any cast to int64
         raise ValueError(
             f"the scan spans {np.floor(span) + 1} voxels of {voxel_m} m: too many; use a "
             "larger voxel_m or crop the scan (is it in millimetres?)"

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from recon.arrays import FloatArray
-from recon.kernels import gather_rows
+from recon.kernels import gather_rows, normal_equations, residual_squares, weighted_moments
 
 
 def window_indices(n_points: int, half_width: int) -> NDArray[np.int64]:
@@ -96,14 +96,21 @@ def weighted_pca(points: FloatArray, weights: FloatArray | None = None) -> PCA:
     points = np.asarray(points, dtype=np.float64)
     if weights is None:
         weights = np.ones(points.shape[:2])
-    total = weights.sum(axis=1)
-    safe = np.where(total > 0, total, 1.0)
-    # Batched matmul rather than a three-operand einsum: several times faster on (B, K, 3).
-    mean = np.matmul(weights[:, None, :], points)[:, 0] / safe[:, None]
-    centred = points - mean[:, None, :]
-    cov = (
-        np.matmul((centred * weights[..., None]).transpose(0, 2, 1), centred) / safe[:, None, None]
-    )
+    # One compiled pass per neighbourhood (eight times numpy's on (256, 768, 3): no (B, K, 3)
+    # temporaries); the same sums in another order, so the same to rounding.
+    moments = weighted_moments(points, weights)
+    if moments is not None:
+        total, mean, cov = moments
+    else:
+        total = weights.sum(axis=1)
+        safe = np.where(total > 0, total, 1.0)
+        # Batched matmul rather than a three-operand einsum: several times faster on (B, K, 3).
+        mean = np.matmul(weights[:, None, :], points)[:, 0] / safe[:, None]
+        centred = points - mean[:, None, :]
+        cov = (
+            np.matmul((centred * weights[..., None]).transpose(0, 2, 1), centred)
+            / safe[:, None, None]
+        )
     variances, vectors = np.linalg.eigh(cov)  # ascending
     return PCA(
         mean=mean,
@@ -180,23 +187,36 @@ def fit_linear(design: FloatArray, y: FloatArray, weights: FloatArray | None) ->
     if weights is None:
         weights = np.ones(design.shape[:2])
     p = design.shape[2]
-    weighted = (design * weights[..., None]).transpose(0, 2, 1)  # (B, p, K)
-    normal = np.matmul(weighted, design)
-    rhs = np.matmul(weighted, y)
+    # The normal equations and the residuals in compiled passes where the kernels are on (the
+    # same sums in another order: the same to rounding), numpy's (B, p, K) products otherwise.
+    compiled = normal_equations(design, y, weights)
+    normal: FloatArray
+    rhs: FloatArray
+    if compiled is not None:
+        normal, rhs = compiled
+    else:
+        weighted = (design * weights[..., None]).transpose(0, 2, 1)  # (B, p, K)
+        normal = np.matmul(weighted, design)
+        rhs = np.matmul(weighted, y)
     # A ridge of 1e-12 of the matrix's scale keeps an underdetermined neighbourhood (which the
     # caller rejects by its dof) from making the whole batched solve fail; on a well-posed one
     # it changes the result by about 1e-12 relative.
     trace = np.trace(normal, axis1=1, axis2=2) / p
     ridge = 1e-12 * np.where(trace > 0, trace, 1e12)  # an empty neighbourhood solves to zero
-    normal_inverse = np.linalg.inv(normal + ridge[:, None, None] * np.eye(p))
+    normal_inverse = np.asarray(
+        np.linalg.inv(normal + ridge[:, None, None] * np.eye(p)), dtype=np.float64
+    )
     coef = normal_inverse @ rhs
-    residual = y - np.matmul(design, coef)
     count = np.count_nonzero(weights > 0, axis=1).astype(np.float64)
     dof = count - p
     wsum = weights.sum(axis=1)
     # Weighted residual variance, normalised so 0/1 weights give the usual dof-corrected value.
     mean_w = np.where(count > 0, wsum / np.maximum(count, 1.0), 1.0)
-    sq = np.einsum("bk,bkm->b", weights, residual**2) / mean_w
+    squares = residual_squares(design, y, weights, coef) if compiled is not None else None
+    if squares is None:
+        residual = y - np.matmul(design, coef)
+        squares = np.einsum("bk,bkm->b", weights, residual**2)
+    sq = squares / mean_w
     rms = np.sqrt(sq / np.maximum(dof * y.shape[2], 1.0))
     return LinearFit(coef=coef, rms=rms, normal_inverse=normal_inverse, dof=dof)
 

@@ -19,6 +19,12 @@ How close each kernel is to its reference (tests/recon/test_kernels.py holds the
   sort by voxel and distance to its centre, to the bit (the kernel hashes the voxels instead
   of sorting the points).
 - :func:`gather_rows`: numpy's fancy indexing with the padding zeroed, to the bit (a copy).
+- :func:`weighted_moments`, :func:`normal_equations`, :func:`residual_squares` (the fits' sums:
+  weighted PCA, weighted least squares): the same terms added in row order where numpy's
+  matmul adds them in BLAS's, so the same to rounding, not to the bit (about 1e-16 relative;
+  a whole reconstruction moved 3e-15 m at most, tests/recon/test_kernels.py holds it within
+  1e-12 m with every decision the same). Rows of zero weight are skipped, where numpy adds
+  zero times them (NaN for a non-finite one: the callers' padding is zeros).
 
 Why C and not numba (docs/speed.md): a C extension loads in well under a millisecond and is
 compiled once at install, where numba added 0.35-0.6 s to every process start and half a minute
@@ -556,3 +562,108 @@ def gather_rows(values: FloatArray, index: NDArray[np.int64], fill_index: int) -
     out = np.empty((*flat.shape, *values.shape[1:]))
     kernels.gather_rows(rows, len(rows), rows.shape[1], flat, int(fill_index), out)
     return out
+
+
+def weighted_moments(
+    points: FloatArray, weights: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+    """Each neighbourhood's total weight, weighted mean and weighted covariance about it, in one
+    compiled pass per neighbourhood, or None where the kernels are off (the caller then runs
+    :func:`recon.fitting.weighted_pca`'s numpy code, the reference).
+
+    Parameters
+    ----------
+    points : ndarray of shape (B, K, 3)
+    weights : ndarray of shape (B, K)
+
+    Returns
+    -------
+    total : ndarray of shape (B,)
+    mean : ndarray of shape (B, 3)
+        ``sum w p / total`` (``total`` read as 1 where it is not positive).
+    covariance : ndarray of shape (B, 3, 3)
+        ``sum w (p - mean)(p - mean)^T`` over the same.
+    """
+    kernels = compiled()
+    if kernels is None:
+        return None
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    w = np.ascontiguousarray(weights, dtype=np.float64)
+    if p.ndim != 3 or p.shape[2] != 3 or w.shape != p.shape[:2]:
+        raise ValueError(f"points {p.shape} and weights {w.shape} must be (B, K, 3) and (B, K)")
+    b, k = w.shape
+    total, mean, covariance = np.empty(b), np.empty((b, 3)), np.empty((b, 3, 3))
+    kernels.weighted_moments(p, w, b, k, total, mean, covariance)
+    return total, mean, covariance
+
+
+def normal_equations(
+    design: FloatArray, y: FloatArray, weights: FloatArray
+) -> tuple[FloatArray, FloatArray] | None:
+    """``A^T W A`` and ``A^T W y`` of each problem of a batch in one compiled pass (rows of zero
+    weight skipped), or None where the kernels are off (the caller then runs
+    :func:`recon.fitting.fit_linear`'s numpy code, the reference).
+
+    Parameters
+    ----------
+    design : ndarray of shape (B, K, p)
+    y : ndarray of shape (B, K, m)
+    weights : ndarray of shape (B, K)
+
+    Returns
+    -------
+    normal : ndarray of shape (B, p, p)
+    rhs : ndarray of shape (B, p, m)
+    """
+    kernels = compiled()
+    if kernels is None:
+        return None
+    a, yy, w, (b, k, p, m) = _least_squares_arrays(design, y, weights)
+    normal, rhs = np.empty((b, p, p)), np.empty((b, p, m))
+    kernels.normal_equations(a, yy, w, b, k, p, m, normal, rhs)
+    return normal, rhs
+
+
+def residual_squares(
+    design: FloatArray, y: FloatArray, weights: FloatArray, coef: FloatArray
+) -> FloatArray | None:
+    """``sum w |y - A coef|^2`` of each problem of a batch (rows of zero weight skipped), or None
+    where the kernels are off.
+
+    Parameters
+    ----------
+    design, y, weights :
+        As for :func:`normal_equations`.
+    coef : ndarray of shape (B, p, m)
+
+    Returns
+    -------
+    ndarray of shape (B,)
+    """
+    kernels = compiled()
+    if kernels is None:
+        return None
+    a, yy, w, (b, k, p, m) = _least_squares_arrays(design, y, weights)
+    c = np.ascontiguousarray(coef, dtype=np.float64)
+    if c.shape != (b, p, m):
+        raise ValueError(f"coef has shape {c.shape}, the problems say {(b, p, m)}")
+    out = np.empty(b)
+    kernels.residual_squares(a, yy, w, c, b, k, p, m, out)
+    return out
+
+
+def _least_squares_arrays(
+    design: FloatArray, y: FloatArray, weights: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, tuple[int, int, int, int]]:
+    """The arrays of a batch of least-squares problems as the kernels take them, and (B, K, p,
+    m); a ValueError where the shapes disagree."""
+    a = np.ascontiguousarray(design, dtype=np.float64)
+    yy = np.ascontiguousarray(y, dtype=np.float64)
+    w = np.ascontiguousarray(weights, dtype=np.float64)
+    if a.ndim != 3 or yy.ndim != 3 or w.shape != a.shape[:2] or yy.shape[:2] != a.shape[:2]:
+        raise ValueError(
+            f"design {a.shape}, y {yy.shape} and weights {w.shape} must be (B, K, p), (B, K, m) "
+            "and (B, K)"
+        )
+    b, k, p = a.shape
+    return a, yy, w, (b, k, p, yy.shape[2])
