@@ -437,12 +437,21 @@ class RigidMotion:
         return spread
 
     def describe(self, direction: FloatArray) -> str:
-        """A twist direction in words: turning about an axis, or sliding along a direction."""
+        """A twist direction in words: turning about an axis, or sliding along a direction.
+
+        A direction and its opposite are the same motion (they come from eigenvectors, whose
+        sign is arbitrary): the one written is the one whose largest component is positive, so
+        the same motion reads the same whatever rounding flipped the sign.
+        """
         rotation, translation = direction[:3], direction[3:]
-        if np.linalg.norm(rotation) >= np.linalg.norm(translation):
-            x, y, z = rotation / np.linalg.norm(rotation)
+        turning = bool(np.linalg.norm(rotation) >= np.linalg.norm(translation))
+        axis = rotation if turning else translation
+        axis = axis / np.linalg.norm(axis)
+        if axis[int(np.argmax(np.abs(axis)))] < 0:
+            axis = -axis
+        x, y, z = (float(v) + 0.0 for v in np.round(axis, 2))  # + 0.0: no "-0.00"
+        if turning:
             return f"turning about ({x:.2f}, {y:.2f}, {z:.2f})"
-        x, y, z = translation / np.linalg.norm(translation)
         return f"sliding along ({x:.2f}, {y:.2f}, {z:.2f})"
 
 

@@ -183,3 +183,20 @@ def test_registration_reports_how_far_the_path_moved_not_where_the_scanner_stand
     print(f"path moved {reg.path_moved_mean_m * 1e3:.2f} mm (true {expected.mean() * 1e3:.2f})")
     assert abs(reg.path_moved_mean_m - expected.mean()) < 1e-3
     assert reg.path_moved_max_m < expected.max() + 1e-3
+
+
+def test_a_motion_and_its_opposite_read_the_same():
+    """Eigenvectors come with an arbitrary sign, which rounding can flip: the words must not."""
+    from recon.icp import RigidMotion
+
+    motion = RigidMotion(np.zeros(3), 0.1)
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        twist = rng.normal(size=6)
+        twist[rng.integers(0, 2) * 3 : rng.integers(0, 2) * 3 + 3] *= 1e-3  # either kind
+        words = motion.describe(twist)
+        assert words == motion.describe(-twist)
+        x, y, z = (float(v) for v in words.split("(")[1].rstrip(")").split(", "))
+        assert max((x, y, z), key=abs) > 0
+    assert motion.describe(np.r_[0, 0, 0, -1.0, 0, 0]) == "sliding along (1.00, 0.00, 0.00)"
+    assert motion.describe(np.r_[0, 0, -2.0, 0, 0, 0]) == "turning about (0.00, 0.00, 1.00)"
