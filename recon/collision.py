@@ -1493,7 +1493,7 @@ def check_motion(
     horizon_m = max(horizon_m, refine_below)  # exact up to exact_below_m, whatever the horizon
     worst_tolerance = 2 * motion_bound_fraction * margin_m + fine_m / 2 + cell.scan_resolution_m
     exemption = _contact_exemption(
-        arm, q, phase, T_ft, tool, cell, contact_zone, sweep, margin_m, worst_tolerance, workers
+        arm, q, phase, T_ft, tool, cell, contact_zone, sweep, margin_m, worst_tolerance
     )
 
     # Clearances at the checked configurations: the mounting plane, planes and boxes, the arm
@@ -1703,7 +1703,6 @@ def _contact_exemption(
     sweep: _Sweep,
     margin_m: float,
     worst_tolerance: float,
-    workers: int,
 ) -> _Exemption:
     """What is exempt from the scan check, and the scan it sees instead."""
     L, M = len(sweep.names), len(q)

@@ -8,10 +8,13 @@ imported, :func:`import_toppra` puts stand-ins for ``matplotlib`` and ``matplotl
 the first attribute read from it imports the real module and answers from that (so a plot helper
 still works, only later).
 
-Why not ``importlib.util.LazyLoader``: in Python 3.11 two threads touching a lazy module for the
-first time can both run its loader; the service plans on worker threads. Here one lock covers the
-swap in ``sys.modules`` and the real import, and the stand-ins are in ``sys.modules`` only while
-that lock is held, so no other import of matplotlib ever sees one.
+The stand-ins are placed only where the calling thread is the process's only thread: another
+thread importing matplotlib (or one of its submodules, which a stand-in cannot provide) during
+that window would be handed a stand-in. Elsewhere (the service's processes, a CLI command after
+its worker threads started) toppra is imported as it is, matplotlib with it; ``teachpath plan``
+imports toppra first thing for that reason. Why not ``importlib.util.LazyLoader``: in Python
+3.11 two threads touching a lazy module for the first time can both run its loader. One lock
+covers the swap in ``sys.modules`` and the first real import through a stand-in.
 """
 
 from __future__ import annotations
@@ -50,8 +53,8 @@ def _real(name: str) -> types.ModuleType:
 
 def import_toppra() -> Any:
     """The ``toppra`` module, with ``toppra.algorithm`` and ``toppra.constraint`` imported,
-    without importing matplotlib (unless something else already has). Typed ``Any``: toppra
-    has no type information.
+    without importing matplotlib where this thread is the only one (and nothing has imported
+    matplotlib already). Typed ``Any``: toppra has no type information.
 
     Safe to call from several threads at once, and as often as wanted.
     """
@@ -59,8 +62,10 @@ def import_toppra() -> Any:
         if "toppra.algorithm" in sys.modules and "toppra.constraint" in sys.modules:
             return sys.modules["toppra"]
         placed = [name for name in DEFERRED if name not in sys.modules]
-        if "matplotlib.pyplot" not in placed:
-            placed = []  # pyplot is loaded already: nothing to spare
+        if "matplotlib.pyplot" not in placed or threading.active_count() > 1:
+            # pyplot is loaded already (nothing to spare), or another thread could import
+            # matplotlib meanwhile and be handed a stand-in.
+            placed = []
         for name in placed:
             sys.modules[name] = _Deferred(name)
         if "matplotlib" in placed:

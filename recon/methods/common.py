@@ -315,10 +315,11 @@ def for_each_chunk(work: Callable[[slice], None], n: int) -> None:
     """Run ``work(rows)`` for every chunk of ``range(n)`` (:func:`balanced_chunks`), on as many
     threads as there are cores.
 
-    ``work`` must only write its own rows of shared arrays, and compute each row from that row
-    alone (how the rows are cut must not change a result). numpy's batched arithmetic, matmul,
-    eigh and SciPy's tree queries release the GIL, so chunks run in parallel (the per-point stage
-    of a 10k-point edge: 0.29 s on one thread, 0.21 s on two; the same points).
+    ``work`` must only write its own rows of shared arrays (a row's result may depend on the
+    other rows of its chunk only as the lift-off runs do, see :func:`balanced_chunks`). numpy's
+    batched arithmetic, matmul, eigh and SciPy's tree queries release the GIL, so chunks run in
+    parallel (the per-point stage of a 10k-point edge: 0.29 s on one thread, 0.21 s on two; the
+    same points).
     """
     rows = balanced_chunks(n, min(MAX_CHUNK_THREADS, _cores()))
     if len(rows) <= 1:

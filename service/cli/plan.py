@@ -141,10 +141,14 @@ def run(args: argparse.Namespace) -> int:
 
     from drivers.export import write_trajectory_csv
     from recon.plan_params import PlanParams
+    from recon.toppra_import import import_toppra
     from service import pipelines
     from service.artifacts import TrajectorySummary
     from service.schemas import TRAJECTORY_PARAMS
 
+    # toppra now, while this is the process's only thread: then without matplotlib (0.3 s;
+    # recon.toppra_import). Later, the scan model's threads would rule that out.
+    import_toppra()
     out = check_output(args.out, ".csv")
     plot = check_output(args.plot, ".png") if args.plot else None  # refused before any work
     params = params_from_args(PlanParams, args, TRAJECTORY_PARAMS)

@@ -68,6 +68,60 @@ def test_a_plot_helper_gets_the_real_pyplot_on_first_use():
     assert out == "ok"
 
 
+def test_with_another_thread_alive_toppra_is_imported_as_it_is():
+    """A stand-in in sys.modules would be handed to another thread importing matplotlib (or a
+    submodule, which it cannot provide): with one alive, no stand-in is placed."""
+    out = _run(
+        """
+        import sys
+        import threading
+        from recon.toppra_import import _Deferred, import_toppra
+
+        done = threading.Event()
+        other = threading.Thread(target=done.wait)
+        other.start()
+        import_toppra()
+        import toppra.algorithm.algorithm as algorithm
+
+        assert not isinstance(algorithm.plt, _Deferred)
+        assert "matplotlib.backends" in sys.modules or "matplotlib.pyplot" in sys.modules
+        done.set()
+        other.join()
+        print("ok")
+        """
+    )
+    assert out == "ok"
+
+
+def test_plan_imports_toppra_before_its_threads_start(tmp_path):
+    """``teachpath plan`` imports toppra first thing, alone, so without matplotlib: in a fresh
+    process the trajectory is planned and matplotlib never loaded (no --plot)."""
+    from drivers.scanning.pointcloud import write_scan
+    from drivers.tracking.canonical_csv import write_trace_csv
+    from recon import scenes
+    from service.cli import main
+
+    scene = scenes.serpentine_plate(400, 20_000)
+    trace, scan, recon = tmp_path / "trace.csv", tmp_path / "scan.ply", tmp_path / "recon.csv"
+    write_trace_csv(trace, scene.recording)
+    write_scan(scan, scene.scan)
+    assert main(["reconstruct", str(trace), "--scan", str(scan), "--out", str(recon)]) == 0
+    out = _run(
+        f"""
+        import sys
+        from service.cli import main
+
+        args = [{str(recon)!r}, "--scan", {str(scan)!r}, "--robot", "ur10e", "--speed-m-s",
+                "0.1", "--out", {str(tmp_path / "trajectory.csv")!r}]
+        assert main(["plan", *args]) == 0
+        assert "matplotlib.pyplot" not in sys.modules
+        print("ok")
+        """
+    )
+    assert out.endswith("ok")
+    assert (tmp_path / "trajectory.csv").exists()
+
+
 def test_threads_importing_at_once_get_one_toppra_and_leave_no_stand_in():
     out = _run(
         """
