@@ -654,7 +654,6 @@ static inline int64_t voxel_key(const double *p, const double *o, double scale, 
         double rel = (p[a] - o[a]) * scale;
         if (!(rel >= 0.0) || !(rel < (double)dims[a])) return -1;
         c[a] = (int64_t)rel;
-        if (c[a] >= dims[a]) return -1;
         f[a] = (rel - (double)c[a]) - 0.5;
     }
     *to_centre = f[0] * f[0] + f[1] * f[1] + f[2] * f[2];
@@ -670,6 +669,20 @@ static inline Py_ssize_t voxel_slot(const VoxelSlot *table, size_t mask, int64_t
         const VoxelSlot *slot = &table[h & mask];
         if (slot->key == key || slot->key < 0) return (Py_ssize_t)(h & mask);
     }
+}
+
+/* The table's slots moved into one twice as large (capacity doubles; NULL, the old table kept,
+ * when memory runs out). */
+static VoxelSlot *wider_voxel_table(VoxelSlot *table, size_t capacity)
+{
+    VoxelSlot *wider = PyMem_RawMalloc(2 * capacity * sizeof(VoxelSlot));
+    if (wider == NULL) return NULL;
+    size_t wider_mask = 2 * capacity - 1;
+    for (size_t h = 0; h < 2 * capacity; h++) wider[h].key = -1;
+    for (size_t h = 0; h < capacity; h++)
+        if (table[h].key >= 0) wider[voxel_slot(wider, wider_mask, table[h].key)] = table[h];
+    PyMem_RawFree(table);
+    return wider;
 }
 
 static PyObject *voxel_nearest_centre(PyObject *self, PyObject *args)
@@ -733,21 +746,15 @@ static PyObject *voxel_nearest_centre(PyObject *self, PyObject *args)
             slot->key = key;
             slot->best = i;
             slot->to_centre = to_centre;
-            if (2 * (size_t)++groups > capacity) {
-                VoxelSlot *wider = PyMem_RawMalloc(2 * capacity * sizeof(VoxelSlot));
+            if (2 * (size_t)++groups > capacity) { /* kept at most half full */
+                VoxelSlot *wider = wider_voxel_table(table, capacity);
                 if (wider == NULL) {
                     out_of_memory = 1;
                     break;
                 }
-                size_t wider_mask = 2 * capacity - 1;
-                for (size_t h = 0; h < 2 * capacity; h++) wider[h].key = -1;
-                for (size_t h = 0; h < capacity; h++)
-                    if (table[h].key >= 0)
-                        wider[voxel_slot(wider, wider_mask, table[h].key)] = table[h];
-                PyMem_RawFree(table);
                 table = wider;
                 capacity *= 2;
-                mask = wider_mask;
+                mask = capacity - 1;
             }
         } else if (to_centre < slot->to_centre) {
             slot->best = i;

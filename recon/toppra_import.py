@@ -52,14 +52,14 @@ def _real(name: str) -> types.ModuleType:
 
 
 def import_toppra() -> Any:
-    """The ``toppra`` module, with ``toppra.algorithm`` and ``toppra.constraint`` imported,
+    """The ``toppra`` module (its package imports ``toppra.algorithm`` and ``toppra.constraint``),
     without importing matplotlib where this thread is the only one (and nothing has imported
     matplotlib already). Typed ``Any``: toppra has no type information.
 
     Safe to call from several threads at once, and as often as wanted.
     """
     with _LOCK:
-        if "toppra.algorithm" in sys.modules and "toppra.constraint" in sys.modules:
+        if "toppra" in sys.modules:
             return sys.modules["toppra"]
         placed = [name for name in DEFERRED if name not in sys.modules]
         if "matplotlib.pyplot" not in placed or threading.active_count() > 1:
@@ -74,8 +74,6 @@ def import_toppra() -> Any:
             parent.pyplot = sys.modules["matplotlib.pyplot"]
         try:
             import toppra
-            import toppra.algorithm
-            import toppra.constraint
         finally:
             for name in placed:
                 if isinstance(sys.modules.get(name), _Deferred):

@@ -92,9 +92,7 @@ WARM_MODULES = (
     "recon._kernels",
     "recon.plan",
     # Planning imports toppra on first use (recon.toppra_import), not with recon.plan.
-    "recon.toppra_import",
-    "toppra.algorithm",
-    "toppra.constraint",
+    "toppra",
     "recon.touches",
     "recon.calibrate",
     "drivers.robot.dryrun",

@@ -387,10 +387,12 @@ def test_the_tool_may_touch_the_process_path_only_in_the_process_phases(workpiec
     assert hit_links and "tool" not in hit_links, hit_links
 
 
-def test_a_tool_tilted_into_the_workpiece_is_reported_as_the_tool(workpiece_cell):
-    arm = model("ur5e")
+def _tilted_contact(arm, tilt_deg):
+    """The contact plan tilted by ``tilt_deg`` on the upright plan's IK branch, and the
+    check_motion arguments of its process as a contact zone (a 20 mm capsule tool, 10 mm
+    margin)."""
     upright, *_ = _contact_plan(arm, 0.0)
-    joints, phase, T_ft, process, t = _contact_plan(arm, 60.0, branch=upright.branch)
+    joints, phase, T_ft, process, t = _contact_plan(arm, tilt_deg, branch=upright.branch)
     kw = {
         "T_flange_tcp": T_ft,
         "tool": CapsuleTool(0.02),
@@ -398,6 +400,12 @@ def test_a_tool_tilted_into_the_workpiece_is_reported_as_the_tool(workpiece_cell
         "contact_zone": ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft),
         "t_s": t,
     }
+    return joints, phase, process, kw
+
+
+def test_a_tool_tilted_into_the_workpiece_is_reported_as_the_tool(workpiece_cell):
+    arm = model("ur5e")
+    joints, phase, process, kw = _tilted_contact(arm, 60.0)
     # Tilted 60 deg, the 150 mm tool also passes 5 mm from the forearm's housing from the
     # first sample on: the arm against itself is found first.
     both = check_motion(arm, joints.q_rad, phase, workpiece_cell, **kw)
@@ -992,15 +1000,7 @@ def test_the_exempt_tool_skips_only_full_scan_queries_no_bound_reads(
     from recon import collision
 
     arm = model("ur5e")
-    upright, *_ = _contact_plan(arm, 0.0)
-    joints, phase, T_ft, _, t = _contact_plan(arm, tilt_deg, branch=upright.branch)
-    kw = {
-        "T_flange_tcp": T_ft,
-        "tool": CapsuleTool(0.02),
-        "margin_m": 0.01,
-        "contact_zone": ContactZone.of_process(arm, joints.q_rad[phase == Phase.PROCESS], T_ft),
-        "t_s": t,
-    }
+    joints, phase, _, kw = _tilted_contact(arm, tilt_deg)
     seen = []
     exemption_of = collision._contact_exemption
 
