@@ -893,7 +893,9 @@ def test_a_path_run_is_slowed_paused_and_resumed_by_the_speed_slider_then_put_ba
     def status() -> dict:
         return fake_ur.control("status")
 
-    def wait_for(condition, what: str, timeout_s: float = 20.0) -> None:
+    def wait_for(condition, what: str, timeout_s: float = 60.0) -> None:
+        # A ceiling that catches a hang, not a timing: a fresh clone's busy run once took more
+        # than 20 s to start the path.
         deadline = time.monotonic() + timeout_s
         while not condition():
             assert time.monotonic() < deadline, what
